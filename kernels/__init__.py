@@ -1,0 +1,1 @@
+"""Warp kernels of warpsim, one module per stage (installed as ``warpsim.kernels``)."""

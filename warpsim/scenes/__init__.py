@@ -1,0 +1,1 @@
+"""Scene presets for the command line."""
