@@ -1,2 +1,27 @@
-"""warpsim: physics-based animation solvers written as NVIDIA Warp kernels."""
+"""warpsim: physics-based animation solvers written as NVIDIA Warp kernels.
+
+    import warpsim as ws
+    builder = ws.ModelBuilder()
+    builder.add_particle((0.0, 0.04, 0.0), mass=1.0)
+    sim = ws.Simulator(builder.finalize(), forces=[ws.Gravity()], colliders=[ws.Plane()])
+    sim.step(0.04)
+"""
+
 from ._version import __version__
+from .builder import ModelBuilder
+from .colliders import Box, Collider, Plane, Planes
+from .errors import SimulationError
+from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
+from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, Integrator, SemiImplicitEuler
+from .model import Model, State
+from .pendulum import Pendulum, exact_period
+from .simulator import Simulator
+from .system import DynamicSystem, ParticleSystem, PendulumSystem
+
+__all__ = [
+    "__version__", "ModelBuilder", "Model", "State", "Simulator", "SimulationError",
+    "Force", "Gravity", "ConstantForce", "Wind", "Magnets", "Drag", "Springs", "ForceField",
+    "Collider", "Planes", "Plane", "Box",
+    "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
+    "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
+]
