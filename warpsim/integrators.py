@@ -165,6 +165,10 @@ class ImplicitEuler(Integrator):
             wp.launch(K.apply_block_preconditioner, n, inputs=[inverse, x, y, float(alpha), float(beta), z], device=d)
 
         self.preconditioner = wpl.LinearOperator((n * block, n * block), wp.float32, d, matvec=block_jacobi)
+        # Stateful CG: its work buffers are allocated here, once. On the CPU the residual is
+        # checked every iteration (a read-back costs nothing there); on GPUs every 10.
+        self.cg = wpl.cg(self.A, self.rhs, self.dv, tol=self.cg_tol, atol=1.0e-12, maxiter=self.cg_max_iterations,
+                         M=self.preconditioner, check_every=1 if d.is_cpu else 10, use_cuda_graph=False, run=False)
 
     def assemble(self, system, q, qd, time, time_offset, h):
         """Fill the sparse system matrix A = M - h D - h^2 K at (q, qd) and its block-Jacobi inverse."""
@@ -196,10 +200,7 @@ class ImplicitEuler(Integrator):
             f = self._forces(system, q, qd, time, h)
             _launch(K.implicit_residual, system, [qd, self.v0, f, system.mass, system.inv_mass, h, self.rhs, self.dv])
             self.assemble(system, q, qd, time, h, h)
-            iterations, residual, _ = wpl.cg(
-                self.A, self.rhs, self.dv, tol=self.cg_tol, atol=1.0e-12, maxiter=self.cg_max_iterations,
-                M=self.preconditioner, use_cuda_graph=False,
-            )
+            iterations, residual, _ = self.cg()
             self.last_cg_iterations += int(iterations)
             self.last_cg_residual = float(residual)
             _launch(K.implicit_update, system, [self.q0, self.dv, h, qd, q])

@@ -1,0 +1,59 @@
+"""The lecture's bouncing ball, step by step.
+
+A ball of mass 1 kg starts at rest at (0, 0.04, 0) m and falls under gravity (-9.81 m/s^2) onto a
+floor at y = 0, stepped with semi-implicit Euler at dt = 0.04 s. After the first step
+v_y = -0.3924 m/s and y = 0.024304 m; the second step penetrates the floor, and the collision
+handler reflects the position (h' = r h) and the normal velocity (v' = -r v). The script prints
+the frame table: time, position, velocity.
+
+    python examples/bouncing_ball.py --frames 10 --restitution 0.8
+"""
+
+import argparse
+
+import warp as wp
+
+import warpsim as ws
+
+
+class Example:
+    def __init__(self, restitution=0.5, friction=0.0, height=0.04, dt=0.04, integrator="semi_implicit_euler",
+                 extra_force=None, device=None):
+        builder = ws.ModelBuilder()
+        builder.add_particle((0.0, height, 0.0), mass=1.0)
+        forces = [ws.Gravity((0.0, -9.81, 0.0))]
+        if extra_force is not None:
+            forces.append(ws.ConstantForce(extra_force))
+        self.dt = dt
+        self.sim = ws.Simulator(builder.finalize(device), integrator=integrator, forces=forces,
+                                colliders=[ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=restitution, friction=friction)])
+
+    def step(self):
+        self.sim.step(self.dt)
+
+    def row(self):
+        p = self.sim.state.positions.numpy()[0]
+        v = self.sim.state.velocities.numpy()[0]
+        return self.sim.time, p, v
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--dt", type=float, default=0.04)
+    parser.add_argument("--restitution", type=float, default=0.5)
+    parser.add_argument("--integrator", default="semi_implicit_euler", choices=sorted(ws.INTEGRATORS))
+    parser.add_argument("--device", default=None)
+    args = parser.parse_args(argv)
+    wp.config.quiet = True
+    example = Example(restitution=args.restitution, dt=args.dt, integrator=args.integrator, device=args.device)
+    print(f"{'frame':>5} {'t [s]':>7} {'x':>9} {'y [m]':>10} {'v_y [m/s]':>10}")
+    for frame in range(args.frames + 1):
+        if frame:
+            example.step()
+        t, p, v = example.row()
+        print(f"{frame:5d} {t:7.3f} {p[0]:9.5f} {p[1]:10.6f} {v[1]:10.4f}")
+
+
+if __name__ == "__main__":
+    main()
