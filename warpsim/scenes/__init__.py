@@ -1,1 +1,270 @@
-"""Scene presets for the command line."""
+"""Scene presets for the command line (``warpsim list`` / ``warpsim run SCENE``).
+
+Adding a scene is one decorator on a :class:`Scene` subclass in any module of this package
+(``warpsim/scenes/*.py`` is imported automatically; scenes elsewhere register when their module
+is imported, or through the ``warpsim.scenes`` entry-point group)::
+
+    import warpsim as ws
+    from warpsim.scenes import SimulatorScene, register_scene
+
+    @register_scene("drop", "a column of particles falling on a floor",
+                    params={"count": (100, "number of particles"),
+                            "restitution": (0.5, "normal bounce coefficient in [0, 1]"),
+                            "dt": (1 / 240, "time step [s]"),
+                            "integrator": ("semi_implicit_euler", "time integrator", sorted(ws.INTEGRATORS))})
+    class Drop(SimulatorScene):
+        substeps = 4                       # defaults for --substeps (and --fps when there is no dt)
+
+        def build(self, p):                # p: the parameters, already typed and validated
+            b = ws.ModelBuilder()
+            for i in range(p["count"]):
+                b.add_particle((0.0, 0.1 + 0.02 * i, 0.0), radius=0.01)
+            self.sim = ws.Simulator(b.finalize(self.device), integrator=p["integrator"],
+                                    colliders=[ws.Plane(restitution=p["restitution"])])
+
+        def declare(self, writer):         # prims on the UsdCacheWriter
+            writer.add_points("particles", radius=0.01, from_state=True)
+            writer.add_plane("floor", size=1.0)
+
+        # frame_data() of SimulatorScene writes state positions/velocities into the
+        # from_state points; override it to add more prims (meshes, curves, primvars).
+
+A parameter is ``(default, help)`` or ``(default, help, choices)``; its type comes from the
+default (bool, int, float, str, or a tuple of floats written ``x,y,z``). A ``dt`` parameter is
+the simulation step: frames are then ``dt * substeps`` apart (``--fps`` and ``--set dt`` are
+two ways to say the same thing). Scenes implement :class:`Scene`: ``build``, ``declare``,
+``frame_data``, ``advance``, and ``checkpoint``/``restore`` (for ``--checkpoint-every`` and
+``--resume``; :class:`SimulatorScene` provides all but ``build`` and ``declare``).
+"""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..usd_prims import close_matches
+
+__all__ = ["Param", "Scene", "SimulatorScene", "register_scene", "get_scene", "scenes", "parse_value"]
+
+_REGISTRY = {}
+_LOADED = False
+
+
+@dataclass(frozen=True)
+class Param:
+    """A settable scene parameter: default value (its type is the parameter's), help, choices."""
+
+    default: object
+    help: str = ""
+    choices: tuple = None
+
+    @property
+    def type_name(self):
+        d = self.default
+        if isinstance(d, bool):
+            return "bool"
+        if isinstance(d, int):
+            return "int"
+        if isinstance(d, float):
+            return "float"
+        if isinstance(d, (tuple, list)):
+            return f"{len(d)} floats x,y,..."
+        return "str"
+
+
+def parse_value(param, key, text):
+    """Parse command-line text for ``param``; ValueError naming ``key`` and the expected form."""
+    d = param.default
+    text = str(text).strip()
+    try:
+        if isinstance(d, bool):
+            low = text.lower()
+            if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
+                raise ValueError
+            value = low in ("1", "true", "yes", "on")
+        elif isinstance(d, int):
+            value = int(text)
+        elif isinstance(d, float):
+            value = float(text)
+            if not np.isfinite(value):
+                raise ValueError
+        elif isinstance(d, (tuple, list)):
+            value = tuple(float(x) for x in text.split(","))
+            if len(value) != len(d) or not np.isfinite(value).all():
+                raise ValueError
+        else:
+            value = text
+    except ValueError:
+        raise ValueError(f"{key}={text!r} is not a valid {param.type_name} (default {format_value(d)})") from None
+    if param.choices is not None and value not in param.choices:
+        raise ValueError(f"{key}={text!r} is not one of {', '.join(map(str, param.choices))}."
+                         f"{close_matches(text, param.choices)}")
+    return value
+
+
+def format_value(value):
+    if isinstance(value, (tuple, list)):
+        return ",".join(f"{v:g}" for v in value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+class Scene:
+    """A simulation preset the command line can run and stream to a USD cache.
+
+    Class attributes (set by :func:`register_scene`): ``name``, ``description``, ``params``
+    ({key: Param}). Defaults for the run: ``fps`` (when there is no ``dt`` parameter) and
+    ``substeps``. ``self.params`` holds the typed parameter values, ``self.device`` the Warp device.
+    """
+
+    name = ""
+    description = ""
+    params = {}
+    fps = 60.0
+    substeps = 1
+
+    def __init__(self, params=None, device=None):
+        import warp as wp
+
+        self.device = wp.get_device(device)
+        self.params = self.resolve_params(params or {})
+        self.frame = 0
+        self.build(self.params)
+
+    @classmethod
+    def resolve_params(cls, given):
+        """Defaults overridden by ``given`` (typed values or strings); ValueError on unknown keys."""
+        out = {k: p.default for k, p in cls.params.items()}
+        for key, value in given.items():
+            if key not in cls.params:
+                raise ValueError(f"scene {cls.name!r} has no parameter {key!r}; its parameters are "
+                                 f"{', '.join(cls.params) or 'none'}.{close_matches(key, cls.params)}")
+            param = cls.params[key]
+            out[key] = parse_value(param, key, value) if isinstance(value, str) else value
+        return out
+
+    def build(self, params):
+        """Create the simulation from ``params``."""
+        raise NotImplementedError
+
+    def declare(self, writer):
+        """Declare this scene's prims on a :class:`warpsim.usd.UsdCacheWriter`."""
+        raise NotImplementedError
+
+    def frame_data(self):
+        """The current frame as ``{prim name: {key: array}}`` for ``writer.write_frame``."""
+        raise NotImplementedError
+
+    def advance(self, frame_dt, substeps):
+        """Simulate one frame of ``frame_dt`` [s] in ``substeps`` equal steps."""
+        raise NotImplementedError
+
+    def checkpoint(self):
+        """Everything needed to continue exactly: a dict of NumPy arrays / scalars."""
+        raise NotImplementedError(f"scene {self.name!r} does not support checkpoints")
+
+    def restore(self, data):
+        """Inverse of :meth:`checkpoint`."""
+        raise NotImplementedError(f"scene {self.name!r} does not support checkpoints")
+
+
+class SimulatorScene(Scene):
+    """A Scene driving one ``ws.Simulator`` in ``self.sim``: stepping, checkpoints and the
+    frame data of points prims declared with ``from_state=True`` come for free."""
+
+    sim = None
+    _state_prims = None
+
+    def advance(self, frame_dt, substeps):
+        h = frame_dt / substeps
+        for _ in range(substeps):
+            self.sim.step(h)
+
+    def frame_data(self):
+        state = self.sim.state
+        return {name: {"points": state.positions, "velocities": state.velocities} for name in self._state_prims}
+
+    def declare_state(self, writer, name="particles", **kw):
+        """Declare a points prim filled from the simulator state every frame."""
+        decl = writer.add_points(name, from_state=True, **kw)
+        self._state_prims = (self._state_prims or ()) + (name,)
+        return decl
+
+    def checkpoint(self):
+        from ..checkpoint import simulator_checkpoint
+
+        return simulator_checkpoint(self.sim)
+
+    def restore(self, data):
+        from ..checkpoint import restore_simulator
+
+        restore_simulator(self.sim, data)
+
+
+def register_scene(name, description, params=None, *, fps=None, substeps=None):
+    """Class decorator adding a :class:`Scene` subclass to the registry under ``name``.
+
+    ``params``: {key: (default, help) or (default, help, choices) or Param}."""
+
+    def wrap(cls):
+        if not (isinstance(cls, type) and issubclass(cls, Scene)):
+            raise TypeError(f"@register_scene({name!r}) decorates Scene subclasses, not {cls!r}")
+        old = _REGISTRY.get(name)
+        if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
+            raise ValueError(f"scene name {name!r} is already registered by {_REGISTRY[name].__module__}")
+        spec = {}
+        for key, value in (params or {}).items():
+            spec[key] = value if isinstance(value, Param) else Param(*value) if isinstance(value, tuple) else Param(value)
+            if spec[key].choices is not None:
+                spec[key] = Param(spec[key].default, spec[key].help, tuple(spec[key].choices))
+        cls.name, cls.description, cls.params = name, description, spec
+        if fps is not None:
+            cls.fps = float(fps)
+        if substeps is not None:
+            cls.substeps = int(substeps)
+        _REGISTRY[name] = cls
+        return cls
+
+    return wrap
+
+
+def _load():
+    """Import every module of this package (and entry points) so their scenes register."""
+    global _LOADED
+    if _LOADED:
+        return
+    _LOADED = True
+    for info in pkgutil.iter_modules(__path__, __name__ + "."):
+        try:
+            importlib.import_module(info.name)
+        except Exception as exc:  # a broken scene module must not take the others down
+            print(f"warpsim: warning: scene module {info.name} failed to import: {exc}", file=sys.stderr)
+    try:
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group="warpsim.scenes"):
+            try:
+                ep.load()
+            except Exception as exc:
+                print(f"warpsim: warning: scene entry point {ep.name} failed to load: {exc}", file=sys.stderr)
+    except Exception:  # pragma: no cover - importlib.metadata without group selection (py<3.10)
+        pass
+
+
+def scenes():
+    """{name: Scene class} of every registered scene, sorted by name."""
+    _load()
+    return dict(sorted(_REGISTRY.items()))
+
+
+def get_scene(name):
+    """The Scene class registered as ``name``; ValueError with close matches otherwise."""
+    registry = scenes()
+    if name not in registry:
+        raise ValueError(f"unknown scene {name!r}.{close_matches(name, registry)} Known scenes: "
+                         f"{', '.join(registry) or 'none'} (see 'warpsim list').")
+    return registry[name]

@@ -1,0 +1,304 @@
+"""The ``warpsim`` command line (also ``python -m warpsim``).
+
+    warpsim list                                   scenes, descriptions, settable parameters
+    warpsim run SCENE [--frames N] [--fps F] [--substeps S] [--integrator NAME] [--device D]
+                      [--out PATH] [--set KEY=VALUE ...] [--chunk K] [--flatten]
+                      [--checkpoint-every N] [--resume]
+    warpsim info CACHE                             prims, frame range, counts, bounds
+
+Exit status: 0 on success, 2 for usage mistakes (unknown scene or parameter, malformed value),
+1 when the simulation fails (the frames written so far stay readable).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+__all__ = ["main"]
+
+
+class UsageError(Exception):
+    """A mistake in the command line: reported with exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise UsageError(message)
+
+
+def _parser():
+    p = _Parser(prog="warpsim", description="Run warpsim scenes and stream them to USD caches.")
+    sub = p.add_subparsers(dest="command", metavar="{list,run,info}", parser_class=_Parser)
+    sub.required = True
+    sub.add_parser("list", help="list the scenes and their parameters")
+    r = sub.add_parser("run", help="simulate a scene and write a USD cache")
+    r.add_argument("scene", help="scene name (see 'warpsim list')")
+    r.add_argument("--frames", type=int, default=120, help="frames to simulate after frame 0 (default 120)")
+    r.add_argument("--fps", type=float, default=None, help="frames per second of the cache (default: the scene's)")
+    r.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    r.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
+    r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
+    r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc; default usd_out/SCENE.usda)")
+    r.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a scene parameter (repeatable)")
+    r.add_argument("--chunk", type=int, default=24, help="frames per chunk file (default 24)")
+    r.add_argument("--flatten", action="store_true", help="also write one self-contained .usdc at the end")
+    r.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
+                   help="save the simulation state beside the cache every N frames")
+    r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    i = sub.add_parser("info", help="summarise a USD cache")
+    i.add_argument("cache", help="path of a .usd/.usda/.usdc file")
+    return p
+
+
+def _cmd_list(out):
+    from .scenes import format_value, scenes
+
+    registry = scenes()
+    width = max((len(n) for n in registry), default=0)
+    for name, cls in registry.items():
+        print(f"{name:<{width}}  {cls.description}", file=out)
+        for key, param in cls.params.items():
+            choices = f" ({'|'.join(map(str, param.choices))})" if param.choices else ""
+            print(f"    {key}={format_value(param.default)}  {param.help}{choices}", file=out)
+    print("\nRun one with: warpsim run SCENE [--frames N] [--set KEY=VALUE ...]", file=out)
+    return 0
+
+
+def _cmd_info(path, out):
+    from .usd_validate import cache_info
+
+    try:
+        info = cache_info(path)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if info["frames"]:
+        span = f"frames {info['start']}..{info['end']} ({info['frames']} frames at {info['fps']:g} fps, " \
+               f"{(info['frames'] - 1) / info['fps']:.3g} s)"
+    else:
+        span = "no frames"
+    print(f"{info['path']}: {span}", file=out)
+    for prim in info["prims"]:
+        count = prim.get("count")
+        count = "" if count is None else (f"  count {count[0]}" if count[0] == count[1] else
+                                          f"  count {count[0]}..{count[1]}")
+        bounds = prim.get("bounds")
+        bounds = "" if bounds is None else "  bounds [" + ", ".join(f"{v:.4g}" for v in bounds[0]) + "] .. [" + \
+            ", ".join(f"{v:.4g}" for v in bounds[1]) + "]"
+        kind = "animated" if prim["animated"] else "static"
+        print(f"  {prim['path']:<28} {prim['type']:<15} {kind:<8}{count}{bounds}", file=out)
+    return 0
+
+
+def _parse_sets(cls, sets, integrator):
+    """{key: typed value} from --set KEY=VALUE items (and --integrator)."""
+    from .scenes import close_matches, parse_value
+
+    given = {}
+    for item in sets:
+        if "=" not in item:
+            raise UsageError(f"--set {item!r} is malformed; write --set KEY=VALUE (e.g. --set dt=0.01)")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        if key not in cls.params:
+            raise UsageError(f"scene {cls.name!r} has no parameter {key!r}.{close_matches(key, cls.params)} "
+                             f"Its parameters: {', '.join(cls.params) or 'none'}.")
+        try:
+            given[key] = parse_value(cls.params[key], key, text)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    if integrator is not None:
+        if "integrator" not in cls.params:
+            raise UsageError(f"scene {cls.name!r} has no integrator choice")
+        if "integrator" in given and given["integrator"] != integrator:
+            raise UsageError("--integrator and --set integrator=... disagree; give one")
+        try:
+            given["integrator"] = parse_value(cls.params["integrator"], "integrator", integrator)
+        except ValueError as exc:
+            raise UsageError(f"--integrator: {exc}") from None
+    return given
+
+
+def _timing(cls, params, given, fps, substeps):
+    """(fps, substeps, params) from the flags and the scene's defaults; see warpsim.scenes."""
+    if substeps is not None and substeps < 1:
+        raise UsageError(f"--substeps {substeps}: it must be >= 1")
+    substeps = substeps or cls.substeps
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise UsageError(f"--fps {fps}: it must be > 0")
+    if "dt" in cls.params:
+        if fps is not None and "dt" in given:
+            if not math.isclose(1.0 / (fps * substeps), given["dt"], rel_tol=1e-9):
+                raise UsageError(f"--fps {fps:g} with {substeps} substeps means dt = {1 / (fps * substeps):g} s, "
+                                 f"but --set dt={given['dt']:g}; give one of them")
+        elif fps is not None:
+            params["dt"] = 1.0 / (fps * substeps)
+        if not params["dt"] > 0:
+            raise UsageError(f"dt={params['dt']}: it must be > 0 [s]")
+        fps = 1.0 / (params["dt"] * substeps)
+    else:
+        fps = fps or cls.fps
+    return fps, substeps, params
+
+
+def _device(name):
+    import warp as wp
+
+    if name is None:
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    try:
+        return str(wp.get_device(name))
+    except Exception as exc:
+        choices = [str(d) for d in wp.get_devices()]
+        raise UsageError(f"--device {name!r} is not available ({exc}); available: {', '.join(choices)}") from None
+
+
+def checkpoint_path(cache_path):
+    """The checkpoint file kept beside a cache: ``<stem>.checkpoint.npz``."""
+    return os.path.splitext(os.path.abspath(cache_path))[0] + ".checkpoint.npz"
+
+
+def _cmd_run(args, out, err):
+    import warp as wp
+
+    wp.config.quiet = True  # no kernel-cache chatter between the progress bar and the result
+    if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
+        wp.config.log_level = wp.LOG_WARNING
+    from .checkpoint import load_checkpoint, save_checkpoint
+    from .errors import SimulationError
+    from .scenes import get_scene
+    from .usd import ROOT_EXTENSIONS, UsdCacheWriter
+
+    try:
+        cls = get_scene(args.scene)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.frames < 0:
+        raise UsageError(f"--frames {args.frames}: it must be >= 0")
+    if args.chunk < 1:
+        raise UsageError(f"--chunk {args.chunk}: it must be >= 1")
+    if args.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every {args.checkpoint_every}: it must be >= 0")
+    path = args.out or os.path.join("usd_out", f"{cls.name}.usda")
+    if os.path.splitext(path)[1] not in ROOT_EXTENSIONS:
+        raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
+    given = _parse_sets(cls, args.sets, args.integrator)
+    ckpt_file = checkpoint_path(path)
+    start = 0
+    ckpt = None
+    if args.resume:
+        if not os.path.exists(ckpt_file):
+            raise UsageError(f"--resume: no checkpoint {ckpt_file}; run with --checkpoint-every N first")
+        arrays, meta = load_checkpoint(ckpt_file)
+        if meta["scene"] != cls.name:
+            raise UsageError(f"--resume: the checkpoint is of scene {meta['scene']!r}, not {cls.name!r}")
+        for key, value in given.items():
+            saved = meta["params"][key]
+            if (list(value) if isinstance(value, tuple) else value) != saved:
+                raise UsageError(f"--resume: {key}={value} differs from the checkpoint's {key}={saved}; "
+                                 "a resumed run keeps the parameters it started with")
+        given = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["params"].items()}
+        ckpt = (arrays, meta)
+        start = int(meta["frame"]) + 1
+        fps, substeps = float(meta["fps"]), int(meta["substeps"])
+        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (None, substeps):
+            raise UsageError(f"--resume: the checkpoint was made at {fps:g} fps with {substeps} substeps")
+        params = cls.resolve_params(given)
+    else:
+        params = cls.resolve_params(given)
+        fps, substeps, params = _timing(cls, params, given, args.fps, args.substeps)
+    device = _device(args.device)
+    try:
+        scene = cls(params, device=device)
+    except ValueError as exc:
+        raise UsageError(f"scene {cls.name!r}: {exc}") from None
+    if ckpt is not None:
+        scene.restore(ckpt[0])
+    if start > args.frames + 1:
+        raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
+    frame_dt = 1.0 / fps
+    try:
+        writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
+                                resume_frame=start if args.resume else None)
+        scene.declare(writer)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+    def save(frame):
+        writer.flush()  # the cache holds every frame up to the checkpoint before it exists
+        save_checkpoint(ckpt_file, scene.checkpoint(), {
+            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps,
+            "params": {k: list(v) if isinstance(v, tuple) else v for k, v in params.items()}})
+
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=args.frames + 1, initial=start, unit="frame", desc=cls.name, file=err,
+                        dynamic_ncols=True)
+    frame = start
+    t0 = time.perf_counter()
+    try:
+        with writer:
+            try:
+                if start == 0:
+                    writer.write_frame(0, scene.frame_data())
+                    if progress:
+                        progress.update(1)
+                for frame in range(max(start, 1), args.frames + 1):
+                    scene.advance(frame_dt, substeps)
+                    writer.write_frame(frame, scene.frame_data())
+                    if progress:
+                        progress.update(1)
+                    if args.checkpoint_every and (frame % args.checkpoint_every == 0 or frame == args.frames):
+                        save(frame)
+            except SimulationError as exc:
+                if progress:
+                    progress.close()
+                    progress = None
+                writer.close()
+                kept = f"frames {writer.chunks[0][0]}..{writer.chunks[-1][1]}" if writer.chunks else "no frames"
+                msg = str(exc)
+                if not msg.startswith("frame"):
+                    msg = f"frame {frame}: {msg}"
+                print(f"warpsim: simulation failed at {msg}\nwarpsim: kept {kept} in {writer.output_path}", file=err)
+                return 1
+    finally:
+        if progress:
+            progress.close()
+    seconds = time.perf_counter() - t0
+    written = args.frames + 1 - start
+    print(f"wrote {written} frames ({start}..{args.frames}, {written / max(seconds, 1e-9):.1f} frames/s) "
+          f"of scene {cls.name!r} on {device}", file=out)
+    print(f"open: {os.path.relpath(writer.output_path)}   (e.g. usdview {os.path.relpath(writer.output_path)})",
+          file=out)
+    return 0
+
+
+def main(argv=None, out=None, err=None):
+    """Entry point; returns the exit status (0 ok, 1 simulation failed, 2 usage mistake)."""
+    out = out or sys.stdout
+    err = err or sys.stderr
+    try:
+        args = _parser().parse_args(argv)
+        if args.command == "list":
+            return _cmd_list(out)
+        if args.command == "info":
+            return _cmd_info(args.cache, out)
+        return _cmd_run(args, out, err)
+    except UsageError as exc:
+        print(f"warpsim: error: {exc}", file=err)
+        return 2
+    except SystemExit as exc:  # --help
+        return exc.code if isinstance(exc.code, int) else 0
+    except KeyboardInterrupt:
+        print("warpsim: interrupted; the frames written so far are kept", file=err)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
