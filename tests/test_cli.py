@@ -246,12 +246,16 @@ def test_resume_matches_uninterrupted_run_bit_for_bit(argv, tmp_path):
     assert validate_cache(str(part)) == []
 
 
-def test_resume_rejects_changed_parameters(tmp_path):
+def test_resume_rejects_changed_parameters_and_missing_frames(tmp_path):
     path = tmp_path / "c.usda"
     run_ok("run", "springs", "--frames", "2", "--out", str(path), "--checkpoint-every", "2")
     code, _, err = run("run", "springs", "--frames", "4", "--out", str(path), "--resume", "--set", "count=5",
                        "--device", "cpu", "--no-progress")
     assert code == 2 and "differs from the checkpoint" in err
+    os.remove(path)  # the cache is gone but the checkpoint is not
+    code, _, err = run("run", "springs", "--frames", "4", "--out", str(path), "--resume", "--device", "cpu",
+                       "--no-progress")
+    assert code == 2 and "does not exist" in err
 
 
 def test_sigkill_then_resume_matches_uninterrupted(tmp_path):

@@ -356,6 +356,24 @@ def test_write_state_hook_accepts_warp_arrays(tmp_path):
         assert np.array_equal(get(stage, "/World/particles", "velocities", f), -frame_points(f))
 
 
+def test_simulator_run_streams_through_the_writer(tmp_path):
+    ws = pytest.importorskip("warpsim")
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 0.04, 0.0), mass=1.0)
+    sim = ws.Simulator(b.finalize("cpu"), forces=[ws.Gravity()], colliders=[ws.Plane()])
+    root = tmp_path / "ball.usda"
+    with UsdCacheWriter(root, fps=25, chunk_size=2) as w:
+        w.add_points("particles", radius=0.004, from_state=True)
+        w.add_plane("floor", size=0.2)
+        sim.run(3, 0.04, writer=w)
+    stage = Usd.Stage.Open(str(root))
+    assert stage.GetEndTimeCode() == 3
+    y1 = get(stage, "/World/particles", "points", 1)[0, 1]
+    assert y1 == pytest.approx(0.024304, rel=1e-6)  # the seed's first step
+    assert np.array_equal(get(stage, "/World/particles", "points", 3), sim.state.positions.numpy())
+    assert validate_cache(stage) == []
+
+
 def test_bad_input_raises_value_error_naming_the_item(tmp_path):
     with pytest.raises(ValueError, match=r"must end in one of"):
         UsdCacheWriter(tmp_path / "x.abc")

@@ -142,7 +142,7 @@ def _timing(cls, params, given, fps, substeps):
         fps = 1.0 / (params["dt"] * substeps)
     else:
         fps = fps or cls.fps
-    return fps, substeps, params
+    return float(f"{fps:.12g}"), substeps, params  # 1 / (0.04 * 1) -> 25, not 25.000000000000004
 
 
 def _device(name):
@@ -220,13 +220,15 @@ def _cmd_run(args, out, err):
         scene.restore(ckpt[0])
     if start > args.frames + 1:
         raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
-    frame_dt = 1.0 / fps
+    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps)
+    frame_dt = params["dt"] * substeps if "dt" in params else 1.0 / fps
     try:
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
                                 resume_frame=start if args.resume else None)
         scene.declare(writer)
+        writer.begin()
     except ValueError as exc:
-        raise UsageError(str(exc)) from None
+        raise UsageError(f"--resume: {exc}" if args.resume else str(exc)) from None
 
     def save(frame):
         writer.flush()  # the cache holds every frame up to the checkpoint before it exists
@@ -256,7 +258,7 @@ def _cmd_run(args, out, err):
                         progress.update(1)
                     if args.checkpoint_every and (frame % args.checkpoint_every == 0 or frame == args.frames):
                         save(frame)
-            except SimulationError as exc:
+            except (SimulationError, ValueError) as exc:  # ValueError: the frame could not be written
                 if progress:
                     progress.close()
                     progress = None

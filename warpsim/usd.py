@@ -277,6 +277,14 @@ class UsdCacheWriter:
         return self.prims[name]
 
     # ------------------------------------------------------------------ frames
+    def begin(self):
+        """Freeze the declarations and write the manifest and root layer now (adopting the
+        existing chunks when resuming); otherwise the first frame does it. ValueError when a
+        resume is impossible."""
+        if not self._sealed:
+            self._seal()
+        return self
+
     def write_frame(self, frame, data):
         """Write one frame. ``data``: ``{prim name: {key: array}}`` for every time-varying prim."""
         if self._closed:
