@@ -47,3 +47,39 @@ def metaball_density(centers, radii, field_out, lower, spacing):
         outputs=[field_out],
         device=field_out.device,
     )
+
+
+@wp.kernel
+def eval_gyroid_ball(
+    period: float,
+    thickness: float,
+    radius: float,
+    lower: wp.vec3,
+    spacing: wp.vec3,
+    field_out: wp.array3d(dtype=float),
+):
+    """Approximate signed distance [m] of a gyroid sheet clipped to a ball, shape (nx, ny, nz).
+
+    Sheet: |sin x cos y + sin y cos z + sin z cos x| * period / (2 pi) - thickness / 2 <= 0 with
+    (x, y, z) = 2 pi p / period [m]; ball: |p| - radius <= 0; their intersection is max(...).
+    """
+    i, j, k = wp.tid()
+    p = node_position(lower, spacing, i, j, k)
+    w = 2.0 * wp.pi / period
+    x = w * p[0]
+    y = w * p[1]
+    z = w * p[2]
+    g = wp.sin(x) * wp.cos(y) + wp.sin(y) * wp.cos(z) + wp.sin(z) * wp.cos(x)
+    sheet = wp.abs(g) / w - 0.5 * thickness
+    field_out[i, j, k] = wp.max(sheet, wp.length(p) - radius)
+
+
+def gyroid_ball(field_out, lower, spacing, period=0.8, thickness=0.08, radius=0.9):
+    """Launch :func:`eval_gyroid_ball` on ``field_out``'s device (no allocation)."""
+    wp.launch(
+        eval_gyroid_ball,
+        dim=field_out.shape,
+        inputs=[float(period), float(thickness), float(radius), wp.vec3(*lower), wp.vec3(*spacing)],
+        outputs=[field_out],
+        device=field_out.device,
+    )

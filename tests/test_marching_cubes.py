@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import warp as wp
 from warpsim.kernels import marching_cubes as mck
-from warpsim.kernels.implicit_fields import metaball_density
+from warpsim.kernels.implicit_fields import gyroid_ball, metaball_density
 
 from warpsim.meshing import MarchingCubes, marching_cubes, topology_changed
 
@@ -391,3 +391,17 @@ def test_metaballs_example_writes_changing_topology(tmp_path):
         assert len(indices) > 0 and indices.max() < len(points)
         assert undirected_edge_counts(indices).min() == 2 and undirected_edge_counts(indices).max() == 2
         assert len(prim.GetAttribute("primvars:normals").Get(t)) == len(points)
+
+
+def test_gyroid_ball_field_matches_numpy_and_meshes_closed(device):
+    n = 40
+    (X, Y, Z), h = grid(n)
+    out = wp.zeros((n, n, n), dtype=wp.float32, device=device)
+    gyroid_ball(out, (-1.0, -1.0, -1.0), (h, h, h), period=0.8, thickness=0.08, radius=0.9)
+    w = 2.0 * np.pi / 0.8
+    g = np.sin(w * X) * np.cos(w * Y) + np.sin(w * Y) * np.cos(w * Z) + np.sin(w * Z) * np.cos(w * X)
+    expected = np.maximum(np.abs(g) / w - 0.04, np.sqrt(X**2 + Y**2 + Z**2) - 0.9)
+    np.testing.assert_allclose(out.numpy(), expected, atol=2e-6)
+    v, f, _ = mesh(out, h, device)
+    assert_closed_welded(v, f, out.numpy())
+    assert area_volume(v, f)[1] > 0.0
