@@ -1,0 +1,302 @@
+"""Cloth kernels: fused explicit steps and the Baraff-Witkin implicit system assembly.
+
+Springs: f_i = -(k (l - L) + kd dl/dt) d, d = (x_i - x_j) / l, f_j = -f_i, with Jacobians
+  Jx = df_i/dx_i = -k (d d^T + g (1 - L/l) (I - d d^T)),  Jv = df_i/dv_i = -kd d d^T,
+  df_i/dx_j = -Jx, df_i/dv_j = -Jv (damping's position derivative dropped, as in Baraff-Witkin).
+The geometric factor g (1 - L/l) is clamped at 0 under compression (``full_geometric`` = 0) so
+every block is symmetric negative semi-definite and the system matrix stays positive definite.
+
+Implicit system (one Newton iteration = Baraff & Witkin 1998):
+  A dv = b,  A = M - h D - h^2 K,  b = h f(x, v) + h^2 K w - M (v - v0)
+with w = v0 on the first iteration (x = x0, v = v0: exactly BW's h (f0 + h K v0)) and w = 0 on
+later Newton iterations of backward Euler. Blocks go straight into the values of a fixed-topology
+``warp.sparse`` BSR matrix through precomputed slots; pinned rows and columns are filtered.
+"""
+
+import warp as wp
+
+from .integrate import block_inverse
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def spring_force(xij: wp.vec3, vij: wp.vec3, rest: float, k: float, kd: float) -> wp.vec3:
+    """Force on end i of a damped spring, xij = x_i - x_j, vij = v_i - v_j."""
+    l = wp.length(xij)
+    if l < 1.0e-12:
+        return wp.vec3()
+    d = xij / l
+    return -(k * (l - rest) + kd * wp.dot(vij, d)) * d
+
+
+@wp.func
+def spring_jacobians(xij: wp.vec3, rest: float, k: float, kd: float, full_geometric: int):
+    """(Jx, Jv) = (df_i/dx_i, df_i/dv_i) of one spring (module docstring)."""
+    l = wp.length(xij)
+    if l < 1.0e-12:
+        return wp.mat33(), wp.mat33()
+    d = xij / l
+    dd = wp.outer(d, d)
+    g = 1.0 - rest / l
+    if full_geometric == 0:
+        g = wp.max(g, 0.0)
+    Jx = -k * (dd + g * (wp.identity(n=3, dtype=float) - dd))
+    return Jx, -kd * dd
+
+
+# --------------------------------------------------------------------------------------
+# Explicit (semi-implicit Euler) steps
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def integrate_cloth_particles(
+    f_io: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    gravity: wp.vec3,
+    h: float,
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """v += h (f / m + g), x += h v on free particles (pinned ones keep their velocity); clears
+    f for the next step's scatter."""
+    i = wp.tid()
+    w = inv_mass[i]
+    v = qd_io[i]
+    if w > 0.0:
+        v = v + h * (w * f_io[i] + gravity)
+    qd_io[i] = v
+    q_io[i] = q_io[i] + h * v
+    f_io[i] = wp.vec3()
+
+
+@wp.kernel
+def step_cloth_gather(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    f_ext: wp.array(dtype=wp.vec3),
+    use_f_ext: int,
+    adjacency_offsets: wp.array(dtype=int),
+    adjacency_other: wp.array(dtype=int),
+    adjacency_params: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    gravity: wp.vec3,
+    h: float,
+    q_out: wp.array(dtype=wp.vec3),
+    qd_out: wp.array(dtype=wp.vec3),
+):
+    """One semi-implicit Euler step, particle-centric: sums the forces of the springs touching
+    particle i (adjacency list: other end, (rest, k, kd)) plus f_ext, then writes the new state to
+    q_out / qd_out (no atomics; q, qd are read-only so the outputs must be other arrays)."""
+    i = wp.tid()
+    x = q[i]
+    v = qd[i]
+    w = inv_mass[i]
+    if w > 0.0:
+        f = wp.vec3()
+        if use_f_ext != 0:
+            f = f_ext[i]
+        for a in range(adjacency_offsets[i], adjacency_offsets[i + 1]):
+            j = adjacency_other[a]
+            p = adjacency_params[a]
+            f = f + spring_force(x - q[j], v - qd[j], p[0], p[1], p[2])
+        v = v + h * (w * f + gravity)
+    qd_out[i] = v
+    q_out[i] = x + h * v
+
+
+# --------------------------------------------------------------------------------------
+# Implicit system assembly
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def assemble_cloth_springs(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_slots: wp.array(dtype=int),
+    inv_mass: wp.array(dtype=float),
+    ck: float,
+    cd: float,
+    cf: float,
+    cw: float,
+    full_geometric: int,
+    rhs_io: wp.array(dtype=wp.vec3),
+    diag_io: wp.array(dtype=wp.mat33),
+    values_io: wp.array(dtype=wp.mat33),
+):
+    """Per spring: diagonal blocks (i,i), (j,j) += J = ck Jx + cd Jv into diag_io; coupling blocks
+    (i,j), (j,i) += -J into the BSR values at spring_slots[2s], [2s+1] unless an end is pinned;
+    rhs_i += cf f_i + cw Jx (w_i - w_j), rhs_j -= the same."""
+    s = wp.tid()
+    i = spring_indices[2 * s]
+    j = spring_indices[2 * s + 1]
+    xij = q[i] - q[j]
+    rest = spring_rest_length[s]
+    k = spring_stiffness[s]
+    kd = spring_damping[s]
+    Jx, Jv = spring_jacobians(xij, rest, k, kd, full_geometric)
+    J = ck * Jx + cd * Jv
+    wp.atomic_add(diag_io, i, J)
+    wp.atomic_add(diag_io, j, J)
+    if inv_mass[i] > 0.0 and inv_mass[j] > 0.0:
+        wp.atomic_sub(values_io, spring_slots[2 * s], J)
+        wp.atomic_sub(values_io, spring_slots[2 * s + 1], J)
+    r = cf * spring_force(xij, qd[i] - qd[j], rest, k, kd) + cw * (Jx * (w[i] - w[j]))
+    wp.atomic_add(rhs_io, i, r)
+    wp.atomic_sub(rhs_io, j, r)
+
+
+@wp.kernel
+def finish_cloth_system(
+    diag: wp.array(dtype=wp.mat33),
+    position_diag: wp.array(dtype=wp.mat33),
+    f_other: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    diagonal_slots: wp.array(dtype=int),
+    qd: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    mass_scale: float,
+    cf: float,
+    cw: float,
+    rhs_io: wp.array(dtype=wp.vec3),
+    values_io: wp.array(dtype=wp.mat33),
+    inverse_out: wp.array(dtype=wp.mat33),
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """Per particle: A_ii = mass_scale m I + diag (identity when pinned) into the BSR values and
+    its inverse (block-Jacobi preconditioner); b_i += cf f_other_i + cw position_diag_i w_i
+    - mass_scale m_i (v_i - v0_i) (0 when pinned); clears dv (the CG initial guess)."""
+    i = wp.tid()
+    I = wp.identity(n=3, dtype=float)
+    block = (mass_scale * mass[i]) * I + diag[i]
+    b = rhs_io[i] + cf * f_other[i] + cw * (position_diag[i] * w[i]) - (mass_scale * mass[i]) * (qd[i] - v0[i])
+    if inv_mass[i] == 0.0:
+        block = I
+        b = wp.vec3()
+    values_io[diagonal_slots[i]] = block
+    inverse_out[i] = block_inverse(block)
+    rhs_io[i] = b
+    dv_out[i] = wp.vec3()
+
+
+@wp.kernel
+def eval_cloth_spring_energy(
+    q: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    energy_out: wp.array(dtype=float),
+):
+    """energy_out[0] += k (l - L)^2 / 2 summed over springs [J]."""
+    s = wp.tid()
+    l = wp.length(q[spring_indices[2 * s]] - q[spring_indices[2 * s + 1]])
+    e = l - spring_rest_length[s]
+    wp.atomic_add(energy_out, 0, 0.5 * spring_stiffness[s] * e * e)
+
+
+@wp.kernel
+def eval_kinetic_energy(
+    qd: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), energy_out: wp.array(dtype=float)
+):
+    """energy_out[0] += m |v|^2 / 2 summed over particles [J]."""
+    i = wp.tid()
+    wp.atomic_add(energy_out, 0, 0.5 * mass[i] * wp.dot(qd[i], qd[i]))
+
+
+# --------------------------------------------------------------------------------------
+# Preconditioned conjugate gradients (scalars live on the device; see warpsim/cloth_cg.py)
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def cg_start(
+    b: wp.array(dtype=wp.vec3),
+    inverse: wp.array(dtype=wp.mat33),
+    x_out: wp.array(dtype=wp.vec3),
+    r_out: wp.array(dtype=wp.vec3),
+    z_out: wp.array(dtype=wp.vec3),
+    p_out: wp.array(dtype=wp.vec3),
+):
+    """x = 0, r = b, z = P^-1 r, p = z."""
+    i = wp.tid()
+    r = b[i]
+    z = inverse[i] * r
+    x_out[i] = wp.vec3()
+    r_out[i] = r
+    z_out[i] = z
+    p_out[i] = z
+
+
+@wp.kernel
+def cg_init_scalars(
+    scalars: wp.array(dtype=float),
+    rtol: float,
+    atol: float,
+    max_iterations: int,
+    iteration_out: wp.array(dtype=int),
+    condition_out: wp.array(dtype=int),
+):
+    """scalars = [r.z, r.r, p.Ap, (r.z)_new, tol^2, b.b]: tol^2 = max(atol, rtol |b|)^2 with
+    |b|^2 = r.r at the start; iteration = 0; condition = (r.r > tol^2 and max_iterations > 0)."""
+    bb = scalars[1]
+    tol = wp.max(atol, rtol * wp.sqrt(bb))
+    scalars[4] = tol * tol
+    scalars[5] = bb
+    iteration_out[0] = 0
+    c = 0
+    if bb > tol * tol and max_iterations > 0:
+        c = 1
+    condition_out[0] = c
+
+
+@wp.kernel
+def cg_update_x_r(
+    scalars: wp.array(dtype=float),
+    p: wp.array(dtype=wp.vec3),
+    Ap: wp.array(dtype=wp.vec3),
+    inverse: wp.array(dtype=wp.mat33),
+    x_io: wp.array(dtype=wp.vec3),
+    r_io: wp.array(dtype=wp.vec3),
+    z_out: wp.array(dtype=wp.vec3),
+):
+    """alpha = r.z / p.Ap; x += alpha p; r -= alpha Ap; z = P^-1 r."""
+    i = wp.tid()
+    pAp = scalars[2]
+    alpha = 0.0
+    if pAp > 0.0:
+        alpha = scalars[0] / pAp
+    x_io[i] = x_io[i] + alpha * p[i]
+    r = r_io[i] - alpha * Ap[i]
+    r_io[i] = r
+    z_out[i] = inverse[i] * r
+
+
+@wp.kernel
+def cg_update_p(scalars: wp.array(dtype=float), z: wp.array(dtype=wp.vec3), p_io: wp.array(dtype=wp.vec3)):
+    """beta = (r.z)_new / r.z; p = z + beta p."""
+    i = wp.tid()
+    rz = scalars[0]
+    beta = 0.0
+    if rz > 0.0:
+        beta = scalars[3] / rz
+    p_io[i] = z[i] + beta * p_io[i]
+
+
+@wp.kernel
+def cg_end_iteration(
+    scalars: wp.array(dtype=float),
+    max_iterations: int,
+    iteration_io: wp.array(dtype=int),
+    condition_out: wp.array(dtype=int),
+):
+    """r.z <- (r.z)_new; iteration += 1; condition = (r.r > tol^2 and iteration < max)."""
+    scalars[0] = scalars[3]
+    it = iteration_io[0] + 1
+    iteration_io[0] = it
+    c = 0
+    if scalars[1] > scalars[4] and it < max_iterations:
+        c = 1
+    condition_out[0] = c
