@@ -16,7 +16,7 @@ from pxr import Sdf, Usd  # noqa: E402
 
 from warpsim.cli import _timing, checkpoint_path, main  # noqa: E402
 from warpsim.checkpoint import load_checkpoint  # noqa: E402
-from warpsim.scenes import SimulatorScene, get_scene, register_scene, scenes  # noqa: E402
+from warpsim.scenes import SimulatorScene, format_value, get_scene, register_scene, scenes  # noqa: E402
 from warpsim.usd import UsdCacheWriter  # noqa: E402
 from warpsim.usd_validate import validate_cache  # noqa: E402
 
@@ -60,13 +60,16 @@ def assert_same_cache(a, b):
 def test_every_scene_validates_and_reads_back_its_simulation(name, tmp_path):
     frames = 3
     path = tmp_path / f"{name}.usda"
-    out = run_ok("run", name, "--frames", str(frames), "--out", str(path), "--chunk", "2")
+    cls = get_scene(name)
+    sets = [a for k, v in cls.smoke_params.items() for a in ("--set", f"{k}={format_value(v)}")]
+    out = run_ok("run", name, "--frames", str(frames), "--out", str(path), "--chunk", "2", *sets)
     assert f"open: {os.path.relpath(path)}" in out
     assert validate_cache(str(path)) == []
     # an independent run of the same scene, frame by frame
-    cls = get_scene(name)
-    params = cls.resolve_params({})
-    fps, substeps, params = _timing(cls, params, {}, None, None)
+    given = cls.resolve_params(dict(cls.smoke_params))
+    given = {k: given[k] for k in cls.smoke_params}
+    params = cls.resolve_params(given)
+    fps, substeps, params = _timing(cls, params, given, None, None)
     scene = cls(params, device="cpu")
     ref_writer = UsdCacheWriter(tmp_path / "ref" / "unused.usda")
     scene.declare(ref_writer)  # declarations only: turns frame data into attribute samples
@@ -252,6 +255,9 @@ def test_resume_rejects_changed_parameters_and_missing_frames(tmp_path):
     code, _, err = run("run", "springs", "--frames", "4", "--out", str(path), "--resume", "--set", "count=5",
                        "--device", "cpu", "--no-progress")
     assert code == 2 and "differs from the checkpoint" in err
+    run_ok("run", "springs", "--frames", "3", "--out", str(path))  # a fresh run drops the old checkpoint
+    assert not os.path.exists(checkpoint_path(path))
+    run_ok("run", "springs", "--frames", "2", "--out", str(path), "--checkpoint-every", "2")
     os.remove(path)  # the cache is gone but the checkpoint is not
     code, _, err = run("run", "springs", "--frames", "4", "--out", str(path), "--resume", "--device", "cpu",
                        "--no-progress")

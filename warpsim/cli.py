@@ -229,6 +229,8 @@ def _cmd_run(args, out, err):
         writer.begin()
     except ValueError as exc:
         raise UsageError(f"--resume: {exc}" if args.resume else str(exc)) from None
+    if not args.resume and os.path.exists(ckpt_file):
+        os.remove(ckpt_file)  # it described the cache this run replaces
 
     def save(frame):
         writer.flush()  # the cache holds every frame up to the checkpoint before it exists

@@ -35,6 +35,10 @@ the simulation step: frames are then ``dt * substeps`` apart (``--fps`` and ``--
 two ways to say the same thing). Scenes implement :class:`Scene`: ``build``, ``declare``,
 ``frame_data``, ``advance``, and ``checkpoint``/``restore`` (for ``--checkpoint-every`` and
 ``--resume``; :class:`SimulatorScene` provides all but ``build`` and ``declare``).
+
+``tests/test_cli.py`` runs every registered scene for a few frames on the CPU, validates its
+cache and compares it with an independent run; give a heavy scene a class attribute
+``smoke_params = {"count": 50}`` (parameter values) to keep that test small.
 """
 from __future__ import annotations
 
@@ -126,6 +130,7 @@ class Scene:
     params = {}
     fps = 60.0
     substeps = 1
+    smoke_params = {}  # small parameter values for the test suite's smoke run
 
     def __init__(self, params=None, device=None):
         import warp as wp
