@@ -13,38 +13,22 @@ import argparse
 
 import numpy as np
 import warp as wp
-from warpsim.kernels.implicit_fields import metaball_density
-
-from warpsim.meshing import MarchingCubes, topology_changed
+from warpsim.meshing import topology_changed
+from warpsim.metaballs import Metaballs
 
 
 class Example:
+    """Moving blobs (``ws.Metaballs``) meshed each frame and written as a changing-topology mesh."""
+
     def __init__(self, device=None, resolution=64, blob_count=5, radius=0.7, iso=0.5, fps=30.0):
-        self.device = wp.get_device(device)
         self.fps = fps
-        self.iso = iso
-        self.lower = (-1.0, -1.0, -1.0)
-        h = 2.0 / (resolution - 1)
-        self.spacing = (h, h, h)
-        shape = (resolution,) * 3
-        rng = np.random.default_rng(3)
-        self.phase = rng.uniform(0.0, 2.0 * np.pi, (blob_count, 3))
-        self.omega = rng.uniform(0.6, 1.4, (blob_count, 1)) * np.array([1.0, 1.3, 0.7])  # [rad/s]
-        self.field = wp.zeros(shape, dtype=wp.float32, device=self.device)
-        self.centers = wp.zeros(blob_count, dtype=wp.vec3, device=self.device)
-        self.radii = wp.full(blob_count, radius, dtype=wp.float32, device=self.device)
-        # inside="above": the blobs are where the density exceeds iso; close_boundary caps any
-        # blob that pokes out of the box.
-        self.mesher = MarchingCubes(shape, self.spacing, self.lower, self.device, inside="above",
-                                    close_boundary=True)
+        self.blobs = Metaballs(resolution, blob_count, radius, iso, device=device)
+        self.mesher = self.blobs.mesher
         self.mesh = None
 
     def step(self, frame):
         """Move the blobs to time frame / fps [s] and re-mesh."""
-        t = frame / self.fps
-        self.centers.assign((0.55 * np.sin(self.omega * t + self.phase)).astype(np.float32))
-        metaball_density(self.centers, self.radii, self.field, self.lower, self.spacing)
-        self.mesh = self.mesher.mesh(self.field, self.iso)
+        self.mesh = self.blobs.mesh(frame / self.fps)
         return self.mesh
 
     def write(self, writer, frame):

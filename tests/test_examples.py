@@ -13,6 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = {
     "bouncing_ball.py": ["--frames", "3"],
     "pendulum_integrators.py": ["--steps", "20", "--rows", "2"],
+    "implicit_surface.py": ["--resolution", "24", "--out", "implicit_surface.usda"],
 }
 
 
@@ -42,4 +43,4 @@ def test_every_example_is_listed():
 
 
 # examples smoke-tested in their own area's test file
-OTHER_TESTED = set()
+OTHER_TESTED = {"metaballs.py"}  # tests/test_marching_cubes.py

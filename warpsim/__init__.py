@@ -12,6 +12,8 @@ from .builder import ModelBuilder
 from .colliders import Box, Collider, Plane, Planes
 from .errors import SimulationError
 from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
+from .meshing import MarchingCubes, MarchingCubesResult, marching_cubes, topology_changed
+from .metaballs import Metaballs
 from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, Integrator, SemiImplicitEuler
 from .model import Model, State
 from .pendulum import Pendulum, exact_period
@@ -23,5 +25,6 @@ __all__ = [
     "Force", "Gravity", "ConstantForce", "Wind", "Magnets", "Drag", "Springs", "ForceField",
     "Collider", "Planes", "Plane", "Box",
     "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
+    "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
 ]
