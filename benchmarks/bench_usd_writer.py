@@ -53,6 +53,7 @@ def run_writer(path, n, count, chunk):
 
 def child(mode, path, n, count, chunk):
     import pxr.Usd  # noqa: F401  (imports stay outside the timing)
+
     import warpsim.usd  # noqa: F401
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

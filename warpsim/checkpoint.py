@@ -6,14 +6,14 @@ import os
 
 import numpy as np
 
-__all__ = ["save_checkpoint", "load_checkpoint", "simulator_checkpoint", "restore_simulator"]
+__all__ = ["load_checkpoint", "restore_simulator", "save_checkpoint", "simulator_checkpoint"]
 
 
 def save_checkpoint(path, arrays, meta):
     """Write ``arrays`` ({name: array or scalar}) and JSON-able ``meta`` to ``path`` (.npz):
     written under a temporary name, synced, then renamed, so a kill never leaves half a file."""
     path = os.fspath(path)
-    tmp = f"{path[:-4] if path.endswith('.npz') else path}.tmp-{os.getpid()}.npz"
+    tmp = f"{path.removesuffix('.npz')}.tmp-{os.getpid()}.npz"
     payload = {f"state/{k}": np.asarray(v) for k, v in arrays.items()}
     payload["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     with open(tmp, "wb") as f:

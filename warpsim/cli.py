@@ -152,7 +152,7 @@ def _device(name):
         return "cuda:0" if wp.is_cuda_available() else "cpu"
     try:
         return str(wp.get_device(name))
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001  (Warp raises plain Exception/RuntimeError/ValueError)
         choices = [str(d) for d in wp.get_devices()]
         raise UsageError(f"--device {name!r} is not available ({exc}); available: {', '.join(choices)}") from None
 

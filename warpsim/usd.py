@@ -49,7 +49,7 @@ from .usd_prims import (
     close_matches,
 )
 
-__all__ = ["UsdCacheWriter", "ROOT_EXTENSIONS"]
+__all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter"]
 
 ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
 

@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-__all__ = ["validate_cache", "cache_info", "open_stage"]
+__all__ = ["cache_info", "open_stage", "validate_cache"]
 
 _POINT_ATTR = {"Points": "points", "Mesh": "points", "BasisCurves": "points", "PointInstancer": "positions"}
 
@@ -30,7 +30,7 @@ def open_stage(path_or_stage):
         raise ValueError(f"USD cache {path!r} does not exist")
     try:
         stage = Usd.Stage.Open(path)
-    except Exception as exc:  # pxr raises Tf.ErrorException
+    except Exception as exc:  # noqa: BLE001  (pxr raises Tf.ErrorException)
         raise ValueError(f"USD cache {path!r} does not open: {exc}") from None
     if stage is None:
         raise ValueError(f"USD cache {path!r} does not open")
@@ -41,7 +41,7 @@ def frame_codes(stage):
     """Integer time codes from startTimeCode to endTimeCode (empty when the stage has none)."""
     if not stage.HasAuthoredTimeCodeRange():
         return []
-    return list(range(int(math.ceil(stage.GetStartTimeCode())), int(math.floor(stage.GetEndTimeCode())) + 1))
+    return list(range(math.ceil(stage.GetStartTimeCode()), math.floor(stage.GetEndTimeCode()) + 1))
 
 
 def _usd_validation_errors(stage):

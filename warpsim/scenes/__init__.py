@@ -46,12 +46,13 @@ import importlib
 import pkgutil
 import sys
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from ..usd_prims import close_matches
 
-__all__ = ["Param", "Scene", "SimulatorScene", "register_scene", "get_scene", "scenes", "parse_value"]
+__all__ = ["Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "register_scene", "scenes"]
 
 _REGISTRY = {}
 _LOADED = False
@@ -125,12 +126,12 @@ class Scene:
     ``substeps``. ``self.params`` holds the typed parameter values, ``self.device`` the Warp device.
     """
 
-    name = ""
-    description = ""
-    params = {}
-    fps = 60.0
-    substeps = 1
-    smoke_params = {}  # small parameter values for the test suite's smoke run
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    params: ClassVar[dict] = {}
+    fps: ClassVar[float] = 60.0
+    substeps: ClassVar[int] = 1
+    smoke_params: ClassVar[dict] = {}  # small parameter values for the test suite's smoke run
 
     def __init__(self, params=None, device=None):
         import warp as wp
@@ -246,18 +247,19 @@ def _load():
     for info in pkgutil.iter_modules(__path__, __name__ + "."):
         try:
             importlib.import_module(info.name)
-        except Exception as exc:  # a broken scene module must not take the others down
+        except Exception as exc:  # noqa: BLE001  (a broken scene module must not take the others down)
             print(f"warpsim: warning: scene module {info.name} failed to import: {exc}", file=sys.stderr)
-    try:
-        from importlib.metadata import entry_points
+    from importlib.metadata import entry_points
 
-        for ep in entry_points(group="warpsim.scenes"):
-            try:
-                ep.load()
-            except Exception as exc:
-                print(f"warpsim: warning: scene entry point {ep.name} failed to load: {exc}", file=sys.stderr)
-    except Exception:  # pragma: no cover - importlib.metadata without group selection (py<3.10)
-        pass
+    try:
+        eps = entry_points(group="warpsim.scenes")
+    except TypeError:  # pragma: no cover - Python 3.9: no group selection
+        eps = entry_points().get("warpsim.scenes", [])
+    for ep in eps:
+        try:
+            ep.load()
+        except Exception as exc:  # noqa: BLE001
+            print(f"warpsim: warning: scene entry point {ep.name} failed to load: {exc}", file=sys.stderr)
 
 
 def scenes():
