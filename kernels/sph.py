@@ -1,0 +1,555 @@
+"""Position-based fluid (PBF, an SPH-family method) kernels.
+
+Conventions:
+
+* ``h`` is the smoothing kernel's *support radius* [m]: W(r) = 0 for r >= h.
+* Neighbour lists hold, for particle i, the indices j != i with |x_i - x_j| < h (true distance,
+  filtered from the hash-grid candidates), in ``neighbors[i, 0:neighbor_count[i]]``.
+* Boundaries are signed-distance boundaries: every plane, sphere and triangle mesh contributes
+  ``rest_density * phi(d)`` to the density of a particle at signed distance ``d`` (> 0 on the fluid
+  side) and the density gradient ``phi'(d) n``; ``phi`` is the kernel's integral over the solid
+  half-space beyond a wall at distance ``d`` (tabulated by the host, ``table_count`` samples on
+  [0, h]). Particles are projected back to at least ``radius`` from every boundary.
+* Only particles ``0 .. active_count-1`` exist; launches use ``dim = active_count``.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+KERNEL_CUBIC = wp.constant(0)
+KERNEL_WENDLAND = wp.constant(1)
+PI = wp.constant(3.14159265358979)
+
+
+@wp.struct
+class FluidParams:
+    """Per-solver constants (see ``warpsim.sph.ParticleFluid``)."""
+
+    h: float  # support radius [m]
+    kernel: int  # KERNEL_CUBIC or KERNEL_WENDLAND
+    rest_density: float  # [kg/m^3]
+    mass: float  # particle mass [kg]
+    radius: float  # particle radius [m], half the spacing: closest approach to a boundary
+    gravity: wp.vec3  # [m/s^2]
+    relaxation: float  # PBF constraint-force mixing epsilon [1/m^2]
+    viscosity: float  # XSPH coefficient (dimensionless, 0..1)
+    vorticity: float  # vorticity-confinement strength [m/s^2 per 1/s]
+    surface_tension: float  # Akinci et al. (2013) cohesion coefficient gamma [1/s^2]
+    boundary_viscosity: float  # XSPH-like friction against boundaries (dimensionless, 0..1)
+
+
+@wp.struct
+class Boundaries:
+    """Signed-distance boundaries. Planes: n . x = offset with n toward the fluid. Capsules (a
+    sphere is a capsule with a == b): the points within ``radius`` of segment [a, b], solid
+    (sign +1, fluid outside) or a hollow container (sign -1, fluid inside). Meshes: wp.Mesh ids
+    in world space, closed solids (solid 1: fluid outside, inside found by the mesh's sign query)
+    or thin two-sided surfaces (solid 0), thickened by ``mesh_thickness`` [m]."""
+
+    plane_normals: wp.array(dtype=wp.vec3)
+    plane_offsets: wp.array(dtype=float)
+    capsule_a: wp.array(dtype=wp.vec3)
+    capsule_b: wp.array(dtype=wp.vec3)
+    capsule_radii: wp.array(dtype=float)
+    capsule_signs: wp.array(dtype=float)
+    mesh_ids: wp.array(dtype=wp.uint64)
+    mesh_thickness: wp.array(dtype=float)
+    mesh_solid: wp.array(dtype=int)
+    phi_table: wp.array(dtype=float)  # solid volume fraction beyond a wall at d = k h / (count - 1)
+    dphi_table: wp.array(dtype=float)  # its derivative d phi / d d [1/m]
+
+
+# ------------------------------------------------------------------------------------ kernels
+@wp.func
+def kernel_w(r: float, h: float, kind: int) -> float:
+    """Smoothing kernel W(r) [1/m^3], support radius h (cubic spline or Wendland C2, 3D)."""
+    q = r / h
+    if q >= 1.0:
+        return 0.0
+    if kind == KERNEL_CUBIC:
+        k = 8.0 / (PI * h * h * h)
+        if q <= 0.5:
+            return k * (6.0 * q * q * q - 6.0 * q * q + 1.0)
+        t = 1.0 - q
+        return 2.0 * k * t * t * t
+    t = 1.0 - q
+    return 21.0 / (2.0 * PI * h * h * h) * t * t * t * t * (1.0 + 4.0 * q)
+
+
+@wp.func
+def kernel_dw(r: float, h: float, kind: int) -> float:
+    """dW/dr [1/m^4]; the gradient is kernel_dw(|r|) * r / |r|."""
+    q = r / h
+    if q >= 1.0:
+        return 0.0
+    if kind == KERNEL_CUBIC:
+        l = 48.0 / (PI * h * h * h * h)
+        if q <= 0.5:
+            return l * q * (3.0 * q - 2.0)
+        t = 1.0 - q
+        return -l * t * t
+    t = 1.0 - q
+    return -21.0 / (2.0 * PI * h * h * h * h) * 20.0 * q * t * t * t
+
+
+@wp.func
+def kernel_grad(rij: wp.vec3, r: float, h: float, kind: int) -> wp.vec3:
+    """Gradient of W with respect to x_i for rij = x_i - x_j, r = |rij|."""
+    if r <= 1.0e-9 * h:
+        return wp.vec3(0.0)
+    return rij * (kernel_dw(r, h, kind) / r)
+
+
+@wp.func
+def cohesion_spline(r: float, h: float) -> float:
+    """Akinci et al. (2013) cohesion spline C(r) [1/m^3]: repulsive below h/2, attractive above."""
+    if r >= h or r <= 0.0:
+        return 0.0
+    h3 = h * h * h
+    c = 32.0 / (PI * h3 * h3 * h3)
+    a = (h - r) * (h - r) * (h - r) * r * r * r
+    if 2.0 * r > h:
+        return c * a
+    return c * (2.0 * a - h3 * h3 / 64.0)
+
+
+# -------------------------------------------------------------------------------- boundaries
+@wp.func
+def wall_lookup(table: wp.array(dtype=float), d: float, h: float) -> float:
+    """Linear interpolation of a table sampled at d = k h / (n - 1), k = 0..n-1; 0 beyond h."""
+    n = table.shape[0]
+    s = wp.max(d, 0.0) / h * float(n - 1)
+    if s >= float(n - 1):
+        return 0.0
+    k = int(s)
+    t = s - float(k)
+    return table[k] * (1.0 - t) + table[k + 1] * t
+
+
+@wp.func
+def wall_term(b: Boundaries, d: float, n: wp.vec3, h: float) -> wp.vec4:
+    """(phi'(d) n, phi(d)) for a wall at signed distance d with fluid-side normal n; a particle
+    behind the wall (d < 0) sees 1 - phi(-d)."""
+    if d >= h:
+        return wp.vec4(0.0)
+    phi = wall_lookup(b.phi_table, d, h)
+    if d < 0.0:
+        phi = 1.0 - wall_lookup(b.phi_table, -d, h)
+    g = wall_lookup(b.dphi_table, wp.abs(d), h) * n
+    return wp.vec4(g[0], g[1], g[2], phi)
+
+
+@wp.func
+def capsule_distance(b: Boundaries, s: int, x: wp.vec3) -> wp.vec4:
+    """(fluid-side normal, signed distance) to capsule s."""
+    a = b.capsule_a[s]
+    ab = b.capsule_b[s] - a
+    t = float(0.0)
+    l2 = wp.dot(ab, ab)
+    if l2 > 0.0:
+        t = wp.clamp(wp.dot(x - a, ab) / l2, 0.0, 1.0)
+    dx = x - (a + t * ab)
+    l = wp.length(dx)
+    n = wp.vec3(0.0, 1.0, 0.0)
+    if l > 1.0e-12:
+        n = dx / l
+    sign = b.capsule_signs[s]
+    n = sign * n
+    return wp.vec4(n[0], n[1], n[2], sign * (l - b.capsule_radii[s]))
+
+
+@wp.func
+def mesh_distance(b: Boundaries, m: int, x: wp.vec3, max_dist: float) -> wp.vec4:
+    """(fluid-side normal, signed distance) to mesh m thickened by its thickness; d = max_dist
+    when nothing is within reach."""
+    mesh = b.mesh_ids[m]
+    thick = b.mesh_thickness[m]
+    sign = float(1.0)
+    face = int(0)
+    u = float(0.0)
+    v = float(0.0)
+    if b.mesh_solid[m] != 0:
+        q = wp.mesh_query_point_sign_normal(mesh, x, max_dist + thick)
+        if not q.result:
+            return wp.vec4(0.0, 1.0, 0.0, max_dist)
+        sign = q.sign
+        face = q.face
+        u = q.u
+        v = q.v
+    else:
+        q = wp.mesh_query_point_no_sign(mesh, x, max_dist + thick)
+        if not q.result:
+            return wp.vec4(0.0, 1.0, 0.0, max_dist)
+        face = q.face
+        u = q.u
+        v = q.v
+    c = wp.mesh_eval_position(mesh, face, u, v)
+    dx = x - c
+    l = wp.length(dx)
+    n = sign * wp.mesh_eval_face_normal(mesh, face)
+    if l > 1.0e-9:
+        n = sign * dx / l
+    return wp.vec4(n[0], n[1], n[2], sign * l - thick)
+
+
+@wp.func
+def union_term(acc: wp.vec4, t: wp.vec4) -> wp.vec4:
+    """Combine a boundary's (phi' n, phi) with the accumulated (grad F, F) of the fluid fraction
+    F = prod_b (1 - phi_b), so solid regions shared by two walls (edges, corners) count once."""
+    g = wp.vec3(acc[0], acc[1], acc[2]) * (1.0 - t[3]) - acc[3] * wp.vec3(t[0], t[1], t[2])
+    return wp.vec4(g[0], g[1], g[2], acc[3] * (1.0 - t[3]))
+
+
+@wp.func
+def boundary_density(b: Boundaries, x: wp.vec3, h: float) -> wp.vec4:
+    """Boundary density gradient / rest density (xyz) [1/m] and boundary density / rest density
+    (w) at x: phi = 1 - prod_b (1 - phi_b) over every plane, sphere and mesh (exact for one
+    wall, and overlaps of walls at edges and corners are not counted twice)."""
+    acc = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    for p in range(b.plane_offsets.shape[0]):
+        n = b.plane_normals[p]
+        acc = union_term(acc, wall_term(b, wp.dot(n, x) - b.plane_offsets[p], n, h))
+    for s in range(b.capsule_radii.shape[0]):
+        sd = capsule_distance(b, s, x)
+        acc = union_term(acc, wall_term(b, sd[3], wp.vec3(sd[0], sd[1], sd[2]), h))
+    for m in range(b.mesh_thickness.shape[0]):
+        md = mesh_distance(b, m, x, h)
+        acc = union_term(acc, wall_term(b, md[3], wp.vec3(md[0], md[1], md[2]), h))
+    return wp.vec4(-acc[0], -acc[1], -acc[2], 1.0 - acc[3])
+
+
+@wp.func
+def project_planes(b: Boundaries, x: wp.vec3, radius: float) -> wp.vec3:
+    """Move x to at least ``radius`` in front of every plane (planes are cheap: every iteration)."""
+    y = x
+    for p in range(b.plane_offsets.shape[0]):
+        n = b.plane_normals[p]
+        d = wp.dot(n, y) - b.plane_offsets[p]
+        if d < radius:
+            y = y + (radius - d) * n
+    return y
+
+
+@wp.func
+def project_shapes(b: Boundaries, x: wp.vec3, radius: float) -> wp.vec3:
+    """Move x out of every capsule (sphere) and mesh to at least ``radius`` from its surface."""
+    y = x
+    for s in range(b.capsule_radii.shape[0]):
+        sd = capsule_distance(b, s, y)
+        if sd[3] < radius:
+            y = y + (radius - sd[3]) * wp.vec3(sd[0], sd[1], sd[2])
+    for m in range(b.mesh_thickness.shape[0]):
+        md = mesh_distance(b, m, y, 2.0 * radius)
+        if md[3] < radius:
+            y = y + (radius - md[3]) * wp.vec3(md[0], md[1], md[2])
+    return y
+
+
+# ---------------------------------------------------------------------------------- stages
+@wp.kernel
+def build_neighbors(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    h: float,
+    neighbor_count_out: wp.array(dtype=int),
+    neighbors_out: wp.array2d(dtype=int),
+    overflow_out: wp.array(dtype=int),
+):
+    """Neighbour list of each particle: hash-grid candidates kept when |x_i - x_j| < h, j != i.
+    overflow_out[0] receives the largest count that did not fit (0 when all fit)."""
+    tid = wp.tid()
+    i = wp.hash_grid_point_id(grid, tid)
+    xi = x[i]
+    capacity = neighbors_out.shape[1]
+    count = int(0)
+    for j in wp.hash_grid_query(grid, xi, h):
+        if j != i:
+            if wp.length_sq(xi - x[j]) < h * h:
+                if count < capacity:
+                    neighbors_out[i, count] = j
+                count += 1
+    if count > capacity:
+        wp.atomic_max(overflow_out, 0, count)
+        count = capacity
+    neighbor_count_out[i] = count
+
+
+@wp.kernel
+def predict_positions(
+    p: FluidParams,
+    b: Boundaries,
+    x: wp.array(dtype=wp.vec3),
+    v_io: wp.array(dtype=wp.vec3),
+    dt: float,
+    x_pred_out: wp.array(dtype=wp.vec3),
+):
+    """v += dt g; x* = x + dt v, kept in front of every plane."""
+    i = wp.tid()
+    v = v_io[i] + dt * p.gravity
+    v_io[i] = v
+    x_pred_out[i] = project_planes(b, x[i] + dt * v, p.radius)
+
+
+@wp.kernel
+def solve_density_lambda(
+    p: FluidParams,
+    b: Boundaries,
+    x: wp.array(dtype=wp.vec3),
+    neighbor_count: wp.array(dtype=int),
+    neighbors: wp.array2d(dtype=int),
+    accumulate: int,
+    density_out: wp.array(dtype=float),
+    lambda_out: wp.array(dtype=float),
+    boundary_grad_out: wp.array(dtype=wp.vec3),
+    lambda_sum_io: wp.array(dtype=float),
+):
+    """PBF (Macklin and Mueller 2013): density rho_i = sum_j m W_ij + rho0 phi_boundary and the
+    multiplier lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps) of C_i = max(rho_i / rho0 - 1, 0).
+    lambda_sum accumulates lambda over the iterations of a step (set when accumulate == 0)."""
+    i = wp.tid()
+    xi = x[i]
+    h = p.h
+    rho = p.mass * kernel_w(0.0, h, p.kernel)
+    scale = p.mass / p.rest_density
+    grad_i = wp.vec3(0.0)
+    sum_grad2 = float(0.0)
+    for k in range(neighbor_count[i]):
+        j = neighbors[i, k]
+        rij = xi - x[j]
+        r = wp.length(rij)
+        rho += p.mass * kernel_w(r, h, p.kernel)
+        g = scale * kernel_grad(rij, r, h, p.kernel)
+        grad_i += g
+        sum_grad2 += wp.dot(g, g)
+    bd = boundary_density(b, xi, h)
+    rho += p.rest_density * bd[3]
+    gb = wp.vec3(bd[0], bd[1], bd[2])
+    grad_i += gb
+    sum_grad2 += wp.dot(grad_i, grad_i)
+    c = wp.max(rho / p.rest_density - 1.0, 0.0)
+    lam = -c / (sum_grad2 + p.relaxation)
+    density_out[i] = rho
+    lambda_out[i] = lam
+    boundary_grad_out[i] = gb
+    if accumulate == 0:
+        lambda_sum_io[i] = lam
+    else:
+        lambda_sum_io[i] = lambda_sum_io[i] + lam
+
+
+@wp.kernel
+def solve_density_correct(
+    p: FluidParams,
+    b: Boundaries,
+    x: wp.array(dtype=wp.vec3),
+    neighbor_count: wp.array(dtype=int),
+    neighbors: wp.array2d(dtype=int),
+    lam: wp.array(dtype=float),
+    boundary_grad: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """Jacobi position correction dx_i = sum_j m/rho0 (lambda_i + lambda_j) grad W_ij +
+    lambda_i grad phi_boundary, then kept in front of every plane."""
+    i = wp.tid()
+    xi = x[i]
+    li = lam[i]
+    scale = p.mass / p.rest_density
+    dx = wp.vec3(0.0)
+    for k in range(neighbor_count[i]):
+        j = neighbors[i, k]
+        rij = xi - x[j]
+        r = wp.length(rij)
+        dx += (scale * (li + lam[j])) * kernel_grad(rij, r, p.h, p.kernel)
+    dx += li * boundary_grad[i]
+    x_out[i] = project_planes(b, xi + dx, p.radius)
+
+
+@wp.kernel
+def project_boundaries(p: FluidParams, b: Boundaries, x_io: wp.array(dtype=wp.vec3)):
+    """Move particles out of capsules, spheres and meshes (then planes again): no particle leaks."""
+    i = wp.tid()
+    y = project_shapes(b, x_io[i], p.radius)
+    x_io[i] = project_planes(b, y, p.radius)
+
+
+@wp.kernel
+def update_velocities(
+    p: FluidParams,
+    x_io: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    lambda_sum: wp.array(dtype=float),
+    dt: float,
+    v_out: wp.array(dtype=wp.vec3),
+    pressure_out: wp.array(dtype=float),
+):
+    """v = (x* - x) / dt, x = x*; pressure p = -rho0 sum(lambda) / dt^2 [Pa]: the correction
+    sum_j V (L_i + L_j) grad W_ij of L = sum(lambda) is the SPH gradient of L, and it equals dt^2
+    times the pressure acceleration -grad p / rho0."""
+    i = wp.tid()
+    xp = x_pred[i]
+    v_out[i] = (xp - x_io[i]) / dt
+    x_io[i] = xp
+    pressure_out[i] = -p.rest_density * lambda_sum[i] / (dt * dt)
+
+
+@wp.kernel
+def compute_curl_normals(
+    p: FluidParams,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    density: wp.array(dtype=float),
+    neighbor_count: wp.array(dtype=int),
+    neighbors: wp.array2d(dtype=int),
+    curl_out: wp.array(dtype=wp.vec3),
+    normal_out: wp.array(dtype=wp.vec3),
+):
+    """Vorticity w_i = sum_j m/rho_j grad_i W_ij x (v_j - v_i) [1/s] (the SPH curl of v) and Akinci's surface normal
+    n_i = h sum_j m/rho_j grad_i W_ij (dimensionless)."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    w = wp.vec3(0.0)
+    nrm = wp.vec3(0.0)
+    for k in range(neighbor_count[i]):
+        j = neighbors[i, k]
+        rij = xi - x[j]
+        r = wp.length(rij)
+        g = (p.mass / density[j]) * kernel_grad(rij, r, p.h, p.kernel)
+        w += wp.cross(g, v[j] - vi)
+        nrm += g
+    curl_out[i] = w
+    normal_out[i] = p.h * nrm
+
+
+@wp.kernel
+def apply_velocity_filters(
+    p: FluidParams,
+    b: Boundaries,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    density: wp.array(dtype=float),
+    neighbor_count: wp.array(dtype=int),
+    neighbors: wp.array2d(dtype=int),
+    curl: wp.array(dtype=wp.vec3),
+    normal: wp.array(dtype=wp.vec3),
+    use_curl: int,
+    dt: float,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """XSPH viscosity (symmetric weights 2m/(rho_i + rho_j), so momentum is conserved), boundary
+    friction, vorticity confinement (Fedkiw et al. 2001, as in PBF) and Akinci et al. (2013)
+    surface tension (cohesion + curvature, pairwise antisymmetric)."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    rhoi = density[i]
+    h = p.h
+    dv = wp.vec3(0.0)
+    eta = wp.vec3(0.0)
+    accel = wp.vec3(0.0)
+    for k in range(neighbor_count[i]):
+        j = neighbors[i, k]
+        rij = xi - x[j]
+        r = wp.length(rij)
+        rhoj = density[j]
+        wij = kernel_w(r, h, p.kernel)
+        dv += (2.0 * p.mass / (rhoi + rhoj) * wij) * (v[j] - vi)
+        if use_curl != 0:
+            eta += (p.mass / rhoj * wp.length(curl[j])) * kernel_grad(rij, r, h, p.kernel)
+            if p.surface_tension > 0.0 and r > 1.0e-9 * h:
+                kij = 2.0 * p.rest_density / (rhoi + rhoj)
+                coh = (-p.surface_tension * p.mass * cohesion_spline(r, h) / r) * rij
+                curv = -p.surface_tension * (normal[i] - normal[j])
+                accel += kij * (coh + curv)
+    vnew = vi + p.viscosity * dv
+    if p.boundary_viscosity > 0.0:
+        phi = boundary_density(b, xi, h)[3]
+        vnew = vnew - wp.min(p.boundary_viscosity * phi, 1.0) * vnew
+    if use_curl != 0 and p.vorticity > 0.0:
+        le = wp.length(eta)
+        if le > 1.0e-9:
+            accel += p.vorticity * wp.cross(eta / le, curl[i])
+    v_out[i] = vnew + dt * accel
+
+
+@wp.kernel
+def reduce_speed(v: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), out: wp.array(dtype=float)):
+    """out[0] = max |v| [m/s]; a non-finite position or velocity makes it +inf and records the
+    particle's index in out[1] (as a float)."""
+    i = wp.tid()
+    vi = v[i]
+    xi = x[i]
+    s = wp.length(vi)
+    finite = wp.isfinite(vi) and wp.isfinite(xi)
+    if not finite:
+        s = 1.0e30
+        wp.atomic_min(out, 1, float(i))
+    wp.atomic_max(out, 0, s)
+
+
+@wp.kernel
+def density_error_stats(density: wp.array(dtype=float), rest_density: float, out: wp.array(dtype=float)):
+    """out[0] += max(rho/rho0 - 1, 0) (sum of compressions), out[1] = max compression."""
+    i = wp.tid()
+    c = wp.max(density[i] / rest_density - 1.0, 0.0)
+    wp.atomic_add(out, 0, c)
+    wp.atomic_max(out, 1, c)
+
+
+# ------------------------------------------------------------------------- emitters and sinks
+@wp.kernel
+def emit_particles(
+    offsets: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    velocity: wp.vec3,
+    start: int,
+    first_id: int,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    ids_out: wp.array(dtype=int),
+):
+    """Write particle start + k at origin + offsets[k] with ``velocity`` and id first_id + k."""
+    k = wp.tid()
+    x_out[start + k] = origin + offsets[k]
+    v_out[start + k] = velocity
+    ids_out[start + k] = first_id + k
+
+
+@wp.kernel
+def mark_alive(
+    x: wp.array(dtype=wp.vec3),
+    sink_lower: wp.array(dtype=wp.vec3),
+    sink_upper: wp.array(dtype=wp.vec3),
+    alive_out: wp.array(dtype=int),
+):
+    """alive = 0 for particles inside any sink box [lower, upper], else 1."""
+    i = wp.tid()
+    xi = x[i]
+    alive = int(1)
+    for s in range(sink_lower.shape[0]):
+        lo = sink_lower[s]
+        hi = sink_upper[s]
+        if xi[0] >= lo[0] and xi[0] <= hi[0] and xi[1] >= lo[1] and xi[1] <= hi[1] and xi[2] >= lo[2] and xi[2] <= hi[2]:
+            alive = 0
+    alive_out[i] = alive
+
+
+@wp.kernel
+def compact_particles(
+    alive: wp.array(dtype=int),
+    slot: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    ids: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    ids_out: wp.array(dtype=int),
+):
+    """Stable compaction: a living particle i moves to slot[i] (exclusive prefix sum of alive)."""
+    i = wp.tid()
+    if alive[i] != 0:
+        s = slot[i]
+        x_out[s] = x[i]
+        v_out[s] = v[i]
+        ids_out[s] = ids[i]

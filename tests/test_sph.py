@@ -1,0 +1,406 @@
+"""Position-based fluids (warpsim.sph), its surface (warpsim.fluid_surface) and scenes.
+
+Physics checked: smoothing kernels against NumPy and their integrals, a step against a NumPy
+reference of the same method, a hydrostatic column (density and pressure), the dam-break front
+against Martin and Moyce (1952), volume conservation, momentum of a free-falling blob,
+containment by walls, spheres and meshes, emitters/sinks, CFL sub-stepping, and bad input.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import warp as wp
+import warpsim.kernels.sph as K
+
+from warpsim.errors import SimulationError
+from warpsim.sph import (
+    Nozzle,
+    ParticleFluid,
+    Sink,
+    fluid_block,
+    kernel_numpy,
+    lattice_mass,
+    wall_tables,
+)
+from warpsim.sph_reference import pbf_step_numpy
+
+G = 9.81
+
+
+@wp.kernel
+def eval_kernels(r: wp.array(dtype=float), h: float, kind: int, w_out: wp.array(dtype=float),
+                 dw_out: wp.array(dtype=float), coh_out: wp.array(dtype=float)):
+    i = wp.tid()
+    w_out[i] = K.kernel_w(r[i], h, kind)
+    dw_out[i] = K.kernel_dw(r[i], h, kind)
+    coh_out[i] = K.cohesion_spline(r[i], h)
+
+
+# ------------------------------------------------------------------------------ kernels
+@pytest.mark.parametrize("kernel", ["cubic", "wendland"])
+def test_smoothing_kernels_match_numpy_and_integrate_to_one(kernel, device):
+    h = 0.04
+    r = np.linspace(0.0, 1.1 * h, 2001)
+    out = [wp.zeros(len(r), dtype=float, device=device) for _ in range(3)]
+    wp.launch(eval_kernels, len(r), inputs=[wp.array(r, dtype=float, device=device), h, K.KERNEL_CUBIC if kernel ==
+                                            "cubic" else K.KERNEL_WENDLAND], outputs=out, device=device)
+    w, dw, coh = (a.numpy().astype(np.float64) for a in out)
+    np.testing.assert_allclose(w, kernel_numpy(r, h, kernel), rtol=2e-5, atol=1e-3)
+    # integral over space: int 4 pi r^2 W dr = 1
+    f = 4.0 * np.pi * r**2 * w
+    assert abs(np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(r)) - 1.0) < 1e-4
+    # derivative: finite differences of W
+    fd = np.gradient(kernel_numpy(r, h, kernel), r)
+    inside = (r > 0.02 * h) & (r < 0.98 * h)
+    np.testing.assert_allclose(dw[inside], fd[inside], rtol=2e-3, atol=2e-3 * np.abs(fd).max())
+    assert np.all(w[r >= h] == 0.0) and np.all(dw[r >= h] == 0.0)
+    # Akinci cohesion spline: repulsive near 0, attractive (positive) beyond h/2, zero at h
+    assert coh[np.searchsorted(r, 0.1 * h)] < 0.0 < coh[np.searchsorted(r, 0.75 * h)]
+    assert np.all(coh[r >= h] == 0.0)
+
+
+def test_wall_tables_continuous_and_lattice():
+    h, s = 0.04, 0.02
+    phi_c, dphi_c = wall_tables(h, "cubic")
+    assert abs(phi_c[0] - 0.5) < 1e-3 and phi_c[-1] == 0.0  # half the kernel lies beyond a wall through x
+    d = np.linspace(0.0, h, len(phi_c))
+    np.testing.assert_allclose(np.gradient(phi_c, d)[5:-5], dphi_c[5:-5], atol=0.01 / h)
+    phi, dphi = wall_tables(h, "cubic", s)
+    # a lattice particle half a spacing from the wall: its missing neighbours exactly
+    n = 4
+    g = np.arange(-n, n + 1) * s
+    xj = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    below = xj[xj[:, 1] < -0.5 * s + 1e-12]
+    missing = lattice_mass(s, h, 1.0) * kernel_numpy(np.linalg.norm(below, axis=1), h).sum()
+    assert abs(np.interp(0.5 * s, d, phi) - missing) < 1e-4
+    np.testing.assert_allclose(np.gradient(phi, d)[5:-5], dphi[5:-5], atol=0.02 / h)
+
+
+@pytest.mark.parametrize("kernel", ["cubic", "wendland"])
+def test_lattice_at_walls_has_rest_density(kernel, device):
+    s = 0.02
+    f = ParticleFluid(fluid_block((0, 0, 0), (0.16, 0.16, 0.16), s), spacing=s,
+                      domain=((0, 0, 0), (0.16, 0.3, 0.16)), kernel=kernel, device=device)
+    rho = f.measure_density()
+    x = f.positions.numpy()
+    below_top = x[:, 1] < 0.16 - 2.0 * s  # the free surface (top) has a kernel deficiency
+    # faces (one wall) are exact; edges and corners (two or three walls) slightly under-dense
+    assert np.all(rho[below_top] <= 1000.0 * (1 + 1e-4))
+    assert np.all(rho[below_top] >= 1000.0 * (1 - 0.01))
+    assert f.density_error()[1] < 1e-4
+
+
+# ------------------------------------------------------------------------------ reference
+def test_step_matches_numpy_reference(device):
+    s = 0.02
+    rng = np.random.default_rng(3)
+    x0 = fluid_block((0.0, 0.0, 0.0), (0.12, 0.12, 0.1), s, jitter=0.15, seed=1) + np.array([0.01, 0.0, 0.0])
+    x0 = np.clip(x0, 0.5 * s, None)
+    v0 = rng.normal(0.0, 0.2, x0.shape)
+    dom = ((0.0, 0.0, 0.0), (0.2, 0.3, 0.12))
+    f = ParticleFluid(x0, v0, spacing=s, domain=dom, viscosity=0.05, boundary_viscosity=0.1, iterations=3,
+                      device=device)
+    phi, dphi = wall_tables(f.h, "cubic", s)
+    eye = np.eye(3)
+    normals = np.concatenate([eye, -eye])
+    offsets = np.concatenate([np.zeros(3), -np.array(dom[1])])
+    x, v = f.positions.numpy().astype(np.float64), f.velocities.numpy().astype(np.float64)
+    dt = 1.0 / 240.0
+    for _ in range(3):
+        x, v, rho = pbf_step_numpy(x, v, dt, h=f.h, mass=f.particle_mass, rest_density=1000.0, iterations=3,
+                                   viscosity=0.05, boundary_viscosity=0.1, radius=0.5 * s,
+                                   relaxation=1e-6 / s**2, normals=normals, offsets=offsets, phi_table=phi,
+                                   dphi_table=dphi)
+        f.step(dt)
+    assert np.abs(f.positions.numpy() - x).max() < 2e-6
+    assert np.abs(f.velocities.numpy() - v).max() < 2e-3
+    np.testing.assert_allclose(f.density.numpy(), rho, rtol=1e-4)
+
+
+# ------------------------------------------------------------------------------ validation
+def test_hydrostatic_column_density_and_pressure():
+    """A 0.3 m column at rest in a box: compression < 1 % and, at least one kernel radius from
+    the side walls, pressure within 5 % of rho g depth (averaged over layers 2 spacings thick)."""
+    s, width, height = 0.03, 0.3, 0.3
+    f = ParticleFluid(fluid_block((0, 0, 0), (width, height, width), s), spacing=s,
+                      domain=((0, 0, 0), (width, height + 0.1, width)), viscosity=0.05, iterations=4,
+                      max_dt=1.0 / 240.0, device="cpu")
+    for _ in range(90):
+        f.advance(1.0 / 60.0)
+    assert f.max_speed_now() < 0.1  # at rest
+    mean, peak = f.density_error()
+    assert mean < 0.01 and peak < 0.02
+    x = f.positions.numpy()
+    p = f.pressure.numpy()
+    interior = np.all((x[:, [0, 2]] > f.h) & (x[:, [0, 2]] < width - f.h), axis=1)
+    # depth of rest-density fluid above each particle: the weight above it per unit area / (rho0 g)
+    # (each particle's mass spread over one spacing in y), free of where the surface layer sits
+    y = x[:, 1]
+    above = np.clip((y[None, :] + 0.5 * s - y[:, None]) / s, 0.0, 1.0).sum(axis=1)
+    depth = above * f.particle_mass / (1000.0 * width * width)
+    edges = np.arange(2 * s, height + 2 * s, 2 * s)
+    checked = 0
+    for a, b in zip(edges[:-1], edges[1:]):
+        m = interior & (depth >= a) & (depth < b)
+        if m.sum() < 4:
+            continue
+        ratio = p[m].mean() / (1000.0 * G * depth[m].mean())
+        assert abs(ratio - 1.0) < 0.05, (a, b, ratio)
+        checked += 1
+    assert checked >= 3
+
+
+# Martin and Moyce (1952), "Part IV. An experimental study of the collapse of liquid columns on
+# a rigid horizontal plane", Phil. Trans. R. Soc. Lond. A 244, 312-324, Table 2: surge front of
+# the column with n^2 = 2 (height 2a), a = 2.25 in; Z = z/a against T = t sqrt(2 g / a). (The
+# same numbers are quoted, e.g., in the plotting script of the Ocellaris solver; PySPH's
+# db_exp_data.py digitises their Fig. 3 and agrees.)
+MM_T = np.array([0.41, 0.84, 1.19, 1.43, 1.63, 1.83, 1.98, 2.20, 2.32, 2.51, 2.65, 2.83, 2.98])
+MM_Z = np.array([1.11, 1.22, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.00, 3.22, 3.44, 3.67])
+
+
+@pytest.fixture(scope="module")
+def dam_break():
+    """A 2D-like slab (3 particles thick, free-slip side walls): column a x 2a, a = 10 spacings.
+    Records the front Z(T), the density-based volume and the compression at every sample."""
+    a, res = 0.1, 10
+    s = a / res
+    f = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, 3 * s), s), spacing=s,
+                      domain=((0, 0, 0), (5 * a, 2.5 * a, 3 * s)), viscosity=0.01, iterations=4,
+                      max_dt=1.0 / 100.0, device="cpu")
+    scale = np.sqrt(2.0 * G / a)
+    frame_dt = 0.05 / scale  # equal frames (PBF wants sub-steps of similar size), T = 0 .. 3.1
+    volume0 = f.volume()
+    out = {"T": [0.0], "Z": [1.0], "volume": [1.0], "compression": [f.density_error()[0]]}
+    for _ in range(62):
+        f.advance(frame_dt)
+        x = f.positions.numpy()
+        out["T"].append(f.time * scale)
+        out["Z"].append((x[:, 0].max() + 0.5 * s) / a)
+        out["volume"].append(f.volume() / volume0)
+        out["compression"].append(f.density_error()[0])
+    out = {k: np.array(v) for k, v in out.items()}
+    out["fluid"] = f
+    return out
+
+
+def test_dam_break_front_martin_moyce(dam_break):
+    """Front Z(T) against Martin and Moyce, T <= 3.
+
+    Measured here (a/spacing = 10): the simulated front leads the measurements by +12..+17 %
+    for 0.8 < T < 1.9 and by +4..+8 % for 2.3 < T < 3 (inviscid, free-slip; finer slabs lead
+    slightly more), a known offset of the experiment, whose time origin depends on how the
+    diaphragm was released. After one time-origin shift dT (least squares, asserted to be small,
+    < 0.35, i.e. < 13 ms at the experiment's a = 2.25 in) every point agrees within 10 %; the
+    raw curve agrees within 20 % everywhere and within 10 % for T < 0.5 and T > 2.3."""
+    T, Z = dam_break["T"], dam_break["Z"]
+    raw = np.interp(MM_T, T, Z) / MM_Z - 1.0
+    print("Z_sim / Z_exp - 1 at T =", MM_T, ":", np.round(raw, 3))
+    assert np.all(np.abs(raw) < 0.20), raw
+    assert np.all(np.abs(raw[(MM_T < 0.5) | (MM_T > 2.3)]) < 0.10), raw
+    shifts = np.linspace(0.0, 0.5, 101)
+    errs = [np.max(np.abs(np.interp(MM_T - dT, T, Z, left=1.0) / MM_Z - 1.0)) for dT in shifts]
+    best = int(np.argmin(errs))
+    print(f"time-origin shift dT = {shifts[best]:.3f}: max |Z_sim / Z_exp - 1| = {errs[best]:.3f}")
+    assert shifts[best] < 0.35 and errs[best] < 0.10, (shifts[best], errs[best])
+    assert Z[-1] > 3.0  # the surge really travels (T = 3)
+
+
+def test_dam_break_volume_and_density(dam_break):
+    """Density-based volume sum m / max(rho, rho0) stays within 1 %; compression < 1 %."""
+    assert np.all(np.abs(dam_break["volume"] - 1.0) < 0.01), dam_break["volume"].min()
+    assert np.all(dam_break["compression"] < 0.01)
+    f = dam_break["fluid"]
+    x = f.positions.numpy()
+    lo, hi = f.domain
+    assert np.all(x >= lo + 0.5 * f.spacing - 1e-5) and np.all(x <= hi - 0.5 * f.spacing + 1e-5)
+
+
+def test_free_fall_momentum_matches_gravity(device):
+    """No walls: internal forces (PBF corrections, XSPH, surface tension) are pairwise
+    antisymmetric, so the total momentum changes by exactly M g t."""
+    s = 0.02
+    x0 = fluid_block((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), s, jitter=0.1, seed=2) * 0.9
+    rng = np.random.default_rng(0)
+    v0 = rng.normal(0.0, 0.3, x0.shape)
+    f = ParticleFluid(x0, v0, spacing=s, viscosity=0.1, surface_tension=0.5, device=device)
+    p0 = f.momentum()
+    mass = f.total_mass
+    t = 0.0
+    for _ in range(40):
+        f.step(1.0 / 400.0)
+        t += 1.0 / 400.0
+    expected = p0 + mass * np.array([0.0, -G, 0.0]) * t
+    err = np.abs(f.momentum() - expected).max()
+    assert err < 2e-5 * mass * G * t, err / (mass * G * t)
+    # the blob stayed together and compressed < 1 %
+    assert f.density_error()[0] < 0.01
+
+
+def test_containment_walls_sphere_and_mesh():
+    """Fluid thrown at a solid sphere, a solid box mesh and a thin quad inside a closed box:
+    nothing leaves the box or comes within a particle radius of the solids (the obstacles are
+    more than a particle diameter apart: a particle jammed in a narrower gap can only be kept
+    out of one of them)."""
+    s = 0.02
+    rng = np.random.default_rng(4)
+    x0 = fluid_block((0.02, 0.3, 0.02), (0.18, 0.46, 0.18), s)
+    v0 = rng.normal(0.0, 1.5, x0.shape) + np.array([0.0, -3.0, 0.0])
+    sphere = SimpleNamespace(center=(0.07, 0.09, 0.07), radius=0.04)
+    cube = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], float) * 0.06 + [0.14, 0.0, 0.14]
+    faces = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                      [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    box_mesh = SimpleNamespace(points=cube, faces=faces, solid=True)
+    quad = SimpleNamespace(corners=lambda: np.array([[0.0, 0.22, 0.0], [0.0, 0.22, 0.08], [0.08, 0.22, 0.08],
+                                                     [0.08, 0.22, 0.0]]))
+    lo, hi = np.zeros(3), np.array([0.2, 0.5, 0.2])
+    f = ParticleFluid(x0, v0, spacing=s, domain=(lo, hi), colliders=[sphere, box_mesh, quad], device="cpu")
+    tol = 1e-4
+    for _ in range(20):
+        f.advance(1.0 / 60.0)
+        x = f.positions.numpy()
+        assert np.all(x >= lo + 0.5 * s - tol) and np.all(x <= hi - 0.5 * s + tol)
+        assert np.linalg.norm(x - sphere.center, axis=1).min() >= sphere.radius + 0.5 * s - tol
+        gap = np.maximum(np.abs(x - cube.mean(0)) - 0.03, 0.0)  # distance outside the cube
+        assert np.linalg.norm(gap, axis=1).min() >= 0.5 * s - tol
+        on_quad = np.all((x[:, [0, 2]] > 0.0) & (x[:, [0, 2]] < 0.08), axis=1)
+        assert np.all(np.abs(x[on_quad, 1] - 0.22) >= 0.5 * s - tol)
+    assert f.active_count == len(x0)
+
+
+def test_emitter_sink_ids_and_capacity():
+    s = 0.02
+    nozzle = Nozzle(center=(0.1, 0.3, 0.1), direction=(0, -1, 0), radius=0.03, speed=1.0, stop=0.2)
+    per_layer = len(nozzle.layer_offsets(s))
+    sink = Sink((0.0, 0.0, 0.0), (0.2, 0.1, 0.2))
+    f = ParticleFluid(np.zeros((0, 3)), spacing=s, capacity=4000, domain=((0, 0, 0), (0.2, 0.4, 0.2)),
+                      emitters=[nozzle], sinks=[sink], device="cpu")
+    assert f.active_count == 0
+    for _ in range(12):  # 0.2 s of emission: 0.2 m of jet = 10 layers
+        f.advance(1.0 / 60.0)
+    assert nozzle.emitted == 10 * per_layer
+    ids = f.ids.numpy()
+    assert len(np.unique(ids)) == len(ids) == f.active_count
+    assert f.next_id == nozzle.emitted
+    # falling 0.2-0.3 m: the jet reaches the sink, which removes what enters it
+    for _ in range(30):
+        f.advance(1.0 / 60.0)
+    assert sink.removed > 0
+    assert f.active_count == nozzle.emitted - sink.removed
+    x = f.positions.numpy()
+    ids2 = f.ids.numpy()
+    assert np.all(x[:, 1] > 0.1 - 1e-6) or f.active_count == 0
+    assert set(ids2) <= set(range(f.next_id)) and len(np.unique(ids2)) == len(ids2)
+    # a full capacity stops emission with a warning
+    small = ParticleFluid(np.zeros((0, 3)), spacing=s, capacity=per_layer + 3,
+                          domain=((0, 0, 0), (0.2, 0.4, 0.2)), emitters=[Nozzle((0.1, 0.3, 0.1), radius=0.03)],
+                          device="cpu")
+    with pytest.warns(RuntimeWarning, match="capacity"):
+        for _ in range(3):
+            small.advance(1.0 / 60.0)
+    assert small.active_count == per_layer + 3 and small.dropped > 0
+
+
+def test_cfl_substeps_and_blow_up():
+    s = 0.02
+    x0 = fluid_block((0.0, 0.0, 0.0), (0.06, 0.06, 0.06), s)
+    f = ParticleFluid(x0, np.tile([4.0, 0.0, 0.0], (len(x0), 1)), spacing=s, gravity=(0, 0, 0), cfl=0.4,
+                      max_dt=1.0, device="cpu")
+    n = f.advance(1.0 / 60.0)
+    assert n == int(np.ceil((1.0 / 60.0) * 4.0 / (0.4 * s)))  # v dt <= cfl spacing
+    assert f.last_substeps == n
+    f._v.fill_(wp.vec3(np.nan, 0.0, 0.0))
+    with pytest.raises(SimulationError, match="particle"):
+        f.advance(1.0 / 60.0)
+
+
+def test_vorticity_confinement_and_surface_tension():
+    """Vorticity confinement adds rotational energy to a spinning blob; surface tension pulls a
+    cube-shaped blob in zero gravity toward a sphere (smaller spread of radii)."""
+    s = 0.02
+    x0 = fluid_block((-0.06, -0.06, -0.06), (0.06, 0.06, 0.06), s)
+    spin = np.cross([0.0, 0.0, 2.0], x0)
+
+    # the curl kernel: a rigid rotation v = W x x has vorticity 2 W in the bulk
+    f = ParticleFluid(x0, spin, spacing=s, gravity=(0, 0, 0), device="cpu")
+    f.measure_density()
+    n = f.active_count
+    wp.launch(K.compute_curl_normals, n, inputs=[f._params, f.positions, f.velocities, f._density, f._nbr_count,
+                                                 f._nbrs], outputs=[f._curl, f._normal], device="cpu")
+    bulk = np.all(np.abs(x0) < 0.06 - f.h, axis=1)
+    # (the cubic lattice's SPH gradient moment is 1.02, not 1)
+    np.testing.assert_allclose(f._curl.numpy()[:n][bulk], np.tile([0.0, 0.0, 4.0], (bulk.sum(), 1)), atol=0.1)
+    normal = f._normal.numpy()[:n]
+    assert np.abs(normal[bulk]).max() < 1e-3  # surface normals vanish in the bulk ...
+    corner = np.argmax(x0.sum(axis=1))
+    assert np.dot(normal[corner], [-1, -1, -1]) > 0.0  # ... and point inward (Akinci) at the surface
+
+    def energy(vort):
+        f = ParticleFluid(x0, spin, spacing=s, gravity=(0, 0, 0), vorticity=vort, viscosity=0.0, device="cpu")
+        for _ in range(20):
+            f.step(1.0 / 240.0)
+        return float((f.velocities.numpy() ** 2).sum())
+
+    assert energy(0.02) > 1.01 * energy(0.0)
+
+    def spread(gamma):
+        f = ParticleFluid(x0, spacing=s, gravity=(0, 0, 0), surface_tension=gamma, viscosity=0.05, device="cpu")
+        for _ in range(30):
+            f.advance(1.0 / 60.0)
+        x = f.positions.numpy()
+        r = np.linalg.norm(x - x.mean(0), axis=1)
+        outer = r > np.percentile(r, 80)
+        return r[outer].std() / r[outer].mean()
+
+    assert spread(1.0) < 0.8 * spread(0.0)
+
+
+def test_bad_input_names_the_item():
+    s = 0.02
+    good = fluid_block((0, 0, 0), (0.06, 0.06, 0.06), s)
+    cases = [
+        (dict(positions=np.zeros((3, 2))), "positions"),
+        (dict(positions=np.array([[0.0, np.nan, 0.0]])), "particle 0"),
+        (dict(velocities=np.zeros((2, 3))), "velocities"),
+        (dict(spacing=-1.0), "spacing"),
+        (dict(kernel="gauss"), "kernel"),
+        (dict(iterations=0), "iterations"),
+        (dict(viscosity=2.0), "viscosity"),
+        (dict(capacity=3), "capacity"),
+        (dict(domain=((0, 0, 0), (0.01, 0.01, 0.01))), "domain"),
+        (dict(domain=((0.1, 0, 0), (1, 1, 1))), "outside the domain"),
+        (dict(colliders=[object()]), "colliders\\[0\\]"),
+        (dict(emitters=["nozzle"]), "emitters\\[0\\]"),
+        (dict(cfl=0.0), "cfl"),
+    ]
+    for kwargs, match in cases:
+        args = dict(positions=good, spacing=s)
+        args.update(kwargs)
+        with pytest.raises(ValueError, match=match):
+            ParticleFluid(args.pop("positions"), spacing=args.pop("spacing"), device="cpu", **args)
+    with pytest.raises(ValueError, match="radius"):
+        Nozzle((0, 0, 0), radius=0.0)
+    with pytest.raises(ValueError, match="Sink upper"):
+        Sink((0, 0, 0), (1, -1, 1))
+    f = ParticleFluid(good, spacing=s, device="cpu")
+    with pytest.raises(ValueError, match="dt"):
+        f.step(0.0)
+
+
+# ------------------------------------------------------------------------------ surface
+def test_fluid_surface_block_volume_and_watertight():
+    from warpsim.fluid_surface import FluidSurface
+
+    s = 0.02
+    f = ParticleFluid(fluid_block((0.1, 0.0, 0.1), (0.3, 0.2, 0.3), s), spacing=s,
+                      domain=((0, 0, 0), (0.4, 0.4, 0.4)), device="cpu")
+    surface = FluidSurface(f, cell=0.5 * s)
+    v, faces, _ = surface.mesh().numpy()
+    volume = np.einsum("ij,ij->i", v[faces[:, 0]], np.cross(v[faces[:, 1]], v[faces[:, 2]])).sum() / 6.0
+    assert abs(volume / 0.2**3 - 1.0) < 0.03
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # closed (the floor side is capped at the grid boundary)
+    field = surface.field.numpy()
+    assert field.min() < 0.0 < field.max()
