@@ -238,6 +238,20 @@ def test_food_attracts_hungry_agents():
     assert d[0.0] > 8.0  # those that cannot sense it fly on
 
 
+def test_goal_seeking_flyers_reach_their_goal():
+    rng = np.random.default_rng(10)
+    n = 30
+    x = rng.uniform(-20.0, -10.0, (n, 3))
+    p = BoidParams(max_speed=4.0, min_speed=0.0, max_force=4.0, goal_weight=1.0, separation_radius=0.4,
+                   alignment_weight=0.0, cohesion_weight=0.0)
+    flock = Flock(x, np.zeros((n, 3)), params=p, goals=(10.0, 5.0, 0.0), device=CPU)
+    d0 = np.linalg.norm(x - [10.0, 5.0, 0.0], axis=1)
+    run(flock, 300, 0.05)
+    d = np.linalg.norm(flock.positions.numpy() - [10.0, 5.0, 0.0], axis=1)
+    assert d0.min() > 20.0 and d.max() < 5.0
+    assert np.linalg.norm(flock.velocities.numpy(), axis=1).max() <= p.max_speed * (1 + 1e-5)
+
+
 def test_energy_rest_cycle():
     p = BoidParams(max_speed=3.0, min_speed=2.0, drain_rate=0.5, energy_max=1.0, land_threshold=0.2, rest_time=1.0,
                    descent_speed=1.5, takeoff_speed=2.0)
@@ -349,6 +363,12 @@ def test_terrain_sampling():
     a, b = ramp.sample(q), mesh.sample(q)
     assert np.allclose(a, b, atol=1e-4)
     assert np.allclose(b[:, 1:], [0.3, -0.1], atol=1e-4)
+    # walkers on the mesh terrain follow its surface (a 30 % rise is still walked, 0.3 <= max_slope)
+    crowd = Crowd([[0.5, 0, 2.0]], [[3.5, 0, 2.0]], params=WalkerParams(max_slope=0.35), terrain=mesh, device=CPU)
+    ys = run(crowd, 60, 0.05, lambda c: c.positions.numpy()[0].copy())
+    for y in ys:
+        assert abs(y[1] - (0.3 * y[0] - 0.1 * y[2] + 1.0)) < 1e-4
+    assert ys[-1][0] > 2.5 and crowd.state.numpy()[0] == WALKING
 
 
 def ramp_terrain():

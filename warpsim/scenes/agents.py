@@ -12,6 +12,8 @@ food sources are ``Points`` whose widths follow the bites left.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import warp as wp
 
@@ -128,7 +130,7 @@ class FlockScene(AgentScene):
     random so rests are staggered) and eat at food sources; geese seek the upwash behind and
     beside each other, which saves 30 % of their drain."""
 
-    smoke_params = {"birds": 20, "geese": 4, "food": 1}
+    smoke_params: ClassVar[dict] = {"birds": 20, "geese": 4, "food": 1}
 
     species_colors = ((0.2, 0.4, 0.9), (0.95, 0.95, 0.9))
 
@@ -201,7 +203,7 @@ class SchoolScene(AgentScene):
     species only and keeps a larger distance from the others, so the schools segregate. The
     tank has soft walls; a rock (sphere) and a reef (triangle mesh) are avoided."""
 
-    smoke_params = {"fish": 8}
+    smoke_params: ClassVar[dict] = {"fish": 8}
 
     species_colors = ((0.95, 0.55, 0.1), (0.3, 0.6, 0.95), (0.85, 0.85, 0.2))
 
@@ -283,7 +285,7 @@ class ZombiesScene(AgentScene):
     (80 s) show most of the horde over the wall with the default minute of recovery.
     ``over_wall_fraction()`` reports the share on the far side."""
 
-    smoke_params = {"zombies": 8}
+    smoke_params: ClassVar[dict] = {"zombies": 8}
 
     def build(self, p):
         _positive(p, "zombies", "wall_height", "climb_speed", "walk_speed", "dt")
@@ -333,7 +335,7 @@ class CrowdScene(AgentScene):
     strangers and stay close to their group. ``arrived_fraction()`` reports how many are
     within 1 m of their destination."""
 
-    smoke_params = {"people": 10, "plaza": 12.0}
+    smoke_params: ClassVar[dict] = {"people": 10, "plaza": 12.0}
 
     species_colors = ((0.7, 0.7, 0.7),)
 
