@@ -14,6 +14,7 @@ EXAMPLES = {
     "bouncing_ball.py": ["--frames", "3"],
     "pendulum_integrators.py": ["--steps", "20", "--rows", "2"],
     "implicit_surface.py": ["--resolution", "24", "--out", "implicit_surface.usda"],
+    "flock.py": ["--frames", "3", "--out", "flock.usda"],
 }
 
 

@@ -8,6 +8,7 @@
 """
 
 from ._version import __version__
+from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
 from .builder import ModelBuilder
 from .colliders import Box, Collider, Plane, Planes
 from .errors import SimulationError
@@ -26,5 +27,6 @@ __all__ = [
     "Collider", "Planes", "Plane", "Box",
     "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
     "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
+    "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
 ]
