@@ -654,6 +654,37 @@ class ParticleFluid:
             return removed
         return 0
 
+    # ----------------------------------------------------------------------------- checkpoints
+    def checkpoint(self) -> dict:
+        """Everything needed to continue bit for bit: NumPy arrays and scalars."""
+        n = self.active_count
+        out = {"positions": self._x.numpy()[:n].copy(), "velocities": self._v.numpy()[:n].copy(),
+               "ids": self._ids.numpy()[:n].copy(), "time": self.time, "step_count": self.step_count,
+               "frame_count": self.frame_count, "next_id": self.next_id, "dropped": self.dropped}
+        out["emitters"] = np.array([[e._travel, e.emitted] for e in self.emitters], np.float64).reshape(-1, 2)
+        out["sinks"] = np.array([s.removed for s in self.sinks], np.int64)
+        return out
+
+    def restore(self, data: dict) -> None:
+        """Inverse of :meth:`checkpoint` (same fluid settings)."""
+        x = np.asarray(data["positions"], np.float32).reshape(-1, 3)
+        n = len(x)
+        if n > self.capacity:
+            raise ValueError(f"checkpoint holds {n} particles but the capacity is {self.capacity}")
+        if len(data["emitters"]) != len(self.emitters) or len(data["sinks"]) != len(self.sinks):
+            raise ValueError("checkpoint was made with a different number of emitters or sinks")
+        self._x.assign(np.concatenate([x, self._x.numpy()[n:]]))
+        self._v.assign(np.concatenate([np.asarray(data["velocities"], np.float32).reshape(-1, 3), self._v.numpy()[n:]]))
+        self._ids.assign(np.concatenate([np.asarray(data["ids"], np.int32).reshape(-1), self._ids.numpy()[n:]]))
+        self.active_count = n
+        self.time = float(data["time"])
+        self.step_count, self.frame_count = int(data["step_count"]), int(data["frame_count"])
+        self.next_id, self.dropped = int(data["next_id"]), int(data["dropped"])
+        for e, (travel, emitted) in zip(self.emitters, np.asarray(data["emitters"]).reshape(-1, 2)):
+            e._travel, e.emitted = float(travel), int(emitted)
+        for s, removed in zip(self.sinks, np.asarray(data["sinks"]).reshape(-1)):
+            s.removed = int(removed)
+
     # ----------------------------------------------------------------------------- diagnostics
     def max_speed_now(self) -> float:
         """Largest particle speed [m/s] (one read-back); SimulationError when not finite or too fast."""

@@ -1,0 +1,164 @@
+"""Particle-liquid scenes (position-based fluids): ``dam_break`` and ``pour``.
+
+Each frame writes the particles as ``UsdGeom.Points`` with ``ids`` (counts may change) and the
+liquid surface, splatted onto a grid and meshed with marching cubes, as a ``Mesh`` whose
+topology changes every frame.
+"""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from .. import colliders as C
+from ..fluid_surface import FluidSurface
+from ..sph import KERNELS, Nozzle, ParticleFluid, Sink, fluid_block
+from . import Scene, register_scene
+
+_WATER = (0.15, 0.45, 0.9)
+_COMMON = {
+    "spacing": (0.025, "particle spacing [m] (the particle diameter)"),
+    "iterations": (4, "PBF density iterations per sub-step"),
+    "viscosity": (0.01, "XSPH viscosity coefficient in [0, 1]"),
+    "vorticity": (0.0, "vorticity confinement strength (0: off)"),
+    "surface_tension": (0.0, "Akinci surface tension coefficient (0: off)"),
+    "kernel": ("cubic", "smoothing kernel", tuple(KERNELS)),
+    "cfl": (0.4, "CFL number: sub-steps keep v dt <= cfl * spacing"),
+    "surface": (True, "mesh the liquid surface every frame"),
+    "surface_cell": (0.0, "surface grid spacing [m] (0: half the particle spacing)"),
+}
+
+
+def open_box_mesh(lower, upper, open_faces=("top",)):
+    """Points (8, 3) and triangles of an axis-aligned box without the named faces (top, bottom,
+    left, right, back, front = +y, -y, -x, +x, -z, +z), wound outward."""
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    pts = np.array([[(hi if (i >> k) & 1 else lo)[k] for k in range(3)] for i in range(8)])
+    quads = {"bottom": [0, 4, 5, 1], "top": [2, 3, 7, 6], "left": [0, 2, 6, 4], "right": [1, 5, 7, 3],
+             "back": [0, 1, 3, 2], "front": [4, 6, 7, 5]}
+    tris = [[q[0], q[1], q[2]] for name, q in quads.items() if name not in open_faces] + \
+           [[q[0], q[2], q[3]] for name, q in quads.items() if name not in open_faces]
+    return pts, np.array(tris, dtype=np.int64)
+
+
+def _collider(kind, *args, **kw):
+    """A warpsim collider (``colliders.Sphere`` / ``colliders.TriangleMesh``); where this checkout's
+    collider module predates them, a plain object with the same geometry attributes."""
+    cls = getattr(C, kind, None)
+    if cls is not None:
+        return cls(*args, **kw)
+    if kind == "Sphere":
+        return SimpleNamespace(center=np.asarray(args[0], float), radius=float(args[1]))
+    return SimpleNamespace(points=args[0], faces=args[1], solid=False, thickness=kw.get("thickness", 0.0))
+
+
+class FluidScene(Scene):
+    """Shared parts: ``self.fluid`` (ParticleFluid) and ``self.surface`` (FluidSurface or None)."""
+
+    fluid = None
+    surface = None
+
+    def make_surface(self, p):
+        if p["surface"]:
+            cell = p["surface_cell"] or 0.5 * p["spacing"]
+            self.surface = FluidSurface(self.fluid, cell=cell)
+
+    def declare_fluid(self, writer):
+        writer.add_points("particles", count_changes=True, radius=0.5 * self.fluid.spacing, color=_WATER)
+        writer.add_attribute("particles", "warpsim:densityError", "double")
+        if self.surface is not None:
+            writer.add_mesh("surface", topology_changes=True, velocities=False, color=_WATER)
+
+    def frame_data(self):
+        f = self.fluid
+        data = {"particles": {"points": f.positions, "velocities": f.velocities, "ids": f.ids,
+                              "warpsim:densityError": f.density_error()[0]}}
+        if self.surface is not None:
+            mesh = self.surface.mesh()
+            faces = mesh.faces.numpy().reshape(-1)
+            data["surface"] = {"points": mesh.vertices, "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
+                               "faceVertexIndices": faces}
+        return data
+
+    def advance(self, frame_dt, substeps):
+        # substeps is a floor; the CFL condition may ask for more within each of them
+        for _ in range(substeps):
+            self.fluid.advance(frame_dt / substeps)
+
+    def checkpoint(self):
+        return self.fluid.checkpoint()
+
+    def restore(self, data):
+        self.fluid.restore(data)
+
+    def fluid_args(self, p):
+        for key in ("spacing", "cfl"):
+            if not p[key] > 0.0:
+                raise ValueError(f"{key}={p[key]}: it must be > 0")
+        return {"spacing": p["spacing"], "iterations": p["iterations"], "viscosity": p["viscosity"],
+                "vorticity": p["vorticity"], "surface_tension": p["surface_tension"], "kernel": p["kernel"],
+                "cfl": p["cfl"], "device": self.device}
+
+
+@register_scene("dam_break", "a water column collapsing in a box (position-based fluids), surface meshed "
+                "every frame", params={
+                    **_COMMON,
+                    "column": ((0.4, 0.6, 0.5), "water column size x,y,z [m], in the box's -x corner"),
+                    "box": ((1.6, 0.8, 0.5), "container size x,y,z [m]"),
+                })
+class DamBreak(FluidScene):
+    """The column fills [0, column] inside the box [0, box]; the front runs along +x."""
+
+    def build(self, p):
+        col, box = np.array(p["column"]), np.array(p["box"])
+        if np.any(col <= 0) or np.any(col > box):
+            raise ValueError(f"column={tuple(col)} must be positive and fit in box={tuple(box)}")
+        self.fluid = ParticleFluid(fluid_block((0, 0, 0), col, p["spacing"]), domain=((0, 0, 0), box),
+                                   **self.fluid_args(p))
+        self.make_surface(p)
+
+    def declare(self, writer):
+        self.declare_fluid(writer)
+        pts, tris = open_box_mesh((0, 0, 0), self.params["box"], open_faces=("top", "front"))
+        writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7))
+
+
+@register_scene("pour", "a stream poured from a nozzle into a container around a sphere; overflow drains "
+                "into sinks", params={
+                    **_COMMON,
+                    "rate_speed": (2.0, "jet speed at the nozzle [m/s]"),
+                    "nozzle_radius": (0.06, "nozzle radius [m]"),
+                    "pour_time": (4.0, "how long the nozzle pours [s]"),
+                    "capacity": (20000, "most particles alive at once"),
+                    "obstacle_radius": (0.08, "radius of the sphere inside the container [m]"),
+                })
+class Pour(FluidScene):
+    """Domain [-0.5, 0.5] x [0, 1] x [-0.5, 0.5] m; an open-top container (a thin triangle-mesh
+    collider) of 0.4 x 0.3 x 0.4 m centred on the floor holds a solid sphere; a nozzle at
+    y = 0.9 m pours down, slightly off the sphere's axis; what spills over the rim reaches the
+    floor around the container, where four sink slabs remove it."""
+
+    def build(self, p):
+        if not (p["rate_speed"] > 0 and p["nozzle_radius"] > 0 and p["pour_time"] > 0 and p["obstacle_radius"] > 0):
+            raise ValueError("rate_speed, nozzle_radius, pour_time and obstacle_radius must be > 0")
+        s = p["spacing"]
+        half, height = 0.2, 0.3
+        self.container = open_box_mesh((-half, 0.0, -half), (half, height, half))
+        container = _collider("TriangleMesh", *self.container, thickness=0.5 * s)
+        sphere = _collider("Sphere", (0.0, 0.5 * height, 0.0), p["obstacle_radius"])
+        nozzle = Nozzle((0.05, 0.9, 0.02), (0.0, -1.0, 0.0), p["nozzle_radius"], p["rate_speed"], stop=p["pour_time"])
+        gap = half + 1.5 * s  # sinks on the floor outside the container walls
+        sinks = [Sink((-0.5, 0.0, -0.5), (-gap, 0.05, 0.5)), Sink((gap, 0.0, -0.5), (0.5, 0.05, 0.5)),
+                 Sink((-gap, 0.0, -0.5), (gap, 0.05, -gap)), Sink((-gap, 0.0, gap), (gap, 0.05, 0.5))]
+        self.fluid = ParticleFluid(np.zeros((0, 3)), capacity=p["capacity"], domain=((-0.5, 0, -0.5), (0.5, 1.0, 0.5)),
+                                   colliders=[container, sphere], emitters=[nozzle], sinks=sinks,
+                                   **self.fluid_args(p))
+        self.sphere = sphere
+        self.make_surface(p)
+
+    def declare(self, writer):
+        self.declare_fluid(writer)
+        pts, tris = self.container
+        writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7))
+        writer.add_sphere("obstacle", tuple(self.sphere.center), self.sphere.radius, color=(0.8, 0.4, 0.2))
+        writer.add_plane("floor", size=1.0)
