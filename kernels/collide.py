@@ -1,7 +1,30 @@
 """Collision kernels, run after integration on the new positions and velocities (in place).
 
-Plane convention: a plane is ``n . x = offset`` with unit normal ``n`` pointing into the free
-side. A particle of radius ``r`` penetrates by ``h = r - (n . x - offset)`` when ``h > 0``.
+Conventions
+- A contact is a unit normal ``n`` pointing to the free side and a penetration depth ``h > 0``
+  [m] measured against the particle's radius plus the collider's ``thickness``.
+- Plane: ``n . x = offset`` with unit normal ``n`` pointing into the free side; a particle of
+  radius ``r`` penetrates by ``h = r + thickness - (n . x - offset)`` when ``h > 0``.
+- Finite shapes (spheres, capsules, rectangles, triangle meshes) are described in their own
+  local frame; ``pose`` is the local-to-world transform at the end of the step and
+  ``pose_prev`` the one at its start, so moving (kinematic) shapes see the particle path
+  relative to themselves and push with the velocity of the touched surface point.
+- Continuous detection: the segment from ``q_prev`` (start of the step) to the new position is
+  tested against the shape, not only the end point, so fast particles do not tunnel.
+
+Handling modes (``resolve_contact``), applied to the velocity relative to the surface:
+- reflect (0): the position is mirrored out scaled by restitution, h' = e h; v_n' = -e v_n.
+- project (1): the particle is placed on the surface (position correction); v_n' = -e v_n.
+- penalty (2): a penalty spring f = k h n - c v_n n acts over the step as an impulse
+  (velocity level, position untouched); c = 2 zeta sqrt(k m), zeta chosen by the host from
+  the restitution (a linear spring-dashpot, which may pull slightly while still overlapping).
+Coulomb friction removes at most mu times the normal velocity change of tangential speed and
+never reverses it.
+
+Particle-particle collisions (``count_particle_contacts`` / ``collide_particle_pairs``) use a
+``wp.HashGrid``: every overlapping pair gets the 1D two-body impulse along its normal
+(momentum conserved, relative normal velocity -> -c_R times itself), scaled by
+1 / max(contacts of either particle) so that simultaneous contacts never add energy.
 """
 
 import warp as wp
@@ -10,8 +33,12 @@ wp.set_module_options({"enable_backward": False})
 
 COLLIDE_REFLECT = wp.constant(0)
 COLLIDE_PROJECT = wp.constant(1)
+COLLIDE_PENALTY = wp.constant(2)
 
 
+# --------------------------------------------------------------------------------------
+# Contact response
+# --------------------------------------------------------------------------------------
 @wp.func
 def respond_velocity(v: wp.vec3, n: wp.vec3, restitution: float, friction: float) -> wp.vec3:
     """Normal velocity v_n -> -e v_n when approaching; Coulomb friction removes at most
@@ -27,6 +54,59 @@ def respond_velocity(v: wp.vec3, n: wp.vec3, restitution: float, friction: float
     return vt - restitution * vn * n
 
 
+@wp.func
+def penalty_velocity(
+    v: wp.vec3, n: wp.vec3, h: float, stiffness: float, damping_ratio: float, friction: float, inv_mass: float,
+    dt: float,
+) -> wp.vec3:
+    """Velocity after a linear spring-dashpot (Kelvin-Voigt) contact acts along n for dt [s]:
+    f = k h - c v_n with stiffness k [N/m], depth h [m], c = 2 zeta sqrt(k m). The damper never
+    reverses v_n within a step. Like the continuous model (whose restitution is exactly
+    exp(-zeta pi / sqrt(1 - zeta^2))) it may pull slightly while the particle still overlaps;
+    friction uses the magnitude of the normal impulse."""
+    vn = wp.dot(v, n)
+    spring = dt * stiffness * h * inv_mass
+    damp = wp.min(1.0, dt * 2.0 * damping_ratio * wp.sqrt(stiffness * inv_mass))
+    dvn = spring - damp * vn
+    vt = v - vn * n
+    vt_len = wp.length(vt)
+    if vt_len > 0.0:
+        vt = vt * wp.max(0.0, 1.0 - friction * wp.abs(dvn) / vt_len)
+    return vt + (vn + dvn) * n
+
+
+@wp.func
+def resolve_contact(
+    x: wp.vec3,
+    v: wp.vec3,
+    n: wp.vec3,
+    h: float,
+    v_surface: wp.vec3,
+    mode: int,
+    restitution: float,
+    friction: float,
+    stiffness: float,
+    damping_ratio: float,
+    inv_mass: float,
+    dt: float,
+):
+    """Resolve one contact (normal n, depth h > 0) against a surface moving at v_surface;
+    returns the corrected position and velocity (see module docstring for the modes)."""
+    v_rel = v - v_surface
+    if mode == COLLIDE_PENALTY:
+        v_rel = penalty_velocity(v_rel, n, h, stiffness, damping_ratio, friction, inv_mass, dt)
+    else:
+        if mode == COLLIDE_REFLECT:
+            x = x + (1.0 + restitution) * h * n
+        else:
+            x = x + h * n
+        v_rel = respond_velocity(v_rel, n, restitution, friction)
+    return x, v_rel + v_surface
+
+
+# --------------------------------------------------------------------------------------
+# Planes and boxes of walls (infinite half-spaces, static)
+# --------------------------------------------------------------------------------------
 @wp.kernel
 def collide_planes(
     inv_mass: wp.array(dtype=float),
@@ -36,26 +116,447 @@ def collide_planes(
     restitution: float,
     friction: float,
     mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
     q_io: wp.array(dtype=wp.vec3),
     qd_io: wp.array(dtype=wp.vec3),
 ):
-    """Resolve particle i against every plane of one collider.
+    """Resolve particle i against every plane of one collider, in order.
 
     reflect: the position is mirrored out of the plane scaled by restitution, h' = e h;
-    project: the particle is placed on the plane (position correction)."""
+    project: the particle is placed on the plane (position correction); penalty: impulse."""
     i = wp.tid()
-    if inv_mass[i] == 0.0:
+    w = inv_mass[i]
+    if w == 0.0:
         return
     x = q_io[i]
     v = qd_io[i]
     for p in range(normals.shape[0]):
         n = normals[p]
-        h = radius[i] - (wp.dot(n, x) - offsets[p])
+        h = radius[i] + thickness - (wp.dot(n, x) - offsets[p])
         if h > 0.0:
-            if mode == COLLIDE_REFLECT:
-                x = x + (1.0 + restitution) * h * n
-            else:
-                x = x + h * n
-            v = respond_velocity(v, n, restitution, friction)
+            x, v = resolve_contact(x, v, n, h, wp.vec3(0.0), mode, restitution, friction, stiffness, damping_ratio,
+                                   w, dt)
     q_io[i] = x
     qd_io[i] = v
+
+
+# --------------------------------------------------------------------------------------
+# Geometry helpers (local frame)
+# --------------------------------------------------------------------------------------
+@wp.func
+def closest_point_segment(x: wp.vec3, a: wp.vec3, b: wp.vec3) -> wp.vec3:
+    """Closest point to x on the segment [a, b] (a == b allowed)."""
+    ab = b - a
+    ll = wp.dot(ab, ab)
+    if ll == 0.0:
+        return a
+    s = wp.clamp(wp.dot(x - a, ab) / ll, 0.0, 1.0)
+    return a + s * ab
+
+
+@wp.func
+def ray_sphere_entry(o: wp.vec3, d: wp.vec3, c: wp.vec3, r: float) -> float:
+    """Smallest t >= 0 with |o + t d - c| = r for unit d entering the sphere, or -1."""
+    oc = o - c
+    b = wp.dot(oc, d)
+    cc = wp.dot(oc, oc) - r * r
+    disc = b * b - cc
+    if disc < 0.0:
+        return -1.0
+    t = -b - wp.sqrt(disc)
+    if t < 0.0:
+        return -1.0
+    return t
+
+
+@wp.func
+def ray_capsule_entry(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, r: float) -> float:
+    """First entry t >= 0 of the ray o + t d (unit d) into the capsule of radius r around
+    segment [a, b], or -1 when it does not enter (o is assumed outside)."""
+    best = -1.0
+    ta = ray_sphere_entry(o, d, a, r)
+    if ta >= 0.0:
+        best = ta
+    tb = ray_sphere_entry(o, d, b, r)
+    if tb >= 0.0 and (best < 0.0 or tb < best):
+        best = tb
+    ab = b - a
+    length = wp.length(ab)
+    if length > 0.0:
+        u = ab / length
+        oa = o - a
+        op = oa - wp.dot(oa, u) * u
+        dp = d - wp.dot(d, u) * u
+        aa = wp.dot(dp, dp)
+        if aa > 1.0e-12:
+            bb = wp.dot(op, dp)
+            cc = wp.dot(op, op) - r * r
+            disc = bb * bb - aa * cc
+            if disc >= 0.0:
+                t = (-bb - wp.sqrt(disc)) / aa
+                if t >= 0.0:
+                    s = wp.dot(oa + t * d, u)
+                    if s >= 0.0 and s <= length and (best < 0.0 or t < best):
+                        best = t
+    return best
+
+
+@wp.func
+def capsule_contact(x0: wp.vec3, x: wp.vec3, a: wp.vec3, b: wp.vec3, r: float, inside: int):
+    """Contact of a particle moving x0 -> x with the capsule (radius r, already inflated by the
+    particle radius and thickness) around [a, b]; a == b is a sphere. Returns (h, n, p): depth
+    (> 0 on contact), normal and touched surface point, all local.
+
+    Solid (inside == 0): the path is tested for entry (continuous detection), then the end
+    point. Container (inside == 1, spheres): particles are kept within distance r of a."""
+    c = closest_point_segment(x, a, b)
+    delta = x - c
+    dist = wp.length(delta)
+    if inside == 1:
+        if dist > r:
+            n = -delta / dist
+            return dist - r, n, c - r * n
+        return 0.0, wp.vec3(0.0), x
+    # continuous detection: entered during the step from outside?
+    c0 = closest_point_segment(x0, a, b)
+    dist0 = wp.length(x0 - c0)
+    path = x - x0
+    path_len = wp.length(path)
+    if dist0 >= r and path_len > 0.0:
+        d = path / path_len
+        t = ray_capsule_entry(x0, d, a, b, r)
+        if t >= 0.0 and t <= path_len:
+            p = x0 + t * d
+            cp = closest_point_segment(p, a, b)
+            n = wp.normalize(p - cp)
+            h = -wp.dot(x - p, n)
+            if h > 0.0:
+                return h, n, p
+            return 0.0, n, p
+    if dist < r:
+        n = wp.vec3(0.0, 1.0, 0.0)
+        if dist > 0.0:
+            n = delta / dist
+        return r - dist, n, c + r * n
+    return 0.0, wp.vec3(0.0), x
+
+
+@wp.func
+def quad_contact(x0: wp.vec3, x: wp.vec3, half_x: float, half_z: float, d: float):
+    """Contact with the two-sided rectangle |x| <= half_x, |z| <= half_z in the local plane
+    y = 0, thickened by d (particle radius + thickness). Returns (h, n, p) as capsule_contact.
+
+    Continuous: if the path x0 -> x crosses the plane inside the rectangle, the contact normal
+    faces the side x0 came from, whatever the speed. Otherwise the end point is tested against
+    the rectangle's closest point (rounded edges)."""
+    y0 = x0[1]
+    y1 = x[1]
+    side = 1.0
+    if y0 < 0.0 or (y0 == 0.0 and y1 > 0.0):
+        side = -1.0
+    if side * y1 < 0.0 and side * y0 >= 0.0:
+        tau = y0 / (y0 - y1)
+        p = x0 + tau * (x - x0)
+        if wp.abs(p[0]) <= half_x and wp.abs(p[2]) <= half_z:
+            n = wp.vec3(0.0, side, 0.0)
+            return d - side * y1, n, wp.vec3(x[0], 0.0, x[2])
+    c = wp.vec3(wp.clamp(x[0], -half_x, half_x), 0.0, wp.clamp(x[2], -half_z, half_z))
+    delta = x - c
+    dist = wp.length(delta)
+    if dist < d:
+        n = wp.vec3(0.0, side, 0.0)
+        if dist > 1.0e-9 * d:
+            n = delta / dist
+        return d - dist, n, c
+    return 0.0, wp.vec3(0.0), x
+
+
+@wp.func
+def mesh_contact(mesh: wp.uint64, x0: wp.vec3, x: wp.vec3, d: float, solid: int):
+    """Contact with a wp.Mesh (local frame), thickened by d. Returns (h, n, p).
+
+    Continuous: a ray from x0 along the step (wp.mesh_query_ray) finds the first surface
+    crossing; the contact plane is that face, its normal turned toward x0. Otherwise the end
+    point's closest surface point is used: inside a face the exact face normal, on an edge or
+    a vertex the direction from the closest point (rounded). For ``solid`` meshes (closed,
+    outward wound) a point found inside is pushed out through the closest surface."""
+    path = x - x0
+    path_len = wp.length(path)
+    if path_len > 0.0:
+        dirn = path / path_len
+        hit = wp.mesh_query_ray(mesh, x0, dirn, path_len)
+        if hit.result:
+            n = hit.normal
+            if wp.dot(n, dirn) > 0.0:
+                n = -n
+            p = x0 + hit.t * dirn
+            return d - wp.dot(x - p, n), n, p
+    q = wp.mesh_query_point_no_sign(mesh, x, d)
+    inside = float(1.0)  # noqa: UP018 (a Warp dynamic variable)
+    if solid == 1:
+        q = wp.mesh_query_point_sign_normal(mesh, x, 1.0e6)
+        inside = q.sign
+    if not q.result:
+        return 0.0, wp.vec3(0.0), x
+    c = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    fn = wp.mesh_eval_face_normal(mesh, q.face)
+    delta = x - c
+    dist = wp.length(delta)
+    eps = 1.0e-4
+    face_interior = q.u > eps and q.v > eps and 1.0 - q.u - q.v > eps
+    if inside < 0.0:
+        # solid and inside: push out through the closest surface point
+        if face_interior or dist <= 1.0e-9 * d:
+            return d - wp.dot(delta, fn), fn, c
+        return d + dist, -delta / dist, c
+    if dist >= d:
+        return 0.0, wp.vec3(0.0), x
+    if face_interior or dist <= 1.0e-9 * d:
+        s = wp.dot(delta, fn)
+        if s < 0.0 or (s == 0.0 and wp.dot(x0 - c, fn) < 0.0):
+            fn = -fn
+        return d - wp.abs(s), fn, c
+    return d - dist, delta / dist, c
+
+
+@wp.func
+def surface_velocity(p_local: wp.vec3, pose_prev: wp.transform, pose: wp.transform, dt: float) -> wp.vec3:
+    """Velocity [m/s] of the shape's material point p_local over the step."""
+    return (wp.transform_point(pose, p_local) - wp.transform_point(pose_prev, p_local)) / dt
+
+
+@wp.func
+def apply_local_contact(
+    h: float,
+    n_local: wp.vec3,
+    p_local: wp.vec3,
+    x: wp.vec3,
+    v: wp.vec3,
+    pose_prev: wp.transform,
+    pose: wp.transform,
+    mode: int,
+    restitution: float,
+    friction: float,
+    stiffness: float,
+    damping_ratio: float,
+    inv_mass: float,
+    dt: float,
+):
+    """Map a local contact to world space and resolve it (no-op when h <= 0)."""
+    if h <= 0.0:
+        return x, v
+    n = wp.transform_vector(pose, n_local)
+    vs = surface_velocity(p_local, pose_prev, pose, dt)
+    return resolve_contact(x, v, n, h, vs, mode, restitution, friction, stiffness, damping_ratio, inv_mass, dt)
+
+
+# --------------------------------------------------------------------------------------
+# Finite shapes
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def collide_capsule(
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    q_prev: wp.array(dtype=wp.vec3),
+    a: wp.vec3,
+    b: wp.vec3,
+    shape_radius: float,
+    inside: int,
+    pose_prev: wp.transform,
+    pose: wp.transform,
+    restitution: float,
+    friction: float,
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """A solid capsule (segment [a, b], local) or sphere (a == b), or a spherical container
+    (inside = 1, particles kept within shape_radius of a)."""
+    i = wp.tid()
+    w = inv_mass[i]
+    if w == 0.0:
+        return
+    x = q_io[i]
+    v = qd_io[i]
+    xl = wp.transform_point(wp.transform_inverse(pose), x)
+    x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])
+    d = radius[i] + thickness
+    r = shape_radius + d
+    if inside == 1:
+        r = shape_radius - d
+    h, nl, pl = capsule_contact(x0l, xl, a, b, r, inside)
+    x, v = apply_local_contact(h, nl, pl, x, v, pose_prev, pose, mode, restitution, friction, stiffness,
+                               damping_ratio, w, dt)
+    q_io[i] = x
+    qd_io[i] = v
+
+
+@wp.kernel
+def collide_quad(
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    q_prev: wp.array(dtype=wp.vec3),
+    half_x: float,
+    half_z: float,
+    pose_prev: wp.transform,
+    pose: wp.transform,
+    restitution: float,
+    friction: float,
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """A thin two-sided rectangle (local plane y = 0) with continuous detection."""
+    i = wp.tid()
+    w = inv_mass[i]
+    if w == 0.0:
+        return
+    x = q_io[i]
+    v = qd_io[i]
+    xl = wp.transform_point(wp.transform_inverse(pose), x)
+    x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])
+    h, nl, pl = quad_contact(x0l, xl, half_x, half_z, radius[i] + thickness)
+    x, v = apply_local_contact(h, nl, pl, x, v, pose_prev, pose, mode, restitution, friction, stiffness,
+                               damping_ratio, w, dt)
+    q_io[i] = x
+    qd_io[i] = v
+
+
+@wp.kernel
+def collide_mesh(
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    q_prev: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    solid: int,
+    pose_prev: wp.transform,
+    pose: wp.transform,
+    restitution: float,
+    friction: float,
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """A triangle mesh (wp.Mesh in its local frame) with continuous detection along the step."""
+    i = wp.tid()
+    w = inv_mass[i]
+    if w == 0.0:
+        return
+    x = q_io[i]
+    v = qd_io[i]
+    xl = wp.transform_point(wp.transform_inverse(pose), x)
+    x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])
+    h, nl, pl = mesh_contact(mesh, x0l, xl, radius[i] + thickness, solid)
+    x, v = apply_local_contact(h, nl, pl, x, v, pose_prev, pose, mode, restitution, friction, stiffness,
+                               damping_ratio, w, dt)
+    q_io[i] = x
+    qd_io[i] = v
+
+
+# --------------------------------------------------------------------------------------
+# Particle-particle collisions
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def count_particle_contacts(
+    grid: wp.uint64,
+    q: wp.array(dtype=wp.vec3),
+    radius: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    max_radius: float,
+    count_out: wp.array(dtype=int),
+):
+    """count_out[i] = number of particles overlapping particle i (|x_j - x_i| < r_i + r_j)."""
+    i = wp.tid()
+    x = q[i]
+    ri = radius[i]
+    count = int(0)  # noqa: UP018, RUF046 (a Warp dynamic variable)
+    for j in wp.hash_grid_query(grid, x, ri + max_radius):
+        if j != i and (inv_mass[i] > 0.0 or inv_mass[j] > 0.0):
+            dist = wp.length(q[j] - x)
+            if dist < ri + radius[j] and dist > 0.0:
+                count += 1
+    count_out[i] = count
+
+
+@wp.kernel
+def collide_particle_pairs(
+    grid: wp.uint64,
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    radius: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    contact_count: wp.array(dtype=int),
+    max_radius: float,
+    restitution: float,
+    friction: float,
+    separate: int,
+    q_out: wp.array(dtype=wp.vec3),
+    qd_out: wp.array(dtype=wp.vec3),
+):
+    """Two-body impulses for every overlapping pair (see module docstring).
+
+    Each pair (a, b), a < b, is evaluated with the same operands from both sides, so the
+    impulses on a and b are exactly opposite: J = -(1 + c_R) u_n / (w_a + w_b) along
+    n = (x_b - x_a)/|x_b - x_a| when approaching (u_n = (v_b - v_a) . n < 0), tangential
+    Coulomb friction at most mu J and never reversing the relative slip. With ``separate``
+    the overlap is removed, split by inverse mass (centre of mass unchanged). Every pair is
+    scaled by 1 / max(contact_count[a], contact_count[b])."""
+    i = wp.tid()
+    xi = q[i]
+    ri = radius[i]
+    dv = wp.vec3(0.0)
+    dx = wp.vec3(0.0)
+    for j in wp.hash_grid_query(grid, xi, ri + max_radius):
+        if j == i:
+            continue
+        a = wp.min(i, j)
+        b = wp.max(i, j)
+        wa = inv_mass[a]
+        wb = inv_mass[b]
+        wsum = wa + wb
+        if wsum == 0.0:
+            continue
+        delta = q[b] - q[a]
+        dist = wp.length(delta)
+        reach = radius[a] + radius[b]
+        if dist >= reach or dist == 0.0:
+            continue
+        n = delta / dist
+        scale = 1.0 / float(wp.max(contact_count[a], contact_count[b]))
+        rel = qd[b] - qd[a]
+        un = wp.dot(rel, n)
+        impulse = wp.vec3(0.0)  # impulse on b [N s]; a receives the opposite
+        if un < 0.0:
+            jn = -(1.0 + restitution) * un / wsum
+            impulse = jn * n
+            vt = rel - un * n
+            vt_len = wp.length(vt)
+            if vt_len > 0.0 and friction > 0.0:
+                jt = wp.min(friction * jn, vt_len / wsum)
+                impulse = impulse - (jt / vt_len) * vt
+        push = wp.vec3(0.0)  # displacement of b per unit inverse mass; a gets the opposite
+        if separate == 1:
+            push = ((reach - dist) / wsum) * n
+        sign = 1.0
+        if i == a:
+            sign = -1.0
+        wi = inv_mass[i]
+        dv = dv + (sign * scale * wi) * impulse
+        dx = dx + (sign * scale * wi) * push
+    q_out[i] = xi + dx
+    qd_out[i] = qd[i] + dv

@@ -1,0 +1,206 @@
+"""Scene ``teapot``: the lecture's jiggly Utah teapot, a mass-spring soft body dropped into a
+box of walls, with an optional obstacle and scripted drags."""
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+import warpsim as ws
+
+from ..colliders import Capsule, Quad, Sphere, TriangleMesh
+from ..drag import parse_drag_spec, scripted_drag
+from ..softbody import add_soft_body
+from ..teapot import teapot_mesh
+from . import SimulatorScene, register_scene
+
+ANCHORS = ("spout", "handle", "knob", "bottom")
+
+
+def anchor_vertex(points, who: str) -> int:
+    """Surface vertex for a named anchor: spout tip (largest x), handle (smallest x), knob
+    (highest), bottom (lowest, nearest the axis), or a vertex index given as text."""
+    p = np.asarray(points)
+    if who == "spout":
+        return int(np.argmax(p[:, 0]))
+    if who == "handle":
+        return int(np.argmin(p[:, 0]))
+    if who == "knob":
+        return int(np.argmax(p[:, 1]))
+    if who == "bottom":
+        return int(np.argmin(p[:, 1] * 1e3 + np.hypot(p[:, 0], p[:, 2])))
+    try:
+        index = int(who)
+    except ValueError:
+        raise ValueError(f"drag target {who!r} is not a vertex index or one of {', '.join(ANCHORS)}") from None
+    if not 0 <= index < len(p):
+        raise ValueError(f"drag vertex {index} is out of range [0, {len(p)}) for this teapot resolution")
+    return index
+
+
+@register_scene("teapot", "the jiggly Utah teapot: a mass-spring soft body bouncing in a box of walls", params={
+    "resolution": ("low", "teapot tessellation: low (4 segments per patch edge), high (12) or an integer >= 2"),
+    "size": (0.1, "metres per teapot data unit (0.1: 0.65 m long, 0.315 m tall)"),
+    "mass": (1.0, "total mass [kg], equal on every surface vertex (a quarter on the interior lattice)"),
+    "stiffness": (40.0, "spring stiffness [N/m] (edges, bending, interior)"),
+    "damping": (0.05, "spring damping [N s/m]"),
+    "lattice_cells": (6, "interior lattice cells along the teapot's length (shape-keeping springs)"),
+    "restitution": (0.5, "wall restitution in [0, 1]"),
+    "friction": (0.3, "wall Coulomb friction"),
+    "collision": ("reflect", "wall handling: reflect, project or penalty", ("reflect", "project", "penalty")),
+    "wall_stiffness": (300.0, "penalty spring stiffness of the walls [N/m] (collision=penalty)"),
+    "box": (0.7, "half width of the box of walls [m] (height 2 x box)"),
+    "height": (0.6, "drop height of the teapot's bottom [m]"),
+    "velocity": ((1.0, 0.0, 0.6), "initial velocity [m/s]"),
+    "tilt": (20.0, "initial tilt about the z axis [degrees]"),
+    "gravity": (9.81, "gravitational acceleration [m/s^2]"),
+    "obstacle": ("none", "an extra collider on the floor", ("none", "sphere", "capsule", "ramp", "paddle")),
+    "drag": ("", "scripted drags WHO:X,Y,Z[>X,Y,Z...]@T0-T1[;...], WHO a vertex index or spout/handle/knob/bottom"),
+    "drag_stiffness": (2.0, "drag spring stiffness [N/m]"),
+    "drag_damping": (0.2, "drag spring damping [N s/m]"),
+    "springs": (True, "write the springs as curves"),
+    "dt": (1.0 / 600.0, "time step [s]"),
+    "integrator": ("semi_implicit_euler", "time integrator", tuple(sorted(ws.INTEGRATORS))),
+}, substeps=10)
+class TeapotScene(SimulatorScene):
+    """Prims: ``teapot`` (Mesh, fixed topology), ``springs`` (BasisCurves, optional),
+    ``walls`` (the box), ``obstacle`` (static geometry or, for the paddle, a mesh moved every
+    frame) and ``drag`` (a two-point curve from the dragged vertex to its target)."""
+
+    smoke_params: ClassVar[dict] = {"resolution": "3", "drag": "spout:0.3,0.6,0@0-0.05", "obstacle": "paddle"}
+
+    def build(self, p):
+        for key in ("mass", "size", "box", "gravity"):
+            if not p[key] > 0:
+                raise ValueError(f"{key}={p[key]}: it must be > 0")
+        for key in ("stiffness", "damping", "drag_stiffness", "drag_damping"):
+            if not p[key] >= 0:
+                raise ValueError(f"{key}={p[key]}: it must be >= 0")
+        mesh = teapot_mesh(p["resolution"], scale=p["size"])
+        b = ws.ModelBuilder()
+        tilt = math.radians(p["tilt"])
+        rotation = (0.0, 0.0, math.sin(tilt / 2), math.cos(tilt / 2))
+        self.body = add_soft_body(
+            b, mesh.points, mesh.faces, position=(0.0, p["height"], 0.0), rotation=rotation,
+            velocity=p["velocity"], total_mass=p["mass"], mass_distribution="uniform", stiffness=p["stiffness"], damping=p["damping"],
+            lattice_cells=p["lattice_cells"], name="teapot")
+        self.model = b.finalize(self.device)
+        q0 = self.model.particle_q.numpy()
+        half = p["box"]
+        self.lower, self.upper = (-half, 0.0, -half), (half, 2.0 * half, half)
+        if np.any(q0 < np.array(self.lower)) or np.any(q0 > np.array(self.upper)):
+            raise ValueError(f"the teapot does not fit in the box at height={p['height']}: raise box or lower height")
+        kw = {"restitution": p["restitution"], "friction": p["friction"], "mode": p["collision"],
+              "stiffness": p["wall_stiffness"]}
+        colliders = [ws.Box(self.lower, self.upper, **kw)]
+        self.obstacle = self._obstacle(p["obstacle"], half, kw)
+        if self.obstacle is not None:
+            colliders.append(self.obstacle)
+        forces = [ws.Gravity((0.0, -p["gravity"], 0.0))]
+        self.drags, self.drag_vertices = [], []
+        for who, points, t0, t1 in parse_drag_spec(p["drag"]):
+            vertex = anchor_vertex(q0[: self.body.surface_count], who)
+            self.drags.append(scripted_drag(vertex, points, t0, t1, p["drag_stiffness"], p["drag_damping"]))
+            self.drag_vertices.append(vertex)
+        # a teapot dropped from a metre moves at a few m/s; 100 m/s means it has blown up (the walls
+        # would otherwise keep an exploded teapot bouncing inside the box)
+        self.sim = ws.Simulator(self.model, integrator=p["integrator"], forces=forces + self.drags,
+                                colliders=colliders, max_speed=100.0)
+
+    def _obstacle(self, kind, half, kw):
+        if kind == "sphere":
+            return Sphere((0.3 * half, 0.0, 0.0), 0.3 * half, **kw)
+        if kind == "capsule":
+            return Capsule((-0.6 * half, 0.1 * half, 0.4 * half), (0.6 * half, 0.1 * half, -0.4 * half), 0.1 * half, **kw)
+        if kind == "ramp":
+            pts = np.array([[half, 0.0, -half], [0.0, 0.0, -half], [0.0, 0.0, half], [half, 0.0, half],
+                            [half, 0.4 * half, -half], [half, 0.4 * half, half]])  # a wedge rising to +x
+            faces = np.array([[0, 1, 4], [1, 2, 5], [1, 5, 4], [2, 3, 5], [0, 4, 5], [0, 5, 3], [0, 3, 2], [0, 2, 1]])
+            return TriangleMesh(pts, faces, solid=True, **kw)
+        if kind == "paddle":
+            def sweep(t):
+                angle = 0.8 * math.sin(2.0 * t)
+                return (0.0, 0.0, 0.0), (0.0, math.sin(angle / 2), 0.0, math.cos(angle / 2))
+
+            return Quad((0.0, 0.15 * half, 0.0), (0.9 * half, 0.0, 0.0), (0.0, 0.15 * half, 0.0), motion=sweep, **kw)
+        return None
+
+    # ------------------------------------------------------------------ output
+    def declare(self, writer):
+        faces = self.body.faces - self.body.particle_start
+        writer.add_mesh("teapot", np.full(len(faces), 3), faces.reshape(-1), color=(0.85, 0.85, 0.9))
+        if self.params["springs"]:
+            writer.add_curves("springs", self.model.spring_indices.numpy(), width=0.001, color=(0.3, 0.3, 0.3))
+        writer.add_box("walls", self.lower, self.upper)
+        ob = self.obstacle
+        if isinstance(ob, Sphere):
+            writer.add_sphere("obstacle", tuple(ob.center), ob.radius)
+        elif isinstance(ob, Capsule):
+            writer.add_static_mesh("obstacle", *_capsule_mesh(ob.a, ob.b, ob.radius))
+        elif isinstance(ob, TriangleMesh):
+            writer.add_static_mesh("obstacle", ob.world_points(), np.full(len(ob.faces), 3), ob.faces.reshape(-1))
+        elif isinstance(ob, Quad):
+            writer.add_mesh("obstacle", [4], [0, 1, 2, 3], velocities=False, double_sided=True)
+        if self.drags:
+            writer.add_curves("drag", curve_vertex_counts=[2] * len(self.drags), width=0.004, color=(0.9, 0.2, 0.1))
+
+    def frame_data(self):
+        state = self.sim.state
+        n = self.body.surface_count
+        x = state.positions.numpy()
+        data = {"teapot": {"points": x[:n], "velocities": state.velocities.numpy()[:n]}}
+        if self.params["springs"]:
+            data["springs"] = {"points": x}
+        if isinstance(self.obstacle, Quad):
+            data["obstacle"] = {"points": self.obstacle.corners()}
+        if self.drags:
+            segs = []
+            for drag, p in zip(self.drags, self.drag_vertices):
+                end = drag.target_at(self.sim.time) if drag.active_at(self.sim.time) else x[p]
+                segs += [x[p], end]
+            data["drag"] = {"points": np.array(segs)}
+        return data
+
+    def checkpoint(self):
+        data = super().checkpoint()
+        if self.obstacle is not None and hasattr(self.obstacle, "_clock"):
+            data["obstacle_clock"] = np.float64(self.obstacle._clock)
+        return data
+
+    def restore(self, data):
+        super().restore(data)
+        if "obstacle_clock" in data and self.obstacle is not None:
+            self.obstacle._clock = float(data["obstacle_clock"])
+            if self.obstacle.motion is not None:
+                self.obstacle._motion_pose = self.obstacle._eval_motion(self.obstacle._clock)
+                self.obstacle._world = self.obstacle._world_prev = self.obstacle._compose(self.obstacle._motion_pose)
+
+
+def _capsule_mesh(a, b, radius, segments=16, rings=8):
+    """A capsule surface as quads and triangles for USD: (points, counts, indices)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    axis = b - a
+    length = np.linalg.norm(axis)
+    w = axis / length if length > 0 else np.array([0.0, 1.0, 0.0])
+    helper = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    u = np.cross(w, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(w, u)
+    rows = []
+    for k in range(rings + 1):  # hemisphere at a (phi from -pi/2 to 0), then at b (0 to pi/2)
+        phi = -0.5 * math.pi + 0.5 * math.pi * k / rings
+        rows.append((a, phi))
+    for k in range(rings + 1):
+        rows.append((b, 0.5 * math.pi * k / rings))
+    pts = []
+    for c, phi in rows:
+        for s in range(segments):
+            th = 2.0 * math.pi * s / segments
+            pts.append(c + radius * (math.cos(phi) * (math.cos(th) * u + math.sin(th) * v) + math.sin(phi) * w))
+    idx = []
+    for r in range(len(rows) - 1):
+        for s in range(segments):
+            i0, i1 = r * segments + s, r * segments + (s + 1) % segments
+            idx += [i0, i1, i1 + segments, i0 + segments]
+    return np.array(pts), [4] * (len(idx) // 4), idx
