@@ -40,11 +40,15 @@ def timed(fn, steps, device):
     return (time.perf_counter() - t0) / steps
 
 
-def bench_warpsim(count, steps, iterations, device):
+def bench_warpsim(count, steps, iterations, device, shuffle=False):
     s = 0.01
     x0, box = block_for(count, s)
+    if shuffle:  # memory order unrelated to space (as after long mixing), then sorted once
+        x0 = x0[np.random.default_rng(0).permutation(len(x0))]
     fluid = ParticleFluid(x0, spacing=s, domain=((0, 0, 0), box), iterations=iterations, viscosity=0.01,
                           device=device)
+    if shuffle == "sorted":
+        fluid.sort_particles()
     dt = 1.0 / 400.0
     for _ in range(3):  # warm up (kernel compilation) and let pressure build
         fluid.step(dt)
@@ -128,6 +132,8 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--order", action="store_true",
+                        help="also time warpsim with particles shuffled in memory, and shuffled then sorted")
     parser.add_argument("--reference-max", type=int, default=100000,
                         help="skip the NumPy reference above this many particles")
     args = parser.parse_args(argv)
@@ -146,6 +152,11 @@ def main(argv=None):
     print(f"  same, grid fitted  : {n_ex:9d} particles  {t_fit * 1e3:9.2f} ms/step  {n_ex / t_fit:12.4g} particle-steps/s")
     print(f"ratio warpsim / warp example (particle-steps/s): {(n / t_ws) / (n_ex / t_ex):.3f} "
           f"(vs the example with a fitted grid: {(n / t_ws) / (n_ex / t_fit):.3f})")
+    if args.order:
+        for mode in ("shuffled", "sorted"):
+            f2, t2, _ = bench_warpsim(n_ex, args.steps, args.iterations, device, shuffle=mode)
+            print(f"  warpsim, {mode:9s} : {f2.active_count:9d} particles  {t2 * 1e3:9.2f} ms/step  "
+                  f"{f2.active_count / t2:12.4g} particle-steps/s  (memory order {mode})")
     if n <= args.reference_max:
         steps = max(1, min(args.steps, 3))
         t_ref, diff = bench_reference(fluid, steps)

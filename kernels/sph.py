@@ -522,16 +522,20 @@ def mark_alive(
     sink_lower: wp.array(dtype=wp.vec3),
     sink_upper: wp.array(dtype=wp.vec3),
     alive_out: wp.array(dtype=int),
+    removed_io: wp.array(dtype=int),
 ):
-    """alive = 0 for particles inside any sink box [lower, upper], else 1."""
+    """alive = 0 for particles inside a sink box [lower, upper] (counted in removed_io[sink] of
+    the first such sink), else 1."""
     i = wp.tid()
     xi = x[i]
     alive = int(1)
     for s in range(sink_lower.shape[0]):
         lo = sink_lower[s]
         hi = sink_upper[s]
-        if xi[0] >= lo[0] and xi[0] <= hi[0] and xi[1] >= lo[1] and xi[1] <= hi[1] and xi[2] >= lo[2] and xi[2] <= hi[2]:
+        inside = xi[0] >= lo[0] and xi[0] <= hi[0] and xi[1] >= lo[1] and xi[1] <= hi[1]
+        if inside and xi[2] >= lo[2] and xi[2] <= hi[2] and alive == 1:
             alive = 0
+            wp.atomic_add(removed_io, s, 1)
     alive_out[i] = alive
 
 
@@ -553,3 +557,21 @@ def compact_particles(
         x_out[s] = x[i]
         v_out[s] = v[i]
         ids_out[s] = ids[i]
+
+
+@wp.kernel
+def gather_sorted(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    ids: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    ids_out: wp.array(dtype=int),
+):
+    """Reorder particles into the hash grid's cell order (neighbours become neighbours in memory)."""
+    tid = wp.tid()
+    i = wp.hash_grid_point_id(grid, tid)
+    x_out[tid] = x[i]
+    v_out[tid] = v[i]
+    ids_out[tid] = ids[i]

@@ -273,9 +273,9 @@ def test_emitter_sink_ids_and_capacity():
     s = 0.02
     nozzle = Nozzle(center=(0.1, 0.3, 0.1), direction=(0, -1, 0), radius=0.03, speed=1.0, stop=0.2)
     per_layer = len(nozzle.layer_offsets(s))
-    sink = Sink((0.0, 0.0, 0.0), (0.2, 0.1, 0.2))
+    sinks = [Sink((0.0, 0.0, 0.0), (0.1, 0.1, 0.2)), Sink((0.1, 0.0, 0.0), (0.2, 0.1, 0.2))]
     f = ParticleFluid(np.zeros((0, 3)), spacing=s, capacity=4000, domain=((0, 0, 0), (0.2, 0.4, 0.2)),
-                      emitters=[nozzle], sinks=[sink], device="cpu")
+                      emitters=[nozzle], sinks=sinks, device="cpu")
     assert f.active_count == 0
     for _ in range(12):  # 0.2 s of emission: 0.2 m of jet = 10 layers
         f.advance(1.0 / 60.0)
@@ -286,8 +286,8 @@ def test_emitter_sink_ids_and_capacity():
     # falling 0.2-0.3 m: the jet reaches the sink, which removes what enters it
     for _ in range(30):
         f.advance(1.0 / 60.0)
-    assert sink.removed > 0
-    assert f.active_count == nozzle.emitted - sink.removed
+    assert sinks[0].removed > 0 and sinks[1].removed > 0  # the jet spreads over both halves
+    assert f.active_count == nozzle.emitted - sinks[0].removed - sinks[1].removed
     x = f.positions.numpy()
     ids2 = f.ids.numpy()
     assert np.all(x[:, 1] > 0.1 - 1e-6) or f.active_count == 0
@@ -300,6 +300,22 @@ def test_emitter_sink_ids_and_capacity():
         for _ in range(3):
             small.advance(1.0 / 60.0)
     assert small.active_count == per_layer + 3 and small.dropped > 0
+
+
+def test_sort_particles_keeps_ids_with_their_particles():
+    s = 0.02
+    x0 = fluid_block((0.0, 0.0, 0.0), (0.1, 0.1, 0.1), s)
+    x0 = x0[np.random.default_rng(1).permutation(len(x0))]
+    v0 = np.random.default_rng(2).normal(size=x0.shape)
+    f = ParticleFluid(x0, v0, spacing=s, device="cpu")
+    f.sort_particles()
+    ids = f.ids.numpy()
+    assert sorted(ids) == list(range(len(x0))) and not np.array_equal(ids, np.arange(len(x0)))
+    np.testing.assert_array_equal(f.positions.numpy(), x0[ids].astype(np.float32))
+    np.testing.assert_array_equal(f.velocities.numpy(), v0[ids].astype(np.float32))
+    # memory order now follows space: consecutive particles are mostly close together
+    gaps = np.linalg.norm(np.diff(f.positions.numpy(), axis=0), axis=1)
+    assert np.median(gaps) < 2.5 * s < np.median(np.linalg.norm(np.diff(x0, axis=0), axis=1))
 
 
 def test_cfl_substeps_and_blow_up():
@@ -373,6 +389,7 @@ def test_bad_input_names_the_item():
         (dict(colliders=[object()]), "colliders\\[0\\]"),
         (dict(emitters=["nozzle"]), "emitters\\[0\\]"),
         (dict(cfl=0.0), "cfl"),
+        (dict(sort_every=-1), "sort_every"),
     ]
     for kwargs, match in cases:
         args = dict(positions=good, spacing=s)

@@ -298,6 +298,9 @@ class ParticleFluid:
         max_dt: largest sub-step [s].
         max_neighbors: neighbour-list capacity per particle.
         max_speed: speed [m/s] beyond which the run counts as blown up.
+        sort_every: every this many frames of :meth:`advance`, reorder the particles into
+            spatial (hash-grid cell) order for memory locality (0: never). Indices change, ids
+            stay with their particles.
         device: Warp device (None: preferred).
 
     Arrays (``positions``, ``velocities``, ``ids``, ``density`` [kg/m^3], ``pressure`` [Pa]) are
@@ -307,7 +310,8 @@ class ParticleFluid:
     def __init__(self, positions, velocities=None, *, spacing, rest_density=1000.0, capacity=None, domain=None,
                  colliders=(), gravity=(0.0, -9.81, 0.0), kernel="cubic", support=2.0, iterations=4,
                  viscosity=0.01, vorticity=0.0, surface_tension=0.0, boundary_viscosity=0.0, emitters=(),
-                 sinks=(), cfl=0.4, max_dt=1.0 / 200.0, max_neighbors=64, max_speed=100.0, device=None):
+                 sinks=(), cfl=0.4, max_dt=1.0 / 200.0, max_neighbors=64, max_speed=100.0, sort_every=0,
+                 device=None):
         self.spacing = _positive("spacing", spacing)
         self.rest_density = _positive("rest_density", rest_density)
         if kernel not in KERNELS:
@@ -329,6 +333,9 @@ class ParticleFluid:
         self.cfl = _positive("cfl", cfl)
         self.max_dt = _positive("max_dt", max_dt)
         self.max_speed = _positive("max_speed", max_speed)
+        if int(sort_every) != sort_every or sort_every < 0:
+            raise ValueError(f"sort_every = {sort_every!r}; it must be an integer >= 0 (0: never sort)")
+        self.sort_every = int(sort_every)
         if int(max_neighbors) != max_neighbors or max_neighbors < 1:
             raise ValueError(f"max_neighbors = {max_neighbors!r}; it must be an integer >= 1")
         self.gravity = np.array(_vec3(gravity, "gravity"))
@@ -471,6 +478,7 @@ class ParticleFluid:
         if self.sinks:
             self._sink_lower = wp.array(np.array([s.lower for s in self.sinks], np.float32), dtype=wp.vec3, device=d)
             self._sink_upper = wp.array(np.array([s.upper for s in self.sinks], np.float32), dtype=wp.vec3, device=d)
+            self._sink_removed = wp.zeros(len(self.sinks), dtype=int, device=d)
         self._emit_offsets = [wp.array(e.layer_offsets(self.spacing).astype(np.float32), dtype=wp.vec3, device=d)
                               for e in self.emitters]
 
@@ -615,6 +623,8 @@ class ParticleFluid:
                 "the fluid is far too fast: lower gravity/emitter speed or check the setup",
                 step=self.step_count, time=self.time, particle=-1, frame=self.frame_count + 1)
         h = frame_dt / substeps
+        if self.sort_every and self.frame_count % self.sort_every == 0:
+            self.sort_particles()
         for _ in range(substeps):
             self.step(h)
         self.apply_sinks()
@@ -622,6 +632,18 @@ class ParticleFluid:
         self.last_substeps = substeps
         self._check_overflow()
         return substeps
+
+    def sort_particles(self) -> None:
+        """Reorder the active particles into hash-grid cell order (ids move with them)."""
+        n = self.active_count
+        if n == 0:
+            return
+        self._grid.build(self._x[:n], self.h)
+        wp.launch(K.gather_sorted, n, inputs=[self._grid.id, self._x, self._v, self._ids],
+                  outputs=[self._xp, self._vtmp, self._ids_tmp], device=self.device)
+        wp.copy(self._x, self._xp, count=n)
+        wp.copy(self._v, self._vtmp, count=n)
+        wp.copy(self._ids, self._ids_tmp, count=n)
 
     def _check_overflow(self) -> None:
         over = int(self._overflow.numpy()[0])
@@ -631,28 +653,30 @@ class ParticleFluid:
                           "were ignored: raise max_neighbors", RuntimeWarning, stacklevel=3)
 
     def apply_sinks(self) -> int:
-        """Remove particles inside any sink (stable compaction, one read-back). Returns the count removed."""
+        """Remove particles inside any sink (stable compaction; one read-back of the per-sink
+        counts). Returns the number removed."""
         n = self.active_count
         if not self.sinks or n == 0:
             return 0
         d = self.device
-        wp.launch(K.mark_alive, n, inputs=[self._x[:n], self._sink_lower, self._sink_upper], outputs=[self._alive],
-                  device=d)
+        self._sink_removed.zero_()
+        wp.launch(K.mark_alive, n, inputs=[self._x[:n], self._sink_lower, self._sink_upper],
+                  outputs=[self._alive, self._sink_removed], device=d)
+        removed = self._sink_removed.numpy()
+        total = int(removed.sum())
+        if total == 0:
+            return 0
         wp.utils.array_scan(self._alive[:n], self._slot[:n], inclusive=False)
         wp.launch(K.compact_particles, n, inputs=[self._alive, self._slot, self._x, self._v, self._ids],
                   outputs=[self._xp, self._vtmp, self._ids_tmp], device=d)
-        last = np.concatenate([self._slot[n - 1:n].numpy(), self._alive[n - 1:n].numpy()])
-        m = int(last[0] + last[1])
-        if m < n:
-            wp.copy(self._x, self._xp, count=m)
-            wp.copy(self._v, self._vtmp, count=m)
-            wp.copy(self._ids, self._ids_tmp, count=m)
-            removed = n - m
-            self.active_count = m
-            # attribute removals to sinks only approximately when several overlap: first sink counts all
-            self.sinks[0].removed += removed
-            return removed
-        return 0
+        m = n - total
+        wp.copy(self._x, self._xp, count=m)
+        wp.copy(self._v, self._vtmp, count=m)
+        wp.copy(self._ids, self._ids_tmp, count=m)
+        self.active_count = m
+        for sink, count in zip(self.sinks, removed):
+            sink.removed += int(count)
+        return total
 
     # ----------------------------------------------------------------------------- checkpoints
     def checkpoint(self) -> dict:
