@@ -69,6 +69,18 @@ def integrate_cloth_particles(
     f_io[i] = wp.vec3()
 
 
+@wp.func
+def adjacent_spring_force(
+    x: wp.vec3, v: wp.vec3, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3),
+    adjacency: wp.array(dtype=wp.vec4), a: int,
+) -> wp.vec3:
+    """Force on a particle at (x, v) from adjacency entry a = (rest, k, kd, other end as a float:
+    one 16-byte load; exact for indices below 2^24)."""
+    e = adjacency[a]
+    j = int(e[3])
+    return spring_force(x - q[j], v - qd[j], e[0], e[1], e[2])
+
+
 @wp.kernel
 def step_cloth_gather(
     q: wp.array(dtype=wp.vec3),
@@ -76,8 +88,7 @@ def step_cloth_gather(
     f_ext: wp.array(dtype=wp.vec3),
     use_f_ext: int,
     adjacency_offsets: wp.array(dtype=int),
-    adjacency_other: wp.array(dtype=int),
-    adjacency_params: wp.array(dtype=wp.vec3),
+    adjacency: wp.array(dtype=wp.vec4),
     inv_mass: wp.array(dtype=float),
     gravity: wp.vec3,
     h: float,
@@ -85,8 +96,9 @@ def step_cloth_gather(
     qd_out: wp.array(dtype=wp.vec3),
 ):
     """One semi-implicit Euler step, particle-centric: sums the forces of the springs touching
-    particle i (adjacency list: other end, (rest, k, kd)) plus f_ext, then writes the new state to
-    q_out / qd_out (no atomics; q, qd are read-only so the outputs must be other arrays)."""
+    particle i (entries adjacency_offsets[i] .. [i + 1] of ``adjacency``) plus f_ext, then writes
+    the new state to q_out / qd_out (no atomics; q, qd are read-only so the outputs must be other
+    arrays). The loop is unrolled by four so that four springs' loads are in flight at once."""
     i = wp.tid()
     x = q[i]
     v = qd[i]
@@ -95,10 +107,18 @@ def step_cloth_gather(
         f = wp.vec3()
         if use_f_ext != 0:
             f = f_ext[i]
-        for a in range(adjacency_offsets[i], adjacency_offsets[i + 1]):
-            j = adjacency_other[a]
-            p = adjacency_params[a]
-            f = f + spring_force(x - q[j], v - qd[j], p[0], p[1], p[2])
+        a = adjacency_offsets[i]
+        end = adjacency_offsets[i + 1]
+        while a + 4 <= end:
+            f0 = adjacent_spring_force(x, v, q, qd, adjacency, a)
+            f1 = adjacent_spring_force(x, v, q, qd, adjacency, a + 1)
+            f2 = adjacent_spring_force(x, v, q, qd, adjacency, a + 2)
+            f3 = adjacent_spring_force(x, v, q, qd, adjacency, a + 3)
+            f = f + (f0 + f1) + (f2 + f3)
+            a += 4
+        while a < end:
+            f = f + adjacent_spring_force(x, v, q, qd, adjacency, a)
+            a += 1
         v = v + h * (w * f + gravity)
     qd_out[i] = v
     q_out[i] = x + h * v
@@ -211,6 +231,39 @@ def eval_kinetic_energy(
 # --------------------------------------------------------------------------------------
 # Preconditioned conjugate gradients (scalars live on the device; see warpsim/cloth_cg.py)
 # --------------------------------------------------------------------------------------
+DOT_BLOCK = wp.constant(256)
+
+
+@wp.kernel
+def cg_dots(
+    a: wp.array(dtype=wp.vec3),
+    b: wp.array(dtype=wp.vec3),
+    c: wp.array(dtype=wp.vec3),
+    d: wp.array(dtype=wp.vec3),
+    stride: int,
+    slot_ab: int,
+    slot_cd: int,
+    scalars_io: wp.array(dtype=float),
+):
+    """scalars[slot_ab] += sum a_i . b_i and, when slot_cd >= 0, scalars[slot_cd] += sum c_i . d_i.
+    Launched with dim (blocks, DOT_BLOCK) and block_dim DOT_BLOCK: each thread strides over the
+    arrays by ``stride`` = blocks * DOT_BLOCK, then a block-wide tile sum adds one value per block
+    (no allocation, so it can sit inside a conditional graph node)."""
+    block, lane = wp.tid()
+    i = block * DOT_BLOCK + lane
+    n = a.shape[0]
+    ab = float(0.0)  # noqa: UP018 (a mutable loop variable in Warp)
+    cd = float(0.0)  # noqa: UP018
+    while i < n:
+        ab += wp.dot(a[i], b[i])
+        if slot_cd >= 0:
+            cd += wp.dot(c[i], d[i])
+        i += stride
+    wp.tile_atomic_add(scalars_io, wp.tile_sum(wp.tile(ab)), offset=slot_ab)
+    if slot_cd >= 0:
+        wp.tile_atomic_add(scalars_io, wp.tile_sum(wp.tile(cd)), offset=slot_cd)
+
+
 @wp.kernel
 def cg_start(
     b: wp.array(dtype=wp.vec3),
@@ -219,9 +272,13 @@ def cg_start(
     r_out: wp.array(dtype=wp.vec3),
     z_out: wp.array(dtype=wp.vec3),
     p_out: wp.array(dtype=wp.vec3),
+    scalars_out: wp.array(dtype=float),
 ):
-    """x = 0, r = b, z = P^-1 r, p = z."""
+    """x = 0, r = b, z = P^-1 r, p = z; clears the dot-product slots r.z and r.r."""
     i = wp.tid()
+    if i == 0:
+        scalars_out[0] = 0.0
+        scalars_out[1] = 0.0
     r = b[i]
     z = inverse[i] * r
     x_out[i] = wp.vec3()
@@ -240,8 +297,10 @@ def cg_init_scalars(
     condition_out: wp.array(dtype=int),
 ):
     """scalars = [r.z, r.r, p.Ap, (r.z)_new, tol^2, b.b]: tol^2 = max(atol, rtol |b|)^2 with
-    |b|^2 = r.r at the start; iteration = 0; condition = (r.r > tol^2 and max_iterations > 0)."""
+    |b|^2 = r.r at the start; iteration = 0; condition = (r.r > tol^2 and max_iterations > 0);
+    clears the p.Ap slot."""
     bb = scalars[1]
+    scalars[2] = 0.0
     tol = wp.max(atol, rtol * wp.sqrt(bb))
     scalars[4] = tol * tol
     scalars[5] = bb
@@ -262,8 +321,12 @@ def cg_update_x_r(
     r_io: wp.array(dtype=wp.vec3),
     z_out: wp.array(dtype=wp.vec3),
 ):
-    """alpha = r.z / p.Ap; x += alpha p; r -= alpha Ap; z = P^-1 r."""
+    """alpha = r.z / p.Ap; x += alpha p; r -= alpha Ap; z = P^-1 r; clears the r.r and (r.z)_new
+    slots (read by nobody here) for the dot products that follow."""
     i = wp.tid()
+    if i == 0:
+        scalars[1] = 0.0
+        scalars[3] = 0.0
     pAp = scalars[2]
     alpha = 0.0
     if pAp > 0.0:
@@ -292,8 +355,10 @@ def cg_end_iteration(
     iteration_io: wp.array(dtype=int),
     condition_out: wp.array(dtype=int),
 ):
-    """r.z <- (r.z)_new; iteration += 1; condition = (r.r > tol^2 and iteration < max)."""
+    """r.z <- (r.z)_new; iteration += 1; condition = (r.r > tol^2 and iteration < max); clears
+    the p.Ap slot."""
     scalars[0] = scalars[3]
+    scalars[2] = 0.0
     it = iteration_io[0] + 1
     iteration_io[0] = it
     c = 0

@@ -3,8 +3,9 @@ systems, with every scalar kept on the device so a solve can be captured in a gr
 
 The loop runs under ``wp.capture_while`` on a device-side condition (r.r > tol^2 and
 iterations < max), so the same code runs eagerly, inside a CPU graph capture or inside a CUDA
-graph (conditional nodes). Dot products use ``wp.utils.array_inner`` (native reductions), the
-product ``warp.sparse.bsr_mv``; nothing is allocated per solve. Used by ClothImplicitEuler where
+graph (conditional nodes). Dot products are one grid-stride kernel with a block-wide tile sum
+(``kernels.cloth.cg_dots``; ``wp.utils.array_inner`` allocates on CUDA, which a conditional
+graph body may not), the product is ``warp.sparse.bsr_mv``; nothing is allocated per solve. Used by ClothImplicitEuler where
 ``warp.optim.linear.cg``'s tile-based dot products are slow (on the CPU ~10 ms each).
 """
 
@@ -43,20 +44,24 @@ class BlockCG:
         """[r.z, r.r, p.Ap, (r.z)_new, tol^2, |b|^2] on the device."""
         self.iteration = wp.zeros(1, dtype=int, device=d)
         self.condition = wp.zeros(1, dtype=wp.int32, device=d)
-        s = self.scalars
-        self._rz, self._rr, self._pAp, self._rz_new = s[0:1], s[1:2], s[2:3], s[3:4]
+        blocks = (n + K.DOT_BLOCK - 1) // K.DOT_BLOCK
+        self._blocks = max(1, min(blocks, 1024) if d.is_cuda else blocks)
 
-    def _inner(self, a, b, out):
-        wp.utils.array_inner(a, b, out=out)
+    def _dots(self, a, b, slot_ab, c=None, d=None, slot_cd=-1):
+        """scalars[slot_ab] += a . b (and scalars[slot_cd] += c . d); the slots were cleared by the
+        kernel before."""
+        wp.launch(K.cg_dots, (self._blocks, K.DOT_BLOCK), inputs=[a, b, a if c is None else c, b if d is None else d,
+                                                                  self._blocks * K.DOT_BLOCK, slot_ab, slot_cd,
+                                                                  self.scalars],
+                  block_dim=K.DOT_BLOCK, device=self.device)
 
     def _iteration(self):
         n, d = self.n, self.device
         wps.bsr_mv(self.A, self.p, self.Ap, alpha=1.0, beta=0.0)
-        self._inner(self.p, self.Ap, self._pAp)
+        self._dots(self.p, self.Ap, 2)
         wp.launch(K.cg_update_x_r, n, inputs=[self.scalars, self.p, self.Ap, self.inverse, self.x, self.r, self.z],
                   device=d)
-        self._inner(self.r, self.z, self._rz_new)
-        self._inner(self.r, self.r, self._rr)
+        self._dots(self.r, self.z, 3, self.r, self.r, 1)
         wp.launch(K.cg_update_p, n, inputs=[self.scalars, self.z, self.p], device=d)
         wp.launch(K.cg_end_iteration, 1, inputs=[self.scalars, self.max_iterations, self.iteration, self.condition],
                   device=d)
@@ -65,9 +70,8 @@ class BlockCG:
         """Run the solve (x starts at 0). Allocation-free and capturable; read the outcome with
         ``stats()`` afterwards (a host read-back)."""
         n, d = self.n, self.device
-        wp.launch(K.cg_start, n, inputs=[self.b, self.inverse, self.x, self.r, self.z, self.p], device=d)
-        self._inner(self.r, self.z, self._rz)
-        self._inner(self.r, self.r, self._rr)
+        wp.launch(K.cg_start, n, inputs=[self.b, self.inverse, self.x, self.r, self.z, self.p, self.scalars], device=d)
+        self._dots(self.r, self.z, 0, self.r, self.r, 1)
         wp.launch(K.cg_init_scalars, 1, inputs=[self.scalars, self.rtol, self.atol, self.max_iterations,
                                                 self.iteration, self.condition], device=d)
         wp.capture_while(self.condition, self._iteration)

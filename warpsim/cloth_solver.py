@@ -35,6 +35,7 @@ from .simulator import Simulator, check_dt
 
 GEOMETRIC_MODES = {"clamped": 0, "full": 1}
 LINEAR_SOLVERS = ("block_cg", "warp_cg")
+GATHER_MAX_PARTICLES = 1 << 24
 
 
 def _split_forces(system):
@@ -58,8 +59,11 @@ def _overrides_jacobian(force) -> bool:
 class ClothSemiImplicitEuler(Integrator):
     """Semi-implicit (symplectic) Euler for cloth with the spring, gravity and update kernels
     fused. ``mode``: "scatter" (spring kernel with atomics + particle kernel), "gather" (one
-    particle-centric kernel per step; needs separate output arrays, see ``step_to``) or None:
-    scatter on the CPU, gather on CUDA."""
+    particle-centric kernel per step, no atomics; ClothSimulator ping-pongs its output arrays) or
+    None: gather on CUDA from GATHER_MIN_PARTICLES particles on (measured faster there on an
+    H100), scatter otherwise."""
+
+    GATHER_MIN_PARTICLES = 65536
 
     name = "cloth_semi_implicit_euler"
 
@@ -71,7 +75,11 @@ class ClothSemiImplicitEuler(Integrator):
 
     def _allocate(self, system):
         model, d = system.model, system.device
-        self.mode = self.requested_mode or ("gather" if d.is_cuda else "scatter")
+        auto = "gather" if d.is_cuda and self.GATHER_MIN_PARTICLES <= system.count < GATHER_MAX_PARTICLES else "scatter"
+        self.mode = self.requested_mode or auto
+        if self.mode == "gather" and system.count >= GATHER_MAX_PARTICLES:
+            raise ValueError(f"mode='gather' handles fewer than {GATHER_MAX_PARTICLES} particles (indices are stored "
+                             f"as float32), this model has {system.count}; use mode='scatter'")
         self.gravity, self.springs, self.others = _split_forces(system)
         self.f.zero_()
         self.f_ext = wp.zeros(system.count if self.others else 1, dtype=wp.vec3, device=d)
@@ -89,11 +97,10 @@ class ClothSemiImplicitEuler(Integrator):
         ends, spring = ends[order], spring[order]
         offsets = np.zeros(n + 1, dtype=np.int64)
         np.add.at(offsets, ends[:, 0] + 1, 1)
-        params = np.stack([model.spring_rest_length.numpy()[spring], model.spring_stiffness.numpy()[spring],
-                           model.spring_damping.numpy()[spring]], axis=1)
+        entries = np.stack([model.spring_rest_length.numpy()[spring], model.spring_stiffness.numpy()[spring],
+                            model.spring_damping.numpy()[spring], ends[:, 1].astype(np.float32)], axis=1)
         self.adjacency_offsets = wp.array(np.cumsum(offsets).astype(np.int32), dtype=int, device=d)
-        self.adjacency_other = wp.array(ends[:, 1].astype(np.int32), dtype=int, device=d)
-        self.adjacency_params = wp.array(params.astype(np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
+        self.adjacency = wp.array(entries.astype(np.float32).reshape(-1, 4), dtype=wp.vec4, device=d)
 
     def _external(self, system, q, qd, time, f):
         for force in self.others:
@@ -106,8 +113,8 @@ class ClothSemiImplicitEuler(Integrator):
             self.f_ext.zero_()
             self._external(system, q, qd, time, self.f_ext)
         wp.launch(KC.step_cloth_gather, system.count,
-                  inputs=[q, qd, self.f_ext, int(bool(self.others)), self.adjacency_offsets, self.adjacency_other,
-                          self.adjacency_params, system.inv_mass, self.gravity, float(dt), q_out, qd_out],
+                  inputs=[q, qd, self.f_ext, int(bool(self.others)), self.adjacency_offsets, self.adjacency,
+                          system.inv_mass, self.gravity, float(dt), q_out, qd_out],
                   device=system.device)
 
     def step(self, system, q, qd, time, dt, f_out=None):
@@ -388,9 +395,11 @@ class ClothSimulator(Simulator):
 
     Args: as ``ws.Simulator`` (``integrator`` defaults to "implicit_euler"; "semi_implicit_euler"
     and "implicit_euler" pick the cloth integrators above), plus
-        use_graph: capture each frame's sub-steps once and replay them (None: on CUDA, and on
-            the CPU where Warp supports CPU capture). Forces, colliders and model parameters must
-            not be replaced after the first frame (their arrays may change in place).
+        use_graph: capture each frame's sub-steps once and replay them (None: yes, on CUDA and on
+            the CPU). Frames run eagerly while a collider follows a ``motion`` callback, and the
+            graphs are re-captured after a collider's ``set_transform``. Forces, colliders and
+            model parameters must not be replaced after the first frame (arrays may change in
+            place).
         check_every: blow-up test every this many frames (``step`` tests every this many steps).
 
     ``frame(frame_dt, substeps)`` advances one frame; ``run`` uses it. ``step(dt)`` takes one
@@ -402,10 +411,11 @@ class ClothSimulator(Simulator):
         super().__init__(model, make_cloth_integrator(integrator), forces, colliders, check_every=check_every,
                          **kwargs)
         if use_graph is None:
-            use_graph = self.device.is_cuda or self.device.is_cpu
+            use_graph = True
         self.use_graph = bool(use_graph) and not self.adaptive
         self._needs_time = any(not isinstance(f, (Gravity, Springs)) for f in self.forces)
         self._graphs = {}
+        self._captured_poses = ()
         self.frame_count = 0
         """Frames advanced by ``frame``."""
         st = self.state
@@ -448,6 +458,10 @@ class ClothSimulator(Simulator):
         self._go_home()
         if not self._needs_time:
             wp.launch(KI.advance_time, 1, inputs=[self._time, frame_dt], device=self.device)
+        # blow-up detection inside the frame: the host reads one int afterwards
+        self._first_bad.fill_(self.system.count)
+        wp.launch(KI.find_blow_up, self.system.count, inputs=[self.state.positions, self.state.velocities,
+                                                              self.max_speed, self._first_bad], device=self.device)
 
     def frame(self, frame_dt: float = 1.0 / 60.0, substeps: int = 1) -> None:
         """Advance one frame of ``frame_dt`` [s] in ``substeps`` equal steps (graph replay where
@@ -457,7 +471,10 @@ class ClothSimulator(Simulator):
             raise ValueError(f"substeps = {substeps}; it must be >= 1")
         substeps = int(substeps)
         self.integrator.prepare(self.system)
-        if self.use_graph:
+        poses = self._collider_poses()
+        if poses is None or poses != self._captured_poses:
+            self._graphs.clear()  # a collider moves: its pose is baked into the launches
+        if self.use_graph and poses is not None:
             key = (frame_dt, substeps)
             graph = self._graphs.get(key)
             if graph is None:
@@ -466,14 +483,28 @@ class ClothSimulator(Simulator):
                 with wp.ScopedCapture(device=self.device) as capture:
                     self._frame_body(frame_dt, substeps)
                 self._graphs[key] = capture.graph
+                self._captured_poses = poses
             else:
                 wp.capture_launch(graph)
                 self._advance_host(frame_dt, substeps)
         else:
             self._frame_body(frame_dt, substeps)
             self._advance_host(frame_dt, substeps)
-        if self.check_every and self.frame_count % self.check_every == 0:
-            self.check()
+        due = self.check_every and self.frame_count % self.check_every == 0
+        if due and int(self._first_bad.numpy()[0]) < self.system.count:
+            self.check()  # raises SimulationError naming step, particle and remedy
+
+    def _collider_poses(self):
+        """Poses of kinematic colliders (None when one follows a ``motion`` callback: such frames
+        run eagerly, since collider poses are launch parameters that a graph would freeze)."""
+        poses = []
+        for c in self.colliders:
+            if getattr(c, "motion", None) is not None:
+                return None
+            if hasattr(c, "world_pose"):
+                p, q = c.world_pose()
+                poses.append(tuple(np.round(np.concatenate([p, q]), 12)))
+        return tuple(poses)
 
     def _advance_host(self, frame_dt, substeps):
         self.time += frame_dt
