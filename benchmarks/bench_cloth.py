@@ -30,6 +30,7 @@ wp.config.quiet = True
 wp.config.log_level = getattr(wp, "LOG_WARNING", wp.config.log_level)  # no module-load lines
 
 import warpsim as ws
+import warpsim.colliders as ws_colliders
 from warpsim.cloth import add_cloth_grid
 from warpsim.cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 
@@ -127,8 +128,8 @@ def same_cloth(model, ref):
 def colliders(dim, thickness):
     size = SPACING * (dim - 1)
     out = [ws.Plane((0.0, 1.0, 0.0), -0.6 * size, restitution=0.0, friction=0.5)]
-    if hasattr(ws, "Sphere"):
-        out.append(ws.Sphere((0.5 * size, -0.3 * size, 0.5 * size), 0.2 * size, restitution=0.0, friction=0.5,
+    if hasattr(ws_colliders, "Sphere"):
+        out.append(ws_colliders.Sphere((0.5 * size, -0.3 * size, 0.5 * size), 0.2 * size, restitution=0.0, friction=0.5,
                              thickness=thickness))
     return out
 
@@ -249,7 +250,7 @@ def main():
     wp.init()
     device = wp.get_device(args.device)
     Cloth, WpIntegrator = load_reference()
-    collide = "no collisions" if args.no_collisions else ("floor + sphere" if hasattr(ws, "Sphere") else "floor")
+    collide = "no collisions" if args.no_collisions else ("floor + sphere" if hasattr(ws_colliders, "Sphere") else "floor")
     print(f"device {device} ({device.name}); {SUBSTEPS} sub-steps per frame at {FPS:g} fps; warpsim colliders: "
           f"{collide}")
     print(f"agreement with the reference after 10 frames at {args.dims[0]}^2 (no colliders): "

@@ -9,6 +9,7 @@ import warp as wp
 import warpsim as ws
 from warpsim.cloth import add_cloth_grid, add_cloth_mesh, grid_springs
 from warpsim.cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, cloth_energy
+from warpsim.colliders import Sphere, TriangleMesh
 
 DEVICE = "cpu"
 G = np.array([0.0, -9.81, 0.0])
@@ -507,6 +508,72 @@ def test_cloth_on_plane_friction(integrator):
     assert speeds[0.8] < 0.05
 
 
+@pytest.mark.parametrize("integrator", ["implicit_euler", "semi_implicit_euler"])
+def test_cloth_drapes_on_sphere_with_thickness(integrator):
+    """A sheet dropped on a sphere: no particle ever comes closer to the surface than the
+    thickness offset, the sheet's centre rests on top at r + thickness and its corners hang down
+    past the equator."""
+    r, thickness, c = 0.2, 0.02, np.array([0.0, 0.3, 0.0])
+    b = ws.ModelBuilder()
+    cloth = add_cloth_grid(b, (8, 8), (0.6, 0.6), (0.0, 0.6, 0.0), centered=True, particle_mass=0.005,
+                           structural=(50.0, 0.05), shear=(20.0, 0.02), bend=(5.0, 0.01))
+    model = b.finalize(DEVICE)
+    sphere = Sphere(tuple(c), r, restitution=0.0, friction=0.8, thickness=thickness)
+    sim = ClothSimulator(model, integrator, colliders=[sphere, ws.Plane(restitution=0.0, friction=0.8)])
+    closest = []
+    sim.run(90, frame_dt=1.0 / 60.0, substeps=1 if integrator == "implicit_euler" else 10,
+            callback=lambda f, s: closest.append((np.linalg.norm(s.state.positions.numpy() - c, axis=1) - r).min()))
+    assert min(closest) >= thickness - 1e-4
+    x = sim.state.positions.numpy()
+    top = x[cloth.index(4, 4)]
+    assert np.allclose(top, c + (0.0, r + thickness, 0.0), atol=2e-3)
+    assert 0.05 < x[:, 1].min() < c[1]
+
+
+def test_cloth_rests_on_triangle_mesh():
+    """A thin two-triangle floor at y = 0.25 (a TriangleMesh, thickness 0.01): the sheet lands
+    and lies flat at 0.26 m."""
+    quad = np.array([[-1.0, 0.25, -1.0], [1.0, 0.25, -1.0], [1.0, 0.25, 1.0], [-1.0, 0.25, 1.0]])
+    mesh = TriangleMesh(quad, [[0, 2, 1], [0, 3, 2]], restitution=0.0, friction=0.5, thickness=0.01)
+    b = ws.ModelBuilder()
+    add_cloth_grid(b, (5, 5), (0.5, 0.5), (0.0, 0.5, 0.0), centered=True, particle_mass=0.01, stiffness=100.0,
+                   damping=0.1)
+    model = b.finalize(DEVICE)
+    sim = ClothSimulator(model, "implicit_euler", colliders=[mesh])
+    sim.run(60, frame_dt=1.0 / 60.0)
+    y = sim.state.positions.numpy()[:, 1]
+    assert np.allclose(y, 0.26, atol=1e-3)
+    assert np.abs(sim.state.velocities.numpy()).max() < 1e-2
+
+
+@pytest.mark.parametrize("how", ["motion", "set_transform"])
+def test_moving_colliders_match_eager_frames(how):
+    """A sphere on a ``motion`` path (frames then run eagerly) or moved by ``set_transform``
+    between frames (graphs re-captured): the captured-frame simulator gives the eager result
+    (collider poses are launch parameters a graph would freeze)."""
+    b, _ = small_cloth((4, 4), stiffness=300.0, damping=0.5)
+    model = b.finalize(DEVICE)
+    out = []
+    for use_graph in (False, True):
+        if how == "motion":
+            sphere = Sphere((0.15, 0.85, -0.15), 0.08, friction=0.2, motion=lambda t: ((0.0, 0.5 * t, 0.0), None))
+        else:
+            sphere = Sphere((0.15, 0.9, -0.15), 0.08, friction=0.2)
+        sim = ClothSimulator(model, "implicit_euler", colliders=[sphere], use_graph=use_graph)
+        for frame in range(8):
+            if frame == 4 and how == "set_transform":
+                sphere.set_transform((0.0, 0.05, 0.0))
+            sim.frame(1.0 / 60.0, 2)
+        out.append(sim.state.positions.numpy())
+        if how == "motion":
+            assert np.isclose(sphere.time, 8 / 60.0)  # its clock advanced every sub-step
+        assert np.isclose(sim.time, 8 / 60.0)
+    assert np.allclose(out[0], out[1], atol=1e-6)
+    free = ClothSimulator(model, "implicit_euler", use_graph=False)
+    free.run(8, frame_dt=1.0 / 60.0, substeps=2)
+    assert np.abs(out[1] - free.state.positions.numpy()).max() > 0.02  # the sphere did push the cloth
+
+
 def test_solver_bad_input():
     with pytest.raises(ValueError, match="newton_iterations"):
         ClothImplicitEuler(newton_iterations=0)
@@ -527,21 +594,48 @@ def test_solver_bad_input():
         sim.frame(-1.0, 1)
 
 
-def test_example_cloth_implicit(tmp_path):
-    """The example compares both integrators at dt = 1/60: semi-implicit diverges, implicit runs
-    and reports CG iterations within tolerance."""
+def run_example(name, args, tmp_path):
     import os
     import subprocess
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "examples" / "cloth_implicit.py"
-    args = ["--frames", "4", "--resolution", "6", "--stiffness", "1e5", "--out", "c.usda"]
+    script = Path(__file__).resolve().parents[1] / "examples" / name
     result = subprocess.run([sys.executable, str(script), *args], cwd=tmp_path, env=dict(os.environ, WARP_QUIET="1"),
                             capture_output=True, text=True, timeout=600, check=False)
     assert result.returncode == 0, result.stderr[-3000:]
+    return result
+
+
+def test_example_cloth_implicit(tmp_path):
+    """The example compares both integrators at dt = 1/60: semi-implicit diverges, implicit runs
+    and reports CG iterations within tolerance."""
+    result = run_example("cloth_implicit.py", ["--frames", "4", "--resolution", "6", "--stiffness", "1e5",
+                                               "--out", "c.usda"], tmp_path)
     assert "semi-implicit Euler at dt = 0.0166667 s diverged" in result.stdout
     rows = [line.split() for line in result.stdout.splitlines() if line.strip()[:1].isdigit()]
     assert [int(r[0]) for r in rows] == [1, 2, 3, 4]
     assert all(0 < int(r[1]) and float(r[2]) <= float(r[3]) for r in rows)
     assert (tmp_path / "c.usda").exists()
+
+
+def test_example_cloth_drape(tmp_path):
+    result = run_example("cloth_drape.py", ["--frames", "10", "--resolution", "6", "--out", "d.usda"], tmp_path)
+    rows = [line.split() for line in result.stdout.splitlines() if line.strip()[:1].isdigit()]
+    assert [int(r[0]) for r in rows] == [10] and float(rows[0][2]) >= 0.01 - 1e-4
+    from warpsim.usd_validate import validate_cache
+
+    assert validate_cache(str(tmp_path / "d.usda")) == []
+
+
+def test_cloth_scenes_registered_and_checked():
+    from warpsim.scenes import get_scene
+
+    for name in ("cloth", "drape"):
+        scene_cls = get_scene(name)
+        assert set(scene_cls.params["integrator"].choices) == {"implicit_euler", "semi_implicit_euler"}
+        with pytest.raises(ValueError, match="resolution"):
+            scene_cls({"resolution": 0}, device=DEVICE)
+    scene = get_scene("cloth")({"resolution": 3, "integrator": "semi_implicit_euler"}, device=DEVICE)
+    assert isinstance(scene.sim.integrator, ClothSemiImplicitEuler) and scene.steps_per_substep == 40
+    assert len(scene.cloth.pinned) == 2 and scene.cloth.triangles.shape == (18, 3)

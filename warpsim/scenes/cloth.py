@@ -1,0 +1,111 @@
+"""Cloth scenes: ``cloth`` (a sheet pinned at two corners swinging down onto a sphere) and
+``drape`` (a sheet falling onto a sphere and the floor). The cloth is a UsdGeom.Mesh with fixed
+topology and points / velocities per frame."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import warpsim as ws
+
+from ..cloth import add_cloth_grid
+from ..cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
+from ..colliders import Sphere
+from . import SimulatorScene, register_scene
+
+CLOTH_INTEGRATORS = ("implicit_euler", "semi_implicit_euler")
+
+COMMON = {
+    "resolution": (32, "cells per side of the square sheet"),
+    "size": (1.0, "side of the sheet [m]"),
+    "density": (0.3, "area density [kg/m^2]"),
+    "structural": (400.0, "structural spring stiffness [N/m]"),
+    "shear": (100.0, "shear spring stiffness [N/m]"),
+    "bend": (20.0, "bend spring stiffness [N/m]"),
+    "damping": (0.02, "spring damping [N s/m] (bend springs get a quarter)"),
+    "friction": (0.4, "Coulomb friction against the sphere and the floor"),
+    "thickness": (0.01, "cloth thickness offset for collisions [m]"),
+    "sphere_radius": (0.3, "sphere radius [m]"),
+    "integrator": ("implicit_euler", "implicit_euler (Baraff-Witkin) or semi_implicit_euler", CLOTH_INTEGRATORS),
+    "explicit_substeps": (40, "semi_implicit_euler only: steps per frame sub-step (~40 for stability)"),
+    "cg_tol": (1.0e-4, "implicit_euler: CG tolerance relative to |b|"),
+}
+
+
+class ClothScene(SimulatorScene):
+    """Shared part: one grid cloth, a sphere and the floor, driven by a ClothSimulator."""
+
+    smoke_params: ClassVar[dict] = {"resolution": 4}
+    sphere_center = (0.0, 0.0, 0.0)
+
+    def make_cloth(self, builder, p):
+        raise NotImplementedError
+
+    def build(self, p):
+        for key in ("resolution", "explicit_substeps"):
+            if p[key] < 1:
+                raise ValueError(f"{key}={p[key]}: it must be >= 1")
+        for key in ("size", "density", "sphere_radius"):
+            if not p[key] > 0.0:
+                raise ValueError(f"{key}={p[key]}: it must be > 0")
+        b = ws.ModelBuilder()
+        self.cloth = self.make_cloth(b, p)
+        model = b.finalize(self.device)
+        if p["integrator"] == "implicit_euler":
+            integrator = ClothImplicitEuler(cg_tol=p["cg_tol"])
+        else:
+            integrator = ClothSemiImplicitEuler()
+        self.sphere = Sphere(self.sphere_center, p["sphere_radius"], restitution=0.0, friction=p["friction"],
+                             thickness=p["thickness"])
+        self.floor = ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=0.0, friction=p["friction"], mode="project")
+        self.sim = ClothSimulator(model, integrator, colliders=[self.sphere, self.floor])
+        self.steps_per_substep = 1 if p["integrator"] == "implicit_euler" else p["explicit_substeps"]
+
+    def springs(self, p):
+        k = p["damping"]
+        return {"structural": (p["structural"], k), "shear": (p["shear"], k), "bend": (p["bend"], 0.25 * k)}
+
+    def declare(self, writer):
+        c = self.cloth
+        writer.add_mesh("cloth", c.face_vertex_counts, c.face_vertex_indices, color=(0.2, 0.45, 0.8),
+                        double_sided=True)
+        writer.add_sphere("sphere", self.sphere_center, self.params["sphere_radius"], color=(0.7, 0.7, 0.7))
+        writer.add_plane("floor", size=3.0 * self.params["size"])
+
+    def frame_data(self):
+        st = self.sim.state
+        return {"cloth": {"points": st.positions, "velocities": st.velocities}}
+
+    def advance(self, frame_dt, substeps):
+        self.sim.frame(frame_dt, substeps * self.steps_per_substep)
+
+
+@register_scene("cloth", "a sheet pinned at two corners swings down onto a sphere (--set integrator=...)",
+                params=COMMON)
+class PinnedCloth(ClothScene):
+    """The sheet starts horizontal at 1.2 m, pinned at the two corners of its edge z = -0.6 m, and
+    swings about that edge into a sphere below it."""
+
+    sphere_center = (0.0, 0.6, -0.3)
+
+    def make_cloth(self, builder, p):
+        s = p["size"]
+        return add_cloth_grid(builder, p["resolution"], s, (-0.5 * s, 1.2, -0.6), u_axis=(1, 0, 0), v_axis=(0, 0, 1),
+                              density=p["density"], pin=["corner_00", "corner_10"], radius=0.0,
+                              **self.springs(p))
+
+
+@register_scene("drape", "a sheet falls onto a sphere and drapes over it down to the floor",
+                params=dict(COMMON, size=(1.6, "side of the sheet [m]"), sphere_radius=(0.35, "sphere radius [m]")))
+class Drape(ClothScene):
+    """The sheet starts horizontal at 1 m, centred over a sphere resting on the floor."""
+
+    sphere_center = (0.0, 0.35, 0.0)
+
+    def build(self, p):
+        self.sphere_center = (0.0, p["sphere_radius"], 0.0)
+        super().build(p)
+
+    def make_cloth(self, builder, p):
+        return add_cloth_grid(builder, p["resolution"], p["size"], (0.0, 1.0, 0.0), centered=True,
+                              density=p["density"], **self.springs(p))
