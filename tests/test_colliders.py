@@ -1,4 +1,4 @@
-"""Colliders (warpsim.colliders, kernels/collide.py) on the "cpu" device.
+"""Colliders (warpsim.colliders, kernels/collide.py) on the "cpu" device (and CUDA when present).
 
 Oracles: bounce heights h' = e^2 h of a dropped particle, Coulomb sliding that stops exactly when
 mu g t = v0, the penalty contact's static depth m g / k, the 1D two-body collision rule for
@@ -25,10 +25,10 @@ DEVICE = "cpu"
 G = 9.81
 
 
-def one_particle(pos, vel=(0.0, 0.0, 0.0), mass=1.0, radius=0.0):
+def one_particle(pos, vel=(0.0, 0.0, 0.0), mass=1.0, radius=0.0, device=DEVICE):
     b = ws.ModelBuilder()
     b.add_particle(pos, vel=vel, mass=mass, radius=radius)
-    return b.finalize(DEVICE)
+    return b.finalize(device)
 
 
 def trajectory(model, colliders, steps, dt, forces=None):
@@ -147,7 +147,7 @@ def test_box_keeps_particles_inside():
 
 
 @pytest.mark.parametrize("make", ["quad", "mesh"])
-def test_ccd_stops_100_m_per_s_particle_at_thin_quad(make):
+def test_ccd_stops_100_m_per_s_particle_at_thin_quad(make, device):
     """At 100 m/s and dt = 1/60 the particle moves 1.67 m per step through a 0-thickness quad;
     continuous detection stops it on the side it came from (e = 0: it rests on the quad)."""
     r = 0.01
@@ -157,12 +157,14 @@ def test_ccd_stops_100_m_per_s_particle_at_thin_quad(make):
         pts, faces = floor_mesh(0.5)
         wall = TriangleMesh(pts, faces, restitution=0.0)
     for y0, v in ((0.5, -100.0), (-0.5, 100.0)):
-        xs, vs = trajectory(one_particle((0.1, y0, -0.2), vel=(0.0, v, 0.0), radius=r), [wall], 3, 1.0 / 60, [])
+        xs, vs = trajectory(one_particle((0.1, y0, -0.2), vel=(0.0, v, 0.0), radius=r, device=device), [wall], 3,
+                            1.0 / 60, [])
         side = np.sign(y0)
         np.testing.assert_allclose(xs[:, 0, 1], side * r, atol=1e-6)
         np.testing.assert_allclose(vs[:, 0], 0.0, atol=1e-6)
     # beside the quad it flies past
-    xs, _ = trajectory(one_particle((0.7, 0.5, 0.0), vel=(0.0, -100.0, 0.0), radius=r), [wall], 1, 1.0 / 60, [])
+    xs, _ = trajectory(one_particle((0.7, 0.5, 0.0), vel=(0.0, -100.0, 0.0), radius=r, device=device), [wall], 1,
+                       1.0 / 60, [])
     assert xs[0, 0, 1] == pytest.approx(0.5 - 100.0 / 60, rel=1e-6)
 
 
@@ -211,9 +213,9 @@ def test_capsule_side_normal_from_axis():
 # ---------------------------------------------------------------- triangle meshes
 
 
-def test_mesh_floor_matches_analytic_plane():
+def test_mesh_floor_matches_analytic_plane(device):
     """Drop and slide with restitution and friction: the wp.Mesh floor and ws.Plane agree."""
-    model = one_particle((0.0, 0.8, 0.0), vel=(1.5, 0.0, 0.7), radius=0.02)
+    model = one_particle((0.0, 0.8, 0.0), vel=(1.5, 0.0, 0.7), radius=0.02, device=device)
     kw = {"restitution": 0.6, "friction": 0.3}
     pts, faces = floor_mesh(5.0)
     xa, va = trajectory(model, [ws.Plane(**kw)], 300, 1.0 / 120)
@@ -260,13 +262,13 @@ def test_set_transform_moves_mesh_between_frames():
 
 
 @pytest.mark.parametrize("c_r", [0.0, 0.5, 1.0])
-def test_two_body_head_on_matches_1d_rule(c_r):
+def test_two_body_head_on_matches_1d_rule(c_r, device):
     """m_a u_a + m_b u_b conserved and c_R = -(v_b - v_a)/(u_b - u_a)."""
     ma, mb, ua, ub = 1.0, 3.0, 2.0, -1.0
     b = ws.ModelBuilder()
     b.add_particle((0.0, 0.0, 0.0), vel=(ua, 0, 0), mass=ma, radius=0.05)
     b.add_particle((0.099, 0.0, 0.0), vel=(ub, 0, 0), mass=mb, radius=0.05)
-    _, vs = trajectory(b.finalize(DEVICE), [ParticleCollisions(restitution=c_r)], 1, 1e-5, [])
+    _, vs = trajectory(b.finalize(device), [ParticleCollisions(restitution=c_r)], 1, 1e-5, [])
     va = (ma * ua + mb * ub + mb * c_r * (ub - ua)) / (ma + mb)
     vb = (ma * ua + mb * ub + ma * c_r * (ua - ub)) / (ma + mb)
     np.testing.assert_allclose(vs[0, :, 0], [va, vb], atol=1e-6)
@@ -293,7 +295,7 @@ class _Recorder(ParticleCollisions):
                          np.abs(m * v0).sum()))
 
 
-def test_10000_particles_conserve_momentum_and_never_gain_energy():
+def test_10000_particles_conserve_momentum_and_never_gain_energy(device):
     rng = np.random.default_rng(0)
     n, r = 10_000, 0.01
     g = np.stack(np.meshgrid(*[np.arange(22)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
@@ -303,7 +305,7 @@ def test_10000_particles_conserve_momentum_and_never_gain_energy():
     pc = _Recorder(restitution=0.5, friction=0.2)
     pc.log = []
     box = ws.Box((0.0, 0.0, 0.0), (0.5, 0.5, 0.5), restitution=1.0)
-    trajectory(b.finalize(DEVICE), [box, pc], 15, 2.0e-3, [])
+    trajectory(b.finalize(device), [box, pc], 15, 2.0e-3, [])
     collided = 0
     for p0, p1, k0, k1, scale in pc.log:
         assert np.abs(p1 - p0).max() <= 1e-6 * scale
@@ -336,3 +338,22 @@ def test_bad_input_names_the_item():
         ParticleCollisions(restitution=1.5)
     with pytest.raises(ValueError, match="particle 0 has radius"):
         ws.Simulator(one_particle((0, 0, 0)), colliders=[ParticleCollisions()])
+
+
+def test_collisions_example_prints_the_two_body_table(tmp_path):
+    """examples/collisions.py: its head-on table matches the analytic columns."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "collisions.py"
+    out = subprocess.run([sys.executable, str(script), "--balls", "64", "--frames", "6", "--out", "c.usda"],
+                         cwd=tmp_path, env=dict(os.environ, WARP_QUIET="1"), capture_output=True, text=True,
+                         timeout=600, check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = [[float(x) for x in line.split()] for line in out.stdout.splitlines()
+            if line.strip()[:4] in ("0.00", "0.50", "1.00")]
+    assert len(rows) == 3
+    for c_r, va, va_exact, vb, vb_exact in rows:
+        assert va == pytest.approx(va_exact, abs=1e-4) and vb == pytest.approx(vb_exact, abs=1e-4)

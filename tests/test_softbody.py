@@ -242,20 +242,20 @@ def test_load_mesh_formats_and_usd(tmp_path):
 # ---------------------------------------------------------------- dragging
 
 
-def test_drag_spring_force_law_and_keyframes():
+def test_drag_spring_force_law_and_keyframes(device):
     b = ws.ModelBuilder()
     b.add_particle((0.0, 0.0, 0.0), vel=(1.0, 0.0, 0.0), mass=2.0)
     b.add_particle((1.0, 0.0, 0.0), mass=1.0)
-    model = b.finalize(DEVICE)
+    model = b.finalize(device)
     path = [(1.0, (0.0, 1.0, 0.0)), (3.0, (2.0, 1.0, 0.0))]
     drag = DragSpring(50.0, 3.0, particle=0, path=path, release=4.0)
     drag.bind(model)
     q = model.particle_q
     qd = model.particle_qd
-    f = wp.zeros(2, dtype=wp.vec3, device=DEVICE)
+    f = wp.zeros(2, dtype=wp.vec3, device=device)
     for t, expect_active in ((0.5, False), (1.0, True), (2.0, True), (3.5, True), (4.5, False)):
         f.zero_()
-        drag.eval(q, qd, wp.array([t], dtype=float, device=DEVICE), 0.0, f)
+        drag.eval(q, qd, wp.array([t], dtype=float, device=device), 0.0, f)
         target = drag.target_at(t)
         v_target = np.array([1.0, 0.0, 0.0]) if 1.0 < t < 3.0 else np.zeros(3)
         expect = -50.0 * (np.zeros(3) - target) - 3.0 * (np.array([1.0, 0, 0]) - v_target)
@@ -265,14 +265,14 @@ def test_drag_spring_force_law_and_keyframes():
     np.testing.assert_allclose(drag.target_at(2.0), [1.0, 1.0, 0.0])
 
 
-def test_drag_pulls_a_vertex_to_the_target():
+def test_drag_pulls_a_vertex_to_the_target(device):
     """With gravity off, the drag spring and a light air drag are the only external forces: the
     body ends at rest with the dragged vertex on the target (zero net force), whatever the
     springs do."""
     pts, faces = icosphere(1, radius=0.1)
     b = ws.ModelBuilder()
     add_soft_body(b, pts, faces, total_mass=0.2, stiffness=50.0, damping=0.02, interior="lattice", lattice_cells=3)
-    model = b.finalize(DEVICE)
+    model = b.finalize(device)
     target = np.array([0.3, 0.2, -0.1])
     drag = DragSpring(stiffness=20.0, damping=1.0)
     sim = ws.Simulator(model, integrator="semi_implicit_euler", forces=[drag, ws.Drag(linear=0.02)],
@@ -286,7 +286,7 @@ def test_drag_pulls_a_vertex_to_the_target():
     assert np.linalg.norm(x[vertex] - target) < 2e-3
     assert np.abs(sim.state.velocities.numpy()).max() < 0.02
     drag.release()
-    f = wp.zeros(model.particle_count, dtype=wp.vec3, device=DEVICE)
+    f = wp.zeros(model.particle_count, dtype=wp.vec3, device=device)
     drag.eval(sim.state.positions, sim.state.velocities, sim._time, 0.0, f)
     assert not np.any(f.numpy())
 
@@ -318,13 +318,13 @@ def test_drag_spec_parsing():
 # ---------------------------------------------------------------- the teapot in a box
 
 
-def test_teapot_dropped_in_box_comes_to_rest_inside():
+def test_teapot_dropped_in_box_comes_to_rest_inside(device):
     """The scene's teapot, lifted by its knob for a moment, bounces off floor and walls and
     settles on the floor, never leaving the box."""
     from warpsim.scenes import get_scene
 
     scene = get_scene("teapot")({"friction": 0.6, "restitution": 0.2, "springs": False,
-                                 "drag": "knob:0,0.9,0@0.2-0.5", "drag_stiffness": 60.0}, device=DEVICE)
+                                 "drag": "knob:0,0.9,0@0.2-0.5", "drag_stiffness": 60.0}, device=device)
     scene.sim.check_every = 50
     lo, hi = np.array(scene.lower), np.array(scene.upper)
     m = scene.model.particle_mass.numpy()
@@ -396,3 +396,17 @@ def test_teapot_scene_writes_mesh_springs_and_drag(tmp_path):
     with pytest.raises(ValueError, match="drag target 'lid'"):
         get_scene("teapot")({"drag": "lid:0,1,0@0-1"}, device=DEVICE)
     assert math.isclose(scene.sim.time, 2.0 / 60)
+
+
+def test_jiggly_teapot_example_runs(tmp_path):
+    """examples/jiggly_teapot.py as a user runs it: the spout is picked with a ray at 0.6 s."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "jiggly_teapot.py"
+    out = subprocess.run([sys.executable, str(script), "--frames", "40", "--out", "t.usda"], cwd=tmp_path,
+                         env=dict(os.environ, WARP_QUIET="1"), capture_output=True, text=True, timeout=600, check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "picked particle" in out.stdout and (tmp_path / "t.usda").exists()
