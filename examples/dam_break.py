@@ -59,8 +59,7 @@ class Example:
         writer.add_points("particles", count_changes=True, radius=0.5 * self.fluid.spacing, color=(0.15, 0.45, 0.9))
         if self.surface is not None:
             writer.add_mesh("surface", topology_changes=True, velocities=False, color=(0.15, 0.45, 0.9))
-        lo, hi = self.fluid.domain
-        writer.add_plane("floor", offset=0.0, size=float(2 * hi[0]))
+        writer.add_plane("floor", offset=0.0, size=float(2 * self.fluid.domain[1][0]))
 
 
 def main(argv=None):

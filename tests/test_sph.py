@@ -269,6 +269,32 @@ def test_containment_walls_sphere_and_mesh():
     assert f.active_count == len(x0)
 
 
+def test_warpsim_colliders_become_boundaries():
+    """Plane, Box, Sphere (solid and hollow), Capsule, Quad and TriangleMesh colliders are read at
+    their pose, thickened by their thickness."""
+    from warpsim import colliders as C
+
+    s = 0.02
+    cube = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], float) * 0.1
+    faces = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                      [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    cols = [C.Plane((0, 1, 0), 0.1, thickness=0.01), C.Box((-1, 0, -1), (1, 2, 1)),
+            C.Sphere((0.5, 0.5, 0.5), 0.1), C.Sphere((0, 1, 0), 0.9, inside=True),
+            C.Capsule((0, 0.2, 0), (0.2, 0.2, 0), 0.05, thickness=0.01),
+            C.Quad((0, 1.5, 0), (0.1, 0, 0), (0, 0, 0.1)),
+            C.TriangleMesh(cube, faces, solid=True, position=(0.3, 0.0, 0.3))]
+    f = ParticleFluid(fluid_block((-0.1, 0.5, -0.1), (0.1, 0.7, 0.1), s), spacing=s, colliders=cols, device="cpu")
+    b = f._boundaries
+    np.testing.assert_allclose(b.plane_offsets.numpy()[:1], [0.11], rtol=1e-6)  # offset + thickness
+    assert b.plane_offsets.shape[0] == 7
+    np.testing.assert_allclose(b.capsule_radii.numpy(), [0.1, 0.9, 0.06], rtol=1e-6)
+    np.testing.assert_allclose(b.capsule_signs.numpy(), [1.0, -1.0, 1.0])
+    np.testing.assert_allclose(b.capsule_b.numpy()[2], [0.2, 0.2, 0.0], atol=1e-6)
+    assert list(b.mesh_solid.numpy()) == [0, 1]
+    # the mesh is in world space: a particle just outside its +x face sees it at distance ~0
+    assert f._meshes[1].points.numpy()[:, 0].min() == pytest.approx(0.3)
+
+
 def test_emitter_sink_ids_and_capacity():
     s = 0.02
     nozzle = Nozzle(center=(0.1, 0.3, 0.1), direction=(0, -1, 0), radius=0.03, speed=1.0, stop=0.2)
@@ -342,8 +368,8 @@ def test_vorticity_confinement_and_surface_tension():
     f = ParticleFluid(x0, spin, spacing=s, gravity=(0, 0, 0), device="cpu")
     f.measure_density()
     n = f.active_count
-    wp.launch(K.compute_curl_normals, n, inputs=[f._params, f.positions, f.velocities, f._density, f._nbr_count,
-                                                 f._nbrs], outputs=[f._curl, f._normal], device="cpu")
+    wp.launch(K.compute_curl_normals, n, inputs=[f._params, f.positions, f.velocities, f._density, f._neighbors],
+              outputs=[f._curl, f._normal], device="cpu")
     bulk = np.all(np.abs(x0) < 0.06 - f.h, axis=1)
     # (the cubic lattice's SPH gradient moment is 1.02, not 1)
     np.testing.assert_allclose(f._curl.numpy()[:n][bulk], np.tile([0.0, 0.0, 4.0], (bulk.sum(), 1)), atol=0.1)

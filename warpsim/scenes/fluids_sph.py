@@ -97,7 +97,7 @@ class FluidScene(Scene):
                 raise ValueError(f"{key}={p[key]}: it must be > 0")
         return {"spacing": p["spacing"], "iterations": p["iterations"], "viscosity": p["viscosity"],
                 "vorticity": p["vorticity"], "surface_tension": p["surface_tension"], "kernel": p["kernel"],
-                "cfl": p["cfl"], "device": self.device}
+                "cfl": p["cfl"], "sort_every": 10, "device": self.device}
 
 
 @register_scene("dam_break", "a water column collapsing in a box (position-based fluids), surface meshed "
