@@ -357,3 +357,28 @@ def test_collisions_example_prints_the_two_body_table(tmp_path):
     assert len(rows) == 3
     for c_r, va, va_exact, vb, vb_exact in rows:
         assert va == pytest.approx(va_exact, abs=1e-4) and vb == pytest.approx(vb_exact, abs=1e-4)
+
+
+def test_keyframe_motion_interpolates_and_drives_a_mesh():
+    from warpsim.colliders import keyframe_motion
+
+    half_turn = (0.0, math.sin(math.pi / 4), 0.0, math.cos(math.pi / 4))  # 90 degrees about +y
+    motion = keyframe_motion([(0.0, (0, 0, 0), None), (1.0, (2, 0, 0), half_turn)])
+    p, q = motion(0.5)
+    np.testing.assert_allclose(p, [1, 0, 0])
+    np.testing.assert_allclose(q, [0, math.sin(math.pi / 8), 0, math.cos(math.pi / 8)], atol=1e-12)
+    np.testing.assert_allclose(motion(5.0)[0], [2, 0, 0])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        keyframe_motion([(1.0, (0, 0, 0), None), (1.0, (1, 0, 0), None)])
+    # a floor lifted by keyframes carries a resting particle: y follows the key path
+    pts, faces = floor_mesh(1.0)
+    lift = TriangleMesh(pts, faces, restitution=0.0, mode="project",
+                        motion=keyframe_motion([(0.0, (0, 0, 0), None), (0.1, (0, 0.2, 0), None)]))
+    xs, vs = trajectory(one_particle((0.0, 0.01, 0.0), radius=0.01), [lift], 20, 0.01, [])
+    np.testing.assert_allclose(xs[:10, 0, 1], 0.01 + 0.02 * np.arange(1, 11), atol=1e-5)
+    np.testing.assert_allclose(vs[:10, 0, 1], 2.0, rtol=1e-4)
+    # set_transform takes a 4x4 matrix too
+    m = np.eye(4)
+    m[:3, 3] = (0.0, 0.3, 0.0)
+    lift.set_transform(m)
+    np.testing.assert_allclose(lift.world_pose()[0], [0, 0.3, 0])

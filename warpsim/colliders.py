@@ -17,8 +17,9 @@ Common options (keyword arguments of every collider except ParticleCollisions):
 Finite shapes (Sphere, Capsule, Quad, TriangleMesh) detect collisions continuously along the
 segment q_prev -> q, so fast particles do not tunnel through thin geometry, and can move as
 kinematic bodies: ``motion=f(t) -> (position, rotation_xyzw)`` is evaluated every step at the
-collider's own clock, or ``set_transform(position, rotation)`` moves them between steps; the
-surface velocity at the contact point then enters restitution and friction.
+collider's own clock (``keyframe_motion`` builds one from keyframes), or
+``set_transform(position, rotation)`` moves them between steps; the surface velocity at the
+contact point then enters restitution and friction.
 """
 
 from __future__ import annotations
@@ -187,7 +188,58 @@ def quat_from_matrix(m) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def quat_slerp(a, b, s: float) -> np.ndarray:
+    """Spherical linear interpolation between unit quaternions a and b (shortest arc), s in [0, 1]."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    d = float(np.dot(a, b))
+    if d < 0.0:
+        b, d = -b, -d
+    if d > 0.9995:
+        q = a + s * (b - a)
+        return q / np.linalg.norm(q)
+    theta = math.acos(d)
+    return (math.sin((1.0 - s) * theta) * a + math.sin(s * theta) * b) / math.sin(theta)
+
+
+def keyframe_motion(keys):
+    """A ``motion`` callable from keyframes [(time [s], position (3,), rotation (x, y, z, w) or
+    None), ...] with increasing times: positions are interpolated linearly, rotations by slerp,
+    and the pose is held before the first and after the last key."""
+    times, poses = [], []
+    for k, key in enumerate(keys):
+        try:
+            t, position, rotation = key
+        except (TypeError, ValueError):
+            raise ValueError(f"keyframe {k} must be (time, position, rotation_xyzw or None), got {key!r}") from None
+        times.append(float(t))
+        poses.append(_pose(position, rotation, f"keyframe {k}"))
+    times = np.array(times)
+    if len(times) == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0.0):
+        raise ValueError(f"keyframe times {times.tolist()} must be finite and strictly increasing")
+
+    def motion(t):
+        if t <= times[0]:
+            return poses[0]
+        if t >= times[-1]:
+            return poses[-1]
+        k = int(np.searchsorted(times, t) - 1)
+        s = (t - times[k]) / (times[k + 1] - times[k])
+        (p0, q0), (p1, q1) = poses[k], poses[k + 1]
+        return p0 + s * (p1 - p0), quat_slerp(q0, q1, s)
+
+    return motion
+
+
 def _pose(position, rotation, owner) -> tuple:
+    m = np.asarray(position, dtype=np.float64) if not isinstance(position, wp.transform) else None
+    if isinstance(position, wp.transform):
+        return np.array(position.p, dtype=np.float64), np.array(position.q, dtype=np.float64)
+    if m is not None and m.shape == (4, 4):
+        if rotation is not None:
+            raise ValueError(f"{owner}: give a 4x4 matrix or a position and a rotation, not both")
+        if not np.all(np.isfinite(m)):
+            raise ValueError(f"{owner}: the 4x4 matrix is not finite")
+        return m[:3, 3].copy(), quat_from_matrix(m[:3, :3])
     p = np.array(_vec3(position, f"{owner} position"))
     if rotation is None:
         return p, np.array([0.0, 0.0, 0.0, 1.0])
@@ -241,9 +293,11 @@ class _Kinematic(_Contact):
         return self._clock
 
     def set_transform(self, position=(0.0, 0.0, 0.0), rotation=None) -> None:
-        """Move the shape to the motion pose (position [m], rotation quaternion (x, y, z, w) or
-        3x3 matrix; None: no rotation), applied on top of its rest pose. The next step sweeps it
-        from the old pose to the new one (surface velocity = displacement / step)."""
+        """Move the shape to the motion pose (position [m] and rotation quaternion (x, y, z, w) or
+        3x3 matrix, None: no rotation; or one 4x4 rigid matrix / wp.transform), applied on top of
+        its rest pose. Call it between frames; the next step sweeps the shape from the old pose to
+        the new one (surface velocity = displacement / that step). For motion that must be
+        followed within every sub-step, give ``motion=`` (e.g. ``keyframe_motion(...)``)."""
         self._motion_pose = _pose(position, rotation, f"{self._owner} set_transform")
         self._world = self._compose(self._motion_pose)
         self._moved = True
