@@ -20,8 +20,9 @@ least one particle radius in front of every boundary inside each iteration (plan
 the solve (spheres, meshes), so no particle ever leaves a closed container.
 
 Time steps: :meth:`ParticleFluid.advance` splits a frame into equal sub-steps chosen from the CFL
-condition ``dt <= cfl * spacing / v_max`` (one device read-back per frame); :meth:`step` itself
-allocates nothing and reads nothing back.
+condition ``dt <= cfl * spacing / v_max`` (a few small device read-backs per frame: the
+largest speed, neighbour-list overflow, sink counts); :meth:`step` itself allocates nothing and
+reads nothing back.
 
 Example::
 
