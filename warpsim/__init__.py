@@ -19,6 +19,8 @@ from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, In
 from .model import Model, State
 from .pendulum import Pendulum, exact_period
 from .simulator import Simulator
+from .fluid_surface import FluidSurface
+from .sph import Nozzle, ParticleFluid, Sink, fluid_block
 from .system import DynamicSystem, ParticleSystem, PendulumSystem
 
 __all__ = [
@@ -28,5 +30,6 @@ __all__ = [
     "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
     "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
     "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
+    "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
 ]
