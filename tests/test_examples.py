@@ -44,4 +44,9 @@ def test_every_example_is_listed():
 
 
 # examples smoke-tested in their own area's test file
-OTHER_TESTED = {"metaballs.py", "dam_break.py"}  # tests/test_marching_cubes.py, tests/test_sph.py
+OTHER_TESTED = {
+    "metaballs.py",  # tests/test_marching_cubes.py
+    "dam_break.py",  # tests/test_sph.py
+    "jiggly_teapot.py",  # tests/test_softbody.py
+    "collisions.py",  # tests/test_colliders.py
+}

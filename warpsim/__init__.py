@@ -10,7 +10,12 @@
 from ._version import __version__
 from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
 from .builder import ModelBuilder
-from .colliders import Box, Collider, Plane, Planes
+from .colliders import (
+    Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
+)
+from .drag import DragSpring, pick_particle
+from .softbody import SoftBody, add_soft_body, load_mesh
+from .teapot import teapot_mesh
 from .errors import SimulationError
 from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
 from .meshing import MarchingCubes, MarchingCubesResult, marching_cubes, topology_changed
@@ -26,7 +31,9 @@ from .system import DynamicSystem, ParticleSystem, PendulumSystem
 __all__ = [
     "__version__", "ModelBuilder", "Model", "State", "Simulator", "SimulationError",
     "Force", "Gravity", "ConstantForce", "Wind", "Magnets", "Drag", "Springs", "ForceField",
-    "Collider", "Planes", "Plane", "Box",
+    "Collider", "Planes", "Plane", "Box", "Sphere", "Capsule", "Quad", "Rectangle", "TriangleMesh",
+    "ParticleCollisions", "keyframe_motion", "DragSpring", "pick_particle", "SoftBody", "add_soft_body", "load_mesh",
+    "teapot_mesh",
     "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
     "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
     "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
