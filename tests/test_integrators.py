@@ -183,7 +183,8 @@ def numpy_backward_euler(x, v, mass, springs, g, h, steps):
     return x, v
 
 
-def test_implicit_euler_matches_numpy_reference(device):
+@pytest.mark.parametrize("linear_solver", ["warp_cg", "block_cg"])
+def test_implicit_euler_matches_numpy_reference(device, linear_solver):
     rng = np.random.default_rng(4)
     b = ws.ModelBuilder()
     b.add_particle((0, 0, 0), mass=0.0)
@@ -192,8 +193,9 @@ def test_implicit_euler_matches_numpy_reference(device):
         b.add_spring(i - 1, i, stiffness=200.0, damping=0.5, rest_length=0.25)
     b.add_spring(0, 2, stiffness=50.0, damping=0.2)
     g = np.array([0.0, -9.81, 0.0])
-    integrator = ws.ImplicitEuler(newton_iterations=20, newton_tol=1e-6, cg_tol=1e-7)
+    integrator = ws.ImplicitEuler(newton_iterations=20, newton_tol=1e-6, cg_tol=1e-7, linear_solver=linear_solver)
     sim = ws.Simulator(b.finalize(device), integrator=integrator, forces=[ws.Gravity(g)])
+    assert integrator.active_linear_solver == linear_solver
     h, steps = 0.05, 6
     for _ in range(steps):
         sim.step(h)
@@ -206,15 +208,16 @@ def test_implicit_euler_matches_numpy_reference(device):
     assert np.all(sim.state.positions.numpy()[0] == 0.0)  # pinned particle stays put
 
 
-def test_implicit_euler_cg_meets_tolerance_and_stays_stable_when_stiff():
+@pytest.mark.parametrize("linear_solver", ["warp_cg", "block_cg"])
+def test_implicit_euler_cg_meets_tolerance_and_stays_stable_when_stiff(linear_solver):
     b = ws.ModelBuilder()
     b.add_particle((0, 0, 0), mass=0.0)
     for i in range(1, 20):
         b.add_particle((0.05 * i, 0, 0), mass=0.01)
         b.add_spring(i - 1, i, stiffness=1e5, damping=1.0)
-    integrator = ws.ImplicitEuler(newton_iterations=1, cg_tol=1e-6)
+    integrator = ws.ImplicitEuler(newton_iterations=1, cg_tol=1e-6, linear_solver=linear_solver)
     sim = ws.Simulator(b.finalize("cpu"), integrator=integrator)
-    for _ in range(60):
+    for _ in range(30 if linear_solver == "warp_cg" else 60):
         sim.step(1.0 / 60.0)
         assert integrator.last_cg_iterations > 0
         rhs = np.linalg.norm(integrator.rhs.numpy())
