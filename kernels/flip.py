@@ -1,0 +1,222 @@
+"""FLIP/PIC kernels: particle-to-grid and grid-to-particle transfers on a MAC grid with trilinear
+weights, cell labels from particles, reseeding of sparse interior cells, pushing particles out
+of solids, and a particle signed-distance field for the liquid surface. Layout: kernels/advect.py;
+particle bookkeeping: kernels/grid_particles.py."""
+
+import warp as wp
+
+from .advect import OFFSET_U, OFFSET_V, OFFSET_W, sample_at, sample_velocity
+from .grid import AIR, FLUID, SOLID, axis_step, label_at
+
+wp.set_module_options({"enable_backward": False})
+
+CENTER = wp.constant(wp.vec3(0.5, 0.5, 0.5))
+
+
+@wp.func
+def _splat(sum_io: wp.array3d(dtype=float), weight_io: wp.array3d(dtype=float), g: wp.vec3, value: float):
+    """Add value with trilinear weights at continuous index g (stencil nodes outside are skipped)."""
+    i0 = int(wp.floor(g[0]))
+    j0 = int(wp.floor(g[1]))
+    k0 = int(wp.floor(g[2]))
+    t = g - wp.vec3(float(i0), float(j0), float(k0))
+    for a in range(2):
+        i = i0 + a
+        wa = wp.where(a == 0, 1.0 - t[0], t[0])
+        if i >= 0 and i < sum_io.shape[0]:
+            for b in range(2):
+                j = j0 + b
+                wb = wa * wp.where(b == 0, 1.0 - t[1], t[1])
+                if j >= 0 and j < sum_io.shape[1]:
+                    for c in range(2):
+                        k = k0 + c
+                        wc = wb * wp.where(c == 0, 1.0 - t[2], t[2])
+                        if sum_io.shape[2] == 1:
+                            k = 0
+                            wc = wb * wp.where(c == 0, 1.0, 0.0)
+                        if k >= 0 and k < sum_io.shape[2] and wc > 0.0:
+                            wp.atomic_add(sum_io, i, j, k, wc * value)
+                            wp.atomic_add(weight_io, i, j, k, wc)
+
+
+@wp.kernel
+def particles_to_grid(
+    count: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    vel: wp.array(dtype=wp.vec3),
+    alive: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    u_sum: wp.array3d(dtype=float),
+    u_weight: wp.array3d(dtype=float),
+    v_sum: wp.array3d(dtype=float),
+    v_weight: wp.array3d(dtype=float),
+    w_sum: wp.array3d(dtype=float),
+    w_weight: wp.array3d(dtype=float),
+):
+    """P2G: accumulate weighted particle velocity components and weights on the faces."""
+    p = wp.tid()
+    if p >= count[0] or alive[p] == 0.0:
+        return
+    g = (x[p] - origin) / dx
+    q = vel[p]
+    _splat(u_sum, u_weight, g - OFFSET_U, q[0])
+    _splat(v_sum, v_weight, g - OFFSET_V, q[1])
+    _splat(w_sum, w_weight, g - OFFSET_W, q[2])
+
+
+@wp.kernel
+def normalize_faces(sum_: wp.array3d(dtype=float), weight: wp.array3d(dtype=float), f_out: wp.array3d(dtype=float)):
+    """f = sum / weight where some particle contributed, else 0."""
+    i, j, k = wp.tid()
+    w = weight[i, j, k]
+    f_out[i, j, k] = wp.where(w > 0.0, sum_[i, j, k] / wp.max(w, 1.0e-30), 0.0)
+
+
+@wp.kernel
+def label_from_counts(cell_count: wp.array3d(dtype=int), solid_phi: wp.array3d(dtype=float),
+                      labels_out: wp.array3d(dtype=int)):
+    """SOLID inside solids, FLUID where particles are, else AIR."""
+    i, j, k = wp.tid()
+    label = AIR
+    if solid_phi[i, j, k] < 0.0:
+        label = SOLID
+    elif cell_count[i, j, k] > 0:
+        label = FLUID
+    labels_out[i, j, k] = label
+
+
+@wp.kernel
+def grid_to_particles(
+    count: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    alive: wp.array(dtype=float),
+    flip_ratio: float,
+    u: wp.array3d(dtype=float),
+    v: wp.array3d(dtype=float),
+    w: wp.array3d(dtype=float),
+    u_old: wp.array3d(dtype=float),
+    v_old: wp.array3d(dtype=float),
+    w_old: wp.array3d(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    vel_io: wp.array(dtype=wp.vec3),
+):
+    """G2P: v_p = r (v_p + u_new(x_p) - u_old(x_p)) + (1 - r) u_new(x_p), r the FLIP ratio
+    (1 = pure FLIP, 0 = pure PIC)."""
+    p = wp.tid()
+    if p >= count[0] or alive[p] == 0.0:
+        return
+    inv_dx = 1.0 / dx
+    new = sample_velocity(u, v, w, origin, inv_dx, x[p])
+    old = sample_velocity(u_old, v_old, w_old, origin, inv_dx, x[p])
+    vel_io[p] = flip_ratio * (vel_io[p] + new - old) + (1.0 - flip_ratio) * new
+
+
+@wp.kernel
+def push_out_of_solids(
+    count: wp.array(dtype=int),
+    solid_phi: wp.array3d(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    x_io: wp.array(dtype=wp.vec3),
+):
+    """Particles inside a solid (trilinear solid_phi < 0) move out along its gradient."""
+    p = wp.tid()
+    if p >= count[0]:
+        return
+    inv_dx = 1.0 / dx
+    x = x_io[p]
+    d = sample_at(solid_phi, CENTER, origin, inv_dx, x)
+    if d < 0.0:
+        h = 0.5 * dx
+        gx = sample_at(solid_phi, CENTER, origin, inv_dx, x + wp.vec3(h, 0.0, 0.0)) - sample_at(
+            solid_phi, CENTER, origin, inv_dx, x - wp.vec3(h, 0.0, 0.0))
+        gy = sample_at(solid_phi, CENTER, origin, inv_dx, x + wp.vec3(0.0, h, 0.0)) - sample_at(
+            solid_phi, CENTER, origin, inv_dx, x - wp.vec3(0.0, h, 0.0))
+        gz = sample_at(solid_phi, CENTER, origin, inv_dx, x + wp.vec3(0.0, 0.0, h)) - sample_at(
+            solid_phi, CENTER, origin, inv_dx, x - wp.vec3(0.0, 0.0, h))
+        n = wp.vec3(gx, gy, gz)
+        ln = wp.length(n)
+        if ln > 0.0:
+            x_io[p] = x - (d - 0.01 * dx) * n / ln
+
+
+@wp.kernel
+def reseed_interior(
+    cell_count: wp.array3d(dtype=int),
+    labels: wp.array3d(dtype=int),
+    open_mask: int,
+    min_per_cell: int,
+    seed: int,
+    dim: int,
+    u: wp.array3d(dtype=float),
+    v: wp.array3d(dtype=float),
+    w: wp.array3d(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    count: wp.array(dtype=int),
+    next_id: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    vel_out: wp.array(dtype=wp.vec3),
+    alive_out: wp.array(dtype=float),
+    id_out: wp.array(dtype=int),
+):
+    """Interior FLUID cells (every neighbour FLUID or SOLID) holding fewer than min_per_cell
+    particles get new ones at random positions with the grid velocity (appended via count[0], with
+    fresh ids from next_id[0])."""
+    i, j, k = wp.tid()
+    n = cell_count[i, j, k]
+    if labels[i, j, k] != FLUID or n >= min_per_cell:
+        return
+    c = wp.vec3i(i, j, k)
+    for a in range(dim):
+        for s in range(2):
+            if label_at(labels, open_mask, c + axis_step(a) * (2 * s - 1)) == AIR:
+                return
+    inv_dx = 1.0 / dx
+    lower = origin + wp.vec3(float(i), float(j), float(k)) * dx
+    for m in range(n, min_per_cell):
+        state = wp.rand_init(seed, ((i * labels.shape[1] + j) * labels.shape[2] + k) * min_per_cell + m)
+        x = lower + wp.vec3(wp.randf(state), wp.randf(state), wp.randf(state)) * dx
+        if dim == 2:
+            x = wp.vec3(x[0], x[1], origin[2] + 0.5 * dx)
+        slot = wp.atomic_add(count, 0, 1)
+        if slot < x_out.shape[0]:
+            x_out[slot] = x
+            vel_out[slot] = sample_velocity(u, v, w, origin, inv_dx, x)
+            alive_out[slot] = 1.0
+            id_out[slot] = wp.atomic_add(next_id, 0, 1)
+
+
+@wp.kernel
+def particle_sdf(
+    count: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    alive: wp.array(dtype=float),
+    radius: float,
+    origin: wp.vec3,
+    dx: float,
+    phi_io: wp.array3d(dtype=float),
+):
+    """phi = min(phi, |x_c - x_p| - radius) at the cell centres within 2 cells of each particle
+    (the union of particle spheres; initialise phi to a positive cap first)."""
+    p = wp.tid()
+    if p >= count[0] or alive[p] == 0.0:
+        return
+    xp = x[p]
+    g = (xp - origin) / dx - CENTER
+    i0 = int(wp.floor(g[0]))
+    j0 = int(wp.floor(g[1]))
+    k0 = int(wp.floor(g[2]))
+    for a in range(-1, 3):
+        i = i0 + a
+        if i >= 0 and i < phi_io.shape[0]:
+            for b in range(-1, 3):
+                j = j0 + b
+                if j >= 0 and j < phi_io.shape[1]:
+                    for c in range(-1, 3):
+                        k = k0 + c
+                        if k >= 0 and k < phi_io.shape[2]:
+                            xc = origin + (wp.vec3(float(i), float(j), float(k)) + CENTER) * dx
+                            wp.atomic_min(phi_io, i, j, k, wp.length(xc - xp) - radius)
