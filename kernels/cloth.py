@@ -22,11 +22,10 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.func
 def spring_force(xij: wp.vec3, vij: wp.vec3, rest: float, k: float, kd: float) -> wp.vec3:
-    """Force on end i of a damped spring, xij = x_i - x_j, vij = v_i - v_j."""
+    """Force on end i of a damped spring, xij = x_i - x_j, vij = v_i - v_j (zero for coincident
+    ends; branch-free so that unrolled callers keep their loads together)."""
     l = wp.length(xij)
-    if l < 1.0e-12:
-        return wp.vec3()
-    d = xij / l
+    d = xij * wp.where(l > 1.0e-12, 1.0 / l, 0.0)
     return -(k * (l - rest) + kd * wp.dot(vij, d)) * d
 
 
@@ -69,18 +68,6 @@ def integrate_cloth_particles(
     f_io[i] = wp.vec3()
 
 
-@wp.func
-def adjacent_spring_force(
-    x: wp.vec3, v: wp.vec3, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3),
-    adjacency: wp.array(dtype=wp.vec4), a: int,
-) -> wp.vec3:
-    """Force on a particle at (x, v) from adjacency entry a = (rest, k, kd, other end as a float:
-    one 16-byte load; exact for indices below 2^24)."""
-    e = adjacency[a]
-    j = int(e[3])
-    return spring_force(x - q[j], v - qd[j], e[0], e[1], e[2])
-
-
 @wp.kernel
 def step_cloth_gather(
     q: wp.array(dtype=wp.vec3),
@@ -98,7 +85,8 @@ def step_cloth_gather(
     """One semi-implicit Euler step, particle-centric: sums the forces of the springs touching
     particle i (entries adjacency_offsets[i] .. [i + 1] of ``adjacency``) plus f_ext, then writes
     the new state to q_out / qd_out (no atomics; q, qd are read-only so the outputs must be other
-    arrays). The loop is unrolled by four so that four springs' loads are in flight at once."""
+    arrays). The loop is unrolled by four, loads first, so that four springs' loads are in
+    flight at once."""
     i = wp.tid()
     x = q[i]
     v = qd[i]
@@ -110,14 +98,33 @@ def step_cloth_gather(
         a = adjacency_offsets[i]
         end = adjacency_offsets[i + 1]
         while a + 4 <= end:
-            f0 = adjacent_spring_force(x, v, q, qd, adjacency, a)
-            f1 = adjacent_spring_force(x, v, q, qd, adjacency, a + 1)
-            f2 = adjacent_spring_force(x, v, q, qd, adjacency, a + 2)
-            f3 = adjacent_spring_force(x, v, q, qd, adjacency, a + 3)
+            # entries (rest, k, kd, other end as a float: one 16-byte load, exact below 2^24)
+            e0 = adjacency[a]
+            e1 = adjacency[a + 1]
+            e2 = adjacency[a + 2]
+            e3 = adjacency[a + 3]
+            j0 = int(e0[3])
+            j1 = int(e1[3])
+            j2 = int(e2[3])
+            j3 = int(e3[3])
+            x0 = q[j0]
+            x1 = q[j1]
+            x2 = q[j2]
+            x3 = q[j3]
+            v0 = qd[j0]
+            v1 = qd[j1]
+            v2 = qd[j2]
+            v3 = qd[j3]
+            f0 = spring_force(x - x0, v - v0, e0[0], e0[1], e0[2])
+            f1 = spring_force(x - x1, v - v1, e1[0], e1[1], e1[2])
+            f2 = spring_force(x - x2, v - v2, e2[0], e2[1], e2[2])
+            f3 = spring_force(x - x3, v - v3, e3[0], e3[1], e3[2])
             f = f + (f0 + f1) + (f2 + f3)
             a += 4
         while a < end:
-            f = f + adjacent_spring_force(x, v, q, qd, adjacency, a)
+            e = adjacency[a]
+            j = int(e[3])
+            f = f + spring_force(x - q[j], v - qd[j], e[0], e[1], e[2])
             a += 1
         v = v + h * (w * f + gravity)
     qd_out[i] = v

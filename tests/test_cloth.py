@@ -300,24 +300,30 @@ def test_clamped_stiffness_is_negative_semidefinite():
     assert np.allclose(Ks[0], Ks[1])
 
 
-def test_one_step_is_baraff_witkin_exactly():
+@pytest.mark.parametrize("drag", [0.0, 0.3])
+def test_one_step_is_baraff_witkin_exactly(drag):
     """(M - h D - h^2 K) dv = h (f0 + h K v0) at (x0, v0), pinned rows/columns removed, then
-    v1 = v0 + dv, x1 = x0 + h v1 — against a dense float64 solve."""
+    v1 = v0 + dv, x1 = x0 + h v1 — against a dense float64 solve (with linear drag -c v on
+    the free particles, D gains -c I: other forces enter through their own Jacobians)."""
     b, cloth = small_cloth((3, 2), stiffness=2000.0, damping=4.0)
     model = b.finalize(DEVICE)
     a = model_arrays(model)
     x0, v0 = perturbed(model, seed=3, scale=0.02, vscale=0.3)
     v0[cloth.pinned] = (0.0, 0.0, 0.2)  # kinematic pins keep moving
     h = 1.0 / 30.0
-    sim = ClothSimulator(model, ClothImplicitEuler(cg_tol=1e-7), forces=[ws.Gravity()], use_graph=False)
+    forces = [ws.Gravity()] + ([ws.Drag(linear=drag)] if drag else [])
+    sim = ClothSimulator(model, ClothImplicitEuler(cg_tol=1e-7), forces=forces, use_graph=False)
     sim.state.positions.assign(x0.astype(np.float32))
     sim.state.velocities.assign(v0.astype(np.float32))
     sim.step(h)
     K, D = np_jacobians(a, x0)
     n = model.particle_count
+    free3 = np.repeat(a["inv_mass"] > 0, 3)
+    D = D - drag * np.diag(free3.astype(float))
+    f0 = np_forces(a, x0, v0) - drag * v0 * (a["inv_mass"] > 0)[:, None]
     M = np.kron(np.diag(a["mass"]), np.eye(3))
     A = M - h * D - h * h * K
-    rhs = h * (np_forces(a, x0, v0).reshape(-1) + h * K @ v0.reshape(-1))
+    rhs = h * (f0.reshape(-1) + h * K @ v0.reshape(-1))
     free = np.repeat(a["inv_mass"] > 0, 3)
     dv = np.zeros(3 * n)
     dv[free] = np.linalg.solve(A[np.ix_(free, free)], rhs[free])
