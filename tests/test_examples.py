@@ -49,4 +49,7 @@ OTHER_TESTED = {
     "dam_break.py",  # tests/test_sph.py
     "jiggly_teapot.py",  # tests/test_softbody.py
     "collisions.py",  # tests/test_colliders.py
+    "cloth_drape.py",  # tests/test_cloth.py
+    "cloth_implicit.py",  # tests/test_cloth.py
+    "smoke_plume.py",  # tests/test_grid_fluids.py
 }
