@@ -94,7 +94,7 @@ def main():
         M = sp.diags(1.0 / A.diagonal())
         count = [0]
 
-        def callback(_xk):
+        def callback(_xk, count=count):
             count[0] += 1
 
         t0 = time.perf_counter()

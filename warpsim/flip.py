@@ -210,6 +210,20 @@ class FlipLiquid:
                   outputs=[self.phi], device=self.device)
         return self.phi
 
+    def checkpoint(self) -> dict:
+        """Everything needed to continue bit for bit (host copies)."""
+        return {**self.grid.checkpoint(), **self.particles.checkpoint("particle_"), "next_id": self.next_id.numpy(),
+                "time": self.time, "steps": self.steps}
+
+    def restore(self, data):
+        """Inverse of :meth:`checkpoint` (same grid and settings; particles added first)."""
+        if self.particles is None:
+            raise ValueError("restore: add the liquid (add_box / add_sdf / add_cells) before restoring")
+        self.grid.restore(data)
+        self.particles.restore(data, "particle_")
+        self.next_id.assign(np.asarray(data["next_id"]))
+        self.time, self.steps = float(data["time"]), int(data["steps"])
+
     def particle_count(self) -> int:
         """Live particles (host read-back)."""
         return self.particles.live_count()

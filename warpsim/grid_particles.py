@@ -79,6 +79,22 @@ class GridParticles:
                 wp.copy(f, self._spare_float)
         wp.launch(K.set_live_count, 1, inputs=[self._scan], outputs=[self.count], device=d)
 
+    def checkpoint(self, prefix="") -> dict:
+        """Host copies of every field and the count, keyed ``prefix + name``."""
+        out = {prefix + name: f.numpy() for name, f in self.fields.items()}
+        out[prefix + "count"] = self.count.numpy()
+        return out
+
+    def restore(self, data, prefix=""):
+        """Inverse of :meth:`checkpoint`."""
+        for name, f in self.fields.items():
+            values = np.asarray(data[prefix + name])
+            if values.shape[0] != self.capacity:
+                raise ValueError(f"checkpoint field {name!r} holds {values.shape[0]} particles; capacity is "
+                                 f"{self.capacity}")
+            f.assign(values)
+        self.count.assign(np.asarray(data[prefix + "count"]))
+
     def live_count(self) -> int:
         """Live particles (host read-back)."""
         n = min(int(self.count.numpy()[0]), self.capacity)

@@ -158,6 +158,16 @@ class LevelSet:
         if self.use_particles and self.reseed_every and self._steps % self.reseed_every == 0:
             self.reseed()
 
+    def checkpoint(self) -> dict:
+        """phi, the marker particles and the step counter (host copies)."""
+        return {"phi": self.phi.numpy(), "levelset_steps": self._steps, **self.particles.checkpoint("marker_")}
+
+    def restore(self, data):
+        """Inverse of :meth:`checkpoint`."""
+        self.phi.assign(np.asarray(data["phi"]))
+        self._steps = int(data["levelset_steps"])
+        self.particles.restore(data, "marker_")
+
     def volume(self) -> float:
         """Liquid volume [m^3] (2D: area [m^2] = volume / dx), smoothed-Heaviside estimate over non-solid cells."""
         g = self.grid

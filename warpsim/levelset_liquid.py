@@ -78,6 +78,16 @@ class LevelSetLiquid:
         self.time += dt
         self.steps += 1
 
+    def checkpoint(self) -> dict:
+        """Everything needed to continue bit for bit (host copies)."""
+        return {**self.grid.checkpoint(), **self.levelset.checkpoint(), "time": self.time, "steps": self.steps}
+
+    def restore(self, data):
+        """Inverse of :meth:`checkpoint` (same grid and settings)."""
+        self.grid.restore(data)
+        self.levelset.restore(data)
+        self.time, self.steps = float(data["time"]), int(data["steps"])
+
     def volume(self) -> float:
         """Liquid volume [m^3] (2D: area [m^2])."""
         return self.levelset.volume()

@@ -256,6 +256,18 @@ class MacGrid:
                   outputs=[out], device=self.device)
         return out
 
+    def checkpoint(self) -> dict:
+        """Host copies of the face velocities and labels."""
+        return {"u": self.u.numpy(), "v": self.v.numpy(), "w": self.w.numpy(), "labels": self.labels.numpy()}
+
+    def restore(self, data):
+        """Inverse of :meth:`checkpoint` (same grid)."""
+        for key, f in (("u", self.u), ("v", self.v), ("w", self.w), ("labels", self.labels)):
+            values = np.asarray(data[key])
+            if values.shape != tuple(f.shape):
+                raise ValueError(f"checkpoint {key!r} has shape {values.shape}; the grid's is {tuple(f.shape)}")
+            f.assign(values)
+
     def set_velocity(self, fn):
         """Set face velocities from ``fn(points (..., 3)) -> (..., 3)`` [m/s] (host helper for setup
         and tests), then apply the solid boundary condition."""

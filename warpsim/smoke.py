@@ -97,6 +97,18 @@ class Smoke:
         self.time += dt
         self.steps += 1
 
+    def checkpoint(self) -> dict:
+        """Everything needed to continue bit for bit (host copies)."""
+        return {**self.grid.checkpoint(), "density": self.density.numpy(), "temperature": self.temperature.numpy(),
+                "time": self.time, "steps": self.steps}
+
+    def restore(self, data):
+        """Inverse of :meth:`checkpoint` (same grid and settings)."""
+        self.grid.restore(data)
+        self.density.assign(np.asarray(data["density"]))
+        self.temperature.assign(np.asarray(data["temperature"]))
+        self.time, self.steps = float(data["time"]), int(data["steps"])
+
     def total_density(self) -> float:
         """Sum of density x cell volume (host read-back)."""
         return float(self.density.numpy().sum()) * self.grid.dx ** 3

@@ -71,6 +71,12 @@ class GridFluidScene(Scene):
         for _ in range(n):
             self.solver.step(frame_dt / n)
 
+    def checkpoint(self):
+        return self.solver.checkpoint()
+
+    def restore(self, data):
+        self.solver.restore(data)
+
     def make_mesher(self, inside="below"):
         """Marching cubes over the cell centres, closing surfaces cut by the domain walls."""
         g = self.grid
