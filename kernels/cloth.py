@@ -13,6 +13,8 @@ later Newton iterations of backward Euler. Blocks go straight into the values of
 ``warp.sparse`` BSR matrix through precomputed slots; pinned rows and columns are filtered.
 """
 
+from typing import Any
+
 import warp as wp
 
 from .integrate import block_inverse
@@ -68,6 +70,48 @@ def integrate_cloth_particles(
     f_io[i] = wp.vec3()
 
 
+@wp.func
+def adjacent_entry(adjacency: wp.array(dtype=wp.vec4), table: wp.array(dtype=wp.vec3), a: int):
+    """Entry a of a wide adjacency list: (rest, k, kd, other end as a float, exact below 2^24) ->
+    (other end, (rest, k, kd)); one 16-byte load."""
+    e = adjacency[a]
+    return int(e[3]), wp.vec3(e[0], e[1], e[2])
+
+
+@wp.func
+def adjacent_entry(adjacency: wp.array(dtype=wp.uint32), table: wp.array(dtype=wp.vec3), a: int):
+    """Entry a of a packed adjacency list: (other end << 8) | spring type -> (other end,
+    table[type] = (rest, k, kd)); one 4-byte load plus a lookup in a small cached table."""
+    e = adjacency[a]
+    return int(e >> wp.uint32(8)), table[int(e & wp.uint32(255))]
+
+
+@wp.func
+def adjacent_forces4(
+    x: wp.vec3, v: wp.vec3, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3),
+    adjacency: wp.array(dtype=Any), table: wp.array(dtype=wp.vec3), a: int,
+) -> wp.vec3:
+    """Summed force on a particle at (x, v) from adjacency entries a .. a + 3; all loads are
+    issued before any arithmetic so that they are in flight together."""
+    j0, p0 = adjacent_entry(adjacency, table, a)
+    j1, p1 = adjacent_entry(adjacency, table, a + 1)
+    j2, p2 = adjacent_entry(adjacency, table, a + 2)
+    j3, p3 = adjacent_entry(adjacency, table, a + 3)
+    x0 = q[j0]
+    x1 = q[j1]
+    x2 = q[j2]
+    x3 = q[j3]
+    v0 = qd[j0]
+    v1 = qd[j1]
+    v2 = qd[j2]
+    v3 = qd[j3]
+    f0 = spring_force(x - x0, v - v0, p0[0], p0[1], p0[2])
+    f1 = spring_force(x - x1, v - v1, p1[0], p1[1], p1[2])
+    f2 = spring_force(x - x2, v - v2, p2[0], p2[1], p2[2])
+    f3 = spring_force(x - x3, v - v3, p3[0], p3[1], p3[2])
+    return (f0 + f1) + (f2 + f3)
+
+
 @wp.kernel
 def step_cloth_gather(
     q: wp.array(dtype=wp.vec3),
@@ -75,7 +119,8 @@ def step_cloth_gather(
     f_ext: wp.array(dtype=wp.vec3),
     use_f_ext: int,
     adjacency_offsets: wp.array(dtype=int),
-    adjacency: wp.array(dtype=wp.vec4),
+    adjacency: wp.array(dtype=Any),
+    table: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     gravity: wp.vec3,
     h: float,
@@ -83,10 +128,10 @@ def step_cloth_gather(
     qd_out: wp.array(dtype=wp.vec3),
 ):
     """One semi-implicit Euler step, particle-centric: sums the forces of the springs touching
-    particle i (entries adjacency_offsets[i] .. [i + 1] of ``adjacency``) plus f_ext, then writes
-    the new state to q_out / qd_out (no atomics; q, qd are read-only so the outputs must be other
-    arrays). The loop is unrolled by four, loads first, so that four springs' loads are in
-    flight at once."""
+    particle i (entries adjacency_offsets[i] .. [i + 1] of ``adjacency``, packed uint32 with a
+    parameter ``table`` or wide vec4, see ``adjacent_entry``) plus f_ext, then writes the new
+    state to q_out / qd_out (no atomics; q, qd are read-only so the outputs must be other
+    arrays). Four springs at a time, loads first."""
     i = wp.tid()
     x = q[i]
     v = qd[i]
@@ -98,37 +143,21 @@ def step_cloth_gather(
         a = adjacency_offsets[i]
         end = adjacency_offsets[i + 1]
         while a + 4 <= end:
-            # entries (rest, k, kd, other end as a float: one 16-byte load, exact below 2^24)
-            e0 = adjacency[a]
-            e1 = adjacency[a + 1]
-            e2 = adjacency[a + 2]
-            e3 = adjacency[a + 3]
-            j0 = int(e0[3])
-            j1 = int(e1[3])
-            j2 = int(e2[3])
-            j3 = int(e3[3])
-            x0 = q[j0]
-            x1 = q[j1]
-            x2 = q[j2]
-            x3 = q[j3]
-            v0 = qd[j0]
-            v1 = qd[j1]
-            v2 = qd[j2]
-            v3 = qd[j3]
-            f0 = spring_force(x - x0, v - v0, e0[0], e0[1], e0[2])
-            f1 = spring_force(x - x1, v - v1, e1[0], e1[1], e1[2])
-            f2 = spring_force(x - x2, v - v2, e2[0], e2[1], e2[2])
-            f3 = spring_force(x - x3, v - v3, e3[0], e3[1], e3[2])
-            f = f + (f0 + f1) + (f2 + f3)
+            f = f + adjacent_forces4(x, v, q, qd, adjacency, table, a)
             a += 4
         while a < end:
-            e = adjacency[a]
-            j = int(e[3])
-            f = f + spring_force(x - q[j], v - qd[j], e[0], e[1], e[2])
+            j, p = adjacent_entry(adjacency, table, a)
+            f = f + spring_force(x - q[j], v - qd[j], p[0], p[1], p[2])
             a += 1
         v = v + h * (w * f + gravity)
     qd_out[i] = v
     q_out[i] = x + h * v
+
+
+for _adjacency in (wp.array(dtype=wp.vec4), wp.array(dtype=wp.uint32)):
+    _V = wp.array(dtype=wp.vec3)
+    wp.overload(step_cloth_gather, [_V, _V, _V, int, wp.array(dtype=int), _adjacency, _V, wp.array(dtype=float),
+                                    wp.vec3, float, _V, _V])
 
 
 # --------------------------------------------------------------------------------------

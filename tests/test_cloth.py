@@ -477,6 +477,28 @@ def test_semi_implicit_kernels_match_numpy(mode):
     assert np.allclose(sim.state.forces.numpy(), f, rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.parametrize("distinct", [False, True])
+def test_gather_adjacency_layouts_match_numpy(distinct):
+    """The gather kernel packs (other end, parameter kind) into 4 bytes when there are at most
+    256 distinct (rest, k, kd) triples, else stores them per entry; both step like NumPy."""
+    b, _ = small_cloth((10, 10), stiffness=400.0, damping=1.0)
+    if distinct:  # one stiffness per spring: 600 distinct triples
+        b.spring_stiffness = list(np.random.default_rng(7).uniform(300.0, 500.0, b.spring_count))
+    model = b.finalize(DEVICE)
+    a = model_arrays(model)
+    integrator = ClothSemiImplicitEuler("gather")
+    sim = ClothSimulator(model, integrator, use_graph=False)
+    assert integrator.adjacency.dtype == (wp.vec4 if distinct else wp.uint32)
+    x, v = model.particle_q.numpy().astype(np.float64), np.zeros((model.particle_count, 3))
+    h = 1.0 / 600.0
+    sim.frame(5 * h, 5)
+    free = (a["inv_mass"] > 0)[:, None]
+    for _ in range(5):
+        v = v + h * free * a["inv_mass"][:, None] * np_forces(a, x, v)
+        x = x + h * v
+    assert np.allclose(sim.state.positions.numpy(), x, atol=1e-5)
+
+
 @pytest.mark.parametrize("integrator, substeps", [("semi_implicit_euler", 5), ("implicit_euler", 2)])
 def test_graph_frames_match_eager_steps(integrator, substeps):
     b, _ = small_cloth((5, 5), stiffness=800.0, damping=1.0)

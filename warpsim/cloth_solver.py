@@ -60,10 +60,8 @@ class ClothSemiImplicitEuler(Integrator):
     """Semi-implicit (symplectic) Euler for cloth with the spring, gravity and update kernels
     fused. ``mode``: "scatter" (spring kernel with atomics + particle kernel), "gather" (one
     particle-centric kernel per step, no atomics; ClothSimulator ping-pongs its output arrays) or
-    None: gather on CUDA from GATHER_MIN_PARTICLES particles on (measured faster there on an
-    H100), scatter otherwise."""
-
-    GATHER_MIN_PARTICLES = 65536
+    None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2 particles, see
+    benchmarks/bench_cloth.py), scatter on the CPU (where atomics cost nothing)."""
 
     name = "cloth_semi_implicit_euler"
 
@@ -75,11 +73,11 @@ class ClothSemiImplicitEuler(Integrator):
 
     def _allocate(self, system):
         model, d = system.model, system.device
-        auto = "gather" if d.is_cuda and self.GATHER_MIN_PARTICLES <= system.count < GATHER_MAX_PARTICLES else "scatter"
+        auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES else "scatter"
         self.mode = self.requested_mode or auto
         if self.mode == "gather" and system.count >= GATHER_MAX_PARTICLES:
-            raise ValueError(f"mode='gather' handles fewer than {GATHER_MAX_PARTICLES} particles (indices are stored "
-                             f"as float32), this model has {system.count}; use mode='scatter'")
+            raise ValueError(f"mode='gather' handles fewer than {GATHER_MAX_PARTICLES} particles (indices are packed "
+                             f"in 24 bits), this model has {system.count}; use mode='scatter'")
         self.gravity, self.springs, self.others = _split_forces(system)
         self.f.zero_()
         self.f_ext = wp.zeros(system.count if self.others else 1, dtype=wp.vec3, device=d)
@@ -89,6 +87,10 @@ class ClothSemiImplicitEuler(Integrator):
             self._build_adjacency(model)
 
     def _build_adjacency(self, model):
+        """Per-particle spring lists for the gather kernel, grouped by particle. Packed (4 bytes an
+        entry: other end << 8 | index into a table of distinct (rest, k, kd)) when the model has
+        at most 256 distinct spring parameter triples, else wide (16 bytes: the triple and the
+        other end)."""
         n, d = model.particle_count, model.device
         pairs = model.spring_indices.numpy().reshape(-1, 2)
         ends = np.concatenate([pairs, pairs[:, ::-1]])
@@ -97,10 +99,19 @@ class ClothSemiImplicitEuler(Integrator):
         ends, spring = ends[order], spring[order]
         offsets = np.zeros(n + 1, dtype=np.int64)
         np.add.at(offsets, ends[:, 0] + 1, 1)
-        entries = np.stack([model.spring_rest_length.numpy()[spring], model.spring_stiffness.numpy()[spring],
-                            model.spring_damping.numpy()[spring], ends[:, 1].astype(np.float32)], axis=1)
         self.adjacency_offsets = wp.array(np.cumsum(offsets).astype(np.int32), dtype=int, device=d)
-        self.adjacency = wp.array(entries.astype(np.float32).reshape(-1, 4), dtype=wp.vec4, device=d)
+        params = np.stack([model.spring_rest_length.numpy(), model.spring_stiffness.numpy(),
+                           model.spring_damping.numpy()], axis=1).astype(np.float32)
+        table, kind = np.unique(params, axis=0, return_inverse=True)
+        kind = kind.reshape(-1)
+        if len(table) <= 256:
+            packed = (ends[:, 1].astype(np.uint32) << np.uint32(8)) | kind[spring].astype(np.uint32)
+            self.adjacency = wp.array(packed, dtype=wp.uint32, device=d)
+            self.adjacency_table = wp.array(table.reshape(-1, 3), dtype=wp.vec3, device=d)
+        else:
+            wide = np.concatenate([params[spring], ends[:, 1:2].astype(np.float32)], axis=1)
+            self.adjacency = wp.array(wide.reshape(-1, 4), dtype=wp.vec4, device=d)
+            self.adjacency_table = wp.zeros(1, dtype=wp.vec3, device=d)
 
     def _external(self, system, q, qd, time, f):
         for force in self.others:
@@ -114,7 +125,7 @@ class ClothSemiImplicitEuler(Integrator):
             self._external(system, q, qd, time, self.f_ext)
         wp.launch(KC.step_cloth_gather, system.count,
                   inputs=[q, qd, self.f_ext, int(bool(self.others)), self.adjacency_offsets, self.adjacency,
-                          system.inv_mass, self.gravity, float(dt), q_out, qd_out],
+                          self.adjacency_table, system.inv_mass, self.gravity, float(dt), q_out, qd_out],
                   device=system.device)
 
     def step(self, system, q, qd, time, dt, f_out=None):
