@@ -667,3 +667,27 @@ def test_cloth_scenes_registered_and_checked():
     scene = get_scene("cloth")({"resolution": 3, "integrator": "semi_implicit_euler"}, device=DEVICE)
     assert isinstance(scene.sim.integrator, ClothSemiImplicitEuler) and scene.steps_per_substep == 40
     assert len(scene.cloth.pinned) == 2 and scene.cloth.triangles.shape == (18, 3)
+
+
+@pytest.mark.parametrize("integrator, substeps", [("semi_implicit_euler", 4), ("implicit_euler", 1)])
+@pytest.mark.parametrize("use_graph", [False, True])
+def test_frames_allocate_nothing(integrator, substeps, use_graph, monkeypatch):
+    """After the first frame (buffers, graph), stepping allocates no device memory: every host
+    allocation on the CPU device goes through its allocator, counted here."""
+    b, _ = small_cloth((4, 4), stiffness=500.0, damping=1.0)
+    model = b.finalize(DEVICE)
+    sim = ClothSimulator(model, integrator, colliders=[ws.Plane(offset=0.9), Sphere((0.1, 0.8, -0.1), 0.1)],
+                         use_graph=use_graph)
+    for _ in range(2):
+        sim.frame(1.0 / 60.0, substeps)
+    allocator = wp.get_device(DEVICE).default_allocator
+    sizes = []
+    allocate = allocator.allocate
+    monkeypatch.setattr(allocator, "allocate", lambda size: sizes.append(size) or allocate(size))
+    wp.zeros(4, dtype=float, device=DEVICE)
+    assert sizes == [16]  # the counter sees allocations
+    sizes.clear()
+    for _ in range(3):
+        sim.frame(1.0 / 60.0, substeps)
+    monkeypatch.undo()
+    assert sizes == []
