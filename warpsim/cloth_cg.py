@@ -5,8 +5,9 @@ The loop runs under ``wp.capture_while`` on a device-side condition (r.r > tol^2
 iterations < max), so the same code runs eagerly, inside a CPU graph capture or inside a CUDA
 graph (conditional nodes). Dot products are one grid-stride kernel with a block-wide tile sum
 (``kernels.cloth.cg_dots``; ``wp.utils.array_inner`` allocates on CUDA, which a conditional
-graph body may not), the product is ``warp.sparse.bsr_mv``; nothing is allocated per solve. Used by ClothImplicitEuler where
-``warp.optim.linear.cg``'s tile-based dot products are slow (on the CPU ~10 ms each).
+graph body may not), the product is ``warp.sparse.bsr_mv``; nothing is allocated per solve.
+ClothImplicitEuler uses it by default: ``warp.optim.linear.cg``'s tile-based dot products
+take ~10 ms each on the CPU, and its host-checked loop cannot be captured.
 """
 
 from __future__ import annotations

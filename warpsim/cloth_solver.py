@@ -4,14 +4,15 @@ Euler, and a Simulator that replays each frame's sub-steps as a captured graph.
 - :class:`ClothImplicitEuler`: each step solves ``(M - h D - h^2 K) dv = h (f0 + h K v0)``
   (Baraff & Witkin 1998; ``newton_iterations > 1`` continues with Newton iterations on backward
   Euler). Spring blocks are written by one kernel straight into a fixed-topology BSR matrix;
-  ``warp.optim.linear.CG`` (preallocated, block-Jacobi preconditioner) solves it; pinned rows
-  and columns are filtered. Per step it reports CG iterations, final residual and tolerance.
+  block-Jacobi preconditioned CG solves it (``warpsim.cloth_cg.BlockCG``, capturable, by
+  default; or ``warp.optim.linear.cg``, preallocated); pinned rows and columns are filtered.
+  Per step it reports CG iterations, final residual and tolerance.
 - :class:`ClothSemiImplicitEuler`: v += h (f/m + g), x += h v with springs, gravity and the
   update fused ("scatter": spring kernel + particle kernel, or "gather": one particle-centric
   kernel, no atomics).
 - :class:`ClothSimulator`: a ``ws.Simulator`` whose ``frame()`` / ``run()`` capture a frame's
-  sub-steps (forces, solve, colliders) in a graph (CUDA, and CPU where Warp supports it) and
-  replay it; no allocation and no host read-back inside a frame.
+  sub-steps (forces, solve, colliders) in a graph (CUDA and CPU) and replay it; no allocation
+  and no host read-back inside a frame.
 
 All three accept any ws.Force list: gravity and the model springs are fused; other forces are
 evaluated through their own kernels (for the implicit solver they must have per-particle
@@ -414,7 +415,9 @@ class ClothSimulator(Simulator):
         check_every: blow-up test every this many frames (``step`` tests every this many steps).
 
     ``frame(frame_dt, substeps)`` advances one frame; ``run`` uses it. ``step(dt)`` takes one
-    eager step like ws.Simulator.
+    eager step like ws.Simulator. The blow-up test (every ``check_every`` frames) runs inside
+    the frame and costs one read-back of an int. ``state.forces`` is not filled: the fused
+    kernels never materialise the total force.
     """
 
     def __init__(self, model, integrator="implicit_euler", forces=None, colliders=(), *, use_graph=None,
