@@ -126,3 +126,36 @@ def zero_in_solid(solid_phi: wp.array3d(dtype=float), f_io: wp.array3d(dtype=flo
     i, j, k = wp.tid()
     if solid_phi[i, j, k] < 0.0:
         f_io[i, j, k] = 0.0
+
+
+@wp.kernel
+def diffuse_faces(
+    f_in: wp.array3d(dtype=float),
+    axis: int,
+    no_slip: int,
+    wall_velocity: wp.array(dtype=wp.vec3),
+    coef: float,
+    f_out: wp.array3d(dtype=float),
+):
+    """Explicit viscosity on one velocity component: f += coef * (sum of the 6 neighbours - 6 f),
+    coef = nu dt / dx^2. Past a wall in a tangential direction the ghost value is 2 U_t - f for
+    no-slip walls moving at U (``wall_velocity[side]``, sides -x, +x, -y, +y, -z, +z) or f for
+    free-slip; past a wall in the normal direction the wall face (normal velocity 0) is the
+    neighbour. Faces on the walls normal to ``axis`` are left unchanged."""
+    i, j, k = wp.tid()
+    c = wp.vec3i(i, j, k)
+    f = f_in[i, j, k]
+    if c[axis] == 0 or c[axis] == f_in.shape[axis] - 1:
+        f_out[i, j, k] = f
+        return
+    s = float(0.0)
+    for b in range(3):
+        for side in range(2):
+            n = c + axis_step(b) * (2 * side - 1)
+            if n[b] >= 0 and n[b] < f_in.shape[b]:
+                s += f_in[n[0], n[1], n[2]]
+            elif no_slip != 0 and f_in.shape[b] > 1:
+                s += 2.0 * wall_velocity[2 * b + side][axis] - f
+            else:
+                s += f
+    f_out[i, j, k] = f + coef * (s - 6.0 * f)

@@ -4,7 +4,8 @@ Physics checked: projection leaves div(u) at the CG tolerance (2D and 3D, around
 sides); the matrix-free Poisson operator equals an independent NumPy assembly (ghost-fluid
 weights included) and is symmetric positive definite; advection is exact for linear fields under
 uniform flow and returns a blob after a full rigid rotation, MacCormack/BFECC closer than
-semi-Lagrangian; the Taylor-Green vortex's spurious energy loss shrinks with refinement;
+semi-Lagrangian; the Taylor-Green vortex's spurious energy loss shrinks with refinement; the
+lid-driven cavity at Re = 100 matches Ghia, Ghia and Shin (1982) and converges;
 re-distancing gives |grad phi| = 1 and keeps the zero level set; Zalesak's disk keeps its area
 with the particle level set and loses it without; a level-set liquid keeps its volume while
 sloshing, and a falling drop loses more without marker particles; a hydrostatic tank stays
@@ -24,6 +25,7 @@ import pytest
 import warp as wp
 from warpsim.kernels import grid_forces as KF
 
+import warpsim as ws
 from warpsim.flip import FlipLiquid
 from warpsim.grid_advection import Advector
 from warpsim.grid_pressure import PressureSolver
@@ -31,6 +33,7 @@ from warpsim.levelset import LevelSet
 from warpsim.levelset_liquid import LevelSetLiquid
 from warpsim.mac_grid import AIR, FLUID, SOLID, MacGrid
 from warpsim.smoke import Smoke
+from warpsim.viscosity import Viscosity
 
 DEV = "cpu"
 ROOT = Path(__file__).resolve().parents[1]
@@ -204,6 +207,41 @@ def test_taylor_green_spurious_energy_loss_shrinks_with_refinement():
     assert abs(mc) < 0.5 * loss[32]
 
 
+# Ghia, Ghia and Shin (1982), Re = 100: u on the vertical and v on the horizontal centreline
+GHIA_U = np.array([[1.0, 1.0], [0.9766, 0.84123], [0.9688, 0.78871], [0.9609, 0.73722], [0.9531, 0.68717],
+                   [0.8516, 0.23151], [0.7344, 0.00332], [0.6172, -0.13641], [0.5, -0.20581], [0.4531, -0.2109],
+                   [0.2813, -0.15662], [0.1719, -0.1015], [0.1016, -0.06434], [0.0703, -0.04775],
+                   [0.0625, -0.04192], [0.0547, -0.03717], [0.0, 0.0]])
+GHIA_V = np.array([[1.0, 0.0], [0.9688, -0.05906], [0.9609, -0.07391], [0.9531, -0.08864], [0.9453, -0.10313],
+                   [0.9063, -0.16914], [0.8594, -0.22445], [0.8047, -0.24533], [0.5, 0.05454], [0.2344, 0.17527],
+                   [0.2266, 0.17507], [0.1563, 0.16077], [0.0938, 0.12317], [0.0781, 0.1089], [0.0703, 0.10091],
+                   [0.0625, 0.09233], [0.0, 0.0]])
+
+
+def lid_driven_cavity_errors(n, t_end=10.0):
+    """Max deviation from Ghia's centreline velocities of a Re = 100 cavity (lid speed 1 m/s,
+    side 1 m, nu = 0.01 m^2/s) after t_end [s] (steady by then)."""
+    g = MacGrid((n, n), 1.0 / n, device=DEV)
+    adv = Advector(g, "maccormack")
+    solver = PressureSolver(g, tol=1e-5, preconditioner="rbgs")
+    viscosity = Viscosity(g, 0.01, wall_velocity={"+y": (1.0, 0.0, 0.0)})
+    dt = min(1.0 / n, 0.25 / (n * n * 0.01))
+    for _ in range(round(t_end / dt)):
+        adv.advect_velocity(dt)
+        viscosity.apply(dt)
+        solver.project()
+    centres = (np.arange(n) + 0.5) / n
+    u = np.interp(GHIA_U[:, 0], np.r_[0.0, centres, 1.0], np.r_[0.0, g.u.numpy()[n // 2, :, 0], 1.0])
+    v = np.interp(GHIA_V[:, 0], np.r_[0.0, centres, 1.0], np.r_[0.0, g.v.numpy()[:, n // 2, 0], 0.0])
+    return np.abs(u - GHIA_U[:, 1]).max(), np.abs(v - GHIA_V[:, 1]).max()
+
+
+def test_lid_driven_cavity_matches_ghia_ghia_shin_at_re_100():
+    coarse, fine = lid_driven_cavity_errors(16), lid_driven_cavity_errors(24)
+    assert max(fine) < 0.02  # velocities range over [-0.25, 1] m/s
+    assert fine[0] < 0.7 * coarse[0] and fine[1] < 0.7 * coarse[1]
+
+
 # ---------------------------------------------------------------------------- level sets
 
 
@@ -369,12 +407,16 @@ def test_vorticity_of_a_rigid_rotation_is_twice_the_rate():
 
 def test_solids_voxelise_like_their_shapes():
     g = MacGrid((12, 12, 12), 1.0 / 12, device=DEV)
-    g.add_sphere((0.3, 0.5, 0.5), 0.2)
+    g.add_collider(ws.Sphere((0.3, 0.5, 0.5), 0.2))
     lo, hi = np.array([0.55, 0.2, 0.3]), np.array([0.9, 0.6, 0.7])
     corners = np.array([[(hi if (i >> k) & 1 else lo)[k] for k in range(3)] for i in range(8)])
     quads = [[0, 4, 6, 2], [1, 3, 7, 5], [0, 1, 5, 4], [2, 6, 7, 3], [0, 2, 3, 1], [4, 5, 7, 6]]
     tris = [[q[0], q[1], q[2]] for q in quads] + [[q[0], q[2], q[3]] for q in quads]
-    g.add_mesh(corners, tris)
+    g.add_collider(ws.TriangleMesh(corners - 0.5, tris, solid=True, position=(0.5, 0.5, 0.5)))
+    with pytest.raises(ValueError, match="solid 2: an inside=True sphere is a container"):
+        g.add_collider(ws.Sphere((0.5, 0.5, 0.5), 0.4, inside=True))
+    with pytest.raises(ValueError, match="cannot be voxelised"):
+        g.add_collider(ws.Plane())
     c = g.positions()
     expected = (np.linalg.norm(c - [0.3, 0.5, 0.5], axis=-1) < 0.2) | np.all((c > lo) & (c < hi), axis=-1)
     assert np.array_equal(g.labels.numpy() == SOLID, expected)
@@ -423,6 +465,10 @@ def test_bad_input_names_the_item():
         FlipLiquid(g).step(0.01)
     with pytest.raises(ValueError, match="liquid block 0 covers no"):
         FlipLiquid(g).add_box((5.0, 5.0), (6.0, 6.0))
+    with pytest.raises(ValueError, match="viscosity nu"):
+        Viscosity(g, 0.0)
+    with pytest.raises(ValueError, match="wall_velocity side 'top'"):
+        Viscosity(g, 0.01, wall_velocity={"top": (1.0, 0.0, 0.0)})
     with pytest.raises(ValueError, match="gravity"):
         LevelSetLiquid(g, lambda p: p[..., 1] - 0.4, gravity=(0.0,))
 

@@ -182,16 +182,19 @@ class MacGrid:
         self._voxelize()
 
     def add_collider(self, collider):
-        """Voxelise a collider object: anything with ``center`` and ``radius`` (sphere), or a
-        ``mesh`` (wp.Mesh) attribute, or ``points`` and ``indices``. Containers such as ws.Box /
-        ws.Plane are the grid walls and are not accepted here."""
+        """Voxelise a collider from ``warpsim.colliders`` at its current pose: a ``Sphere`` (anything
+        with ``center`` and ``radius``; an ``inside=True`` container is refused) or a closed
+        ``TriangleMesh`` (anything with ``points`` and ``faces``/``indices``; ``world_points()`` is
+        used when present). Walls (ws.Box, ws.Plane) are the grid's own sides: use ``open_sides``."""
+        n = len(self.solids)
+        if getattr(collider, "inside", 0):
+            raise ValueError(f"solid {n}: an inside=True sphere is a container, not a solid; size the grid instead")
         if hasattr(collider, "center") and hasattr(collider, "radius"):
             return self.add_sphere(collider.center, collider.radius)
-        mesh = getattr(collider, "mesh", None)
-        if isinstance(mesh, wp.Mesh):
-            return self.add_mesh(mesh.points.numpy(), mesh.indices.numpy())
-        if hasattr(collider, "points") and hasattr(collider, "indices"):
-            return self.add_mesh(np.asarray(collider.points), np.asarray(collider.indices))
+        faces = getattr(collider, "faces", getattr(collider, "indices", None))
+        if hasattr(collider, "points") and faces is not None:
+            points = collider.world_points() if hasattr(collider, "world_points") else collider.points
+            return self.add_mesh(np.asarray(points), np.asarray(faces))
         raise ValueError(
             f"collider {type(collider).__name__} cannot be voxelised: give a sphere (center, radius), a mesh "
             "collider, or use MacGrid.add_box / open_sides for walls"
