@@ -10,6 +10,8 @@
 from ._version import __version__
 from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
 from .builder import ModelBuilder
+from .cloth import Cloth, add_cloth_grid, add_cloth_mesh, cloth_energy
+from .cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 from .colliders import (
     Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
 )
@@ -33,7 +35,8 @@ __all__ = [
     "Force", "Gravity", "ConstantForce", "Wind", "Magnets", "Drag", "Springs", "ForceField",
     "Collider", "Planes", "Plane", "Box", "Sphere", "Capsule", "Quad", "Rectangle", "TriangleMesh",
     "ParticleCollisions", "keyframe_motion", "DragSpring", "pick_particle", "SoftBody", "add_soft_body", "load_mesh",
-    "teapot_mesh",
+    "teapot_mesh", "Cloth", "add_cloth_grid", "add_cloth_mesh", "cloth_energy", "ClothImplicitEuler",
+    "ClothSemiImplicitEuler", "ClothSimulator",
     "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
     "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
     "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
