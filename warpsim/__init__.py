@@ -10,8 +10,8 @@
 from ._version import __version__
 from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
 from .builder import ModelBuilder
-from .cloth import Cloth, add_cloth_grid, add_cloth_mesh, cloth_energy
-from .cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
+from .cloth import Cloth, add_cloth_grid, add_cloth_mesh
+from .cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, cloth_energy
 from .colliders import (
     Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
 )
