@@ -47,7 +47,7 @@ def test_every_example_is_listed():
 OTHER_TESTED = {
     "metaballs.py",  # tests/test_marching_cubes.py
     "dam_break.py",  # tests/test_sph.py
-    "jiggly_teapot.py",  # tests/test_softbody.py
+    "teapot.py",  # tests/test_softbody.py
     "collisions.py",  # tests/test_colliders.py
     "cloth_drape.py",  # tests/test_cloth.py
     "cloth_implicit.py",  # tests/test_cloth.py

@@ -399,13 +399,13 @@ def test_teapot_scene_writes_mesh_springs_and_drag(tmp_path):
 
 
 def test_jiggly_teapot_example_runs(tmp_path):
-    """examples/jiggly_teapot.py as a user runs it: the spout is picked with a ray at 0.6 s."""
+    """examples/teapot.py as a user runs it: the spout is picked with a ray at 0.6 s."""
     import os
     import subprocess
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "examples" / "jiggly_teapot.py"
+    script = Path(__file__).resolve().parents[1] / "examples" / "teapot.py"
     out = subprocess.run([sys.executable, str(script), "--frames", "40", "--out", "t.usda"], cwd=tmp_path,
                          env=dict(os.environ, WARP_QUIET="1"), capture_output=True, text=True, timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-3000:]

@@ -10,8 +10,8 @@ Mesh with fixed topology, the springs as curves, the drag as a red line.
 Too little mass (or too large a step) makes it explode: try ``--mass 0.02``; the simulator
 then stops and names the frame, the particle and the remedy, e.g. ``--integrator implicit_euler``.
 
-    python examples/jiggly_teapot.py --frames 180 --out usd_out/jiggly_teapot.usda
-    python examples/jiggly_teapot.py --resolution high --stiffness 80 --frames 120
+    python examples/teapot.py --frames 180 --out usd_out/teapot_example.usda
+    python examples/teapot.py --resolution high --stiffness 80 --frames 120
 """
 
 import argparse
@@ -85,7 +85,7 @@ def main(argv=None):
     parser.add_argument("--damping", type=float, default=0.05, help="spring damping [N s/m]")
     parser.add_argument("--dt", type=float, default=1.0 / 600, help="time step [s]")
     parser.add_argument("--integrator", default="semi_implicit_euler", choices=sorted(ws.INTEGRATORS))
-    parser.add_argument("--out", default="usd_out/jiggly_teapot.usda")
+    parser.add_argument("--out", default="usd_out/teapot_example.usda")
     parser.add_argument("--device", default=None)
     args = parser.parse_args(argv)
     wp.config.quiet = True
