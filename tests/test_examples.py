@@ -52,4 +52,5 @@ OTHER_TESTED = {
     "cloth_drape.py",  # tests/test_cloth.py
     "cloth_implicit.py",  # tests/test_cloth.py
     "smoke_plume.py",  # tests/test_grid_fluids.py
+    "levelset_liquid.py",  # tests/test_grid_fluids.py
 }

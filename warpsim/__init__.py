@@ -26,7 +26,15 @@ from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, In
 from .model import Model, State
 from .pendulum import Pendulum, exact_period
 from .simulator import Simulator
+from .flip import FlipLiquid
 from .fluid_surface import FluidSurface
+from .grid_advection import Advector
+from .grid_pressure import PressureSolver
+from .levelset import LevelSet
+from .levelset_liquid import LevelSetLiquid
+from .mac_grid import MacGrid
+from .smoke import Smoke
+from .viscosity import Viscosity
 from .sph import Nozzle, ParticleFluid, Sink, fluid_block
 from .system import DynamicSystem, ParticleSystem, PendulumSystem
 
@@ -40,6 +48,7 @@ __all__ = [
     "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
     "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
     "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
+    "MacGrid", "PressureSolver", "Advector", "LevelSet", "LevelSetLiquid", "Smoke", "FlipLiquid", "Viscosity",
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
 ]
