@@ -1,15 +1,21 @@
-"""Position-based-fluid step throughput, side by side in one process.
+"""Particle-fluid throughput against Warp's own SPH example, side by side in one process.
 
-1. warpsim's Warp PBF step against a NumPy + SciPy-cKDTree reference step of the same method on
-   the same particles (``warpsim.sph_reference``), with the largest position difference.
-2. warpsim's PBF against Warp's own SPH example (``warp/examples/core/example_sph.py``, Mueller
-   et al. 2003, weakly compressible, ~4 neighbours per particle) at the same particle count,
-   running that example's kernels with its own constants; particle-steps per second for both
-   and each one's density error (warpsim: mean compression max(rho/rho0 - 1, 0); the example:
-   mean |rho/rho0 - 1| of its particles, rho0 = its base density).
+1. Warp's ``warp/examples/core/example_sph.py`` (Mueller et al. 2003, weakly compressible) with its
+   own kernels and constants, its box widened to hold about ``--particles`` particles.
+2. warpsim's position-based fluid at the same particle count: a dam break (a column n x 2n x n
+   in a 4n x 3n x n box) advanced frame by frame in CFL-limited sub-steps with its default
+   solver settings, as a user runs it.
+
+For each: particle-steps per second and their ratio, and what a step buys, so the ratio is read
+honestly: the density error each one actually keeps (max and mean |rho/rho0 - 1| over the
+fluid interior, i.e. particles whose whole kernel support is fluid or wall; warpsim also gives
+the mean compression over all particles), neighbours per particle, simulated seconds per
+wall-clock second, and the same in gravity time units t sqrt(g / L) (L: particle spacing),
+which compares step sizes across the two unit systems. Optionally warpsim's Warp step against a
+NumPy + SciPy-cKDTree reference step of the same method (``warpsim.sph_reference``).
 
     python benchmarks/bench_sph.py                          # CPU, 8,000 particles
-    python benchmarks/bench_sph.py --device cuda:0 --particles 1000000 --steps 20
+    python benchmarks/bench_sph.py --device cuda:0 --particles 1000000 --frames 4
 """
 
 import argparse
@@ -31,54 +37,33 @@ def block_for(count, spacing):
     return fluid_block((0, 0, 0), size, spacing), box
 
 
-def timed(fn, steps, device):
+def interior_mask(x, lower, upper, cell):
+    """Particles whose cell (width ``cell`` = the kernel support) and its 26 neighbours all hold
+    particles or lie outside the box [lower, upper] (walls): their kernel support is fluid or wall,
+    not free surface."""
+    dims = np.maximum(np.ceil((upper - lower) / cell).astype(int), 1)
+    idx = np.clip(np.floor((x - lower) / cell).astype(int), 0, dims - 1)
+    full = np.ones(dims + 2, bool)  # one layer of outside cells around the box counts as wall
+    full[1:-1, 1:-1, 1:-1] = False
+    full[idx[:, 0] + 1, idx[:, 1] + 1, idx[:, 2] + 1] = True
+    ok = np.ones(dims, bool)
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                ok &= full[a:a + dims[0], b:b + dims[1], c:c + dims[2]]
+    return ok[idx[:, 0], idx[:, 1], idx[:, 2]]
+
+
+def density_errors(rho_ratio, interior):
+    """(max |rho/rho0 - 1|, mean |rho/rho0 - 1|, max (rho/rho0 - 1)) over the interior particles
+    (nan when there are none)."""
+    e = np.asarray(rho_ratio, np.float64)[interior] - 1.0
+    return (float(np.abs(e).max()), float(np.abs(e).mean()), float(e.max())) if e.size else (math.nan,) * 3
+
+
+def sync_time(device):
     wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        fn()
-    wp.synchronize_device(device)
-    return (time.perf_counter() - t0) / steps
-
-
-def bench_warpsim(count, steps, iterations, device, shuffle=False):
-    s = 0.01
-    x0, box = block_for(count, s)
-    if shuffle:  # memory order unrelated to space (as after long mixing), then sorted once
-        x0 = x0[np.random.default_rng(0).permutation(len(x0))]
-    fluid = ParticleFluid(x0, spacing=s, domain=((0, 0, 0), box), iterations=iterations, viscosity=0.01,
-                          device=device)
-    if shuffle == "sorted":
-        fluid.sort_particles()
-    dt = 1.0 / 400.0
-    for _ in range(3):  # warm up (kernel compilation) and let pressure build
-        fluid.step(dt)
-    t = timed(lambda: fluid.step(dt), steps, device)
-    return fluid, t, fluid.density_error()[0]
-
-
-def bench_reference(fluid, steps):
-    """NumPy/cKDTree steps from the fluid's current state, and a Warp step from the same state."""
-    s = fluid.spacing
-    lo, hi = fluid.domain
-    eye = np.eye(3)
-    normals = np.concatenate([eye, -eye])
-    offsets = np.concatenate([lo, -hi])
-    phi, dphi = wall_tables(fluid.h, fluid.kernel, s)
-    x = fluid.positions.numpy().astype(np.float64)
-    v = fluid.velocities.numpy().astype(np.float64)
-    dt = fluid.last_dt
-    args = dict(h=fluid.h, mass=fluid.particle_mass, rest_density=fluid.rest_density, kernel=fluid.kernel,
-                iterations=fluid.iterations, viscosity=0.01, radius=0.5 * s, relaxation=1e-6 / s**2,
-                normals=normals, offsets=offsets, phi_table=phi, dphi_table=dphi)
-    t0 = time.perf_counter()
-    xr, vr = x, v
-    for _ in range(steps):
-        xr, vr, _ = pbf_step_numpy(xr, vr, dt, **args)
-    t_ref = (time.perf_counter() - t0) / steps
-    for _ in range(steps):
-        fluid.step(dt)
-    diff = np.abs(fluid.positions.numpy() - xr).max()
-    return t_ref, diff
+    return time.perf_counter()
 
 
 def bench_warp_example(count, steps, device, fitted_grid=False):
@@ -88,7 +73,7 @@ def bench_warp_example(count, steps, device, fitted_grid=False):
     extent, at most 128 per axis), which removes hash collisions at large counts."""
     from warp.examples.core import example_sph as ex
 
-    h = 0.8
+    h = 0.8  # its smoothing length: the kernel support and the initial particle spacing
     height = 80.0
     nr_y = int(height / h)
     nr_xz = max(1, round(math.sqrt(count / nr_y)))
@@ -122,47 +107,167 @@ def bench_warp_example(count, steps, device, fitted_grid=False):
 
     for _ in range(3):
         step()
-    t = timed(step, steps, device)
-    return n, t, float(np.abs(rho.numpy() / base_density - 1.0).mean())
+    t0 = sync_time(device)
+    for _ in range(steps):
+        step()
+    wall = sync_time(device) - t0
+    xs = x.numpy()
+    lower, upper = np.zeros(3), np.array([width, height, length])
+    err_max, err_mean, err_comp = density_errors(rho.numpy() / base_density, interior_mask(xs, lower, upper, h))
+    out = dict(name="warp example_sph", n=n, steps=steps, wall=wall, sim_time=steps * dt, spacing=h, g=-gravity,
+               err_max=err_max, err_mean=err_mean, err_comp=err_comp, compression=math.nan, iterations=math.nan,
+               cfl=float(np.linalg.norm(v.numpy(), axis=1).max()) * dt / h)
+    if n <= 200000:
+        out["neighbors"] = neighbors_per_particle(xs, h)
+    return out
+
+
+def neighbors_per_particle(x, radius):
+    """Mean number of other particles within ``radius`` (cKDTree; nan without SciPy)."""
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:  # pragma: no cover - SciPy is optional
+        return math.nan
+    return 2.0 * len(cKDTree(x).query_pairs(radius)) / len(x)
+
+
+def bench_warpsim(count, frames, warmup, device, sort_every=0, fixed_dt=None, steps_per_frame=10, **settings):
+    """warpsim's dam break at ``count`` particles: ``warmup`` untimed frames, then ``frames``
+    timed frames of 1/60 s (or, with ``fixed_dt``, frames of ``steps_per_frame`` steps of that
+    length); density errors measured (untimed) after every timed frame."""
+    s = 0.01
+    x0, box = block_for(count, s)
+    fluid = ParticleFluid(x0, spacing=s, domain=((0, 0, 0), box), sort_every=sort_every, device=device,
+                          **settings)
+    for _ in range(warmup):  # with fixed_dt in steps of that length too: PBF wants steps of similar size
+        if fixed_dt is None:
+            fluid.advance(1.0 / 60.0)
+        else:
+            for _ in range(steps_per_frame):
+                fluid.step(fixed_dt)
+    wall, steps, iters, sim = 0.0, 0, 0, 0.0
+    worst, comp, means, compressions, cfl = 0.0, 0.0, [], [], 0.0
+    for _ in range(frames):
+        steps0, iters0, t_sim0 = fluid.step_count, fluid.total_iterations, fluid.time
+        t0 = sync_time(device)
+        if fixed_dt is None:
+            fluid.advance(1.0 / 60.0)
+        else:
+            for _ in range(steps_per_frame):
+                fluid.step(fixed_dt)
+        wall += sync_time(device) - t0
+        steps += fluid.step_count - steps0
+        iters += fluid.total_iterations - iters0
+        sim += fluid.time - t_sim0
+        cfl = max(cfl, fluid.max_speed_now() * fluid.last_dt / s)
+        rho = fluid.measure_density() / fluid.rest_density
+        e_max, e_mean, e_comp = density_errors(rho, interior_mask(fluid.positions.numpy(), *fluid.domain, fluid.h))
+        worst, comp = max(worst, e_max), max(comp, e_comp)
+        means.append(e_mean)
+        compressions.append(float(np.maximum(rho - 1.0, 0.0).mean()))
+    n = fluid.active_count
+    nb = fluid._neighbors.count.numpy()[:n]
+    out = dict(name="warpsim PBF", n=n, steps=steps, wall=wall, sim_time=sim, spacing=s, g=9.81, err_max=worst,
+               err_comp=comp, err_mean=float(np.mean(means)), compression=float(np.mean(compressions)),
+               iterations=iters / max(steps, 1), neighbors=float(nb.mean()), cfl=cfl)
+    return fluid, out
+
+
+def report(r):
+    rate = r["n"] * r["steps"] / r["wall"]
+    tau = r["sim_time"] * math.sqrt(r["g"] / r["spacing"])
+    print(f"{r['name']:18s}: {r['n']:9d} particles  {r['steps']:5d} steps  {r['wall'] / r['steps'] * 1e3:8.2f} ms/step  "
+          f"{rate:10.4g} particle-steps/s")
+    print(f"{'':18s}  interior |rho/rho0 - 1|: max {r['err_max']:.2e} (largest compression {r['err_comp']:+.2e}), "
+          f"mean {r['err_mean']:.2e}"
+          + (f"; mean compression (all) {r['compression']:.2e}" if not math.isnan(r["compression"]) else ""))
+    print(f"{'':18s}  {r.get('neighbors', math.nan):5.1f} neighbours/particle"
+          + (f", {r['iterations']:.2f} solver iterations/step" if not math.isnan(r["iterations"]) else "")
+          + f", max CFL number v dt / spacing {r['cfl']:.3f}")
+    print(f"{'':18s}  simulated {r['sim_time'] / r['wall']:.4g} s per wall-clock s; "
+          f"{tau / r['wall']:.4g} gravity time units t sqrt(g/spacing) per wall-clock s "
+          f"({tau / r['steps']:.3g} per step)")
+    return rate, tau / r["wall"]
+
+
+def bench_reference(fluid, steps):
+    """NumPy/cKDTree steps from the fluid's current state, and Warp steps (fixed iterations, as
+    the reference) from the same state; returns (seconds per reference step, max position
+    difference)."""
+    s = fluid.spacing
+    lo, hi = fluid.domain
+    eye = np.eye(3)
+    normals = np.concatenate([eye, -eye])
+    offsets = np.concatenate([lo, -hi])
+    phi, dphi = wall_tables(fluid.h, fluid.kernel, s)
+    x = fluid.positions.numpy().astype(np.float64)
+    v = fluid.velocities.numpy().astype(np.float64)
+    dt = fluid.last_dt
+    fixed = ParticleFluid(x, v, spacing=s, domain=fluid.domain, iterations=fluid.iterations, density_tolerance=0.0,
+                          viscosity=float(fluid._params.viscosity), device=fluid.device)
+    args = dict(h=fluid.h, mass=fluid.particle_mass, rest_density=fluid.rest_density, kernel=fluid.kernel,
+                iterations=fluid.iterations, viscosity=float(fluid._params.viscosity), radius=0.5 * s,
+                relaxation=1e-6 / s**2, normals=normals, offsets=offsets, phi_table=phi, dphi_table=dphi)
+    t0 = time.perf_counter()
+    xr, vr = x, v
+    for _ in range(steps):
+        xr, vr, _ = pbf_step_numpy(xr, vr, dt, **args)
+    t_ref = (time.perf_counter() - t0) / steps
+    for _ in range(steps):
+        fixed.step(dt)
+    return t_ref, float(np.abs(fixed.positions.numpy() - xr).max())
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=8000)
-    parser.add_argument("--steps", type=int, default=5)
-    parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--frames", type=int, default=6, help="timed warpsim frames of 1/60 s")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed warpsim frames before timing")
+    parser.add_argument("--steps", type=int, default=40, help="timed steps of Warp's example")
+    parser.add_argument("--iterations", type=int, default=4, help="warpsim's most PBF iterations per step")
+    parser.add_argument("--matched-step", action="store_true",
+                        help="also time warpsim at the example's step size in gravity time units")
     parser.add_argument("--order", action="store_true",
-                        help="also time warpsim with particles shuffled in memory, and shuffled then sorted")
-    parser.add_argument("--reference-max", type=int, default=100000,
+                        help="also time warpsim sorting its particles spatially every frame")
+    parser.add_argument("--reference-max", type=int, default=20000,
                         help="skip the NumPy reference above this many particles")
     args = parser.parse_args(argv)
     wp.config.quiet = True
     device = wp.get_device(args.device)
 
-    n_ex, t_ex, err_ex = bench_warp_example(args.particles, args.steps, device)
-    _, t_fit, _ = bench_warp_example(args.particles, args.steps, device, fitted_grid=True)
-    fluid, t_ws, err_ws = bench_warpsim(n_ex, args.steps, args.iterations, device)
-    n = fluid.active_count
-    print(f"device {device}, {args.iterations} PBF iterations, {args.steps} timed steps")
-    print(f"warpsim PBF          : {n:9d} particles  {t_ws * 1e3:9.2f} ms/step  {n / t_ws:12.4g} particle-steps/s  "
-          f"mean compression {err_ws:.2e}")
-    print(f"warp example_sph     : {n_ex:9d} particles  {t_ex * 1e3:9.2f} ms/step  {n_ex / t_ex:12.4g} particle-steps/s  "
-          f"mean |rho/rho0 - 1| {err_ex:.2e}")
-    print(f"  same, grid fitted  : {n_ex:9d} particles  {t_fit * 1e3:9.2f} ms/step  {n_ex / t_fit:12.4g} particle-steps/s")
-    print(f"ratio warpsim / warp example (particle-steps/s): {(n / t_ws) / (n_ex / t_ex):.3f} "
-          f"(vs the example with a fitted grid: {(n / t_ws) / (n_ex / t_fit):.3f})")
+    ex = bench_warp_example(args.particles, args.steps, device)
+    ex_fit = bench_warp_example(args.particles, args.steps, device, fitted_grid=True)
+    fluid, ws = bench_warpsim(ex["n"], args.frames, args.warmup, device, iterations=args.iterations)
+    print(f"device {device}; warpsim: dam break, {args.warmup} + {args.frames} frames of 1/60 s in CFL sub-steps, "
+          f"at most {args.iterations} PBF iterations/step"
+          + (f", stopping at mean compression {fluid.density_tolerance:g}" if fluid._adaptive else ""))
+    rate_ws, tau_ws = report(ws)
+    rate_ex, tau_ex = report(ex)
+    rate_fit = ex_fit["n"] * ex_fit["steps"] / ex_fit["wall"]
+    print(f"{'  same, grid fitted':18s}: {ex_fit['n']:9d} particles  {ex_fit['steps']:5d} steps  "
+          f"{ex_fit['wall'] / ex_fit['steps'] * 1e3:8.2f} ms/step  {rate_fit:10.4g} particle-steps/s")
+    print(f"ratio warpsim / warp example, particle-steps/s: {rate_ws / rate_ex:.3f} "
+          f"(vs the example with a fitted grid: {rate_ws / rate_fit:.3f}); "
+          f"gravity time units per wall-clock s: {tau_ws / tau_ex:.3g}")
+    if args.matched_step:  # the example's step t sqrt(g / spacing), in warpsim's units
+        dt = ex["sim_time"] / ex["steps"] * math.sqrt(ex["g"] / ex["spacing"]) / math.sqrt(9.81 / 0.01)
+        _, tiny = bench_warpsim(ex["n"], args.frames, args.warmup, device, fixed_dt=dt, iterations=args.iterations)
+        tiny["name"] = "  warpsim, same dt"
+        print(f"warpsim at the example's step size (dt = {dt:.3g} s) from the start of the dam break, "
+              f"{args.warmup} x 10 steps untimed:")
+        rate, _ = report(tiny)
+        print(f"  ratio warpsim / warp example at equal step size, particle-steps/s: {rate / rate_ex:.3f}")
     if args.order:
-        for mode in ("shuffled", "sorted"):
-            f2, t2, _ = bench_warpsim(n_ex, args.steps, args.iterations, device, shuffle=mode)
-            print(f"  warpsim, {mode:9s} : {f2.active_count:9d} particles  {t2 * 1e3:9.2f} ms/step  "
-                  f"{f2.active_count / t2:12.4g} particle-steps/s  (memory order {mode})")
-    if n <= args.reference_max:
-        steps = max(1, min(args.steps, 3))
-        t_ref, diff = bench_reference(fluid, steps)
-        print(f"NumPy/cKDTree PBF    : {n:9d} particles  {t_ref * 1e3:9.2f} ms/step  {n / t_ref:12.4g} particle-steps/s")
-        print(f"ratio warpsim / NumPy reference (same method, same particles): {t_ref / t_ws:.1f}x faster; "
-              f"max position difference after {steps} steps {diff:.2e} m")
+        _, sorted_run = bench_warpsim(ex["n"], args.frames, args.warmup, device, sort_every=1,
+                                      iterations=args.iterations)
+        rate = sorted_run["n"] * sorted_run["steps"] / sorted_run["wall"]
+        print(f"  warpsim sorting particles every frame: {rate:10.4g} particle-steps/s ({rate / rate_ws:.3f} x unsorted)")
+    if fluid.active_count <= args.reference_max:
+        t_ref, diff = bench_reference(fluid, 2)
+        n = fluid.active_count
+        print(f"NumPy/cKDTree PBF   : {n:9d} particles  {t_ref * 1e3:8.2f} ms/step; warpsim with the same "
+              f"{fluid.iterations} fixed iterations matches it to {diff:.2e} m after 2 steps")
     else:
         print(f"NumPy reference skipped above {args.reference_max} particles (--reference-max)")
 

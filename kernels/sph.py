@@ -4,7 +4,11 @@ Conventions:
 
 * ``h`` is the smoothing kernel's *support radius* [m]: W(r) = 0 for r >= h.
 * Neighbour lists (:class:`NeighborList`) hold, for particle i, the indices j != i with
-  |x_i - x_j| < h (true distance, filtered from the hash-grid candidates).
+  |x_i - x_j| < h (true distance, filtered from the hash-grid candidates) at the predicted
+  positions of a step; later passes of the step evaluate the same pairs at moved positions
+  (the kernels vanish beyond h) and cache each pair's kernel gradient for the next correction.
+* Inner loops use :func:`pair_terms`: constants precomputed in :class:`FluidParams`, no
+  data-dependent branches, one square root and one division per pair.
 * Boundaries are signed-distance boundaries: every plane, capsule (sphere) and triangle mesh at
   signed distance ``d`` (> 0 on the fluid side) contributes the solid fraction ``phi(d)`` of the
   kernel (the half-space beyond a wall at distance ``d``, tabulated by the host on [0, h]) and its
@@ -38,6 +42,12 @@ class FluidParams:
     vorticity: float  # vorticity-confinement strength [m/s^2 per 1/s]
     surface_tension: float  # Akinci et al. (2013) cohesion coefficient gamma [1/s^2]
     boundary_viscosity: float  # XSPH-like friction against boundaries (dimensionless, 0..1)
+    # derived constants, set by the host (``warpsim.sph.ParticleFluid``) from the ones above
+    inv_h: float  # 1 / h [1/m]
+    h2: float  # h^2 [m^2]
+    w_scale: float  # mass * W normalisation [kg/m^3] (cubic: m 8/(pi h^3); Wendland: m 21/(2 pi h^3))
+    g_scale: float  # (mass / rest_density) * dW/dr normalisation [1/m] (cubic 48/(pi h^4), Wendland 210/(pi h^4))
+    self_density: float  # mass * W(0) [kg/m^3]
 
 
 @wp.struct
@@ -66,10 +76,15 @@ class NeighborList:
     """Per-particle neighbour lists: particle i's k-th neighbour is
     ``index[i * stride_i + k * stride_k]``, k < count[i] <= capacity. warpsim uses row-major
     (stride_k = 1): on an H200 at 1M particles it ran a PBF step in 3.3 ms against 4.0 ms for
-    column-major (stride_i = 1, coalesced across threads)."""
+    column-major (stride_i = 1, coalesced across threads).
+
+    ``grad_factor`` (same layout) caches each pair's kernel gradient from the last density
+    evaluation: ``(m / rho0) grad_i W_ij = grad_factor * (x_i - x_j)`` [1/m^2], so a position
+    correction gathers it without re-evaluating the kernel."""
 
     count: wp.array(dtype=int)
     index: wp.array(dtype=int)
+    grad_factor: wp.array(dtype=float)
     stride_i: int
     stride_k: int
     capacity: int
@@ -109,14 +124,6 @@ def kernel_dw(r: float, h: float, kind: int) -> float:
 
 
 @wp.func
-def kernel_grad(rij: wp.vec3, r: float, h: float, kind: int) -> wp.vec3:
-    """Gradient of W with respect to x_i for rij = x_i - x_j, r = |rij|."""
-    if r <= 1.0e-9 * h:
-        return wp.vec3(0.0)
-    return rij * (kernel_dw(r, h, kind) / r)
-
-
-@wp.func
 def cohesion_spline(r: float, h: float) -> float:
     """Akinci et al. (2013) cohesion spline C(r) [1/m^3]: repulsive below h/2, attractive above."""
     if r >= h or r <= 0.0:
@@ -127,6 +134,37 @@ def cohesion_spline(r: float, h: float) -> float:
     if 2.0 * r > h:
         return c * a
     return c * (2.0 * a - h3 * h3 / 64.0)
+
+
+@wp.func
+def pair_terms(p: FluidParams, r2: float) -> wp.vec2:
+    """(m W(r), f) of a pair at squared distance r2 [m^2]: the density contribution [kg/m^3] and
+    the gradient factor f [1/m^2] with (m / rho0) grad_i W_ij = f (x_i - x_j). Any r2 >= 0 (zero
+    beyond h), without data-dependent branches and with constants precomputed: this is the inner
+    loop of every density pass."""
+    r = wp.sqrt(r2)
+    q = r * p.inv_h
+    t = wp.max(1.0 - q, 0.0)
+    if p.kernel == KERNEL_CUBIC:
+        u = wp.max(0.5 - q, 0.0)
+        # one expression for both spline pieces, no select: W = k (2 t^3 - 8 u^3) equals
+        # k (6 q^3 - 6 q^2 + 1) for q <= 1/2 and 2 k t^3 above; dW/dr = l (4 u^2 - t^2) equals
+        # l q (3 q - 2) below and -l t^2 above (at r = 0 the numerator is exactly 0)
+        w = p.w_scale * (2.0 * t * t * t - 8.0 * u * u * u)
+        return wp.vec2(w, p.g_scale * (4.0 * u * u - t * t) / wp.max(r, 1.0e-30))
+    t3 = t * t * t
+    return wp.vec2(p.w_scale * t3 * t * (1.0 + 4.0 * q), -p.g_scale * p.inv_h * t3)
+
+
+@wp.func
+def pair_density(p: FluidParams, r: float) -> float:
+    """m W(r) [kg/m^3] alone (the first component of :func:`pair_terms`, without its division)."""
+    q = r * p.inv_h
+    t = wp.max(1.0 - q, 0.0)
+    if p.kernel == KERNEL_CUBIC:
+        u = wp.max(0.5 - q, 0.0)
+        return p.w_scale * (2.0 * t * t * t - 8.0 * u * u * u)
+    return p.w_scale * t * t * t * t * (1.0 + 4.0 * q)
 
 
 # -------------------------------------------------------------------------------- boundaries
@@ -224,7 +262,9 @@ def boundary_density(b: Boundaries, x: wp.vec3, h: float) -> wp.vec4:
     acc = wp.vec4(0.0, 0.0, 0.0, 1.0)
     for p in range(b.plane_offsets.shape[0]):
         n = b.plane_normals[p]
-        acc = union_term(acc, wall_term(b, wp.dot(n, x) - b.plane_offsets[p], n, h))
+        d = wp.dot(n, x) - b.plane_offsets[p]
+        if d < h:  # most particles are beyond the reach of most walls
+            acc = union_term(acc, wall_term(b, d, n, h))
     for s in range(b.capsule_radii.shape[0]):
         sd = capsule_distance(b, s, x)
         acc = union_term(acc, wall_term(b, sd[3], wp.vec3(sd[0], sd[1], sd[2]), h))
@@ -262,32 +302,93 @@ def project_shapes(b: Boundaries, x: wp.vec3, radius: float) -> wp.vec3:
 
 
 # ---------------------------------------------------------------------------------- stages
+@wp.func
+def store_density_constraint(
+    p: FluidParams,
+    b: Boundaries,
+    i: int,
+    xi: wp.vec3,
+    rho_fluid: float,
+    grad_fluid: wp.vec3,
+    sum_grad2: float,
+    stats_row: int,
+    density_out: wp.array(dtype=float),
+    lambda_out: wp.array(dtype=float),
+    boundary_grad_out: wp.array(dtype=wp.vec3),
+    stats_out: wp.array(dtype=float),
+):
+    """Add the boundaries to particle i's density sums and store rho_i, its PBF multiplier
+    lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps) of C_i = max(rho_i / rho0 - 1, 0), and the
+    boundary gradient. stats_row >= 0 accumulates sum(C) and max(C) into stats_out[2 stats_row],
+    stats_out[2 stats_row + 1]."""
+    bd = boundary_density(b, xi, p.h)
+    rho = rho_fluid + p.rest_density * bd[3]
+    gb = wp.vec3(bd[0], bd[1], bd[2])
+    grad_i = grad_fluid + gb
+    c = wp.max(rho / p.rest_density - 1.0, 0.0)
+    lam = -c / (sum_grad2 + wp.dot(grad_i, grad_i) + p.relaxation)
+    density_out[i] = rho
+    lambda_out[i] = lam
+    boundary_grad_out[i] = gb
+    if stats_row >= 0:
+        wp.atomic_add(stats_out, 2 * stats_row, c)
+        wp.atomic_max(stats_out, 2 * stats_row + 1, c)
+
+
 @wp.kernel
-def build_neighbors(
+def find_neighbors_density(
     grid: wp.uint64,
+    p: FluidParams,
+    b: Boundaries,
     x: wp.array(dtype=wp.vec3),
-    h: float,
+    with_density: int,
+    stats_row: int,
     nb_out: NeighborList,
     overflow_out: wp.array(dtype=int),
+    density_out: wp.array(dtype=float),
+    lambda_out: wp.array(dtype=float),
+    boundary_grad_out: wp.array(dtype=wp.vec3),
+    stats_out: wp.array(dtype=float),
 ):
-    """Neighbour list of each particle: hash-grid candidates kept when |x_i - x_j| < h, j != i.
-    overflow_out[0] receives the largest count that did not fit (0 when all fit)."""
+    """Neighbour list of each particle (hash-grid candidates kept when |x_i - x_j| < h, j != i).
+    With with_density != 0 it is fused with the first density evaluation
+    (:func:`store_density_constraint`) and fills the pair gradient cache, saving a pass over the
+    list (the CPU's choice); else only the list is built (on GPUs, where evaluating pairs inside
+    the candidate loop would leave most threads of a warp idle) and the outputs after
+    ``overflow_out`` are not touched. overflow_out[0] receives the largest count that did not fit
+    (0 when all fit)."""
     tid = wp.tid()
     i = wp.hash_grid_point_id(grid, tid)
     xi = x[i]
     capacity = nb_out.capacity
     base = i * nb_out.stride_i
     count = int(0)
-    for j in wp.hash_grid_query(grid, xi, h):
-        if j != i:
-            if wp.length_sq(xi - x[j]) < h * h:
-                if count < capacity:
-                    nb_out.index[base + count * nb_out.stride_k] = j
-                count += 1
+    rho = p.self_density
+    grad_i = wp.vec3(0.0)
+    sum_grad2 = float(0.0)
+    query = wp.hash_grid_query(grid, xi, p.h)
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        rij = xi - x[j]
+        r2 = wp.dot(rij, rij)
+        if r2 < p.h2 and j != i:
+            if count < capacity:
+                k = base + count * nb_out.stride_k
+                nb_out.index[k] = j
+                if with_density != 0:
+                    wf = pair_terms(p, r2)
+                    rho += wf[0]
+                    grad_i += wf[1] * rij
+                    sum_grad2 += wf[1] * wf[1] * r2
+                    nb_out.grad_factor[k] = wf[1]
+            count += 1
     if count > capacity:
         wp.atomic_max(overflow_out, 0, count)
         count = capacity
     nb_out.count[i] = count
+    if with_density != 0:
+        store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, stats_row, density_out, lambda_out,
+                                 boundary_grad_out, stats_out)
 
 
 @wp.kernel
@@ -295,15 +396,13 @@ def predict_positions(
     p: FluidParams,
     b: Boundaries,
     x: wp.array(dtype=wp.vec3),
-    v_io: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
     dt: float,
     x_pred_out: wp.array(dtype=wp.vec3),
 ):
-    """v += dt g; x* = x + dt v, kept in front of every plane."""
+    """x* = x + dt (v + dt g), kept in front of every plane."""
     i = wp.tid()
-    v = v_io[i] + dt * p.gravity
-    v_io[i] = v
-    x_pred_out[i] = project_planes(b, x[i] + dt * v, p.radius)
+    x_pred_out[i] = project_planes(b, x[i] + dt * (v[i] + dt * p.gravity), p.radius)
 
 
 @wp.kernel
@@ -312,44 +411,33 @@ def solve_density_lambda(
     b: Boundaries,
     x: wp.array(dtype=wp.vec3),
     nb: NeighborList,
-    accumulate: int,
+    stats_row: int,
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
     boundary_grad_out: wp.array(dtype=wp.vec3),
-    lambda_sum_io: wp.array(dtype=float),
+    stats_out: wp.array(dtype=float),
 ):
-    """PBF (Macklin and Mueller 2013): density rho_i = sum_j m W_ij + rho0 phi_boundary and the
-    multiplier lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps) of C_i = max(rho_i / rho0 - 1, 0).
-    lambda_sum accumulates lambda over the iterations of a step (set when accumulate == 0)."""
+    """PBF (Macklin and Mueller 2013): density rho_i = sum_j m W_ij + rho0 phi_boundary over the
+    neighbour list at the current positions and the multiplier lambda_i
+    (:func:`store_density_constraint`); refreshes the list's gradient cache."""
     i = wp.tid()
     xi = x[i]
-    h = p.h
-    rho = p.mass * kernel_w(0.0, h, p.kernel)
-    scale = p.mass / p.rest_density
+    rho = p.self_density
     grad_i = wp.vec3(0.0)
     sum_grad2 = float(0.0)
-    for k in range(nb.count[i]):
-        j = nb.index[i * nb.stride_i + k * nb.stride_k]
-        rij = xi - x[j]
-        r = wp.length(rij)
-        rho += p.mass * kernel_w(r, h, p.kernel)
-        g = scale * kernel_grad(rij, r, h, p.kernel)
-        grad_i += g
-        sum_grad2 += wp.dot(g, g)
-    bd = boundary_density(b, xi, h)
-    rho += p.rest_density * bd[3]
-    gb = wp.vec3(bd[0], bd[1], bd[2])
-    grad_i += gb
-    sum_grad2 += wp.dot(grad_i, grad_i)
-    c = wp.max(rho / p.rest_density - 1.0, 0.0)
-    lam = -c / (sum_grad2 + p.relaxation)
-    density_out[i] = rho
-    lambda_out[i] = lam
-    boundary_grad_out[i] = gb
-    if accumulate == 0:
-        lambda_sum_io[i] = lam
-    else:
-        lambda_sum_io[i] = lambda_sum_io[i] + lam
+    e = i * nb.stride_i
+    end = e + nb.count[i] * nb.stride_k
+    while e < end:
+        rij = xi - x[nb.index[e]]
+        r2 = wp.dot(rij, rij)
+        wf = pair_terms(p, r2)
+        rho += wf[0]
+        grad_i += wf[1] * rij
+        sum_grad2 += wf[1] * wf[1] * r2
+        nb.grad_factor[e] = wf[1]
+        e += nb.stride_k
+    store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, stats_row, density_out, lambda_out,
+                             boundary_grad_out, stats_out)
 
 
 @wp.kernel
@@ -360,22 +448,29 @@ def solve_density_correct(
     nb: NeighborList,
     lam: wp.array(dtype=float),
     boundary_grad: wp.array(dtype=wp.vec3),
+    accumulate: int,
+    lambda_sum_io: wp.array(dtype=float),
     x_out: wp.array(dtype=wp.vec3),
 ):
     """Jacobi position correction dx_i = sum_j m/rho0 (lambda_i + lambda_j) grad W_ij +
-    lambda_i grad phi_boundary, then kept in front of every plane."""
+    lambda_i grad phi_boundary (gradients from the list's cache, i.e. at the positions ``x`` of
+    the density pass that computed ``lam``), then kept in front of every plane. lambda_sum
+    accumulates the applied multipliers over a step (set when accumulate == 0)."""
     i = wp.tid()
     xi = x[i]
     li = lam[i]
-    scale = p.mass / p.rest_density
-    dx = wp.vec3(0.0)
-    for k in range(nb.count[i]):
-        j = nb.index[i * nb.stride_i + k * nb.stride_k]
-        rij = xi - x[j]
-        r = wp.length(rij)
-        dx += (scale * (li + lam[j])) * kernel_grad(rij, r, p.h, p.kernel)
-    dx += li * boundary_grad[i]
+    dx = li * boundary_grad[i]
+    e = i * nb.stride_i
+    end = e + nb.count[i] * nb.stride_k
+    while e < end:
+        j = nb.index[e]
+        dx += ((li + lam[j]) * nb.grad_factor[e]) * (xi - x[j])
+        e += nb.stride_k
     x_out[i] = project_planes(b, xi + dx, p.radius)
+    if accumulate == 0:
+        lambda_sum_io[i] = li
+    else:
+        lambda_sum_io[i] = lambda_sum_io[i] + li
 
 
 @wp.kernel
@@ -386,50 +481,61 @@ def project_boundaries(p: FluidParams, b: Boundaries, x_io: wp.array(dtype=wp.ve
     x_io[i] = project_planes(b, y, p.radius)
 
 
+@wp.func
+def step_velocity(x_old: wp.array(dtype=wp.vec3), x_new: wp.array(dtype=wp.vec3), i: int,
+                  inv_dt: float) -> wp.vec3:
+    """PBF velocity (x_new - x_old) / dt of particle i [m/s]."""
+    return (x_new[i] - x_old[i]) * inv_dt
+
+
 @wp.kernel
 def update_velocities(
     p: FluidParams,
     x_io: wp.array(dtype=wp.vec3),
-    x_pred: wp.array(dtype=wp.vec3),
+    x_new: wp.array(dtype=wp.vec3),
     lambda_sum: wp.array(dtype=float),
     dt: float,
     v_out: wp.array(dtype=wp.vec3),
     pressure_out: wp.array(dtype=float),
 ):
-    """v = (x* - x) / dt, x = x*; pressure p = -rho0 sum(lambda) / dt^2 [Pa]: the correction
+    """v = (x_new - x) / dt, x = x_new; pressure p = -rho0 sum(lambda) / dt^2 [Pa]: the correction
     sum_j V (L_i + L_j) grad W_ij of L = sum(lambda) is the SPH gradient of L, and it equals dt^2
     times the pressure acceleration -grad p / rho0."""
     i = wp.tid()
-    xp = x_pred[i]
-    v_out[i] = (xp - x_io[i]) / dt
-    x_io[i] = xp
+    v_out[i] = step_velocity(x_io, x_new, i, 1.0 / dt)
+    x_io[i] = x_new[i]
     pressure_out[i] = -p.rest_density * lambda_sum[i] / (dt * dt)
 
 
 @wp.kernel
 def compute_curl_normals(
     p: FluidParams,
+    x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
+    dt: float,
     density: wp.array(dtype=float),
     nb: NeighborList,
     curl_out: wp.array(dtype=wp.vec3),
     normal_out: wp.array(dtype=wp.vec3),
 ):
-    """Vorticity w_i = sum_j m/rho_j grad_i W_ij x (v_j - v_i) [1/s] (the SPH curl of v) and Akinci's surface normal
-    n_i = h sum_j m/rho_j grad_i W_ij (dimensionless)."""
+    """At positions x with velocities v = (x - x_old) / dt: vorticity
+    w_i = sum_j m/rho_j grad_i W_ij x (v_j - v_i) [1/s] (the SPH curl of v) and Akinci's surface
+    normal n_i = h sum_j m/rho_j grad_i W_ij (dimensionless)."""
     i = wp.tid()
     xi = x[i]
-    vi = v[i]
+    inv_dt = 1.0 / dt
+    vi = step_velocity(x_old, x, i, inv_dt)
     w = wp.vec3(0.0)
     nrm = wp.vec3(0.0)
-    for k in range(nb.count[i]):
-        j = nb.index[i * nb.stride_i + k * nb.stride_k]
+    e = i * nb.stride_i
+    end = e + nb.count[i] * nb.stride_k
+    while e < end:
+        j = nb.index[e]
         rij = xi - x[j]
-        r = wp.length(rij)
-        g = (p.mass / density[j]) * kernel_grad(rij, r, p.h, p.kernel)
-        w += wp.cross(g, v[j] - vi)
+        g = (pair_terms(p, wp.dot(rij, rij))[1] * p.rest_density / density[j]) * rij
+        w += wp.cross(g, step_velocity(x_old, x, j, inv_dt) - vi)
         nrm += g
+        e += nb.stride_k
     curl_out[i] = w
     normal_out[i] = p.h * nrm
 
@@ -438,36 +544,43 @@ def compute_curl_normals(
 def apply_velocity_filters(
     p: FluidParams,
     b: Boundaries,
+    x_old: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
     density: wp.array(dtype=float),
     nb: NeighborList,
     curl: wp.array(dtype=wp.vec3),
     normal: wp.array(dtype=wp.vec3),
     use_curl: int,
+    lambda_sum: wp.array(dtype=float),
     dt: float,
     v_out: wp.array(dtype=wp.vec3),
+    pressure_out: wp.array(dtype=float),
 ):
-    """XSPH viscosity (symmetric weights 2m/(rho_i + rho_j), so momentum is conserved), boundary
-    friction, vorticity confinement (Fedkiw et al. 2001, as in PBF) and Akinci et al. (2013)
-    surface tension (cohesion + curvature, pairwise antisymmetric)."""
+    """The step's velocities v = (x - x_old) / dt, filtered: XSPH viscosity (symmetric weights
+    2m/(rho_i + rho_j), so momentum is conserved), boundary friction, vorticity confinement
+    (Fedkiw et al. 2001, as in PBF) and Akinci et al. (2013) surface tension (cohesion +
+    curvature, pairwise antisymmetric); and the pressure as in :func:`update_velocities`."""
     i = wp.tid()
     xi = x[i]
-    vi = v[i]
+    inv_dt = 1.0 / dt
+    vi = step_velocity(x_old, x, i, inv_dt)
     rhoi = density[i]
     h = p.h
     dv = wp.vec3(0.0)
     eta = wp.vec3(0.0)
     accel = wp.vec3(0.0)
-    for k in range(nb.count[i]):
-        j = nb.index[i * nb.stride_i + k * nb.stride_k]
+    e = i * nb.stride_i
+    end = e + nb.count[i] * nb.stride_k
+    while e < end:
+        j = nb.index[e]
+        e += nb.stride_k
         rij = xi - x[j]
-        r = wp.length(rij)
+        r2 = wp.dot(rij, rij)
+        r = wp.sqrt(r2)
         rhoj = density[j]
-        wij = kernel_w(r, h, p.kernel)
-        dv += (2.0 * p.mass / (rhoi + rhoj) * wij) * (v[j] - vi)
+        dv += (2.0 * pair_density(p, r) / (rhoi + rhoj)) * (step_velocity(x_old, x, j, inv_dt) - vi)
         if use_curl != 0:
-            eta += (p.mass / rhoj * wp.length(curl[j])) * kernel_grad(rij, r, h, p.kernel)
+            eta += (pair_terms(p, r2)[1] * p.rest_density / rhoj * wp.length(curl[j])) * rij
             if p.surface_tension > 0.0 and r > 1.0e-9 * h:
                 kij = 2.0 * p.rest_density / (rhoi + rhoj)
                 coh = (-p.surface_tension * p.mass * cohesion_spline(r, h) / r) * rij
@@ -482,6 +595,7 @@ def apply_velocity_filters(
         if le > 1.0e-9:
             accel += p.vorticity * wp.cross(eta / le, curl[i])
     v_out[i] = vnew + dt * accel
+    pressure_out[i] = -p.rest_density * lambda_sum[i] / (dt * dt)
 
 
 @wp.kernel

@@ -18,6 +18,7 @@ from warpsim.sph import (
     Nozzle,
     ParticleFluid,
     Sink,
+    _kernel_dw_numpy,
     fluid_block,
     kernel_numpy,
     lattice_mass,
@@ -60,6 +61,33 @@ def test_smoothing_kernels_match_numpy_and_integrate_to_one(kernel, device):
     assert np.all(coh[r >= h] == 0.0)
 
 
+@wp.kernel
+def eval_pair_terms(p: K.FluidParams, r: wp.array(dtype=float), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    wf = K.pair_terms(p, r[i] * r[i])
+    out[i] = wp.vec3(wf[0], wf[1], K.pair_density(p, r[i]))
+
+
+@pytest.mark.parametrize("kernel", ["cubic", "wendland"])
+def test_pair_terms_match_numpy(kernel, device):
+    """The solver's fused inner-loop kernel terms (precomputed constants, no branches): m W(r) and
+    the gradient factor f with (m / rho0) grad_i W = f (x_i - x_j), from r = 0 to beyond h."""
+    s = 0.02
+    f = ParticleFluid(fluid_block((0, 0, 0), (0.06, 0.06, 0.06), s), spacing=s, kernel=kernel, device=device)
+    h, m, rho0 = f.h, f.particle_mass, f.rest_density
+    r = np.concatenate([[0.0], np.linspace(1e-3 * h, 1.2 * h, 997), [0.5 * h, h]])
+    out = wp.zeros(len(r), dtype=wp.vec3, device=device)
+    wp.launch(eval_pair_terms, len(r), inputs=[f._params, wp.array(r, dtype=float, device=device)], outputs=[out],
+              device=device)
+    w, g, w_only = out.numpy().astype(np.float64).T
+    np.testing.assert_allclose(w, m * kernel_numpy(r, h, kernel), rtol=1e-5, atol=1e-6 * m * kernel_numpy(0.0, h, kernel))
+    np.testing.assert_allclose(w, w_only, rtol=1e-6, atol=0.0)
+    expected = m / rho0 * _kernel_dw_numpy(r[1:], h, kernel) / r[1:]
+    np.testing.assert_allclose(g[1:], expected, rtol=1e-4, atol=1e-5 * np.abs(expected).max())
+    assert np.isfinite(g[0])  # at r = 0 the gradient f (x_i - x_j) is 0 whatever f is
+    assert np.all(w[r >= h] == 0.0) and np.all(g[r >= h] == 0.0)
+
+
 def test_wall_tables_continuous_and_lattice():
     h, s = 0.04, 0.02
     phi_c, dphi_c = wall_tables(h, "cubic")
@@ -100,7 +128,7 @@ def test_step_matches_numpy_reference(device):
     v0 = rng.normal(0.0, 0.2, x0.shape)
     dom = ((0.0, 0.0, 0.0), (0.2, 0.3, 0.12))
     f = ParticleFluid(x0, v0, spacing=s, domain=dom, viscosity=0.05, boundary_viscosity=0.1, iterations=3,
-                      device=device)
+                      density_tolerance=0.0, device=device)
     phi, dphi = wall_tables(f.h, "cubic", s)
     eye = np.eye(3)
     normals = np.concatenate([eye, -eye])
@@ -116,6 +144,51 @@ def test_step_matches_numpy_reference(device):
     assert np.abs(f.positions.numpy() - x).max() < 2e-6
     assert np.abs(f.velocities.numpy() - v).max() < 2e-3
     np.testing.assert_allclose(f.density.numpy(), rho, rtol=1e-4)
+
+
+def test_fused_neighbor_density_pass_matches_separate_passes():
+    """The CPU's neighbour search with the first density pass fused in gives bit for bit the
+    steps of the separate passes GPUs run (list, then density over the list)."""
+    s = 0.02
+    x0 = fluid_block((0, 0, 0), (0.1, 0.16, 0.1), s, jitter=0.1, seed=5)
+    x0 = np.clip(x0, 0.5 * s, None)
+    runs = []
+    for fused in (True, False):
+        f = ParticleFluid(x0, spacing=s, domain=((0, 0, 0), (0.3, 0.3, 0.1)), device="cpu")
+        f._fused_density = fused
+        for _ in range(15):
+            f.step(1.0 / 300.0)
+        runs.append((f.positions.numpy(), f.density.numpy(), f.total_iterations))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    assert runs[0][2] == runs[1][2]
+
+
+def test_adaptive_iterations_stop_below_the_tolerance():
+    """On the CPU a step stops iterating once the mean compression is below density_tolerance:
+    every step that stopped early ends below it, a fluid nothing compresses needs no iteration,
+    and tolerance 0 runs every iteration."""
+    s = 0.02
+    tol = 0.002
+    f = ParticleFluid(fluid_block((0, 0, 0), (0.12, 0.24, 0.1), s), spacing=s,
+                      domain=((0, 0, 0), (0.4, 0.3, 0.1)), iterations=6, density_tolerance=tol, device="cpu")
+    used = []
+    for _ in range(40):
+        f.step(1.0 / 200.0)
+        used.append(f.last_iterations)
+        if f.last_iterations < f.iterations:
+            rho = f.measure_density() / f.rest_density
+            assert np.maximum(rho - 1.0, 0.0).mean() < tol
+    print("iterations per step:", used)
+    assert min(used) < max(used) == 6 and f.total_iterations == sum(used)  # it adapts
+    free = ParticleFluid(fluid_block((0, 0, 0), (0.1, 0.1, 0.1), s), spacing=s, device="cpu")
+    for _ in range(5):
+        free.step(1.0 / 200.0)  # falling freely: nothing compresses the lattice
+    assert free.total_iterations == 0
+    fixed = ParticleFluid(fluid_block((0, 0, 0), (0.1, 0.1, 0.1), s), spacing=s, iterations=3,
+                          density_tolerance=0.0, device="cpu")
+    fixed.step(1.0 / 200.0)
+    assert fixed.last_iterations == 3
 
 
 # ------------------------------------------------------------------------------ validation
@@ -368,7 +441,9 @@ def test_vorticity_confinement_and_surface_tension():
     f = ParticleFluid(x0, spin, spacing=s, gravity=(0, 0, 0), device="cpu")
     f.measure_density()
     n = f.active_count
-    wp.launch(K.compute_curl_normals, n, inputs=[f._params, f.positions, f.velocities, f._density, f._neighbors],
+    dt = 0.01  # velocities as the solver sees them: (x - x_old) / dt
+    x_old = wp.array(x0 - dt * spin, dtype=wp.vec3, device="cpu")
+    wp.launch(K.compute_curl_normals, n, inputs=[f._params, x_old, f.positions, dt, f._density, f._neighbors],
               outputs=[f._curl, f._normal], device="cpu")
     bulk = np.all(np.abs(x0) < 0.06 - f.h, axis=1)
     # (the cubic lattice's SPH gradient moment is 1.02, not 1)
@@ -408,6 +483,7 @@ def test_bad_input_names_the_item():
         (dict(spacing=-1.0), "spacing"),
         (dict(kernel="gauss"), "kernel"),
         (dict(iterations=0), "iterations"),
+        (dict(density_tolerance=-0.1), "density_tolerance"),
         (dict(viscosity=2.0), "viscosity"),
         (dict(capacity=3), "capacity"),
         (dict(domain=((0, 0, 0), (0.01, 0.01, 0.01))), "domain"),

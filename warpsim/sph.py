@@ -2,10 +2,15 @@
 
 Method (Macklin and Mueller 2013, "Position Based Fluids"): each step predicts positions under
 gravity, finds neighbours once with ``wp.HashGrid`` (candidates filtered by true distance into a
-per-particle list), then runs a fixed number of Jacobi iterations that project every particle's
-density constraint ``C_i = max(rho_i / rho0 - 1, 0)`` and finally derives velocities from the
-position change, filtered by XSPH viscosity, optional vorticity confinement and optional
-surface tension (Akinci et al. 2013).
+per-particle list, fused with the first density evaluation), then runs Jacobi iterations that
+project every particle's density constraint ``C_i = max(rho_i / rho0 - 1, 0)`` and finally
+derives velocities from the position change, filtered by XSPH viscosity, optional vorticity
+confinement and optional surface tension (Akinci et al. 2013).
+
+Adaptive iterations (on the CPU): a step stops iterating once the mean compression is below
+``density_tolerance``; ``iterations`` is the most it runs. Each correction reuses the kernel
+gradients its density pass cached in the neighbour list, and the velocity update is fused with
+the XSPH / vorticity / surface-tension filters.
 
 Why PBF on GPUs: every iteration is two embarrassingly parallel gather passes over a neighbour
 list built once per step (no linear system, no atomics, no global reductions), it is stable at
@@ -21,8 +26,9 @@ the solve (spheres, meshes), so no particle ever leaves a closed container.
 
 Time steps: :meth:`ParticleFluid.advance` splits a frame into equal sub-steps chosen from the CFL
 condition ``dt <= cfl * spacing / v_max`` (a few small device read-backs per frame: the
-largest speed, neighbour-list overflow, sink counts); :meth:`step` itself allocates nothing and
-reads nothing back.
+largest speed, neighbour-list overflow, sink counts); :meth:`step` itself allocates nothing and,
+on CUDA devices, reads nothing back (so it can be captured in a graph); on the CPU it reads one
+scalar per iteration for the adaptive stop.
 
 Example::
 
@@ -289,7 +295,10 @@ class ParticleFluid:
         gravity: [m/s^2].
         kernel: "cubic" (cubic B-spline) or "wendland" (Wendland C2).
         support: kernel support radius in spacings (default 2: about 33 neighbours).
-        iterations: PBF Jacobi iterations per step.
+        iterations: most PBF Jacobi iterations (position corrections) per step; CUDA steps run
+            all of them.
+        density_tolerance: on the CPU, a step stops iterating once the mean compression
+            mean(max(rho/rho0 - 1, 0)) is below this (0: always run ``iterations``).
         viscosity: XSPH coefficient c in [0, 1].
         vorticity: vorticity-confinement strength epsilon [m] (0: off).
         surface_tension: Akinci cohesion/curvature coefficient gamma [1/s^2] (0: off).
@@ -310,9 +319,9 @@ class ParticleFluid:
 
     def __init__(self, positions, velocities=None, *, spacing, rest_density=1000.0, capacity=None, domain=None,
                  colliders=(), gravity=(0.0, -9.81, 0.0), kernel="cubic", support=2.0, iterations=4,
-                 viscosity=0.01, vorticity=0.0, surface_tension=0.0, boundary_viscosity=0.0, emitters=(),
-                 sinks=(), cfl=0.4, max_dt=1.0 / 200.0, max_neighbors=64, max_speed=100.0, sort_every=0,
-                 device=None):
+                 density_tolerance=0.002, viscosity=0.01, vorticity=0.0, surface_tension=0.0,
+                 boundary_viscosity=0.0, emitters=(), sinks=(), cfl=0.4, max_dt=1.0 / 200.0, max_neighbors=64,
+                 max_speed=100.0, sort_every=0, device=None):
         self.spacing = _positive("spacing", spacing)
         self.rest_density = _positive("rest_density", rest_density)
         if kernel not in KERNELS:
@@ -326,6 +335,7 @@ class ParticleFluid:
         if int(iterations) != iterations or iterations < 1:
             raise ValueError(f"iterations = {iterations!r}; it must be an integer >= 1")
         self.iterations = int(iterations)
+        self.density_tolerance = _positive("density_tolerance", density_tolerance, allow_zero=True)
         for name, value in (("viscosity", viscosity), ("boundary_viscosity", boundary_viscosity)):
             if not (0.0 <= float(value) <= 1.0):
                 raise ValueError(f"{name} = {value}; it must be in [0, 1]")
@@ -412,7 +422,7 @@ class ParticleFluid:
                         for pts, faces, _, _ in meshes]
 
         def arr(values, shape, dtype):
-            return wp.array(np.array(values, dtype=np.float32 if dtype != int else np.int32).reshape(shape),
+            return wp.array(np.array(values, dtype=np.float32 if dtype is not int else np.int32).reshape(shape),
                             dtype=dtype, device=d)
 
         b = K.Boundaries()
@@ -445,6 +455,16 @@ class ParticleFluid:
         p.vorticity = vorticity
         p.surface_tension = surface_tension
         p.boundary_viscosity = float(boundary_viscosity)
+        h = self.h
+        p.inv_h = 1.0 / h
+        p.h2 = h * h
+        if kernel == "cubic":
+            w_norm, g_norm = 8.0 / (math.pi * h**3), 48.0 / (math.pi * h**4)
+        else:
+            w_norm, g_norm = 21.0 / (2.0 * math.pi * h**3), 210.0 / (math.pi * h**4)
+        p.w_scale = self.particle_mass * w_norm
+        p.g_scale = self.particle_mass / self.rest_density * g_norm
+        p.self_density = self.particle_mass * w_norm
         self._params = p
         self._use_curl = vorticity > 0.0 or surface_tension > 0.0
         self._use_filters = self._use_curl or viscosity > 0.0 or boundary_viscosity > 0.0
@@ -473,10 +493,16 @@ class ParticleFluid:
         nb.capacity = int(max_neighbors)
         nb.count = wp.zeros(cap, dtype=int, device=d)
         nb.index = wp.zeros(cap * nb.capacity, dtype=int, device=d)
+        nb.grad_factor = wp.zeros(cap * nb.capacity, dtype=float, device=d)
         nb.stride_i, nb.stride_k = nb.capacity, 1  # row-major: measured faster than column-major on an H200 too
         self._neighbors = nb
         self._overflow = wp.zeros(1, dtype=int, device=d)
         self._reduce = wp.zeros(2, dtype=float, device=d)
+        self._stats = wp.zeros(2 * (self.iterations + 1), dtype=float, device=d)
+        self._adaptive = d.is_cpu and self.density_tolerance > 0.0
+        self._fused_density = d.is_cpu  # first density pass inside the neighbour search (see the kernel)
+        # on the CPU, numpy() is a view of the same memory: reading it needs no copy or launch
+        self._stats_host = self._stats.numpy() if self._adaptive else None
         self._alive = wp.zeros(cap, dtype=int, device=d)
         self._slot = wp.zeros(cap, dtype=int, device=d)
         self._ids_tmp = wp.zeros(cap, dtype=int, device=d)
@@ -505,6 +531,11 @@ class ParticleFluid:
         self.frame_count = 0
         self.last_substeps = 0
         self.last_dt = 0.0
+        """Length of the last step [s] (0 before the first)."""
+        self.last_iterations = 0
+        """Position corrections the last step ran."""
+        self.total_iterations = 0
+        """Position corrections over all steps (with step_count: the mean per step)."""
         self.dropped = 0
         """Particles an emitter could not emit because the capacity was full."""
 
@@ -565,7 +596,8 @@ class ParticleFluid:
                 e.emitted += k
 
     def step(self, dt: float) -> None:
-        """One PBF step of ``dt`` [s] (emitters included). Allocates nothing, reads nothing back.
+        """One PBF step of ``dt`` [s] (emitters included). Allocates nothing; reads nothing back
+        on CUDA devices (on the CPU, one scalar per iteration for the adaptive stop).
 
         Keep consecutive steps of similar size: like every position-based method, PBF turns the
         compression a step leaves into velocity over the next one, so a much shorter step right
@@ -583,32 +615,52 @@ class ParticleFluid:
         x, v = self._x[:n], self._v[:n]
         xp, xq = self._xp[:n], self._xq[:n]
         wp.launch(K.predict_positions, n, inputs=[p, b, x, v, dt, xp], device=d)
-        self._build_neighbors(xp, n)
+        adaptive = self._adaptive
+        if adaptive:
+            self._stats.zero_()
         nb = self._neighbors
+        self._build_neighbors(xp, n, 0 if adaptive else -1)
+        used = 0
         for it in range(self.iterations):
-            wp.launch(K.solve_density_lambda, n, inputs=[p, b, xp, nb, it],
-                      outputs=[self._density, self._lambda, self._bgrad, self._lambda_sum], device=d)
-            wp.launch(K.solve_density_correct, n, inputs=[p, b, xp, nb, self._lambda, self._bgrad], outputs=[xq],
-                      device=d)
+            if adaptive and float(self._stats_host[2 * it]) < self.density_tolerance * n:
+                break  # the mean compression at the current positions is below the tolerance
+            wp.launch(K.solve_density_correct, n, inputs=[p, b, xp, nb, self._lambda, self._bgrad, it],
+                      outputs=[self._lambda_sum, xq], device=d)
             xp, xq = xq, xp
+            used += 1
+            if it + 1 < self.iterations:
+                wp.launch(K.solve_density_lambda, n, inputs=[p, b, xp, nb, it + 1 if adaptive else -1],
+                          outputs=[self._density, self._lambda, self._bgrad, self._stats], device=d)
+        if used == 0:
+            self._lambda_sum.zero_()
         if self._has_shapes:
             wp.launch(K.project_boundaries, n, inputs=[p, b, xp], device=d)
-        wp.launch(K.update_velocities, n, inputs=[p, x, xp, self._lambda_sum, dt], outputs=[v, self._pressure],
-                  device=d)
         if self._use_filters:
             if self._use_curl:
-                wp.launch(K.compute_curl_normals, n, inputs=[p, x, v, self._density, nb],
+                wp.launch(K.compute_curl_normals, n, inputs=[p, x, xp, dt, self._density, nb],
                           outputs=[self._curl, self._normal], device=d)
             wp.launch(K.apply_velocity_filters, n,
-                      inputs=[p, b, x, v, self._density, nb, self._curl, self._normal, int(self._use_curl), dt],
-                      outputs=[self._vtmp], device=d)
-            wp.copy(v, self._vtmp, count=n)
+                      inputs=[p, b, x, xp, self._density, nb, self._curl, self._normal, int(self._use_curl),
+                              self._lambda_sum, dt],
+                      outputs=[v, self._pressure], device=d)
+            wp.copy(x, xp, count=n)
+        else:
+            wp.launch(K.update_velocities, n, inputs=[p, x, xp, self._lambda_sum, dt], outputs=[v, self._pressure],
+                      device=d)
         self.last_dt = dt
+        self.last_iterations = used
+        self.total_iterations += used
 
-    def _build_neighbors(self, x, n: int) -> None:
+    def _build_neighbors(self, x, n: int, stats_row: int = -1) -> None:
+        """Neighbour lists at positions ``x`` and the densities, multipliers and pair gradients
+        there (in the same pass on the CPU, in a second one on GPUs)."""
+        d, p, b, nb = self.device, self._params, self._boundaries, self._neighbors
         self._grid.build(x, self.h)
-        wp.launch(K.build_neighbors, n, inputs=[self._grid.id, x, self.h, self._neighbors],
-                  outputs=[self._overflow], device=self.device)
+        wp.launch(K.find_neighbors_density, n, inputs=[self._grid.id, p, b, x, int(self._fused_density), stats_row],
+                  outputs=[nb, self._overflow, self._density, self._lambda, self._bgrad, self._stats], device=d)
+        if not self._fused_density:
+            wp.launch(K.solve_density_lambda, n, inputs=[p, b, x, nb, stats_row],
+                      outputs=[self._density, self._lambda, self._bgrad, self._stats], device=d)
 
     def cfl_dt(self, horizon: float = 0.0) -> float:
         """Largest step [s] allowed by the CFL condition for the speed the fluid may reach within
@@ -650,9 +702,13 @@ class ParticleFluid:
         self._grid.build(self._x[:n], self.h)
         wp.launch(K.gather_sorted, n, inputs=[self._grid.id, self._x, self._v, self._ids],
                   outputs=[self._xp, self._vtmp, self._ids_tmp], device=self.device)
-        wp.copy(self._x, self._xp, count=n)
-        wp.copy(self._v, self._vtmp, count=n)
-        wp.copy(self._ids, self._ids_tmp, count=n)
+        self._take_moved(n)
+
+    def _take_moved(self, m: int) -> None:
+        """Copy the first m reordered particles back from the temporaries that gather_sorted /
+        compact_particles wrote."""
+        for dst, src in ((self._x, self._xp), (self._v, self._vtmp), (self._ids, self._ids_tmp)):
+            wp.copy(dst, src, count=m)
 
     def _check_overflow(self) -> None:
         over = int(self._overflow.numpy()[0])
@@ -679,9 +735,7 @@ class ParticleFluid:
         wp.launch(K.compact_particles, n, inputs=[self._alive, self._slot, self._x, self._v, self._ids],
                   outputs=[self._xp, self._vtmp, self._ids_tmp], device=d)
         m = n - total
-        wp.copy(self._x, self._xp, count=m)
-        wp.copy(self._v, self._vtmp, count=m)
-        wp.copy(self._ids, self._ids_tmp, count=m)
+        self._take_moved(m)
         self.active_count = m
         for sink, count in zip(self.sinks, removed):
             sink.removed += int(count)
@@ -745,11 +799,7 @@ class ParticleFluid:
         n = self.active_count
         if n == 0:
             return np.zeros(0, np.float32)
-        x = self._x[:n]
-        self._build_neighbors(x, n)
-        wp.launch(K.solve_density_lambda, n,
-                  inputs=[self._params, self._boundaries, x, self._neighbors, 0],
-                  outputs=[self._density, self._lambda, self._bgrad, self._lambda], device=self.device)
+        self._build_neighbors(self._x[:n], n)
         return self._density[:n].numpy()
 
     def density_error(self) -> tuple:
