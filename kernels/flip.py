@@ -1,6 +1,7 @@
 """FLIP/PIC kernels: particle-to-grid and grid-to-particle transfers on a MAC grid with trilinear
 weights, cell labels from particles, reseeding of sparse interior cells, pushing particles out
-of solids, and a particle signed-distance field for the liquid surface. Layout: kernels/advect.py;
+of solids, a particle signed-distance field for the liquid surface, and the particle density and
+divergence target of the volume (density) correction. Layout: kernels/advect.py;
 particle bookkeeping: kernels/grid_particles.py."""
 
 import warp as wp
@@ -148,6 +149,8 @@ def reseed_interior(
     labels: wp.array3d(dtype=int),
     open_mask: int,
     min_per_cell: int,
+    density: wp.array3d(dtype=float),
+    min_density: float,
     seed: int,
     dim: int,
     u: wp.array3d(dtype=float),
@@ -163,11 +166,12 @@ def reseed_interior(
     id_out: wp.array(dtype=int),
 ):
     """Interior FLUID cells (every neighbour FLUID or SOLID) holding fewer than min_per_cell
-    particles get new ones at random positions with the grid velocity (appended via count[0], with
+    particles and whose hat-weighted ``density`` is below ``min_density`` (pass a huge value to
+    ignore it) get new ones at random positions with the grid velocity (appended via count[0], with
     fresh ids from next_id[0])."""
     i, j, k = wp.tid()
     n = cell_count[i, j, k]
-    if labels[i, j, k] != FLUID or n >= min_per_cell:
+    if labels[i, j, k] != FLUID or n >= min_per_cell or density[i, j, k] >= min_density:
         return
     c = wp.vec3i(i, j, k)
     for a in range(dim):
@@ -220,3 +224,71 @@ def particle_sdf(
                         if k >= 0 and k < phi_io.shape[2]:
                             xc = origin + (wp.vec3(float(i), float(j), float(k)) + CENTER) * dx
                             wp.atomic_min(phi_io, i, j, k, wp.length(xc - xp) - radius)
+
+
+# ---------------------------------------------------------------- density correction
+
+
+@wp.kernel
+def particle_density(
+    count: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    alive: wp.array(dtype=float),
+    origin: wp.vec3,
+    dx: float,
+    rho_io: wp.array3d(dtype=float),
+):
+    """rho += trilinear (hat) weights of every live particle at the cell centres [particles per
+    cell]. Stencil nodes beyond the grid fold back onto the edge cell (a mirror image across the
+    wall), so a uniform packing of n particles per cell reads n up to the walls; a one-cell-thick
+    axis (2D) puts the whole weight in its single layer. Zero rho first."""
+    p = wp.tid()
+    if p >= count[0] or alive[p] == 0.0:
+        return
+    g = (x[p] - origin) / dx - CENTER
+    i0 = int(wp.floor(g[0]))
+    j0 = int(wp.floor(g[1]))
+    k0 = int(wp.floor(g[2]))
+    t = g - wp.vec3(float(i0), float(j0), float(k0))
+    nx = rho_io.shape[0]
+    ny = rho_io.shape[1]
+    nz = rho_io.shape[2]
+    for a in range(2):
+        i = wp.clamp(i0 + a, 0, nx - 1)
+        wa = wp.where(a == 0, 1.0 - t[0], t[0])
+        for b in range(2):
+            j = wp.clamp(j0 + b, 0, ny - 1)
+            wb = wa * wp.where(b == 0, 1.0 - t[1], t[1])
+            for c in range(2):
+                k = wp.clamp(k0 + c, 0, nz - 1)
+                wc = wb * wp.where(c == 0, 1.0 - t[2], t[2])
+                if wc > 0.0:
+                    wp.atomic_add(rho_io, i, j, k, wc)
+
+
+@wp.kernel
+def density_divergence_target(
+    rho: wp.array3d(dtype=float),
+    labels: wp.array3d(dtype=int),
+    open_mask: int,
+    rest: float,
+    strength: float,
+    max_target: float,
+    target_out: wp.array3d(dtype=float),
+):
+    """Divergence a position correction needs to bring the particle density back to ``rest``:
+    s = strength (rho / rest - 1), capped at max_target, at FLUID cells (0 elsewhere). Cells with
+    AIR among their 26 neighbours are partly empty, or their hat kernel reaches into partly empty
+    cells, so there only compression (s > 0) counts."""
+    i, j, k = wp.tid()
+    s = float(0.0)
+    if labels[i, j, k] == FLUID:
+        s = strength * (rho[i, j, k] / rest - 1.0)
+        if s < 0.0:
+            for a in range(-1, 2):
+                for b in range(-1, 2):
+                    for c in range(-1, 2):
+                        if label_at(labels, open_mask, wp.vec3i(i + a, j + b, k + c)) == AIR:
+                            s = 0.0
+        s = wp.min(s, max_target)
+    target_out[i, j, k] = s

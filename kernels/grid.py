@@ -171,10 +171,24 @@ def compute_divergence(
 
 
 @wp.kernel
-def pressure_rhs(div: wp.array3d(dtype=float), dx: float, rhs_out: wp.array(dtype=float)):
-    """rhs = -dx div(u) (minus the net outflow of each cell) [m/s], flattened (i, j, k) -> (i ny + j) nz + k."""
+def pressure_rhs(
+    div: wp.array3d(dtype=float),
+    labels: wp.array3d(dtype=int),
+    target: wp.array3d(dtype=float),
+    use_target: int,
+    dx: float,
+    rhs_out: wp.array(dtype=float),
+):
+    """rhs = -dx (div(u) - target) at FLUID cells, 0 elsewhere [m/s] (minus each cell's net outflow
+    beyond the wanted one), flattened (i, j, k) -> (i ny + j) nz + k. ``target`` [1/s] is the
+    divergence the projection should leave (read only when use_target != 0)."""
     i, j, k = wp.tid()
-    rhs_out[(i * div.shape[1] + j) * div.shape[2] + k] = -dx * div[i, j, k]
+    d = float(0.0)
+    if labels[i, j, k] == FLUID:
+        d = div[i, j, k]
+        if use_target != 0:
+            d = d - target[i, j, k]
+    rhs_out[(i * div.shape[1] + j) * div.shape[2] + k] = -dx * d
 
 
 @wp.kernel

@@ -51,6 +51,6 @@ OTHER_TESTED = {
     "collisions.py",  # tests/test_colliders.py
     "cloth_drape.py",  # tests/test_cloth.py
     "cloth_implicit.py",  # tests/test_cloth.py
-    "smoke_plume.py",  # tests/test_grid_fluids.py
+    "smoke.py",  # tests/test_grid_fluids.py
     "levelset_liquid.py",  # tests/test_grid_fluids.py
 }

@@ -1,5 +1,7 @@
 """FLIP/PIC liquid (Zhu and Bridson 2005): particles carry the velocity, a MAC grid does the
-pressure projection each step, and a FLIP/PIC blend transfers the grid's change back."""
+pressure projection each step, and a FLIP/PIC blend transfers the grid's change back. A second,
+position-only projection (implicit density projection, Kugelstadt et al., IEEE TVCG 2021) keeps the
+particles at their rest density, so the liquid keeps its volume."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from .kernels import advect as KA
 from .kernels import flip as K
 from .kernels import grid_forces as KF
 from .levelset_liquid import gravity_vector
-from .mac_grid import check_finite, check_positive
+from .mac_grid import MacGrid, check_finite, check_positive
 
 
 class FlipLiquid:
@@ -31,17 +33,30 @@ class FlipLiquid:
         capacity: particle capacity (default 2 x the particles seeded by the first ``add_*`` call, at
             least 1024; pass it when adding liquid in several calls).
         tol, preconditioner: pressure solver settings.
+        density_correction: strength in [0, 1] of the per-step volume correction (0: off). After the
+            particles move, their density on the grid (hat-weighted particles per cell, rest value
+            ``particles_per_cell``) sets a divergence target s = strength (rho / rest - 1) (only
+            s > 0 within one cell of air); a second Poisson solve finds the curl-free displacement
+            field with that divergence (zero on walls, zero pressure in air) and the particles move
+            along it. Positions only: velocities are untouched (implicit density projection,
+            Kugelstadt et al., IEEE TVCG 2021). It undoes the slow compaction of FLIP particles that otherwise
+            shrinks the liquid, and keeps their spacing even, so reseeding adds few particles.
+        density_tol: relative CG tolerance of the correction solve.
+        max_density_target: cap on s per step (limits the displacement after a violent impact).
         seed: random seed for particle placement.
         extrapolation_layers: faces filled beyond the liquid each step.
 
     Attributes: ``particles`` (GridParticles with fields ``x`` [m], ``v`` [m/s], ``alive``, ``id``
     (persistent, new ids for reseeded particles)),
-    ``pressure`` (PressureSolver), ``phi`` (particle signed distance from ``surface()`` [m]).
+    ``pressure`` (PressureSolver), ``phi`` (particle signed distance from ``surface()`` [m]),
+    ``density`` (hat-weighted particles per cell, shape (nx, ny, nz), from the last correction or
+    ``measure_density()``), ``correction`` (the displacement's PressureSolver; None when off).
     """
 
     def __init__(self, grid, gravity=(0.0, -9.81, 0.0), flip_ratio=0.95, particles_per_cell=None,
                  min_per_cell=None, max_per_cell=None, reseed_every=1, capacity=None, tol=1.0e-5,
-                 preconditioner="jacobi", seed=3, extrapolation_layers=3):
+                 preconditioner="jacobi", seed=3, extrapolation_layers=3, density_correction=1.0,
+                 density_tol=1.0e-2, max_density_target=0.5):
         self.grid, self.device = grid, grid.device
         self.gravity = gravity_vector(gravity, grid.dim)
         r = check_finite(flip_ratio, "flip_ratio")
@@ -69,6 +84,22 @@ class FlipLiquid:
         self._capacity = capacity
         self.particles = None
         self.pressure = PressureSolver(grid, tol=tol, preconditioner=preconditioner)
+        strength = check_finite(density_correction, "density_correction")
+        if not 0.0 <= strength <= 1.0:
+            raise ValueError(f"density_correction must be in [0, 1] (0 = off), got {density_correction}")
+        self.density_correction = strength
+        self.max_density_target = check_positive(max_density_target, "max_density_target")
+        if not check_positive(density_tol, "density_tol") < 1.0:
+            raise ValueError(f"density_tol must be < 1 (relative residual), got {density_tol}")
+        self.density = wp.zeros(grid.shape, dtype=float, device=grid.device)
+        self.correction = None
+        if strength > 0.0:
+            # a twin grid whose faces hold the displacement [m]; it shares the liquid's labels and solids
+            twin = MacGrid(grid.shape[: grid.dim], grid.dx, grid.origin[: grid.dim], grid.open_sides, grid.device)
+            twin.labels, twin.solid_phi = grid.labels, grid.solid_phi
+            self._target = wp.zeros(grid.shape, dtype=float, device=grid.device)
+            # a loose, single-pass solve: what it leaves is corrected in the next steps
+            self.correction = PressureSolver(twin, tol=density_tol, preconditioner=preconditioner, refine=False)
         d, shape = self.device, grid.shape
         self._sums = [wp.zeros(f.shape, dtype=float, device=d) for f in grid.faces]
         self._weights = [wp.zeros(f.shape, dtype=float, device=d) for f in grid.faces]
@@ -181,21 +212,66 @@ class FlipLiquid:
         if g.solids:
             wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g._wp_origin, g.dx],
                       outputs=[P["x"]], device=d)
+        if self.correction is not None:
+            self.correct_density()
         self.steps += 1
         self.time += dt
         if self.reseed_every and self.steps % self.reseed_every == 0:
             self.reseed()
 
+    def measure_density(self):
+        """Relabel the cells from the particles and fill ``density`` (hat-weighted particles per cell;
+        ``particles_per_cell`` in evenly filled cells). Returns it."""
+        g, d, P = self.grid, self.device, self.particles
+        P.count_cells(g, self.cell_count)
+        wp.launch(K.label_from_counts, g.shape, inputs=[self.cell_count, g.solid_phi], outputs=[g.labels], device=d)
+        return self._splat_density()
+
+    def _splat_density(self):
+        g, P = self.grid, self.particles
+        self.density.zero_()
+        wp.launch(K.particle_density, P.capacity, inputs=[P.count, P["x"], P["alive"], g._wp_origin, g.dx],
+                  outputs=[self.density], device=self.device)
+        return self.density
+
+    def correct_density(self):
+        """Move the particles along the displacement field that restores the rest density (see the
+        class docstring); velocities are left alone."""
+        g, d, P = self.grid, self.device, self.particles
+        twin = self.correction.grid
+        self.measure_density()
+        wp.launch(K.density_divergence_target, g.shape,
+                  inputs=[self.density, g.labels, g.open_mask, float(self.particles_per_cell), self.density_correction,
+                          self.max_density_target], outputs=[self._target], device=d)
+        for f in twin.faces:
+            f.zero_()
+        self.correction.project(target=self._target)
+        # the displacement [m] is a field like a velocity over a unit time: move along it (RK2 midpoint)
+        wp.launch(KA.advect_particles_rk2, P.capacity,
+                  inputs=[*twin.faces, g._wp_origin, g.dx, 1.0, self._lower, self._upper, P.count], outputs=[P["x"]],
+                  device=d)
+        if g.solids:
+            wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g._wp_origin, g.dx],
+                      outputs=[P["x"]], device=d)
+
     def reseed(self):
         """Cull particles beyond max_per_cell per cell, compact, and top interior fluid cells up to
-        min_per_cell (new particles take the grid velocity)."""
+        min_per_cell (new particles take the grid velocity); with the density correction on, only
+        cells whose density is below min_per_cell too."""
         g, d, P = self.grid, self.device, self.particles
         P.count_cells(g, self.cell_count)
         P.cull(self.max_per_cell)
         P.compact()
         wp.launch(K.label_from_counts, g.shape, inputs=[self.cell_count, g.solid_phi], outputs=[g.labels], device=d)
+        # with the density correction the interior stays evenly filled: only real holes (density below
+        # min_per_cell as well as the count) are reseeded, so few particles (and little mass) are added
+        min_density = 1.0e30
+        if self.correction is not None:
+            self._splat_density()
+            min_density = float(self.min_per_cell)
         wp.launch(K.reseed_interior, g.shape,
-                  inputs=[self.cell_count, g.labels, g.open_mask, self.min_per_cell, self.seed + 104729 * self.steps,
+                  inputs=[self.cell_count, g.labels, g.open_mask, self.min_per_cell, self.density, min_density,
+                          self.seed + 104729 * self.steps,
                           g.dim, *g.faces, g._wp_origin, g.dx, P.count, self.next_id],
                   outputs=[P["x"], P["v"], P["alive"], P["id"]], device=d)
 

@@ -110,17 +110,23 @@ class PressureSolver:
         return out
 
     # ------------------------------------------------------------------ projection
-    def project(self, phi=None):
+    def project(self, phi=None, target=None):
         """Solve for the pressure and subtract its gradient from the face velocities.
 
         Call after ``grid.label(...)``; ``phi`` gives the free surface position for the ghost-fluid
-        boundary (None: the surface lies on the AIR cell centres). Returns the CG iteration count."""
+        boundary (None: the surface lies on the AIR cell centres). ``target`` (cell array [1/s], grid
+        shape) is the divergence to leave in the FLUID cells instead of 0 (in a closed domain its mean
+        over the fluid is removed). Returns the CG iteration count."""
         g, d = self.grid, self.device
+        use = target is not None
+        if use and tuple(target.shape) != tuple(g.shape):
+            raise ValueError(f"pressure target has shape {tuple(target.shape)}; it must be the grid's {g.shape}")
         g.enforce_boundaries()
         self.assemble(phi)
         wp.launch(K.compute_divergence, g.shape, inputs=[g.u, g.v, g.w, g.labels, g.dx], outputs=[self.div],
                   device=d)
-        wp.launch(K.pressure_rhs, g.shape, inputs=[self.div, g.dx], outputs=[self.rhs], device=d)
+        wp.launch(K.pressure_rhs, g.shape, inputs=[self.div, g.labels, target if use else g._no_phi, int(use), g.dx],
+                  outputs=[self.rhs], device=d)
         self._sums.zero_()
         wp.launch(K.fluid_sums, g.shape, inputs=[g.labels, g.open_mask, self.rhs], outputs=[self._sums], device=d)
         wp.launch(K.remove_rhs_mean, g.shape, inputs=[g.labels, self._sums], outputs=[self.rhs], device=d)

@@ -178,8 +178,8 @@ class LiquidScene(GridFluidScene):
         return {"surface": data}
 
 
-@register_scene("flip_splash", "a FLIP liquid block dropped into a pool (FLIP/PIC blend, reseeding); particles "
-                "and their surface meshed every frame", params={
+@register_scene("flip_splash", "a FLIP liquid block dropped into a pool (FLIP/PIC blend, density correction, "
+                "reseeding); particles and their surface meshed every frame", params={
                     **_COMMON,
                     "resolution": (24, "cells along the 1 m wide domain (0.8 m high, 0.5 m deep)"),
                     "flip_ratio": (0.95, "FLIP share of the velocity update (1: FLIP, 0: PIC)"),
@@ -187,6 +187,7 @@ class LiquidScene(GridFluidScene):
                     "block": ((0.35, 0.45, 0.1, 0.65, 0.7, 0.4), "falling block lower,upper corners [m]"),
                     "particles_per_cell": (8, "particles seeded per cell"),
                     "reseed": (True, "reseed sparse interior cells and cull crowded ones every step"),
+                    "density_correction": (1.0, "volume correction strength in [0, 1] (0: off)"),
                 }, fps=30.0, substeps=1)
 class FlipSplashScene(GridFluidScene):
     """Domain [0, 1] x [0, 0.8] x [0, 0.5] m: a pool fills y < pool_depth, the block falls into it."""
@@ -208,7 +209,8 @@ class FlipSplashScene(GridFluidScene):
             raise ValueError(f"pool_depth={p['pool_depth']}: it must be in (0, 0.5) m")
         self.solver = FlipLiquid(self.grid, flip_ratio=p["flip_ratio"], particles_per_cell=p["particles_per_cell"],
                                  reseed_every=1 if p["reseed"] else 0, tol=p["tol"],
-                                 preconditioner=p["preconditioner"], capacity=None)
+                                 preconditioner=p["preconditioner"], capacity=None,
+                                 density_correction=p["density_correction"])
         c = self.grid.positions("center")
         pool = c[..., 1] < p["pool_depth"]
         block = np.all((c >= lo) & (c <= hi), axis=-1)

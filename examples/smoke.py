@@ -5,7 +5,7 @@ Shows the grid-fluid API step by step: a ``MacGrid`` with an open top and a soli
 confinement, pressure projection with ``warp.optim.linear.cg``), and a USD cache holding the smoke
 as points with a ``density`` primvar plus a marching-cubes iso-surface of the density.
 
-    python examples/smoke_plume.py --frames 48 --resolution 32 --out usd_out/smoke_plume.usda
+    python examples/smoke.py --frames 48 --resolution 32 --out usd_out/smoke.usda
 """
 
 import argparse
@@ -67,7 +67,7 @@ def main():
     parser.add_argument("--frames", type=int, default=48)
     parser.add_argument("--fps", type=float, default=24.0)
     parser.add_argument("--resolution", type=int, default=24, help="cells across the 1 m wide domain")
-    parser.add_argument("--out", default="usd_out/smoke_plume.usda")
+    parser.add_argument("--out", default="usd_out/smoke.usda")
     args = parser.parse_args()
     with wp.ScopedDevice(args.device):
         example = Example(args.resolution)
