@@ -24,3 +24,19 @@ def test_kernels_ship_inside_the_package():
 
     assert warpsim.kernels.__name__ == "warpsim.kernels"
     assert ws.__version__.count(".") == 2
+
+
+def test_every_scene_module_imports_and_registers():
+    """The registry skips a scene module that fails to import (so one broken scene cannot take the
+    command line down); this test makes such a failure loud."""
+    import importlib
+    import pkgutil
+
+    import warpsim.scenes as scenes
+
+    for info in pkgutil.iter_modules(scenes.__path__, scenes.__name__ + "."):
+        importlib.import_module(info.name)
+    names = set(scenes.scenes())
+    expected = {"bounce", "pendulum", "springs", "teapot", "cloth", "drape", "metaballs", "dam_break", "pour",
+                "smoke", "liquid", "flip_splash", "flock", "school", "zombies", "crowd"}
+    assert expected <= names, sorted(expected - names)
