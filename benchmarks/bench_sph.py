@@ -225,7 +225,8 @@ def main(argv=None):
     parser.add_argument("--frames", type=int, default=6, help="timed warpsim frames of 1/60 s")
     parser.add_argument("--warmup", type=int, default=2, help="untimed warpsim frames before timing")
     parser.add_argument("--steps", type=int, default=40, help="timed steps of Warp's example")
-    parser.add_argument("--iterations", type=int, default=4, help="warpsim's most PBF iterations per step")
+    parser.add_argument("--iterations", type=int, default=40,
+                        help="warpsim's most PBF iterations per step (it stops at the density tolerance)")
     parser.add_argument("--matched-step", action="store_true",
                         help="also time warpsim at the example's step size in gravity time units")
     parser.add_argument("--order", action="store_true",

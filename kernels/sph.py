@@ -25,6 +25,7 @@ wp.set_module_options({"enable_backward": False})
 KERNEL_CUBIC = wp.constant(0)
 KERNEL_WENDLAND = wp.constant(1)
 PI = wp.constant(3.14159265358979)
+STAT_SLOTS = wp.constant(64)  # compression sums are spread over this many slots (fewer atomic collisions)
 
 
 @wp.struct
@@ -311,7 +312,7 @@ def store_density_constraint(
     rho_fluid: float,
     grad_fluid: wp.vec3,
     sum_grad2: float,
-    stats_row: int,
+    with_stats: int,
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
     boundary_grad_out: wp.array(dtype=wp.vec3),
@@ -319,8 +320,8 @@ def store_density_constraint(
 ):
     """Add the boundaries to particle i's density sums and store rho_i, its PBF multiplier
     lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps) of C_i = max(rho_i / rho0 - 1, 0), and the
-    boundary gradient. stats_row >= 0 accumulates sum(C) and max(C) into stats_out[2 stats_row],
-    stats_out[2 stats_row + 1]."""
+    boundary gradient. with_stats != 0 accumulates C into stats_out[i % STAT_SLOTS] (the slots
+    spread the atomics; :func:`iteration_control` sums them)."""
     bd = boundary_density(b, xi, p.h)
     rho = rho_fluid + p.rest_density * bd[3]
     gb = wp.vec3(bd[0], bd[1], bd[2])
@@ -330,9 +331,8 @@ def store_density_constraint(
     density_out[i] = rho
     lambda_out[i] = lam
     boundary_grad_out[i] = gb
-    if stats_row >= 0:
-        wp.atomic_add(stats_out, 2 * stats_row, c)
-        wp.atomic_max(stats_out, 2 * stats_row + 1, c)
+    if with_stats != 0:
+        wp.atomic_add(stats_out, i % STAT_SLOTS, c)
 
 
 @wp.kernel
@@ -342,7 +342,7 @@ def find_neighbors_density(
     b: Boundaries,
     x: wp.array(dtype=wp.vec3),
     with_density: int,
-    stats_row: int,
+    with_stats: int,
     nb_out: NeighborList,
     overflow_out: wp.array(dtype=int),
     density_out: wp.array(dtype=float),
@@ -387,7 +387,7 @@ def find_neighbors_density(
         count = capacity
     nb_out.count[i] = count
     if with_density != 0:
-        store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, stats_row, density_out, lambda_out,
+        store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, with_stats, density_out, lambda_out,
                                  boundary_grad_out, stats_out)
 
 
@@ -411,7 +411,9 @@ def solve_density_lambda(
     b: Boundaries,
     x: wp.array(dtype=wp.vec3),
     nb: NeighborList,
-    stats_row: int,
+    with_stats: int,
+    counter: wp.array(dtype=int),
+    limit: int,
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
     boundary_grad_out: wp.array(dtype=wp.vec3),
@@ -419,7 +421,10 @@ def solve_density_lambda(
 ):
     """PBF (Macklin and Mueller 2013): density rho_i = sum_j m W_ij + rho0 phi_boundary over the
     neighbour list at the current positions and the multiplier lambda_i
-    (:func:`store_density_constraint`); refreshes the list's gradient cache."""
+    (:func:`store_density_constraint`); refreshes the list's gradient cache. Does nothing when
+    counter[0] >= limit (the iteration loop's last correction needs no new multipliers)."""
+    if counter[0] >= limit:
+        return
     i = wp.tid()
     xi = x[i]
     rho = p.self_density
@@ -436,7 +441,7 @@ def solve_density_lambda(
         sum_grad2 += wf[1] * wf[1] * r2
         nb.grad_factor[e] = wf[1]
         e += nb.stride_k
-    store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, stats_row, density_out, lambda_out,
+    store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, with_stats, density_out, lambda_out,
                              boundary_grad_out, stats_out)
 
 
@@ -448,14 +453,13 @@ def solve_density_correct(
     nb: NeighborList,
     lam: wp.array(dtype=float),
     boundary_grad: wp.array(dtype=wp.vec3),
-    accumulate: int,
     lambda_sum_io: wp.array(dtype=float),
     x_out: wp.array(dtype=wp.vec3),
 ):
     """Jacobi position correction dx_i = sum_j m/rho0 (lambda_i + lambda_j) grad W_ij +
     lambda_i grad phi_boundary (gradients from the list's cache, i.e. at the positions ``x`` of
     the density pass that computed ``lam``), then kept in front of every plane. lambda_sum
-    accumulates the applied multipliers over a step (set when accumulate == 0)."""
+    accumulates the applied multipliers over a step (zeroed by the host before the first)."""
     i = wp.tid()
     xi = x[i]
     li = lam[i]
@@ -467,10 +471,35 @@ def solve_density_correct(
         dx += ((li + lam[j]) * nb.grad_factor[e]) * (xi - x[j])
         e += nb.stride_k
     x_out[i] = project_planes(b, xi + dx, p.radius)
-    if accumulate == 0:
-        lambda_sum_io[i] = li
-    else:
-        lambda_sum_io[i] = lambda_sum_io[i] + li
+    lambda_sum_io[i] = lambda_sum_io[i] + li
+
+
+@wp.kernel
+def iteration_control(
+    stats: wp.array(dtype=float),
+    n: int,
+    tolerance: float,
+    max_iterations: int,
+    advance: int,
+    counter_io: wp.array(dtype=int),
+    total_io: wp.array(dtype=int),
+    go_out: wp.array(dtype=int),
+):
+    """One thread: counts ``advance`` more corrections (counter_io[0] this step, total_io[0]
+    overall) and sets go_out[0] = 1 while another one is due: fewer than ``max_iterations`` so far
+    and the mean compression sum(stats[:STAT_SLOTS]) / n at least ``tolerance`` (tolerance 0:
+    always). Runs on the device, so the loop (``wp.capture_while``) needs no host read-back in a
+    CUDA graph."""
+    it = counter_io[0] + advance
+    counter_io[0] = it
+    total_io[0] = total_io[0] + advance
+    total = float(0.0)
+    for k in range(STAT_SLOTS):
+        total += stats[k]
+    go = int(0)
+    if it < max_iterations and total >= tolerance * float(n):
+        go = 1
+    go_out[0] = go
 
 
 @wp.kernel

@@ -235,13 +235,15 @@ MM_Z = np.array([1.11, 1.22, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.00, 3.2
 
 @pytest.fixture(scope="module")
 def dam_break():
-    """A 2D-like slab (3 particles thick, free-slip side walls): column a x 2a, a = 10 spacings.
-    Records the front Z(T), the density-based volume and the compression at every sample."""
+    """A 2D-like slab (3 particles thick, walls on every side): column a x 2a, a = 10 spacings.
+    The walls are no-slip like the experiment's floor (the default boundary_viscosity: the
+    fluid's XSPH viscosity against the walls' virtual particles at rest). Records the front
+    Z(T), the density-based volume and the compression at every sample."""
     a, res = 0.1, 10
     s = a / res
     f = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, 3 * s), s), spacing=s,
-                      domain=((0, 0, 0), (5 * a, 2.5 * a, 3 * s)), viscosity=0.01, iterations=4,
-                      max_dt=1.0 / 100.0, device="cpu")
+                      domain=((0, 0, 0), (5 * a, 2.5 * a, 3 * s)), viscosity=0.01, max_dt=1.0 / 100.0,
+                      device="cpu")
     scale = np.sqrt(2.0 * G / a)
     frame_dt = 0.05 / scale  # equal frames (PBF wants sub-steps of similar size), T = 0 .. 3.1
     volume0 = f.volume()
@@ -259,19 +261,24 @@ def dam_break():
 
 
 def test_dam_break_front_martin_moyce(dam_break):
-    """Front Z(T) against Martin and Moyce, T <= 3.
+    """Front Z(T) (furthest particle + half a spacing) against Martin and Moyce, T <= 3, raw.
 
-    Measured here (a/spacing = 10): the simulated front leads the measurements by +12..+17 %
-    for 0.8 < T < 1.9 and by +4..+8 % for 2.3 < T < 3 (inviscid, free-slip; finer slabs lead
-    slightly more), a known offset of the experiment, whose time origin depends on how the
-    diaphragm was released. After one time-origin shift dT (least squares, asserted to be small,
-    < 0.35, i.e. < 13 ms at the experiment's a = 2.25 in) every point agrees within 10 %; the
-    raw curve agrees within 20 % everywhere and within 10 % for T < 0.5 and T > 2.3."""
+    Measured (a/spacing = 10, no-slip walls): -3 % at T = 0.41, +9 % at 0.84, +2..+10 % for
+    T >= 1.9, but +11..+13 % for 1.0 < T < 1.9 (free-slip walls: the same early lead and +6..+11 %
+    later, a surge 4 % faster at T = 3: the floor's friction acts on the thin surge). The early
+    lead is not numerical: it stays with 5x the solver iterations (full incompressibility), with
+    the front taken as the colour-field = 1/2 surface at the floor instead of the furthest
+    particle, and it grows with resolution (+17..19 % at a/spacing = 20). The experiment's front moves
+    only 0.11 a between T = 0.41 and 0.84, where any instantaneous release accelerates: its
+    release is not instantaneous. So the raw curve is asserted within 10 % outside
+    1.0 < T < 1.9 and within 15 % there; one time-origin shift dT (least squares, small) brings
+    every point within 10 %."""
     T, Z = dam_break["T"], dam_break["Z"]
     raw = np.interp(MM_T, T, Z) / MM_Z - 1.0
     print("Z_sim / Z_exp - 1 at T =", MM_T, ":", np.round(raw, 3))
-    assert np.all(np.abs(raw) < 0.20), raw
-    assert np.all(np.abs(raw[(MM_T < 0.5) | (MM_T > 2.3)]) < 0.10), raw
+    early = (MM_T > 1.0) & (MM_T < 1.9)
+    assert np.all(np.abs(raw[~early]) < 0.10), raw
+    assert np.all(np.abs(raw[early]) < 0.15), raw
     shifts = np.linspace(0.0, 0.5, 101)
     errs = [np.max(np.abs(np.interp(MM_T - dT, T, Z, left=1.0) / MM_Z - 1.0)) for dT in shifts]
     best = int(np.argmin(errs))
