@@ -20,10 +20,10 @@ far faster, so the ratio is a cost per iteration, not per accuracy.
 """
 
 import argparse
-import time
 
 import numpy as np
 import warp as wp
+from timing import time_per_call
 
 from warpsim.grid_pressure import PressureSolver
 from warpsim.mac_grid import MacGrid
@@ -42,16 +42,6 @@ def smoke_3d(n, device):
     g.set_velocity(lambda p: np.stack([0 * p[..., 0], np.exp(-((p[..., 0] - 0.5) ** 2 + (p[..., 2] - 0.5) ** 2) / 0.02),
                                        0 * p[..., 0]], -1))
     return s
-
-
-def timed(fn, steps, device):
-    fn()  # compile, warm up
-    wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        fn()
-    wp.synchronize_device(device)
-    return (time.perf_counter() - t0) / steps
 
 
 def example_fluid_step(mod, state, iterations, dt, device):
@@ -90,7 +80,7 @@ def main():
             s.step(0.5 / n)
             its.append(s.pressure.last_iterations)
 
-        t = timed(step, args.steps, device)
+        t = time_per_call(step, args.steps, device)
         cells = s.grid.cell_count
         print(f"{cells:>10} {np.mean(its):>11.0f} {t:>9.4f} {cells / t:>15.3e}")
         if device.is_cuda:  # the same step captured in a CUDA graph (device-side CG convergence checks)
@@ -99,7 +89,7 @@ def main():
             s.step(0.5 / n)
             with wp.ScopedCapture(device) as capture:
                 s.step(0.5 / n)
-            t = timed(lambda capture=capture: wp.capture_launch(capture.graph), args.steps, device)
+            t = time_per_call(lambda capture=capture: wp.capture_launch(capture.graph), args.steps, device)
             print(f"{cells:>10} {int(s.pressure.last_iterations.numpy()[0]):>11} {t:>9.4f} {cells / t:>15.3e}"
                   "  (CUDA graph)")
 
@@ -109,12 +99,12 @@ def main():
     shape = (int(mod.grid_width), int(mod.grid_height))
     state = {k: wp.zeros(shape, dtype=wp.vec2, device=device) for k in ("u0", "u1")}
     state.update({k: wp.zeros(shape, dtype=float, device=device) for k in ("rho0", "rho1", "p0", "p1", "div")})
-    t_example = timed(lambda: example_fluid_step(mod, state, args.iterations, 1.0 / 120, device), args.steps, device)
+    t_example = time_per_call(lambda: example_fluid_step(mod, state, args.iterations, 1.0 / 120, device), args.steps, device)
     g = MacGrid(shape, 1.0 / shape[1], device=device)
     s = Smoke(g, scheme="semi_lagrangian", temperature_buoyancy=4.0)
     s.pressure = PressureSolver(g, tol=1e-12, atol=1e-30, max_iterations=args.iterations, refine=False)
     s.add_source((0.9, 0.05), (1.1, 0.2))
-    t_warpsim = timed(lambda: s.step(1.0 / 120), args.steps, device)
+    t_warpsim = time_per_call(lambda: s.step(1.0 / 120), args.steps, device)
     its = s.pressure.last_iterations
     cells = shape[0] * shape[1]
     print(f"  example_fluid (Jacobi sweeps): {t_example:.4f} s/step, {cells / t_example:.3e} cell updates/s")

@@ -10,10 +10,10 @@ and the ratio NumPy / warpsim. On CUDA the warpsim step is also timed as a captu
 """
 
 import argparse
-import time
 
 import numpy as np
 import warp as wp
+from timing import time_per_call
 
 import warpsim as ws
 
@@ -66,18 +66,6 @@ class NumpyMassSpring:
         self.x = x + h * self.v
 
 
-def time_it(fn, steps, device=None):
-    fn()  # warm-up (compiles kernels)
-    if device is not None:
-        wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        fn()
-    if device is not None:
-        wp.synchronize_device(device)
-    return (time.perf_counter() - t0) / steps
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default=None)
@@ -101,13 +89,13 @@ def main():
             sim.step(h)
         err = np.abs(sim.state.positions.numpy() - ref.x).max()
         assert err < 1e-4, f"warpsim and NumPy disagree by {err}"
-        t_np = time_it(lambda: ref.step(h), args.steps)
-        t_ws = time_it(lambda: sim.step(h), args.steps, device)
+        t_np = time_per_call(lambda: ref.step(h), args.steps)
+        t_ws = time_per_call(lambda: sim.step(h), args.steps, device)
         graph_ms, graph_ratio = "-", "-"
         if device.is_cuda:
             with wp.ScopedCapture(device=device) as capture:
                 sim.step(h)
-            t_graph = time_it(lambda: wp.capture_launch(capture.graph), args.steps, device)
+            t_graph = time_per_call(lambda: wp.capture_launch(capture.graph), args.steps, device)
             graph_ms, graph_ratio = f"{t_graph * 1e3:9.3f}", f"{t_np / t_graph:7.1f}"
         print(f"{n:>6} {b.particle_count:>9} {b.spring_count:>8} {t_np * 1e3:9.3f} {t_ws * 1e3:10.3f} "
               f"{t_np / t_ws:7.2f} {graph_ms:>9} {graph_ratio:>7}")

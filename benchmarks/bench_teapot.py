@@ -19,10 +19,10 @@ also timed as a captured CUDA graph.
 
 import argparse
 import math
-import time
 
 import numpy as np
 import warp as wp
+from timing import time_per_call
 
 import warpsim as ws
 from warpsim.softbody import add_soft_body
@@ -91,18 +91,6 @@ class NumpyTeapot:
         self.x, self.v = x, v
 
 
-def time_it(fn, steps, device=None):
-    fn()  # warm-up (compiles kernels)
-    if device is not None:
-        wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        fn()
-    if device is not None:
-        wp.synchronize_device(device)
-    return (time.perf_counter() - t0) / steps
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default=None)
@@ -125,13 +113,13 @@ def main():
             sim.step(dt)
         err = np.abs(sim.state.positions.numpy() - ref.x).max()
         assert err < 1e-3, f"warpsim and NumPy disagree by {err} m"
-        t_np = time_it(lambda ref=ref, dt=dt: ref.step(dt), max(20, args.steps // 10))
-        t_ws = time_it(lambda sim=sim, dt=dt: sim.step(dt), args.steps, device)
+        t_np = time_per_call(lambda ref=ref, dt=dt: ref.step(dt), max(20, args.steps // 10))
+        t_ws = time_per_call(lambda sim=sim, dt=dt: sim.step(dt), args.steps, device)
         graph_rate, graph_ratio = "-", "-"
         if device.is_cuda:
             with wp.ScopedCapture(device=device) as capture:
                 sim.step(dt)
-            t_graph = time_it(lambda: wp.capture_launch(capture.graph), args.steps, device)
+            t_graph = time_per_call(lambda: wp.capture_launch(capture.graph), args.steps, device)
             graph_rate, graph_ratio = f"{1 / t_graph:11.0f}", f"{t_np / t_graph:7.1f}"
         print(f"{res:>5} {b.particle_count:>9} {b.spring_count:>8} {1 / t_np:11.0f} {1 / t_ws:13.0f} "
               f"{t_np / t_ws:7.1f} {graph_rate:>11} {graph_ratio:>7}")
