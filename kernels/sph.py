@@ -25,7 +25,7 @@ wp.set_module_options({"enable_backward": False})
 KERNEL_CUBIC = wp.constant(0)
 KERNEL_WENDLAND = wp.constant(1)
 PI = wp.constant(3.14159265358979)
-STAT_SLOTS = wp.constant(64)  # compression sums are spread over this many slots (fewer atomic collisions)
+STAT_SLOTS = wp.constant(64)  # compression sums and maxima are spread over this many slots (fewer atomic collisions)
 
 
 @wp.struct
@@ -320,8 +320,9 @@ def store_density_constraint(
 ):
     """Add the boundaries to particle i's density sums and store rho_i, its PBF multiplier
     lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps) of C_i = max(rho_i / rho0 - 1, 0), and the
-    boundary gradient. with_stats != 0 accumulates C into stats_out[i % STAT_SLOTS] (the slots
-    spread the atomics; :func:`iteration_control` sums them)."""
+    boundary gradient. with_stats != 0 accumulates C into stats_out[i % STAT_SLOTS] and its
+    maximum into stats_out[STAT_SLOTS + i % STAT_SLOTS] (the slots spread the atomics;
+    :func:`iteration_control` reduces them)."""
     bd = boundary_density(b, xi, p.h)
     rho = rho_fluid + p.rest_density * bd[3]
     gb = wp.vec3(bd[0], bd[1], bd[2])
@@ -333,6 +334,8 @@ def store_density_constraint(
     boundary_grad_out[i] = gb
     if with_stats != 0:
         wp.atomic_add(stats_out, i % STAT_SLOTS, c)
+        if c > 0.0:
+            wp.atomic_max(stats_out, STAT_SLOTS + i % STAT_SLOTS, c)
 
 
 @wp.kernel
@@ -488,16 +491,23 @@ def iteration_control(
     """One thread: counts ``advance`` more corrections (counter_io[0] this step, total_io[0]
     overall) and sets go_out[0] = 1 while another one is due: fewer than ``max_iterations`` so far
     and the mean compression sum(stats[:STAT_SLOTS]) / n at least ``tolerance`` (tolerance 0:
-    always). Runs on the device, so the loop (``wp.capture_while``) needs no host read-back in a
-    CUDA graph."""
+    always), or, for the step's first correction, the largest compression
+    max(stats[STAT_SLOTS:]) at least ``tolerance``. That first correction keeps a local
+    compression from building up over steps that skip the solve because the mean (over a fluid
+    mostly at or below rest density) is small: the compression a step leaves becomes velocity,
+    ~ C spacing / dt, so an unchecked C would kick harder the smaller the steps (and CFL
+    sub-stepping, dt ~ spacing / v_max, then feeds the kick back into ever smaller steps). Runs
+    on the device, so the loop (``wp.capture_while``) needs no host read-back in a CUDA graph."""
     it = counter_io[0] + advance
     counter_io[0] = it
     total_io[0] = total_io[0] + advance
     total = float(0.0)
+    peak = float(0.0)
     for k in range(STAT_SLOTS):
         total += stats[k]
+        peak = wp.max(peak, stats[STAT_SLOTS + k])
     go = int(0)
-    if it < max_iterations and total >= tolerance * float(n):
+    if it < max_iterations and (total >= tolerance * float(n) or (it == 0 and peak >= tolerance)):
         go = 1
     go_out[0] = go
 

@@ -8,7 +8,10 @@ derives velocities from the position change, filtered by XSPH viscosity, optiona
 confinement and optional surface tension (Akinci et al. 2013).
 
 Adaptive iterations: a step stops iterating once the mean compression is below
-``density_tolerance``; ``iterations`` is the most it runs. The decision is a one-thread kernel
+``density_tolerance``; ``iterations`` is the most it runs. It skips the solve only when no particle
+is compressed by ``density_tolerance`` or more: the compression a step leaves turns into velocity
+(~ C spacing / dt) at the next correction, so a local compression left to build up over skipped
+steps kicks harder the smaller the steps are. The decision is a one-thread kernel
 and the loop a ``wp.capture_while``, so no step reads anything back (a conditional node in a CUDA
 graph). Each correction reuses the kernel
 gradients its density pass cached in the neighbour list, and the velocity update is fused with
@@ -301,7 +304,8 @@ class ParticleFluid:
             more: Jacobi spreads a correction about one kernel radius per iteration (a dam break
             column of 79 x 158 x 79 particles kept a 2 % mean density error at a fixed 4).
         density_tolerance: a step stops iterating once the mean compression
-            mean(max(rho/rho0 - 1, 0)) is below this (0: always run ``iterations``); decided on
+            mean(max(rho/rho0 - 1, 0)) is below this (0: always run ``iterations``), after at
+            least one correction if any particle is compressed by this or more; decided on
             the device (``wp.capture_while``), so CUDA steps read nothing back and can be
             captured in a graph.
         viscosity: XSPH coefficient c in [0, 1].
@@ -507,7 +511,7 @@ class ParticleFluid:
         self._neighbors = nb
         self._overflow = wp.zeros(1, dtype=int, device=d)
         self._reduce = wp.zeros(2, dtype=float, device=d)
-        self._stats = wp.zeros(int(K.STAT_SLOTS), dtype=float, device=d)  # compression sums (slots)
+        self._stats = wp.zeros(2 * int(K.STAT_SLOTS), dtype=float, device=d)  # compression sums, maxima
         self._counter = wp.zeros(1, dtype=int, device=d)  # corrections in the current / last step
         self._total_iterations = wp.zeros(1, dtype=int, device=d)
         self._go = wp.zeros(1, dtype=int, device=d)  # loop condition of wp.capture_while
