@@ -14,7 +14,10 @@ grid reads the packing up to the walls; a projection with a divergence target le
 divergence; a sloshing FLIP liquid keeps its volume within 2% for 10 s with the density correction
 and loses over 5% without it; buoyant smoke rises (and
 dense cold smoke sinks); vorticity of a rigid rotation is twice its rate; solids voxelise like
-their analytic shapes; bad input raises ValueError naming the item.
+their analytic shapes; bad input raises ValueError naming the item. The multigrid preconditioner:
+restriction is the scaled transpose of prolongation, the V-cycle is symmetric positive definite and
+contracts the residual as a stand-alone iteration, its CG solution equals the Jacobi one and is
+divergence-free, and it needs at least 4x fewer CG iterations than Jacobi on 64^2 and 32^3 liquids.
 """
 
 import io
@@ -138,6 +141,115 @@ def test_pressure_operator_matches_numpy_assembly(shape):
     u, v, w = (f.numpy() for f in g.faces)
     ref = (np.diff(u, axis=0) + np.diff(v, axis=1) + np.diff(w, axis=2)) / g.dx
     np.testing.assert_allclose(div, np.where(labels == FLUID, ref, 0.0), rtol=1e-5, atol=1e-4)
+
+
+# ---------------------------------------------------------------------------- multigrid preconditioner
+
+
+def wavy_liquid(shape, opens=("+y",)):
+    """A tank with a solid sphere, filled to a wavy free surface (phi set, cells labelled)."""
+    g = MacGrid(shape, 1.0 / shape[0], open_sides=opens, device=DEV)
+    g.add_sphere((0.5, 0.35, 0.5)[: len(shape)], 0.2)
+    c = g.positions()
+    phi = field(g, c[..., 1] - 0.6 - 0.05 * np.sin(6.0 * c[..., 0]))
+    g.label(phi)
+    return g, phi
+
+
+def random_velocity(g, seed=1):
+    rng = np.random.default_rng(seed)
+    g.set_velocity(lambda p: np.sin(3.0 * p[..., [1, 2, 0]]) + 0.2 * rng.standard_normal(p.shape))
+
+
+def test_multigrid_restriction_is_the_scaled_transpose_of_prolongation():
+    from warpsim.kernels import multigrid as KM
+
+    g, _ = wavy_liquid((7, 6, 5))  # odd sizes: the coarse level is padded
+    solver = PressureSolver(g, preconditioner="mg")
+    solver.assemble()
+    mg = solver.multigrid
+    fine, coarse = mg.levels[0], mg.levels[1]
+    assert coarse.shape == (4, 3, 3)
+    # coarse labels: AIR if any child is AIR, else FLUID if any is FLUID, else SOLID (NumPy)
+    lab = np.pad(g.labels.numpy(), ((0, 1), (0, 0), (0, 1)), constant_values=SOLID)
+    kids = lab.reshape(4, 2, 3, 2, 3, 2).transpose(0, 2, 4, 1, 3, 5).reshape(4, 3, 3, 8)
+    expected = np.where((kids == AIR).any(-1), AIR, np.where((kids == FLUID).any(-1), FLUID, SOLID))
+    assert {AIR, FLUID} <= set(np.unique(expected))
+    np.testing.assert_array_equal(coarse.labels.numpy(), expected)
+    nf, nc = int(np.prod(fine.shape)), int(np.prod(coarse.shape))
+    P, R = np.zeros((nf, nc)), np.zeros((nc, nf))
+    xf, xc = wp.zeros(nf, dtype=float, device=DEV), wp.zeros(nc, dtype=float, device=DEV)
+    for j in range(nc):
+        xc.assign(np.eye(1, nc, j, dtype=np.float32)[0])
+        xf.zero_()
+        wp.launch(KM.prolong_add, fine.shape, inputs=[fine.labels, coarse.labels, xc, mg.coarsen], outputs=[xf],
+                  device=DEV)
+        P[:, j] = xf.numpy()
+    for i in range(nf):
+        xf.assign(np.eye(1, nf, i, dtype=np.float32)[0])
+        wp.launch(KM.restrict_residual, coarse.shape, inputs=[fine.labels, coarse.labels, xf, mg.coarsen, mg.scale],
+                  outputs=[xc], device=DEV)
+        R[:, i] = xc.numpy()
+    np.testing.assert_allclose(R, mg.scale * P.T, rtol=1e-6, atol=1e-7)
+    # interpolation reproduces constants on fluid cells away from non-fluid coarse neighbours
+    fluid_f = g.labels.numpy().ravel() == FLUID
+    fluid_c = coarse.labels.numpy().ravel() == FLUID
+    assert np.all(P[~fluid_f] == 0.0) and np.all(P[:, ~fluid_c] == 0.0)
+    row_sums = P.sum(1)[fluid_f]
+    assert np.all(row_sums <= 1.0 + 1e-6) and np.mean(np.isclose(row_sums, 1.0)) > 0.5
+
+
+@pytest.mark.parametrize("shape", [(12, 10), (12, 10, 8)])
+def test_multigrid_vcycle_is_symmetric_positive_definite_and_contracts(shape):
+    g, phi = wavy_liquid(shape)
+    solver = PressureSolver(g, preconditioner="mg")
+    solver.assemble(phi)
+    n = g.cell_count
+    rng = np.random.default_rng(3)
+
+    def M(v):
+        return solver.precondition(field(g, v), wp.zeros(n, dtype=float, device=DEV)).numpy().astype(np.float64)
+
+    def A(v):
+        return solver.apply(field(g, v), wp.zeros(n, dtype=float, device=DEV)).numpy().astype(np.float64)
+
+    for _ in range(3):
+        x, y = rng.standard_normal(n), rng.standard_normal(n)
+        assert abs(x @ M(y) - y @ M(x)) <= 1e-5 * np.linalg.norm(x) * np.linalg.norm(M(y))
+        assert x @ M(x) > 0.0
+    # as a stand-alone iteration x += M (b - A x), the V-cycle cuts the residual by 3x or more per cycle
+    b = rng.standard_normal(n) * (g.labels.numpy().ravel() == FLUID)
+    x = np.zeros(n)
+    norms = [np.linalg.norm(b)]
+    for _ in range(4):
+        x += M(b - A(x))
+        norms.append(np.linalg.norm(b - A(x)))
+    print(norms)
+    assert (norms[-1] / norms[0]) ** 0.25 < 0.3 and max(np.array(norms[1:]) / np.array(norms[:-1])) < 0.5, norms
+
+
+@pytest.mark.parametrize("shape,opens", [((64, 64), ("+y",)), ((20, 16), ()), ((10, 8, 6), ("+y",)),
+                                         ((32, 32, 32), ("+y",))])
+def test_multigrid_cg_matches_jacobi_in_a_fraction_of_the_iterations(shape, opens):
+    tol = 1.0e-5
+    q, iterations = {}, {}
+    for precond in ("jacobi", "mg"):
+        g, phi = wavy_liquid(shape, opens) if opens else (MacGrid(shape, 0.1, device=DEV), None)
+        if not opens:  # closed smoke box around a sphere: the all-Neumann (singular) problem
+            g.add_sphere((0.9, 0.8), 0.25)
+        random_velocity(g)
+        solver = PressureSolver(g, tol=tol, preconditioner=precond)
+        before = np.linalg.norm(g.divergence().numpy())
+        iterations[precond] = solver.project(phi)
+        after = np.linalg.norm(g.divergence().numpy())
+        assert before > 1.0 and after <= 2.0 * tol * before
+        fluid = g.labels.numpy().ravel() == FLUID
+        q[precond] = np.where(fluid, solver.q.numpy(), 0.0)
+        if not opens:  # the pressure is defined up to a constant
+            q[precond][fluid] -= q[precond][fluid].mean()
+    assert np.linalg.norm(q["mg"] - q["jacobi"]) <= 1e-3 * np.linalg.norm(q["jacobi"])
+    if min(shape) >= 32:
+        assert 4 * iterations["mg"] <= iterations["jacobi"], iterations
 
 
 # ---------------------------------------------------------------------------- advection
