@@ -1,16 +1,18 @@
-"""Pressure projection: warpsim's matrix-free Poisson solve (``warp.optim.linear.cg``, Jacobi or
-red-black symmetric Gauss-Seidel preconditioner, float32) against SciPy's sparse CG (float64,
-Jacobi preconditioner) on the same Poisson system, in one process.
+"""Pressure projection: warpsim's matrix-free Poisson solve (``warp.optim.linear.cg``, float32) with
+its Jacobi, red-black symmetric Gauss-Seidel and multigrid preconditioners against each other and
+against SciPy's sparse CG (float64, Jacobi preconditioner) on the same Poisson system, in one process.
 
 The system: a smoke domain (every non-solid cell fluid) with a solid sphere and an open top,
 right-hand side the divergence of a random smooth velocity. The matrix SciPy solves is read out
 of warpsim's own coefficients and checked against the operator on a random vector; both solvers
-stop at the same relative residual. Printed: iterations, seconds per solve (Warp: the whole projection,
-with coefficient assembly, divergence and gradient subtraction; SciPy: CG only), the ratio SciPy / Warp
-and the relative difference of the two pressures.
+stop at the same relative residual. Printed per preconditioner: iterations (both CG passes), seconds per
+solve (Warp: the whole projection, with coefficient assembly, divergence and gradient subtraction;
+SciPy: CG only), seconds per iteration, the speed-up over the first preconditioner, the ratio
+SciPy / Warp and the relative difference of the Warp and SciPy pressures.
 
     python benchmarks/bench_pressure.py                        # 32^3 and 64^3 on the CPU
     python benchmarks/bench_pressure.py --sizes 128 256 --device cuda:0
+    python benchmarks/bench_pressure.py --sizes 64 --preconditioners jacobi mg
 """
 
 import argparse
@@ -58,33 +60,41 @@ def scipy_matrix(solver):
                          shape=(n, n))
 
 
+def time_projection(g, preconditioner, tol, repeats, device):
+    """Best wall time of ``repeats`` projections (after a warm-up), the last iteration count and solver."""
+    solver = PressureSolver(g, tol=tol, preconditioner=preconditioner)
+    set_velocity(g)
+    solver.project()  # compile, warm up
+    times = []
+    for r in range(repeats):
+        set_velocity(g, r)
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        iterations = solver.project()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return min(times), iterations, solver
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
     parser.add_argument("--device", default=None)
     parser.add_argument("--tol", type=float, default=1e-5)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--preconditioner", default="jacobi", choices=["jacobi", "rbgs"])
+    parser.add_argument("--preconditioners", nargs="+", default=["jacobi", "rbgs", "mg"],
+                        choices=["jacobi", "rbgs", "mg"])
     args = parser.parse_args()
     device = wp.get_device(args.device)
-    print(f"device {device}, tol {args.tol:g}, warpsim preconditioner {args.preconditioner}")
-    print(f"{'cells':>10} {'warp it':>8} {'warp s':>9} {'scipy it':>9} {'scipy s':>9} {'scipy/warp':>11} "
-          f"{'|dq|/|q|':>9}")
+    print(f"device {device}, tol {args.tol:g}; ratios against the first preconditioner "
+          f"({args.preconditioners[0]}) and against SciPy CG (float64, Jacobi)")
+    print(f"{'cells':>10} {'precond':>8} {'warp it':>8} {'warp s':>9} {'s/it':>9} {'speedup':>8} "
+          f"{'scipy it':>9} {'scipy s':>9} {'scipy/warp':>11} {'|dq|/|q|':>9}")
     for n in args.sizes:
         g = make_grid(n, device)
-        solver = PressureSolver(g, tol=args.tol, preconditioner=args.preconditioner)
-        set_velocity(g)
-        solver.project()  # compile, warm up
-        times = []
-        for r in range(args.repeats):
-            set_velocity(g, r)
-            wp.synchronize_device(device)
-            t0 = time.perf_counter()
-            iterations = solver.project()
-            wp.synchronize_device(device)
-            times.append(time.perf_counter() - t0)
-        q_warp = solver.q.numpy().astype(np.float64)
-        # SciPy on the same system (the last repeat's right-hand side)
+        rows = [(pc, *time_projection(g, pc, args.tol, args.repeats, device)) for pc in args.preconditioners]
+        solver = rows[0][3]
+        # SciPy on the same system (the last repeat's right-hand side, the same for every preconditioner)
         A = scipy_matrix(solver)
         x = np.random.default_rng(5).standard_normal(A.shape[0])
         ax = wp.zeros(A.shape[0], dtype=float, device=device)
@@ -101,10 +111,12 @@ def main():
         q_scipy, info = spla.cg(A, b, rtol=args.tol, atol=0.0, M=M, maxiter=10 * solver.max_iterations,
                                 callback=callback)
         t_scipy = time.perf_counter() - t0
-        t_warp = min(times)
-        diff = np.linalg.norm(q_scipy - q_warp) / np.linalg.norm(q_scipy)
-        print(f"{g.cell_count:>10} {iterations:>8} {t_warp:>9.4f} {count[0]:>9} {t_scipy:>9.4f} "
-              f"{t_scipy / t_warp:>11.2f} {diff:>9.1e}" + ("" if info == 0 else f"  (scipy info {info})"))
+        t_ref = rows[0][1]
+        for pc, t_warp, iterations, s in rows:
+            diff = np.linalg.norm(q_scipy - s.q.numpy()) / np.linalg.norm(q_scipy)
+            print(f"{g.cell_count:>10} {pc:>8} {iterations:>8} {t_warp:>9.4f} {t_warp / max(iterations, 1):>9.2e} "
+                  f"{t_ref / t_warp:>8.2f} {count[0]:>9} {t_scipy:>9.4f} {t_scipy / t_warp:>11.2f} {diff:>9.1e}"
+                  + ("" if info == 0 else f"  (scipy info {info})"))
 
 
 if __name__ == "__main__":

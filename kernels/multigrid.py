@@ -135,13 +135,24 @@ def prolong_add(
 
 @wp.kernel
 def sum_fluid_closed(labels: wp.array3d(dtype=int), domain_sums: wp.array(dtype=float), x: wp.array(dtype=float),
-                     sum_out: wp.array(dtype=float)):
-    """sum_out[0] += x over FLUID cells, only in a closed domain (``domain_sums`` from
-    grid.fluid_sums: [2] = 0 FLUID faces on AIR, [1] > 0 FLUID cells)."""
+                     partial_sums_out: wp.array(dtype=float)):
+    """partial_sums_out[c % len] += x[c] over FLUID cells c, only in a closed domain (``domain_sums``
+    from grid.fluid_sums: [2] = 0 FLUID faces on AIR, [1] > 0 FLUID cells); spreading the sum over
+    several slots keeps GPU atomics from serialising on one address."""
     i, j, k = wp.tid()
     if domain_sums[2] > 0.0 or domain_sums[1] == 0.0 or labels[i, j, k] != FLUID:
         return
-    wp.atomic_add(sum_out, 0, x[(i * labels.shape[1] + j) * labels.shape[2] + k])
+    c = (i * labels.shape[1] + j) * labels.shape[2] + k
+    wp.atomic_add(partial_sums_out, c % partial_sums_out.shape[0], x[c])
+
+
+@wp.kernel
+def total_of_slots(partial_sums: wp.array(dtype=float), total_out: wp.array(dtype=float)):
+    """total_out[0] = sum of partial_sums (one thread)."""
+    s = float(0.0)
+    for i in range(partial_sums.shape[0]):
+        s += partial_sums[i]
+    total_out[0] = s
 
 
 @wp.kernel

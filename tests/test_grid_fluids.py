@@ -229,14 +229,14 @@ def test_multigrid_vcycle_is_symmetric_positive_definite_and_contracts(shape):
 
 
 @pytest.mark.parametrize("shape,opens", [((64, 64), ("+y",)), ((20, 16), ()), ((10, 8, 6), ("+y",)),
-                                         ((32, 32, 32), ("+y",))])
+                                         ((16, 16, 16), ()), ((32, 32, 32), ("+y",))])
 def test_multigrid_cg_matches_jacobi_in_a_fraction_of_the_iterations(shape, opens):
     tol = 1.0e-5
     q, iterations = {}, {}
     for precond in ("jacobi", "mg"):
         g, phi = wavy_liquid(shape, opens) if opens else (MacGrid(shape, 0.1, device=DEV), None)
         if not opens:  # closed smoke box around a sphere: the all-Neumann (singular) problem
-            g.add_sphere((0.9, 0.8), 0.25)
+            g.add_sphere((0.9, 0.8, 0.8)[: len(shape)], 0.25)
         random_velocity(g)
         solver = PressureSolver(g, tol=tol, preconditioner=precond)
         before = np.linalg.norm(g.divergence().numpy())

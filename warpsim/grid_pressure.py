@@ -82,6 +82,7 @@ class PressureSolver:
             self.multigrid = Multigrid(grid, self.diag, self.plus, smoothing=mg_smoothing)
             self._mg_in = wp.zeros(n, dtype=float, device=d)
             self._mean = wp.zeros(1, dtype=float, device=d)
+            self._partial = wp.zeros(256, dtype=float, device=d)
             self._M = LinearOperator((n, n), float, d, self._mg, batch_offsets=batch)
         elif preconditioner == "jacobi":
             self._M = LinearOperator((n, n), float, d, self._jacobi, batch_offsets=batch)
@@ -111,8 +112,9 @@ class PressureSolver:
     def _project_closed(self, x, out):
         """out = x minus its FLUID mean when the domain is closed (all-Neumann: A's null space)."""
         g, d = self.grid, self.device
-        self._mean.zero_()
-        wp.launch(KM.sum_fluid_closed, g.shape, inputs=[g.labels, self._sums, x], outputs=[self._mean], device=d)
+        self._partial.zero_()
+        wp.launch(KM.sum_fluid_closed, g.shape, inputs=[g.labels, self._sums, x], outputs=[self._partial], device=d)
+        wp.launch(KM.total_of_slots, 1, inputs=[self._partial], outputs=[self._mean], device=d)
         wp.launch(KM.remove_fluid_mean_closed, g.shape, inputs=[g.labels, self._sums, self._mean, x], outputs=[out],
                   device=d)
 
