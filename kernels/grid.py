@@ -302,7 +302,8 @@ def gauss_seidel_color(
     z_io: wp.array(dtype=float),
 ):
     """One red-black Gauss-Seidel half sweep of A z = r on cells with (i + j + k) % 2 == color
-    (``first`` = 1: z starts at 0, so neighbours are not read)."""
+    (``first`` = 1: z starts at 0, so neighbours are not read). A zero diagonal (a FLUID cell with
+    only SOLID neighbours, e.g. a pocket on a coarse multigrid level) gives z = 0 there."""
     i, j, k = wp.tid()
     if (i + j + k) % 2 != color:
         return
@@ -310,7 +311,8 @@ def gauss_seidel_color(
     s = float(0.0)
     if first == 0:
         s = _off_diagonal_product(plus_x, plus_y, plus_z, z_io, i, j, k)
-    z_io[c] = (r[c] - s) / diag[i, j, k]
+    d = diag[i, j, k]
+    z_io[c] = wp.where(d > 0.0, (r[c] - s) / wp.max(d, 1.0e-30), 0.0)
 
 
 @wp.kernel
