@@ -242,6 +242,13 @@ def test_multigrid_stays_finite_around_a_fluid_pocket_enclosed_in_solid():
     assert np.all(np.isfinite(z)) and b @ z > 0.0
 
 
+def test_multigrid_bad_smoothing_names_the_item():
+    g = MacGrid((8, 8), 0.1, device=DEV)
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="multigrid smoothing"):
+            PressureSolver(g, preconditioner="mg", mg_smoothing=bad)
+
+
 @pytest.mark.parametrize("shape,opens", [((64, 64), ("+y",)), ((20, 16), ()), ((10, 8, 6), ("+y",)),
                                          ((16, 16, 16), ()), ((32, 32, 32), ("+y",))])
 def test_multigrid_cg_matches_jacobi_in_a_fraction_of_the_iterations(shape, opens):
