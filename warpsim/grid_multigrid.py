@@ -47,7 +47,7 @@ class Multigrid:
         coarse_sweeps: symmetric sweeps on the coarsest level (default: its largest dimension + 2).
         min_size: stop coarsening before a coarsened axis would drop below this many cells.
         air_first: coarse labels AIR if any child is AIR, else FLUID if any is FLUID, else SOLID (the
-            Dirichlet surface never moves into the air). ``False``: FLUID first, then AIR; near a free
+            coarse FLUID region never reaches into the fine AIR). ``False``: FLUID first, then AIR; near a free
             surface that V-cycle stalls or diverges as a stand-alone iteration (mean residual factor
             per cycle 0.9 on a 64^2 and 1.7 on a 32^3 liquid, against 0.32 and 0.22 with AIR first).
     """
