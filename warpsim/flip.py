@@ -55,7 +55,7 @@ class FlipLiquid:
 
     def __init__(self, grid, gravity=(0.0, -9.81, 0.0), flip_ratio=0.95, particles_per_cell=None,
                  min_per_cell=None, max_per_cell=None, reseed_every=1, capacity=None, tol=1.0e-5,
-                 preconditioner="jacobi", seed=3, extrapolation_layers=3, density_correction=1.0,
+                 preconditioner="mg", seed=3, extrapolation_layers=3, density_correction=1.0,
                  density_tol=1.0e-2, max_density_target=0.5):
         self.grid, self.device = grid, grid.device
         self.gravity = gravity_vector(gravity, grid.dim)

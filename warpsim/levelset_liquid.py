@@ -43,7 +43,7 @@ class LevelSetLiquid:
     """
 
     def __init__(self, grid, phi0, gravity=(0.0, -9.81, 0.0), scheme="maccormack", particle_level_set=True,
-                 levelset_scheme=None, tol=1.0e-5, preconditioner="jacobi", **levelset_options):
+                 levelset_scheme=None, tol=1.0e-5, preconditioner="mg", **levelset_options):
         self.grid, self.device = grid, grid.device
         self.gravity = gravity_vector(gravity, grid.dim)
         self.advector = Advector(grid, scheme)

@@ -28,7 +28,7 @@ class Smoke:
     """
 
     def __init__(self, grid, scheme="maccormack", density_buoyancy=0.1, temperature_buoyancy=1.0,
-                 ambient_temperature=0.0, vorticity=0.0, tol=1.0e-5, preconditioner="jacobi"):
+                 ambient_temperature=0.0, vorticity=0.0, tol=1.0e-5, preconditioner="mg"):
         self.grid, self.device = grid, grid.device
         self.alpha = check_finite(density_buoyancy, "density_buoyancy")
         self.beta = check_finite(temperature_buoyancy, "temperature_buoyancy")

@@ -27,7 +27,7 @@ _COMMON = {
     "cfl": (1.0, "CFL number: sub-steps keep max speed x dt <= cfl x dx"),
     "max_substeps": (32, "most sub-steps per frame"),
     "tol": (1.0e-5, "pressure CG tolerance (relative residual)"),
-    "preconditioner": ("jacobi", "pressure CG preconditioner", ("jacobi", "rbgs")),
+    "preconditioner": ("mg", "pressure CG preconditioner (mg: multigrid V-cycle)", ("mg", "jacobi", "rbgs")),
 }
 
 
