@@ -23,7 +23,7 @@ import argparse
 
 import numpy as np
 import warp as wp
-from timing import time_per_call
+from timing import time_per_call, time_per_graph_launch
 
 from warpsim.grid_pressure import PressureSolver
 from warpsim.mac_grid import MacGrid
@@ -87,9 +87,7 @@ def main():
             s = smoke_3d(n, device)
             s.pressure = PressureSolver(s.grid, tol=1e-5, check_every=0)
             s.step(0.5 / n)
-            with wp.ScopedCapture(device) as capture:
-                s.step(0.5 / n)
-            t = time_per_call(lambda capture=capture: wp.capture_launch(capture.graph), args.steps, device)
+            t = time_per_graph_launch(lambda s=s, n=n: s.step(0.5 / n), args.steps, device)
             print(f"{cells:>10} {int(s.pressure.last_iterations.numpy()[0]):>11} {t:>9.4f} {cells / t:>15.3e}"
                   "  (CUDA graph)")
 

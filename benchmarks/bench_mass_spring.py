@@ -13,7 +13,7 @@ import argparse
 
 import numpy as np
 import warp as wp
-from timing import time_per_call
+from timing import time_per_call, time_per_graph_launch
 
 import warpsim as ws
 
@@ -93,9 +93,7 @@ def main():
         t_ws = time_per_call(lambda: sim.step(h), args.steps, device)
         graph_ms, graph_ratio = "-", "-"
         if device.is_cuda:
-            with wp.ScopedCapture(device=device) as capture:
-                sim.step(h)
-            t_graph = time_per_call(lambda: wp.capture_launch(capture.graph), args.steps, device)
+            t_graph = time_per_graph_launch(lambda: sim.step(h), args.steps, device)
             graph_ms, graph_ratio = f"{t_graph * 1e3:9.3f}", f"{t_np / t_graph:7.1f}"
         print(f"{n:>6} {b.particle_count:>9} {b.spring_count:>8} {t_np * 1e3:9.3f} {t_ws * 1e3:10.3f} "
               f"{t_np / t_ws:7.2f} {graph_ms:>9} {graph_ratio:>7}")

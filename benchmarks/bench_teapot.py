@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 import warp as wp
-from timing import time_per_call
+from timing import time_per_call, time_per_graph_launch
 
 import warpsim as ws
 from warpsim.softbody import add_soft_body
@@ -117,9 +117,7 @@ def main():
         t_ws = time_per_call(lambda sim=sim, dt=dt: sim.step(dt), args.steps, device)
         graph_rate, graph_ratio = "-", "-"
         if device.is_cuda:
-            with wp.ScopedCapture(device=device) as capture:
-                sim.step(dt)
-            t_graph = time_per_call(lambda: wp.capture_launch(capture.graph), args.steps, device)
+            t_graph = time_per_graph_launch(lambda: sim.step(dt), args.steps, device)
             graph_rate, graph_ratio = f"{1 / t_graph:11.0f}", f"{t_np / t_graph:7.1f}"
         print(f"{res:>5} {b.particle_count:>9} {b.spring_count:>8} {1 / t_np:11.0f} {1 / t_ws:13.0f} "
               f"{t_np / t_ws:7.1f} {graph_rate:>11} {graph_ratio:>7}")

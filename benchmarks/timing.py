@@ -17,3 +17,10 @@ def time_per_call(fn, steps, device=None):
     if device is not None:
         wp.synchronize_device(device)
     return (time.perf_counter() - t0) / steps
+
+
+def time_per_graph_launch(fn, steps, device):
+    """Seconds per replay of ``fn`` captured once as a CUDA graph on ``device``."""
+    with wp.ScopedCapture(device=device) as capture:
+        fn()
+    return time_per_call(lambda: wp.capture_launch(capture.graph), steps, device)

@@ -251,8 +251,3 @@ def make_integrator(integrator) -> Integrator:
         return INTEGRATORS[integrator]()
     valid = ", ".join(sorted(INTEGRATORS))
     raise ValueError(f"unknown integrator {integrator!r}; valid integrators: {valid}")
-
-
-def integrator_names() -> list:
-    return list(INTEGRATORS)
-

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
 
@@ -51,6 +50,3 @@ class Model:
             wp.clone(self.particle_qd),
             wp.zeros(self.particle_count, dtype=wp.vec3, device=self.device),
         )
-
-    def particle_masses_numpy(self) -> np.ndarray:
-        return self.particle_mass.numpy()
