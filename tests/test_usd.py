@@ -467,3 +467,18 @@ def test_sigkill_mid_run_leaves_every_completed_chunk(tmp_path):
     # a later run to the same path cleans up the temporary files of the killed one
     write_particles(root, range(2), chunk_size=4)
     assert not [f for f in os.listdir(tmp_path) if f.startswith(root.stem + ".") and "tmp-" in f]
+
+
+def test_next_run_removes_every_kind_of_leftover_temporary(tmp_path):
+    """A kill can leave our "<name>.tmp-PID.usdc" files and, when it lands inside usd-core's own
+    save, usd-core's "<name>.tmp-PID.XXXXXX" temporaries; the next run to the path removes both
+    and nothing else."""
+    root = tmp_path / "again.usda"
+    planted = ["again.chunk000004.tmp-999.usdc", "again.chunk000477.tmp-24744.gaJPWt", "again.tmp-999.usda"]
+    for name in planted:
+        (tmp_path / name).write_text("partial")
+    (tmp_path / "other.chunk000000.tmp-1.gaJPWt").write_text("not ours")
+    write_particles(root, range(3), chunk_size=2)
+    left = sorted(os.listdir(tmp_path))
+    assert not [f for f in left if f in planted]
+    assert "other.chunk000000.tmp-1.gaJPWt" in left

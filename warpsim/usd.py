@@ -385,8 +385,10 @@ class UsdCacheWriter:
     def _seal(self):
         """Freeze declarations; write the manifest and the first root layer."""
         os.makedirs(self.dirname, exist_ok=True)
-        for tmp in glob.glob(self._abs(glob.escape(self.stem) + ".*tmp-*.usd*")):
-            os.remove(tmp)  # leftovers of a killed run
+        # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
+        # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
+        for tmp in glob.glob(self._abs(glob.escape(self.stem) + ".*tmp-*")):
+            os.remove(tmp)
         self._sealed = True
         self._export_atomic(self._build_layer(manifest=True), self._abs(self._file("manifest")))
         if self.resume_frame is not None:
