@@ -190,6 +190,23 @@ def report(r):
     return rate, tau / r["wall"]
 
 
+def profile_kernels(run, device, top=8):
+    """Per-kernel GPU time of ``run()`` (Warp's activity timing; CUDA only), largest first."""
+    if not device.is_cuda:
+        print("  (--profile needs a CUDA device)")
+        return
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    run()
+    results = wp.timing_end()
+    totals = {}
+    for r in results:
+        name = r.name.split("(")[0] if r.name else "?"
+        totals[name] = totals.get(name, 0.0) + r.elapsed
+    whole = sum(totals.values())
+    for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
+        print(f"    {ms:9.2f} ms  {100.0 * ms / whole:5.1f} %  {name}")
+
+
 def bench_reference(fluid, steps):
     """NumPy/cKDTree steps from the fluid's current state, and Warp steps (fixed iterations, as
     the reference) from the same state; returns (seconds per reference step, max position
@@ -231,6 +248,9 @@ def main(argv=None):
                         help="also time warpsim at the example's step size in gravity time units")
     parser.add_argument("--order", action="store_true",
                         help="also time warpsim sorting its particles spatially every frame")
+    parser.add_argument("--cfl", type=float, default=0.4, help="warpsim's CFL number (its default 0.4)")
+    parser.add_argument("--profile", action="store_true",
+                        help="print the GPU time per kernel of one more warpsim frame and of 10 example steps")
     parser.add_argument("--reference-max", type=int, default=20000,
                         help="skip the NumPy reference above this many particles")
     args = parser.parse_args(argv)
@@ -239,8 +259,9 @@ def main(argv=None):
 
     ex = bench_warp_example(args.particles, args.steps, device)
     ex_fit = bench_warp_example(args.particles, args.steps, device, fitted_grid=True)
-    fluid, ws = bench_warpsim(ex["n"], args.frames, args.warmup, device, iterations=args.iterations)
-    print(f"device {device}; warpsim: dam break, {args.warmup} + {args.frames} frames of 1/60 s in CFL sub-steps, "
+    fluid, ws = bench_warpsim(ex["n"], args.frames, args.warmup, device, iterations=args.iterations, cfl=args.cfl)
+    print(f"device {device}; warpsim: dam break, {args.warmup} + {args.frames} frames of 1/60 s in CFL sub-steps "
+          f"(cfl {args.cfl:g}), "
           f"at most {args.iterations} PBF iterations/step"
           + (f", stopping at mean compression {fluid.density_tolerance:g}" if fluid._adaptive else ""))
     rate_ws, tau_ws = report(ws)
@@ -264,6 +285,9 @@ def main(argv=None):
                                       iterations=args.iterations)
         rate = sorted_run["n"] * sorted_run["steps"] / sorted_run["wall"]
         print(f"  warpsim sorting particles every frame: {rate:10.4g} particle-steps/s ({rate / rate_ws:.3f} x unsorted)")
+    if args.profile:
+        print("one more warpsim frame (1/60 s), GPU time per kernel:")
+        profile_kernels(lambda: fluid.advance(1.0 / 60.0), device)
     if fluid.active_count <= args.reference_max:
         t_ref, diff = bench_reference(fluid, 2)
         n = fluid.active_count
