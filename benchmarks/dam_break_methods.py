@@ -38,7 +38,7 @@ def main():
     runs = {}
     for res in args.pbf_res:
         runs[f"PBF a/{res} no-slip"] = run_pbf_dam_break(res=res)
-        runs[f"PBF a/{res} slip"] = run_pbf_dam_break(res=res, boundary_viscosity=0.0)
+        runs[f"PBF a/{res} slip"] = run_pbf_dam_break(res=res, wall_friction=0.0)
     for res in args.flip_res:
         runs[f"FLIP a/{res}"] = run_flip_dam_break(res=res)
     main_res = args.main_res

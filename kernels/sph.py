@@ -42,7 +42,7 @@ class FluidParams:
     viscosity: float  # XSPH coefficient (dimensionless, 0..1)
     vorticity: float  # vorticity-confinement strength [m/s^2 per 1/s]
     surface_tension: float  # Akinci et al. (2013) cohesion coefficient gamma [1/s^2]
-    boundary_viscosity: float  # XSPH-like friction against boundaries (dimensionless, 0..1)
+    wall_friction: float  # velocity damping rate k at boundaries [1/s]: v *= exp(-k phi dt)
     # derived constants, set by the host (``warpsim.sph.ParticleFluid``) from the ones above
     inv_h: float  # 1 / h [1/m]
     h2: float  # h^2 [m^2]
@@ -626,9 +626,9 @@ def apply_velocity_filters(
                 curv = -p.surface_tension * (normal[i] - normal[j])
                 accel += kij * (coh + curv)
     vnew = vi + p.viscosity * dv
-    if p.boundary_viscosity > 0.0:
+    if p.wall_friction > 0.0:
         phi = boundary_density(b, xi, h)[3]
-        vnew = vnew - wp.min(p.boundary_viscosity * phi, 1.0) * vnew
+        vnew = vnew * wp.exp(-p.wall_friction * phi * dt)
     if use_curl != 0 and p.vorticity > 0.0:
         le = wp.length(eta)
         if le > 1.0e-9:

@@ -106,7 +106,7 @@ def run_pbf_dam_break(res=10, **settings):
     """The PBF dam break exactly as ``run_dam_break`` in tests/test_sph.py (a slab three particles
     thick, a / spacing = ``res`` = 10, viscosity 0.01, max_dt 1/100 s, default (no-slip) walls,
     62 frames of dT = 0.05, front = furthest particle + half a spacing); ``settings`` go to
-    ParticleFluid (boundary_viscosity=0.0: free-slip walls, as the MAC grid's)."""
+    ParticleFluid (wall_friction=0.0: free-slip walls, as the MAC grid's)."""
     s = A / res
     f = ParticleFluid(fluid_block((0, 0, 0), (A, 2 * A, 3 * s), s), spacing=s,
                       domain=((0, 0, 0), (5 * A, 2.5 * A, 3 * s)), viscosity=0.01, max_dt=1.0 / 100.0,
@@ -131,7 +131,7 @@ def runs():
     out = {
         "flip": run_flip_dam_break(res=20),
         "pbf": run_pbf_dam_break(res=10),
-        "pbf_matched": run_pbf_dam_break(res=20, boundary_viscosity=0.0),
+        "pbf_matched": run_pbf_dam_break(res=20, wall_friction=0.0),
     }
     for name, r in out.items():
         print(f"\n{name}: a/spacing or a/dx = {r['res']}, {r['steps']} steps, {r['particles']} particles, "
@@ -167,7 +167,7 @@ def test_flip_dam_break_is_sound(runs):
 
 def test_flip_and_pbf_fronts_agree_at_matched_resolution_and_walls(runs):
     """Two independent methods, the same problem: FLIP (a / dx = 20, free-slip MAC walls) and PBF
-    at the same resolution (a / spacing = 20) with free-slip walls (boundary_viscosity 0, all else
+    at the same resolution (a / spacing = 20) with free-slip walls (wall_friction 0, all else
     as in tests/test_sph.py). Compared at every frame with 0.8 <= T <= 3.0.
 
     Measured Z_FLIP / Z_PBF - 1 at every frame in the window: +0.6 % .. +2.9 %; over FLIP seeds

@@ -66,7 +66,7 @@ def project_planes(x, normals, offsets, radius):
 
 
 def pbf_step_numpy(x, v, dt, *, h, mass, rest_density, kernel="cubic", gravity=(0.0, -9.81, 0.0), iterations=4,
-                   viscosity=0.0, boundary_viscosity=0.0, radius, relaxation, normals=(), offsets=(),
+                   viscosity=0.0, wall_friction=0.0, radius, relaxation, normals=(), offsets=(),
                    phi_table=None, dphi_table=None, use_kdtree=True):
     """One PBF step in float64 NumPy; returns (x, v, density) after the step."""
     x = np.asarray(x, np.float64)
@@ -102,13 +102,13 @@ def pbf_step_numpy(x, v, dt, *, h, mass, rest_density, kernel="cubic", gravity=(
         dx = np.stack([np.bincount(i, corr[:, k], minlength=n) for k in range(3)], 1) + lam[:, None] * gb
         xp = project_planes(xp + dx, normals, offsets, radius)
     v = (xp - x) / dt
-    if viscosity > 0.0 or boundary_viscosity > 0.0:
+    if viscosity > 0.0 or wall_friction > 0.0:
         r = np.linalg.norm(xp[i] - xp[j], axis=1)
         wgt = 2.0 * mass / (density[i] + density[j]) * kernel_numpy(r, h, kernel)
         dv = (wgt[:, None] * (v[j] - v[i]))
         vnew = v + viscosity * np.stack([np.bincount(i, dv[:, k], minlength=n) for k in range(3)], 1)
-        if boundary_viscosity > 0.0 and len(offsets):
+        if wall_friction > 0.0 and len(offsets):
             _, phib = boundary_density(xp, normals, offsets, phi_table, dphi_table, h)
-            vnew = vnew - np.minimum(boundary_viscosity * phib, 1.0)[:, None] * vnew
+            vnew = vnew * np.exp(-wall_friction * phib * dt)[:, None]
         v = vnew
     return xp, v, density
