@@ -81,7 +81,8 @@ class NeighborList:
 
     ``grad_factor`` (same layout) caches each pair's kernel gradient from the last density
     evaluation: ``(m / rho0) grad_i W_ij = grad_factor * (x_i - x_j)`` [1/m^2], so a position
-    correction gathers it without re-evaluating the kernel."""
+    correction gathers it without re-evaluating the kernel, when ``cache_gradients`` != 0 (the
+    CPU's choice; GPUs re-evaluate it, cheaper there than writing and reading it back)."""
 
     count: wp.array(dtype=int)
     index: wp.array(dtype=int)
@@ -89,6 +90,7 @@ class NeighborList:
     stride_i: int
     stride_k: int
     capacity: int
+    cache_gradients: int
 
 
 # ------------------------------------------------------------------------------------ kernels
@@ -383,7 +385,8 @@ def find_neighbors_density(
                     rho += wf[0]
                     grad_i += wf[1] * rij
                     sum_grad2 += wf[1] * wf[1] * r2
-                    nb_out.grad_factor[k] = wf[1]
+                    if nb_out.cache_gradients != 0:
+                        nb_out.grad_factor[k] = wf[1]
             count += 1
     if count > capacity:
         wp.atomic_max(overflow_out, 0, count)
@@ -442,7 +445,8 @@ def solve_density_lambda(
         rho += wf[0]
         grad_i += wf[1] * rij
         sum_grad2 += wf[1] * wf[1] * r2
-        nb.grad_factor[e] = wf[1]
+        if nb.cache_gradients != 0:
+            nb.grad_factor[e] = wf[1]
         e += nb.stride_k
     store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, with_stats, density_out, lambda_out,
                              boundary_grad_out, stats_out)
@@ -471,7 +475,13 @@ def solve_density_correct(
     end = e + nb.count[i] * nb.stride_k
     while e < end:
         j = nb.index[e]
-        dx += ((li + lam[j]) * nb.grad_factor[e]) * (xi - x[j])
+        rij = xi - x[j]
+        gf = float(0.0)
+        if nb.cache_gradients != 0:
+            gf = nb.grad_factor[e]
+        else:
+            gf = pair_terms(p, wp.dot(rij, rij))[1]
+        dx += ((li + lam[j]) * gf) * rij
         e += nb.stride_k
     x_out[i] = project_planes(b, xi + dx, p.radius)
     lambda_sum_io[i] = lambda_sum_io[i] + li

@@ -147,8 +147,9 @@ def test_step_matches_numpy_reference(device):
 
 
 def test_fused_neighbor_density_pass_matches_separate_passes():
-    """The CPU's neighbour search with the first density pass fused in gives bit for bit the
-    steps of the separate passes GPUs run (list, then density over the list)."""
+    """The CPU's path (neighbour search with the first density pass fused in, pair gradients
+    cached in the list) gives bit for bit the steps of the GPUs' path run on the CPU (list, then
+    density over the list; gradients re-evaluated in every correction)."""
     s = 0.02
     x0 = fluid_block((0, 0, 0), (0.1, 0.16, 0.1), s, jitter=0.1, seed=5)
     x0 = np.clip(x0, 0.5 * s, None)
@@ -156,6 +157,7 @@ def test_fused_neighbor_density_pass_matches_separate_passes():
     for fused in (True, False):
         f = ParticleFluid(x0, spacing=s, domain=((0, 0, 0), (0.3, 0.3, 0.1)), device="cpu")
         f._fused_density = fused
+        f._neighbors.cache_gradients = int(fused)
         for _ in range(15):
             f.step(1.0 / 300.0)
         runs.append((f.positions.numpy(), f.density.numpy(), f.total_iterations))

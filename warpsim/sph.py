@@ -509,7 +509,11 @@ class ParticleFluid:
         nb.capacity = int(max_neighbors)
         nb.count = wp.zeros(cap, dtype=int, device=d)
         nb.index = wp.zeros(cap * nb.capacity, dtype=int, device=d)
-        nb.grad_factor = wp.zeros(cap * nb.capacity, dtype=float, device=d)
+        # cache the pair gradients on the CPU (one thread: compute is dear); re-evaluate them on GPUs,
+        # where writing and re-reading them cost more (H200, 1M particles: a dam-break step at CFL
+        # steps 31.2 ms cached, 11.5 ms re-evaluated; the position-correction pass 4.4x faster)
+        nb.cache_gradients = int(d.is_cpu)
+        nb.grad_factor = wp.zeros(cap * nb.capacity if nb.cache_gradients else 1, dtype=float, device=d)
         nb.stride_i, nb.stride_k = nb.capacity, 1  # row-major: measured faster than column-major on an H200 too
         self._neighbors = nb
         self._overflow = wp.zeros(1, dtype=int, device=d)
