@@ -492,6 +492,7 @@ def iteration_control(
     stats: wp.array(dtype=float),
     n: int,
     tolerance: float,
+    peak_tolerance: float,
     max_iterations: int,
     advance: int,
     counter_io: wp.array(dtype=int),
@@ -501,10 +502,10 @@ def iteration_control(
     """One thread: counts ``advance`` more corrections (counter_io[0] this step, total_io[0]
     overall) and sets go_out[0] = 1 while another one is due: fewer than ``max_iterations`` so far
     and the mean compression sum(stats[:STAT_SLOTS]) / n at least ``tolerance`` (tolerance 0:
-    always), or, for the step's first correction, the largest compression
-    max(stats[STAT_SLOTS:]) at least ``tolerance``. That first correction keeps a local
-    compression from building up over steps that skip the solve because the mean (over a fluid
-    mostly at or below rest density) is small: the compression a step leaves becomes velocity,
+    always), or the largest compression max(stats[STAT_SLOTS:]) at least ``peak_tolerance``, or,
+    for the step's first correction, that largest compression at least ``tolerance``. Both keep
+    a local compression from building up over steps that stop early (or skip the solve) because
+    the mean (over a fluid mostly at or below rest density) is small: the compression a step leaves becomes velocity,
     ~ C spacing / dt, so an unchecked C would kick harder the smaller the steps (and CFL
     sub-stepping, dt ~ spacing / v_max, then feeds the kick back into ever smaller steps). Runs
     on the device, so the loop (``wp.capture_while``) needs no host read-back in a CUDA graph."""
@@ -517,7 +518,7 @@ def iteration_control(
         total += stats[k]
         peak = wp.max(peak, stats[STAT_SLOTS + k])
     go = int(0)
-    if it < max_iterations and (total >= tolerance * float(n) or (it == 0 and peak >= tolerance)):
+    if it < max_iterations and (total >= tolerance * float(n) or peak >= peak_tolerance or (it == 0 and peak >= tolerance)):
         go = 1
     go_out[0] = go
 
