@@ -327,7 +327,12 @@ class ParticleFluid:
             being a rate, the front then moves the same at any step size (the per-step form
             made it 9 % slower at cfl 0.05 than at 0.4).
         emitters: list of :class:`Nozzle`; sinks: list of :class:`Sink`.
-        cfl: CFL number: sub-steps keep v_max dt <= cfl * spacing.
+        cfl: CFL number: sub-steps keep v_max dt <= cfl * spacing. None: 0.4 on the CPU, 0.2 on
+            GPUs. Halving the step cuts the corrections a step needs about 4x (the compression a
+            step builds grows like dt^2), and on a GPU, where a correction is cheap next to the
+            neighbour search, that wins: a 1M-particle dam break on an H200 simulates 1.15x more
+            time per wall-clock second at 0.2 than at 0.4 (3.8 vs 18.5 corrections per step); on
+            the CPU, where the neighbour search dominates, 0.4 is 1.2x faster than 0.2.
         max_dt: largest sub-step [s].
         max_neighbors: neighbour-list capacity per particle.
         max_speed: speed [m/s] beyond which the run counts as blown up.
@@ -343,7 +348,7 @@ class ParticleFluid:
     def __init__(self, positions, velocities=None, *, spacing, rest_density=1000.0, capacity=None, domain=None,
                  colliders=(), gravity=(0.0, -9.81, 0.0), kernel="cubic", support=2.0, iterations=40,
                  density_tolerance=0.002, peak_tolerance=None, viscosity=0.01, vorticity=0.0, surface_tension=0.0,
-                 wall_friction=5.0, emitters=(), sinks=(), cfl=0.4, max_dt=1.0 / 200.0, max_neighbors=64,
+                 wall_friction=5.0, emitters=(), sinks=(), cfl=None, max_dt=1.0 / 200.0, max_neighbors=64,
                  max_speed=100.0, sort_every=0, device=None):
         self.spacing = _positive("spacing", spacing)
         self.rest_density = _positive("rest_density", rest_density)
@@ -367,7 +372,8 @@ class ParticleFluid:
         wall_friction = _positive("wall_friction", wall_friction, allow_zero=True)
         vorticity = _positive("vorticity", vorticity, allow_zero=True)
         surface_tension = _positive("surface_tension", surface_tension, allow_zero=True)
-        self.cfl = _positive("cfl", cfl)
+        if cfl is not None:
+            cfl = _positive("cfl", cfl)
         self.max_dt = _positive("max_dt", max_dt)
         self.max_speed = _positive("max_speed", max_speed)
         if int(sort_every) != sort_every or sort_every < 0:
@@ -443,6 +449,8 @@ class ParticleFluid:
 
         d = wp.get_device(device)
         self.device = d
+        self.cfl = (0.4 if d.is_cpu else 0.2) if cfl is None else cfl
+        """CFL number of :meth:`advance`'s sub-steps."""
         self._meshes = [wp.Mesh(points=wp.array(pts.astype(np.float32), dtype=wp.vec3, device=d),
                                 indices=wp.array(faces.astype(np.int32).reshape(-1), dtype=int, device=d))
                         for pts, faces, _, _ in meshes]

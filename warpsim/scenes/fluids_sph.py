@@ -23,7 +23,7 @@ _COMMON = {
     "vorticity": (0.0, "vorticity confinement strength (0: off)"),
     "surface_tension": (0.0, "Akinci surface tension coefficient (0: off)"),
     "kernel": ("cubic", "smoothing kernel", tuple(KERNELS)),
-    "cfl": (0.4, "CFL number: sub-steps keep v dt <= cfl * spacing"),
+    "cfl": (0.0, "CFL number: sub-steps keep v dt <= cfl * spacing (0: the fluid's default, 0.4 on the CPU, 0.2 on GPUs)"),
     "surface": (True, "mesh the liquid surface every frame"),
     "surface_cell": (0.0, "surface grid spacing [m] (0: half the particle spacing)"),
 }
@@ -92,12 +92,13 @@ class FluidScene(Scene):
         self.fluid.restore(data)
 
     def fluid_args(self, p):
-        for key in ("spacing", "cfl"):
-            if not p[key] > 0.0:
-                raise ValueError(f"{key}={p[key]}: it must be > 0")
+        if not p["spacing"] > 0.0:
+            raise ValueError(f"spacing={p['spacing']}: it must be > 0")
+        if not p["cfl"] >= 0.0:
+            raise ValueError(f"cfl={p['cfl']}: it must be > 0 (or 0: the fluid's default)")
         return {"spacing": p["spacing"], "iterations": p["iterations"], "viscosity": p["viscosity"],
                 "vorticity": p["vorticity"], "surface_tension": p["surface_tension"], "kernel": p["kernel"],
-                "cfl": p["cfl"], "sort_every": 10, "device": self.device}
+                "cfl": p["cfl"] or None, "sort_every": 10, "device": self.device}
 
 
 @register_scene("dam_break", "a water column collapsing in a box (position-based fluids), surface meshed "
