@@ -8,14 +8,15 @@ derives velocities from the position change, filtered by XSPH viscosity, optiona
 confinement and optional surface tension (Akinci et al. 2013).
 
 Adaptive iterations: a step stops iterating once the mean compression is below
-``density_tolerance``; ``iterations`` is the most it runs. It skips the solve only when no particle
-is compressed by ``density_tolerance`` or more: the compression a step leaves turns into velocity
-(~ C spacing / dt) at the next correction, so a local compression left to build up over skipped
-steps kicks harder the smaller the steps are. The decision is a one-thread kernel
-and the loop a ``wp.capture_while``, so no step reads anything back (a conditional node in a CUDA
-graph). Each correction reuses the kernel
-gradients its density pass cached in the neighbour list, and the velocity update is fused with
-the XSPH / vorticity / surface-tension filters.
+``density_tolerance`` and no particle is compressed by ``peak_tolerance`` (10x) or more;
+``iterations`` is the most it runs. It skips the solve only when no particle is compressed by
+``density_tolerance`` or more: the compression a step leaves turns into velocity (~ C spacing / dt)
+at the next correction, so a local compression left to build up over steps kicks harder the
+smaller the steps are. The decision is a one-thread kernel and the loop a ``wp.capture_while``, so
+no step reads anything back (a conditional node in a CUDA graph). On the CPU each correction
+reuses the kernel gradients its density pass cached in the neighbour list (GPUs re-evaluate them:
+cheaper there than storing and re-reading them), and the velocity update is fused with the XSPH /
+vorticity / surface-tension filters and the wall friction.
 
 Why PBF on GPUs: every iteration is two embarrassingly parallel gather passes over a neighbour
 list built once per step (no linear system, no atomics, no global reductions), it is stable at
