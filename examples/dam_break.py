@@ -49,10 +49,7 @@ class Example:
         f = self.fluid
         data = {"particles": {"points": f.positions, "velocities": f.velocities, "ids": f.ids}}
         if self.surface is not None:
-            mesh = self.surface.mesh()
-            faces = mesh.faces.numpy().reshape(-1)
-            data["surface"] = {"points": mesh.vertices, "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
-                               "faceVertexIndices": faces}
+            data["surface"] = self.surface.mesh().usd_frame()
         return data
 
     def declare(self, writer):

@@ -11,7 +11,6 @@ streamed to USD, and the liquid volume printed per frame (it should stay put).
 import argparse
 import math
 
-import numpy as np
 import warp as wp
 
 from warpsim.levelset_liquid import LevelSetLiquid
@@ -44,11 +43,7 @@ class Example:
         writer.add_box("tank_floor", (0.0, -0.02, 0.0), (1.0, 0.0, self.grid.upper[2]))
 
     def write(self, writer, frame):
-        mesh = self.mesher.mesh(self.liquid.phi)
-        faces = mesh.faces.numpy().reshape(-1)
-        writer.write_frame(frame, {"surface": {"points": mesh.vertices,
-                                               "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
-                                               "faceVertexIndices": faces}})
+        writer.write_frame(frame, {"surface": self.mesher.mesh(self.liquid.phi).usd_frame()})
 
 
 def main():

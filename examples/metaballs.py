@@ -32,13 +32,7 @@ class Example:
         return self.mesh
 
     def write(self, writer, frame):
-        faces = self.mesh.faces.numpy()
-        writer.write_frame(frame, {"blobs": {
-            "points": self.mesh.vertices,
-            "normals": self.mesh.normals,
-            "faceVertexCounts": np.full(len(faces), 3, np.int32),
-            "faceVertexIndices": faces.reshape(-1),
-        }})
+        writer.write_frame(frame, {"blobs": self.mesh.usd_frame(normals=True)})
 
 
 def euler_characteristic(vertex_count, faces):

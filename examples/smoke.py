@@ -52,12 +52,9 @@ class Example:
     def write(self, writer, frame):
         rho = self.smoke.density.numpy().reshape(-1)
         keep = np.flatnonzero(rho > 0.02)
-        mesh = self.mesher.mesh(self.smoke.density, 0.1)
-        faces = mesh.faces.numpy().reshape(-1)
         writer.write_frame(frame, {
             "smoke": {"points": self.centres[keep], "ids": keep.astype(np.int32), "density": rho[keep]},
-            "smoke_surface": {"points": mesh.vertices, "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
-                              "faceVertexIndices": faces},
+            "smoke_surface": self.mesher.mesh(self.smoke.density, 0.1).usd_frame(),
         })
 
 

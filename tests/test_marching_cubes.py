@@ -172,6 +172,20 @@ def test_sphere_closed_welded_oriented(device):
     assert np.einsum("ij,ij->i", face_n, nrm[f].sum(axis=1)).min() > 0.0
 
 
+def test_usd_frame_is_the_mesh():
+    """usd_frame(): USD Mesh data of the same triangles (3 vertices per face, indices in face
+    order, the same points and, on request, normals)."""
+    field, h = sphere_sdf(12, radius=0.6)
+    result = marching_cubes(field, spacing=h, origin=(-1.0, -1.0, -1.0), device="cpu")
+    v, f, nrm = result.numpy()
+    data = result.usd_frame(normals=True)
+    assert data["faceVertexCounts"].tolist() == [3] * len(f)
+    np.testing.assert_array_equal(data["faceVertexIndices"], f.reshape(-1))
+    np.testing.assert_array_equal(data["points"].numpy(), v)
+    np.testing.assert_array_equal(data["normals"].numpy(), nrm)
+    assert "normals" not in result.usd_frame()
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_noise_field_closed_with_boundary_option(seed, device):
     rng = np.random.default_rng(seed)

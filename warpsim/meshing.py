@@ -62,6 +62,17 @@ class MarchingCubesResult:
     def face_count(self) -> int:
         return self.faces.shape[0]
 
+    def usd_frame(self, normals: bool = False) -> dict:
+        """This mesh as one frame of a USD Mesh prim for the cache writers: points,
+        faceVertexCounts (3 per triangle), faceVertexIndices and, with ``normals``, normals.
+        Reads the faces back once (the counts need their number)."""
+        faces = self.faces.numpy().reshape(-1)
+        data = {"points": self.vertices, "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
+                "faceVertexIndices": faces}
+        if normals:
+            data["normals"] = self.normals
+        return data
+
     def numpy(self):
         """(vertices (V, 3) float32, faces (F, 3) int32, normals (V, 3) float32) as NumPy copies."""
         v = self.vertices.numpy().reshape(-1, 3).copy()

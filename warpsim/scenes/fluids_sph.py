@@ -74,10 +74,7 @@ class FluidScene(Scene):
         data = {"particles": {"points": f.positions, "velocities": f.velocities, "ids": f.ids,
                               "warpsim:densityError": f.density_error()[0]}}
         if self.surface is not None:
-            mesh = self.surface.mesh()
-            faces = mesh.faces.numpy().reshape(-1)
-            data["surface"] = {"points": mesh.vertices, "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
-                               "faceVertexIndices": faces}
+            data["surface"] = self.surface.mesh().usd_frame()
         return data
 
     def advance(self, frame_dt, substeps):

@@ -41,10 +41,7 @@ def _open_box(lower, upper):
 
 
 def _surface_frame(mesher, field, iso=0.0):
-    mesh = mesher.mesh(field, iso)
-    faces = mesh.faces.numpy().reshape(-1)
-    return {"points": mesh.vertices, "faceVertexCounts": np.full(len(faces) // 3, 3, np.int32),
-            "faceVertexIndices": faces}
+    return mesher.mesh(field, iso).usd_frame()
 
 
 class GridFluidScene(Scene):

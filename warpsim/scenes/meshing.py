@@ -35,10 +35,7 @@ class MetaballsScene(Scene):
         self.mesh = self.blobs.mesh(self.time)
 
     def frame_data(self):
-        faces = self.mesh.faces.numpy()
-        return {"blobs": {"points": self.mesh.vertices.numpy(), "normals": self.mesh.normals.numpy(),
-                          "faceVertexCounts": np.full(len(faces), 3, np.int32),
-                          "faceVertexIndices": faces.reshape(-1)}}
+        return {"blobs": self.mesh.usd_frame(normals=True)}
 
     def checkpoint(self):
         return {"time": np.float64(self.time)}
