@@ -714,6 +714,23 @@ def mark_alive(
     alive_out[i] = alive
 
 
+@wp.func
+def move_particle(
+    src: int,
+    dst: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    ids: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    ids_out: wp.array(dtype=int),
+):
+    """Copy particle src's position, velocity and id to slot dst of the output arrays."""
+    x_out[dst] = x[src]
+    v_out[dst] = v[src]
+    ids_out[dst] = ids[src]
+
+
 @wp.kernel
 def compact_particles(
     alive: wp.array(dtype=int),
@@ -728,10 +745,7 @@ def compact_particles(
     """Stable compaction: a living particle i moves to slot[i] (exclusive prefix sum of alive)."""
     i = wp.tid()
     if alive[i] != 0:
-        s = slot[i]
-        x_out[s] = x[i]
-        v_out[s] = v[i]
-        ids_out[s] = ids[i]
+        move_particle(i, slot[i], x, v, ids, x_out, v_out, ids_out)
 
 
 @wp.kernel
@@ -746,7 +760,4 @@ def gather_sorted(
 ):
     """Reorder particles into the hash grid's cell order (neighbours become neighbours in memory)."""
     tid = wp.tid()
-    i = wp.hash_grid_point_id(grid, tid)
-    x_out[tid] = x[i]
-    v_out[tid] = v[i]
-    ids_out[tid] = ids[i]
+    move_particle(wp.hash_grid_point_id(grid, tid), tid, x, v, ids, x_out, v_out, ids_out)
