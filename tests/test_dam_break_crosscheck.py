@@ -22,9 +22,14 @@ import numpy as np
 import pytest
 import warp as wp
 
+# Martin and Moyce's data and the PBF dam break exactly as tests/test_sph.py runs it (a slab three
+# particles thick, a / spacing = res, 62 frames of dT = 0.05, front = furthest particle + half a
+# spacing; wall_friction=0.0 gives free-slip walls, as the MAC grid's)
+from test_sph import MM_T, MM_Z
+from test_sph import run_dam_break as run_pbf_dam_break
+
 from warpsim.flip import FlipLiquid
 from warpsim.mac_grid import MacGrid
-from warpsim.sph import ParticleFluid, fluid_block
 
 G = 9.81
 A = 0.1  # column width a [m]; height 2a
@@ -33,10 +38,6 @@ FRAME_DT = 0.05 / SCALE  # frames of dT = 0.05, as run_dam_break in tests/test_s
 FRAMES = 62  # T = 0 .. 3.1
 DEVICE = "cpu"
 
-# Martin and Moyce (1952), Phil. Trans. R. Soc. Lond. A 244, 312-324, Table 2 (n^2 = 2): the same
-# numbers as MM_T, MM_Z in tests/test_sph.py (copied: importing that module is avoided).
-MM_T = np.array([0.41, 0.84, 1.19, 1.43, 1.63, 1.83, 1.98, 2.20, 2.32, 2.51, 2.65, 2.83, 2.98])
-MM_Z = np.array([1.11, 1.22, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.00, 3.22, 3.44, 3.67])
 EARLY = (MM_T > 1.0) & (MM_T < 1.9)  # where the PBF front leads the experiment by 11-13 %
 
 
@@ -99,27 +100,6 @@ def run_flip_dam_break(res=20, cfl=1.0, frames=FRAMES, **settings):
     out = {k: np.array(v) for k, v in out.items()}
     out.update(seconds=time.perf_counter() - start, steps=steps, res=res, dx=dx, particles0=n0,
                particles=flip.particle_count(), area=area(x) / area0, fluid=flip)
-    return out
-
-
-def run_pbf_dam_break(res=10, **settings):
-    """The PBF dam break exactly as ``run_dam_break`` in tests/test_sph.py (a slab three particles
-    thick, a / spacing = ``res`` = 10, viscosity 0.01, max_dt 1/100 s, default (no-slip) walls,
-    62 frames of dT = 0.05, front = furthest particle + half a spacing); ``settings`` go to
-    ParticleFluid (wall_friction=0.0: free-slip walls, as the MAC grid's)."""
-    s = A / res
-    f = ParticleFluid(fluid_block((0, 0, 0), (A, 2 * A, 3 * s), s), spacing=s,
-                      domain=((0, 0, 0), (5 * A, 2.5 * A, 3 * s)), viscosity=0.01, max_dt=1.0 / 100.0,
-                      device=DEVICE, **settings)
-    out = {"T": [0.0], "Z": [1.0]}
-    start = time.perf_counter()
-    for _ in range(FRAMES):
-        f.advance(FRAME_DT)  # raises SimulationError on a blow-up
-        x = f.positions.numpy()
-        out["T"].append(f.time * SCALE)
-        out["Z"].append((x[:, 0].max() + 0.5 * s) / A)
-    out = {k: np.array(v) for k, v in out.items()}
-    out.update(seconds=time.perf_counter() - start, steps=f.step_count, res=res, particles=f.active_count, fluid=f)
     return out
 
 

@@ -6,6 +6,7 @@ against Martin and Moyce (1952), volume conservation, momentum of a free-falling
 containment by walls, spheres and meshes, emitters/sinks, CFL sub-stepping, and bad input.
 """
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -236,12 +237,12 @@ MM_T = np.array([0.41, 0.84, 1.19, 1.43, 1.63, 1.83, 1.98, 2.20, 2.32, 2.51, 2.6
 MM_Z = np.array([1.11, 1.22, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.00, 3.22, 3.44, 3.67])
 
 
-def run_dam_break(**settings):
-    """A 2D-like slab (3 particles thick, walls on every side): column a x 2a, a = 10 spacings,
+def run_dam_break(res=10, **settings):
+    """A 2D-like slab (3 particles thick, walls on every side): column a x 2a, a = ``res`` spacings,
     advanced over T = 0 .. 3.1 in equal frames (PBF wants sub-steps of similar size). The walls
     resist like the experiment's floor (the default wall_friction, 5 /s). Records the front Z(T), the
     density-based volume, the mean and peak compression and the largest speed at every sample."""
-    a, res = 0.1, 10
+    a = 0.1
     s = a / res
     f = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, 3 * s), s), spacing=s,
                       domain=((0, 0, 0), (5 * a, 2.5 * a, 3 * s)), viscosity=0.01, max_dt=1.0 / 100.0,
@@ -251,6 +252,7 @@ def run_dam_break(**settings):
     volume0 = f.volume()
     out = {"T": [0.0], "Z": [1.0], "volume": [1.0], "compression": [f.density_error()[0]], "peak": [0.0],
            "speed": [0.0]}
+    start = time.perf_counter()
     for _ in range(62):
         f.advance(frame_dt)  # raises SimulationError on a blow-up (max_speed 100 m/s)
         x = f.positions.numpy()
@@ -262,8 +264,8 @@ def run_dam_break(**settings):
         out["peak"].append(peak)
         out["speed"].append(f.max_speed_now())
     out = {k: np.array(v) for k, v in out.items()}
-    out["fluid"] = f
-    out["height"] = 2 * a
+    out.update(fluid=f, height=2 * a, res=res, steps=f.step_count, particles=f.active_count,
+               seconds=time.perf_counter() - start)
     return out
 
 
