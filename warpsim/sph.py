@@ -315,7 +315,7 @@ class ParticleFluid:
             part of it) and turn it into velocity ~ C spacing / dt: a 27k-particle dam break
             at cfl 0.1 reached 10 % peak compression and 1.5x the speeds of the cfl 0.4 run,
             and the 1M one blew up (101 m/s at t = 0.083 s); with it the cfl 0.1 run tracks
-            the cfl 0.4 one at 1.1 corrections per step.
+            the cfl 0.4 one (1.76 vs 1.73 m/s) at 1.9 corrections per step.
         viscosity: XSPH coefficient c in [0, 1].
         vorticity: vorticity-confinement strength epsilon [m] (0: off).
         surface_tension: Akinci cohesion/curvature coefficient gamma [1/s^2] (0: off).
@@ -329,11 +329,11 @@ class ParticleFluid:
             made it 9 % slower at cfl 0.05 than at 0.4).
         emitters: list of :class:`Nozzle`; sinks: list of :class:`Sink`.
         cfl: CFL number: sub-steps keep v_max dt <= cfl * spacing. None: 0.4 on the CPU, 0.2 on
-            GPUs. Halving the step cuts the corrections a step needs about 4x (the compression a
+            GPUs. Halving the step cuts the corrections a step needs 3.4-4.9x (the compression a
             step builds grows like dt^2), and on a GPU, where a correction is cheap next to the
-            neighbour search, that wins: a 1M-particle dam break on an H200 simulates 1.15x more
-            time per wall-clock second at 0.2 than at 0.4 (3.8 vs 18.5 corrections per step); on
-            the CPU, where the neighbour search dominates, 0.4 is 1.2x faster than 0.2.
+            neighbour search, that wins: a 1M-particle dam break on an H200 simulates 1.12-1.14x
+            more time per wall-clock second at 0.2 than at 0.4 (3.8 vs 12.9-18.5 corrections per
+            step); on the CPU (8k particles), 0.4 is 1.2x faster than 0.2.
         max_dt: largest sub-step [s].
         max_neighbors: neighbour-list capacity per particle.
         max_speed: speed [m/s] beyond which the run counts as blown up.
