@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 import warp as wp
+from bench_mass_spring import NumpyMassSpring
 from timing import time_per_call, time_per_graph_launch
 
 import warpsim as ws
@@ -41,38 +42,21 @@ def teapot_builder(resolution, height=0.02):
     return b
 
 
-class NumpyTeapot:
-    """The same step in NumPy: gravity + damped springs, semi-implicit Euler, then the box walls
-    (reflect: h' = e h, v_n' = -e v_n, Coulomb friction mu (1 + e) |v_n|), wall by wall."""
+class NumpyTeapot(NumpyMassSpring):
+    """The same step in NumPy: gravity + damped springs, semi-implicit Euler (the mass-spring
+    benchmark's NumPy step), then the box walls (reflect: h' = e h, v_n' = -e v_n, Coulomb
+    friction mu (1 + e) |v_n|), wall by wall."""
 
     def __init__(self, b, box, g=(0.0, -9.81, 0.0)):
-        self.x = np.array(b.particle_q, dtype=np.float32)
-        self.v = np.array(b.particle_qd, dtype=np.float32)
-        self.m = np.array(b.particle_mass, dtype=np.float32)
-        self.w = (1.0 / self.m).astype(np.float32)
+        super().__init__(b, g)
         self.r = np.array(b.particle_radius, dtype=np.float32)
-        s = np.array(b.spring_indices)
-        self.i, self.j = s[:, 0], s[:, 1]
-        self.L = np.array(b.spring_rest_length, dtype=np.float32)
-        self.k = np.array(b.spring_stiffness, dtype=np.float32)
-        self.kd = np.array(b.spring_damping, dtype=np.float32)
-        self.g = np.array(g, dtype=np.float32)
         self.normals = box.normals.astype(np.float32)
         self.offsets = box.offsets.astype(np.float32)
         self.e, self.mu = np.float32(box.restitution), np.float32(box.friction)
 
     def step(self, h):
+        super().step(h)
         x, v = self.x, self.v
-        u = x[self.i] - x[self.j]
-        length = np.linalg.norm(u, axis=1)
-        d = u / length[:, None]
-        dldt = np.einsum("ij,ij->i", v[self.i] - v[self.j], d)
-        fs = -(self.k * (length - self.L) + self.kd * dldt)[:, None] * d
-        f = self.m[:, None] * self.g
-        np.add.at(f, self.i, fs)
-        np.add.at(f, self.j, -fs)
-        v = v + h * self.w[:, None] * f
-        x = x + h * v
         for n, off in zip(self.normals, self.offsets):
             depth = self.r - (x @ n - off)
             hit = depth > 0.0
