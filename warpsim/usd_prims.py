@@ -117,7 +117,7 @@ class Attr:
     """One attribute of a declared prim: static (``value`` set) or sampled per frame."""
 
     def __init__(self, name, type_name, value=None, dynamic=False, on_change=False, custom=False,
-                 metadata=None, uniform=False):
+                 metadata=None, uniform=False, derived=False):
         self.name = name
         self.type_name = type_name
         self.value = value
@@ -126,6 +126,7 @@ class Attr:
         self.custom = custom
         self.uniform = uniform
         self.metadata = dict(metadata or {})
+        self.derived = derived  # sampled per frame but computed by the prim's prepare (e.g. extent)
 
 
 class PrimDecl:
@@ -198,6 +199,8 @@ class PrimDecl:
     def prepare(self, data, where):
         out = {}
         for attr in self.dynamic_attrs():
+            if attr.derived:
+                continue
             if attr.name not in data:
                 raise ValueError(f"{where}: missing {attr.name!r} (declared time-varying, so it is needed "
                                  "every frame)")
@@ -254,11 +257,9 @@ class PointsDecl(PrimDecl):
                 self.count = len(r)
         if color is not None:
             self.add_primvar("displayColor", "color3f[]", "constant", [color])
-        self.dynamic("extent", "float3[]")
+        self.dynamic("extent", "float3[]", derived=True)
 
     def prepare(self, data, where):
-        data = dict(data)
-        data["extent"] = np.zeros((2, 3), np.float32)  # placeholder; computed below
         out = super().prepare(data, where)
         p = out["points"]
         n = len(p)
@@ -313,13 +314,11 @@ class MeshDecl(PrimDecl):
             self.dynamic("points", "point3f[]")
             if self.has_velocities:
                 self.dynamic("velocities", "vector3f[]")
-            self.dynamic("extent", "float3[]")
+            self.dynamic("extent", "float3[]", derived=True)
         if color is not None:
             self.add_primvar("displayColor", "color3f[]", "constant", [color])
 
     def prepare(self, data, where):
-        data = dict(data)
-        data["extent"] = np.zeros((2, 3), np.float32)
         out = super().prepare(data, where)
         p = out["points"]
         n = len(p)
@@ -383,13 +382,12 @@ class CurvesDecl(PrimDecl):
         self.dynamic("points", "point3f[]")
         if self.has_velocities:
             self.dynamic("velocities", "vector3f[]")
-        self.dynamic("extent", "float3[]")
+        self.dynamic("extent", "float3[]", derived=True)
         if color is not None:
             self.add_primvar("displayColor", "color3f[]", "constant", [color])
 
     def prepare(self, data, where):
         data = dict(data)
-        data["extent"] = np.zeros((2, 3), np.float32)
         if self.gather is not None:
             for key in ("points", "velocities"):
                 if key in data:
@@ -506,11 +504,10 @@ class InstancerDecl(PrimDecl):
         self.dynamic("ids", "int64[]")
         if self.has_velocities:
             self.dynamic("velocities", "vector3f[]")
-        self.dynamic("extent", "float3[]")
+        self.dynamic("extent", "float3[]", derived=True)
 
     def prepare(self, data, where):
         data = dict(data)
-        data["extent"] = np.zeros((2, 3), np.float32)
         pos = coerce("point3f[]", data.get("positions", np.zeros((0, 3))), f"{where}, 'positions'")
         n = len(pos)
         if "protoIndices" not in data:
