@@ -526,23 +526,11 @@ class ClothSimulator(Simulator):
         self.frame_count += 1
         self.last_substeps = substeps
 
-    def step(self, dt: float) -> int:
-        """One eager step of ``dt`` [s] (adaptive sub-stepping as ws.Simulator when enabled)."""
-        dt = check_dt(dt)
-        n = self._substeps_for(dt)
-        h = dt / n
-        for _ in range(n):
-            self._substep(h, 0, pingpong=False)
-            if not self._needs_time:
-                wp.launch(KI.advance_time, 1, inputs=[self._time, h], device=self.device)
-            self.time += h
-            self.step_count += 1
-        self.last_substeps = n
-        if self.adaptive:
-            self.substep_history.append(n)
-        if self.check_every and self.step_count % self.check_every < n:
-            self.check()
-        return n
+    def _advance_substep(self, h: float) -> None:
+        """One eager sub-step for :meth:`Simulator.step` (adaptive sub-stepping included)."""
+        self._substep(h, 0, pingpong=False)
+        if not self._needs_time:
+            wp.launch(KI.advance_time, 1, inputs=[self._time, h], device=self.device)
 
     def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps: int = 1, callback=None, writer=None):
         """As ws.Simulator.run, each frame advanced by ``frame``."""

@@ -108,18 +108,22 @@ class Simulator:
             return self.max_substeps
         return int(min(self.max_substeps, max(1, math.ceil(distance / self.max_displacement))))
 
+    def _advance_substep(self, h: float) -> None:
+        """One sub-step of ``h`` [s]: integrate, collide, advance the device clock."""
+        st = self.state
+        wp.copy(self._q_prev, st.positions)
+        self.integrator.step(self.system, st.positions, st.velocities, self._time, h, f_out=st.forces)
+        for c in self.colliders:
+            c.apply(self.model, st, self._q_prev, h)
+        wp.launch(K.advance_time, 1, inputs=[self._time, h], device=self.device)
+
     def step(self, dt: float) -> int:
         """Advance by ``dt`` [s]; returns the number of sub-steps taken."""
         dt = check_dt(dt)
         n = self._substeps_for(dt)
         h = dt / n
-        st = self.state
         for _ in range(n):
-            wp.copy(self._q_prev, st.positions)
-            self.integrator.step(self.system, st.positions, st.velocities, self._time, h, f_out=st.forces)
-            for c in self.colliders:
-                c.apply(self.model, st, self._q_prev, h)
-            wp.launch(K.advance_time, 1, inputs=[self._time, h], device=self.device)
+            self._advance_substep(h)
             self.time += h
             self.step_count += 1
         self.last_substeps = n
