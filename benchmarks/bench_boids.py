@@ -1,5 +1,5 @@
 """Boids step throughput: warpsim's Warp kernels (wp.HashGrid neighbours) against a NumPy
-cell-grid reference of the same rules (warpsim.agents_reference.boids_step), in one process.
+cell-grid reference of the same rules (warpsim.agents.reference.boids_step), in one process.
 
 Both run the same flock: separation, alignment and cohesion within a 270-degree field of view,
 speed limits, hard minimum distance and a periodic box whose size keeps the density at about
@@ -21,7 +21,7 @@ import time
 import numpy as np
 import warp as wp
 
-from warpsim import agents_reference as R
+from warpsim.agents import reference as R
 from warpsim.agents import BoidParams, Flock
 
 PERCEPTION = 2.0

@@ -30,9 +30,9 @@ wp.config.quiet = True
 wp.config.log_level = getattr(wp, "LOG_WARNING", wp.config.log_level)  # no module-load lines
 
 import warpsim as ws
-import warpsim.colliders as ws_colliders
-from warpsim.cloth import add_cloth_grid
-from warpsim.cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
+import warpsim.bodies.colliders as ws_colliders
+from warpsim.cloth.builder import add_cloth_grid
+from warpsim.cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 
 FPS, SUBSTEPS, SPACING, K, KD, MASS = 60.0, 16, 0.1, 1000.0, 10.0, 0.1
 

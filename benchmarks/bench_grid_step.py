@@ -25,9 +25,9 @@ import numpy as np
 import warp as wp
 from timing import time_per_call, time_per_graph_launch
 
-from warpsim.grid_pressure import PressureSolver
-from warpsim.mac_grid import MacGrid
-from warpsim.smoke import Smoke
+from warpsim.grid_fluids.pressure import PressureSolver
+from warpsim.grid_fluids.mac_grid import MacGrid
+from warpsim.grid_fluids.smoke import Smoke
 
 
 def smoke_3d(n, device):

@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 import warp.geometry
 
-from warpsim.meshing import MarchingCubes
+from warpsim.meshing.marching_cubes import MarchingCubes
 
 
 def make_field(kind, n):

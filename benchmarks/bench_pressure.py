@@ -23,8 +23,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from warpsim.grid_pressure import PressureSolver
-from warpsim.mac_grid import MacGrid
+from warpsim.grid_fluids.pressure import PressureSolver
+from warpsim.grid_fluids.mac_grid import MacGrid
 
 
 def make_grid(n, device):

@@ -12,7 +12,7 @@ fluid interior, i.e. particles whose whole kernel support is fluid or wall; warp
 the mean compression over all particles), neighbours per particle, simulated seconds per
 wall-clock second, and the same in gravity time units t sqrt(g / L) (L: particle spacing),
 which compares step sizes across the two unit systems. Optionally warpsim's Warp step against a
-NumPy + SciPy-cKDTree reference step of the same method (``warpsim.sph_reference``).
+NumPy + SciPy-cKDTree reference step of the same method (``warpsim.particle_fluids.reference``).
 
     python benchmarks/bench_sph.py                          # CPU, 8,000 particles
     python benchmarks/bench_sph.py --device cuda:0 --particles 1000000 --frames 4
@@ -25,8 +25,9 @@ import time
 import numpy as np
 import warp as wp
 
-from warpsim.sph import ParticleFluid, fluid_block, wall_tables
-from warpsim.sph_reference import pbf_step_numpy
+from warpsim.particle_fluids.pbf import ParticleFluid
+from warpsim.particle_fluids.smoothing import fluid_block, wall_tables
+from warpsim.particle_fluids.reference import pbf_step_numpy
 
 
 def block_for(count, spacing):

@@ -26,8 +26,8 @@ from bench_mass_spring import NumpyMassSpring
 from timing import time_per_call, time_per_graph_launch
 
 import warpsim as ws
-from warpsim.softbody import add_soft_body
-from warpsim.teapot import teapot_mesh
+from warpsim.bodies.softbody import add_soft_body
+from warpsim.bodies.teapot import teapot_mesh
 
 DT_LOW = 1.0 / 600.0
 

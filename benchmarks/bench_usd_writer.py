@@ -5,7 +5,7 @@
 Each frame has ``points`` and ``velocities`` (POINTS x 3 float32, different every frame).
 * bare: ``Usd.Stage.CreateNew(x.usdc)``, ``UsdGeom.Points`` attributes ``Set`` per time sample,
   one ``Save()`` at the end (all samples held in memory; a kill before the save loses everything);
-* writer: ``warpsim.usd.UsdCacheWriter`` (crash-safe chunks of CHUNK frames, fsync'd, plus
+* writer: ``warpsim.usd.writer.UsdCacheWriter`` (crash-safe chunks of CHUNK frames, fsync'd, plus
   ``extent`` per frame), closed at the end.
 Each runs in its own subprocess so its peak resident memory (``ru_maxrss``) is its own; times
 exclude interpreter start-up. Prints both, the time ratio writer / bare and the memory figures.
@@ -43,7 +43,7 @@ def run_bare(path, n, count):
 
 
 def run_writer(path, n, count, chunk):
-    from warpsim.usd import UsdCacheWriter
+    from warpsim.usd.writer import UsdCacheWriter
 
     with UsdCacheWriter(path, fps=60, chunk_size=chunk) as w:
         w.add_points("particles", radius=0.001)
@@ -54,7 +54,7 @@ def run_writer(path, n, count, chunk):
 def child(mode, path, n, count, chunk):
     import pxr.Usd  # noqa: F401  (imports stay outside the timing)
 
-    import warpsim.usd  # noqa: F401
+    import warpsim.usd.writer  # noqa: F401
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t0 = time.perf_counter()

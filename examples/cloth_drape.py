@@ -16,10 +16,10 @@ import numpy as np
 import warp as wp
 
 import warpsim as ws
-from warpsim.cloth import add_cloth_grid
-from warpsim.cloth_solver import ClothImplicitEuler, ClothSimulator
-from warpsim.colliders import Sphere
-from warpsim.usd import UsdCacheWriter
+from warpsim.cloth.builder import add_cloth_grid
+from warpsim.cloth.solver import ClothImplicitEuler, ClothSimulator
+from warpsim.bodies.colliders import Sphere
+from warpsim.usd.writer import UsdCacheWriter
 
 
 class Example:

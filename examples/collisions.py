@@ -19,8 +19,8 @@ import numpy as np
 import warp as wp
 
 import warpsim as ws
-from warpsim.colliders import Capsule, ParticleCollisions, Sphere
-from warpsim.usd import UsdCacheWriter
+from warpsim.bodies.colliders import Capsule, ParticleCollisions, Sphere
+from warpsim.usd.writer import UsdCacheWriter
 
 
 def head_on(c_r, ma=1.0, mb=3.0, ua=2.0, ub=-1.0, device=None):

@@ -16,9 +16,9 @@ import math
 import numpy as np
 import warp as wp
 
-from warpsim.fluid_surface import FluidSurface
-from warpsim.sph import ParticleFluid, fluid_block
-from warpsim.usd import UsdCacheWriter
+from warpsim.particle_fluids.surface import FluidSurface
+from warpsim.particle_fluids.pbf import ParticleFluid, fluid_block
+from warpsim.usd.writer import UsdCacheWriter
 
 G = 9.81
 # Martin and Moyce (1952), Phil. Trans. R. Soc. A 244, 312-324, Table 2 (n^2 = 2, a = 2.25 in)

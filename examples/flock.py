@@ -1,7 +1,7 @@
 """Flocking: two species of birds that follow each other, keep their distance, look for low air
 resistance, rest every so often and go for food.
 
-Builds a ``warpsim.agents.Flock`` by hand: small birds (species 0) and geese (species 1, which
+Builds a ``ws.Flock`` by hand: small birds (species 0) and geese (species 1, which
 seek the upwash behind and beside each other and save 30 % of their flight energy there) fly
 over a hilly height field that wraps around in x and z, avoid a tree crown (a sphere), eat at
 two food sources and land to rest when their energy runs low. Every ``--print-every`` frames it
@@ -94,7 +94,7 @@ def main(argv=None):
     example = Example(args.birds, args.geese, device=args.device)
     writer = None
     if args.out:
-        from warpsim.usd import UsdCacheWriter
+        from warpsim.usd.writer import UsdCacheWriter
 
         writer = UsdCacheWriter(args.out, fps=args.fps)
         example.declare(writer)

@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 from warpsim.kernels.implicit_fields import gyroid_ball
 
-from warpsim.meshing import marching_cubes
+from warpsim.meshing.marching_cubes import marching_cubes
 
 
 class Example:
@@ -36,7 +36,7 @@ class Example:
         return area, volume, len(v) - len(edges) + len(f)
 
     def write(self, path):
-        from warpsim.usd import UsdCacheWriter
+        from warpsim.usd.writer import UsdCacheWriter
 
         v, f, n = self.mesh.numpy()
         writer = UsdCacheWriter(path)

@@ -13,10 +13,10 @@ import math
 
 import warp as wp
 
-from warpsim.levelset_liquid import LevelSetLiquid
-from warpsim.mac_grid import MacGrid
-from warpsim.meshing import MarchingCubes
-from warpsim.usd import UsdCacheWriter
+from warpsim.grid_fluids.levelset_liquid import LevelSetLiquid
+from warpsim.grid_fluids.mac_grid import MacGrid
+from warpsim.meshing.marching_cubes import MarchingCubes
+from warpsim.usd.writer import UsdCacheWriter
 
 
 class Example:

@@ -13,8 +13,8 @@ import argparse
 
 import numpy as np
 import warp as wp
-from warpsim.meshing import topology_changed
-from warpsim.metaballs import Metaballs
+from warpsim.meshing.marching_cubes import topology_changed
+from warpsim.meshing.metaballs import Metaballs
 
 
 class Example:
@@ -48,7 +48,7 @@ def main(argv=None):
     parser.add_argument("--out", default="usd_out/metaballs.usda")
     args = parser.parse_args(argv)
     wp.config.quiet = True
-    from warpsim.usd import UsdCacheWriter
+    from warpsim.usd.writer import UsdCacheWriter
 
     example = Example(args.device, args.resolution)
     writer = UsdCacheWriter(args.out, fps=example.fps)

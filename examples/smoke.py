@@ -14,10 +14,10 @@ import math
 import numpy as np
 import warp as wp
 
-from warpsim.mac_grid import MacGrid
-from warpsim.meshing import MarchingCubes
-from warpsim.smoke import Smoke
-from warpsim.usd import UsdCacheWriter
+from warpsim.grid_fluids.mac_grid import MacGrid
+from warpsim.meshing.marching_cubes import MarchingCubes
+from warpsim.grid_fluids.smoke import Smoke
+from warpsim.usd.writer import UsdCacheWriter
 
 
 class Example:

@@ -1,7 +1,7 @@
 """The lecture's jiggly teapot: a mass-spring Utah teapot dropped into a box, grabbed and dragged.
 
-The teapot is generated from Newell's Bezier patches (``warpsim.teapot``), turned into point
-masses joined by edge, bending and interior-lattice springs (``warpsim.softbody``), dropped into
+The teapot is generated from Newell's Bezier patches (``warpsim.bodies.teapot``), turned into point
+masses joined by edge, bending and interior-lattice springs (``warpsim.bodies.softbody``), dropped into
 a box of walls (restitution and friction), and at t = 0.6 s its spout is picked with a ray
 (the particle closest to the ray, as a mouse click would) and dragged up and across by a
 drag spring until it is let go at t = 1.6 s. Frames stream to a USD cache: the surface as a
@@ -21,10 +21,10 @@ import numpy as np
 import warp as wp
 
 import warpsim as ws
-from warpsim.drag import DragSpring
-from warpsim.softbody import add_soft_body
-from warpsim.teapot import teapot_mesh
-from warpsim.usd import UsdCacheWriter
+from warpsim.bodies.drag import DragSpring
+from warpsim.bodies.softbody import add_soft_body
+from warpsim.bodies.teapot import teapot_mesh
+from warpsim.usd.writer import UsdCacheWriter
 
 
 class Example:

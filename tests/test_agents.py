@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpsim import agents_reference as R
+from warpsim.agents import reference as R
 from warpsim.agents import (
     AgentState,
     BoidParams,
@@ -492,7 +492,7 @@ def test_scenes_write_usd(tmp_path):
     from pxr import Usd, UsdGeom
 
     from warpsim.scenes import get_scene
-    from warpsim.usd import UsdCacheWriter
+    from warpsim.usd.writer import UsdCacheWriter
 
     small = {"flock": {"birds": 30, "geese": 6, "food": 2}, "school": {"fish": 10},
              "zombies": {"zombies": 10}, "crowd": {"people": 12, "plaza": 12.0}}

@@ -14,11 +14,11 @@ import pytest
 pytest.importorskip("pxr")
 from pxr import Sdf, Usd
 
-from warpsim.checkpoint import load_checkpoint
+from warpsim.usd.checkpoint import load_checkpoint
 from warpsim.cli import _timing, checkpoint_path, main
 from warpsim.scenes import SimulatorScene, format_value, get_scene, register_scene, scenes
-from warpsim.usd import UsdCacheWriter
-from warpsim.usd_validate import validate_cache
+from warpsim.usd.writer import UsdCacheWriter
+from warpsim.usd.validate import validate_cache
 
 
 def run(*argv):

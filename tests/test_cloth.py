@@ -7,9 +7,9 @@ import pytest
 import warp as wp
 
 import warpsim as ws
-from warpsim.cloth import add_cloth_grid, add_cloth_mesh, grid_springs
-from warpsim.cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, cloth_energy
-from warpsim.colliders import Sphere, TriangleMesh
+from warpsim.cloth.builder import add_cloth_grid, add_cloth_mesh, grid_springs
+from warpsim.cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, cloth_energy
+from warpsim.bodies.colliders import Sphere, TriangleMesh
 
 DEVICE = "cpu"
 G = np.array([0.0, -9.81, 0.0])
@@ -651,7 +651,7 @@ def test_example_cloth_drape(tmp_path):
     result = run_example("cloth_drape.py", ["--frames", "10", "--resolution", "6", "--out", "d.usda"], tmp_path)
     rows = [line.split() for line in result.stdout.splitlines() if line.strip()[:1].isdigit()]
     assert [int(r[0]) for r in rows] == [10] and float(rows[0][2]) >= 0.01 - 1e-4
-    from warpsim.usd_validate import validate_cache
+    from warpsim.usd.validate import validate_cache
 
     assert validate_cache(str(tmp_path / "d.usda")) == []
 

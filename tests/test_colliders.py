@@ -1,4 +1,4 @@
-"""Colliders (warpsim.colliders, kernels/collide.py) on the "cpu" device (and CUDA when present).
+"""Colliders (warpsim.bodies.colliders, kernels/collide.py) on the "cpu" device (and CUDA when present).
 
 Oracles: bounce heights h' = e^2 h of a dropped particle, Coulomb sliding that stops exactly when
 mu g t = v0, the penalty contact's static depth m g / k, the 1D two-body collision rule for
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import warpsim as ws
-from warpsim.colliders import (
+from warpsim.bodies.colliders import (
     Capsule,
     ParticleCollisions,
     Quad,
@@ -360,7 +360,7 @@ def test_collisions_example_prints_the_two_body_table(tmp_path):
 
 
 def test_keyframe_motion_interpolates_and_drives_a_mesh():
-    from warpsim.colliders import keyframe_motion
+    from warpsim.bodies.colliders import keyframe_motion
 
     half_turn = (0.0, math.sin(math.pi / 4), 0.0, math.cos(math.pi / 4))  # 90 degrees about +y
     motion = keyframe_motion([(0.0, (0, 0, 0), None), (1.0, (2, 0, 0), half_turn)])

@@ -1,5 +1,5 @@
-"""The dam-break surge front by two independent methods: PBF particles (warpsim.sph) against an
-Eulerian FLIP liquid on a MAC grid (warpsim.flip), both against Martin and Moyce (1952).
+"""The dam-break surge front by two independent methods: PBF particles (warpsim.particle_fluids.pbf) against an
+Eulerian FLIP liquid on a MAC grid (warpsim.grid_fluids.flip), both against Martin and Moyce (1952).
 
 tests/test_sph.py finds the PBF front 11-13 % ahead of the experiment for 1.0 < T < 1.9 and
 attributes that to the idealised problem (instantaneous release, nearly inviscid water), not to
@@ -28,8 +28,8 @@ import warp as wp
 from test_sph import MM_T, MM_Z
 from test_sph import run_dam_break as run_pbf_dam_break
 
-from warpsim.flip import FlipLiquid
-from warpsim.mac_grid import MacGrid
+from warpsim.grid_fluids.flip import FlipLiquid
+from warpsim.grid_fluids.mac_grid import MacGrid
 
 G = 9.81
 A = 0.1  # column width a [m]; height 2a

@@ -32,14 +32,14 @@ import warp as wp
 from warpsim.kernels import grid_forces as KF
 
 import warpsim as ws
-from warpsim.flip import FlipLiquid
-from warpsim.grid_advection import Advector
-from warpsim.grid_pressure import PressureSolver
-from warpsim.levelset import LevelSet
-from warpsim.levelset_liquid import LevelSetLiquid
-from warpsim.mac_grid import AIR, FLUID, SOLID, MacGrid
-from warpsim.smoke import Smoke
-from warpsim.viscosity import Viscosity
+from warpsim.grid_fluids.flip import FlipLiquid
+from warpsim.grid_fluids.advection import Advector
+from warpsim.grid_fluids.pressure import PressureSolver
+from warpsim.grid_fluids.levelset import LevelSet
+from warpsim.grid_fluids.levelset_liquid import LevelSetLiquid
+from warpsim.grid_fluids.mac_grid import AIR, FLUID, SOLID, MacGrid
+from warpsim.grid_fluids.smoke import Smoke
+from warpsim.grid_fluids.viscosity import Viscosity
 
 DEV = "cpu"
 ROOT = Path(__file__).resolve().parents[1]

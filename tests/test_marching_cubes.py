@@ -1,4 +1,4 @@
-"""Marching cubes (warpsim.meshing, kernels/marching_cubes.py) on "cpu" (and CUDA when present).
+"""Marching cubes (warpsim.meshing.marching_cubes, kernels/marching_cubes.py) on "cpu" (and CUDA when present).
 
 Oracles: analytic sphere area/volume and their second-order convergence, Euler characteristics
 of known topologies, combinatorial watertightness, NumPy counts of crossed grid edges, and
@@ -15,7 +15,7 @@ import warp as wp
 from warpsim.kernels import marching_cubes as mck
 from warpsim.kernels.implicit_fields import gyroid_ball, metaball_density
 
-from warpsim.meshing import MarchingCubes, marching_cubes, topology_changed
+from warpsim.meshing.marching_cubes import MarchingCubes, marching_cubes, topology_changed
 
 # ---------------------------------------------------------------- helpers
 

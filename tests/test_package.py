@@ -40,3 +40,57 @@ def test_every_scene_module_imports_and_registers():
     expected = {"bounce", "pendulum", "springs", "teapot", "cloth", "drape", "metaballs", "dam_break", "pour",
                 "smoke", "liquid", "flip_splash", "flock", "school", "zombies", "crowd"}
     assert expected <= names, sorted(expected - names)
+
+
+def _source_modules(root):
+    """Dotted names of every module in the checkout's warpsim/ and kernels/ (as installed)."""
+    names = []
+    for top, installed in (("warpsim", "warpsim"), ("kernels", "warpsim.kernels")):
+        for path in sorted((root / top).rglob("*.py")):
+            parts = list(path.relative_to(root / top).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            if parts and parts[-1] == "__main__":
+                continue
+            names.append(".".join([installed, *parts]))
+    return names
+
+
+def test_installed_wheel_holds_every_module(tmp_path):
+    """Build the wheel from a copy of the checkout, unpack it, and import every module of the source
+    tree from the unpacked wheel in a fresh interpreter outside the checkout: a sub-package that
+    packaging misses fails here."""
+    import pathlib
+    import shutil
+    import zipfile
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "setup.py", "README.md"):
+        shutil.copy(root / name, src / name)
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    for name in ("warpsim", "kernels"):
+        shutil.copytree(root / name, src / name, ignore=ignore)
+    wheels = tmp_path / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                    str(wheels), str(src)], check=True, capture_output=True, text=True)
+    (wheel,) = wheels.glob("warpsim-*.whl")
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    assert not (site / "kernels").exists(), "the wheel installs a top-level 'kernels' package"
+
+    modules = _source_modules(root)
+    code = ("import importlib, sys, pathlib\n"
+            "bad = []\n"
+            f"for name in {modules!r}:\n"
+            "    m = importlib.import_module(name)\n"
+            f"    if not pathlib.Path(m.__file__).resolve().is_relative_to(pathlib.Path({str(site)!r}).resolve()):\n"
+            "        bad.append((name, m.__file__))\n"
+            "print(len(sys.modules)); print(bad)\n")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "PYTHONPATH"}
+    env["PYTHONPATH"] = str(site)
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split("\n")[1] == "[]", out.stdout
+    assert len(modules) > 60

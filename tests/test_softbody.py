@@ -1,4 +1,4 @@
-"""Soft bodies (warpsim.softbody), the Utah teapot (warpsim.teapot), dragging (warpsim.drag,
+"""Soft bodies (warpsim.bodies.softbody), the Utah teapot (warpsim.bodies.teapot), dragging (warpsim.bodies.drag,
 kernels/interaction.py) and the ``teapot`` scene, on the "cpu" device.
 
 Oracles: watertightness and Euler characteristics of the welded teapot, its body volume
@@ -13,10 +13,10 @@ import pytest
 import warp as wp
 
 import warpsim as ws
-from warpsim import meshtools
-from warpsim.drag import DragSpring, parse_drag_spec, pick_particle, scripted_drag
-from warpsim.softbody import add_soft_body, load_mesh, load_usd_mesh
-from warpsim.teapot import COMPONENTS, PARTS, bernstein, control_points, teapot_mesh
+from warpsim.bodies import meshtools
+from warpsim.bodies.drag import DragSpring, parse_drag_spec, pick_particle, scripted_drag
+from warpsim.bodies.softbody import add_soft_body, load_mesh, load_usd_mesh
+from warpsim.bodies.teapot import COMPONENTS, PARTS, bernstein, control_points, teapot_mesh
 
 DEVICE = "cpu"
 
@@ -371,7 +371,7 @@ def test_teapot_scene_writes_mesh_springs_and_drag(tmp_path):
     from pxr import Usd, UsdGeom
 
     from warpsim.scenes import get_scene
-    from warpsim.usd import UsdCacheWriter
+    from warpsim.usd.writer import UsdCacheWriter
 
     scene = get_scene("teapot")({"resolution": "3", "drag": "spout:0.3,0.5,0@0-0.1", "obstacle": "paddle"},
                                 device=DEVICE)

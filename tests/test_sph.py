@@ -1,4 +1,4 @@
-"""Position-based fluids (warpsim.sph), its surface (warpsim.fluid_surface) and scenes.
+"""Position-based fluids (warpsim.particle_fluids.pbf), its surface (warpsim.particle_fluids.surface) and scenes.
 
 Physics checked: smoothing kernels against NumPy and their integrals, a step against a NumPy
 reference of the same method, a hydrostatic column (density and pressure), the dam-break front
@@ -14,18 +14,11 @@ import pytest
 import warp as wp
 import warpsim.kernels.sph as K
 
-from warpsim.errors import SimulationError
-from warpsim.sph import (
-    Nozzle,
-    ParticleFluid,
-    Sink,
-    _kernel_dw_numpy,
-    fluid_block,
-    kernel_numpy,
-    lattice_mass,
-    wall_tables,
-)
-from warpsim.sph_reference import pbf_step_numpy
+from warpsim.core.errors import SimulationError
+from warpsim.particle_fluids.emitters import Nozzle, Sink
+from warpsim.particle_fluids.pbf import ParticleFluid
+from warpsim.particle_fluids.smoothing import _kernel_dw_numpy, fluid_block, kernel_numpy, lattice_mass, wall_tables
+from warpsim.particle_fluids.reference import pbf_step_numpy
 
 G = 9.81
 
@@ -397,7 +390,7 @@ def test_containment_walls_sphere_and_mesh():
 def test_warpsim_colliders_become_boundaries():
     """Plane, Box, Sphere (solid and hollow), Capsule, Quad and TriangleMesh colliders are read at
     their pose, thickened by their thickness."""
-    from warpsim import colliders as C
+    from warpsim.bodies import colliders as C
 
     s = 0.02
     cube = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], float) * 0.1
@@ -561,7 +554,7 @@ def test_bad_input_names_the_item():
 
 # ------------------------------------------------------------------------------ surface
 def test_fluid_surface_block_volume_and_watertight():
-    from warpsim.fluid_surface import FluidSurface
+    from warpsim.particle_fluids.surface import FluidSurface
 
     s = 0.02
     f = ParticleFluid(fluid_block((0.1, 0.0, 0.1), (0.3, 0.2, 0.3), s), spacing=s,
@@ -586,7 +579,7 @@ def test_scene_writes_points_with_ids_and_a_changing_surface(name, params, frame
     from pxr import Usd
 
     from warpsim.scenes import get_scene
-    from warpsim.usd import UsdCacheWriter
+    from warpsim.usd.writer import UsdCacheWriter
 
     scene = get_scene(name)(params, device="cpu")
     with UsdCacheWriter(str(tmp_path / f"{name}.usda"), fps=60) as writer:

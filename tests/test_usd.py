@@ -12,8 +12,8 @@ import pytest
 pxr = pytest.importorskip("pxr")
 from pxr import Sdf, Usd, UsdGeom
 
-from warpsim.usd import UsdCacheWriter
-from warpsim.usd_validate import cache_info, validate_cache
+from warpsim.usd.writer import UsdCacheWriter
+from warpsim.usd.validate import cache_info, validate_cache
 
 
 def frame_points(f, n=7):
@@ -406,7 +406,7 @@ def test_bad_input_raises_value_error_naming_the_item(tmp_path):
 
 
 def test_import_warpsim_usd_does_not_import_pxr():
-    code = "import sys, warpsim, warpsim.usd, warpsim.usd_validate, warpsim.usd_prims; assert 'pxr' not in sys.modules"
+    code = "import sys, warpsim, warpsim.usd.writer, warpsim.usd.validate, warpsim.usd.prims; assert 'pxr' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -415,7 +415,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import numpy as np
     sys.path.insert(0, {tests!r})
     from test_usd import frame_points
-    from warpsim.usd import UsdCacheWriter
+    from warpsim.usd.writer import UsdCacheWriter
     w = UsdCacheWriter(sys.argv[1], chunk_size=3, durable=False)
     w.add_points("particles", radius=0.01)
     done = 0

@@ -5,38 +5,30 @@
     builder.add_particle((0.0, 0.04, 0.0), mass=1.0)
     sim = ws.Simulator(builder.finalize(), forces=[ws.Gravity()], colliders=[ws.Plane()])
     sim.step(0.04)
+
+The sub-packages are the map: ``core`` (model, builder, forces, integrators, simulator),
+``bodies`` (colliders, soft bodies, the teapot, dragging), ``cloth``, ``particle_fluids``,
+``grid_fluids``, ``meshing``, ``agents``, ``usd`` (cache writer, prims, validation), ``scenes``
+(command-line presets); the Warp kernels live in ``warpsim.kernels``.
 """
 
 from ._version import __version__
 from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
-from .builder import ModelBuilder
-from .cloth import Cloth, add_cloth_grid, add_cloth_mesh
-from .cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, cloth_energy
-from .colliders import (
-    Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
+from .bodies import (
+    Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody, Sphere,
+    TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
 )
-from .drag import DragSpring, pick_particle
-from .softbody import SoftBody, add_soft_body, load_mesh
-from .teapot import teapot_mesh
-from .errors import SimulationError
-from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
-from .meshing import MarchingCubes, MarchingCubesResult, marching_cubes, topology_changed
-from .metaballs import Metaballs
-from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, Integrator, SemiImplicitEuler
-from .model import Model, State
-from .pendulum import Pendulum, exact_period
-from .simulator import Simulator
-from .flip import FlipLiquid
-from .fluid_surface import FluidSurface
-from .grid_advection import Advector
-from .grid_pressure import PressureSolver
-from .levelset import LevelSet
-from .levelset_liquid import LevelSetLiquid
-from .mac_grid import MacGrid
-from .smoke import Smoke
-from .viscosity import Viscosity
-from .sph import Nozzle, ParticleFluid, Sink, fluid_block
-from .system import DynamicSystem, ParticleSystem, PendulumSystem
+from .cloth import (
+    Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh, cloth_energy,
+)
+from .core import (
+    INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity, ImplicitEuler,
+    Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem, SemiImplicitEuler,
+    SimulationError, Simulator, Springs, State, Wind, exact_period,
+)
+from .grid_fluids import Advector, FlipLiquid, LevelSet, LevelSetLiquid, MacGrid, PressureSolver, Smoke, Viscosity
+from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
+from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
 
 __all__ = [
     "__version__", "ModelBuilder", "Model", "State", "Simulator", "SimulationError",

@@ -17,7 +17,14 @@ import os
 import sys
 import time
 
-__all__ = ["main"]
+__all__ = ["COMMANDS", "UsageError", "main"]
+
+COMMANDS = {}
+"""Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
+``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
+sub-parsers; imports nothing heavy) and ``run(args, out, err) -> int`` (exit status; raise
+:class:`UsageError` for a usage mistake, reported as one line with exit 2). Reuse this module's
+``_parse_sets``, ``_timing`` and ``_device`` for scene names, ``--set`` and ``--device``."""
 
 
 class UsageError(Exception):
@@ -31,7 +38,8 @@ class _Parser(argparse.ArgumentParser):
 
 def _parser():
     p = _Parser(prog="warpsim", description="Run warpsim scenes and stream them to USD caches.")
-    sub = p.add_subparsers(dest="command", metavar="{list,run,info}", parser_class=_Parser)
+    names = ["list", "run", "info", *COMMANDS]
+    sub = p.add_subparsers(dest="command", metavar="{" + ",".join(names) + "}", parser_class=_Parser)
     sub.required = True
     sub.add_parser("list", help="list the scenes and their parameters")
     r = sub.add_parser("run", help="simulate a scene and write a USD cache")
@@ -52,7 +60,15 @@ def _parser():
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     i = sub.add_parser("info", help="summarise a USD cache")
     i.add_argument("cache", help="path of a .usd/.usda/.usdc file")
+    for module in COMMANDS.values():
+        _command_module(module).add_parser(sub)
     return p
+
+
+def _command_module(path):
+    import importlib
+
+    return importlib.import_module(path)
 
 
 def _cmd_list(out):
@@ -70,7 +86,7 @@ def _cmd_list(out):
 
 
 def _cmd_info(path, out):
-    from .usd_validate import cache_info
+    from .usd.validate import cache_info
 
     try:
         info = cache_info(path)
@@ -168,10 +184,10 @@ def _cmd_run(args, out, err):
     wp.config.quiet = True  # no kernel-cache chatter between the progress bar and the result
     if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
         wp.config.log_level = wp.LOG_WARNING
-    from .checkpoint import load_checkpoint, save_checkpoint
-    from .errors import SimulationError
+    from .usd.checkpoint import load_checkpoint, save_checkpoint
+    from .core.errors import SimulationError
     from .scenes import get_scene
-    from .usd import ROOT_EXTENSIONS, UsdCacheWriter
+    from .usd.writer import ROOT_EXTENSIONS, UsdCacheWriter
 
     try:
         cls = get_scene(args.scene)
@@ -293,6 +309,8 @@ def main(argv=None, out=None, err=None):
             return _cmd_list(out)
         if args.command == "info":
             return _cmd_info(args.cache, out)
+        if args.command in COMMANDS:
+            return _command_module(COMMANDS[args.command]).run(args, out, err)
         return _cmd_run(args, out, err)
     except UsageError as exc:
         print(f"warpsim: error: {exc}", file=err)

@@ -50,7 +50,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..usd_prims import close_matches
+from ..usd.prims import close_matches
 
 __all__ = ["Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "register_scene", "scenes"]
 
@@ -158,7 +158,7 @@ class Scene:
         raise NotImplementedError
 
     def declare(self, writer):
-        """Declare this scene's prims on a :class:`warpsim.usd.UsdCacheWriter`."""
+        """Declare this scene's prims on a :class:`warpsim.usd.writer.UsdCacheWriter`."""
         raise NotImplementedError
 
     def frame_data(self):
@@ -201,12 +201,12 @@ class SimulatorScene(Scene):
         return decl
 
     def checkpoint(self):
-        from ..checkpoint import simulator_checkpoint
+        from ..usd.checkpoint import simulator_checkpoint
 
         return simulator_checkpoint(self.sim)
 
     def restore(self, data):
-        from ..checkpoint import restore_simulator
+        from ..usd.checkpoint import restore_simulator
 
         restore_simulator(self.sim, data)
 

@@ -4,7 +4,7 @@ species in a water volume), ``zombies`` (a horde that must get over a wall) and 
 
 USD layout: the agents are a ``PointInstancer`` named ``agents`` (one prototype per species or
 kind, oriented along the velocity: the prototype's +Z is the heading), with the per-agent
-``state`` primvar (:class:`warpsim.agents.AgentState`: 0 flying, 1 resting, 2 walking,
+``state`` primvar (:class:`ws.AgentState`: 0 flying, 1 resting, 2 walking,
 3 climbing, 4 fallen, 5 landing) and a per-agent ``displayColor`` from that state (or the
 species while flying); terrain and obstacles are static meshes (spheres as ``Sphere`` prims);
 food sources are ``Points`` whose widths follow the bites left.

@@ -8,9 +8,9 @@ from typing import ClassVar
 
 import warpsim as ws
 
-from ..cloth import add_cloth_grid
-from ..cloth_solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
-from ..colliders import Sphere
+from ..cloth.builder import add_cloth_grid
+from ..cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
+from ..bodies.colliders import Sphere
 from . import SimulatorScene, register_scene
 
 CLOTH_INTEGRATORS = ("implicit_euler", "semi_implicit_euler")

@@ -10,9 +10,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .. import colliders as C
-from ..fluid_surface import FluidSurface
-from ..sph import KERNELS, Nozzle, ParticleFluid, Sink, fluid_block
+from ..bodies import colliders as C
+from ..particle_fluids.surface import FluidSurface
+from ..particle_fluids.pbf import KERNELS, Nozzle, ParticleFluid, Sink, fluid_block
 from . import Scene, register_scene
 
 _WATER = (0.15, 0.45, 0.9)

@@ -1,7 +1,7 @@
 """Eulerian grid-fluid scenes: ``smoke`` (a buoyant plume rising around a sphere), ``liquid``
 (a level-set liquid sloshing in a tank) and ``flip_splash`` (a FLIP block dropped into a pool).
 
-Every frame the fluid surface is meshed with marching cubes (``warpsim.meshing``) and written as a
+Every frame the fluid surface is meshed with marching cubes (``warpsim.meshing.marching_cubes``) and written as a
 ``Mesh`` whose topology changes per frame; smoke density also goes out as ``Points`` at the smoky
 cell centres with a ``density`` primvar (displayable by any USD viewer), FLIP particles as
 ``Points`` with persistent ids. Each frame takes as many equal sub-steps as the CFL number asks
@@ -14,11 +14,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..flip import FlipLiquid
-from ..levelset_liquid import LevelSetLiquid
-from ..mac_grid import MacGrid
-from ..meshing import MarchingCubes
-from ..smoke import Smoke
+from ..grid_fluids.flip import FlipLiquid
+from ..grid_fluids.levelset_liquid import LevelSetLiquid
+from ..grid_fluids.mac_grid import MacGrid
+from ..meshing.marching_cubes import MarchingCubes
+from ..grid_fluids.smoke import Smoke
 from . import Scene, register_scene
 
 _WATER = (0.15, 0.45, 0.9)

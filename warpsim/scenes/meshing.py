@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..metaballs import Metaballs
+from ..meshing.metaballs import Metaballs
 from . import Scene, register_scene
 
 

@@ -9,10 +9,10 @@ import numpy as np
 
 import warpsim as ws
 
-from ..colliders import Capsule, Quad, Sphere, TriangleMesh
-from ..drag import parse_drag_spec, scripted_drag
-from ..softbody import add_soft_body
-from ..teapot import teapot_mesh
+from ..bodies.colliders import Capsule, Quad, Sphere, TriangleMesh
+from ..bodies.drag import parse_drag_spec, scripted_drag
+from ..bodies.softbody import add_soft_body
+from ..bodies.teapot import teapot_mesh
 from . import SimulatorScene, register_scene
 
 ANCHORS = ("spout", "handle", "knob", "bottom")

@@ -1,0 +1,346 @@
+"""Mass-spring soft bodies from triangle meshes.
+
+``add_soft_body(builder, points, faces, ...)`` turns any triangle mesh into particles joined
+by damped springs:
+
+- edge springs: one per mesh edge;
+- bending springs: one per interior edge (an edge shared by two faces), joining the two
+  vertices opposite that edge, so folding the surface stretches them;
+- shape-keeping interior springs (``interior="lattice"``, closed meshes only): a coarse cubic
+  lattice of extra particles inside the mesh (generalised winding number > 1/2), each joined
+  to its 26 lattice neighbours, and every surface vertex tied to its ``ties`` nearest lattice
+  particles. The lattice resists volume change, so a closed shape cannot collapse.
+
+Mass: ``mass`` [kg] per particle, or ``total_mass`` [kg] spread over the surface by vertex area
+(a third of each adjacent face's area; ``mass_distribution="area"``) or equally over the
+vertices (``"uniform"``, the lecture's point masses: no tiny masses where triangles are small,
+so larger stable steps), with ``interior_mass_fraction`` of it shared equally by the lattice
+particles.
+
+Loaders: ``load_mesh(path)`` reads OBJ, STL, PLY, GLB/GLTF and OFF through trimesh and USD
+(.usd/.usda/.usdc) through pxr (imported only then); vertices are welded by position so that
+formats storing unshared vertices (STL) give a connected mesh.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import meshtools
+from ..core.builder import _vec3
+from .colliders import _pose, check_triangles, quat_rotate
+
+INTERIOR_MODES = ("lattice", "none")
+MESH_EXTENSIONS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
+USD_EXTENSIONS = (".usd", ".usda", ".usdc")
+
+# 13 of the 26 lattice neighbour offsets (the other 13 are their negatives)
+_LATTICE_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                             if (i, j, k) > (0, 0, 0)], dtype=np.int64)
+
+
+@dataclass
+class SoftBody:
+    """Where a soft body lives in its builder (all indices global to the builder).
+
+    Particles ``particle_start .. particle_start + particle_count``: the ``surface_count`` mesh
+    vertices first, then the ``interior_count`` lattice particles. ``faces`` (F, 3) are the
+    surface triangles in particle indices. Springs ``spring_start ..`` come in the order edges,
+    bends, lattice, ties, with the counts below."""
+
+    particle_start: int
+    surface_count: int
+    interior_count: int
+    faces: np.ndarray
+    spring_start: int
+    edge_count: int
+    bend_count: int
+    lattice_count: int
+    tie_count: int
+
+    @property
+    def particle_count(self) -> int:
+        return self.surface_count + self.interior_count
+
+    @property
+    def spring_count(self) -> int:
+        return self.edge_count + self.bend_count + self.lattice_count + self.tie_count
+
+    @property
+    def surface_indices(self) -> np.ndarray:
+        return np.arange(self.particle_start, self.particle_start + self.surface_count)
+
+    @property
+    def interior_indices(self) -> np.ndarray:
+        s = self.particle_start + self.surface_count
+        return np.arange(s, s + self.interior_count)
+
+    def spring_range(self, kind: str) -> range:
+        """Spring indices of one kind: "edge", "bend", "lattice" or "tie"."""
+        counts = {"edge": self.edge_count, "bend": self.bend_count, "lattice": self.lattice_count,
+                  "tie": self.tie_count}
+        if kind not in counts:
+            raise ValueError(f"spring kind {kind!r} is unknown; use one of {list(counts)}")
+        start = self.spring_start
+        for name, count in counts.items():
+            if name == kind:
+                return range(start, start + count)
+            start += count
+
+
+def bending_pairs(faces) -> np.ndarray:
+    """For every interior edge (two faces), the two vertices opposite it, shape (E_interior, 2)."""
+    faces = np.asarray(faces)
+    edges, counts, edge_of = meshtools.edge_topology(faces)
+    n_faces = len(faces)
+    # vertex opposite directed edge k of face f: edge (0,1) -> 2, (1,2) -> 0, (2,0) -> 1
+    opposite = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])
+    order = np.argsort(edge_of, kind="stable")
+    sorted_edges = edge_of[order]
+    interior = np.flatnonzero(counts == 2)
+    starts = np.searchsorted(sorted_edges, interior)
+    a = opposite[order[starts]]
+    b = opposite[order[starts + 1]]
+    if np.any(a == b):
+        k = int(interior[np.flatnonzero(a == b)[0]])
+        raise ValueError(f"mesh edge {tuple(edges[k])} joins two faces with the same third vertex (a duplicated "
+                         f"face among {n_faces}); remove duplicate faces")
+    return np.stack([a, b], axis=1)
+
+
+def interior_lattice(points, faces, cells: int):
+    """Lattice particles inside a closed mesh and their neighbour pairs.
+
+    The bounding box's longest side is split into ``cells`` cells; cell centres with winding
+    number > 1/2 that lie at least a quarter cell from every vertex are kept. Returns
+    (positions (N, 3), pairs (M, 2) of lattice indices, spacing [m])."""
+    points = np.asarray(points, dtype=np.float64)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    h = float((hi - lo).max()) / cells
+    counts = np.maximum(1, np.ceil((hi - lo) / h - 1e-9).astype(np.int64))
+    origin = 0.5 * (lo + hi) - 0.5 * h * counts
+    ijk = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
+    centers = origin + (ijk + 0.5) * h
+    inside = meshtools.winding_number(points, faces, centers) > 0.5
+    near = np.zeros(len(centers), dtype=bool)
+    for s in range(0, len(centers), 512):
+        d2 = ((centers[s:s + 512, None, :] - points[None, :, :]) ** 2).sum(-1)
+        near[s:s + 512] = d2.min(axis=1) < (0.25 * h) ** 2
+    keep = inside & ~near
+    grid = -np.ones(tuple(counts), dtype=np.int64)
+    kept = ijk[keep]
+    grid[tuple(kept.T)] = np.arange(len(kept))
+    pairs = []
+    for off in _LATTICE_OFFSETS:
+        nb = kept + off
+        ok = np.all((nb >= 0) & (nb < counts), axis=1)
+        j = np.full(len(kept), -1)
+        j[ok] = grid[tuple(nb[ok].T)]
+        sel = j >= 0
+        pairs.append(np.stack([np.flatnonzero(sel), j[sel]], axis=1))
+    pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+    return centers[keep], pairs, h
+
+
+def _check_coefficient(owner, name, value, positive=False):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner} {name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v < 0.0 or (positive and v == 0.0):
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{owner} {name} is {value}; it must be finite and {bound}")
+    return v
+
+
+def add_soft_body(builder, points, faces, *, position=(0.0, 0.0, 0.0), rotation=None, scale=1.0,
+                  velocity=(0.0, 0.0, 0.0), mass=None, total_mass=1.0, mass_distribution="area",
+                  interior_mass_fraction=0.25,
+                  stiffness=1.0e3, damping=1.0, bend_stiffness=None, bend_damping=None, interior="lattice",
+                  lattice_cells=4, interior_stiffness=None, interior_damping=None, ties=4, radius=0.0,
+                  name="soft body") -> SoftBody:
+    """Add a mass-spring soft body made from a triangle mesh to ``builder`` (see module doc).
+
+    Args:
+        points: (V, 3) mesh vertices [m] (local frame); faces: (F, 3) vertex indices.
+        position, rotation, scale: placement: x = position + R (scale p); rotation a quaternion
+            (x, y, z, w) or a 3x3 matrix.
+        velocity: initial velocity of every particle [m/s].
+        mass: mass of every particle [kg]; if None, ``total_mass`` [kg] is spread over the surface
+            by ``mass_distribution`` ("area" or "uniform"), ``interior_mass_fraction`` of it on the
+            lattice particles.
+        stiffness, damping: edge springs [N/m], [N s/m]; ``bend_*`` and ``interior_*`` default to
+            the same values (interior covers lattice and tie springs).
+        interior: "lattice" (closed meshes) or "none".
+        lattice_cells: lattice cells along the mesh's longest bounding-box side.
+        ties: springs from each surface vertex to its nearest lattice particles.
+        radius: collision radius of every particle [m].
+
+    Returns a SoftBody describing the particle and spring index ranges."""
+    points, faces = check_triangles(points, faces, name)
+    meshtools.check_manifold(faces, name)
+    unused = np.setdiff1d(np.arange(len(points)), np.unique(faces))
+    if len(unused):
+        raise ValueError(f"{name}: vertex {int(unused[0])} belongs to no face; remove unused vertices "
+                         "(warpsim.bodies.meshtools.compact)")
+    if mass_distribution not in ("area", "uniform"):
+        raise ValueError(f"{name} mass_distribution {mass_distribution!r} is unknown; use 'area' or 'uniform'")
+    if interior not in INTERIOR_MODES:
+        raise ValueError(f"{name} interior {interior!r} is unknown; use one of {list(INTERIOR_MODES)}")
+    k_edge = _check_coefficient(name, "stiffness", stiffness)
+    c_edge = _check_coefficient(name, "damping", damping)
+    k_bend = _check_coefficient(name, "bend_stiffness", k_edge if bend_stiffness is None else bend_stiffness)
+    c_bend = _check_coefficient(name, "bend_damping", c_edge if bend_damping is None else bend_damping)
+    k_in = _check_coefficient(name, "interior_stiffness", k_edge if interior_stiffness is None else interior_stiffness)
+    c_in = _check_coefficient(name, "interior_damping", c_edge if interior_damping is None else interior_damping)
+    scale = _check_coefficient(name, "scale", scale, positive=True)
+    radius = _check_coefficient(name, "radius", radius)
+    fraction = _check_coefficient(name, "interior_mass_fraction", interior_mass_fraction)
+    if fraction >= 1.0:
+        raise ValueError(f"{name} interior_mass_fraction {fraction} must be < 1 (the surface needs mass)")
+    if mass is not None:
+        mass = _check_coefficient(name, "mass", mass, positive=True)
+    else:
+        total_mass = _check_coefficient(name, "total_mass", total_mass, positive=True)
+    ties = int(ties)
+    if ties < 1:
+        raise ValueError(f"{name} ties = {ties}; each surface vertex needs >= 1 tie to the lattice")
+    pos, rot = _pose(position, rotation, name)
+    velocity = _vec3(velocity, f"{name} velocity")
+
+    world = pos + np.array([quat_rotate(rot, scale * p) for p in points]) if len(points) else points
+    lattice = np.zeros((0, 3))
+    lattice_pairs = np.zeros((0, 2), dtype=np.int64)
+    tie_pairs = np.zeros((0, 2), dtype=np.int64)
+    if interior == "lattice":
+        if not meshtools.is_closed(faces):
+            loops = meshtools.boundary_loops(faces)
+            raise ValueError(f"{name} is not closed ({len(loops)} boundary loop(s), e.g. around vertex "
+                             f"{int(loops[0][0]) if loops else -1}) or not consistently wound; the shape-keeping "
+                             "lattice needs a closed, consistently wound mesh: pass interior='none' or close it")
+        cells = int(lattice_cells)
+        if cells < 1:
+            raise ValueError(f"{name} lattice_cells = {lattice_cells}; it must be >= 1")
+        if meshtools.signed_volume(world, faces) < 0.0:
+            faces = faces[:, ::-1]
+        lattice, lattice_pairs, _ = interior_lattice(world, faces, cells)
+        if len(lattice) == 0:
+            raise ValueError(f"{name}: no lattice particle fits inside the mesh with lattice_cells={cells}; "
+                             "raise lattice_cells")
+        k = min(ties, len(lattice))
+        nearest = np.empty((len(world), k), dtype=np.int64)
+        for s in range(0, len(world), 512):
+            d2 = ((world[s:s + 512, None, :] - lattice[None, :, :]) ** 2).sum(-1)
+            nearest[s:s + 512] = np.argsort(d2, axis=1)[:, :k]
+        tie_pairs = np.stack([np.repeat(np.arange(len(world)), k), nearest.reshape(-1)], axis=1)
+
+    nv, ni = len(world), len(lattice)
+    if mass is not None:
+        masses = np.full(nv + ni, mass)
+    else:
+        surface_share = total_mass * (1.0 - fraction) if ni else total_mass
+        areas = meshtools.vertex_areas(world, faces)
+        if mass_distribution == "uniform":
+            areas = np.ones(nv)
+        if areas.sum() <= 0.0:
+            raise ValueError(f"{name} has zero surface area; cannot spread total_mass by area")
+        masses = np.concatenate([surface_share * areas / areas.sum(), np.full(ni, (total_mass - surface_share) / max(ni, 1))])
+        zero = np.flatnonzero(masses[:nv] <= 0.0)
+        if len(zero):
+            raise ValueError(f"{name}: vertex {int(zero[0])} touches only zero-area faces and would get no mass; "
+                             "remove degenerate faces or give mass=")
+
+    start = builder.particle_count
+    spring_start = builder.spring_count
+    builder.add_particles(np.concatenate([world, lattice]), np.tile(velocity, (nv + ni, 1)), masses, radius)
+    edges, _, _ = meshtools.edge_topology(faces)
+    bends = bending_pairs(faces)
+    for (i, j) in edges:
+        builder.add_spring(start + int(i), start + int(j), k_edge, c_edge)
+    for (i, j) in bends:
+        builder.add_spring(start + int(i), start + int(j), k_bend, c_bend)
+    for (i, j) in lattice_pairs:
+        builder.add_spring(start + nv + int(i), start + nv + int(j), k_in, c_in)
+    for (i, j) in tie_pairs:
+        builder.add_spring(start + int(i), start + nv + int(j), k_in, c_in)
+    return SoftBody(start, nv, ni, faces + start, spring_start, len(edges), len(bends), len(lattice_pairs),
+                    len(tie_pairs))
+
+
+# --------------------------------------------------------------------------------------
+# Loaders
+# --------------------------------------------------------------------------------------
+def load_mesh(path, *, weld_tolerance: float = 1.0e-7):
+    """Read a triangle mesh: OBJ, STL, PLY, GLB/GLTF, OFF (trimesh; scenes are concatenated) or
+    USD (first Mesh prim, see load_usd_mesh). Polygons are triangulated and vertices welded by
+    position. Returns (points (V, 3) float64 [file units], faces (F, 3) int64)."""
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if not os.path.exists(path):
+        raise ValueError(f"mesh file {path!r} does not exist")
+    if ext in USD_EXTENSIONS:
+        points, faces = load_usd_mesh(path)
+    elif ext in MESH_EXTENSIONS:
+        import trimesh
+
+        mesh = trimesh.load(path, force="mesh", process=False)
+        points, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    else:
+        raise ValueError(f"mesh file {path!r}: unknown extension {ext!r}; supported: "
+                         f"{', '.join(MESH_EXTENSIONS + USD_EXTENSIONS)}")
+    if len(faces) == 0:
+        raise ValueError(f"mesh file {path!r} holds no triangles")
+    size = float(np.ptp(points, axis=0).max()) if len(points) else 1.0
+    points, faces, _ = meshtools.weld(points, faces, tolerance=weld_tolerance * max(size, 1e-30))
+    return points, faces
+
+
+def triangulate(counts, indices) -> np.ndarray:
+    """Fan-triangulate polygons given USD-style face vertex counts and indices, shape (F, 3)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    if np.any(counts < 3):
+        bad = int(np.flatnonzero(counts < 3)[0])
+        raise ValueError(f"polygon {bad} has {counts[bad]} vertices; faces need >= 3")
+    if counts.sum() != len(indices):
+        raise ValueError(f"face vertex counts sum to {counts.sum()} but there are {len(indices)} indices")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tris = [np.stack([np.full(c - 2, indices[s]), indices[s + 1:s + c - 1], indices[s + 2:s + c]], axis=1)
+            for s, c in zip(starts, counts)]
+    return np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+
+
+def load_usd_mesh(path, prim_path=None, time=None):
+    """Points (in world space, at ``time``; default: the stage's default time) and triangles of
+    a ``UsdGeom.Mesh``: ``prim_path`` or the first Mesh prim found. Left-handed meshes are
+    re-wound to right-handed. ``pxr`` is imported here only."""
+    try:
+        from pxr import Usd, UsdGeom
+    except ImportError as exc:  # pragma: no cover - usd-core is a dependency
+        raise ImportError("loading USD meshes needs usd-core: pip install usd-core") from exc
+    stage = Usd.Stage.Open(os.fspath(path))
+    if stage is None:
+        raise ValueError(f"cannot open USD stage {path!r}")
+    if prim_path is not None:
+        prim = stage.GetPrimAtPath(prim_path)
+        if not prim or not prim.IsA(UsdGeom.Mesh):
+            raise ValueError(f"{path!r} has no Mesh prim at {prim_path!r}")
+    else:
+        prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
+        if prim is None:
+            raise ValueError(f"{path!r} holds no UsdGeom.Mesh prim")
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    mesh = UsdGeom.Mesh(prim)
+    points = np.asarray(mesh.GetPointsAttr().Get(t), dtype=np.float64).reshape(-1, 3)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t), dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t), dtype=np.int64)
+    faces = triangulate(counts, indices)
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        faces = faces[:, ::-1]
+    xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t), dtype=np.float64)
+    points = points @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+    return points, faces

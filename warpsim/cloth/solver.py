@@ -1,0 +1,570 @@
+"""Cloth solvers: Baraff-Witkin implicit Euler on ``warp.sparse`` + CG, a fused semi-implicit
+Euler, and a Simulator that replays each frame's sub-steps as a captured graph.
+
+- :class:`ClothImplicitEuler`: each step solves ``(M - h D - h^2 K) dv = h (f0 + h K v0)``
+  (Baraff & Witkin 1998; ``newton_iterations > 1`` continues with Newton iterations on backward
+  Euler). Spring blocks are written by one kernel straight into a fixed-topology BSR matrix;
+  block-Jacobi preconditioned CG solves it (``warpsim.cloth.block_cg.BlockCG``, capturable, by
+  default; or ``warp.optim.linear.cg``, preallocated); pinned rows and columns are filtered.
+  Per step it reports CG iterations, final residual and tolerance.
+- :class:`ClothSemiImplicitEuler`: v += h (f/m + g), x += h v with springs, gravity and the
+  update fused ("scatter": spring kernel + particle kernel, or "gather": one particle-centric
+  kernel, no atomics).
+- :class:`ClothSimulator`: a ``ws.Simulator`` whose ``frame()`` / ``run()`` capture a frame's
+  sub-steps (forces, solve, colliders) in a graph (CUDA and CPU) and replay it; no allocation
+  and no host read-back inside a frame.
+
+All three accept any ws.Force list: gravity and the model springs are fused; other forces are
+evaluated through their own kernels (for the implicit solver they must have per-particle
+Jacobian blocks only).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+import warp.optim.linear as wpl
+import warp.sparse as wps
+
+from .block_cg import BlockCG
+from ..core.forces import Force, Gravity, Springs
+from ..core.integrators import INTEGRATORS, Integrator, make_integrator
+from ..kernels import cloth as KC
+from ..kernels import forces as KF
+from ..kernels import integrate as KI
+from ..core.simulator import Simulator, check_dt
+
+GEOMETRIC_MODES = {"clamped": 0, "full": 1}
+LINEAR_SOLVERS = ("block_cg", "warp_cg")
+GATHER_MAX_PARTICLES = 1 << 24
+
+
+def _split_forces(system):
+    """(summed gravity vector, springs force or None, other forces) of a ParticleSystem."""
+    g = np.zeros(3)
+    springs, others = None, []
+    for f in system.forces:
+        if isinstance(f, Gravity):
+            g += np.asarray(f.g)
+        elif isinstance(f, Springs) and springs is None:
+            springs = f
+        else:
+            others.append(f)
+    return wp.vec3(*g.tolist()), springs, others
+
+
+def _overrides_jacobian(force) -> bool:
+    return type(force).eval_jacobian is not Force.eval_jacobian
+
+
+class ClothSemiImplicitEuler(Integrator):
+    """Semi-implicit (symplectic) Euler for cloth with the spring, gravity and update kernels
+    fused. ``mode``: "scatter" (spring kernel with atomics + particle kernel), "gather" (one
+    particle-centric kernel per step, no atomics; ClothSimulator ping-pongs its output arrays) or
+    None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2 particles, see
+    benchmarks/bench_cloth.py), scatter on the CPU (where atomics cost nothing)."""
+
+    name = "cloth_semi_implicit_euler"
+
+    def __init__(self, mode: str | None = None):
+        super().__init__()
+        if mode not in (None, "scatter", "gather"):
+            raise ValueError(f"mode = {mode!r}; use 'scatter', 'gather' or None (automatic)")
+        self.requested_mode = mode
+
+    def _allocate(self, system):
+        model, d = system.model, system.device
+        auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES else "scatter"
+        self.mode = self.requested_mode or auto
+        if self.mode == "gather" and system.count >= GATHER_MAX_PARTICLES:
+            raise ValueError(f"mode='gather' handles fewer than {GATHER_MAX_PARTICLES} particles (indices are packed "
+                             f"in 24 bits), this model has {system.count}; use mode='scatter'")
+        self.gravity, self.springs, self.others = _split_forces(system)
+        self.f.zero_()
+        self.f_ext = wp.zeros(system.count if self.others else 1, dtype=wp.vec3, device=d)
+        if self.mode == "gather":
+            self.q_tmp = wp.zeros(system.count, dtype=wp.vec3, device=d)
+            self.qd_tmp = wp.zeros(system.count, dtype=wp.vec3, device=d)
+            self._build_adjacency(model)
+
+    def _build_adjacency(self, model):
+        """Per-particle spring lists for the gather kernel, grouped by particle. Packed (4 bytes an
+        entry: other end << 8 | index into a table of distinct (rest, k, kd)) when the model has
+        at most 256 distinct spring parameter triples, else wide (16 bytes: the triple and the
+        other end)."""
+        n, d = model.particle_count, model.device
+        pairs = model.spring_indices.numpy().reshape(-1, 2)
+        ends = np.concatenate([pairs, pairs[:, ::-1]])
+        spring = np.concatenate([np.arange(len(pairs))] * 2)
+        order = np.lexsort((ends[:, 1], ends[:, 0]))
+        ends, spring = ends[order], spring[order]
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        np.add.at(offsets, ends[:, 0] + 1, 1)
+        self.adjacency_offsets = wp.array(np.cumsum(offsets).astype(np.int32), dtype=int, device=d)
+        params = np.stack([model.spring_rest_length.numpy(), model.spring_stiffness.numpy(),
+                           model.spring_damping.numpy()], axis=1).astype(np.float32)
+        table, kind = np.unique(params, axis=0, return_inverse=True)
+        kind = kind.reshape(-1)
+        if len(table) <= 256:
+            packed = (ends[:, 1].astype(np.uint32) << np.uint32(8)) | kind[spring].astype(np.uint32)
+            self.adjacency = wp.array(packed, dtype=wp.uint32, device=d)
+            self.adjacency_table = wp.array(table.reshape(-1, 3), dtype=wp.vec3, device=d)
+        else:
+            wide = np.concatenate([params[spring], ends[:, 1:2].astype(np.float32)], axis=1)
+            self.adjacency = wp.array(wide.reshape(-1, 4), dtype=wp.vec4, device=d)
+            self.adjacency_table = wp.zeros(1, dtype=wp.vec3, device=d)
+
+    def _external(self, system, q, qd, time, f):
+        for force in self.others:
+            force.eval(q, qd, time, 0.0, f)
+
+    def step_to(self, system, q, qd, time, dt, q_out, qd_out) -> None:
+        """Gather mode: read (q, qd), write the stepped state to (q_out, qd_out) (other arrays)."""
+        self.prepare(system)
+        if self.others:
+            self.f_ext.zero_()
+            self._external(system, q, qd, time, self.f_ext)
+        wp.launch(KC.step_cloth_gather, system.count,
+                  inputs=[q, qd, self.f_ext, int(bool(self.others)), self.adjacency_offsets, self.adjacency,
+                          self.adjacency_table, system.inv_mass, self.gravity, float(dt), q_out, qd_out],
+                  device=system.device)
+
+    def step(self, system, q, qd, time, dt, f_out=None):
+        self.prepare(system)
+        if self.mode == "gather":
+            if f_out is not None:
+                system.eval_forces(q, qd, time, 0.0, f_out)
+            self.step_to(system, q, qd, time, dt, self.q_tmp, self.qd_tmp)
+            wp.copy(q, self.q_tmp)
+            wp.copy(qd, self.qd_tmp)
+            return
+        model = system.model
+        f = self.f  # zero on entry: the particle kernel clears it
+        self._external(system, q, qd, time, f)
+        if model.spring_count:
+            wp.launch(KF.eval_springs, model.spring_count,
+                      inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
+                              model.spring_damping, f], device=system.device)
+        if f_out is not None:
+            wp.copy(f_out, f)
+            wp.launch(KF.eval_gravity, system.count, inputs=[system.mass, self.gravity, f_out], device=system.device)
+        wp.launch(KC.integrate_cloth_particles, system.count,
+                  inputs=[f, system.inv_mass, self.gravity, float(dt), q, qd], device=system.device)
+
+
+class ClothImplicitEuler(Integrator):
+    """Implicit Euler for cloth after Baraff & Witkin (1998) on ``warp.sparse`` BSR matrices.
+
+    Args:
+        newton_iterations: 1 = Baraff-Witkin exactly (one linear solve per step, forces
+            linearised at the start of the step); more continue with Newton iterations on
+            backward Euler M (v1 - v0) = h f(x0 + h v1, v1), stopping early once
+            max |dv| <= newton_tol [m/s] (a host read-back, so not inside captured frames).
+        cg_tol: CG tolerance relative to |b|; cg_atol: absolute floor [kg m/s].
+        cg_max_iterations: CG iteration cap.
+        geometric: "clamped" (default; (1 - L/l) clamped at 0 under compression, A stays
+            positive definite) or "full" (the exact spring stiffness, may be indefinite).
+        linear_solver: "block_cg" (default; warpsim.cloth.block_cg.BlockCG: preallocated PCG with
+            device-side scalars, capturable, fast on the CPU too) or "warp_cg"
+            (``warp.optim.linear.cg`` with the same operator and preconditioner, preallocated
+            through ``cg(..., run=False)``; its tile-based dot products are slow on the CPU).
+        check_every: "warp_cg" only: convergence test every this many iterations on the host; 0
+            tests on the device (used automatically while a graph is being captured). None: 1 on
+            the CPU, 10 on CUDA.
+        record_history: keep (newton iterations, CG iterations, residual, tolerance) of every
+            step in ``history`` (host-checked steps only).
+
+    After each step: ``last_newton_iterations``, ``last_cg_iterations`` (summed over Newton
+    iterations), ``last_cg_residual`` (final |b - A dv| of the last solve, CG's recursive
+    estimate) and ``last_cg_tolerance`` (the absolute tolerance it had to meet).
+    """
+
+    name = "cloth_implicit_euler"
+
+    def __init__(self, newton_iterations: int = 1, newton_tol: float = 1.0e-5, cg_tol: float = 1.0e-5,
+                 cg_atol: float = 1.0e-12, cg_max_iterations: int = 200, geometric: str = "clamped",
+                 linear_solver: str = "block_cg", check_every: int | None = None, record_history: bool = False):
+        super().__init__()
+        if int(newton_iterations) < 1:
+            raise ValueError(f"newton_iterations = {newton_iterations}; it must be >= 1")
+        if not (cg_tol > 0.0 and cg_atol >= 0.0):
+            raise ValueError(f"cg_tol = {cg_tol}, cg_atol = {cg_atol}; need cg_tol > 0 and cg_atol >= 0")
+        if int(cg_max_iterations) < 1:
+            raise ValueError(f"cg_max_iterations = {cg_max_iterations}; it must be >= 1")
+        if geometric not in GEOMETRIC_MODES:
+            raise ValueError(f"geometric = {geometric!r}; use one of {sorted(GEOMETRIC_MODES)}")
+        if linear_solver not in LINEAR_SOLVERS:
+            raise ValueError(f"linear_solver = {linear_solver!r}; use one of {LINEAR_SOLVERS}")
+        if check_every is not None and int(check_every) < 0:
+            raise ValueError(f"check_every = {check_every}; it must be >= 0 (or None)")
+        self.newton_iterations = int(newton_iterations)
+        self.newton_tol = float(newton_tol)
+        self.cg_tol = float(cg_tol)
+        self.cg_atol = float(cg_atol)
+        self.cg_max_iterations = int(cg_max_iterations)
+        self.geometric = geometric
+        self.linear_solver = linear_solver
+        self.check_every = check_every
+        self.record_history = bool(record_history)
+        self.history = []
+        self.last_newton_iterations = 0
+        self._block_cg = None
+        self._cg_host = None
+        self._cg_device = None
+
+    # ----------------------------------------------------------------------------------
+    def _allocate(self, system):
+        model, n, d = system.model, system.count, system.device
+        self.gravity, self.springs, self.others = _split_forces(system)
+        for force in self.others:
+            if force.jacobian_triplet_count():
+                raise ValueError(f"ClothImplicitEuler: force {type(force).__name__} couples particles (it has "
+                                 "off-diagonal Jacobian blocks); use ws.ImplicitEuler for it")
+        self._position_jacobian_forces = [f for f in self.others if _overrides_jacobian(f)]
+        self._others_all = [f for f in system.forces if f is not self.springs]
+        self.x0 = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.v0 = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.rhs = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.dv = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.f_other = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.diag = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.position_diag = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.inverse = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.max_dv = wp.zeros(1, dtype=float, device=d)
+        self._build_matrix(model)
+        inverse = self.inverse
+
+        def block_jacobi(x, y, z, alpha, beta):
+            wp.launch(KI.apply_block_preconditioner, n, inputs=[inverse, x, y, float(alpha), float(beta), z], device=d)
+
+        self.preconditioner = wpl.LinearOperator((3 * n, 3 * n), wp.float32, d, matvec=block_jacobi)
+        self._cg = {}
+        if self.linear_solver == "block_cg":
+            self._block_cg = BlockCG(self.A, self.rhs, self.dv, self.inverse, self.cg_tol, self.cg_atol,
+                                     self.cg_max_iterations)
+        else:
+            host_every = 1 if d.is_cpu else 10
+            for every in {0, host_every if self.check_every is None else int(self.check_every)}:
+                self._cg[every] = wpl.cg(self.A, self.rhs, self.dv, tol=self.cg_tol, atol=self.cg_atol,
+                                         maxiter=self.cg_max_iterations, M=self.preconditioner, check_every=every,
+                                         use_cuda_graph=True, run=False)
+
+    def _build_matrix(self, model):
+        """Fixed BSR topology: diagonal blocks plus (i, j), (j, i) for every spring; slots map each
+        block to its place in ``A.values``."""
+        n, d = model.particle_count, model.device
+        pairs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        rows = np.concatenate([np.arange(n), pairs[:, 0], pairs[:, 1]]).astype(np.int32)
+        cols = np.concatenate([np.arange(n), pairs[:, 1], pairs[:, 0]]).astype(np.int32)
+        self.A = wps.bsr_zeros(n, n, wp.mat33, device=d)
+        wps.bsr_set_from_triplets(self.A, wp.array(rows, dtype=int, device=d), wp.array(cols, dtype=int, device=d),
+                                  wp.zeros(len(rows), dtype=wp.mat33, device=d), prune_numerical_zeros=False)
+        nnz = self.A.nnz_sync()
+        offsets = self.A.offsets.numpy()[: n + 1].astype(np.int64)
+        columns = self.A.columns.numpy()[:nnz].astype(np.int64)
+        keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(offsets)) * n + columns
+        slots = np.searchsorted(keys, rows.astype(np.int64) * n + cols).astype(np.int32)
+        self.diagonal_slots = wp.array(slots[:n], dtype=int, device=d)
+        self.spring_slots = wp.array(np.stack([slots[n:n + len(pairs)], slots[n + len(pairs):]], 1).reshape(-1),
+                                     dtype=int, device=d)
+        self.values = self.A.values[:nnz]
+
+    def _solver(self):
+        """(preallocated CG, check_every): device-side checks while a graph is being captured."""
+        d = self._system.device
+        if d.is_capturing:
+            every = 0
+        elif self.check_every is None:
+            every = 1 if d.is_cpu else 10
+        else:
+            every = int(self.check_every)
+        return self._cg[every], every
+
+    # ----------------------------------------------------------------------------------
+    def assemble(self, q, qd, w, time, time_offset, ck, cd, cf, cw, mass_scale=1.0):
+        """Fill A = mass_scale M + cd D + ck K (pinned rows and columns -> identity) and
+        b = cf f(q, qd) + cw K w - mass_scale M (qd - v0) at (q, qd). The step uses ck = -h^2, cd = -h,
+        cf = h, cw = h^2 (first iteration) or 0; tests call it with other coefficients."""
+        system = self._system
+        model, n, d = system.model, system.count, system.device
+        self.diag.zero_()
+        self.rhs.zero_()
+        self.values.zero_()
+        self.f_other.zero_()
+        for f in self._others_all:
+            f.eval(q, qd, time, time_offset, self.f_other)
+            f.eval_jacobian(q, qd, time, time_offset, ck, cd, self.diag, None, None, None)
+        if cw != 0.0 and self._position_jacobian_forces:
+            self.position_diag.zero_()
+            for f in self._position_jacobian_forces:
+                f.eval_jacobian(q, qd, time, time_offset, 1.0, 0.0, self.position_diag, None, None, None)
+        if model.spring_count:
+            wp.launch(KC.assemble_cloth_springs, model.spring_count,
+                      inputs=[q, qd, w, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
+                              model.spring_damping, self.spring_slots, system.inv_mass, float(ck), float(cd),
+                              float(cf), float(cw), GEOMETRIC_MODES[self.geometric], self.rhs, self.diag,
+                              self.values], device=d)
+        wp.launch(KC.finish_cloth_system, n,
+                  inputs=[self.diag, self.position_diag, self.f_other, system.mass, system.inv_mass,
+                          self.diagonal_slots, qd, self.v0, w, float(mass_scale), float(cf), float(cw), self.rhs,
+                          self.values, self.inverse, self.dv], device=d)
+
+    def _solve(self):
+        """Run the linear solve; returns (iterations, residual, tolerance) when known on the host
+        without a read-back, else None (device-side results stay in ``self._cg_device``)."""
+        if self.linear_solver == "block_cg":
+            self._block_cg.solve()
+            self._cg_device = self._block_cg
+            return None
+        cg, every = self._solver()
+        result = cg()
+        if every > 0:
+            return int(result[0]), float(result[1]), float(result[2])
+        self._cg_device = result
+        return None
+
+    def step(self, system, q, qd, time, dt, f_out=None):
+        self.prepare(system)
+        h = float(dt)
+        if f_out is not None:
+            system.eval_forces(q, qd, time, 0.0, f_out)
+        wp.copy(self.x0, q)
+        wp.copy(self.v0, qd)
+        capturing = system.device.is_capturing
+        iterations, known = 0, True
+        self._cg_host = None
+        for it in range(self.newton_iterations):
+            first = it == 0
+            # iteration 1 at (x0, v0) with b = h (f0 + h K v0); later ones at (x0 + h v, v)
+            self.assemble(q, qd, self.v0, time, 0.0 if first else h, -h * h, -h, h, h * h if first else 0.0)
+            result = self._solve()
+            if result is None and not capturing and (self.record_history or self.newton_iterations > 1):
+                result = self._device_stats()
+            if result is None:
+                known = False
+            else:
+                iterations += result[0]
+                self._cg_host = (iterations, result[1], result[2])
+            wp.launch(KI.implicit_update, system.count, inputs=[self.x0, self.dv, h, qd, q], device=system.device)
+            self.last_newton_iterations = it + 1
+            if self.newton_iterations > 1 and not capturing:
+                self.max_dv.zero_()
+                wp.launch(KI.max_abs_difference, system.count, inputs=[self.dv, self.max_dv], device=system.device)
+                if float(self.max_dv.numpy()[0]) <= self.newton_tol:
+                    break
+        if not known:
+            self._cg_host = None
+        elif self.record_history:
+            self.history.append((self.last_newton_iterations, *self._cg_host))
+
+    # ----------------------------------------------------------------------------------
+    def _device_stats(self):
+        src = self._cg_device
+        if src is None:
+            return 0, 0.0, 0.0
+        if isinstance(src, BlockCG):
+            return src.stats()
+        it, r2, a2 = (float(a.numpy()[0]) for a in src)
+        return int(it), float(np.sqrt(max(r2, 0.0))), float(np.sqrt(max(a2, 0.0)))
+
+    def _cg_stats(self):
+        return self._cg_host if self._cg_host is not None else self._device_stats()
+
+    @property
+    def last_cg_iterations(self) -> int:
+        """CG iterations of the last step (device-checked solves report the last solve)."""
+        return self._cg_stats()[0]
+
+    @property
+    def last_cg_residual(self) -> float:
+        """Final residual norm |b - A dv| of the last CG solve (CG's recursive estimate)."""
+        return self._cg_stats()[1]
+
+    @property
+    def last_cg_tolerance(self) -> float:
+        """Absolute tolerance the last CG solve had to meet: max(cg_atol, cg_tol |b|)."""
+        return self._cg_stats()[2]
+
+
+CLOTH_INTEGRATORS = {"semi_implicit_euler": ClothSemiImplicitEuler, "implicit_euler": ClothImplicitEuler,
+                     ClothSemiImplicitEuler.name: ClothSemiImplicitEuler, ClothImplicitEuler.name: ClothImplicitEuler}
+
+
+def make_cloth_integrator(integrator) -> Integrator:
+    """The fused cloth integrator for "semi_implicit_euler" / "implicit_euler" (and their
+    ``cloth_*`` names); any other name or Integrator instance as ``ws.Simulator`` takes it."""
+    if isinstance(integrator, str) and integrator in CLOTH_INTEGRATORS:
+        return CLOTH_INTEGRATORS[integrator]()
+    if isinstance(integrator, str) and integrator not in INTEGRATORS:
+        valid = ", ".join(sorted(set(INTEGRATORS) | set(CLOTH_INTEGRATORS)))
+        raise ValueError(f"unknown integrator {integrator!r}; valid integrators: {valid}")
+    return make_integrator(integrator)
+
+
+class ClothSimulator(Simulator):
+    """``ws.Simulator`` for cloth: the fused integrators, and frames whose sub-steps run as one
+    captured graph.
+
+    Args: as ``ws.Simulator`` (``integrator`` defaults to "implicit_euler"; "semi_implicit_euler"
+    and "implicit_euler" pick the cloth integrators above), plus
+        use_graph: capture each frame's sub-steps once and replay them (None: yes, on CUDA and on
+            the CPU). Frames run eagerly while a collider follows a ``motion`` callback, and the
+            graphs are re-captured after a collider's ``set_transform``. Forces, colliders and
+            model parameters must not be replaced after the first frame (arrays may change in
+            place).
+        check_every: blow-up test every this many frames (``step`` tests every this many steps).
+
+    ``frame(frame_dt, substeps)`` advances one frame; ``run`` uses it. ``step(dt)`` takes one
+    eager step like ws.Simulator. The blow-up test (every ``check_every`` frames) runs inside
+    the frame and costs one read-back of an int. ``state.forces`` is not filled: the fused
+    kernels never materialise the total force.
+    """
+
+    def __init__(self, model, integrator="implicit_euler", forces=None, colliders=(), *, use_graph=None,
+                 check_every=1, **kwargs):
+        super().__init__(model, make_cloth_integrator(integrator), forces, colliders, check_every=check_every,
+                         **kwargs)
+        if use_graph is None:
+            use_graph = True
+        self.use_graph = bool(use_graph) and not self.adaptive
+        self._needs_time = any(not isinstance(f, (Gravity, Springs)) for f in self.forces)
+        self._graphs = {}
+        self._captured_poses = ()
+        self.frame_count = 0
+        """Frames advanced by ``frame``."""
+        st = self.state
+        self._home = (st.positions, st.velocities)
+        self._spare = (wp.zeros_like(st.positions), wp.zeros_like(st.velocities))
+
+    def _gather(self) -> bool:
+        return isinstance(self.integrator, ClothSemiImplicitEuler) and self.integrator.mode == "gather"
+
+    def _substep(self, h: float, time_offset_steps: int, pingpong: bool) -> None:
+        """One sub-step: integrate, collide, (advance time). No host read-back."""
+        st, system = self.state, self.system
+        if pingpong and self._gather():
+            q_out = self._spare[0] if st.positions is self._home[0] else self._home[0]
+            qd_out = self._spare[1] if st.velocities is self._home[1] else self._home[1]
+            self.integrator.step_to(system, st.positions, st.velocities, self._time, h, q_out, qd_out)
+            q_prev = st.positions
+            st.positions, st.velocities = q_out, qd_out
+        else:
+            q_prev = self._q_prev
+            if self.colliders:
+                wp.copy(q_prev, st.positions)
+            self.integrator.step(system, st.positions, st.velocities, self._time, h)
+        for c in self.colliders:
+            c.apply(self.model, st, q_prev, h)
+        if self._needs_time:
+            wp.launch(KI.advance_time, 1, inputs=[self._time, h], device=self.device)
+
+    def _go_home(self) -> None:
+        st = self.state
+        if st.positions is not self._home[0]:
+            wp.copy(self._home[0], st.positions)
+            wp.copy(self._home[1], st.velocities)
+            st.positions, st.velocities = self._home
+
+    def _frame_body(self, frame_dt: float, substeps: int) -> None:
+        h = frame_dt / substeps
+        for k in range(substeps):
+            self._substep(h, k, pingpong=True)
+        self._go_home()
+        if not self._needs_time:
+            wp.launch(KI.advance_time, 1, inputs=[self._time, frame_dt], device=self.device)
+        # blow-up detection inside the frame: the host reads one int afterwards
+        self._first_bad.fill_(self.system.count)
+        wp.launch(KI.find_blow_up, self.system.count, inputs=[self.state.positions, self.state.velocities,
+                                                              self.max_speed, self._first_bad], device=self.device)
+
+    def frame(self, frame_dt: float = 1.0 / 60.0, substeps: int = 1) -> None:
+        """Advance one frame of ``frame_dt`` [s] in ``substeps`` equal steps (graph replay where
+        enabled), then test for blow-up every ``check_every`` frames."""
+        frame_dt = check_dt(frame_dt)
+        if int(substeps) < 1:
+            raise ValueError(f"substeps = {substeps}; it must be >= 1")
+        substeps = int(substeps)
+        self.integrator.prepare(self.system)
+        poses = self._collider_poses()
+        if poses is None or poses != self._captured_poses:
+            self._graphs.clear()  # a collider moves: its pose is baked into the launches
+        if self.use_graph and poses is not None:
+            key = (frame_dt, substeps)
+            graph = self._graphs.get(key)
+            if graph is None:
+                self._frame_body(frame_dt, substeps)  # eager first frame loads every module
+                self._advance_host(frame_dt, substeps)
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._frame_body(frame_dt, substeps)
+                self._graphs[key] = capture.graph
+                self._captured_poses = poses
+            else:
+                wp.capture_launch(graph)
+                self._advance_host(frame_dt, substeps)
+        else:
+            self._frame_body(frame_dt, substeps)
+            self._advance_host(frame_dt, substeps)
+        due = self.check_every and self.frame_count % self.check_every == 0
+        if due and int(self._first_bad.numpy()[0]) < self.system.count:
+            self.check()  # raises SimulationError naming step, particle and remedy
+
+    def _collider_poses(self):
+        """Poses of kinematic colliders (None when one follows a ``motion`` callback: such frames
+        run eagerly, since collider poses are launch parameters that a graph would freeze)."""
+        poses = []
+        for c in self.colliders:
+            if getattr(c, "motion", None) is not None:
+                return None
+            if hasattr(c, "world_pose"):
+                p, q = c.world_pose()
+                poses.append(tuple(np.round(np.concatenate([p, q]), 12)))
+        return tuple(poses)
+
+    def _advance_host(self, frame_dt, substeps):
+        self.time += frame_dt
+        self.step_count += substeps
+        self.frame_count += 1
+        self.last_substeps = substeps
+
+    def _advance_substep(self, h: float) -> None:
+        """One eager sub-step for :meth:`Simulator.step` (adaptive sub-stepping included)."""
+        self._substep(h, 0, pingpong=False)
+        if not self._needs_time:
+            wp.launch(KI.advance_time, 1, inputs=[self._time, h], device=self.device)
+
+    def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps: int = 1, callback=None, writer=None):
+        """As ws.Simulator.run, each frame advanced by ``frame``."""
+        from ..core.errors import SimulationError
+
+        frame_dt = check_dt(frame_dt)
+        if int(frames) < 0:
+            raise ValueError(f"frames = {frames}; it must be >= 0")
+        if writer is not None:
+            writer.write(0, self.state)
+        for frame in range(1, int(frames) + 1):
+            try:
+                self.frame(frame_dt, substeps)
+            except SimulationError as err:
+                err.frame = frame
+                err.args = (f"frame {frame}: {err.args[0]}",)
+                raise
+            if callback is not None:
+                callback(frame, self)
+            if writer is not None:
+                writer.write(frame, self.state)
+
+
+def cloth_energy(model, q, qd, gravity=(0.0, 0.0, 0.0)) -> tuple:
+    """(kinetic, spring potential, gravitational potential) energy [J] of a state (reads back;
+    not for use inside a step). Gravitational potential is -m g . x."""
+    d = model.device
+    out = wp.zeros(2, dtype=float, device=d)
+    wp.launch(KC.eval_kinetic_energy, model.particle_count, inputs=[qd, model.particle_mass, out[0:1]], device=d)
+    if model.spring_count:
+        wp.launch(KC.eval_cloth_spring_energy, model.spring_count,
+                  inputs=[q, model.spring_indices, model.spring_rest_length, model.spring_stiffness, out[1:2]],
+                  device=d)
+    kinetic, spring = (float(x) for x in out.numpy())
+    m = model.particle_mass.numpy().astype(np.float64)
+    grav = float(-(m[:, None] * q.numpy().astype(np.float64) * np.asarray(gravity)).sum())
+    return kinetic, spring, grav

@@ -1,0 +1,23 @@
+"""The particle core: :class:`ModelBuilder` -> :class:`Model` / :class:`State`, the forces, the five
+time integrators, the systems they advance, the :class:`Simulator` loop and the angle-form
+:class:`Pendulum`.
+
+Drives ``warpsim.kernels.forces`` (gravity, wind, drag, magnets, springs) and
+``warpsim.kernels.integrate`` (explicit/semi-implicit/implicit Euler, RK2, RK4, sparse Jacobians).
+Entry classes: ModelBuilder, Simulator, Gravity, Springs, SemiImplicitEuler, Pendulum.
+"""
+
+from .builder import ModelBuilder
+from .errors import SimulationError
+from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
+from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, Integrator, SemiImplicitEuler
+from .model import Model, State
+from .pendulum import Pendulum, exact_period
+from .simulator import Simulator
+from .system import DynamicSystem, ParticleSystem, PendulumSystem
+
+__all__ = [
+    "ModelBuilder", "Model", "State", "Simulator", "SimulationError", "Force", "Gravity", "ConstantForce", "Wind",
+    "Magnets", "Drag", "Springs", "ForceField", "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler",
+    "RK2", "RK4", "INTEGRATORS", "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
+]

@@ -1,0 +1,225 @@
+"""Forces acting on particles. Each launches kernels from ``warpsim.kernels.forces``.
+
+A force is bound to a model once (``bind``: validation and device buffers), then evaluated any
+number of times without allocating. Forces only accumulate; the caller zeroes ``f_out`` first.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .builder import _vec3, check_indices
+from ..kernels import forces as K
+
+
+class Force:
+    """Base class. Subclasses implement ``eval`` and, when the force depends on positions or
+    velocities, ``eval_jacobian`` (diagonal blocks into ``diag``, couplings as triplets)."""
+
+    def bind(self, model) -> None:
+        """Validate against ``model`` and allocate device data (called once by the Simulator)."""
+        self.model = model
+
+    def eval(self, q, qd, time, time_offset: float, f_out) -> None:
+        raise NotImplementedError
+
+    def jacobian_triplet_count(self) -> int:
+        """Number of off-diagonal 3x3 blocks this force writes."""
+        return 0
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values) -> None:
+        """Add ck df/dx + cd df/dv: per-particle blocks into ``diag`` (n,), coupling blocks into
+        the triplet slices ``rows``/``cols``/``values`` (length jacobian_triplet_count())."""
+
+
+class Gravity(Force):
+    """Uniform gravity: f = m g, g [m/s^2] (default (0, -9.81, 0))."""
+
+    def __init__(self, g=(0.0, -9.81, 0.0)):
+        self.g = _vec3(g, "Gravity g")
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        m = self.model
+        wp.launch(K.eval_gravity, m.particle_count, inputs=[m.particle_mass, wp.vec3(self.g), f_out], device=m.device)
+
+
+class ConstantForce(Force):
+    """A constant force [N] on chosen particles (None: every particle)."""
+
+    def __init__(self, force, particles=None):
+        self.force = _vec3(force, "ConstantForce force")
+        self.particles = particles
+
+    def bind(self, model):
+        super().bind(model)
+        n = model.particle_count
+        idx = np.arange(n) if self.particles is None else check_indices(self.particles, n, "ConstantForce")
+        self._indices = wp.array(idx.astype(np.int32), dtype=int, device=model.device)
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        wp.launch(
+            K.eval_constant_force, self._indices.shape[0], inputs=[self._indices, wp.vec3(self.force), f_out],
+            device=self.model.device,
+        )
+
+
+class Wind(Force):
+    """Wind that varies in time: f = c (w(t) - v) with air velocity
+    w(t) = speed (1 + gust_amplitude gust(t)) dir(t).
+
+    direction: unit vector (normalised here); speed [m/s]; gust(t) in [-1, 1] is a sum of three
+    incommensurate sines at ``gust_frequency`` [Hz] with phases from ``seed``; the direction turns
+    about +Y by ``turn_amplitude`` [rad] at ``turn_frequency`` [Hz]; coefficient c [kg/s].
+    ``air_velocity(t)`` gives w(t) on the host (same formula as the kernel)."""
+
+    def __init__(self, direction=(1.0, 0.0, 0.0), speed=5.0, gust_amplitude=0.3, gust_frequency=0.5,
+                 turn_amplitude=0.0, turn_frequency=0.1, coefficient=0.1, seed=0):
+        d = np.asarray(_vec3(direction, "Wind direction"))
+        if np.linalg.norm(d) == 0.0:
+            raise ValueError("Wind direction is the zero vector; give a direction")
+        self.direction = tuple(d / np.linalg.norm(d))
+        for name in ("speed", "gust_amplitude", "gust_frequency", "turn_amplitude", "turn_frequency", "coefficient"):
+            value = float(locals()[name])
+            if not math.isfinite(value):
+                raise ValueError(f"Wind {name} is {value}; give a finite number")
+            setattr(self, name, value)
+        if self.coefficient < 0.0:
+            raise ValueError(f"Wind coefficient {self.coefficient} < 0; give c >= 0 [kg/s]")
+        self.gust_phase = tuple(np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, 3))
+
+    def air_velocity(self, t: float) -> np.ndarray:
+        two_pi = 2.0 * np.pi
+        f, p = self.gust_frequency, self.gust_phase
+        g = (np.sin(two_pi * f * t + p[0]) + 0.5 * np.sin(two_pi * 2.13 * f * t + p[1])
+             + 0.25 * np.sin(two_pi * 4.37 * f * t + p[2])) / 1.75
+        a = self.turn_amplitude * np.sin(two_pi * self.turn_frequency * t)
+        d = self.direction
+        turned = np.array([np.cos(a) * d[0] + np.sin(a) * d[2], d[1], -np.sin(a) * d[0] + np.cos(a) * d[2]])
+        return self.speed * (1.0 + self.gust_amplitude * g) * turned
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        m = self.model
+        wp.launch(
+            K.eval_wind, m.particle_count,
+            inputs=[qd, m.particle_inv_mass, time, float(time_offset), wp.vec3(self.direction), self.speed,
+                    self.gust_amplitude, self.gust_frequency, wp.vec3(self.gust_phase), self.turn_amplitude,
+                    self.turn_frequency, self.coefficient, f_out],
+            device=m.device,
+        )
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+        wp.launch(K.eval_scaled_identity_jacobian, self.model.particle_count,
+                  inputs=[-self.coefficient, float(cd), diag], device=self.model.device)
+
+
+class Magnets(Force):
+    """Point attractors (strength > 0) and repellers (< 0):
+    f = s d / (|d|^2 + softening^2)^(3/2), d = center - x, strength s [N m^2], softening [m];
+    particles farther than ``cutoff`` [m] feel nothing (None: no cutoff)."""
+
+    def __init__(self, centers, strengths, softening=0.05, cutoff=None):
+        c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        s = np.broadcast_to(np.asarray(strengths, dtype=np.float64), (len(c),)).copy()
+        if not np.all(np.isfinite(c)) or not np.all(np.isfinite(s)):
+            raise ValueError("Magnets centers and strengths must be finite")
+        if not softening > 0.0:
+            raise ValueError(f"Magnets softening {softening} must be > 0 [m] (it keeps the force finite at the center)")
+        if cutoff is not None and not cutoff > 0.0:
+            raise ValueError(f"Magnets cutoff {cutoff} must be > 0 [m] or None")
+        self.centers, self.strengths = c, s
+        self.softening = float(softening)
+        self.cutoff = 0.0 if cutoff is None else float(cutoff)
+
+    def bind(self, model):
+        super().bind(model)
+        self._centers = wp.array(self.centers.astype(np.float32), dtype=wp.vec3, device=model.device)
+        self._strengths = wp.array(self.strengths.astype(np.float32), dtype=float, device=model.device)
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        m = self.model
+        wp.launch(K.eval_magnets, m.particle_count,
+                  inputs=[q, m.particle_inv_mass, self._centers, self._strengths, self.softening, self.cutoff, f_out],
+                  device=m.device)
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+        m = self.model
+        wp.launch(K.eval_magnets_jacobian, m.particle_count,
+                  inputs=[q, m.particle_inv_mass, self._centers, self._strengths, self.softening, self.cutoff,
+                          float(ck), diag],
+                  device=m.device)
+
+
+class Drag(Force):
+    """Velocity-dependent drag f = -linear v - quadratic |v| v; linear [kg/s], quadratic [kg/m]."""
+
+    def __init__(self, linear=0.0, quadratic=0.0):
+        for name, value in (("linear", linear), ("quadratic", quadratic)):
+            if not math.isfinite(float(value)) or float(value) < 0.0:
+                raise ValueError(f"Drag {name} coefficient {value} must be finite and >= 0")
+        self.linear, self.quadratic = float(linear), float(quadratic)
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        m = self.model
+        wp.launch(K.eval_drag, m.particle_count, inputs=[qd, self.linear, self.quadratic, f_out], device=m.device)
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+        m = self.model
+        wp.launch(K.eval_drag_jacobian, m.particle_count, inputs=[qd, self.linear, self.quadratic, float(cd), diag],
+                  device=m.device)
+
+
+class Springs(Force):
+    """The model's damped springs, f_i = -(k (l - L) + kd dl/dt) d_hat, f_j = -f_i.
+
+    The Simulator adds this force automatically when the model has springs. ``exact_jacobian``
+    selects the true Jacobian (tests) instead of the solver's symmetric, clamped form."""
+
+    def __init__(self, exact_jacobian: bool = False):
+        self.exact_jacobian = exact_jacobian
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        m = self.model
+        if m.spring_count == 0:
+            return
+        wp.launch(K.eval_springs, m.spring_count,
+                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, f_out],
+                  device=m.device)
+
+    def jacobian_triplet_count(self):
+        return 2 * self.model.spring_count
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+        m = self.model
+        if m.spring_count == 0:
+            return
+        wp.launch(K.eval_springs_jacobian, m.spring_count,
+                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
+                          float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values],
+                  device=m.device)
+
+
+class ForceField(Force):
+    """A user force field: ``field`` is a ``@wp.func`` of (x: wp.vec3 [m], v: wp.vec3 [m/s],
+    t: float [s]) -> wp.vec3 [N], applied to every dynamic particle. Its Jacobian for implicit
+    Euler is taken by central differences with step ``eps`` and symmetrised."""
+
+    def __init__(self, field, eps: float = 1.0e-3):
+        if not isinstance(field, wp.Function):
+            raise ValueError("ForceField needs a @wp.func of (wp.vec3, wp.vec3, float) -> wp.vec3; decorate it with @wp.func")
+        self.field = field
+        self.eps = float(eps)
+        self._eval_kernel, self._jacobian_kernel = K.force_field_kernels(field)
+
+    def eval(self, q, qd, time, time_offset, f_out):
+        m = self.model
+        wp.launch(self._eval_kernel, m.particle_count,
+                  inputs=[q, qd, m.particle_inv_mass, time, float(time_offset), f_out], device=m.device)
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+        m = self.model
+        wp.launch(self._jacobian_kernel, m.particle_count,
+                  inputs=[q, qd, m.particle_inv_mass, time, float(time_offset), self.eps, float(ck), float(cd), diag],
+                  device=m.device)

@@ -1,0 +1,176 @@
+"""Simulator: forces -> integrator -> colliders, with optional adaptive sub-stepping and
+blow-up detection."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from ..kernels import integrate as K
+from .collider import Collider
+from .errors import SimulationError
+from .forces import Gravity
+from .integrators import make_integrator
+from .system import ParticleSystem
+
+REMEDY = "use a smaller dt, more sub-steps (or adaptive=True), or integrator='implicit_euler'"
+
+
+def check_dt(dt) -> float:
+    """dt as a float, or ValueError when it is not a finite positive number."""
+    try:
+        value = float(dt)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"dt must be a number > 0 [s], got {dt!r}") from exc
+    if not math.isfinite(value) or value <= 0.0:
+        raise ValueError(f"dt must be > 0 and finite [s], got {dt}")
+    return value
+
+
+class Simulator:
+    """Steps a Model's particles.
+
+    Args:
+        model: a finalized ws.Model.
+        integrator: a name from ``ws.INTEGRATORS`` ("explicit_euler", "semi_implicit_euler",
+            "implicit_euler", "rk2", "rk4") or an Integrator instance (e.g. ws.ImplicitEuler(...)).
+        forces: list of ws.Force; None means [ws.Gravity()], [] means no external force. The
+            model's springs always act.
+        colliders: list of ws.Collider, applied in order after each (sub-)step.
+        adaptive: split each ``step(dt)`` into as many sub-steps as needed so that no particle
+            moves more than ``max_displacement`` [m] per sub-step (estimated as |v| h + |a| h^2/2
+            at the start of the step), at most ``max_substeps``.
+        max_speed: speed [m/s] beyond which the run counts as blown up.
+        check_every: test for blow-up every this many steps (0: never; the test reads one int
+            back from the device).
+    """
+
+    def __init__(self, model, integrator="semi_implicit_euler", forces=None, colliders=(), *, adaptive=False,
+                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1):
+        self.model = model
+        self.device = model.device
+        self.integrator = make_integrator(integrator)
+        forces = [Gravity()] if forces is None else list(forces)
+        self.system = ParticleSystem(model, forces)
+        self.forces = self.system.forces
+        self.colliders = list(colliders)
+        for k, c in enumerate(self.colliders):
+            if not isinstance(c, Collider):
+                raise ValueError(f"colliders[{k}] is {type(c).__name__}, not a warpsim Collider (e.g. ws.Plane())")
+            c.bind(model)
+        if adaptive and not (max_displacement and max_displacement > 0.0):
+            raise ValueError("adaptive=True needs max_displacement > 0 [m] (the most a particle may move per sub-step)")
+        if int(max_substeps) < 1:
+            raise ValueError(f"max_substeps = {max_substeps}; it must be >= 1")
+        self.adaptive = bool(adaptive)
+        self.max_displacement = float(max_displacement or 0.0)
+        self.max_substeps = int(max_substeps)
+        self.max_speed = float(max_speed)
+        self.check_every = int(check_every)
+
+        self.state = model.state()
+        self._check_finite_host()
+        d = self.device
+        self._q_prev = wp.zeros_like(self.state.positions)
+        self._time = wp.zeros(1, dtype=float, device=d)
+        self._scratch_float = wp.zeros(1, dtype=float, device=d)
+        self._first_bad = wp.zeros(1, dtype=int, device=d)
+        self.time = 0.0
+        """Simulated time [s]."""
+        self.step_count = 0
+        """Integration steps taken (sub-steps included)."""
+        self.last_substeps = 0
+        """Sub-steps the last ``step(dt)`` took."""
+        self.substep_history = []
+        """Sub-steps taken by each ``step(dt)`` call (adaptive runs)."""
+        self.integrator.prepare(self.system)
+
+    # ----------------------------------------------------------------------------------
+    def _check_finite_host(self):
+        for name, arr in (("position", self.state.positions), ("velocity", self.state.velocities)):
+            values = arr.numpy()
+            bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+            if len(bad):
+                raise ValueError(f"particle {int(bad[0])} has a non-finite {name} {values[bad[0]]}; give finite values")
+
+    def _substeps_for(self, dt: float) -> int:
+        if not self.adaptive:
+            return 1
+        s = self.system
+        s.eval_forces(self.state.positions, self.state.velocities, self._time, 0.0, self.state.forces)
+        self._scratch_float.zero_()
+        wp.launch(K.max_step_displacement, s.count,
+                  inputs=[self.state.velocities, self.state.forces, s.inv_mass, dt, self._scratch_float], device=self.device)
+        distance = float(self._scratch_float.numpy()[0])
+        if not math.isfinite(distance):
+            return self.max_substeps
+        return int(min(self.max_substeps, max(1, math.ceil(distance / self.max_displacement))))
+
+    def _advance_substep(self, h: float) -> None:
+        """One sub-step of ``h`` [s]: integrate, collide, advance the device clock."""
+        st = self.state
+        wp.copy(self._q_prev, st.positions)
+        self.integrator.step(self.system, st.positions, st.velocities, self._time, h, f_out=st.forces)
+        for c in self.colliders:
+            c.apply(self.model, st, self._q_prev, h)
+        wp.launch(K.advance_time, 1, inputs=[self._time, h], device=self.device)
+
+    def step(self, dt: float) -> int:
+        """Advance by ``dt`` [s]; returns the number of sub-steps taken."""
+        dt = check_dt(dt)
+        n = self._substeps_for(dt)
+        h = dt / n
+        for _ in range(n):
+            self._advance_substep(h)
+            self.time += h
+            self.step_count += 1
+        self.last_substeps = n
+        if self.adaptive:
+            self.substep_history.append(n)
+        if self.check_every and self.step_count % self.check_every < n:
+            self.check()
+        return n
+
+    def check(self) -> None:
+        """Raise SimulationError if a particle has a non-finite state or exceeds max_speed."""
+        count = self.system.count
+        self._first_bad.fill_(count)
+        wp.launch(K.find_blow_up, count, inputs=[self.state.positions, self.state.velocities, self.max_speed,
+                                                 self._first_bad], device=self.device)
+        bad = int(self._first_bad.numpy()[0])
+        if bad < count:
+            x = self.state.positions.numpy()[bad]
+            v = self.state.velocities.numpy()[bad]
+            raise SimulationError(
+                f"simulation blew up at step {self.step_count} (t = {self.time:.6g} s): particle {bad} has position "
+                f"{x} and velocity {v} (speed bound {self.max_speed:g} m/s). Remedy: {REMEDY}.",
+                step=self.step_count, time=self.time, particle=bad,
+            )
+
+    def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps: int = 1, callback=None, writer=None):
+        """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps.
+
+        Frame 0 is the initial state. After each frame ``callback(frame, sim)`` is called and
+        ``writer.write(frame, state)`` streams it. A blow-up raises SimulationError with ``frame``
+        set; frames already handed to the writer stay written."""
+        frame_dt = check_dt(frame_dt)
+        if int(substeps) < 1:
+            raise ValueError(f"substeps = {substeps}; it must be >= 1")
+        if int(frames) < 0:
+            raise ValueError(f"frames = {frames}; it must be >= 0")
+        if writer is not None:
+            writer.write(0, self.state)
+        for frame in range(1, int(frames) + 1):
+            try:
+                for _ in range(int(substeps)):
+                    self.step(frame_dt / substeps)
+            except SimulationError as err:
+                err.frame = frame
+                err.args = (f"frame {frame}: {err.args[0]}",)
+                raise
+            if callback is not None:
+                callback(frame, self)
+            if writer is not None:
+                writer.write(frame, self.state)

@@ -1,0 +1,15 @@
+"""Lagrangian particle liquids: position-based fluids (``pbf``) with signed-distance boundaries
+(``boundaries``), nozzles and sinks (``emitters``), the SPH smoothing kernels on the host
+(``smoothing``), a float64 NumPy reference step (``reference``) and a surface mesh per frame
+(``surface``).
+
+Drives ``warpsim.kernels.sph`` and ``warpsim.kernels.fluid_surface`` (with marching cubes).
+Entry classes: ParticleFluid, fluid_block, Nozzle, Sink, FluidSurface.
+"""
+
+from .emitters import Nozzle, Sink
+from .pbf import ParticleFluid
+from .smoothing import fluid_block
+from .surface import FluidSurface
+
+__all__ = ["ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface"]

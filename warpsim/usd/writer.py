@@ -1,0 +1,604 @@
+"""Crash-safe streaming USD caches.
+
+:class:`UsdCacheWriter` streams time samples to disk while a simulation runs. Layout beside the
+file a user opens (``cache.usda`` here; ``.usd`` and ``.usdc`` work the same)::
+
+    cache.usda                root layer: stage metadata, prim declarations, static geometry and
+                              value clips (``clips["default"]``) pointing at the chunk files
+    cache.manifest.usda       clip manifest: the time-varying attributes and their types
+    cache.chunk000000.usdc    frames 0 .. K-1 (one chunk of ``chunk_size`` frames)
+    cache.chunk000024.usdc    frames K .. 2K-1, ...
+
+Crash safety: a chunk is written under a temporary name (saved incrementally, so memory holds
+about one frame, not the chunk), synced and then ``os.replace``-d into place; only then is the
+small root layer rewritten (temporary name + ``os.replace``) to list it. A process killed at any
+moment (SIGKILL included) therefore leaves a root layer that opens and holds every completed
+chunk. ``flatten=True`` turns the result into one self-contained ``.usdc`` at :meth:`close`.
+
+Conventions: the frame index is the time code; ``timeCodesPerSecond = framesPerSecond = fps``;
+``startTimeCode``/``endTimeCode`` track the completed frames; ``upAxis = Y``; ``metersPerUnit = 1``;
+``defaultPrim`` is the root prim (``/World``); ``extent`` is authored at every sample.
+
+``pxr`` (usd-core) is imported lazily, so ``import warpsim`` works without it.
+
+Example::
+
+    with UsdCacheWriter("usd_out/drop.usda", fps=60) as w:
+        w.add_points("particles", radius=0.01, color=(0.2, 0.5, 1.0))
+        w.add_plane("floor")
+        for frame in range(120):
+            sim.step(1 / 60)
+            w.write_frame(frame, {"particles": {"points": sim.state.positions,
+                                                "velocities": sim.state.velocities}})
+"""
+from __future__ import annotations
+
+import glob
+import operator
+import os
+
+import numpy as np
+
+from .prims import (
+    ARRAY_TYPES,
+    CurvesDecl,
+    GeomDecl,
+    InstancerDecl,
+    MeshDecl,
+    PointsDecl,
+    close_matches,
+)
+
+__all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter"]
+
+ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
+
+
+def _pxr():
+    try:
+        from pxr import Gf, Sdf, Vt
+    except ImportError as exc:  # pragma: no cover - usd-core is a dependency
+        raise ImportError("warpsim.usd.writer needs usd-core: pip install usd-core") from exc
+    return Sdf, Vt, Gf
+
+
+def to_vt(type_name, value):
+    """USD value for NumPy/python ``value`` already coerced to ``type_name`` (see usd_prims.coerce)."""
+    Sdf, Vt, Gf = _pxr()
+    if type_name == "token[]":
+        return Vt.TokenArray(value)
+    if type_name in ARRAY_TYPES:
+        return Sdf.ValueTypeNames.Find(type_name).type.pythonClass.FromNumpy(value)
+    wrap = {"float": Vt.Float, "double": Vt.Double, "int": Vt.Int, "int64": Vt.Int64, "bool": Vt.Bool,
+            "token": Vt.Token, "float3": Gf.Vec3f, "color3f": Gf.Vec3f, "double3": Gf.Vec3d}
+    if type_name in ("float3", "color3f", "double3"):
+        return wrap[type_name](*value)
+    if type_name == "string":
+        return str(value)
+    return wrap[type_name](value)
+
+
+def _fsync(path):
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _tmp_name(path):
+    """Temporary sibling of ``path`` with the same extension (USD picks the format from it)."""
+    stem, ext = os.path.splitext(path)
+    return f"{stem}.tmp-{os.getpid()}{ext}"
+
+
+class _Chunk:
+    """The chunk being written: a crate layer under a temporary name."""
+
+    def __init__(self, start, final_path):
+        self.start = start
+        self.end = start
+        self.final_path = final_path
+        self.tmp_path = _tmp_name(final_path)
+        self.layer = None
+        self.pending_bytes = 0
+        self.last = {}  # attribute path -> last value written (on-change attributes)
+
+
+class UsdCacheWriter:
+    """Streams simulation frames into a crash-safe chunked USD cache (see module docstring).
+
+    Args:
+        path: the file a user opens (``.usd``, ``.usda`` or ``.usdc``); chunk files live beside it.
+        fps: frames per second (also ``timeCodesPerSecond``); the frame index is the time code.
+        chunk_size: frames per chunk file (K); a chunk holds frames ``[c K, (c + 1) K)``.
+        flatten: at :meth:`close`, write one self-contained ``.usdc`` (the root's name with a
+            ``.usdc`` extension, or the root itself if it is ``.usd``/``.usdc``) and remove the chunks.
+        resume_frame: keep the existing cache's frames ``< resume_frame`` and continue from there
+            (``None``: start a new cache, removing any previous chunks of this name).
+        root_prim: name of the default prim holding every declared prim.
+        durable: ``fsync`` files before renaming them (survives power loss, not only process kills).
+        save_bytes: bytes of samples held in memory before the chunk file is saved incrementally.
+
+    Declare prims (``add_points``, ``add_mesh``, ``add_curves``, ``add_instancer``, static
+    ``add_plane``/``add_sphere``/``add_box``/``add_static_mesh``, extra ``add_primvar``/
+    ``add_attribute``) before the first frame, then call :meth:`write_frame` once per frame with a
+    ``{prim name: {key: array}}`` mapping (NumPy arrays or ``wp.array``), or :meth:`write` with a
+    warpsim ``State``. Every time-varying prim needs data in every frame.
+    """
+
+    def __init__(self, path, fps=60.0, chunk_size=24, flatten=False, *, resume_frame=None, root_prim="World",
+                 durable=True, save_bytes=64 << 20):
+        path = os.path.abspath(os.fspath(path))
+        self.dirname, base = os.path.split(path)
+        self.stem, ext = os.path.splitext(base)
+        if ext not in ROOT_EXTENSIONS:
+            raise ValueError(f"USD cache path {path!r} must end in one of {ROOT_EXTENSIONS}, e.g. 'usd_out/run.usda'")
+        fps = float(fps)
+        if not np.isfinite(fps) or fps <= 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        if int(chunk_size) != chunk_size or chunk_size < 1:
+            raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
+        Sdf, _, _ = _pxr()
+        if not Sdf.Path.IsValidIdentifier(root_prim):
+            raise ValueError(f"root_prim {root_prim!r} is not a valid USD prim name (letters, digits, '_')")
+        if resume_frame is not None and (int(resume_frame) != resume_frame or resume_frame < 0):
+            raise ValueError(f"resume_frame must be an integer >= 0, got {resume_frame!r}")
+        self.path = path
+        self.fps = fps
+        self.chunk_size = int(chunk_size)
+        self.flatten = bool(flatten)
+        self.resume_frame = None if resume_frame is None else int(resume_frame)
+        self.root_prim = root_prim
+        self.durable = bool(durable)
+        self.save_bytes = int(save_bytes)
+        self.prims = {}  # name -> PrimDecl, in declaration order
+        self.chunks = []  # completed chunks: [start frame, end frame, file name]
+        self.last_frame = None
+        self.output_path = path  # the file to open once closed (the flat file with flatten=True)
+        self._chunk = None
+        self._sealed = False
+        self._closed = False
+
+    # ------------------------------------------------------------------ declarations
+    def _declare(self, decl):
+        Sdf, _, _ = _pxr()
+        if self._sealed:
+            raise ValueError(f"declare prim {decl.name!r} before the first frame is written")
+        if not Sdf.Path.IsValidIdentifier(decl.name):
+            raise ValueError(f"prim name {decl.name!r} is not a valid USD identifier (letters, digits, '_', "
+                             "not starting with a digit)")
+        if decl.name in self.prims:
+            raise ValueError(f"prim {decl.name!r} is declared twice")
+        self.prims[decl.name] = decl
+        return decl
+
+    def add_points(self, name, *, count_changes=False, radius=0.01, dynamic_widths=False, color=None,
+                   velocities=True, from_state=False):
+        """Declare ``UsdGeom.Points``. Per frame: ``points`` (n, 3) [m], ``velocities`` (n, 3) [m/s]
+        (unless ``velocities=False``), ``ids`` (n,) when ``count_changes``, ``widths`` (n,) [m]
+        diameters when ``dynamic_widths``. ``radius`` [m] is a scalar or per-point array (fixed
+        counts); widths are authored as diameters. ``from_state``: :meth:`write` fills it."""
+        return self._declare(PointsDecl(name, count_changes=count_changes, radius=radius,
+                                        dynamic_widths=dynamic_widths, color=color, velocities=velocities,
+                                        from_state=from_state))
+
+    def add_mesh(self, name, face_vertex_counts=None, face_vertex_indices=None, *, topology_changes=False,
+                 velocities=True, color=None, double_sided=False):
+        """Declare a deforming ``UsdGeom.Mesh`` (``subdivisionScheme = none``). Fixed topology is
+        written once; with ``topology_changes=True`` pass ``faceVertexCounts``/``faceVertexIndices``
+        every frame and they are sampled only when they change. Per frame: ``points`` (v, 3) [m],
+        ``velocities`` (v, 3) [m/s] unless ``velocities=False``."""
+        return self._declare(MeshDecl(name, face_vertex_counts, face_vertex_indices,
+                                      topology_changes=topology_changes, velocities=velocities, color=color,
+                                      double_sided=double_sided))
+
+    def add_curves(self, name, indices=None, *, curve_vertex_counts=None, width=0.005, color=None,
+                   velocities=False):
+        """Declare linear ``UsdGeom.BasisCurves``. With ``indices`` (pairs of particle indices, e.g.
+        ``model.spring_indices``) each frame's ``points`` are the particle positions (n, 3) and one
+        two-vertex segment is drawn per pair; otherwise ``points`` are the curve vertices for
+        ``curve_vertex_counts``. ``width`` [m] is the constant curve diameter."""
+        return self._declare(CurvesDecl(name, indices, curve_vertex_counts=curve_vertex_counts, width=width,
+                                        color=color, velocities=velocities))
+
+    def add_instancer(self, name, prototypes, *, count_changes=True, orientations=True, velocities=True,
+                      primvars=None):
+        """Declare a ``UsdGeom.PointInstancer`` (agents). ``prototypes``: list of ``(kind, params)``
+        with kind in sphere/cube/cone/capsule/mesh, e.g. ``("cone", {"radius": 0.05, "height":
+        0.2, "axis": "Z", "color": (1, 0, 0)})``. Per frame: ``positions`` (n, 3) [m],
+        ``orientations`` (n, 4) quaternions (x, y, z, w), ``protoIndices`` (n,) (optional with one
+        prototype), ``ids`` (n,) (optional when counts are fixed), ``velocities`` (n, 3) [m/s], and
+        each primvar in ``primvars`` ({name: type name}, per-agent e.g. ``{"state": "int[]"}``)."""
+        decl = InstancerDecl(name, prototypes, count_changes=count_changes, orientations=orientations,
+                             velocities=velocities)
+        for pv_name, type_name in (primvars or {}).items():
+            decl.add_primvar(pv_name, type_name, "vertex")
+        return self._declare(decl)
+
+    def add_static_mesh(self, name, points, face_vertex_counts, face_vertex_indices, *, color=None,
+                        double_sided=True):
+        """Declare fixed geometry (a collider) as a ``UsdGeom.Mesh``: points (v, 3) [m]."""
+        return self._declare(MeshDecl(name, face_vertex_counts, face_vertex_indices, points=points, color=color,
+                                      double_sided=double_sided))
+
+    def add_plane(self, name, normal=(0.0, 1.0, 0.0), offset=0.0, *, size=4.0, color=(0.5, 0.5, 0.5)):
+        """Declare a plane collider ``dot(n, x) = offset`` as a square quad mesh of side ``size`` [m]."""
+        n = np.asarray(normal, np.float64)
+        if n.shape != (3,) or not np.isfinite(n).all() or np.linalg.norm(n) == 0:
+            raise ValueError(f"plane {name!r}: normal must be a non-zero 3-vector, got {normal!r}")
+        n = n / np.linalg.norm(n)
+        helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 0, 1.0])
+        u = np.cross(n, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)  # (u, v, n) right-handed: the quad faces +n
+        c = n * float(offset)
+        h = 0.5 * float(size)
+        pts = [c - h * u - h * v, c + h * u - h * v, c + h * u + h * v, c - h * u + h * v]
+        return self.add_static_mesh(name, np.array(pts), [4], [0, 1, 2, 3], color=color)
+
+    def add_box(self, name, lower, upper, *, color=(0.6, 0.6, 0.6)):
+        """Declare an axis-aligned box collider [lower, upper] [m] as a six-quad mesh (normals outward)."""
+        lo = np.asarray(lower, np.float64)
+        hi = np.asarray(upper, np.float64)
+        if lo.shape != (3,) or hi.shape != (3,) or not (hi > lo).all():
+            raise ValueError(f"box {name!r}: need lower < upper component-wise, got {lower!r}, {upper!r}")
+        corners = np.array([[(hi if (i >> k) & 1 else lo)[k] for k in range(3)] for i in range(8)])
+        faces = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
+        return self.add_static_mesh(name, corners, [4] * 6, np.array(faces).reshape(-1), color=color,
+                                    double_sided=False)
+
+    def add_sphere(self, name, center=(0.0, 0.0, 0.0), radius=1.0, *, color=(0.6, 0.6, 0.6)):
+        """Declare a sphere collider as a ``UsdGeom.Sphere`` at ``center`` [m] of ``radius`` [m]."""
+        r = float(radius)
+        if not np.isfinite(r) or r <= 0:
+            raise ValueError(f"sphere {name!r}: radius must be > 0, got {radius!r}")
+        return self._declare(GeomDecl(name, "Sphere", {"radius": ("double", r),
+                                                       "extent": ("float3[]", [[-r] * 3, [r] * 3])},
+                                      color=color, translate=center))
+
+    def add_primvar(self, prim, name, type_name, interpolation="vertex", value=None):
+        """Add primvar ``name`` to declared ``prim``: static when ``value`` is given, else sampled per
+        frame under key ``name`` (or ``primvars:name``)."""
+        self._prim(prim).add_primvar(name, type_name, interpolation, value)
+
+    def add_attribute(self, prim, name, type_name, value=None):
+        """Add custom attribute ``name`` (e.g. ``"warpsim:energy"``, ``"double"``) to ``prim``:
+        static when ``value`` is given, else sampled per frame under key ``name``."""
+        if self._sealed:
+            raise ValueError(f"add attribute {name!r} before the first frame is written")
+        self._prim(prim).add_attribute(name, type_name, value)
+
+    def _prim(self, name):
+        if self._sealed:
+            raise ValueError("declare prims and attributes before the first frame is written")
+        if name not in self.prims:
+            raise ValueError(f"no prim named {name!r}; declared: {sorted(self.prims)}.{close_matches(name, self.prims)}")
+        return self.prims[name]
+
+    # ------------------------------------------------------------------ frames
+    def begin(self):
+        """Freeze the declarations and write the manifest and root layer now (adopting the
+        existing chunks when resuming); otherwise the first frame does it. ValueError when a
+        resume is impossible."""
+        if not self._sealed:
+            self._seal()
+        return self
+
+    def write_frame(self, frame, data):
+        """Write one frame. ``data``: ``{prim name: {key: array}}`` for every time-varying prim."""
+        if self._closed:
+            raise ValueError("the writer is closed")
+        frame = operator.index(frame)
+        if frame < 0:
+            raise ValueError(f"frame must be >= 0, got {frame}")
+        if self.last_frame is not None and frame <= self.last_frame:
+            raise ValueError(f"frames must increase: got frame {frame} after {self.last_frame}")
+        if not self._sealed:
+            self._seal()
+            if self.last_frame is not None and frame <= self.last_frame:
+                raise ValueError(f"frames must increase: got frame {frame} after {self.last_frame}")
+        data = dict(data)
+        for name in data:
+            if name not in self.prims or not self.prims[name].is_dynamic:
+                dyn = [n for n, p in self.prims.items() if p.is_dynamic]
+                raise ValueError(f"frame {frame}: {name!r} is not a declared time-varying prim; declared: {dyn}."
+                                 f"{close_matches(name, dyn)}")
+        samples = {name: decl.frame_samples(data.get(name), frame)
+                   for name, decl in self.prims.items() if decl.is_dynamic}
+        if self._chunk is not None and frame // self.chunk_size != self._chunk.start // self.chunk_size:
+            self._finish_chunk()
+        if self._chunk is None:
+            self._open_chunk(frame)
+        self._write_samples(frame, samples)
+        self.last_frame = frame
+
+    def write(self, frame, state, **extra):
+        """Simulator hook: write ``state.positions``/``state.velocities`` into every points prim
+        declared with ``from_state=True`` (declaring ``particles`` if no prim exists yet).
+        ``extra``: further ``{prim name: {key: array}}`` entries for this frame."""
+        targets = [d for d in self.prims.values() if d.from_state]
+        if not targets and not self.prims and not self._sealed:
+            targets = [self.add_points("particles", from_state=True)]
+        data = {d.name: {"points": state.positions, **({"velocities": state.velocities}
+                                                       if d.has_velocities else {})} for d in targets}
+        data.update(extra)
+        self.write_frame(frame, data)
+
+    __call__ = write
+
+    def flush(self):
+        """Complete the current chunk now (e.g. before saving a checkpoint): every frame written so
+        far is then in the root layer. Returns the last completed frame (None if none)."""
+        if self._chunk is not None:
+            self._finish_chunk()
+        return self.chunks[-1][1] if self.chunks else None
+
+    def close(self):
+        """Complete the last (partial) chunk, flatten if asked; returns the path to open."""
+        if self._closed:
+            return self.output_path
+        if not self._sealed:
+            self._seal()
+        self.flush()
+        self._closed = True
+        if self.flatten:
+            self.output_path = self._flatten()
+        return self.output_path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()  # also on errors: every frame written so far stays readable
+        return False
+
+    # ------------------------------------------------------------------ layout
+    def _file(self, kind, start=None):
+        if kind == "manifest":
+            return f"{self.stem}.manifest.usda"
+        return f"{self.stem}.chunk{start:06d}.usdc"
+
+    def _abs(self, name):
+        return os.path.join(self.dirname, name)
+
+    def _replace(self, tmp, final):
+        if self.durable:
+            _fsync(tmp)
+        os.replace(tmp, final)
+        if self.durable:
+            try:
+                fd = os.open(self.dirname, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            except OSError:  # pragma: no cover - directories cannot be opened on some platforms
+                pass
+
+    def _export_atomic(self, layer, final):
+        tmp = _tmp_name(final)
+        if not layer.Export(tmp):
+            raise OSError(f"could not write {tmp}")
+        self._replace(tmp, final)
+
+    def _seal(self):
+        """Freeze declarations; write the manifest and the first root layer."""
+        os.makedirs(self.dirname, exist_ok=True)
+        # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
+        # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
+        for tmp in glob.glob(self._abs(glob.escape(self.stem) + ".*tmp-*")):
+            os.remove(tmp)
+        self._sealed = True
+        self._export_atomic(self._build_layer(manifest=True), self._abs(self._file("manifest")))
+        if self.resume_frame is not None:
+            self._load_for_resume(self.resume_frame)
+        self._write_root()
+        self._remove_unlisted_chunks()
+
+    def _remove_unlisted_chunks(self):
+        keep = {c[2] for c in self.chunks}
+        for f in glob.glob(self._abs(glob.escape(self.stem) + ".chunk[0-9]*.usdc")):
+            if os.path.basename(f) not in keep:
+                os.remove(f)
+
+    def _open_chunk(self, frame):
+        Sdf, _, _ = _pxr()
+        chunk = _Chunk(frame, self._abs(self._file("chunk", frame)))
+        if os.path.exists(chunk.tmp_path):
+            os.remove(chunk.tmp_path)
+        layer = Sdf.Layer.CreateNew(chunk.tmp_path)
+        if layer is None:
+            raise OSError(f"could not create {chunk.tmp_path}")
+        self._declare_specs(layer, manifest=True)
+        chunk.layer = layer
+        self._chunk = chunk
+
+    def _write_samples(self, frame, samples):
+        chunk = self._chunk
+        layer = chunk.layer
+        root = "/" + self.root_prim
+        for name, values in samples.items():
+            decl = self.prims[name]
+            for attr_name, value in values.items():
+                attr = decl.attrs[attr_name]
+                path = f"{root}/{name}.{attr_name}"
+                if attr.on_change:
+                    prev = chunk.last.get(path)
+                    if prev is not None and np.array_equal(prev, value):
+                        continue
+                    chunk.last[path] = np.array(value, copy=True)
+                layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
+                chunk.pending_bytes += getattr(value, "nbytes", 8)
+        chunk.end = frame
+        if chunk.pending_bytes >= self.save_bytes:
+            layer.Save()  # crate saves append: memory holds only the unsaved samples
+            chunk.pending_bytes = 0
+
+    def _finish_chunk(self):
+        chunk = self._chunk
+        self._chunk = None
+        if not chunk.layer.Save():
+            raise OSError(f"could not save {chunk.tmp_path}")
+        chunk.layer = None  # release the layer (and its file mapping) before renaming
+        self._replace(chunk.tmp_path, chunk.final_path)
+        self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
+        self._write_root()
+
+    # ------------------------------------------------------------------ layers
+    def _declare_specs(self, layer, manifest):
+        """Author the prim hierarchy: all declarations (root) or only time-varying attributes."""
+        Sdf, _, _ = _pxr()
+        world = Sdf.CreatePrimInLayer(layer, "/" + self.root_prim)
+        world.specifier = Sdf.SpecifierDef
+        world.typeName = "Xform"
+        for name, decl in self.prims.items():
+            if manifest and not decl.is_dynamic:
+                continue
+            self._declare_prim(layer, world.path.AppendChild(name), decl, manifest)
+        return world
+
+    def _declare_prim(self, layer, path, decl, manifest):
+        Sdf, _, _ = _pxr()
+        spec = Sdf.CreatePrimInLayer(layer, path)
+        spec.specifier = Sdf.SpecifierDef
+        spec.typeName = decl.type_name
+        for attr in decl.attrs.values():
+            if manifest and not attr.dynamic:
+                continue
+            variability = Sdf.VariabilityUniform if attr.uniform else Sdf.VariabilityVarying
+            a = Sdf.AttributeSpec(spec, attr.name, Sdf.ValueTypeNames.Find(attr.type_name), variability,
+                                  attr.custom)
+            for key, value in attr.metadata.items():
+                a.SetInfo(key, value)
+            if not attr.dynamic:
+                a.default = to_vt(attr.type_name, attr.value)
+        if manifest:
+            return
+        for rel_name, targets in decl.relationships.items():
+            rel = Sdf.RelationshipSpec(spec, rel_name, custom=False)
+            for t in targets:
+                rel.targetPathList.explicitItems.append(path.AppendPath(Sdf.Path(t)))
+        for rel_path, child in decl.children:
+            parent = path
+            for part in rel_path.split("/")[:-1]:  # intermediate scopes
+                parent = parent.AppendChild(part)
+                if not layer.GetPrimAtPath(parent):
+                    s = Sdf.CreatePrimInLayer(layer, parent)
+                    s.specifier = Sdf.SpecifierDef
+                    s.typeName = "Scope"
+            self._declare_prim(layer, path.AppendPath(Sdf.Path(rel_path)), child, manifest)
+
+    def _build_layer(self, manifest):
+        Sdf, Vt, _ = _pxr()
+        layer = Sdf.Layer.CreateAnonymous(".usda")
+        world = self._declare_specs(layer, manifest)
+        if manifest:
+            return layer
+        layer.defaultPrim = self.root_prim
+        layer.timeCodesPerSecond = self.fps
+        layer.framesPerSecond = self.fps
+        layer.pseudoRoot.SetInfo("upAxis", "Y")
+        layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
+        layer.customLayerData = {"warpsim": {"chunkSize": self.chunk_size,
+                                             "chunkEnds": Vt.IntArray([c[1] for c in self.chunks])}}
+        if self.chunks:
+            layer.startTimeCode = float(self.chunks[0][0])
+            layer.endTimeCode = float(self.chunks[-1][1])
+            world.SetInfo("clips", {"default": {
+                "assetPaths": Sdf.AssetPathArray(["./" + c[2] for c in self.chunks]),
+                "active": Vt.Vec2dArray([(float(c[0]), float(i)) for i, c in enumerate(self.chunks)]),
+                "times": Vt.Vec2dArray([(float(self.chunks[0][0]),) * 2, (float(self.chunks[-1][1]),) * 2]),
+                "manifestAssetPath": Sdf.AssetPath("./" + self._file("manifest")),
+                "primPath": "/" + self.root_prim,
+            }})
+        return layer
+
+    def _write_root(self):
+        self._export_atomic(self._build_layer(manifest=False), self.path)
+
+    # ------------------------------------------------------------------ resume / flatten
+    def _load_for_resume(self, resume_frame):
+        """Adopt the existing cache's chunks with frames < resume_frame (truncating the last one)."""
+        Sdf, _, _ = _pxr()
+        if resume_frame == 0:
+            return
+        if not os.path.exists(self.path):
+            raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} does not exist")
+        old = Sdf.Layer.OpenAsAnonymous(self.path)
+        data = dict(old.customLayerData.get("warpsim", {}))
+        world = old.GetPrimAtPath("/" + self.root_prim)
+        clips = dict(world.GetInfo("clips")).get("default") if world and world.HasInfo("clips") else None
+        if not clips or "chunkEnds" not in data:
+            raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} holds no chunked warpsim "
+                             "frames (was it flattened?)")
+        starts = [int(a[0]) for a in clips["active"]]
+        files = [os.path.basename(p.path) for p in clips["assetPaths"]]
+        ends = list(data["chunkEnds"])
+        chunks = [[s, e, f] for s, e, f in zip(starts, ends, files) if s < resume_frame]
+        last = chunks[-1][1] if chunks else None
+        if last is None or last < resume_frame - 1:
+            raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} holds frames up to {last}; "
+                             "resume from an earlier checkpoint")
+        if last >= resume_frame:  # truncate the chunk that runs past the resume point
+            chunks[-1][1] = resume_frame - 1
+            self._copy_chunk(chunks[-1], self._abs(chunks[-1][2]), resume_frame - 1)
+        self.chunks = chunks
+        self.last_frame = resume_frame - 1
+
+    def _copy_chunk(self, chunk, dest, last_frame):
+        """Rewrite chunk file ``dest`` keeping frames <= last_frame (atomic)."""
+        Sdf, _, _ = _pxr()
+        src = Sdf.Layer.OpenAsAnonymous(self._abs(chunk[2]))
+        tmp = _tmp_name(dest)
+        out = Sdf.Layer.CreateNew(tmp)
+        self._declare_specs(out, manifest=True)
+        for path in self._dynamic_paths():
+            for t in src.ListTimeSamplesForPath(path):
+                if chunk[0] <= t <= last_frame:
+                    out.SetTimeSample(path, t, src.QueryTimeSample(path, t))
+        out.Save()
+        del out, src
+        self._replace(tmp, dest)
+
+    def _dynamic_paths(self):
+        return [f"/{self.root_prim}/{name}.{a.name}" for name, d in self.prims.items() for a in d.dynamic_attrs()]
+
+    def _flatten(self):
+        """Stream every chunk into one self-contained crate file; returns its path."""
+        Sdf, _, _ = _pxr()
+        ext = os.path.splitext(self.path)[1]
+        final = self.path if ext in (".usd", ".usdc") else self._abs(self.stem + ".usdc")
+        tmp = f"{os.path.splitext(final)[0]}.tmp-{os.getpid()}.usdc"
+        out = Sdf.Layer.CreateNew(tmp)
+        chunks, self.chunks = self.chunks, []
+        out.TransferContent(self._build_layer(manifest=False))  # declarations, metadata, no clips
+        self.chunks = chunks
+        if chunks:
+            out.startTimeCode = float(chunks[0][0])
+            out.endTimeCode = float(chunks[-1][1])
+        on_change = {f"/{self.root_prim}/{n}.{a.name}" for n, d in self.prims.items() for a in d.dynamic_attrs()
+                     if a.on_change}
+        last = {}
+        for start, end, fname in chunks:
+            src = Sdf.Layer.OpenAsAnonymous(self._abs(fname))
+            for path in self._dynamic_paths():
+                for t in src.ListTimeSamplesForPath(path):
+                    if start <= t <= end:
+                        value = src.QueryTimeSample(path, t)
+                        if path in on_change:
+                            if path in last and np.array_equal(last[path], value):
+                                continue
+                            last[path] = np.array(value)
+                        out.SetTimeSample(path, t, value)
+            out.Save()  # incremental: only the current chunk's samples are held in memory
+            del src
+        del out
+        self._replace(tmp, final)  # a .usd name may hold crate contents
+        if final != self.path:
+            os.remove(self.path)
+        for c in chunks:
+            os.remove(self._abs(c[2]))
+        os.remove(self._abs(self._file("manifest")))
+        self.chunks = []
+        return final
