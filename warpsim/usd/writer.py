@@ -39,15 +39,8 @@ import os
 
 import numpy as np
 
-from .prims import (
-    ARRAY_TYPES,
-    CurvesDecl,
-    GeomDecl,
-    InstancerDecl,
-    MeshDecl,
-    PointsDecl,
-    close_matches,
-)
+from .prims import ARRAY_TYPES, close_matches
+from .sink import PrimSink, state_frame_data
 
 __all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter"]
 
@@ -105,7 +98,7 @@ class _Chunk:
         self.last = {}  # attribute path -> last value written (on-change attributes)
 
 
-class UsdCacheWriter:
+class UsdCacheWriter(PrimSink):
     """Streams simulation frames into a crash-safe chunked USD cache (see module docstring).
 
     Args:
@@ -161,120 +154,11 @@ class UsdCacheWriter:
         self._closed = False
 
     # ------------------------------------------------------------------ declarations
-    def _declare(self, decl):
+    # add_points, add_mesh, add_curves, add_instancer, add_static_mesh, add_plane, add_box,
+    # add_sphere, add_primvar and add_attribute come from PrimSink (warpsim.usd.sink).
+    def _valid_name(self, name):
         Sdf, _, _ = _pxr()
-        if self._sealed:
-            raise ValueError(f"declare prim {decl.name!r} before the first frame is written")
-        if not Sdf.Path.IsValidIdentifier(decl.name):
-            raise ValueError(f"prim name {decl.name!r} is not a valid USD identifier (letters, digits, '_', "
-                             "not starting with a digit)")
-        if decl.name in self.prims:
-            raise ValueError(f"prim {decl.name!r} is declared twice")
-        self.prims[decl.name] = decl
-        return decl
-
-    def add_points(self, name, *, count_changes=False, radius=0.01, dynamic_widths=False, color=None,
-                   velocities=True, from_state=False):
-        """Declare ``UsdGeom.Points``. Per frame: ``points`` (n, 3) [m], ``velocities`` (n, 3) [m/s]
-        (unless ``velocities=False``), ``ids`` (n,) when ``count_changes``, ``widths`` (n,) [m]
-        diameters when ``dynamic_widths``. ``radius`` [m] is a scalar or per-point array (fixed
-        counts); widths are authored as diameters. ``from_state``: :meth:`write` fills it."""
-        return self._declare(PointsDecl(name, count_changes=count_changes, radius=radius,
-                                        dynamic_widths=dynamic_widths, color=color, velocities=velocities,
-                                        from_state=from_state))
-
-    def add_mesh(self, name, face_vertex_counts=None, face_vertex_indices=None, *, topology_changes=False,
-                 velocities=True, color=None, double_sided=False):
-        """Declare a deforming ``UsdGeom.Mesh`` (``subdivisionScheme = none``). Fixed topology is
-        written once; with ``topology_changes=True`` pass ``faceVertexCounts``/``faceVertexIndices``
-        every frame and they are sampled only when they change. Per frame: ``points`` (v, 3) [m],
-        ``velocities`` (v, 3) [m/s] unless ``velocities=False``."""
-        return self._declare(MeshDecl(name, face_vertex_counts, face_vertex_indices,
-                                      topology_changes=topology_changes, velocities=velocities, color=color,
-                                      double_sided=double_sided))
-
-    def add_curves(self, name, indices=None, *, curve_vertex_counts=None, width=0.005, color=None,
-                   velocities=False):
-        """Declare linear ``UsdGeom.BasisCurves``. With ``indices`` (pairs of particle indices, e.g.
-        ``model.spring_indices``) each frame's ``points`` are the particle positions (n, 3) and one
-        two-vertex segment is drawn per pair; otherwise ``points`` are the curve vertices for
-        ``curve_vertex_counts``. ``width`` [m] is the constant curve diameter."""
-        return self._declare(CurvesDecl(name, indices, curve_vertex_counts=curve_vertex_counts, width=width,
-                                        color=color, velocities=velocities))
-
-    def add_instancer(self, name, prototypes, *, count_changes=True, orientations=True, velocities=True,
-                      primvars=None):
-        """Declare a ``UsdGeom.PointInstancer`` (agents). ``prototypes``: list of ``(kind, params)``
-        with kind in sphere/cube/cone/capsule/mesh, e.g. ``("cone", {"radius": 0.05, "height":
-        0.2, "axis": "Z", "color": (1, 0, 0)})``. Per frame: ``positions`` (n, 3) [m],
-        ``orientations`` (n, 4) quaternions (x, y, z, w), ``protoIndices`` (n,) (optional with one
-        prototype), ``ids`` (n,) (optional when counts are fixed), ``velocities`` (n, 3) [m/s], and
-        each primvar in ``primvars`` ({name: type name}, per-agent e.g. ``{"state": "int[]"}``)."""
-        decl = InstancerDecl(name, prototypes, count_changes=count_changes, orientations=orientations,
-                             velocities=velocities)
-        for pv_name, type_name in (primvars or {}).items():
-            decl.add_primvar(pv_name, type_name, "vertex")
-        return self._declare(decl)
-
-    def add_static_mesh(self, name, points, face_vertex_counts, face_vertex_indices, *, color=None,
-                        double_sided=True):
-        """Declare fixed geometry (a collider) as a ``UsdGeom.Mesh``: points (v, 3) [m]."""
-        return self._declare(MeshDecl(name, face_vertex_counts, face_vertex_indices, points=points, color=color,
-                                      double_sided=double_sided))
-
-    def add_plane(self, name, normal=(0.0, 1.0, 0.0), offset=0.0, *, size=4.0, color=(0.5, 0.5, 0.5)):
-        """Declare a plane collider ``dot(n, x) = offset`` as a square quad mesh of side ``size`` [m]."""
-        n = np.asarray(normal, np.float64)
-        if n.shape != (3,) or not np.isfinite(n).all() or np.linalg.norm(n) == 0:
-            raise ValueError(f"plane {name!r}: normal must be a non-zero 3-vector, got {normal!r}")
-        n = n / np.linalg.norm(n)
-        helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 0, 1.0])
-        u = np.cross(n, helper)
-        u /= np.linalg.norm(u)
-        v = np.cross(n, u)  # (u, v, n) right-handed: the quad faces +n
-        c = n * float(offset)
-        h = 0.5 * float(size)
-        pts = [c - h * u - h * v, c + h * u - h * v, c + h * u + h * v, c - h * u + h * v]
-        return self.add_static_mesh(name, np.array(pts), [4], [0, 1, 2, 3], color=color)
-
-    def add_box(self, name, lower, upper, *, color=(0.6, 0.6, 0.6)):
-        """Declare an axis-aligned box collider [lower, upper] [m] as a six-quad mesh (normals outward)."""
-        lo = np.asarray(lower, np.float64)
-        hi = np.asarray(upper, np.float64)
-        if lo.shape != (3,) or hi.shape != (3,) or not (hi > lo).all():
-            raise ValueError(f"box {name!r}: need lower < upper component-wise, got {lower!r}, {upper!r}")
-        corners = np.array([[(hi if (i >> k) & 1 else lo)[k] for k in range(3)] for i in range(8)])
-        faces = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
-        return self.add_static_mesh(name, corners, [4] * 6, np.array(faces).reshape(-1), color=color,
-                                    double_sided=False)
-
-    def add_sphere(self, name, center=(0.0, 0.0, 0.0), radius=1.0, *, color=(0.6, 0.6, 0.6)):
-        """Declare a sphere collider as a ``UsdGeom.Sphere`` at ``center`` [m] of ``radius`` [m]."""
-        r = float(radius)
-        if not np.isfinite(r) or r <= 0:
-            raise ValueError(f"sphere {name!r}: radius must be > 0, got {radius!r}")
-        return self._declare(GeomDecl(name, "Sphere", {"radius": ("double", r),
-                                                       "extent": ("float3[]", [[-r] * 3, [r] * 3])},
-                                      color=color, translate=center))
-
-    def add_primvar(self, prim, name, type_name, interpolation="vertex", value=None):
-        """Add primvar ``name`` to declared ``prim``: static when ``value`` is given, else sampled per
-        frame under key ``name`` (or ``primvars:name``)."""
-        self._prim(prim).add_primvar(name, type_name, interpolation, value)
-
-    def add_attribute(self, prim, name, type_name, value=None):
-        """Add custom attribute ``name`` (e.g. ``"warpsim:energy"``, ``"double"``) to ``prim``:
-        static when ``value`` is given, else sampled per frame under key ``name``."""
-        if self._sealed:
-            raise ValueError(f"add attribute {name!r} before the first frame is written")
-        self._prim(prim).add_attribute(name, type_name, value)
-
-    def _prim(self, name):
-        if self._sealed:
-            raise ValueError("declare prims and attributes before the first frame is written")
-        if name not in self.prims:
-            raise ValueError(f"no prim named {name!r}; declared: {sorted(self.prims)}.{close_matches(name, self.prims)}")
-        return self.prims[name]
+        return Sdf.Path.IsValidIdentifier(name)
 
     # ------------------------------------------------------------------ frames
     def begin(self):
@@ -317,11 +201,9 @@ class UsdCacheWriter:
         """Simulator hook: write ``state.positions``/``state.velocities`` into every points prim
         declared with ``from_state=True`` (declaring ``particles`` if no prim exists yet).
         ``extra``: further ``{prim name: {key: array}}`` entries for this frame."""
-        targets = [d for d in self.prims.values() if d.from_state]
-        if not targets and not self.prims and not self._sealed:
-            targets = [self.add_points("particles", from_state=True)]
-        data = {d.name: {"points": state.positions, **({"velocities": state.velocities}
-                                                       if d.has_velocities else {})} for d in targets}
+        if not self.prims and not self._sealed:
+            self.add_points("particles", from_state=True)
+        data = state_frame_data(self.prims, state)
         data.update(extra)
         self.write_frame(frame, data)
 
