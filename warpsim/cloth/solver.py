@@ -436,6 +436,12 @@ class ClothSimulator(Simulator):
         self._home = (st.positions, st.velocities)
         self._spare = (wp.zeros_like(st.positions), wp.zeros_like(st.velocities))
 
+    def add_force(self, force) -> None:
+        """As ``Simulator.add_force``; the captured frame graphs are dropped and re-captured."""
+        super().add_force(force)
+        self._needs_time = any(not isinstance(f, (Gravity, Springs)) for f in self.forces)
+        self._graphs.clear()
+
     def _gather(self) -> bool:
         return isinstance(self.integrator, ClothSemiImplicitEuler) and self.integrator.mode == "gather"
 

@@ -117,6 +117,14 @@ class Simulator:
             c.apply(self.model, st, self._q_prev, h)
         wp.launch(K.advance_time, 1, inputs=[self._time, h], device=self.device)
 
+    def add_force(self, force) -> None:
+        """Add ``force`` (e.g. a ``ws.DragSpring`` for mouse dragging) to a running simulation;
+        the integrator re-allocates its buffers for the new force list (once, here)."""
+        self.system.add_force(force)
+        self.forces = self.system.forces
+        self.integrator._system = None  # prepare() is idempotent per system: force a re-allocation
+        self.integrator.prepare(self.system)
+
     def step(self, dt: float) -> int:
         """Advance by ``dt`` [s]; returns the number of sub-steps taken."""
         dt = check_dt(dt)

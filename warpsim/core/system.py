@@ -63,6 +63,15 @@ class ParticleSystem(DynamicSystem):
         for f in self.forces:
             f.eval(q, qd, time, time_offset, f_out)
 
+    def add_force(self, force) -> None:
+        """Bind ``force`` to the model and add it after the others (the caller re-prepares its
+        integrator: see ``Simulator.add_force``)."""
+        if not isinstance(force, Force):
+            raise ValueError(f"add_force: {type(force).__name__} is not a warpsim Force (e.g. ws.DragSpring())")
+        force.bind(self.model)
+        self.forces.append(force)
+        self._offsets = np.append(self._offsets, self._offsets[-1] + force.jacobian_triplet_count())
+
     def jacobian_triplet_count(self):
         return int(self._offsets[-1])
 
