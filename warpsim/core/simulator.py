@@ -10,8 +10,10 @@ import warp as wp
 
 from ..kernels import integrate as K
 from .collider import Collider
+from . import checks
 from .errors import SimulationError
-from .forces import Gravity
+from .forces import Force, Gravity
+from .model import Model
 from .integrators import make_integrator
 from .system import ParticleSystem
 
@@ -20,6 +22,8 @@ REMEDY = "use a smaller dt, more sub-steps (or adaptive=True), or integrator='im
 
 def check_dt(dt) -> float:
     """dt as a float, or ValueError when it is not a finite positive number."""
+    if isinstance(dt, (str, bytes, bool)) or dt is None:
+        raise ValueError(f"dt must be a number > 0 [s], got {dt!r}")
     try:
         value = float(dt)
     except (TypeError, ValueError) as exc:
@@ -51,24 +55,30 @@ class Simulator:
                  max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1):
         self.model = model
         self.device = model.device
+        if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
+            raise ValueError(f"Simulator model must be a ws.Model (builder.finalize()), got {checks.show(model)}")
         self.integrator = make_integrator(integrator)
-        forces = [Gravity()] if forces is None else list(forces)
+        forces = [Gravity()] if forces is None else checks.sequence_of(forces, "forces", Force, "forces=[ws.Gravity()]")
+        colliders = checks.sequence_of(colliders, "colliders", Collider, "colliders=[ws.Plane()]")
+        if adaptive and max_displacement is None:
+            raise ValueError("adaptive=True needs max_displacement > 0 [m] (the most a particle may move per sub-step)")
+        max_displacement = 0.0 if max_displacement is None else checks.positive(
+            max_displacement, "Simulator max_displacement", "m", "the most a particle may move per sub-step, e.g. 0.01")
+        max_substeps = checks.count(max_substeps, "Simulator max_substeps", fix="give e.g. 64")
+        max_speed = checks.positive(max_speed, "Simulator max_speed", "m/s",
+                                    "the speed that counts as a blow-up, e.g. 1e4")
+        check_every = checks.count(check_every, "Simulator check_every", minimum=0,
+                                   fix="steps between blow-up checks (0: never)")
         self.system = ParticleSystem(model, forces)
         self.forces = self.system.forces
-        self.colliders = list(colliders)
-        for k, c in enumerate(self.colliders):
-            if not isinstance(c, Collider):
-                raise ValueError(f"colliders[{k}] is {type(c).__name__}, not a warpsim Collider (e.g. ws.Plane())")
+        self.colliders = colliders
+        for c in self.colliders:
             c.bind(model)
-        if adaptive and not (max_displacement and max_displacement > 0.0):
-            raise ValueError("adaptive=True needs max_displacement > 0 [m] (the most a particle may move per sub-step)")
-        if int(max_substeps) < 1:
-            raise ValueError(f"max_substeps = {max_substeps}; it must be >= 1")
         self.adaptive = bool(adaptive)
-        self.max_displacement = float(max_displacement or 0.0)
-        self.max_substeps = int(max_substeps)
-        self.max_speed = float(max_speed)
-        self.check_every = int(check_every)
+        self.max_displacement = max_displacement
+        self.max_substeps = max_substeps
+        self.max_speed = max_speed
+        self.check_every = check_every
 
         self.state = model.state()
         self._check_finite_host()
@@ -164,10 +174,8 @@ class Simulator:
         ``writer.write(frame, state)`` streams it. A blow-up raises SimulationError with ``frame``
         set; frames already handed to the writer stay written."""
         frame_dt = check_dt(frame_dt)
-        if int(substeps) < 1:
-            raise ValueError(f"substeps = {substeps}; it must be >= 1")
-        if int(frames) < 0:
-            raise ValueError(f"frames = {frames}; it must be >= 0")
+        substeps = checks.count(substeps, "run substeps", fix="give steps per frame, e.g. 1")
+        frames = checks.count(frames, "run frames", minimum=0, fix="give the number of frames, e.g. 120")
         if writer is not None:
             writer.write(0, self.state)
         for frame in range(1, int(frames) + 1):

@@ -169,6 +169,35 @@ class Scene:
         """Simulate one frame of ``frame_dt`` [s] in ``substeps`` equal steps."""
         raise NotImplementedError
 
+    # ------------------------------------------------------------------ live viewer hooks
+    live_params: ClassVar[tuple] = ()
+    """Parameters :meth:`set_param` changes in the running simulation (the viewer rebuilds the
+    scene for any other)."""
+
+    def set_param(self, key, value) -> bool:
+        """Apply parameter ``key`` = ``value`` (typed, see :func:`parse_value`) to the running
+        simulation: True when applied live (``key`` in ``live_params``), False when the scene
+        must be rebuilt for it. ValueError for a bad value."""
+        if key not in self.live_params:
+            return False
+        self.apply_param(key, value)
+        self.params[key] = value
+        return True
+
+    def apply_param(self, key, value) -> None:
+        """Change one of ``live_params`` in place (see :mod:`warpsim.scenes.live`)."""
+        raise NotImplementedError(f"scene {self.name!r} lists {key!r} as live but does not apply it")
+
+    def drag_map(self):
+        """What the mouse can grab: ``{drawn prim name: None}`` when vertex i of that prim is
+        particle i of the simulation, or ``{name: int array}`` of particle indices per drawn
+        vertex; ``{}`` when nothing can be grabbed."""
+        return {}
+
+    def add_drag(self, drag) -> None:
+        """Attach a ``ws.DragSpring`` (unbound) to the running simulation."""
+        raise NotImplementedError(f"scene {self.name!r} cannot be dragged")
+
     def checkpoint(self):
         """Everything needed to continue exactly: a dict of NumPy arrays / scalars."""
         raise NotImplementedError(f"scene {self.name!r} does not support checkpoints")
@@ -193,6 +222,12 @@ class SimulatorScene(Scene):
     def frame_data(self):
         state = self.sim.state
         return {name: {"points": state.positions, "velocities": state.velocities} for name in self._state_prims}
+
+    def drag_map(self):
+        return {name: None for name in self._state_prims or ()}
+
+    def add_drag(self, drag):
+        self.sim.add_force(drag)
 
     def declare_state(self, writer, name="particles", **kw):
         """Declare a points prim filled from the simulator state every frame."""

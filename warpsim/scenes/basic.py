@@ -7,6 +7,7 @@ import warp as wp
 import warpsim as ws
 
 from . import Scene, SimulatorScene, register_scene
+from .live import set_contact, set_gravity, set_springs
 
 INTEGRATOR = ("semi_implicit_euler", "time integrator", tuple(sorted(ws.INTEGRATORS)))
 
@@ -35,6 +36,14 @@ class Bounce(SimulatorScene):
                                 forces=[ws.Gravity((0.0, -p["gravity"], 0.0))],
                                 colliders=[ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=p["restitution"],
                                                     friction=p["friction"])])
+
+    live_params = ("restitution", "friction", "gravity")
+
+    def apply_param(self, key, value):
+        if key == "gravity":
+            set_gravity(self.sim.forces, value)
+        else:
+            set_contact(self.sim.colliders, **{key: value})
 
     def declare(self, writer):
         self.declare_state(writer, "ball", radius=self.params["display_radius"], color=(0.9, 0.3, 0.1))
@@ -151,6 +160,14 @@ class Springs(SimulatorScene):
                         b.add_spring(k + 1, k + n, p["stiffness"], p["damping"])
         self.model = b.finalize(self.device)
         self.sim = ws.Simulator(self.model, integrator=p["integrator"], forces=[ws.Gravity((0.0, -p["gravity"], 0.0))])
+
+    live_params = ("stiffness", "damping", "gravity")
+
+    def apply_param(self, key, value):
+        if key == "gravity":
+            set_gravity(self.sim.forces, value)
+        else:
+            set_springs(self.model, key, value)
 
     def declare(self, writer):
         self.declare_state(writer, "masses", radius=0.015, color=(0.2, 0.5, 0.9))

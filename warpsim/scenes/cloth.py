@@ -12,6 +12,7 @@ from ..cloth.builder import add_cloth_grid
 from ..cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 from ..bodies.colliders import Sphere
 from . import SimulatorScene, register_scene
+from .live import drop_graphs, set_contact, set_springs
 
 CLOTH_INTEGRATORS = ("implicit_euler", "semi_implicit_euler")
 
@@ -64,6 +65,22 @@ class ClothScene(SimulatorScene):
     def springs(self, p):
         k = p["damping"]
         return {"structural": (p["structural"], k), "shear": (p["shear"], k), "bend": (p["bend"], 0.25 * k)}
+
+    live_params = ("friction", "structural", "shear", "bend", "damping")
+
+    def apply_param(self, key, value):
+        if key == "friction":
+            set_contact(self.sim.colliders, friction=value)
+        elif key == "damping":
+            for kind, (start, count) in self.cloth.springs.items():
+                set_springs(self.sim.model, "damping", value * (0.25 if kind == "bend" else 1.0), start, count)
+        else:
+            start, count = self.cloth.springs[key]
+            set_springs(self.sim.model, "stiffness", value, start, count)
+        drop_graphs(self.sim)  # friction is a launch argument baked into the captured frame
+
+    def drag_map(self):
+        return {"cloth": None}  # the cloth's particles are the model's, in order
 
     def declare(self, writer):
         c = self.cloth

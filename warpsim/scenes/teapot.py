@@ -14,6 +14,7 @@ from ..bodies.drag import parse_drag_spec, scripted_drag
 from ..bodies.softbody import add_soft_body
 from ..bodies.teapot import teapot_mesh
 from . import SimulatorScene, register_scene
+from .live import set_contact, set_gravity, set_springs
 
 ANCHORS = ("spout", "handle", "knob", "bottom")
 
@@ -126,6 +127,26 @@ class TeapotScene(SimulatorScene):
 
             return Quad((0.0, 0.15 * half, 0.0), (0.9 * half, 0.0, 0.0), (0.0, 0.15 * half, 0.0), motion=sweep, **kw)
         return None
+
+    # ------------------------------------------------------------------ live parameters, dragging
+    live_params = ("restitution", "friction", "wall_stiffness", "stiffness", "damping", "gravity",
+                   "drag_stiffness", "drag_damping")
+
+    def apply_param(self, key, value):
+        if key in ("restitution", "friction", "wall_stiffness"):
+            set_contact(self.sim.colliders, **{"stiffness" if key == "wall_stiffness" else key: value})
+        elif key in ("stiffness", "damping"):  # every spring of the body shares them
+            set_springs(self.model, key, value)
+        elif key == "gravity":
+            set_gravity(self.sim.forces, value)
+        else:
+            if not value >= 0:
+                raise ValueError(f"{key}={value}: it must be >= 0")
+            for d in self.drags:
+                setattr(d, key.split("_", 1)[1], float(value))
+
+    def drag_map(self):
+        return {"teapot": None}  # surface vertex i is particle i
 
     # ------------------------------------------------------------------ output
     def declare(self, writer):
