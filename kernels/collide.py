@@ -128,6 +128,29 @@ def collide_planes(
     reflect: the position is mirrored out of the plane scaled by restitution, h' = e h;
     project: the particle is placed on the plane (position correction); penalty: impulse."""
     i = wp.tid()
+    collide_particle_planes(i, inv_mass, radius, normals, offsets, restitution, friction, mode, thickness, stiffness,
+                            damping_ratio, dt, q_io, qd_io)
+
+
+@wp.func
+def collide_particle_planes(
+    i: int,
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    normals: wp.array(dtype=wp.vec3),
+    offsets: wp.array(dtype=float),
+    restitution: float,
+    friction: float,
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """Particle i against every plane, in order (the body of ``collide_planes``; batched worlds
+    call it with their own world's restitution, friction and damping ratio)."""
     w = inv_mass[i]
     if w == 0.0:
         return
@@ -141,6 +164,31 @@ def collide_planes(
                                    w, dt)
     q_io[i] = x
     qd_io[i] = v
+
+
+@wp.kernel
+def collide_planes_worlds(
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    particle_world: wp.array(dtype=int),
+    normals: wp.array(dtype=wp.vec3),
+    offsets: wp.array(dtype=float),
+    world_restitution: wp.array(dtype=float),
+    world_friction: wp.array(dtype=float),
+    world_damping_ratio: wp.array(dtype=float),
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    dt: float,
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """``collide_planes`` for batched worlds: particle i uses the restitution, friction and
+    penalty damping ratio of its world ``particle_world[i]`` (arrays of shape (world_count,))."""
+    i = wp.tid()
+    w = particle_world[i]
+    collide_particle_planes(i, inv_mass, radius, normals, offsets, world_restitution[w], world_friction[w], mode,
+                            thickness, stiffness, world_damping_ratio[w], dt, q_io, qd_io)
 
 
 # --------------------------------------------------------------------------------------
