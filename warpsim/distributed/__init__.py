@@ -1,0 +1,18 @@
+"""Sweeps past one machine: a many-worlds sweep split into batches that run as Ray tasks.
+
+What lives here:
+
+- ``batches``: split a sweep's worlds into batches; each batch is written into its own folder under
+  a temporary name and renamed into place only when complete (``publish_batch``), with a SHA-256
+  over its files, so a root layer never references a partial batch.
+- ``manifest``: :class:`SweepManifest`, the JSON record beside the root of which batches finished
+  (checksum, timing, host) and of the sweep they belong to; ``--resume`` skips what it lists.
+- ``ray_sweep``: :func:`run_ray_sweep`, the driver (one Ray task per batch, one GPU per task where
+  the cluster has GPUs, one CPU otherwise, Ray's task retries for killed workers), and the
+  ``--ray`` / ``--batch-size`` / ``--resume`` options of ``warpsim sweep``.
+
+It drives no kernels of its own: each task calls ``warpsim.worlds.run_batch`` (the batched
+many-worlds run) and the driver ``warpsim.worlds.write_sweep_root`` / ``write_table``. Ray (the
+optional extra ``warpsim[ray]``) is imported only inside the functions that need it, so
+``import warpsim`` never imports it.
+"""

@@ -1,0 +1,255 @@
+"""A many-worlds sweep on a Ray cluster: one Ray task per batch of worlds, gathered by the driver.
+
+``warpsim sweep SCENE --worlds N --vary ... --ray [ADDRESS] --batch-size B [--resume]``
+
+1. The driver (the process running ``warpsim sweep``) samples the worlds exactly as the
+   single-process sweep does and splits them into batches of ``B`` (the last holds the rest).
+2. Each batch is one Ray task: ``num_gpus=1`` when the cluster has GPUs (Ray sets
+   ``CUDA_VISIBLE_DEVICES``, so the task runs on ``cuda:0``), one CPU otherwise. The task calls
+   ``warpsim.worlds.run_batch`` with a layer path inside a temporary folder, stores its metric rows
+   beside it and renames the folder into place (``warpsim.distributed.batches``). A task whose
+   worker dies (killed, out of memory, node lost) is run again by Ray (``max_retries``); the dead
+   attempt's temporary folder is never referenced and is removed at the end.
+3. As each batch finishes the driver checks its folder's checksum and records it in the manifest
+   (``warpsim.distributed.manifest``); ``--resume`` runs only batches the manifest does not list.
+4. With every batch done, the driver writes the metric table (one row per world, in world order)
+   and the root USD that references every batch's layer, so the variant set ``world`` spans all
+   batches. A batch whose run raised (a blow-up the batch could not contain) does not stop the
+   sweep: its worlds are rows with ``blown_up`` set and the error in ``batch_error``.
+
+The output folder must be visible to every node (one machine, or a shared filesystem such as NFS):
+tasks write their layers there and the driver reads them. Warp compiles kernels once per machine
+and caches them (``~/.cache/warp``), so the workers of one machine share the compiled kernels.
+
+Ray is imported only inside these functions; ``import warpsim`` does not import it.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import time
+
+from .batches import (batch_dir, batches_root, load_rows, publish_batch, remove_stale, split_batches,
+                      temp_batch_dir)
+from .manifest import SweepManifest, manifest_path, worlds_digest
+
+__all__ = ["add_ray_arguments", "run_batch_task", "run_ray_sweep"]
+
+DEFAULT_BATCH_SIZE = 64
+LAYER_EXT = ".usdc"
+
+
+def add_ray_arguments(parser):
+    """Add ``--ray [ADDRESS]``, ``--batch-size``, ``--ray-cpus`` and ``--resume`` to ``parser``."""
+    g = parser.add_argument_group("Ray (run the sweep's batches on a cluster; needs warpsim[ray])")
+    g.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="run batches as Ray tasks on the cluster at ADDRESS (host:6379, ray://host:10001 or "
+                        "auto); without ADDRESS start a local cluster. Put it after SCENE.")
+    g.add_argument("--batch-size", type=int, default=None, metavar="B",
+                   help=f"worlds per Ray task (default {DEFAULT_BATCH_SIZE})")
+    g.add_argument("--ray-cpus", type=int, default=None, metavar="N",
+                   help="CPUs of a local cluster started by --ray (default: all)")
+    g.add_argument("--resume", action="store_true",
+                   help="with --ray: run only the batches the sweep's manifest does not list as finished")
+    return g
+
+
+def _layer_name(out_path, index):
+    return f"{os.path.splitext(os.path.basename(out_path))[0]}.batch_{index:04d}{LAYER_EXT}"
+
+
+def _blown_rows(world_params, first_world, error):
+    return [{"world": first_world + i, **params, "blown_up": True, "batch_error": error}
+            for i, params in enumerate(world_params)]
+
+
+def run_batch_task(spec):
+    """Body of one Ray task: run one batch into a temporary folder and publish it whole.
+
+    ``spec`` keys: ``scene``, ``worlds`` (list of parameter dicts), ``first_world``, ``index``,
+    ``frames``, ``fps``, ``substeps``, ``device``, ``final_dir``, ``layer_name``, ``runner`` (None:
+    ``warpsim.worlds.run_batch``) and ``kill_once`` (tests only: a marker path; the first attempt
+    that finds no marker creates it and SIGKILLs its own worker after the layer is written but
+    before it is published). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
+    """
+    import warp as wp
+
+    wp.config.quiet = True
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    runner = spec.get("runner")
+    if runner is None:
+        from ..worlds import run_batch as runner
+    t0 = time.perf_counter()
+    final_dir = spec["final_dir"]
+    tmp = temp_batch_dir(final_dir)
+    error = None
+    try:
+        rows = runner(spec["scene"], spec["worlds"], frames=spec["frames"], fps=spec["fps"],
+                      substeps=spec["substeps"], device=spec["device"],
+                      layer_path=os.path.join(tmp, spec["layer_name"]), first_world=spec["first_world"])
+    except Exception as exc:  # noqa: BLE001  (a batch that blows up is flagged, not fatal)
+        error = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        rows = _blown_rows(spec["worlds"], spec["first_world"], error)
+        for name in os.listdir(tmp):  # no partial layer in a published batch
+            os.remove(os.path.join(tmp, name))
+    marker = spec.get("kill_once")
+    if marker and not os.path.exists(marker):
+        with open(marker, "w") as fh:
+            fh.write(f"{spec['index']} {os.getpid()}\n")
+        os.kill(os.getpid(), signal.SIGKILL)
+    checksum = publish_batch(tmp, final_dir, rows)
+    return {"index": spec["index"], "rows": rows, "sha256": checksum, "seconds": time.perf_counter() - t0,
+            "host": socket.gethostname(), "pid": os.getpid(), "error": error}
+
+
+def _connect(address, num_cpus):
+    """``(ray, started)``: connect to ``address`` or start a local cluster (reuse an open connection)."""
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("--ray needs Ray: pip install 'warpsim[ray]'") from None
+    if ray.is_initialized():
+        return ray, False
+    quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
+    if address in (None, "local"):
+        if num_cpus is not None and num_cpus < 1:
+            raise ValueError(f"--ray-cpus {num_cpus}: it must be >= 1")
+        ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
+    else:
+        try:
+            ray.init(address=address, **quiet)
+        except ConnectionError as exc:
+            raise ValueError(f"--ray {address}: no Ray cluster there ({exc}); start one with "
+                             "'ray start --head' and pass the address it prints") from None
+    return ray, True
+
+
+def _task_resources(ray, device):
+    """``(ray options, device name inside the task)`` for the cluster and the requested device."""
+    gpus = ray.cluster_resources().get("GPU", 0)
+    if device is None:
+        device = "cuda" if gpus > 0 else "cpu"
+    if str(device).startswith("cuda"):
+        if gpus < 1:
+            raise ValueError(f"--device {device}: the Ray cluster has no GPUs; use --device cpu")
+        return {"num_gpus": 1, "num_cpus": 1}, "cuda:0"  # Ray picks the GPU via CUDA_VISIBLE_DEVICES
+    if device != "cpu":
+        raise ValueError(f"--device {device!r}: Ray tasks run on 'cpu' or 'cuda'")
+    return {"num_cpus": 1}, "cpu"
+
+
+def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps=None, substeps=None,
+                  device=None, batch_size=DEFAULT_BATCH_SIZE, address=None, num_cpus=None, resume=False,
+                  layout="variants", max_retries=3, runner=None, log=None, _kill_once=None):
+    """Run a sweep's worlds as Ray tasks, one per batch; write the table and the root USD.
+
+    Args:
+        scene_name: a registered scene that ``warpsim.worlds.run_batch`` supports.
+        world_params: one parameter dict per world (``warpsim.worlds.sample_worlds``).
+        frames, fps, substeps: as for ``warpsim sweep`` (None: the scene's defaults).
+        out_path: the root USD (``.usd``/``.usda``/``.usdc``); batches live in ``<stem>.batches/``,
+            the manifest in ``<stem>.ray-manifest.json``.
+        table_path: the CSV of one row per world.
+        device: None (GPUs when the cluster has them), ``"cpu"`` or ``"cuda"``.
+        batch_size: worlds per Ray task.
+        address: a running cluster's address, or None / ``"local"`` to start a local one with
+            ``num_cpus`` CPUs (an open ``ray.init`` connection is reused either way).
+        resume: skip the batches the manifest lists with an unchanged checksum.
+        max_retries: Ray task retries after a worker dies.
+        runner: the batch function (default ``warpsim.worlds.run_batch``); it must be picklable.
+        log: a file for one line per finished batch (None: silent).
+
+    Returns:
+        ``{"rows", "root", "table", "ran", "skipped", "batches": {index: record}, "seconds"}``;
+        ``ran``/``skipped`` are batch indices run now / taken from the manifest.
+    """
+    t_start = time.perf_counter()
+    world_params = list(world_params)
+    batches = split_batches(len(world_params), batch_size)
+    out_path = os.path.abspath(out_path)
+    sweep = {"scene": scene_name, "world_count": len(world_params), "batch_size": batch_size,
+             "frames": frames, "fps": fps, "substeps": substeps, "layout": layout,
+             "worlds_sha256": worlds_digest(world_params)}
+    mpath = manifest_path(out_path)
+    os.makedirs(os.path.dirname(out_path), exist_ok=True)
+    if resume:
+        manifest = SweepManifest.load(mpath)
+        problem = manifest.mismatch(sweep)
+        if problem:
+            raise ValueError(f"--resume: {problem}")
+    else:
+        import shutil
+
+        shutil.rmtree(batches_root(out_path), ignore_errors=True)  # the previous sweep of this name
+        manifest = SweepManifest.new(mpath, sweep)
+        manifest.save()
+    os.makedirs(batches_root(out_path), exist_ok=True)
+    skipped = [i for i in range(len(batches)) if resume and manifest.finished(i)]
+    todo = [i for i in range(len(batches)) if i not in skipped]
+
+    ray, started = _connect(address, num_cpus)
+    try:
+        options, task_device = _task_resources(ray, device)
+        task = ray.remote(run_batch_task).options(max_retries=max_retries, retry_exceptions=False, **options)
+        pending = {}
+        for i in todo:
+            first, count = batches[i]
+            spec = {"scene": scene_name, "worlds": world_params[first:first + count], "first_world": first,
+                    "index": i, "frames": frames, "fps": fps, "substeps": substeps, "device": task_device,
+                    "final_dir": batch_dir(out_path, i), "layer_name": _layer_name(out_path, i),
+                    "runner": runner, "kill_once": _kill_once}
+            pending[task.remote(spec)] = i
+        fresh = {}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            i = pending.pop(done[0])
+            try:
+                result = ray.get(done[0])
+            except Exception as exc:  # noqa: BLE001  (Ray wraps worker deaths past max_retries)
+                raise RuntimeError(f"batch {i} (worlds {batches[i][0]}..{sum(batches[i]) - 1}) failed after "
+                                   f"{max_retries} retries: {str(exc).splitlines()[0]}; the finished batches are "
+                                   "in the manifest: run again with --resume") from None
+            _record(manifest, out_path, batches, i, result)
+            fresh[i] = result["rows"]
+            if log is not None:
+                rec = manifest.batches[i]
+                state = f", failed: {rec['error']}" if rec["error"] else ""
+                print(f"batch {i + 1}/{len(batches)} (worlds {batches[i][0]}..{sum(batches[i]) - 1}) "
+                      f"{rec['seconds']:.2f} s on {rec['host']}{state}", file=log, flush=True)
+    finally:
+        if started:
+            ray.shutdown()
+
+    rows = []
+    for i in range(len(batches)):
+        rows.extend(fresh[i] if i in fresh else load_rows(batch_dir(out_path, i)))
+    rows.sort(key=lambda r: r["world"])
+    from ..worlds import write_sweep_root, write_table
+
+    write_table(table_path, rows)
+    layers = [os.path.join(batch_dir(out_path, i), _layer_name(out_path, i)) for i in range(len(batches))
+              if not manifest.batches[i]["error"]]
+    root = write_sweep_root(out_path, layers, len(world_params), layout=layout)
+    remove_stale(out_path)
+    return {"rows": rows, "root": root, "table": table_path, "ran": sorted(fresh), "skipped": skipped,
+            "batches": {i: manifest.batches[i] for i in range(len(batches))},
+            "seconds": time.perf_counter() - t_start}
+
+
+def _record(manifest, out_path, batches, i, result):
+    """Check batch ``i``'s published folder as the driver sees it, then list it in the manifest."""
+    from .batches import tree_checksum
+
+    folder = batch_dir(out_path, i)
+    if not os.path.isdir(folder) or tree_checksum(folder) != result["sha256"]:
+        raise RuntimeError(f"batch {i} was written on host {result['host']} to {folder}, which this driver "
+                           "does not see (or sees changed): --out must be on a filesystem every Ray node shares")
+    first, count = batches[i]
+    manifest.record(i, {"first_world": first, "world_count": count,
+                        "dir": os.path.relpath(folder, os.path.dirname(manifest.path)),
+                        "sha256": result["sha256"], "seconds": result["seconds"], "host": result["host"],
+                        "pid": result["pid"], "error": result["error"],
+                        "blown_up": sum(bool(r.get("blown_up")) for r in result["rows"])})
