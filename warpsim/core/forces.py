@@ -6,11 +6,10 @@ number of times without allocating. Forces only accumulate; the caller zeroes ``
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import warp as wp
 
+from . import checks
 from .builder import _vec3, check_indices
 from ..kernels import forces as K
 
@@ -82,10 +81,7 @@ class Wind(Force):
             raise ValueError("Wind direction is the zero vector; give a direction")
         self.direction = tuple(d / np.linalg.norm(d))
         for name in ("speed", "gust_amplitude", "gust_frequency", "turn_amplitude", "turn_frequency", "coefficient"):
-            value = float(locals()[name])
-            if not math.isfinite(value):
-                raise ValueError(f"Wind {name} is {value}; give a finite number")
-            setattr(self, name, value)
+            setattr(self, name, checks.finite(locals()[name], f"Wind {name}", fix="give a finite number"))
         if self.coefficient < 0.0:
             raise ValueError(f"Wind coefficient {self.coefficient} < 0; give c >= 0 [kg/s]")
         self.gust_phase = tuple(np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, 3))
@@ -121,14 +117,19 @@ class Magnets(Force):
     particles farther than ``cutoff`` [m] feel nothing (None: no cutoff)."""
 
     def __init__(self, centers, strengths, softening=0.05, cutoff=None):
-        c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
-        s = np.broadcast_to(np.asarray(strengths, dtype=np.float64), (len(c),)).copy()
-        if not np.all(np.isfinite(c)) or not np.all(np.isfinite(s)):
-            raise ValueError("Magnets centers and strengths must be finite")
-        if not softening > 0.0:
-            raise ValueError(f"Magnets softening {softening} must be > 0 [m] (it keeps the force finite at the center)")
-        if cutoff is not None and not cutoff > 0.0:
-            raise ValueError(f"Magnets cutoff {cutoff} must be > 0 [m] or None")
+        c = checks.vectors(centers, "Magnets centers", item="center", unit="m")
+        s = np.asarray(strengths, dtype=object)
+        if s.ndim == 0:  # one strength for every center
+            s = checks.numbers_array(checks.finite(strengths, "Magnets strengths", "N m^2"), "Magnets strengths",
+                                     len(c))
+        else:
+            s = checks.numbers_array(strengths, "Magnets strengths", item="strength", unit="N m^2")
+            if len(s) != len(c):
+                raise ValueError(f"Magnets has {len(c)} centers but {len(s)} strengths; give one strength per "
+                                 "center (or a single number for all)")
+        softening = checks.positive(softening, "Magnets softening", "m", "it keeps the force finite at the center")
+        if cutoff is not None:
+            cutoff = checks.positive(cutoff, "Magnets cutoff", "m", "or None for no cutoff")
         self.centers, self.strengths = c, s
         self.softening = float(softening)
         self.cutoff = 0.0 if cutoff is None else float(cutoff)
@@ -156,10 +157,8 @@ class Drag(Force):
     """Velocity-dependent drag f = -linear v - quadratic |v| v; linear [kg/s], quadratic [kg/m]."""
 
     def __init__(self, linear=0.0, quadratic=0.0):
-        for name, value in (("linear", linear), ("quadratic", quadratic)):
-            if not math.isfinite(float(value)) or float(value) < 0.0:
-                raise ValueError(f"Drag {name} coefficient {value} must be finite and >= 0")
-        self.linear, self.quadratic = float(linear), float(quadratic)
+        self.linear = checks.nonnegative(linear, "Drag linear coefficient", "kg/s")
+        self.quadratic = checks.nonnegative(quadratic, "Drag quadratic coefficient", "kg/m")
 
     def eval(self, q, qd, time, time_offset, f_out):
         m = self.model
@@ -210,7 +209,7 @@ class ForceField(Force):
         if not isinstance(field, wp.Function):
             raise ValueError("ForceField needs a @wp.func of (wp.vec3, wp.vec3, float) -> wp.vec3; decorate it with @wp.func")
         self.field = field
-        self.eps = float(eps)
+        self.eps = checks.positive(eps, "ForceField eps", "m", "the finite-difference step, e.g. 1e-3")
         self._eval_kernel, self._jacobian_kernel = K.force_field_kernels(field)
 
     def eval(self, q, qd, time, time_offset, f_out):
