@@ -172,6 +172,7 @@ def assemble_cloth_springs(
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
     spring_slots: wp.array(dtype=int),
     inv_mass: wp.array(dtype=float),
     ck: float,
@@ -185,8 +186,10 @@ def assemble_cloth_springs(
 ):
     """Per spring: diagonal blocks (i,i), (j,j) += J = ck Jx + cd Jv into diag_io; coupling blocks
     (i,j), (j,i) += -J into the BSR values at spring_slots[2s], [2s+1] unless an end is pinned;
-    rhs_i += cf f_i + cw Jx (w_i - w_j), rhs_j -= the same."""
+    rhs_i += cf f_i + cw Jx (w_i - w_j), rhs_j -= the same. Broken springs add nothing."""
     s = wp.tid()
+    if spring_broken[s] != 0:
+        return
     i = spring_indices[2 * s]
     j = spring_indices[2 * s + 1]
     xij = q[i] - q[j]
@@ -246,10 +249,13 @@ def eval_cloth_spring_energy(
     spring_indices: wp.array(dtype=int),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
     energy_out: wp.array(dtype=float),
 ):
-    """energy_out[0] += k (l - L)^2 / 2 summed over springs [J]."""
+    """energy_out[0] += k (l - L)^2 / 2 summed over intact springs [J]."""
     s = wp.tid()
+    if spring_broken[s] != 0:
+        return
     l = wp.length(q[spring_indices[2 * s]] - q[spring_indices[2 * s + 1]])
     e = l - spring_rest_length[s]
     wp.atomic_add(energy_out, 0, 0.5 * spring_stiffness[s] * e * e)

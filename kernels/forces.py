@@ -192,9 +192,13 @@ def eval_springs(
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
     f_out: wp.array(dtype=wp.vec3),
 ):
+    """Broken springs (spring_broken[s] != 0, see kernels/fracture.py) exert nothing."""
     s = wp.tid()
+    if spring_broken[s] != 0:
+        return
     i = spring_indices[2 * s]
     j = spring_indices[2 * s + 1]
     u = q[i] - q[j]
@@ -243,6 +247,7 @@ def eval_springs_jacobian(
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
     ck: float,
     cd: float,
     exact: int,
@@ -251,13 +256,17 @@ def eval_springs_jacobian(
     cols_out: wp.array(dtype=int),
     values_out: wp.array(dtype=wp.mat33),
 ):
-    """Diagonal blocks (i,i), (j,j) += J; coupling triplets (i,j), (j,i) = -J at 2s, 2s+1."""
+    """Diagonal blocks (i,i), (j,j) += J; coupling triplets (i,j), (j,i) = -J at 2s, 2s+1. A broken
+    spring leaves the Jacobian: J = 0 (its triplets stay, with zero blocks, so the sparsity
+    pattern and a captured graph do not change)."""
     s = wp.tid()
     i = spring_indices[2 * s]
     j = spring_indices[2 * s + 1]
-    J = spring_block(
-        q[i] - q[j], qd[i] - qd[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], ck, cd, exact
-    )
+    J = wp.mat33()
+    if spring_broken[s] == 0:
+        J = spring_block(
+            q[i] - q[j], qd[i] - qd[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], ck, cd, exact
+        )
     wp.atomic_add(diag_out, i, J)
     wp.atomic_add(diag_out, j, J)
     rows_out[2 * s] = i

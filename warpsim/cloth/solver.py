@@ -74,8 +74,12 @@ class ClothSemiImplicitEuler(Integrator):
 
     def _allocate(self, system):
         model, d = system.model, system.device
-        auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES else "scatter"
+        breakable = getattr(model, "breakable_spring_count", 0)
+        auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES and not breakable else "scatter"
         self.mode = self.requested_mode or auto
+        if self.mode == "gather" and breakable:
+            raise ValueError(f"mode='gather' cannot break springs (its adjacency lists carry no spring index) and "
+                             f"this model has {breakable} breakable springs; use mode='scatter' or None")
         if self.mode == "gather" and system.count >= GATHER_MAX_PARTICLES:
             raise ValueError(f"mode='gather' handles fewer than {GATHER_MAX_PARTICLES} particles (indices are packed "
                              f"in 24 bits), this model has {system.count}; use mode='scatter'")
@@ -144,7 +148,7 @@ class ClothSemiImplicitEuler(Integrator):
         if model.spring_count:
             wp.launch(KF.eval_springs, model.spring_count,
                       inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
-                              model.spring_damping, f], device=system.device)
+                              model.spring_damping, model.spring_broken, f], device=system.device)
         if f_out is not None:
             wp.copy(f_out, f)
             wp.launch(KF.eval_gravity, system.count, inputs=[system.mass, self.gravity, f_out], device=system.device)
@@ -301,7 +305,8 @@ class ClothImplicitEuler(Integrator):
         if model.spring_count:
             wp.launch(KC.assemble_cloth_springs, model.spring_count,
                       inputs=[q, qd, w, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
-                              model.spring_damping, self.spring_slots, system.inv_mass, float(ck), float(cd),
+                              model.spring_damping, model.spring_broken, self.spring_slots, system.inv_mass,
+                              float(ck), float(cd),
                               float(cf), float(cw), GEOMETRIC_MODES[self.geometric], self.rhs, self.diag,
                               self.values], device=d)
         wp.launch(KC.finish_cloth_system, n,
@@ -554,6 +559,8 @@ class ClothSimulator(Simulator):
                 err.frame = frame
                 err.args = (f"frame {frame}: {err.args[0]}",)
                 raise
+            if self.fracture is not None:
+                self.fracture.end_frame(frame)
             if callback is not None:
                 callback(frame, self)
             if writer is not None:
@@ -568,7 +575,8 @@ def cloth_energy(model, q, qd, gravity=(0.0, 0.0, 0.0)) -> tuple:
     wp.launch(KC.eval_kinetic_energy, model.particle_count, inputs=[qd, model.particle_mass, out[0:1]], device=d)
     if model.spring_count:
         wp.launch(KC.eval_cloth_spring_energy, model.spring_count,
-                  inputs=[q, model.spring_indices, model.spring_rest_length, model.spring_stiffness, out[1:2]],
+                  inputs=[q, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
+                          model.spring_broken, out[1:2]],
                   device=d)
     kinetic, spring = (float(x) for x in out.numpy())
     m = model.particle_mass.numpy().astype(np.float64)

@@ -3,13 +3,15 @@ time integrators, the systems they advance, the :class:`Simulator` loop and the 
 :class:`Pendulum`.
 
 Drives ``warpsim.kernels.forces`` (gravity, wind, drag, magnets, springs) and
-``warpsim.kernels.integrate`` (explicit/semi-implicit/implicit Euler, RK2, RK4, sparse Jacobians).
+``warpsim.kernels.integrate`` (explicit/semi-implicit/implicit Euler, RK2, RK4, sparse Jacobians) and
+``warpsim.kernels.fracture`` (springs that break: ``SpringFracture``).
 Entry classes: ModelBuilder, Simulator, Gravity, Springs, SemiImplicitEuler, Pendulum.
 """
 
 from .builder import ModelBuilder
 from .errors import SimulationError
 from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
+from .fracture import BreakReport, SpringFracture, spring_segments
 from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, Integrator, SemiImplicitEuler
 from .model import Model, State
 from .pendulum import Pendulum, exact_period
@@ -20,4 +22,5 @@ __all__ = [
     "ModelBuilder", "Model", "State", "Simulator", "SimulationError", "Force", "Gravity", "ConstantForce", "Wind",
     "Magnets", "Drag", "Springs", "ForceField", "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler",
     "RK2", "RK4", "INTEGRATORS", "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
+    "SpringFracture", "BreakReport", "spring_segments",
 ]

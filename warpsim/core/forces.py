@@ -173,7 +173,8 @@ class Drag(Force):
 class Springs(Force):
     """The model's damped springs, f_i = -(k (l - L) + kd dl/dt) d_hat, f_j = -f_i.
 
-    The Simulator adds this force automatically when the model has springs. ``exact_jacobian``
+    The Simulator adds this force automatically when the model has springs. Broken springs
+    (``model.spring_broken``, see ``warpsim.core.fracture``) exert nothing and have no Jacobian. ``exact_jacobian``
     selects the true Jacobian (tests) instead of the solver's symmetric, clamped form."""
 
     def __init__(self, exact_jacobian: bool = False):
@@ -184,7 +185,8 @@ class Springs(Force):
         if m.spring_count == 0:
             return
         wp.launch(K.eval_springs, m.spring_count,
-                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, f_out],
+                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
+                          m.spring_broken, f_out],
                   device=m.device)
 
     def jacobian_triplet_count(self):
@@ -196,7 +198,7 @@ class Springs(Force):
             return
         wp.launch(K.eval_springs_jacobian, m.spring_count,
                   inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
-                          float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values],
+                          m.spring_broken, float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values],
                   device=m.device)
 
 

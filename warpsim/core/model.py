@@ -36,12 +36,16 @@ class Model:
       particle_radius: collision radius [m], float, (particle_count,)
       spring_indices: int, (2 * spring_count,), particles i, j of spring s at 2s, 2s+1
       spring_rest_length [m], spring_stiffness [N/m], spring_damping [N s/m]: float, (spring_count,)
+      spring_break_strain [1], spring_break_force [N]: float, (spring_count,); inf = never breaks
+      spring_broken: int, (spring_count,), 1 once the spring has broken (warpsim.core.fracture)
+      breakable_spring_count: host int, springs with a finite threshold
     """
 
     def __init__(self, device):
         self.device = wp.get_device(device)
         self.particle_count = 0
         self.spring_count = 0
+        self.breakable_spring_count = 0
 
     def state(self) -> State:
         """A new State holding the model's initial positions and velocities."""

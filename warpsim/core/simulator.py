@@ -13,6 +13,7 @@ from .collider import Collider
 from . import checks
 from .errors import SimulationError
 from .forces import Force, Gravity
+from .fracture import SpringFracture
 from .model import Model
 from .integrators import make_integrator
 from .system import ParticleSystem
@@ -74,6 +75,12 @@ class Simulator:
         self.colliders = colliders
         for c in self.colliders:
             c.bind(model)
+        self.fracture = next((c for c in self.colliders if isinstance(c, SpringFracture)), None)
+        """The spring-breaking stage (added by itself when the model has breakable springs) or None."""
+        if self.fracture is None and getattr(model, "breakable_spring_count", 0):
+            self.fracture = SpringFracture()
+            self.fracture.bind(model)
+            self.colliders.append(self.fracture)
         self.adaptive = bool(adaptive)
         self.max_displacement = max_displacement
         self.max_substeps = max_substeps
@@ -186,6 +193,8 @@ class Simulator:
                 err.frame = frame
                 err.args = (f"frame {frame}: {err.args[0]}",)
                 raise
+            if self.fracture is not None:
+                self.fracture.end_frame(frame)  # per-frame BreakReport in self.fracture.history
             if callback is not None:
                 callback(frame, self)
             if writer is not None:

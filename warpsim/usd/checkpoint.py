@@ -33,7 +33,8 @@ def load_checkpoint(path):
 
 def simulator_checkpoint(sim):
     """Everything a ``ws.Simulator`` needs to continue bit for bit: positions, velocities,
-    forces, simulated time (host float64 and the device copy kernels read) and step count."""
+    forces, simulated time (host float64 and the device copy kernels read), step count and, when
+    springs can break, the broken-spring mask."""
     out = {
         "positions": sim.state.positions.numpy(),
         "velocities": sim.state.velocities.numpy(),
@@ -44,6 +45,8 @@ def simulator_checkpoint(sim):
     device_time = getattr(sim, "_time", None)
     if device_time is not None:
         out["device_time"] = device_time.numpy()
+    if getattr(sim, "fracture", None) is not None:
+        out["spring_broken"] = sim.model.spring_broken.numpy()
     return out
 
 
@@ -61,5 +64,7 @@ def restore_simulator(sim, data):
     sim.time = float(data["time"])
     sim.step_count = int(data["step_count"])
     device_time = getattr(sim, "_time", None)
+    if getattr(sim, "fracture", None) is not None and "spring_broken" in data:
+        sim.fracture.restore(data["spring_broken"])
     if device_time is not None and "device_time" in data:
         wp.copy(device_time, wp.array(data["device_time"], dtype=device_time.dtype, device=device_time.device))
