@@ -28,6 +28,22 @@ def state_frame_data(prims, state):
             for d in prims.values() if d.from_state}
 
 
+PURPOSES = ("default", "render", "proxy", "guide")
+
+
+def display_hints(decl, opacity=None, purpose=None):
+    """Author a constant ``primvars:displayOpacity`` and the ``purpose`` on a declaration."""
+    if opacity is not None:
+        if not 0.0 <= float(opacity) <= 1.0:
+            raise ValueError(f"prim {decl.name!r}: opacity must lie in [0, 1], got {opacity!r}")
+        decl.add_primvar("displayOpacity", "float[]", "constant", [float(opacity)])
+    if purpose is not None:
+        if purpose not in PURPOSES:
+            raise ValueError(f"prim {decl.name!r}: purpose {purpose!r} is not one of {PURPOSES}."
+                             f"{close_matches(purpose, PURPOSES)}")
+        decl.static("purpose", "token", purpose, uniform=True)
+
+
 class PrimSink:
     """Collects a scene's prim declarations (see the module docstring). Declarations are frozen
     once a sink is sealed (``self._sealed``: the first frame was written or drawn)."""
@@ -96,10 +112,15 @@ class PrimSink:
         return self._declare(decl)
 
     def add_static_mesh(self, name, points, face_vertex_counts, face_vertex_indices, *, color=None,
-                        double_sided=True):
-        """Declare fixed geometry (a collider) as a ``UsdGeom.Mesh``: points (v, 3) [m]."""
-        return self._declare(MeshDecl(name, face_vertex_counts, face_vertex_indices, points=points, color=color,
-                                      double_sided=double_sided))
+                        double_sided=True, opacity=None, purpose=None):
+        """Declare fixed geometry (a collider) as a ``UsdGeom.Mesh``: points (v, 3) [m].
+        ``opacity`` in [0, 1] authors a constant ``primvars:displayOpacity`` and ``purpose``
+        (default/render/proxy/guide) the prim's purpose: a container written with e.g.
+        ``opacity=0.15, purpose="guide"`` does not hide what it holds in other USD tools."""
+        decl = MeshDecl(name, face_vertex_counts, face_vertex_indices, points=points, color=color,
+                        double_sided=double_sided)
+        display_hints(decl, opacity, purpose)
+        return self._declare(decl)
 
     def add_plane(self, name, normal=(0.0, 1.0, 0.0), offset=0.0, *, size=4.0, color=(0.5, 0.5, 0.5)):
         """Declare a plane collider ``dot(n, x) = offset`` as a square quad mesh of side ``size`` [m]."""
@@ -116,8 +137,9 @@ class PrimSink:
         pts = [c - h * u - h * v, c + h * u - h * v, c + h * u + h * v, c - h * u + h * v]
         return self.add_static_mesh(name, np.array(pts), [4], [0, 1, 2, 3], color=color)
 
-    def add_box(self, name, lower, upper, *, color=(0.6, 0.6, 0.6)):
-        """Declare an axis-aligned box collider [lower, upper] [m] as a six-quad mesh (normals outward)."""
+    def add_box(self, name, lower, upper, *, color=(0.6, 0.6, 0.6), opacity=None, purpose=None):
+        """Declare an axis-aligned box collider [lower, upper] [m] as a six-quad mesh (normals outward);
+        ``opacity`` and ``purpose`` as in :meth:`add_static_mesh`."""
         lo = np.asarray(lower, np.float64)
         hi = np.asarray(upper, np.float64)
         if lo.shape != (3,) or hi.shape != (3,) or not (hi > lo).all():
@@ -125,7 +147,7 @@ class PrimSink:
         corners = np.array([[(hi if (i >> k) & 1 else lo)[k] for k in range(3)] for i in range(8)])
         faces = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
         return self.add_static_mesh(name, corners, [4] * 6, np.array(faces).reshape(-1), color=color,
-                                    double_sided=False)
+                                    double_sided=False, opacity=opacity, purpose=purpose)
 
     def add_sphere(self, name, center=(0.0, 0.0, 0.0), radius=1.0, *, color=(0.6, 0.6, 0.6)):
         """Declare a sphere collider as a ``UsdGeom.Sphere`` at ``center`` [m] of ``radius`` [m]."""
