@@ -690,3 +690,13 @@ def emit_block_triangles(
                     faces_out[face, 1] = ids[2]
                     faces_out[face, 2] = ids[1]
                     face += 1
+
+
+@wp.kernel
+def find_non_finite_node(field: wp.array3d(dtype=float), first_out: wp.array(dtype=int)):
+    """``first_out[0] = min`` linear index ``(i ny + j) nz + k`` of the nodes holding NaN or
+    infinity (the caller fills it with the node count beforehand)."""
+    i, j, k = wp.tid()
+    v = field[i, j, k]
+    if not wp.isfinite(v):
+        wp.atomic_min(first_out, 0, (i * field.shape[1] + j) * field.shape[2] + k)

@@ -335,7 +335,16 @@ def test_empty_and_nan_fields(device):
     res = marching_cubes(np.ones((4, 5, 6), np.float32), device=device)
     assert res.vertex_count == 0 and res.face_count == 0 and res.faces.shape == (0, 3)
     field, h = sphere_sdf(12)
-    field[6, 6, 6] = np.nan  # NaN nodes count as outside
+    field[6, 5, 7] = np.nan  # meshing around it would add a bubble: an error naming the node instead
+    for given in (field, wp.array(field, dtype=wp.float32, device=device)):  # host and device checks
+        with pytest.raises(ValueError, match=r"field node \[6, 5, 7\] .* is nan \(1 of 1728 nodes"):
+            marching_cubes(given, spacing=h, device=device)
+    field[6, 5, 7] = np.inf
+    with pytest.raises(ValueError, match=r"node \[6, 5, 7\] .* is inf"):
+        MarchingCubes(field.shape, h, device=device).mesh(wp.array(field, dtype=wp.float32, device=device))
+    with pytest.raises(ValueError, match=r"node \[0, 0, 0\] .* \(64 of 64 nodes are not finite\)"):
+        marching_cubes(np.full((4, 4, 4), np.nan, np.float32), device=device)  # all-NaN: not an empty mesh
+    field[6, 5, 7] = 0.01
     v, f, n = marching_cubes(field, spacing=h, device=device).numpy()
     assert np.isfinite(v).all() and np.isfinite(n).all()
     assert_closed_welded(v, f, field)

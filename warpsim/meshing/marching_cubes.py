@@ -8,6 +8,8 @@ Conventions:
   count as outside, and every edge vertex keeps at least ``EDGE_T_MIN`` (0.1 %) of the edge from
   both nodes, so an iso value that hits grid nodes exactly gives no zero-area triangles and no
   two vertices at one position.
+* Every node must be finite: a NaN or infinite node is a ValueError naming it (index, position,
+  value, how many), also for an all-NaN field, instead of a mesh with a bubble around it.
 * Faces are counter-clockwise seen from outside; normals point from inside to outside (for a
   signed distance: toward increasing field) and are unit length. A closed surface has positive
   signed volume.
@@ -191,9 +193,12 @@ class MarchingCubes:
         self._block_counts = wp.empty(self._block_total, dtype=wp.vec2i, device=d)
         self._block_offsets = wp.empty(self._block_total, dtype=wp.vec2i, device=d)
         node_total = node_count[0] * node_count[1] * node_count[2]
+        self._node_total = self.shape[0] * self.shape[1] * self.shape[2]  # field nodes (no padding)
         self._node_case = wp.empty(node_total, dtype=wp.uint8, device=d)
         self._node_vertex = wp.empty(node_total, dtype=wp.int32, device=d)
         self._totals_host = wp.empty(1, dtype=wp.vec2i, device="cpu", pinned=d.is_cuda)
+        self._first_bad = wp.empty(1, dtype=wp.int32, device=d)
+        self._first_bad_host = wp.empty(1, dtype=wp.int32, device="cpu", pinned=d.is_cuda)
         self._vertices = self._normals = self._faces = None
         self._vertex_capacity = self._face_capacity = 0
         if max_vertices is not None or max_triangles is not None:
@@ -260,13 +265,28 @@ class MarchingCubes:
                 )
             if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
                 raise ValueError(f"field must hold real numbers, got dtype {arr.dtype}")
+            if tuple(arr.shape) == self.shape and not np.isfinite(arr).all():
+                self._non_finite(np.flatnonzero(~np.isfinite(arr).reshape(-1))[0], arr)
             field = wp.array(np.ascontiguousarray(arr, dtype=np.float32), dtype=wp.float32, device=self.device)
         if tuple(field.shape) != self.shape:
             raise ValueError(f"field shape {tuple(field.shape)} does not match the mesher's shape {self.shape}")
         return field
 
+    def _non_finite(self, flat_index, field):
+        """ValueError naming the first NaN/infinite node: its index, position and value."""
+        i, j, k = (int(x) for x in np.unravel_index(int(flat_index), self.shape))
+        value = (field.numpy() if isinstance(field, wp.array) else np.asarray(field))[i, j, k]
+        count = int((~np.isfinite(field.numpy() if isinstance(field, wp.array) else np.asarray(field))).sum())
+        pos = tuple(round(o + n * h, 6) for o, n, h in zip(self.origin, (i, j, k), self.spacing))
+        raise ValueError(f"field node [{i}, {j}, {k}] (position {pos} m) is {value} ({count} of "
+                         f"{self._node_total} nodes are not finite); marching cubes needs a finite value at every "
+                         "node: fill them (e.g. np.nan_to_num(field, nan=<an outside value>)) or fix the solver "
+                         "that produced them")
+
     def mesh(self, field, iso=0.0) -> MarchingCubesResult:
         """Mesh the ``iso`` level of ``field`` (wp.array float32 or NumPy, shape ``self.shape``).
+        A NaN or infinite node is a ValueError naming the node (checked on the host for NumPy
+        fields, on the device for wp.array fields and read back with the output counts).
 
         Returns views of this mesher's buffers, valid until the next call.
         """
@@ -278,6 +298,9 @@ class MarchingCubes:
         d = self.device
         nb = self._block_total
 
+        self._first_bad.fill_(self._node_total)
+        wp.launch(mck.find_non_finite_node, dim=self.shape, inputs=[field], outputs=[self._first_bad], device=d)
+        wp.copy(self._first_bad_host, self._first_bad)
         wp.launch(
             mck.count_block_elements,
             dim=nb,
@@ -290,6 +313,9 @@ class MarchingCubes:
         wp.copy(self._totals_host, self._block_offsets, src_offset=nb - 1, count=1)
         if d.is_cuda:
             wp.synchronize_stream(d.stream)
+        first_bad = int(self._first_bad_host.numpy()[0])
+        if first_bad < self._node_total:
+            self._non_finite(first_bad, field)
         vertex_count, face_count = (int(x) for x in self._totals_host.numpy()[0])
         self._reserve(vertex_count, face_count)
 
