@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import meshtools
+from ..core import checks
 from ..core.builder import _vec3
 from .colliders import _pose, check_triangles, quat_rotate
 
@@ -146,6 +147,20 @@ def interior_lattice(points, faces, cells: int):
     return centers[keep], pairs, h
 
 
+def _lattice_hint(points, faces, cells, budget=2.0e7):
+    """The fix for an empty lattice: the smallest larger ``lattice_cells`` (up to 64, within a
+    winding-number cost budget) that fits a particle, or interior='none' when none does."""
+    c = cells
+    while c < 64:
+        c = min(64, 2 * c)
+        if (c ** 3) * len(faces) > budget:
+            break
+        if len(interior_lattice(points, faces, c)[0]):
+            return f"lattice_cells={c} fits one (raise lattice_cells), or pass interior='none'"
+    return (f"the mesh is too thin for a lattice of up to lattice_cells={c}; pass interior='none' (surface springs "
+            "only) or thicken the mesh")
+
+
 def _check_coefficient(owner, name, value, positive=False):
     try:
         v = float(value)
@@ -206,9 +221,7 @@ def add_soft_body(builder, points, faces, *, position=(0.0, 0.0, 0.0), rotation=
         mass = _check_coefficient(name, "mass", mass, positive=True)
     else:
         total_mass = _check_coefficient(name, "total_mass", total_mass, positive=True)
-    ties = int(ties)
-    if ties < 1:
-        raise ValueError(f"{name} ties = {ties}; each surface vertex needs >= 1 tie to the lattice")
+    ties = checks.count(ties, f"{name} ties", fix="each surface vertex needs >= 1 tie to the lattice")
     pos, rot = _pose(position, rotation, name)
     velocity = _vec3(velocity, f"{name} velocity")
 
@@ -222,15 +235,20 @@ def add_soft_body(builder, points, faces, *, position=(0.0, 0.0, 0.0), rotation=
             raise ValueError(f"{name} is not closed ({len(loops)} boundary loop(s), e.g. around vertex "
                              f"{int(loops[0][0]) if loops else -1}) or not consistently wound; the shape-keeping "
                              "lattice needs a closed, consistently wound mesh: pass interior='none' or close it")
-        cells = int(lattice_cells)
-        if cells < 1:
-            raise ValueError(f"{name} lattice_cells = {lattice_cells}; it must be >= 1")
-        if meshtools.signed_volume(world, faces) < 0.0:
+        cells = checks.count(lattice_cells, f"{name} lattice_cells", fix="give lattice cells along the longest side, "
+                             "e.g. 4")
+        volume = meshtools.signed_volume(world, faces)
+        size = float(np.ptp(world, axis=0).max())
+        if abs(volume) <= 1e-9 * size**3:
+            raise ValueError(f"{name} is closed but encloses no volume (signed volume {volume:.3g} m^3 for a "
+                             f"{size:.3g} m wide mesh: it is flat or folded onto itself), so no lattice fits inside; "
+                             "pass interior='none' or give a mesh that encloses a volume")
+        if volume < 0.0:
             faces = faces[:, ::-1]
         lattice, lattice_pairs, _ = interior_lattice(world, faces, cells)
         if len(lattice) == 0:
             raise ValueError(f"{name}: no lattice particle fits inside the mesh with lattice_cells={cells}; "
-                             "raise lattice_cells")
+                             f"{_lattice_hint(world, faces, cells)}")
         k = min(ties, len(lattice))
         nearest = np.empty((len(world), k), dtype=np.int64)
         for s in range(0, len(world), 512):
@@ -278,22 +296,39 @@ def load_mesh(path, *, weld_tolerance: float = 1.0e-7):
     """Read a triangle mesh: OBJ, STL, PLY, GLB/GLTF, OFF (trimesh; scenes are concatenated) or
     USD (first Mesh prim, see load_usd_mesh). Polygons are triangulated and vertices welded by
     position. Returns (points (V, 3) float64 [file units], faces (F, 3) int64)."""
-    path = os.fspath(path)
+    path = checks.existing_file(path, "mesh file")
     ext = os.path.splitext(path)[1].lower()
-    if not os.path.exists(path):
-        raise ValueError(f"mesh file {path!r} does not exist")
+    weld_tolerance = checks.positive(weld_tolerance, "load_mesh weld_tolerance", fix="a fraction of the mesh size, "
+                                     "e.g. 1e-7")
     if ext in USD_EXTENSIONS:
         points, faces = load_usd_mesh(path)
     elif ext in MESH_EXTENSIONS:
         import trimesh
 
-        mesh = trimesh.load(path, force="mesh", process=False)
-        points, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+        if os.path.getsize(path) == 0:
+            raise ValueError(f"mesh file {path!r} is empty (0 bytes); export the mesh again")
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+            points, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+        except (ImportError, MemoryError):
+            raise
+        except Exception as exc:  # noqa: BLE001  (trimesh raises anything from struct.error to KeyError)
+            raise ValueError(f"mesh file {path!r} could not be read as {ext[1:].upper()} ({type(exc).__name__}: "
+                             f"{str(exc)[:200]}); check that it is a valid, complete {ext[1:].upper()} file") from None
+        if points.ndim != 2 or (points.size and points.shape[1] != 3) or faces.ndim != 2 or \
+                (faces.size and faces.shape[1] != 3):
+            raise ValueError(f"mesh file {path!r} holds no triangle mesh (vertices {points.shape}, faces "
+                             f"{faces.shape}); export it as triangles or polygons")
     else:
         raise ValueError(f"mesh file {path!r}: unknown extension {ext!r}; supported: "
                          f"{', '.join(MESH_EXTENSIONS + USD_EXTENSIONS)}")
     if len(faces) == 0:
-        raise ValueError(f"mesh file {path!r} holds no triangles")
+        raise ValueError(f"mesh file {path!r} holds no triangles; check that it is a complete, valid mesh file")
+    points = checks.mesh_vertices(points, f"mesh file {path!r}")
+    if faces.min() < 0 or faces.max() >= len(points):
+        bad = int(faces.max() if faces.max() >= len(points) else faces.min())
+        raise ValueError(f"mesh file {path!r}: a face uses vertex {bad} but the file has {len(points)} vertices; "
+                         "repair the file")
     size = float(np.ptp(points, axis=0).max()) if len(points) else 1.0
     points, faces, _ = meshtools.weld(points, faces, tolerance=weld_tolerance * max(size, 1e-30))
     return points, faces
@@ -322,9 +357,14 @@ def load_usd_mesh(path, prim_path=None, time=None):
         from pxr import Usd, UsdGeom
     except ImportError as exc:  # pragma: no cover - usd-core is a dependency
         raise ImportError("loading USD meshes needs usd-core: pip install usd-core") from exc
-    stage = Usd.Stage.Open(os.fspath(path))
+    path = checks.existing_file(path, "USD file")
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as exc:  # noqa: BLE001  (pxr raises Tf.ErrorException)
+        raise ValueError(f"USD file {path!r} does not open ({str(exc).strip().splitlines()[-1][:200]}); check that "
+                         "it is a valid, complete USD file") from None
     if stage is None:
-        raise ValueError(f"cannot open USD stage {path!r}")
+        raise ValueError(f"cannot open USD stage {path!r}; check that it is a valid, complete USD file")
     if prim_path is not None:
         prim = stage.GetPrimAtPath(prim_path)
         if not prim or not prim.IsA(UsdGeom.Mesh):
