@@ -157,13 +157,34 @@ def collide_particle_planes(
     x = q_io[i]
     v = qd_io[i]
     for p in range(normals.shape[0]):
-        n = normals[p]
-        h = radius[i] + thickness - (wp.dot(n, x) - offsets[p])
-        if h > 0.0:
-            x, v = resolve_contact(x, v, n, h, wp.vec3(0.0), mode, restitution, friction, stiffness, damping_ratio,
-                                   w, dt)
+        x, v = resolve_plane(x, v, normals[p], offsets[p], radius[i] + thickness, mode, restitution, friction,
+                             stiffness, damping_ratio, w, dt)
     q_io[i] = x
     qd_io[i] = v
+
+
+@wp.func
+def resolve_plane(
+    x: wp.vec3,
+    v: wp.vec3,
+    n: wp.vec3,
+    offset: float,
+    d: float,
+    mode: int,
+    restitution: float,
+    friction: float,
+    stiffness: float,
+    damping_ratio: float,
+    inv_mass: float,
+    dt: float,
+):
+    """One plane n . x = offset against a particle of radius d (radius + thickness) [m]: the
+    corrected (x, v), unchanged without contact (h = d - (n . x - offset) <= 0)."""
+    h = d - (wp.dot(n, x) - offset)
+    if h > 0.0:
+        return resolve_contact(x, v, n, h, wp.vec3(0.0), mode, restitution, friction, stiffness, damping_ratio,
+                               inv_mass, dt)
+    return x, v
 
 
 @wp.kernel
@@ -259,15 +280,10 @@ def capsule_contact(x0: wp.vec3, x: wp.vec3, a: wp.vec3, b: wp.vec3, r: float, i
     (> 0 on contact), normal and touched surface point, all local.
 
     Solid (inside == 0): the path is tested for entry (continuous detection), then the end
-    point. Container (inside == 1, spheres): particles are kept within distance r of a."""
-    c = closest_point_segment(x, a, b)
-    delta = x - c
-    dist = wp.length(delta)
+    point (``capsule_contact_point``). Container (inside == 1, spheres): particles are kept
+    within distance r of a."""
     if inside == 1:
-        if dist > r:
-            n = -delta / dist
-            return dist - r, n, c - r * n
-        return 0.0, wp.vec3(0.0), x
+        return capsule_contact_point(x, a, b, r, inside)
     # continuous detection: entered during the step from outside?
     c0 = closest_point_segment(x0, a, b)
     dist0 = wp.length(x0 - c0)
@@ -284,6 +300,21 @@ def capsule_contact(x0: wp.vec3, x: wp.vec3, a: wp.vec3, b: wp.vec3, r: float, i
             if h > 0.0:
                 return h, n, p
             return 0.0, n, p
+    return capsule_contact_point(x, a, b, r, inside)
+
+
+@wp.func
+def capsule_contact_point(x: wp.vec3, a: wp.vec3, b: wp.vec3, r: float, inside: int):
+    """Discrete contact of the point x with the capsule (inside == 0) or spherical container
+    (inside == 1) of radius r around [a, b]: (h, n, p) as ``capsule_contact``, from x alone."""
+    c = closest_point_segment(x, a, b)
+    delta = x - c
+    dist = wp.length(delta)
+    if inside == 1:
+        if dist > r:
+            n = -delta / dist
+            return dist - r, n, c - r * n
+        return 0.0, wp.vec3(0.0), x
     if dist < r:
         n = wp.vec3(0.0, 1.0, 0.0)
         if dist > 0.0:

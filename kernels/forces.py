@@ -13,6 +13,9 @@ correctly as time advances.
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
+# The force kernels a differentiable run records on its wp.Tape (gravity, constant, wind, drag,
+# magnets, springs) compile their adjoints too (``enable_backward=True`` per kernel); the rest of
+# the module stays forward only.
 
 
 @wp.func
@@ -23,14 +26,14 @@ def outer3(a: wp.vec3, b: wp.vec3) -> wp.mat33:
 # --------------------------------------------------------------------------------------
 # Gravity and constant forces
 # --------------------------------------------------------------------------------------
-@wp.kernel
+@wp.kernel(enable_backward=True)  # differentiable runs (warpsim.diff)
 def eval_gravity(mass: wp.array(dtype=float), gravity: wp.vec3, f_out: wp.array(dtype=wp.vec3)):
     """f += m g for every particle (pinned particles have mass 0 and get nothing)."""
     i = wp.tid()
     f_out[i] = f_out[i] + mass[i] * gravity
 
 
-@wp.kernel
+@wp.kernel(enable_backward=True)  # differentiable runs (warpsim.diff)
 def eval_constant_force(indices: wp.array(dtype=int), force: wp.vec3, f_out: wp.array(dtype=wp.vec3)):
     """f[indices[t]] += force."""
     t = wp.tid()
@@ -68,7 +71,7 @@ def wind_velocity(
     return speed * (1.0 + gust_amplitude * g) * d
 
 
-@wp.kernel
+@wp.kernel(enable_backward=True)  # differentiable runs (warpsim.diff)
 def eval_wind(
     qd: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -98,7 +101,7 @@ def eval_wind(
 # --------------------------------------------------------------------------------------
 # Drag: f = -c1 v - c2 |v| v
 # --------------------------------------------------------------------------------------
-@wp.kernel
+@wp.kernel(enable_backward=True)  # differentiable runs (warpsim.diff)
 def eval_drag(
     qd: wp.array(dtype=wp.vec3), linear: float, quadratic: float, f_out: wp.array(dtype=wp.vec3)
 ):
@@ -131,7 +134,7 @@ def eval_scaled_identity_jacobian(coefficient: float, c: float, diag_out: wp.arr
 # --------------------------------------------------------------------------------------
 # Magnets: f = s d / (|d|^2 + eps^2)^(3/2), d = center - x; zero beyond the cutoff
 # --------------------------------------------------------------------------------------
-@wp.kernel
+@wp.kernel(enable_backward=True)  # differentiable runs (warpsim.diff)
 def eval_magnets(
     q: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -184,7 +187,7 @@ def eval_magnets_jacobian(
 # --------------------------------------------------------------------------------------
 # Damped springs: f_i = -(k (l - L) + kd dl/dt) d_hat, f_j = -f_i
 # --------------------------------------------------------------------------------------
-@wp.kernel
+@wp.kernel(enable_backward=True)  # differentiable runs (warpsim.diff)
 def eval_springs(
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),

@@ -111,6 +111,16 @@ class Planes(_Contact):
             device=model.device,
         )
 
+    def apply_out(self, model, q, qd, q_out, qd_out, dt, plane: int) -> None:
+        """Differentiable runs (``warpsim.diff``): plane ``plane`` alone, out of place
+        (q, qd) -> (q_out, qd_out); applying planes 0..P-1 in turn equals ``apply``."""
+        from ..kernels import autodiff as KD
+
+        wp.launch(KD.collide_plane_out, model.particle_count,
+                  inputs=[model.particle_inv_mass, model.particle_radius, self._normals, self._offsets, int(plane),
+                          *self._contact_args(dt), q, qd, q_out, qd_out],
+                  device=model.device)
+
 
 class Plane(Planes):
     """The infinite plane n . x = offset; particles stay on the side ``normal`` points to."""
@@ -316,10 +326,12 @@ class Capsule(_Kinematic):
     """A solid capsule: every point within ``radius`` [m] of the segment [a, b] [m].
 
     Particles are pushed out along the normal of the closest point; the path q_prev -> q is
-    tested for entry (continuous detection). See the module docstring for the common options."""
+    tested for entry (continuous detection; ``continuous=False``: the end point only, which
+    differentiable runs need). See the module docstring for the common options."""
 
     def __init__(self, a=(0.0, 0.0, 0.0), b=(0.0, 1.0, 0.0), radius=0.25, *, restitution=0.5, friction=0.0,
-                 mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="Capsule"):
+                 mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="Capsule", continuous=True):
+        self.continuous = bool(continuous)
         a, b = np.array(_vec3(a, f"{name} a")), np.array(_vec3(b, f"{name} b"))
         radius = float(radius)
         if not (math.isfinite(radius) and radius > 0.0):
@@ -344,6 +356,8 @@ class Capsule(_Kinematic):
 
     def apply(self, model, state, q_prev, dt):
         prev, now = self._advance(dt)
+        if not self.continuous:
+            q_prev = state.positions  # a path of length 0 (static shape): the end point alone
         wp.launch(
             K.collide_capsule, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, q_prev, wp.vec3(*self.a_local),
@@ -352,16 +366,28 @@ class Capsule(_Kinematic):
             device=model.device,
         )
 
+    def apply_out(self, model, q, qd, q_out, qd_out, dt) -> None:
+        """Differentiable runs (``warpsim.diff``): discrete detection, out of place
+        (q, qd) -> (q_out, qd_out); equals ``apply`` with ``continuous=False`` on a static shape."""
+        from ..kernels import autodiff as KD
+
+        prev, now = self._advance(dt)
+        wp.launch(KD.collide_capsule_out, model.particle_count,
+                  inputs=[model.particle_inv_mass, model.particle_radius, wp.vec3(*self.a_local),
+                          wp.vec3(*self.b_local), self.radius, self.inside, prev, now, *self._contact_args(dt),
+                          q, qd, q_out, qd_out],
+                  device=model.device)
+
 
 class Sphere(Capsule):
     """A solid sphere of ``radius`` [m] at ``center`` [m]; with ``inside=True`` a spherical
     container that keeps particles within it instead."""
 
     def __init__(self, center=(0.0, 0.0, 0.0), radius=0.5, *, inside=False, restitution=0.5, friction=0.0,
-                 mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None):
+                 mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, continuous=True):
         c = _vec3(center, "Sphere center")
         super().__init__(c, c, radius, restitution=restitution, friction=friction, mode=mode, thickness=thickness,
-                         stiffness=stiffness, motion=motion, name="Sphere")
+                         stiffness=stiffness, motion=motion, name="Sphere", continuous=continuous)
         self.inside = int(bool(inside))
 
     @property
