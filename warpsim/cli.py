@@ -19,7 +19,9 @@ import time
 
 __all__ = ["COMMANDS", "UsageError", "main"]
 
-COMMANDS = {}
+COMMANDS = {
+    "view": "warpsim.viewer.command",
+}
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
 sub-parsers; imports nothing heavy) and ``run(args, out, err) -> int`` (exit status; raise

@@ -1,0 +1,101 @@
+"""``warpsim view SCENE|CACHE.usd [--set k=v ...] [--device D] [--port P] [--host H]``.
+
+A scene name starts the live viewer on that scene; a path ending in .usd/.usda/.usdc plays the
+cache back. Usage mistakes (unknown scene or parameter, bad value, port in use, missing cache)
+exit 2 with one line, as ``warpsim run`` does. Imports nothing heavy until it runs.
+"""
+from __future__ import annotations
+
+import os
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(sub):
+    v = sub.add_parser("view", help="watch a scene live in the browser (or play a USD cache)")
+    v.add_argument("scene", help="scene name (see 'warpsim list') or a warpsim cache .usd/.usda/.usdc to play")
+    v.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a scene parameter (repeatable)")
+    v.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
+    v.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
+    v.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
+    v.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    v.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
+    v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    v.add_argument("--max-points", type=int, default=200_000,
+                   help="points drawn per particle prim; larger sets are shown as an even subset")
+    v.add_argument("--paused", action="store_true", help="start paused")
+    v.add_argument("--record-dir", default="usd_out", help="folder for recordings (default usd_out)")
+    return v
+
+
+def _viser_or_usage():
+    from ..cli import UsageError
+
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise UsageError('the viewer needs viser: pip install -e ".[viewer]"') from None
+
+
+def build(args):
+    """The Viewer (or PlaybackViewer) the arguments describe; UsageError for mistakes."""
+    from .. import cli
+    from .server import PortInUseError, check_port
+
+    if not 0 < args.port < 65536:
+        raise cli.UsageError(f"--port {args.port}: it must be in 1..65535")
+    if args.max_points < 1:
+        raise cli.UsageError(f"--max-points {args.max_points}: it must be >= 1")
+    try:
+        check_port(args.host, args.port)
+    except PortInUseError as exc:
+        raise cli.UsageError(str(exc)) from None
+    except OSError as exc:
+        raise cli.UsageError(f"--host {args.host!r}: {exc}") from None
+    if os.path.splitext(args.scene)[1] in (".usd", ".usda", ".usdc"):
+        if args.sets or args.integrator:
+            raise cli.UsageError("--set and --integrator apply to scenes, not to a cache being played")
+        from .playback import PlaybackViewer
+
+        try:
+            return PlaybackViewer(args.scene, host=args.host, port=args.port, max_points=args.max_points)
+        except ValueError as exc:
+            raise cli.UsageError(str(exc)) from None
+    from ..scenes import get_scene
+    from .server import Viewer
+
+    try:
+        cls = get_scene(args.scene)
+    except ValueError as exc:
+        raise cli.UsageError(str(exc)) from None
+    given = cli._parse_sets(cls, args.sets, args.integrator)
+    params = cls.resolve_params(given)
+    _, _, params = cli._timing(cls, params, given, args.fps, args.substeps)
+    device = cli._device(args.device)
+    try:
+        return Viewer(cls, params, device, host=args.host, port=args.port, fps=args.fps, substeps=args.substeps,
+                      max_points=args.max_points, record_dir=args.record_dir, paused=args.paused)
+    except ValueError as exc:
+        raise cli.UsageError(f"scene {cls.name!r}: {exc}") from None
+
+
+def run(args, out, err):
+    import warp as wp
+
+    from .. import cli
+    from .server import PortInUseError
+
+    wp.config.quiet = True
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    _viser_or_usage()
+    viewer = build(args)
+    try:
+        viewer.start()
+    except PortInUseError as exc:  # taken between the check and the start
+        raise cli.UsageError(str(exc)) from None
+    print(f"warpsim view: {viewer.url}   (Ctrl-C stops; recordings go to {getattr(args, 'record_dir', 'usd_out')}/)",
+          file=out, flush=True)
+    viewer.run()
+    return 0

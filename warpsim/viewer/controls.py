@@ -1,0 +1,107 @@
+"""The control panel (viser front end): play / pause / single step / reset, speed, the frame,
+simulated time and wall milliseconds per frame, Record / Stop, and the error box.
+
+Speed choices are simulated seconds per wall second; "real time" (1x) is the default and runs
+as fast as the machine can when it cannot keep up; "max" never waits. The readout shows what
+was achieved.
+"""
+from __future__ import annotations
+
+import math
+
+__all__ = ["SPEEDS", "Controls", "format_status"]
+
+SPEEDS = {"0.25x": 0.25, "0.5x": 0.5, "1x (real time)": 1.0, "2x": 2.0, "4x": 4.0, "max": math.inf}
+
+
+def format_status(status):
+    """Markdown readout of ``Session.status()``."""
+    state = "playing" if status["playing"] else ("failed" if status["error"] else "paused")
+    text = (f"**{status['scene']}** {state}  \nframe {status['frame']} | t = {status['time']:.3f} s  \n"
+            f"{status['wall_ms']:.1f} ms/frame | {status['sim_rate']:.2f} sim s per wall s")
+    if status["grabbed"]:
+        text += f"  \ndragging particle {status['grabbed']['particle']}"
+    return text
+
+
+class Controls:
+    """Builds the control panel on ``viewer.server.gui`` and keeps its readouts current."""
+
+    def __init__(self, viewer):
+        self.viewer = viewer
+        session = viewer.session
+        gui = viewer.server.gui
+        with gui.add_folder("Simulation"):
+            self.status = gui.add_markdown(format_status(session.status()))
+            self.play = gui.add_button("Pause" if session.playing else "Play")
+            self.step = gui.add_button("Step")
+            self.reset = gui.add_button("Reset")
+            self.speed = gui.add_dropdown("Speed", list(SPEEDS), initial_value="1x (real time)")
+            self.record = gui.add_button("Record")
+            self.record_status = gui.add_markdown("not recording")
+        self.error = gui.add_markdown("", visible=False)
+        self.message = gui.add_markdown("")
+
+        @self.play.on_click
+        def _(_):
+            session.set_playing(not session.playing)
+            self.refresh()
+
+        @self.step.on_click
+        def _(_):
+            session.step_once()
+            viewer.redraw()
+            self.refresh()
+
+        @self.reset.on_click
+        def _(_):
+            try:
+                session.reset()
+            except ValueError as exc:
+                self.say(f"reset failed: {exc}")
+            viewer.redraw()
+            self.refresh()
+
+        @self.speed.on_update
+        def _(_):
+            session.speed = SPEEDS[self.speed.value]
+
+        @self.record.on_click
+        def _(_):
+            if session.recorder is None:
+                try:
+                    path = session.start_recording()
+                except (ValueError, OSError) as exc:
+                    self.say(f"cannot record: {exc}")
+                    return
+                self.record.label = "Stop recording"
+                self.record_status.content = f"recording into `{path}`"
+            else:
+                path = session.stop_recording()
+                self.record.label = "Record"
+                self.record_status.content = f"recorded `{path}`"
+            self.refresh()
+
+    def say(self, text):
+        self.message.content = text
+
+    def refresh(self):
+        """Update the readouts from the session (called a few times a second)."""
+        st = self.viewer.session.status()
+        self.status.content = format_status(st)
+        label = "Pause" if st["playing"] else "Play"
+        if self.play.label != label:
+            self.play.label = label
+        if st["recording"] is None and self.record.label != "Record":
+            self.record.label = "Record"
+            last = self.viewer.session.last_recording
+            self.record_status.content = f"recorded `{last}`" if last else "not recording"
+        elif st["recording"] is not None:
+            self.record_status.content = f"recording into `{st['recording']}` ({st['recorded_frames']} frames)"
+        if st["error"]:
+            text = "**Simulation error** (paused; press Reset):  \n" + st["error"]
+            if self.error.content != text:
+                self.error.content = text
+                self.error.visible = True
+        elif self.error.visible:
+            self.error.visible = False

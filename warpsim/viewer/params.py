@@ -1,0 +1,91 @@
+"""The parameter panel: one GUI input per registered scene parameter (viser front end).
+
+:func:`widget_spec` (pure) chooses the input for a parameter: a dropdown for choices, a
+checkbox for a bool, three numbers for a 3-vector, a slider with a sensible range for a number
+(restitution-like coefficients in [0, 1], else [0, 4 x default], or symmetric for a negative
+default), a number box for time steps and zero defaults, a text box for free text.
+:func:`build_param_panel` adds the inputs; a change goes to ``Session.set_param`` and the panel
+says whether it applied live or rebuilt the scene.
+"""
+from __future__ import annotations
+
+__all__ = ["build_param_panel", "widget_spec"]
+
+UNIT_KEYS = ("restitution", "friction", "tilt_fraction", "opacity")
+
+
+def _nice_step(span):
+    import math
+
+    if span <= 0:
+        return 0.01
+    return 10.0 ** math.floor(math.log10(span / 100.0))
+
+
+def widget_spec(key, param):
+    """(kind, options) of the input for ``param``: kind in dropdown, checkbox, vector3, slider,
+    number, text; options hold min/max/step/initial/choices as the kind needs."""
+    d = param.default
+    if param.choices is not None:
+        return "dropdown", {"options": [str(c) for c in param.choices], "initial": str(d)}
+    if isinstance(d, bool):
+        return "checkbox", {"initial": d}
+    if isinstance(d, (tuple, list)):
+        if len(d) == 3:
+            return "vector3", {"initial": tuple(float(v) for v in d)}
+        return "text", {"initial": ",".join(f"{v:g}" for v in d)}
+    if isinstance(d, int):
+        if d > 0:
+            return "slider", {"min": 1 if d >= 1 else 0, "max": max(4 * d, d + 4), "step": 1, "initial": d}
+        return "number", {"initial": d, "step": 1}
+    if isinstance(d, float):
+        if key == "dt" or d == 0.0:
+            return "number", {"initial": d, "step": _nice_step(abs(d)) if d else 0.01}
+        if any(k in key for k in UNIT_KEYS) and 0.0 <= d <= 1.0:
+            return "slider", {"min": 0.0, "max": 1.0, "step": 0.01, "initial": d}
+        lo, hi = (0.0, 4.0 * d) if d > 0 else (4.0 * d, -4.0 * d)
+        return "slider", {"min": lo, "max": hi, "step": _nice_step(hi - lo), "initial": d}
+    return "text", {"initial": str(d)}
+
+
+def build_param_panel(gui, session, on_result):
+    """Add one input per parameter of ``session``'s scene to ``gui`` (a viser GUI API, inside
+    the caller's folder). ``on_result(key, outcome or error text, ok)`` reports each change.
+    Returns {key: handle}."""
+    cls = session.cls
+    live = set(getattr(cls, "live_params", ()))
+    gui.add_markdown("Live: " + (", ".join(sorted(live)) if live else "none") +
+                     ". Other changes rebuild the scene.")
+    handles = {}
+    for key, param in cls.params.items():
+        kind, o = widget_spec(key, param)
+        label = key + (" (live)" if key in live else "")
+        value = session.params[key]
+        hint = param.help or None
+        if kind == "dropdown":
+            h = gui.add_dropdown(label, o["options"], initial_value=str(value), hint=hint)
+        elif kind == "checkbox":
+            h = gui.add_checkbox(label, bool(value), hint=hint)
+        elif kind == "vector3":
+            h = gui.add_vector3(label, tuple(float(v) for v in value), hint=hint)
+        elif kind == "slider":
+            lo, hi = o["min"], o["max"]
+            v = min(max(value, lo), hi) if isinstance(value, (int, float)) else o["initial"]
+            h = gui.add_slider(label, lo, hi, o["step"], v, hint=hint)
+        elif kind == "number":
+            h = gui.add_number(label, value, step=o["step"], hint=hint)
+        else:
+            h = gui.add_text(label, ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value),
+                             hint=hint)
+        handles[key] = h
+
+        def changed(event, key=key, h=h):
+            try:
+                outcome = session.set_param(key, h.value)
+            except ValueError as exc:
+                on_result(key, str(exc), False)
+                return
+            on_result(key, outcome, True)
+
+        h.on_update(changed)
+    return handles

@@ -1,0 +1,374 @@
+"""The viser front end: :class:`Viewer` (``ws.Viewer``) serves a running scene to the browser.
+
+:class:`Drawer` turns :class:`~warpsim.viewer.sink.DrawItem`\\ s into viser scene nodes
+(meshes, point clouds or, for grabbable particles, instanced spheres that take clicks, line
+segments, instanced prototypes) and updates them in place each frame. :class:`Viewer` owns a
+:class:`~warpsim.viewer.session.Session`, a stepping thread paced to the asked speed, the
+panels (``controls``, ``params``) and the mouse: a left drag on a grabbable mesh or particle
+grabs the vertex under the pointer (a ray cast from the camera) and moves the drag spring's
+target to where the pointer's ray meets the camera-facing plane through the grabbed point.
+"""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+
+from .geometry import icosphere
+from .picking import pointer_ray
+from .session import Session
+
+__all__ = ["Drawer", "PortInUseError", "Viewer", "check_port"]
+
+PICKABLE_POINTS = 4096  # grabbable points prims up to this size are drawn as clickable spheres
+
+
+class PortInUseError(OSError):
+    """The asked port is taken; the message names a free one."""
+
+
+def check_port(host, port):
+    """Raise PortInUseError naming a free port when ``port`` on ``host`` cannot be bound."""
+    def free(p):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, p))
+                return True
+            except OSError:
+                return False
+
+    if not free(port):
+        alt = next((p for p in range(port + 1, min(port + 200, 65536)) if free(p)), None)
+        if alt is None:
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                s.bind((host, 0))
+                alt = s.getsockname()[1]
+        raise PortInUseError(f"port {port} on {host} is in use; try --port {alt}")
+
+
+def _rgb(color):
+    return tuple(int(round(255 * min(max(float(c), 0.0), 1.0))) for c in color)
+
+
+class Drawer:
+    """Keeps viser scene nodes in step with a dict of DrawItems. ``on_drag(prim, event)`` is
+    called for drags on the prims named in ``draggable``."""
+
+    def __init__(self, server, on_drag=None):
+        self.server = server
+        self.on_drag = on_drag
+        self.nodes = {}  # name -> (handle or list of handles, signature)
+        self.static_nodes = []
+        self.version = None
+        self._sphere = icosphere(1)
+
+    def clear(self):
+        for node, _ in self.nodes.values():
+            for h in node if isinstance(node, list) else [node]:
+                h.remove()
+        for h in self.static_nodes:
+            h.remove()
+        self.nodes, self.static_nodes = {}, []
+
+    def draw(self, items, static, version, draggable=()):
+        """Show ``items`` (dynamic) and, after a rebuild (new ``version``), ``static``."""
+        with self.server.atomic():
+            if version != self.version:
+                self.clear()
+                self.version = version
+                for name, item in static.items():
+                    if len(item.points) and len(item.triangles):
+                        self.static_nodes.append(self.server.scene.add_mesh_simple(
+                            f"/static/{name}", item.points, item.triangles, color=_rgb(item.color), side="double",
+                            opacity=0.35 if name in ("walls", "container", "tank") else None))
+            for name, item in items.items():
+                self._update(name, item, name in draggable)
+
+    def _drag_hook(self, handle, name):
+        if self.on_drag is None:
+            return
+
+        async def cb(event):
+            self.on_drag(name, event)
+
+        handle.on_drag("left")(cb)
+
+    def _update(self, name, item, draggable):
+        scene = self.server.scene
+        path = f"/scene/{name}"
+        n = len(item.points)
+        if item.kind == "mesh":
+            sig = ("mesh", item.topology, n)
+        elif item.kind == "points":
+            sig = ("spheres" if draggable and n <= PICKABLE_POINTS else "cloud", n)
+        elif item.kind == "segments":
+            sig = ("segments", n)
+        else:
+            sig = ("instances", n, tuple(np.bincount(item.proto, minlength=len(item.prototypes))) if n else ())
+        known = self.nodes.get(name)
+        if known is not None and known[1] != sig:
+            for h in known[0] if isinstance(known[0], list) else [known[0]]:
+                h.remove()
+            known = None
+        empty = n == 0 or (item.kind == "mesh" and len(item.triangles) == 0)
+        if known is None:
+            if empty:
+                self.nodes[name] = ([], sig)
+                return
+            self.nodes[name] = (self._add(path, item, sig, draggable, name), sig)
+            return
+        handle = known[0]
+        if empty:
+            return
+        if sig[0] == "mesh":
+            handle.vertices = np.asarray(item.points, np.float32)
+        elif sig[0] == "spheres":
+            handle.batched_positions = np.asarray(item.points, np.float32)
+        elif sig[0] == "cloud":
+            handle.points = np.asarray(item.points, np.float32)
+        elif sig[0] == "segments":
+            handle.points = np.asarray(item.points, np.float32)
+        else:
+            for k, h in enumerate(handle):
+                sel = item.proto == k
+                if sel.any():
+                    h.batched_positions = np.asarray(item.points[sel], np.float32)
+                    h.batched_wxyzs = np.asarray(item.orientations[sel], np.float32)
+
+    def _add(self, path, item, sig, draggable, name):
+        scene = self.server.scene
+        color = _rgb(item.color)
+        if sig[0] == "mesh":
+            h = scene.add_mesh_simple(path, np.asarray(item.points, np.float32), item.triangles, color=color,
+                                      side="double")
+            if draggable:
+                self._drag_hook(h, name)
+            return h
+        if sig[0] == "spheres":
+            v, f = self._sphere
+            r = max(item.radius, 1e-3)
+            h = scene.add_batched_meshes_simple(
+                path, v * r, f, np.tile([[1.0, 0.0, 0.0, 0.0]], (len(item.points), 1)),
+                np.asarray(item.points, np.float32), batched_colors=color, lod="off")
+            self._drag_hook(h, name)
+            return h
+        if sig[0] == "cloud":
+            return scene.add_point_cloud(path, np.asarray(item.points, np.float32), color,
+                                         point_size=2.0 * max(item.radius, 1e-3), point_shape="circle",
+                                         precision="float32")
+        if sig[0] == "segments":
+            return scene.add_line_segments(path, np.asarray(item.points, np.float32), color,
+                                           thickness=max(2.0 * item.radius, 1.5e-3))
+        handles = []
+        for k, (v, f) in enumerate(item.prototypes):
+            sel = item.proto == k
+            if not sel.any():
+                handles.append(_Nothing())
+                continue
+            handles.append(scene.add_batched_meshes_simple(
+                f"{path}/proto{k}", v, f, np.asarray(item.orientations[sel], np.float32),
+                np.asarray(item.points[sel], np.float32), batched_colors=color, lod="off"))
+        return handles
+
+
+class _Nothing:
+    """Stand-in for a prototype with no instances this frame."""
+
+    def remove(self):
+        pass
+
+
+class Viewer:
+    """A live browser view of a scene (``warpsim view``; ``ws.Viewer`` in scripts and notebooks).
+
+    Args:
+        scene: a scene name (``"teapot"``), a registered Scene class, a built Scene instance,
+            or a ``ws.Simulator`` that the caller steps (then call :meth:`update` after steps).
+        params: {key: value} for a scene given by name or class.
+        device: Warp device (None: CUDA when present, else the CPU).
+        host, port: where to serve (127.0.0.1 by default: this machine only).
+        fps, substeps: as ``warpsim run``.
+        max_points: points drawn per points prim (strided subset beyond).
+        record_dir: folder of recordings.
+        paused: start paused.
+
+    ``start()`` serves in background threads and returns at once (``url`` says where);
+    ``run()`` serves until interrupted; ``stop()`` ends it, completing any recording. Example::
+
+        v = ws.Viewer("teapot", params={"stiffness": 80.0}, device="cpu").start()
+        print(v.url)   # open it; drag the teapot
+    """
+
+    def __init__(self, scene, params=None, device=None, *, host="127.0.0.1", port=8080, fps=None, substeps=None,
+                 max_points=200_000, record_dir="usd_out", paused=False, verbose=False):
+        from ..scenes import Scene, get_scene
+
+        if device is None:
+            import warp as wp
+
+            device = "cuda:0" if wp.is_cuda_available() else "cpu"
+        self.user_driven = False
+        instance = None
+        if isinstance(scene, str):
+            cls = get_scene(scene)
+        elif isinstance(scene, type) and issubclass(scene, Scene):
+            cls = scene
+        elif isinstance(scene, Scene):
+            cls, instance = type(scene), scene
+        elif hasattr(scene, "state") and hasattr(scene, "model"):
+            from .adapter import SimulatorAdapter
+
+            instance = SimulatorAdapter(scene)
+            cls = type(instance)
+            self.user_driven = True
+        else:
+            raise ValueError(f"ws.Viewer: {scene!r} is not a scene name, Scene class or instance, or ws.Simulator")
+        self.session = Session(cls, params, device, fps=fps, substeps=substeps, max_points=max_points,
+                               record_dir=record_dir, scene=instance)
+        if paused or self.user_driven:
+            self.session.playing = False
+        self.host, self.port, self.verbose = host, int(port), verbose
+        self.server = None
+        self._stop = threading.Event()
+        self._thread = None
+        self._drawn_frame = None
+
+    @property
+    def url(self):
+        return f"http://{self.host}:{self.port}"
+
+    # ------------------------------------------------------------------ serving
+    def start(self):
+        """Start serving (raises PortInUseError naming a free port when the port is taken)."""
+        import viser
+
+        from .controls import Controls
+        from .params import build_param_panel
+
+        check_port(self.host, self.port)
+        self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim", verbose=self.verbose)
+        self.server.scene.set_up_direction("+y")
+        self._frame_camera()
+        self.drawer = Drawer(self.server, on_drag=self._on_drag)
+        self.controls = Controls(self)
+        if self.session.cls.params:
+            with self.server.gui.add_folder("Parameters"):
+                self.param_handles = build_param_panel(self.server.gui, self.session, self._param_result)
+        self.server.on_client_disconnect(self._on_disconnect)
+        self.redraw()
+        self._thread = threading.Thread(target=self._loop, name="warpsim-viewer", daemon=True)
+        self._thread.start()
+        return self
+
+    def _frame_camera(self):
+        """Point new clients' cameras at the scene's bounds."""
+        s = self.session
+        pts = [it.points.reshape(-1, 3) for it in list(s.items.values()) + list(s.static.values()) if len(it.points)]
+        dyn = [it.points.reshape(-1, 3) for it in s.items.values() if len(it.points)]
+        allp = np.concatenate(dyn or pts) if (dyn or pts) else np.zeros((1, 3))
+        lo, hi = allp.min(0), allp.max(0)
+        center = 0.5 * (lo + hi)
+        size = max(float(np.linalg.norm(hi - lo)), 0.2)
+        self.server.initial_camera.look_at = tuple(center)
+        self.server.initial_camera.position = tuple(center + np.array([0.0, 0.35, 1.0]) * 1.6 * size)
+        self.server.initial_camera.up = (0.0, 1.0, 0.0)
+
+    def run(self):
+        """Serve until Ctrl-C (or :meth:`stop` from another thread)."""
+        if self.server is None:
+            self.start()
+        try:
+            while not self._stop.is_set():
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self.stop()
+
+    def stop(self):
+        """Stop stepping and serving; any recording is completed first."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        self.session.close()
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    # ------------------------------------------------------------------ frames
+    def redraw(self):
+        s = self.session
+        with s.lock:
+            items, static, version, frame = dict(s.items), s.static, s.version, s.frame
+            draggable = set(s.drag_map) & set(items)
+        if self.server is not None:
+            self.drawer.draw(items, static, version, draggable)
+        self._drawn_frame = (version, frame)
+
+    def update(self):
+        """Redraw a ``ws.Simulator`` the caller steps (``ws.Viewer(sim)``)."""
+        self.session.redraw()
+        self.redraw()
+        self.controls.refresh()
+
+    def _loop(self):
+        s = self.session
+        last_refresh = 0.0
+        while not self._stop.is_set():
+            t0 = time.perf_counter()
+            stepped = False
+            if s.playing and not self.user_driven:
+                stepped = s.advance()
+            if (s.version, s.frame) != self._drawn_frame:
+                try:
+                    self.redraw()
+                except Exception as exc:  # noqa: BLE001  (a drawing failure must not stop the server)
+                    s.error = s.error or f"drawing failed: {exc}"
+                    s.playing = False
+            now = time.perf_counter()
+            if now - last_refresh > 0.25:
+                self.controls.refresh()
+                last_refresh = now
+            if stepped:
+                wait = s.frame_period() - (time.perf_counter() - t0)
+                if wait > 0:
+                    self._stop.wait(wait)
+                s.measure(1, time.perf_counter() - t0)
+            else:
+                self._stop.wait(0.02)
+
+    # ------------------------------------------------------------------ input
+    def _param_result(self, key, outcome, ok):
+        if ok:
+            text = {"live": f"`{key}` applied live", "rebuilt": f"`{key}`: the scene was rebuilt (not live)",
+                    "unchanged": f"`{key}` unchanged"}[outcome]
+        else:
+            text = f"`{key}` not changed: {outcome}"
+        self.controls.say(text)
+        self.redraw()
+
+    def _on_drag(self, prim, event):
+        s = self.session
+        cam = event.client.camera
+        eye = np.asarray(cam.position, np.float64)
+        view = np.asarray(cam.look_at, np.float64) - eye
+        if event.phase == "start":
+            if event.instance_index is not None and s.items.get(prim) is not None and \
+                    s.items[prim].kind == "points":
+                vertex = int(event.instance_index)
+            else:
+                origin, direction = pointer_ray(eye, event.start_position)
+                vertex = s.pick(prim, origin, direction)
+            s.grab(prim, vertex, client=event.client_id)
+        elif event.phase == "update":
+            origin, direction = pointer_ray(eye, event.end_position)
+            s.drag_ray(origin, direction, view)
+        else:
+            s.release(client=event.client_id)
+
+    def _on_disconnect(self, client):
+        self.session.release(client=client.client_id)  # a tab closed mid-drag lets go
+        if self.server is not None and not self.server.get_clients():
+            self.session.stop_recording()  # the last tab closed: complete the recording

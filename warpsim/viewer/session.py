@@ -1,0 +1,338 @@
+"""The viewer's server-side state, independent of viser (so tests drive it directly).
+
+A :class:`Session` owns one running scene: it steps it frame by frame, draws it into a
+:class:`~warpsim.viewer.sink.ViewerSink`, paces it (real time when the machine keeps up, else as
+fast as it can), applies parameter changes (live where the scene allows, else by rebuilding),
+drags particles with a ``ws.DragSpring`` toward the pointer, records into a USD cache and turns
+a ``SimulationError`` into a paused session with the message kept for the page. Every public
+method takes the session's lock, so GUI callbacks (viser runs them on a thread pool) and the
+stepping loop can call it concurrently.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+
+from ..bodies.drag import DragSpring
+from ..core.errors import SimulationError
+from ..scenes import parse_value
+from .picking import camera_plane_target, pick_mesh_vertex, pick_point
+from .record import Recorder, default_recording_path
+from .sink import ViewerSink
+
+__all__ = ["Session", "frame_timing"]
+
+
+def frame_timing(cls, params, fps=None, substeps=None):
+    """(frame_dt [s], substeps, fps) of a scene class with resolved ``params`` (as ``warpsim run``)."""
+    substeps = int(substeps or cls.substeps)
+    if "dt" in params:
+        frame_dt = float(params["dt"]) * substeps
+    else:
+        frame_dt = 1.0 / float(fps or cls.fps)
+    return frame_dt, substeps, float(f"{1.0 / frame_dt:.12g}")
+
+
+class Session:
+    """One scene running in the viewer.
+
+    Args:
+        scene_cls: a registered Scene class (see ``warpsim.scenes.get_scene``).
+        params: {key: typed value or text} overriding the scene's defaults.
+        device: Warp device.
+        fps, substeps: as ``warpsim run`` (None: the scene's).
+        max_points: points drawn per points prim (strided subset beyond it).
+        record_dir: folder for recordings without an explicit path.
+        scene: an already built scene instance of ``scene_cls`` to show (``ws.Viewer(scene)``).
+    """
+
+    def __init__(self, scene_cls, params=None, device=None, *, fps=None, substeps=None, max_points=200_000,
+                 record_dir="usd_out", scene=None):
+        self.cls = scene_cls
+        self.params = scene_cls.resolve_params(params or {}) if scene is None else dict(scene.params)
+        self.device = device if scene is None else scene.device
+        self.fps_arg, self.substeps_arg = fps, substeps
+        self.max_points = max_points
+        self.record_dir = record_dir
+        self.lock = threading.RLock()
+        self.playing = True
+        self.speed = 1.0  # simulated seconds per wall second asked for (math.inf: as fast as possible)
+        self.error = None
+        self.recorder = None
+        self.last_recording = None
+        self.messages = []  # (kind, text) for the page: parameter changes, recordings, errors
+        self.wall_ms = 0.0  # wall milliseconds per frame (simulate + draw), smoothed
+        self.sim_rate = 0.0  # simulated seconds per wall second, measured
+        self.drag_stiffness = None  # None: chosen per scene (see _default_drag)
+        self.version = 0  # bumped on every rebuild: the front end redraws static prims
+        self._build(scene)
+
+    # ------------------------------------------------------------------ building
+    def _build(self, scene=None):
+        self._close_recording("the scene was rebuilt")
+        if scene is None:
+            scene = self.cls(dict(self.params), device=self.device)
+        self.scene = scene
+        self.frame_dt, self.substeps, self.fps = frame_timing(self.cls, self.params, self.fps_arg, self.substeps_arg)
+        self.sink = ViewerSink(self.max_points)
+        scene.declare(self.sink)
+        self.static = self.sink.static_items()
+        self.drag_map = scene.drag_map()
+        self.drag = None  # the DragSpring, attached on the first grab
+        self.grabbed = None  # {"prim", "vertex", "particle", "target", "start", "plane_point", "client"}
+        self.frame = 0
+        self.time = 0.0
+        self.error = None
+        self.items = self.sink.draw(scene.frame_data(), 0)
+        self.version += 1
+
+    def reset(self):
+        """Rebuild the scene from its current parameters (frame 0)."""
+        with self.lock:
+            if self.cls.__name__ == "SimulatorAdapter":
+                raise ValueError("a simulator stepped by the caller cannot be reset from the viewer")
+            self._build()
+            self._say("info", "reset to frame 0")
+
+    # ------------------------------------------------------------------ stepping
+    def advance(self):
+        """Simulate and draw one frame; on a SimulationError pause and keep the message (returns
+        False). Returns True when a frame was made."""
+        with self.lock:
+            if self.error is not None:
+                return False
+            t0 = time.perf_counter()
+            try:
+                self.scene.advance(self.frame_dt, self.substeps)
+                data = self.scene.frame_data()
+                self.items = self.sink.draw(data, self.frame + 1)
+            except (SimulationError, ValueError, FloatingPointError) as exc:
+                self.playing = False
+                self.error = f"frame {self.frame + 1}: {exc}" if not str(exc).startswith("frame") else str(exc)
+                self._say("error", self.error)
+                self._close_recording("the simulation failed")
+                return False
+            self.frame += 1
+            self.time += self.frame_dt
+            if self.recorder is not None:
+                self.recorder.write(data)
+            ms = 1e3 * (time.perf_counter() - t0)
+            self.wall_ms = ms if self.wall_ms == 0.0 else 0.8 * self.wall_ms + 0.2 * ms
+            return True
+
+    def redraw(self):
+        """Draw the scene's current state as the next frame without stepping it (a simulator
+        that the caller steps: ``ws.Viewer(sim).update()``)."""
+        with self.lock:
+            data = self.scene.frame_data()
+            self.items = self.sink.draw(data, self.frame + 1)
+            self.frame += 1
+            if self.recorder is not None:
+                self.recorder.write(data)
+
+    def frame_period(self):
+        """Wall seconds one frame should take at the asked speed (0: as fast as possible)."""
+        return 0.0 if not math.isfinite(self.speed) else self.frame_dt / self.speed
+
+    def measure(self, frames, seconds):
+        """Record the achieved rate: ``frames`` frames in ``seconds`` wall seconds."""
+        if seconds > 0:
+            rate = frames * self.frame_dt / seconds
+            self.sim_rate = rate if self.sim_rate == 0.0 else 0.7 * self.sim_rate + 0.3 * rate
+
+    def set_playing(self, playing):
+        with self.lock:
+            self.playing = bool(playing) and self.error is None
+
+    def step_once(self):
+        """Pause and advance exactly one frame."""
+        with self.lock:
+            self.playing = False
+            return self.advance()
+
+    # ------------------------------------------------------------------ parameters
+    def set_param(self, key, value):
+        """Change a scene parameter: ``"live"`` when applied to the running simulation,
+        ``"rebuilt"`` when the scene was rebuilt for it, ``"unchanged"``. ValueError naming the
+        parameter for an unknown key or a bad value (the old value stays)."""
+        with self.lock:
+            if key not in self.cls.params:
+                raise ValueError(f"scene {self.cls.name!r} has no parameter {key!r}; its parameters are "
+                                 f"{', '.join(self.cls.params)}")
+            param = self.cls.params[key]
+            if isinstance(value, str) and not isinstance(param.default, str):
+                value = parse_value(param, key, value)
+            elif isinstance(param.default, bool):
+                value = bool(value)
+            elif isinstance(param.default, int):
+                value = int(round(float(value)))
+            elif isinstance(param.default, float):
+                value = float(value)
+            elif isinstance(param.default, tuple):
+                value = tuple(float(v) for v in value)
+            if param.choices is not None and value not in param.choices:
+                raise ValueError(f"{key}={value!r} is not one of {', '.join(map(str, param.choices))}")
+            if self.params.get(key) == value:
+                return "unchanged"
+            if self.error is None and self.scene.set_param(key, value):
+                self.params[key] = value
+                self._say("info", f"{key} = {value}: applied live")
+                return "live"
+            old = self.params[key]
+            self.params[key] = value
+            try:
+                self._build()
+            except ValueError as exc:
+                self.params[key] = old
+                self._build()
+                raise ValueError(f"{key}={value!r}: {exc}") from None
+            self._say("info", f"{key} = {value}: the scene was rebuilt (not a live parameter)")
+            return "rebuilt"
+
+    # ------------------------------------------------------------------ dragging
+    def _grabbable(self, prim):
+        """(particle index per drawn vertex, bool grabbable per drawn vertex) of a drawn prim."""
+        item = self.items.get(prim)
+        mapping = self.drag_map.get(prim)
+        n = len(item.points)
+        particles = np.arange(n) if mapping is None else np.asarray(mapping)
+        if item.shown is not None:
+            particles = particles[item.shown]
+        inv_mass = self.scene.sim.model.particle_inv_mass.numpy()
+        return particles, inv_mass[particles] > 0.0
+
+    def _default_drag(self):
+        """Drag spring (stiffness [N/m], damping [N s/m]): the model's median spring stiffness
+        (a grabbed vertex follows about as firmly as its neighbours hold it) or, without springs,
+        m (0.5 / h)^2; explicit integrators are capped at m (0.5 / h)^2 so omega h <= 0.5."""
+        model = self.scene.sim.model
+        inv = model.particle_inv_mass.numpy()
+        m = float(np.mean(1.0 / inv[inv > 0])) if (inv > 0).any() else 1.0
+        h = self.frame_dt / self.substeps
+        cap = m * (0.5 / h) ** 2
+        k = float(np.median(model.spring_stiffness.numpy())) if model.spring_count else cap
+        implicit = "implicit" in type(self.scene.sim.integrator).__name__.lower() and \
+            "semi" not in type(self.scene.sim.integrator).__name__.lower()
+        if self.drag_stiffness is not None:
+            k = float(self.drag_stiffness)
+        elif not implicit:
+            k = min(k, cap)
+        return k, math.sqrt(k * m)  # half of critical damping 2 sqrt(k m)
+
+    def pick(self, prim, ray_origin, ray_direction):
+        """Drawn vertex of ``prim`` under the ray (-1: none): a triangle hit for meshes, the
+        nearest point within 3 drawn radii for points."""
+        with self.lock:
+            item = self.items.get(prim)
+            if item is None or prim not in self.drag_map:
+                return -1
+            _, ok = self._grabbable(prim)
+            if item.kind == "mesh":
+                return pick_mesh_vertex(ray_origin, ray_direction, item.points, item.triangles, ok)
+            return pick_point(ray_origin, ray_direction, item.points, 3.0 * max(item.radius, 1e-3) + 0.02, ok)
+
+    def grab(self, prim, vertex, client=None):
+        """Grab drawn vertex ``vertex`` of ``prim``: a DragSpring holds its particle where it is
+        until :meth:`drag_to` moves the target. Returns the particle index (-1: not grabbable)."""
+        with self.lock:
+            if self.error is not None or prim not in self.drag_map or vertex < 0:
+                return -1
+            particles, ok = self._grabbable(prim)
+            if not (0 <= vertex < len(particles)) or not ok[vertex]:
+                return -1
+            particle = int(particles[vertex])
+            k, c = self._default_drag()
+            if self.drag is None:
+                self.drag = DragSpring(k, c)
+                self.scene.add_drag(self.drag)
+            self.drag.stiffness, self.drag.damping = k, c
+            x = self.scene.sim.state.positions.numpy()[particle].astype(np.float64)
+            self.drag.grab(particle, x)
+            self.grabbed = {"prim": prim, "vertex": int(vertex), "particle": particle, "start": x.copy(),
+                            "target": x.copy(), "plane_point": x.copy(), "client": client}
+            return particle
+
+    def drag_to(self, target):
+        """Move the grabbed particle's target to ``target`` [m]."""
+        with self.lock:
+            if self.grabbed is None:
+                return
+            target = np.asarray(target, np.float64).reshape(3)
+            if not np.isfinite(target).all():
+                return
+            self.drag.set_target(target)
+            self.grabbed["target"] = target
+
+    def drag_ray(self, ray_origin, ray_direction, view_direction):
+        """Move the target to where the pointer's ray meets the camera-facing plane through the
+        point grabbed (its position at the grab)."""
+        with self.lock:
+            if self.grabbed is None:
+                return None
+            target = camera_plane_target(ray_origin, ray_direction, self.grabbed["plane_point"], view_direction)
+            self.drag_to(target)
+            return target
+
+    def release(self, client=None):
+        """Let go (only ``client``'s grab when given: a disconnecting browser releases its own)."""
+        with self.lock:
+            if self.grabbed is None or (client is not None and self.grabbed.get("client") != client):
+                return False
+            self.drag.release()
+            self.grabbed = None
+            return True
+
+    def grabbed_position(self):
+        """Current position [m] of the grabbed particle (None when nothing is grabbed)."""
+        with self.lock:
+            if self.grabbed is None:
+                return None
+            return self.scene.sim.state.positions.numpy()[self.grabbed["particle"]].astype(np.float64)
+
+    # ------------------------------------------------------------------ recording
+    def start_recording(self, path=None):
+        """Record from the frame shown now into ``path`` (default ``usd_out/<scene>_view_<time>.usda``)."""
+        with self.lock:
+            if self.recorder is not None:
+                return self.recorder.path
+            path = path or default_recording_path(self.cls.name, self.record_dir)
+            self.recorder = Recorder(self.scene, path, self.fps)
+            self.recorder.write(self.scene.frame_data())
+            self._say("info", f"recording into {path}")
+            return self.recorder.path
+
+    def stop_recording(self):
+        """Complete the recording; returns the path of the cache (None if none was running)."""
+        with self.lock:
+            return self._close_recording(None)
+
+    def _close_recording(self, why):
+        rec, self.recorder = getattr(self, "recorder", None), None
+        if rec is None:
+            return None
+        path = rec.close()
+        self.last_recording = path
+        self._say("info", f"recorded {rec.frames} frames into {path}" + (f" ({why})" if why else ""))
+        return path
+
+    def close(self):
+        """Stop: complete any recording."""
+        with self.lock:
+            self._close_recording("the viewer stopped")
+
+    # ------------------------------------------------------------------ reporting
+    def _say(self, kind, text):
+        self.messages.append((kind, text))
+        del self.messages[:-20]
+
+    def status(self):
+        """Frame, simulated time [s], wall ms per frame, simulated s per wall s, and state flags."""
+        with self.lock:
+            return {"scene": self.cls.name, "frame": self.frame, "time": self.time, "wall_ms": self.wall_ms,
+                    "sim_rate": self.sim_rate, "playing": self.playing, "speed": self.speed, "error": self.error,
+                    "recording": None if self.recorder is None else self.recorder.path,
+                    "recorded_frames": 0 if self.recorder is None else self.recorder.frames,
+                    "grabbed": None if self.grabbed is None else dict(self.grabbed)}
