@@ -18,6 +18,8 @@ from .bodies import (
     Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody, Sphere,
     TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
 )
+from .bodies import SoftContact, torus_mesh
+from .core import BreakReport, SpringFracture, spring_segments
 from .cloth import (
     Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh, cloth_energy,
 )
@@ -43,4 +45,5 @@ __all__ = [
     "MacGrid", "PressureSolver", "Advector", "LevelSet", "LevelSetLiquid", "Smoke", "FlipLiquid", "Viscosity",
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
+    "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
 ]

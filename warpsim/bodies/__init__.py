@@ -2,19 +2,23 @@
 particle-particle contacts, keyframed motion), mass-spring soft bodies from triangle meshes, the
 Utah teapot, dragging a particle with the mouse or a script, and host mesh helpers (``meshtools``).
 
-Drives ``warpsim.kernels.collide`` and ``warpsim.kernels.interaction``.
-Entry classes: Plane, Box, Sphere, TriangleMesh, ParticleCollisions, add_soft_body, teapot_mesh, DragSpring.
+Drives ``warpsim.kernels.collide``, ``warpsim.kernels.interaction`` and ``warpsim.kernels.soft_contact``
+(soft body against soft body: ``SoftContact``; ``torus_mesh`` makes the lecture's donuts).
+Entry classes: Plane, Box, Sphere, TriangleMesh, ParticleCollisions, SoftContact, add_soft_body, teapot_mesh,
+DragSpring.
 """
 
 from .colliders import (
     Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
 )
 from .drag import DragSpring, pick_particle
+from .shapes import torus_mesh
+from .soft_contact import SoftContact
 from .softbody import SoftBody, add_soft_body, load_mesh
 from .teapot import teapot_mesh
 
 __all__ = [
     "Collider", "Planes", "Plane", "Box", "Sphere", "Capsule", "Quad", "Rectangle", "TriangleMesh",
     "ParticleCollisions", "keyframe_motion", "DragSpring", "pick_particle", "SoftBody", "add_soft_body", "load_mesh",
-    "teapot_mesh",
+    "teapot_mesh", "SoftContact", "torus_mesh",
 ]

@@ -1,0 +1,162 @@
+"""Soft body against soft body: vertices of one body against the triangles of another.
+
+:class:`SoftContact` is a collider (it runs after integration, so it works with every
+integrator, semi-implicit and implicit Euler included). Each step it refits one ``wp.Mesh``
+BVH over the surface triangles of all its bodies (``mesh.refit()`` on a copy of the current
+positions), finds for every surface vertex the nearest triangle of another body (optionally of
+its own body: ``self_contact``) closer than ``thickness`` [m], pushes the pair apart and applies
+an inelastic impulse with restitution and Coulomb friction. Impulses act on the vertex and,
+weighted by barycentrics, on the triangle's three vertices, equal and opposite: momentum is
+conserved exactly. Kernels: ``warpsim.kernels.soft_contact`` (the method is described there).
+
+Example::
+
+    a = ws.add_soft_body(builder, *torus, position=(0, 0.3, 0))
+    b = ws.add_soft_body(builder, *torus, position=(0, 0.45, 0))
+    contact = ws.SoftContact([a, b], thickness=0.01, friction=0.5)
+    sim = ws.Simulator(builder.finalize(), colliders=[ws.Plane(), contact])
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from ..core.collider import Collider
+from ..kernels import soft_contact as K
+
+
+def _body_faces(body, k: int) -> np.ndarray:
+    faces = getattr(body, "faces", body)
+    try:
+        faces = np.asarray(faces, dtype=np.int64)
+    except (TypeError, ValueError):
+        raise ValueError(f"SoftContact bodies[{k}] is {type(body).__name__}; give a SoftBody (ws.add_soft_body) "
+                         "or an (F, 3) array of triangles in particle indices") from None
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise ValueError(f"SoftContact bodies[{k}]: triangles must have shape (F, 3) with F >= 1, got {faces.shape}")
+    return faces
+
+
+class SoftContact(Collider):
+    """Vertex-triangle contact between soft bodies (see module docstring).
+
+    Args:
+        bodies: SoftBody objects (``ws.add_soft_body``) or (F, 3) triangle arrays in particle
+            indices; each is one body. Their surface vertices are the contact vertices.
+        thickness: contact distance [m]: a vertex is kept at least this far in front of every
+            other body's triangles.
+        restitution: normal restitution e in [0, 1] (0: the approach stops).
+        friction: Coulomb friction coefficient mu >= 0.
+        self_contact: also test a body's vertices against its own triangles (except triangles
+            within ``self_rest_distance`` [m] of the vertex in the rest pose; default 2 x thickness).
+        iterations: impulse passes per step (Jacobi; more resolve a crowded contact better).
+        search: how far behind a triangle [m] a vertex still counts as penetrating and is pushed
+            back out (default 3 x thickness).
+
+    After a step, ``contact_count`` (one read-back) is the number of vertex contacts found.
+    """
+
+    def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
+                 self_contact: bool = False, iterations: int = 4, search: float | None = None,
+                 self_rest_distance: float | None = None):
+        bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
+        if not bodies:
+            raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
+        self.faces = [_body_faces(b, k) for k, b in enumerate(bodies)]
+        for name, value, positive in (("thickness", thickness, True), ("friction", friction, False)):
+            v = float(value)
+            if not math.isfinite(v) or v < 0.0 or (positive and v == 0.0):
+                raise ValueError(f"SoftContact {name} is {value}; it must be finite and {'> 0' if positive else '>= 0'}")
+        restitution = float(restitution)
+        if not (math.isfinite(restitution) and 0.0 <= restitution <= 1.0):
+            raise ValueError(f"SoftContact restitution is {restitution}; it must be in [0, 1]")
+        if int(iterations) < 1:
+            raise ValueError(f"SoftContact iterations is {iterations}; it must be >= 1")
+        self.thickness = float(thickness)
+        self.friction = float(friction)
+        self.restitution = restitution
+        self.self_contact = bool(self_contact)
+        self.iterations = int(iterations)
+        self.search = 3.0 * self.thickness if search is None else float(search)
+        self.self_rest_distance = 2.0 * self.thickness if self_rest_distance is None else float(self_rest_distance)
+        for name in ("search", "self_rest_distance"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"SoftContact {name} is {value}; it must be finite and >= 0 [m]")
+        if len(self.faces) < 2 and not self.self_contact:
+            raise ValueError("SoftContact with one body does nothing unless self_contact=True; give two bodies or more")
+        self._mesh = None
+
+    def bind(self, model) -> None:
+        super().bind(model)
+        n = model.particle_count
+        tri, tri_body, vert, vert_body = [], [], [], []
+        seen = np.full(n, -1, dtype=np.int64)
+        for k, faces in enumerate(self.faces):
+            if faces.min() < 0 or faces.max() >= n:
+                raise ValueError(f"SoftContact bodies[{k}]: triangle index {int(faces.max())} is out of range "
+                                 f"[0, {n}); build the bodies into this model")
+            verts = np.unique(faces)
+            shared = verts[seen[verts] >= 0]
+            if len(shared):
+                raise ValueError(f"SoftContact bodies[{k}]: particle {int(shared[0])} also belongs to bodies"
+                                 f"[{int(seen[shared[0]])}]; every body needs its own particles")
+            seen[verts] = k
+            tri.append(faces)
+            tri_body.append(np.full(len(faces), k))
+            vert.append(verts)
+            vert_body.append(np.full(len(verts), k))
+        d = model.device
+        i32 = np.int32
+        self._tri = wp.array(np.concatenate(tri).reshape(-1).astype(i32), dtype=int, device=d)
+        self._tri_body = wp.array(np.concatenate(tri_body).astype(i32), dtype=int, device=d)
+        self._vertex = wp.array(np.concatenate(vert).astype(i32), dtype=int, device=d)
+        self._vertex_body = wp.array(np.concatenate(vert_body).astype(i32), dtype=int, device=d)
+        self.vertex_count = int(self._vertex.shape[0])
+        self.triangle_count = int(self._tri_body.shape[0])
+        v = self.vertex_count
+        self._points = wp.clone(model.particle_q)
+        self._mesh = wp.Mesh(points=self._points, indices=self._tri)
+        self._contact_tri = wp.zeros(v, dtype=int, device=d)
+        self._contact_bary = wp.zeros(v, dtype=wp.vec3, device=d)
+        self._contact_normal = wp.zeros(v, dtype=wp.vec3, device=d)
+        self._contact_depth = wp.zeros(v, dtype=float, device=d)
+        self._particle_contacts = wp.zeros(n, dtype=int, device=d)
+        self._total = wp.zeros(1, dtype=int, device=d)
+        self._dx = wp.zeros(n, dtype=wp.vec3, device=d)
+        self._dv = wp.zeros(n, dtype=wp.vec3, device=d)
+
+    @property
+    def mesh(self) -> wp.Mesh:
+        """The BVH mesh over every body's triangles (points: positions at the last step)."""
+        return self._mesh
+
+    @property
+    def contact_count(self) -> int:
+        """Vertex-triangle contacts found in the last step (reads one int back)."""
+        return int(self._total.numpy()[0])
+
+    def apply(self, model, state, q_prev, dt) -> None:
+        d, n, v = model.device, model.particle_count, self.vertex_count
+        wp.copy(self._points, state.positions)
+        self._mesh.refit()
+        self._particle_contacts.zero_()
+        self._total.zero_()
+        wp.launch(K.find_soft_contacts, v,
+                  inputs=[self._mesh.id, state.positions, model.particle_q, model.particle_inv_mass, self._tri,
+                          self._tri_body, self._vertex, self._vertex_body, self.thickness, self.search,
+                          int(self.self_contact), self.self_rest_distance, self._contact_tri, self._contact_bary,
+                          self._contact_normal, self._contact_depth, self._particle_contacts, self._total], device=d)
+        contact = [self._contact_tri, self._contact_bary, self._contact_normal]
+        wp.launch(K.push_soft_contacts, v,
+                  inputs=[model.particle_inv_mass, self._tri, self._vertex, *contact, self._contact_depth,
+                          self._particle_contacts, self._dx], device=d)
+        for _ in range(self.iterations):
+            wp.launch(K.impulse_soft_contacts, v,
+                      inputs=[state.velocities, model.particle_inv_mass, self._tri, self._vertex, *contact,
+                              self._particle_contacts, self.restitution, self.friction, self._dv], device=d)
+            wp.launch(K.apply_soft_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
+                      device=d)
