@@ -8,6 +8,9 @@ file a user opens (``cache.usda`` here; ``.usd`` and ``.usdc`` work the same)::
     cache.manifest.usda       clip manifest: the time-varying attributes and their types
     cache.chunk000000.usdc    frames 0 .. K-1 (one chunk of ``chunk_size`` frames)
     cache.chunk000024.usdc    frames K .. 2K-1, ...
+    cache.chunks.jsonl        chunk index: per chunk its frames, size, CRC-32, element counts and
+                              bounds (``warpsim.usd.chunk_index``; ``warpsim info`` reads only this
+                              and the root layer, ``--resume`` checks the chunks it keeps with it)
 
 Crash safety: a chunk is written under a temporary name (saved incrementally, so memory holds
 about one frame, not the chunk), synced and then ``os.replace``-d into place; only then is the
@@ -39,6 +42,7 @@ import os
 
 import numpy as np
 
+from . import chunk_index
 from .prims import ARRAY_TYPES, close_matches
 from .sink import PrimSink, state_frame_data
 
@@ -96,6 +100,7 @@ class _Chunk:
         self.layer = None
         self.pending_bytes = 0
         self.last = {}  # attribute path -> last value written (on-change attributes)
+        self.stats = chunk_index.ChunkStats()  # counts and bounds for the chunk index
 
 
 class UsdCacheWriter(PrimSink):
@@ -244,6 +249,10 @@ class UsdCacheWriter(PrimSink):
     def _abs(self, name):
         return os.path.join(self.dirname, name)
 
+    @property
+    def _index_file(self):
+        return chunk_index.index_path(self.dirname, self.stem)
+
     def _replace(self, tmp, final):
         if self.durable:
             _fsync(tmp)
@@ -275,6 +284,8 @@ class UsdCacheWriter(PrimSink):
         self._export_atomic(self._build_layer(manifest=True), self._abs(self._file("manifest")))
         if self.resume_frame is not None:
             self._load_for_resume(self.resume_frame)
+        else:
+            chunk_index.write_index(self._index_file, [], self.durable)
         self._write_root()
         self._remove_unlisted_chunks()
 
@@ -312,6 +323,7 @@ class UsdCacheWriter(PrimSink):
                     chunk.last[path] = np.array(value, copy=True)
                 layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
                 chunk.pending_bytes += getattr(value, "nbytes", 8)
+        chunk.stats.add_frame(samples)
         chunk.end = frame
         if chunk.pending_bytes >= self.save_bytes:
             layer.Save()  # crate saves append: memory holds only the unsaved samples
@@ -324,6 +336,8 @@ class UsdCacheWriter(PrimSink):
             raise OSError(f"could not save {chunk.tmp_path}")
         chunk.layer = None  # release the layer (and its file mapping) before renaming
         self._replace(chunk.tmp_path, chunk.final_path)
+        chunk_index.append_record(self._index_file, chunk_index.record(chunk.final_path, chunk.start, chunk.end,
+                                                                        chunk.stats), self.durable)
         self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
         self._write_root()
 
@@ -422,26 +436,51 @@ class UsdCacheWriter(PrimSink):
         if last is None or last < resume_frame - 1:
             raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} holds frames up to {last}; "
                              "resume from an earlier checkpoint")
+        records = chunk_index.read_index(self._index_file) or {}
+        for s, e, f in chunks:  # never resume over a hole: every frame before the checkpoint must be intact
+            why = chunk_index.chunk_problem(self.dirname, f, records.get(f))
+            if why:
+                raise ValueError(f"cannot resume at frame {resume_frame}: chunk file {f} (frames {s}..{min(e, last)}) "
+                                 f"is {why}, so frames before the checkpoint are lost; run again without --resume "
+                                 "(or restore the file)")
         if last >= resume_frame:  # truncate the chunk that runs past the resume point
             chunks[-1][1] = resume_frame - 1
-            self._copy_chunk(chunks[-1], self._abs(chunks[-1][2]), resume_frame - 1)
+            stats = self._copy_chunk(chunks[-1], self._abs(chunks[-1][2]), resume_frame - 1)
+            records[chunks[-1][2]] = chunk_index.record(self._abs(chunks[-1][2]), *chunks[-1][:2], stats)
+        for s, e, f in chunks:  # caches written before the index existed get one now
+            if f not in records:
+                records[f] = chunk_index.record(self._abs(f), s, e, self._copy_chunk([s, e, f], None, e))
+        chunk_index.write_index(self._index_file, [records[f] for s, e, f in chunks], self.durable)
         self.chunks = chunks
         self.last_frame = resume_frame - 1
 
     def _copy_chunk(self, chunk, dest, last_frame):
-        """Rewrite chunk file ``dest`` keeping frames <= last_frame (atomic)."""
+        """Rewrite chunk file ``dest`` keeping frames <= last_frame (atomic; ``dest=None``: only
+        read it); returns the :class:`chunk_index.ChunkStats` of the frames kept."""
         Sdf, _, _ = _pxr()
         src = Sdf.Layer.OpenAsAnonymous(self._abs(chunk[2]))
         tmp = _tmp_name(dest)
-        out = Sdf.Layer.CreateNew(tmp)
-        self._declare_specs(out, manifest=True)
+        out = None if dest is None else Sdf.Layer.CreateNew(tmp)
+        if out is not None:
+            self._declare_specs(out, manifest=True)
+        frames = {}
         for path in self._dynamic_paths():
             for t in src.ListTimeSamplesForPath(path):
                 if chunk[0] <= t <= last_frame:
-                    out.SetTimeSample(path, t, src.QueryTimeSample(path, t))
-        out.Save()
-        del out, src
-        self._replace(tmp, dest)
+                    value = src.QueryTimeSample(path, t)
+                    if out is not None:
+                        out.SetTimeSample(path, t, value)
+                    prim, attr = path.rsplit("/", 1)[1].split(".", 1)
+                    frames.setdefault(t, {}).setdefault(prim, {})[attr] = value
+        if out is not None:
+            out.Save()
+            del out
+            self._replace(tmp, dest)
+        del src
+        stats = chunk_index.ChunkStats()
+        for t in sorted(frames):
+            stats.add_frame(frames[t])
+        return stats
 
     def _dynamic_paths(self):
         return [f"/{self.root_prim}/{name}.{a.name}" for name, d in self.prims.items() for a in d.dynamic_attrs()]
@@ -482,5 +521,7 @@ class UsdCacheWriter(PrimSink):
         for c in chunks:
             os.remove(self._abs(c[2]))
         os.remove(self._abs(self._file("manifest")))
+        if os.path.exists(self._index_file):
+            os.remove(self._index_file)
         self.chunks = []
         return final

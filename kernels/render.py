@@ -1,0 +1,342 @@
+"""Ray-casting kernels of the preview renderer (``warpsim.render``): one ray per pixel.
+
+Geometry a frame is made of (all in world space, metres):
+- opaque triangles in one ``wp.Mesh`` (meshes, colliders, tessellated cubes/cones, instanced
+  mesh prototypes) with a colour per face and a shading normal per face corner (smooth meshes
+  get vertex normals, flat ones the face normal);
+- translucent triangles in a second ``wp.Mesh`` (walls with ``displayOpacity`` < 1) with a colour
+  and an opacity per face, composited front to back (at most ``MAX_LAYERS`` layers);
+- round primitives in a ``wp.Bvh``: capsules from ``a`` to ``b`` of radius ``r`` (points and
+  spheres are capsules with ``a == b``; curves are chains of capsules);
+- a density grid (smoke) ray-marched as an emission-free, absorbing and scattering volume with a
+  short shadow march towards the light;
+- a ground plane ``y = ground_y`` (checkered) below everything.
+
+Shading is Lambert with an ambient term, a directional light and one shadow ray per visible
+surface (opaque triangles and round primitives cast shadows). The camera is a pinhole: pixel
+``(i, j)`` (row ``i`` from the top) looks along ``forward + (2 (j + 0.5) / width - 1) * tan_x * right
++ (1 - 2 (i + 0.5) / height) * tan_y * up``.
+
+Conventions: colours are linear RGB in [0, 1]; the output is an array of ``vec3`` of shape
+(height * width,) in row-major order.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+MAX_LAYERS = wp.constant(6)
+HIT_EPS = wp.constant(1.0e-4)
+
+
+@wp.struct
+class Camera:
+    """Pinhole camera: ``eye`` [m], orthonormal ``forward``/``right``/``up`` and the tangents of
+    the half field of view across (``tan_x``) and up (``tan_y``)."""
+
+    eye: wp.vec3
+    forward: wp.vec3
+    right: wp.vec3
+    up: wp.vec3
+    tan_x: float
+    tan_y: float
+
+
+@wp.struct
+class Lighting:
+    """Directional light (unit vector towards the light), ambient share, background colours
+    (horizon and zenith) and the ground plane (``ground`` 0/1, height [m], checker size [m]; it
+    fades into the horizon colour over ``fade`` [m])."""
+
+    light: wp.vec3
+    ambient: float
+    sky_low: wp.vec3
+    sky_high: wp.vec3
+    ground: int
+    ground_y: float
+    checker: float
+    fade: float
+
+
+@wp.struct
+class Volume:
+    """Density grid (nx, ny, nz) of cell ``dx`` [m] whose cell (0, 0, 0) centre is ``origin + dx/2``;
+    ``extinction`` [1/m per unit density], ``color`` the scattering albedo; ``active`` 0/1."""
+
+    density: wp.array3d(dtype=float)
+    origin: wp.vec3
+    dx: float
+    extinction: float
+    color: wp.vec3
+    active: int
+
+
+@wp.func
+def ray_capsule(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, r: float):
+    """Nearest t > 0 where the ray o + t d (|d| = 1) enters the capsule (a, b, r); -1 if none."""
+    ba = b - a
+    oa = o - a
+    baba = wp.dot(ba, ba)
+    if baba < 1.0e-20:  # a sphere
+        bq = wp.dot(oa, d)
+        cq = wp.dot(oa, oa) - r * r
+        hq = bq * bq - cq
+        if hq < 0.0:
+            return -1.0
+        t = -bq - wp.sqrt(hq)
+        if t < 0.0:
+            t = -bq + wp.sqrt(hq)
+        if t < 0.0:
+            return -1.0
+        return t
+    bard = wp.dot(ba, d)
+    baoa = wp.dot(ba, oa)
+    rdoa = wp.dot(d, oa)
+    oaoa = wp.dot(oa, oa)
+    qa = baba - bard * bard
+    qb = baba * rdoa - baoa * bard
+    qc = baba * oaoa - baoa * baoa - r * r * baba
+    h = qb * qb - qa * qc
+    if h >= 0.0 and qa > 1.0e-20:
+        t = (-qb - wp.sqrt(h)) / qa
+        y = baoa + t * bard
+        if t > 0.0 and y > 0.0 and y < baba:
+            return t
+    # the caps (spheres at a and b)
+    best = float(-1.0)
+    for k in range(2):
+        c = a
+        if k == 1:
+            c = b
+        oc = o - c
+        bq = wp.dot(oc, d)
+        cq = wp.dot(oc, oc) - r * r
+        hq = bq * bq - cq
+        if hq >= 0.0:
+            t = -bq - wp.sqrt(hq)
+            if t > 0.0 and (best < 0.0 or t < best):
+                best = t
+    return best
+
+
+@wp.func
+def capsule_normal(p: wp.vec3, a: wp.vec3, b: wp.vec3):
+    """Outward unit normal of a capsule (a, b) at surface point p."""
+    ba = b - a
+    baba = wp.dot(ba, ba)
+    s = float(0.0)
+    if baba > 1.0e-20:
+        s = wp.clamp(wp.dot(p - a, ba) / baba, 0.0, 1.0)
+    return wp.normalize(p - (a + s * ba))
+
+
+@wp.func
+def closest_capsule(bvh: wp.uint64, cap_a: wp.array(dtype=wp.vec3), cap_b: wp.array(dtype=wp.vec3),
+                    cap_r: wp.array(dtype=float), o: wp.vec3, d: wp.vec3, t_max: float):
+    """(t, index) of the nearest capsule hit before t_max; index -1 if none."""
+    best_t = t_max
+    best = int(-1)
+    query = wp.bvh_query_ray(bvh, o, d)
+    k = int(0)
+    while wp.bvh_query_next(query, k, best_t):
+        t = ray_capsule(o, d, cap_a[k], cap_b[k], cap_r[k])
+        if t > 0.0 and t < best_t:
+            best_t = t
+            best = k
+    return best_t, best
+
+
+@wp.func
+def occluded(mesh: wp.uint64, has_mesh: int, bvh: wp.uint64, has_caps: int, cap_a: wp.array(dtype=wp.vec3),
+             cap_b: wp.array(dtype=wp.vec3), cap_r: wp.array(dtype=float), o: wp.vec3, d: wp.vec3):
+    """1.0 when the ray from o along d hits opaque geometry, else 0.0."""
+    if has_mesh != 0:
+        q = wp.mesh_query_ray(mesh, o, d, 1.0e6)
+        if q.result:
+            return 1.0
+    if has_caps != 0:
+        _t, k = closest_capsule(bvh, cap_a, cap_b, cap_r, o, d, 1.0e6)
+        if k >= 0:
+            return 1.0
+    return 0.0
+
+
+@wp.func
+def sample_density(vol: Volume, p: wp.vec3):
+    """Trilinear density at world point p (0 outside the grid)."""
+    g = (p - vol.origin) / vol.dx - wp.vec3(0.5, 0.5, 0.5)
+    nx = vol.density.shape[0]
+    ny = vol.density.shape[1]
+    nz = vol.density.shape[2]
+    if g[0] < -0.5 or g[1] < -0.5 or g[2] < -0.5:
+        return 0.0
+    if g[0] > float(nx) - 0.5 or g[1] > float(ny) - 0.5 or g[2] > float(nz) - 0.5:
+        return 0.0
+    i0 = int(wp.floor(g[0]))
+    j0 = int(wp.floor(g[1]))
+    k0 = int(wp.floor(g[2]))
+    fx = g[0] - float(i0)
+    fy = g[1] - float(j0)
+    fz = g[2] - float(k0)
+    acc = float(0.0)
+    for c in range(8):
+        di = c & 1
+        dj = (c >> 1) & 1
+        dk = (c >> 2) & 1
+        i = wp.clamp(i0 + di, 0, nx - 1)
+        j = wp.clamp(j0 + dj, 0, ny - 1)
+        k = wp.clamp(k0 + dk, 0, nz - 1)
+        w = wp.where(di == 1, fx, 1.0 - fx) * wp.where(dj == 1, fy, 1.0 - fy) * wp.where(dk == 1, fz, 1.0 - fz)
+        acc += w * vol.density[i, j, k]
+    return acc
+
+
+@wp.func
+def slab(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    """(t_enter, t_exit) of the ray against the box [lo, hi]; t_enter > t_exit when it misses."""
+    t0 = float(0.0)
+    t1 = float(1.0e30)
+    for a in range(3):
+        if wp.abs(d[a]) < 1.0e-12:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                return 1.0, 0.0
+        else:
+            inv = 1.0 / d[a]
+            ta = (lo[a] - o[a]) * inv
+            tb = (hi[a] - o[a]) * inv
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    return t0, t1
+
+
+@wp.func
+def lambert(color: wp.vec3, n: wp.vec3, light: Lighting, shadow: float):
+    diffuse = wp.max(wp.dot(n, light.light), 0.0) * (1.0 - shadow)
+    return color * (light.ambient + (1.0 - light.ambient) * diffuse)
+
+
+@wp.kernel
+def render_pixels(
+    cam: Camera,
+    light: Lighting,
+    width: int,
+    height: int,
+    mesh: wp.uint64,
+    has_mesh: int,
+    face_color: wp.array(dtype=wp.vec3),
+    corner_normal: wp.array(dtype=wp.vec3),
+    glass: wp.uint64,
+    has_glass: int,
+    glass_color: wp.array(dtype=wp.vec3),
+    glass_alpha: wp.array(dtype=float),
+    bvh: wp.uint64,
+    has_caps: int,
+    cap_a: wp.array(dtype=wp.vec3),
+    cap_b: wp.array(dtype=wp.vec3),
+    cap_r: wp.array(dtype=float),
+    cap_color: wp.array(dtype=wp.vec3),
+    vol: Volume,
+    image_out: wp.array(dtype=wp.vec3),
+):
+    tid = wp.tid()
+    i = tid / width
+    j = tid - i * width
+    sx = (2.0 * (float(j) + 0.5) / float(width) - 1.0) * cam.tan_x
+    sy = (1.0 - 2.0 * (float(i) + 0.5) / float(height)) * cam.tan_y
+    d = wp.normalize(cam.forward + sx * cam.right + sy * cam.up)
+    o = cam.eye
+
+    # nearest opaque surface: triangles, round primitives, ground
+    t_best = float(1.0e30)
+    kind = int(0)  # 0 sky, 1 triangle, 2 capsule, 3 ground
+    n = wp.vec3(0.0, 1.0, 0.0)
+    color = wp.vec3(0.0, 0.0, 0.0)
+    if has_mesh != 0:
+        q = wp.mesh_query_ray(mesh, o, d, t_best)
+        if q.result:
+            t_best = q.t
+            kind = 1
+            f = q.face
+            w2 = 1.0 - q.u - q.v
+            n = wp.normalize(q.u * corner_normal[3 * f] + q.v * corner_normal[3 * f + 1]
+                             + w2 * corner_normal[3 * f + 2])
+            if wp.length(n) < 0.5:
+                n = q.normal
+            color = face_color[f]
+    if has_caps != 0:
+        t, k = closest_capsule(bvh, cap_a, cap_b, cap_r, o, d, t_best)
+        if k >= 0:
+            t_best = t
+            kind = 2
+            n = capsule_normal(o + t * d, cap_a[k], cap_b[k])
+            color = cap_color[k]
+    if light.ground != 0 and d[1] < -1.0e-9 and o[1] > light.ground_y:
+        t = (light.ground_y - o[1]) / d[1]
+        if t < t_best:
+            t_best = t
+            kind = 3
+            n = wp.vec3(0.0, 1.0, 0.0)
+            p = o + t * d
+            cell = int(wp.floor(p[0] / light.checker)) + int(wp.floor(p[2] / light.checker))
+            color = wp.where(cell % 2 == 0, wp.vec3(0.78, 0.78, 0.76), wp.vec3(0.68, 0.68, 0.66))
+
+    shaded = wp.vec3(0.0, 0.0, 0.0)
+    if kind == 0:
+        sky = wp.clamp(0.5 + 0.5 * d[1], 0.0, 1.0)
+        shaded = (1.0 - sky) * light.sky_low + sky * light.sky_high
+    else:
+        if wp.dot(n, d) > 0.0:
+            n = -n
+        p = o + t_best * d
+        scale = wp.max(1.0, wp.length(p))
+        start = p + n * (HIT_EPS * scale)
+        shadow = occluded(mesh, has_mesh, bvh, has_caps, cap_a, cap_b, cap_r, start, light.light)
+        shaded = lambert(color, n, light, shadow)
+        if kind == 3:
+            fog = 1.0 - wp.exp(-t_best / light.fade)
+            shaded = (1.0 - fog) * shaded + fog * light.sky_low
+
+    # the volume in front of the surface, absorbing and lit through a short shadow march
+    transmit = float(1.0)
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    if vol.active != 0:
+        nx = vol.density.shape[0]
+        ny = vol.density.shape[1]
+        nz = vol.density.shape[2]
+        hi = vol.origin + vol.dx * wp.vec3(float(nx), float(ny), float(nz))
+        t0, t1 = slab(o, d, vol.origin, hi)
+        t1 = wp.min(t1, t_best)
+        step = 0.5 * vol.dx
+        t = t0 + 0.5 * step
+        while t < t1 and transmit > 0.01:
+            rho = sample_density(vol, o + t * d)
+            if rho > 1.0e-4:
+                alpha = 1.0 - wp.exp(-vol.extinction * rho * step)
+                # light reaching this sample: march 12 steps of 2 dx towards the light
+                tau = float(0.0)
+                for m in range(12):
+                    tau += sample_density(vol, o + t * d + (float(m) + 0.5) * 2.0 * vol.dx * light.light)
+                lit = light.ambient + (1.0 - light.ambient) * wp.exp(-vol.extinction * tau * 2.0 * vol.dx)
+                acc += transmit * alpha * lit * vol.color
+                transmit *= 1.0 - alpha
+            t += step
+
+    # translucent layers in front of the opaque surface, front to back
+    glass_acc = wp.vec3(0.0, 0.0, 0.0)
+    glass_t = float(1.0)
+    if has_glass != 0:
+        t_from = float(0.0)
+        for layer in range(MAX_LAYERS):
+            q = wp.mesh_query_ray(glass, o + t_from * d, d, t_best - t_from)
+            if not q.result:
+                break
+            f = q.face
+            gn = q.normal
+            if wp.dot(gn, d) > 0.0:
+                gn = -gn
+            a = glass_alpha[f]
+            glass_acc += glass_t * a * lambert(glass_color[f], gn, light, 0.0)
+            glass_t *= 1.0 - a
+            t_from = t_from + q.t + HIT_EPS * wp.max(1.0, t_from + q.t)
+
+    image_out[tid] = glass_acc + glass_t * (acc + transmit * shaded)

@@ -1,0 +1,112 @@
+"""Rendering a USD cache to a picture or an animation: :func:`render_cache`.
+
+    render_cache("usd_out/teapot.usda", "teapot.gif", size=(480, 360))
+    render_cache("usd_out/smoke.usda", "smoke.png", frames=[48], camera="2,1.5,3,0,0.7,0")
+
+Every input is checked before the first ray is cast: the cache opens, the frames lie in its
+range, the size and camera are valid and the output's extension is known.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .camera import Camera, frame_bounds, parse_camera
+from .output import FORMATS, check_out, open_sink
+from .renderer import Renderer, check_size
+from .usd_scene import CacheScene
+
+
+def parse_size(text):
+    """(width, height) from ``"WxH"``; ValueError naming the text otherwise."""
+    try:
+        w, h = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size {text!r} must be WIDTHxHEIGHT in pixels, e.g. --size 480x360") from None
+    return check_size(w, h)
+
+
+def select_frames(available, frame=None, frames=None):
+    """The frames to draw: ``frame`` (one int), ``frames`` ("A:B" or "A:B:STEP", inclusive, either
+    end may be left out) or, when both are None, every frame of the cache. ValueError when a
+    frame lies outside ``available`` (the cache's time codes)."""
+    if frame is not None and frames is not None:
+        raise ValueError("give --frame N or --frames A:B, not both")
+    if not available:
+        if frame not in (None, 0) or frames is not None:
+            raise ValueError("the cache has no time samples (a static file): omit --frame/--frames")
+        return [None]
+    first, last = available[0], available[-1]
+    if frame is not None:
+        if int(frame) != frame or not first <= frame <= last:
+            raise ValueError(f"--frame {frame} is outside the cache's frames {first}..{last}")
+        return [int(frame)]
+    if frames is None:
+        return list(available)
+    parts = str(frames).split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        a = int(parts[0]) if parts[0].strip() else first
+        b = int(parts[1]) if parts[1].strip() else last
+        step = int(parts[2]) if len(parts) == 3 and parts[2].strip() else 1
+    except ValueError:
+        raise ValueError(f"--frames {frames!r} must be A:B or A:B:STEP (inclusive frame numbers), e.g. "
+                         f"--frames {first}:{last}") from None
+    if step < 1:
+        raise ValueError(f"--frames {frames!r}: the step must be >= 1")
+    if not (first <= a <= b <= last):
+        raise ValueError(f"--frames {frames!r} is outside the cache's frames {first}..{last} (or A > B)")
+    return list(range(a, b + 1, step))
+
+
+def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=None, fps=None, device=None,
+                 guides=False, progress=None):
+    """Render ``cache`` into ``out`` (.png: one frame, the last unless ``frame`` is given; .gif
+    or .mp4: ``frames``, every frame by default). ``camera``: None (frame the scene's bounds
+    over the drawn frames), a :class:`Camera` or ``"ex,ey,ez,tx,ty,tz"``. ``fps``: playback
+    rate (default the cache's). ``progress``: called with (frames done, frames in all) after each frame.
+    Returns ``{"path", "frames", "seconds", "camera"}``."""
+    width, height = parse_size(size) if isinstance(size, str) else check_size(*size)
+    ext = check_out(out)
+    if isinstance(camera, str):
+        camera = parse_camera(camera)
+    elif camera is not None and not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a Camera or 'ex,ey,ez,tx,ty,tz', got {camera!r}")
+    scene = CacheScene(cache, guides=guides)
+    if FORMATS[ext] == "image" and frame is None and frames is None:
+        frame = scene.frames[-1] if scene.frames else None
+    chosen = select_frames(scene.frames, frame, frames)
+    if FORMATS[ext] == "image" and len(chosen) != 1:
+        raise ValueError(f"--out {out!r}: a .png holds one frame but {len(chosen)} were asked; give --frame N "
+                         "or write a .gif/.mp4")
+    fps = scene.fps if fps is None else float(fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"--fps {fps}: it must be > 0")
+    if camera is None:
+        bounds = scene.bounds(None if chosen == [None] else chosen)
+        if bounds is None:
+            bounds = np.array([[-1.0, 0.0, -1.0], [1.0, 1.0, 1.0]])
+        camera = frame_bounds(bounds, width, height)
+    renderer = Renderer(width, height, device=device)
+    sink = open_sink(out, fps)
+    t0 = time.perf_counter()
+    ground_y = _ground(scene, chosen)
+    for k, f in enumerate(chosen):
+        sink.add(renderer.render(scene.geometry(f), camera, ground_y=ground_y))
+        if progress is not None:
+            progress(k + 1, len(chosen))
+    path = sink.close()
+    return {"path": path, "frames": len(chosen), "seconds": time.perf_counter() - t0, "camera": camera}
+
+
+def _ground(scene, chosen):
+    """Ground height [m]: the bottom of everything in the cache, guides included (a box's floor)."""
+    full = CacheScene.__new__(CacheScene)
+    full.__dict__.update(scene.__dict__)
+    full.purposes = scene.purposes + ("guide",)
+    b = full.bounds(None if chosen == [None] else chosen)
+    if b is None:
+        return False
+    return float(b[0][1] - 2e-3 * max(np.max(b[1] - b[0]), 1e-3))  # just below, so floors do not flicker

@@ -1,0 +1,65 @@
+"""``warpsim render CACHE [--frame N | --frames A:B] --out FILE.png|.gif|.mp4 [--size WxH]
+[--camera ex,ey,ez,tx,ty,tz] [--fps F] [--device D] [--guides]``: pictures of a cache."""
+from __future__ import annotations
+
+import os
+
+
+def add_parser(sub):
+    p = sub.add_parser("render", help="render a USD cache to a .png, .gif or .mp4")
+    p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
+    p.add_argument("--out", default=None, help="picture to write: .png (one frame), .gif or .mp4 "
+                   "(default: the cache's name with .gif)")
+    p.add_argument("--frame", type=int, default=None, help="one frame (default for .png: the last)")
+    p.add_argument("--frames", default=None, metavar="A:B[:STEP]", help="inclusive frame range (default: all)")
+    p.add_argument("--size", default="480x360", metavar="WxH", help="image size in pixels (default 480x360)")
+    p.add_argument("--camera", default=None, metavar="ex,ey,ez,tx,ty,tz",
+                   help="eye and target [m] (default: frame the scene's bounds)")
+    p.add_argument("--fps", type=float, default=None, help="playback rate (default: the cache's)")
+    p.add_argument("--device", default=None, help="Warp device (default: CUDA when present)")
+    p.add_argument("--guides", action="store_true", help="also draw guide prims (container walls), translucent")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camera=None, fps=None, device=None,
+              guides=False, progress=True):
+    """Shared by ``render`` and ``run --preview``: render and return the result dict; usage
+    mistakes raise ``cli.UsageError``."""
+    from ..cli import UsageError, _device
+    from .cache import render_cache
+
+    if not os.path.exists(cache):
+        raise UsageError(f"cache {cache!r} does not exist; write one with 'warpsim run SCENE'")
+    import warp as wp
+
+    wp.config.quiet = True
+    if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
+        wp.config.log_level = wp.LOG_WARNING
+    device = _device(device)
+    bars = []
+
+    def advance(done, total):  # the bar appears once the inputs are checked and frames are drawn
+        if not bars:
+            from tqdm import tqdm
+
+            bars.append(tqdm(total=total, unit="frame", desc="render", file=err, dynamic_ncols=True))
+        bars[0].update(1)
+
+    try:
+        return render_cache(cache, out, frame=frame, frames=frames, size=size, camera=camera, fps=fps, device=device,
+                            guides=guides, progress=advance if progress else None)
+    except (ValueError, OSError) as exc:  # FileNotFoundError/PermissionError are OSErrors
+        raise UsageError(str(exc)) from None
+    finally:
+        for bar in bars:
+            bar.close()
+
+def run(args, out, err):
+    target = args.out or os.path.splitext(args.cache)[0] + ".gif"
+    result = render_to(args.cache, target, err, frame=args.frame, frames=args.frames, size=args.size,
+                       camera=args.camera, fps=args.fps, device=args.device, guides=args.guides,
+                       progress=not args.no_progress)
+    n = result["frames"]
+    print(f"wrote {result['path']} ({n} frame{'s' if n != 1 else ''}, {result['seconds']:.2f} s, "
+          f"{result['camera']})", file=out)
+    return 0

@@ -1,0 +1,100 @@
+"""Image and animation files: PNG (one frame), GIF and MP4 (animations) through Pillow and imageio.
+
+:func:`open_sink` checks the file name before anything is rendered and returns a sink with
+``add(rgb)`` (one (h, w, 3) uint8 frame) and ``close()``.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+FORMATS = {".png": "image", ".gif": "animation", ".mp4": "animation"}
+
+
+def check_out(path):
+    """The extension of ``path`` (ValueError for an unknown one, PermissionError/FileNotFoundError
+    when its folder cannot be written)."""
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext not in FORMATS:
+        raise ValueError(f"--out {path!r}: write a .png (one frame), .gif or .mp4 file")
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    if not os.access(folder, os.W_OK):
+        raise PermissionError(f"--out {path!r}: folder {folder} is not writable; choose another --out")
+    return ext
+
+
+class _Png:
+    def __init__(self, path, fps):
+        self.path, self.count = path, 0
+
+    def add(self, rgb):
+        if self.count:
+            raise ValueError(f"{self.path}: a .png holds one frame; write a .gif or .mp4 for an animation")
+        from PIL import Image
+
+        Image.fromarray(rgb).save(self.path)
+        self.count += 1
+
+    def close(self):
+        return self.path
+
+
+class _Gif:
+    """Frames quantised to one shared 255-colour palette (taken from the first frame) as they come."""
+
+    def __init__(self, path, fps):
+        self.path, self.fps = path, float(fps)
+        self.frames = []
+        self.palette = None
+        self.count = 0
+
+    def add(self, rgb):
+        from PIL import Image
+
+        img = Image.fromarray(rgb)
+        if self.palette is None:
+            self.palette = img.quantize(colors=255, method=Image.Quantize.MEDIANCUT)
+        self.frames.append(img.quantize(palette=self.palette, dither=Image.Dither.NONE))
+        self.count += 1
+
+    def close(self):
+        if not self.frames:
+            raise ValueError(f"{self.path}: no frames to write")
+        duration = max(20, round(1000.0 / self.fps / 10.0) * 10)  # GIF delays are in 1/100 s
+        self.frames[0].save(self.path, save_all=True, append_images=self.frames[1:], duration=duration, loop=0,
+                            optimize=False, disposal=1)
+        self.frames = []
+        return self.path
+
+
+class _Mp4:
+    def __init__(self, path, fps):
+        try:
+            import imageio.v2 as iio
+            import imageio_ffmpeg  # noqa: F401  (the encoder imageio uses)
+        except ImportError as exc:
+            raise ImportError(f"writing {path} needs imageio with its ffmpeg plugin: pip install 'warpsim[render]' "
+                              f"(imageio, imageio-ffmpeg) [{exc}]") from None
+        self.writer = iio.get_writer(path, fps=float(fps), codec="libx264", quality=7, macro_block_size=1,
+                                     pixelformat="yuv420p")
+        self.path, self.count = path, 0
+
+    def add(self, rgb):
+        h, w = rgb.shape[:2]
+        rgb = np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")  # yuv420p needs even sizes
+        self.writer.append_data(rgb)
+        self.count += 1
+
+    def close(self):
+        self.writer.close()
+        return self.path
+
+
+def open_sink(path, fps):
+    """A frame sink for ``path`` (.png, .gif, .mp4) at ``fps`` frames per second."""
+    ext = check_out(path)
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"--fps {fps}: it must be > 0")
+    return {".png": _Png, ".gif": _Gif, ".mp4": _Mp4}[ext](str(path), fps)

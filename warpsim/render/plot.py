@@ -1,0 +1,131 @@
+"""``warpsim plot CACHE [--out FILE.png]``: plots of the per-frame scalar data a cache carries.
+
+What is plotted (:func:`cache_series` reads it; matplotlib draws it):
+- every time-sampled scalar attribute (``warpsim:totalEnergy``, ``warpsim:densityError``,
+  ``warpsim:iterations``, ``warpsim:volume``, ``warpsim:overWallFraction``, ...); attributes of
+  one prim whose names end in ``Energy`` share one panel;
+- the element count of every prim whose count changes (particles, smoke samples, agents);
+- agents per state: the per-frame histogram of an instancer's ``primvars:state``.
+
+The x axis is time [s] (frame / fps).
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..usd.validate import frame_codes, open_stage
+
+_COUNT_ATTR = {"Points": "points", "Mesh": "points", "BasisCurves": "points", "PointInstancer": "positions"}
+_SCALARS = ("double", "float", "int", "int64", "half", "uint", "bool")
+
+
+def _state_names():
+    try:
+        from ..agents.params import AgentState
+
+        return {int(s): s.name.lower() for s in AgentState}
+    except ImportError:  # pragma: no cover
+        return {}
+
+
+def cache_series(path):
+    """Panels of a cache's per-frame data: a list of ``{"title", "ylabel", "lines": {label: values}}``
+    plus the time axis: returns ``(times [s] (frames,), panels)``. ValueError when the cache does
+    not open."""
+    from pxr import UsdGeom
+
+    stage = open_stage(path)
+    frames = frame_codes(stage)
+    fps = stage.GetTimeCodesPerSecond()
+    times = np.asarray(frames, np.float64) / fps
+    panels = []
+    counts = {}
+    for prim in stage.Traverse():
+        name = prim.GetName()
+        energy = {}
+        for attr in prim.GetAttributes():
+            if str(attr.GetTypeName()) not in _SCALARS or attr.GetNumTimeSamples() == 0 and not \
+                    attr.ValueMightBeTimeVarying():
+                continue
+            label = attr.GetName().split(":")[-1]
+            values = np.array([attr.Get(f) for f in frames], np.float64)
+            if label.endswith("Energy"):
+                energy[label] = values
+            else:
+                panels.append({"title": f"{name}: {label}", "ylabel": label, "lines": {label: values}})
+        if energy:
+            panels.append({"title": f"{name}: energy", "ylabel": "energy [J]", "lines": energy})
+        count_attr = prim.GetAttribute(_COUNT_ATTR[prim.GetTypeName()]) if prim.GetTypeName() in _COUNT_ATTR else None
+        if count_attr and count_attr.ValueMightBeTimeVarying():
+            n = np.array([len(count_attr.Get(f) or []) for f in frames], np.float64)
+            if len(n) and n.min() != n.max():
+                counts[name] = n
+        if prim.IsA(UsdGeom.PointInstancer):
+            state = UsdGeom.PrimvarsAPI(prim).GetPrimvar("state")
+            if state and state.HasValue() and len(frames):
+                per = [np.asarray(state.Get(f) if state.Get(f) is not None else [], np.int64) for f in frames]
+                top = max((int(s.max()) for s in per if len(s)), default=-1)
+                if top >= 0:
+                    names = _state_names()
+                    hist = np.array([np.bincount(s, minlength=top + 1) for s in per], np.float64)
+                    lines = {names.get(k, f"state {k}"): hist[:, k] for k in range(top + 1) if hist[:, k].any()}
+                    panels.append({"title": f"{name}: agents per state", "ylabel": "agents", "lines": lines})
+    if counts:
+        panels.append({"title": "element counts", "ylabel": "count", "lines": counts})
+    return times, panels
+
+
+def plot_cache(path, out=None, size=(8.0, 2.6)):
+    """Draw :func:`cache_series` into ``out`` (default ``<cache stem>.plot.png``); returns
+    ``(out, panel count)``. ValueError when there is nothing per-frame to plot."""
+    times, panels = cache_series(path)
+    if not panels or len(times) < 2:
+        raise ValueError(f"cache {path!r} carries no per-frame scalar data to plot (no time-sampled scalar "
+                         "attributes, changing counts or agent states over at least two frames)")
+    out = out or os.path.splitext(str(path))[0] + ".plot.png"
+    ext = os.path.splitext(out)[1].lower()
+    if ext not in (".png", ".pdf", ".svg"):
+        raise ValueError(f"--out {out!r}: write a .png, .pdf or .svg file")
+    try:
+        import matplotlib
+    except ImportError:
+        raise ImportError("warpsim plot needs matplotlib: pip install 'warpsim[plot]'") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(panels), 1, figsize=(size[0], size[1] * len(panels)), sharex=True, squeeze=False)
+    for ax, panel in zip(axes[:, 0], panels):
+        for label, values in panel["lines"].items():
+            ax.plot(times, values, label=label)
+        ax.set_title(panel["title"], fontsize=10)
+        ax.set_ylabel(panel["ylabel"])
+        ax.grid(alpha=0.3)
+        if len(panel["lines"]) > 1:
+            ax.legend(fontsize=8)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out, len(panels)
+
+
+def add_parser(sub):
+    p = sub.add_parser("plot", help="plot the per-frame data of a USD cache (energies, errors, counts, states)")
+    p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
+    p.add_argument("--out", default=None, help="figure to write (.png/.pdf/.svg; default CACHE.plot.png)")
+
+
+def run(args, out, err):
+    from ..cli import UsageError
+
+    if not os.path.exists(args.cache):
+        raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
+    try:
+        path, n = plot_cache(args.cache, args.out)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    print(f"wrote {path} ({n} panel{'s' if n != 1 else ''})", file=out)
+    return 0

@@ -1,0 +1,140 @@
+"""The preview renderer: uploads a :class:`~warpsim.render.geometry.FrameGeometry`, builds its
+``wp.Mesh`` and ``wp.Bvh`` and casts one ray per pixel with ``warpsim.kernels.render``.
+
+    r = Renderer(480, 360, device="cpu")
+    rgb = r.render(geometry, camera)        # (360, 480, 3) uint8, sRGB
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from ..kernels import render as K
+
+MAX_SIZE = 8192
+
+
+def check_size(width, height):
+    """ValueError unless 1 <= width, height <= MAX_SIZE (integers)."""
+    for name, v in (("width", width), ("height", height)):
+        if int(v) != v or not 1 <= v <= MAX_SIZE:
+            raise ValueError(f"image {name} {v!r} must be an integer in [1, {MAX_SIZE}], e.g. --size 480x360")
+    return int(width), int(height)
+
+
+def nice_step(length):
+    """A round checker size [m] about a tenth of ``length``."""
+    raw = max(float(length) / 10.0, 1e-6)
+    e = 10.0 ** math.floor(math.log10(raw))
+    return min((m * e for m in (1.0, 2.0, 5.0, 10.0)), key=lambda s: abs(s - raw))
+
+
+class Renderer:
+    """Casts ``width`` x ``height`` rays on ``device``; see the module docstring.
+
+    Args:
+        light: direction towards the light (normalised here), +Y up.
+        ambient: share of light that reaches surfaces in shadow, in [0, 1].
+        background: (horizon, zenith) colours of the sky.
+        smoke_extinction: extinction per unit density [1/m] of the volume.
+    """
+
+    def __init__(self, width, height, device=None, light=(-0.35, 1.0, 0.45), ambient=0.35,
+                 background=((0.92, 0.94, 0.97), (0.62, 0.72, 0.86)), smoke_extinction=30.0):
+        self.width, self.height = check_size(width, height)
+        self.device = wp.get_device(device)
+        light = np.asarray(light, np.float64)
+        self.light = light / np.linalg.norm(light)
+        self.ambient = float(ambient)
+        self.background = background
+        self.smoke_extinction = float(smoke_extinction)
+        self._image = wp.empty(self.width * self.height, dtype=wp.vec3, device=self.device)
+        self._dummy_density = wp.zeros((1, 1, 1), dtype=float, device=self.device)
+        self.last_seconds = None
+
+    def _array(self, a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+
+    def render(self, geom, camera, ground_y=None, linear=False):
+        """(height, width, 3) uint8 sRGB image of ``geom`` seen by ``camera`` (float linear RGB
+        with ``linear=True``). ``ground_y``: height of the ground plane [m] (None: the bottom of
+        the geometry's bounds; ``False``: no ground)."""
+        dev = self.device
+        vec3 = wp.vec3
+        keep = []  # device objects that must outlive the launch
+        has_mesh = len(geom.triangles) > 0
+        mesh_id = 0
+        if has_mesh:
+            mesh = wp.Mesh(self._array(geom.points, vec3), self._array(geom.triangles.reshape(-1), wp.int32))
+            keep.append(mesh)
+            mesh_id = mesh.id
+        has_glass = len(geom.glass_triangles) > 0
+        glass_id = 0
+        if has_glass:
+            glass = wp.Mesh(self._array(geom.glass_points, vec3), self._array(geom.glass_triangles.reshape(-1), wp.int32))
+            keep.append(glass)
+            glass_id = glass.id
+        has_caps = len(geom.cap_r) > 0
+        bvh_id = 0
+        cap_a = self._array(geom.cap_a, vec3)
+        cap_b = self._array(geom.cap_b, vec3)
+        cap_r = self._array(geom.cap_r, float)
+        if has_caps:
+            r = geom.cap_r[:, None]
+            lowers = np.minimum(geom.cap_a, geom.cap_b) - r
+            uppers = np.maximum(geom.cap_a, geom.cap_b) + r
+            bvh = wp.Bvh(self._array(lowers, vec3), self._array(uppers, vec3))
+            keep.append(bvh)
+            bvh_id = bvh.id
+
+        f, r_, u = camera.basis()
+        tx, ty = camera.tangents(self.width, self.height)
+        cam = K.Camera()
+        cam.eye, cam.forward, cam.right, cam.up = vec3(*camera.eye), vec3(*f), vec3(*r_), vec3(*u)
+        cam.tan_x, cam.tan_y = float(tx), float(ty)
+
+        bounds = geom.bounds()
+        lit = K.Lighting()
+        lit.light = vec3(*self.light)
+        lit.ambient = self.ambient
+        lit.sky_low, lit.sky_high = vec3(*self.background[0]), vec3(*self.background[1])
+        if ground_y is None:
+            ground_y = None if bounds is None else float(bounds[0][1])
+        lit.ground = 0 if ground_y is None or ground_y is False else 1
+        lit.ground_y = 0.0 if not lit.ground else float(ground_y)
+        extent = 1.0 if bounds is None else float(np.max(bounds[1] - bounds[0]))
+        lit.checker = nice_step(extent)
+        lit.fade = 3.0 * extent + float(np.linalg.norm(camera.eye - camera.target))
+
+        vol = K.Volume()
+        if geom.volume is not None and geom.volume["density"].size:
+            v = geom.volume
+            vol.density = wp.array(v["density"], dtype=float, device=dev)
+            vol.origin, vol.dx = vec3(*v["origin"]), float(v["dx"])
+            vol.color = vec3(*v["color"])
+            vol.active = 1
+        else:
+            vol.density = self._dummy_density
+            vol.origin, vol.dx, vol.color, vol.active = vec3(0.0, 0.0, 0.0), 1.0, vec3(0.0, 0.0, 0.0), 0
+        vol.extinction = self.smoke_extinction
+
+        wp.launch(K.render_pixels, dim=self.width * self.height, device=dev, inputs=[
+            cam, lit, self.width, self.height,
+            mesh_id, int(has_mesh), self._array(geom.face_colors, vec3), self._array(geom.corner_normals, vec3),
+            glass_id, int(has_glass), self._array(geom.glass_colors, vec3), self._array(geom.glass_alpha, float),
+            bvh_id, int(has_caps), cap_a, cap_b, cap_r, self._array(geom.cap_colors, vec3), vol,
+        ], outputs=[self._image])
+        img = self._image.numpy().reshape(self.height, self.width, 3)
+        del keep
+        if linear:
+            return img
+        return to_srgb8(img)
+
+
+def to_srgb8(linear):
+    """uint8 sRGB from linear RGB in [0, 1] (clipped)."""
+    c = np.clip(linear, 0.0, 1.0)
+    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+    return (s * 255.0 + 0.5).astype(np.uint8)
