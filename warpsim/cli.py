@@ -21,6 +21,8 @@ __all__ = ["COMMANDS", "UsageError", "main"]
 
 COMMANDS = {
     "view": "warpsim.viewer.command",
+    "render": "warpsim.render.command",
+    "plot": "warpsim.render.plot",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
@@ -60,6 +62,8 @@ def _parser():
                    help="save the simulation state beside the cache every N frames")
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--preview", default=None, metavar="FILE.gif",
+                   help="also render the cache to a .gif/.mp4/.png beside it (see 'warpsim render')")
     i = sub.add_parser("info", help="summarise a USD cache")
     i.add_argument("cache", help="path of a .usd/.usda/.usdc file")
     for module in COMMANDS.values():
@@ -204,6 +208,13 @@ def _cmd_run(args, out, err):
     path = args.out or os.path.join("usd_out", f"{cls.name}.usda")
     if os.path.splitext(path)[1] not in ROOT_EXTENSIONS:
         raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
+    if args.preview is not None:
+        from .render.output import check_out
+
+        try:
+            check_out(os.path.join(os.path.dirname(path), args.preview))
+        except (ValueError, OSError) as exc:
+            raise UsageError(f"--preview: {exc}") from None
     given = _parse_sets(cls, args.sets, args.integrator)
     ckpt_file = checkpoint_path(path)
     start = 0
@@ -298,6 +309,13 @@ def _cmd_run(args, out, err):
           f"of scene {cls.name!r} on {device}", file=out)
     print(f"open: {os.path.relpath(writer.output_path)}   (e.g. usdview {os.path.relpath(writer.output_path)})",
           file=out)
+    if args.preview is not None:  # rendered from the cache just written; a relative name lands beside it
+        from .render.command import render_to
+
+        preview = os.path.join(os.path.dirname(writer.output_path), args.preview)
+        result = render_to(writer.output_path, preview, err, device=device, progress=not args.no_progress)
+        print(f"preview: {os.path.relpath(result['path'])} ({result['frames']} frames, {result['seconds']:.2f} s)",
+              file=out)
     return 0
 
 
