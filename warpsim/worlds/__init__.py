@@ -1,0 +1,29 @@
+"""Many worlds: N variants of one scene stepped together in one model, browsed as USD variants and
+picked by their outcome (``warpsim sweep``).
+
+Modules:
+  sampling  ``--vary`` specs and the grid / random / Latin-hypercube plans (seeded)
+  plan      how a varied parameter enters one world's arrays, found by building the scene a few times
+  batch     :class:`WorldBatch`: world 0 tiled on the device into N worlds (``kernels/worlds.py``:
+            tile_*, per-world gravity, blow-up flags and freezing), stepped by the scene's own
+            simulator class, one launch per stage for all worlds
+  forces    :class:`WorldGravity`, :class:`WorldPlanes` (per-world gravity, wall restitution and
+            friction; ``kernels/collide.py: collide_planes_worlds``)
+  metrics   per-world metrics on the device (centre of mass, peak speed, kinetic energy, tracked
+            particles, user ``@wp.func`` metrics), ``--rank`` / ``--where`` picking
+  usd       batch layers (``/Worlds/world_GGGGGG``) and the root: a ``world`` variant set or a grid
+  sweep     :func:`sample_worlds`, :func:`run_batch`, :func:`write_table`
+  command   ``warpsim sweep``
+
+Entry points (the command line and the Ray driver ``warpsim.distributed`` both use them, so a
+Ray sweep and a single-process sweep give the same table and samples): :func:`sample_worlds`,
+:func:`run_batch`, :func:`write_sweep_root`, :func:`write_table`; classes :class:`WorldBatch`,
+:class:`UserMetric`.
+"""
+from .batch import WorldBatch
+from .metrics import UserMetric, WorldMetrics
+from .sweep import run_batch, sample_worlds, write_table
+from .usd import write_sweep_root
+
+__all__ = ["UserMetric", "WorldBatch", "WorldMetrics", "run_batch", "sample_worlds", "write_sweep_root",
+           "write_table"]

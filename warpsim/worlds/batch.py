@@ -1,0 +1,252 @@
+"""WorldBatch: N worlds of one scene as one model, stepped by one launch per stage.
+
+The batch is tiled on the device from world 0 (built once by the scene's own Python builder):
+particle and spring arrays are repeated with per-world index offsets (``kernels/worlds.py``),
+and the varied parameters enter through per-world arrays found by :mod:`warpsim.worlds.plan`
+(shifted initial positions / velocities, proportional masses and spring coefficients,
+per-world gravity and wall coefficients). ``model.particle_world`` (shape (N P,)) maps each
+particle to its world; world w owns particles ``w P .. (w + 1) P - 1``.
+
+Worlds never interact: springs join particles of one world, every force and collider acts per
+particle, and colliders that couple particles (particle-particle collisions) are refused. A
+world that blows up (non-finite state or a speed above the scene's ``max_speed``) is flagged at
+the end of the frame and frozen at its last good frame; the others run on.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import warp as wp
+
+from ..bodies.colliders import Planes
+from ..cloth.solver import ClothImplicitEuler
+from ..core.integrators import ImplicitEuler
+from ..core.model import Model
+from ..kernels import worlds as KW
+from .forces import WorldGravity, WorldPlanes
+from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, make_plan
+
+__all__ = ["WorldBatch"]
+
+
+class WorldBatch:
+    """N worlds of scene class ``cls`` with parameters ``world_params`` (one dict each).
+
+    Attributes: ``scene`` (world 0 as built by the scene, used for declarations and frame
+    data), ``sim`` (the batched simulator), ``model`` (the tiled model: ``world_count``,
+    ``world_particle_count``, ``world_spring_count``, ``particle_world``), ``params`` (typed
+    parameters per world), ``varied`` (keys that differ), ``world_bad`` (1 = blown up, frozen)
+    and ``world_blown_frame`` (first bad frame, -1 none), both of shape (world_count,)."""
+
+    def __init__(self, cls, world_params, device=None):
+        if len(world_params) < 1:
+            raise ValueError("a batch needs at least one world")
+        self.cls = cls
+        self.device = wp.get_device(device)
+        self.params = [cls.resolve_params(p) for p in world_params]
+        base = self.params[0]
+        self.varied = [k for k in cls.params if any(p[k] != base[k] for p in self.params)]
+        self.scene = cls(base, device=self.device)
+        sim0 = getattr(self.scene, "sim", None)
+        if sim0 is None or not hasattr(sim0, "model"):
+            raise StructuralError(f"scene {cls.name!r} is not driven by a warpsim Simulator; batched worlds tile "
+                                  "a Simulator's model (supported: bounce, springs, teapot, cloth, drape, ...)")
+        if isinstance(sim0.integrator, (ImplicitEuler, ClothImplicitEuler)):
+            raise StructuralError(f"scene {cls.name!r} uses implicit Euler, whose conjugate-gradient solve would "
+                                  "couple the worlds of a batch; use --set integrator=semi_implicit_euler")
+        if getattr(sim0, "adaptive", False):
+            raise StructuralError("adaptive sub-stepping picks one step count for all worlds; turn it off")
+        def probe(p):
+            try:
+                return cls(p, device="cpu")
+            except StructuralError:
+                raise
+            except ValueError as exc:
+                bad = {k: p[k] for k in self.varied if p[k] != base[k]}
+                raise ValueError(f"a world with {', '.join(f'{k}={v}' for k, v in bad.items())}: {exc}") from None
+
+        self.plan = make_plan(cls, self.scene, base, self.params, self.varied, probe)
+        self.model = self._tile(sim0.model)
+        self.sim = self._simulator(sim0)
+        self.batch_scene = copy.copy(self.scene)
+        self.batch_scene.sim = self.sim
+        if hasattr(self.batch_scene, "model"):
+            self.batch_scene.model = self.model
+        n, d = self.world_count, self.device
+        self.world_bad = wp.zeros(n, dtype=int, device=d)
+        self.world_blown_frame = wp.full(n, -1, dtype=int, device=d)
+        self.frame_counter = wp.zeros(1, dtype=int, device=d)
+        self.q_good = wp.clone(self.sim.state.positions)
+        self.max_speed = float(getattr(sim0, "max_speed", 1.0e4))
+
+    # ------------------------------------------------------------------ building
+    @property
+    def world_count(self) -> int:
+        return len(self.params)
+
+    def _deltas(self, effect):
+        p = np.array([np.atleast_1d(np.asarray(q[effect.key], dtype=np.float64)) for q in self.params])
+        return p - effect.p0  # (N, d)
+
+    def _tile(self, m0):
+        n, P, S, d = self.world_count, m0.particle_count, m0.spring_count, self.device
+        mb = Model(d)
+        mb.particle_count, mb.spring_count = n * P, n * S
+        mb.world_count, mb.world_particle_count, mb.world_spring_count = n, P, S
+        mb.particle_world = wp.empty(n * P, dtype=int, device=d)
+        wp.launch(KW.tile_world_index, n * P, inputs=[max(P, 1), mb.particle_world], device=d)
+        for name in VEC3_ARRAYS:
+            mask = np.zeros(P, dtype=np.float32)
+            shift = np.zeros((n, 3))
+            for effect in self.plan.values():
+                if name in effect.vec3:
+                    changed, C = effect.vec3[name]
+                    if mask.any() and not np.array_equal(mask > 0, changed):
+                        raise StructuralError(f"{effect.key} and another varied key shift different particles' "
+                                              f"{name}; vary one of them")
+                    mask[changed] = 1.0
+                    shift += self._deltas(effect) @ C.T
+            out = wp.empty(n * P, dtype=wp.vec3, device=d)
+            wp.launch(KW.tile_vec3, n * P, inputs=[getattr(m0, name), wp.array(mask, dtype=float, device=d),
+                                                    wp.array(shift.astype(np.float32), dtype=wp.vec3, device=d), out],
+                      device=d)
+            setattr(mb, name, out)
+        keys = [k for k, e in self.plan.items() if e.scale]
+        values = np.array([[p[k] for k in keys] for p in self.params], dtype=np.float32).reshape(-1)
+        world_values = wp.array(values if len(values) else np.zeros(1, np.float32), dtype=float, device=d)
+        for name in FLOAT_ARRAYS:
+            base = getattr(m0, name)
+            count = base.shape[0]
+            key = np.full(count, -1, dtype=np.int32)
+            coefficient = np.zeros(count, dtype=np.float32)
+            for k, kname in enumerate(keys):
+                c = self.plan[kname].scale.get(name)
+                if c is None:
+                    continue
+                changed = ~np.isnan(c)
+                if (key[changed] >= 0).any():
+                    raise StructuralError(f"{kname} and another varied key both scale {name}; vary one of them")
+                key[changed] = k
+                coefficient[changed] = c[changed]
+            out = wp.empty(n * count, dtype=float, device=d)
+            if count:
+                wp.launch(KW.tile_float, n * count, inputs=[base, wp.array(key, dtype=int, device=d),
+                                                            wp.array(coefficient, dtype=float, device=d),
+                                                            world_values, max(len(keys), 1), out], device=d)
+            setattr(mb, name, out)
+        for name, base in vars(m0).items():  # further per-element arrays (e.g. breakable springs)
+            if not isinstance(base, wp.array) or hasattr(mb, name) or name in ("particle_inv_mass", "spring_indices"):
+                continue
+            count = P if name.startswith("particle_") else S if name.startswith("spring_") else None
+            if count is None or base.shape[0] != count:
+                raise StructuralError(f"model array {name} is neither per particle nor per spring; batched worlds "
+                                      "cannot tile it")
+            out = wp.empty(n * count, dtype=base.dtype, device=d)
+            if count and base.dtype == wp.int32:
+                wp.launch(KW.tile_int, n * count, inputs=[base, out], device=d)
+            elif count and base.dtype == wp.float32:
+                wp.launch(KW.tile_float, n * count, inputs=[base, wp.full(count, -1, dtype=int, device=d),
+                                                            wp.zeros(count, dtype=float, device=d), world_values, 1,
+                                                            out], device=d)
+            elif count:
+                raise StructuralError(f"model array {name} has dtype {base.dtype}; batched worlds tile int and float")
+            setattr(mb, name, out)
+        for name, value in vars(m0).items():
+            if name.endswith("_count") and isinstance(value, int) and not hasattr(mb, name):
+                setattr(mb, name, n * value)
+        mass = mb.particle_mass.numpy() if "particle_mass" in self._scaled() else None
+        if mass is not None and (mass < 0).any():
+            bad = int(np.flatnonzero(mass < 0)[0])
+            raise ValueError(f"world {bad // P} has particle {bad % P} with negative mass {mass[bad]}; give masses >= 0")
+        mb.particle_inv_mass = wp.empty(n * P, dtype=float, device=d)
+        wp.launch(KW.inverse_masses, n * P, inputs=[mb.particle_mass, mb.particle_inv_mass], device=d)
+        mb.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, mb.spring_indices], device=d)
+        return mb
+
+    def _scaled(self):
+        return {name for e in self.plan.values() for name in e.scale}
+
+    def _affine(self, base_value, coefficients, key_effects):
+        """(N, ...) per-world values base + sum_k C_k (p_w,k - p0,k)."""
+        out = np.tile(np.asarray(base_value, dtype=np.float64), (self.world_count, 1))
+        for effect, C in key_effects:
+            out += self._deltas(effect) @ np.atleast_2d(C).T
+        return out
+
+    def _simulator(self, sim0):
+        integrator = copy.copy(sim0.integrator)
+        integrator._system = None  # prepare() allocates for the batched system
+        forces = []
+        for j, f in enumerate(sim0.forces):
+            effects = [(e, e.gravity[j]) for e in self.plan.values() if j in e.gravity]
+            if effects:
+                forces.append(WorldGravity(self._affine(f.g, None, effects)))
+            elif getattr(f, "particles", None) is not None or hasattr(f, "particle"):
+                raise StructuralError(f"force {type(f).__name__} acts on chosen particles of one world; batched "
+                                      "worlds do not tile it (remove it, e.g. --set drag=)")
+            else:
+                forces.append(copy.copy(f))
+        colliders = []
+        for j, c in enumerate(sim0.colliders):
+            if isinstance(c, Planes):
+                coeff = {a: [(e, e.planes[j][a]) for e in self.plan.values() if j in e.planes and a in e.planes[j]]
+                         for a in ("restitution", "friction")}
+                r = self._affine([c.restitution], None, coeff["restitution"])[:, 0]
+                mu = self._affine([c.friction], None, coeff["friction"])[:, 0]
+                colliders.append(WorldPlanes(c, r, mu))
+            elif type(c).__name__ == "ParticleCollisions":
+                raise StructuralError("particle-particle collisions would need a hash grid keyed by world; batched "
+                                      "worlds do not support them yet")
+            else:
+                colliders.append(copy.copy(c))  # shared static or kinematic shape: each world meets its own copy
+        kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
+        if hasattr(sim0, "use_graph"):
+            kwargs["use_graph"] = sim0.use_graph
+        return type(sim0)(self.model, integrator, **kwargs)
+
+    # ------------------------------------------------------------------ stepping
+    def can_capture(self) -> bool:
+        """Whether a frame may be captured as one CUDA graph: not when the simulator captures its
+        own frames (cloth) or a collider follows a host ``motion`` callback."""
+        if hasattr(self.sim, "use_graph"):
+            return False
+        return not any(getattr(c, "motion", None) is not None for c in self.sim.colliders)
+
+    def end_frame(self) -> None:
+        """Flag worlds that blew up during the frame, freeze them, advance the frame counter."""
+        st, m, d = self.sim.state, self.model, self.device
+        wp.launch(KW.count_frame, 1, inputs=[self.frame_counter], device=d)
+        wp.launch(KW.flag_blown_worlds, m.particle_count,
+                  inputs=[st.positions, st.velocities, m.particle_world, self.max_speed, self.world_bad], device=d)
+        wp.launch(KW.record_blow_ups, self.world_count, inputs=[self.world_bad, self.frame_counter,
+                                                                self.world_blown_frame], device=d)
+        wp.launch(KW.freeze_blown_worlds, m.particle_count,
+                  inputs=[m.particle_world, self.world_bad, self.q_good, st.positions, st.velocities,
+                          m.particle_inv_mass], device=d)
+
+    def advance(self, frame_dt, substeps) -> None:
+        """One frame for every world (the scene's own stepping on the batched simulator)."""
+        self.batch_scene.advance(frame_dt, substeps)
+        self.end_frame()
+
+    def world_slices(self):
+        """Host copies (N, P, 3) of the positions and velocities."""
+        n, P = self.world_count, self.model.world_particle_count
+        st = self.sim.state
+        return st.positions.numpy().reshape(n, P, 3), st.velocities.numpy().reshape(n, P, 3)
+
+    def world_frame_data(self, x, v):
+        """The scene's frame data for one world whose positions / velocities are ``x``, ``v`` (P, 3)."""
+        sim0 = self.scene.sim
+        saved = sim0.state
+        view = copy.copy(saved)
+        view.positions = wp.array(np.ascontiguousarray(x), dtype=wp.vec3, device="cpu")
+        view.velocities = wp.array(np.ascontiguousarray(v), dtype=wp.vec3, device="cpu")
+        sim0.state = view
+        try:
+            return self.scene.frame_data()
+        finally:
+            sim0.state = saved

@@ -1,0 +1,208 @@
+"""Per-world metrics, accumulated on the device once per frame (frame 0 included), and picking.
+
+Built-in metrics (one value per world):
+  center_x, center_y, center_z   final centre of mass [m] (pinned particles weigh nothing)
+  peak_center_y                  highest centre-of-mass height over the frames [m]
+  peak_speed                     highest particle speed over the frames [m/s]
+  kinetic_energy                 kinetic energy at the last frame [J]
+  blown_up, blown_frame          1 if the world blew up (then frozen at its last good frame), the frame
+Tracked particles (``track={"spout": 12}``, indices within one world): NAME_x, NAME_y, NAME_z (final
+position [m]) and NAME_peak_y. A user metric :class:`UserMetric` sums a ``@wp.func`` of
+(x [m], v [m/s], m [kg]) -> float over a world's particles: NAME (last frame) and NAME_peak.
+
+Picking (``select``): ``rank`` orders by a metric (``-METRIC`` or ``METRIC:desc`` for largest
+first), ``where`` filters with comparisons ``METRIC<VALUE`` (``<, <=, >, >=, ==, !=``), parsed
+here, never evaluated as code.
+"""
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import warp as wp
+
+from ..kernels import worlds as KW
+
+BUILTIN = ("center_x", "center_y", "center_z", "peak_center_y", "peak_speed", "kinetic_energy", "blown_up",
+           "blown_frame")
+
+__all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "parse_where", "select"]
+
+
+class UserMetric:
+    """A per-world metric: ``func`` is a ``@wp.func`` (x: wp.vec3, v: wp.vec3, m: float) -> float
+    summed over every particle of a world each frame; the table gets NAME (last frame) and
+    NAME_peak (largest over the frames)."""
+
+    def __init__(self, name, func):
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
+            raise ValueError(f"metric name {name!r} must be an identifier (letters, digits, '_')")
+        if not isinstance(func, wp.Function):
+            raise ValueError(  # noqa: TRY004 (bad input is a ValueError throughout warpsim)
+f"metric {name!r} needs a @wp.func of (wp.vec3, wp.vec3, float) -> float")
+        self.name, self.func = str(name), func
+        self.kernel = KW.user_metric_kernel(func)
+
+
+class WorldMetrics:
+    """Device accumulators for one :class:`warpsim.worlds.batch.WorldBatch` (allocated once;
+    ``update`` launches kernels only, so it can sit in a captured graph)."""
+
+    def __init__(self, batch, track=None, user=()):
+        self.batch = batch
+        n, d = batch.world_count, batch.device
+        P = batch.model.world_particle_count
+        self.track = dict(track or {})
+        for name, index in self.track.items():
+            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
+                raise ValueError(f"tracked particle name {name!r} must be an identifier")
+            if not 0 <= int(index) < P:
+                raise ValueError(f"tracked particle {name}={index} is out of range [0, {P}) for one world")
+        self.user = list(user)
+        inf = float("inf")
+        self.moment = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.mass = wp.zeros(n, dtype=float, device=d)
+        self.kinetic = wp.zeros(n, dtype=float, device=d)
+        self.peak_speed = wp.zeros(n, dtype=float, device=d)
+        self.center = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.peak_center = wp.full(n, wp.vec3(-inf, -inf, -inf), dtype=wp.vec3, device=d)
+        self.final_kinetic = wp.zeros(n, dtype=float, device=d)
+        t = max(len(self.track), 1)
+        self.tracked = wp.array(np.array(list(self.track.values()) or [0], dtype=np.int32), dtype=int, device=d)
+        self.tracked_final = wp.zeros(n * t, dtype=wp.vec3, device=d)
+        self.tracked_peak = wp.full(n * t, wp.vec3(-inf, -inf, -inf), dtype=wp.vec3, device=d)
+        self.user_value = [wp.zeros(n, dtype=float, device=d) for _ in self.user]
+        self.user_final = [wp.zeros(n, dtype=float, device=d) for _ in self.user]
+        self.user_peak = [wp.full(n, -inf, dtype=float, device=d) for _ in self.user]
+
+    def update(self):
+        """Fold the current state into the metrics (call after every frame, and for frame 0)."""
+        b = self.batch
+        st, m, d, n = b.sim.state, b.model, b.device, b.world_count
+        self.moment.zero_()
+        self.mass.zero_()
+        self.kinetic.zero_()
+        wp.launch(KW.accumulate_world_sums, m.particle_count,
+                  inputs=[st.positions, st.velocities, m.particle_mass, m.particle_world, b.world_bad, self.moment,
+                          self.mass, self.kinetic, self.peak_speed], device=d)
+        wp.launch(KW.finish_world_frame, n, inputs=[b.world_bad, self.moment, self.mass, self.kinetic, self.center,
+                                                    self.peak_center, self.final_kinetic], device=d)
+        if self.track:
+            wp.launch(KW.track_particles, (n, len(self.track)),
+                      inputs=[st.positions, self.tracked, m.world_particle_count, b.world_bad, self.tracked_final,
+                              self.tracked_peak], device=d)
+        for metric, value, final, peak in zip(self.user, self.user_value, self.user_final, self.user_peak):
+            value.zero_()
+            wp.launch(metric.kernel, m.particle_count,
+                      inputs=[st.positions, st.velocities, m.particle_mass, m.particle_world, b.world_bad, value],
+                      device=d)
+            wp.launch(KW.keep_metric, n, inputs=[b.world_bad, value, final, peak], device=d)
+
+    def names(self):
+        out = list(BUILTIN)
+        for name in self.track:
+            out += [f"{name}_x", f"{name}_y", f"{name}_z", f"{name}_peak_y"]
+        for metric in self.user:
+            out += [metric.name, f"{metric.name}_peak"]
+        return out
+
+    def rows(self):
+        """One dict of metric values per world (reads back from the device)."""
+        b = self.batch
+        n = b.world_count
+        center = self.center.numpy()
+        peak = self.peak_center.numpy()
+        speed = self.peak_speed.numpy()
+        ke = self.final_kinetic.numpy()
+        bad = b.world_bad.numpy()
+        blown = b.world_blown_frame.numpy()
+        rows = []
+        t = len(self.track)
+        tf = self.tracked_final.numpy().reshape(n, -1, 3)
+        tp = self.tracked_peak.numpy().reshape(n, -1, 3)
+        users = [(mt.name, f.numpy(), p.numpy()) for mt, f, p in zip(self.user, self.user_final, self.user_peak)]
+        for w in range(n):
+            row = {"center_x": float(center[w, 0]), "center_y": float(center[w, 1]), "center_z": float(center[w, 2]),
+                   "peak_center_y": float(peak[w, 1]), "peak_speed": float(speed[w]),
+                   "kinetic_energy": float(ke[w]), "blown_up": int(bad[w]), "blown_frame": int(blown[w])}
+            for k, name in enumerate(self.track):
+                if k < t:
+                    row.update({f"{name}_x": float(tf[w, k, 0]), f"{name}_y": float(tf[w, k, 1]),
+                                f"{name}_z": float(tf[w, k, 2]), f"{name}_peak_y": float(tp[w, k, 1])})
+            for name, final, pk in users:
+                row[name] = float(final[w])
+                row[f"{name}_peak"] = float(pk[w])
+            rows.append(row)
+        return rows
+
+
+_COMPARE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(<=|>=|==|!=|<|>)\s*(\S+)\s*$")
+_OPS = {"<": np.less, "<=": np.less_equal, ">": np.greater, ">=": np.greater_equal, "==": np.equal,
+        "!=": np.not_equal}
+
+
+def parse_where(text, names):
+    """(metric, operator, value) from ``METRIC<VALUE``; ValueError naming the problem."""
+    from ..usd.prims import close_matches
+
+    match = _COMPARE.match(str(text))
+    if not match:
+        raise ValueError(f"--where {text!r} is malformed; write METRIC<VALUE (operators < <= > >= == !=), "
+                         "e.g. --where peak_speed<3")
+    name, op, value = match.groups()
+    if name not in names:
+        raise ValueError(f"--where {text!r}: unknown metric {name!r}.{close_matches(name, names)} "
+                         f"Metrics: {', '.join(names)}")
+    try:
+        number = float(value)
+    except ValueError:
+        raise ValueError(f"--where {text!r}: {value!r} is not a number") from None
+    if math.isnan(number):
+        raise ValueError(f"--where {text!r}: compare with a number, not nan")
+    return name, op, number
+
+
+def parse_rank(text, names):
+    """(metric, descending) from ``METRIC``, ``-METRIC`` or ``METRIC:desc`` / ``METRIC:asc``."""
+    from ..usd.prims import close_matches
+
+    text = str(text).strip()
+    descending = False
+    if text.startswith("-"):
+        text, descending = text[1:], True
+    if ":" in text:
+        text, order = text.split(":", 1)
+        if order not in ("asc", "desc"):
+            raise ValueError(f"--rank {text}:{order}: the order must be asc or desc")
+        descending = order == "desc"
+    if text not in names:
+        raise ValueError(f"--rank {text!r}: unknown metric.{close_matches(text, names)} Metrics: {', '.join(names)}")
+    return text, descending
+
+
+def select(rows, *, rank=None, top=None, where=()):
+    """Rows passing every ``where`` (parsed triples), ordered by ``rank`` ((metric, descending) or
+    None: world order), at most ``top``. Worlds that blew up sort last."""
+    keep = []
+    for row in rows:
+        ok = True
+        for name, op, value in where:
+            v = row.get(name)
+            if v is None or not bool(_OPS[op](float(v), value)):
+                ok = False
+                break
+        if ok:
+            keep.append(row)
+    if rank is not None:
+        name, descending = rank
+
+        def key(row):
+            v = float(row.get(name, float("nan")))
+            bad = bool(row.get("blown_up")) or not math.isfinite(v)
+            return (bad, -v if descending and not bad else v if not bad else 0.0, row["world"])
+
+        keep.sort(key=key)
+    if top is not None:
+        keep = keep[: int(top)]
+    return keep

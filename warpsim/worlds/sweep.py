@@ -1,0 +1,160 @@
+"""A sweep: sample worlds, run them in batches, write the table; the functions the command line
+and the Ray driver (``warpsim.distributed``) share, so both give the same worlds, samples and rows."""
+from __future__ import annotations
+
+import csv
+import math
+import os
+
+import numpy as np
+import warp as wp
+
+from .batch import WorldBatch
+from .metrics import WorldMetrics
+from .sampling import parse_vary, sample_params
+from .usd import BatchLayerWriter
+
+__all__ = ["frame_timing", "run_batch", "sample_worlds", "write_table"]
+
+
+def _typed_fixed(cls, fixed):
+    given = {}
+    for key, value in (fixed or {}).items():
+        given[key] = value
+    resolved = cls.resolve_params(given)  # validates keys and parses strings
+    return {k: resolved[k] for k in given}
+
+
+def sample_worlds(scene_name, fixed, vary, n, sample="grid", seed=0) -> list:
+    """One parameter dict per world: the ``fixed`` values (``--set``; typed values or strings)
+    plus each world's sampled values of the ``vary`` specs (``"key=lo:hi[:log]"``,
+    ``"key=a,b,c"``), ``n`` worlds by ``sample`` ("grid", "random", "lhs") from ``seed``.
+    ValueError (one line) for an unknown key, lo > hi, a log range with a bound <= 0, n < 1."""
+    from ..scenes import get_scene
+
+    cls = get_scene(scene_name)
+    specs = [parse_vary(v, cls.params) for v in vary]
+    fixed = _typed_fixed(cls, fixed)
+    for s in specs:
+        if s.key in fixed:
+            raise ValueError(f"{s.key} is given both with --set and --vary; give it once")
+    varied = sample_params(specs, cls.params, n, sample, seed)
+    return [{**fixed, **v} for v in varied]
+
+
+def frame_timing(cls, params, fps=None, substeps=None):
+    """(fps, substeps, frame_dt [s]) as ``warpsim run`` picks them: a scene with a ``dt``
+    parameter steps exactly dt, ``substeps`` times a frame (``fps`` then sets dt)."""
+    if substeps is not None and int(substeps) < 1:
+        raise ValueError(f"substeps {substeps}: it must be >= 1")
+    substeps = int(substeps or cls.substeps)
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps {fps}: it must be > 0")
+    if "dt" in cls.params:
+        dt = 1.0 / (fps * substeps) if fps is not None else float(params.get("dt", cls.params["dt"].default))
+        if not dt > 0:
+            raise ValueError(f"dt={dt}: it must be > 0 [s]")
+        frame_dt = dt * substeps
+        fps = float(f"{1.0 / frame_dt:.12g}")
+    else:
+        fps = float(fps or cls.fps)
+        frame_dt = 1.0 / fps
+    return fps, substeps, frame_dt
+
+
+def _normalise(cls, params):
+    out = {}
+    for k, v in params.items():
+        default = cls.params[k].default if k in cls.params else None
+        out[k] = tuple(v) if isinstance(default, (tuple, list)) and isinstance(v, list) else v
+    return out
+
+
+def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
+              track=None, metrics=(), use_graph=None, progress=None) -> list:
+    """Step these worlds in one batched run and return one row per world.
+
+    Writes every frame of every world into the USD layer ``layer_path`` (world i under
+    ``/Worlds/world_GGGGGG``, G = first_world + i; see :mod:`warpsim.worlds.usd`). Rows hold
+    ``"world"`` (the global index), the world's parameters as given, the metrics of
+    :mod:`warpsim.worlds.metrics` and ``"blown_up"``. ``track``: {name: particle index within a
+    world} for position metrics; ``metrics``: :class:`warpsim.worlds.metrics.UserMetric` list;
+    ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
+    ``progress(frame)``: called after each frame."""
+    from ..scenes import get_scene
+
+    cls = get_scene(scene_name)
+    if int(frames) < 0:
+        raise ValueError(f"frames {frames}: it must be >= 0")
+    world_params = [_normalise(cls, p) for p in world_params]
+    given = [dict(p) for p in world_params]
+    if not world_params:
+        raise ValueError("run_batch needs at least one world")
+    fps_given = fps
+    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
+    if "dt" in cls.params and fps_given is not None:
+        world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
+    batch = WorldBatch(cls, world_params, device=device)
+    stats = WorldMetrics(batch, track=track, user=metrics)
+    writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
+
+    def write(frame):
+        x, v = batch.world_slices()
+        for w in range(batch.world_count):
+            writer.write_world(w, frame, batch.world_frame_data(x[w], v[w]))
+
+    def body():
+        batch.advance(frame_dt, substeps)
+        stats.update()
+
+    graph = None
+    if use_graph is None:
+        use_graph = batch.device.is_cuda and batch.can_capture()
+    stats.update()
+    write(0)
+    for frame in range(1, int(frames) + 1):
+        if use_graph and graph is None and frame > 1:
+            with wp.ScopedCapture(device=batch.device) as capture:
+                body()
+            graph = capture.graph
+        elif graph is not None:
+            wp.capture_launch(graph)
+        else:
+            body()
+        write(frame)
+        if progress is not None:
+            progress(frame)
+    writer.close(scene_name)
+    return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
+
+
+def _cell(value):
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return ",".join(f"{float(v):.9g}" for v in value)
+    if isinstance(value, float):
+        return f"{value:.9g}"
+    return str(value)
+
+
+def write_table(csv_path, rows) -> str:
+    """A CSV table with one row per world (columns in first-seen order: world, parameters,
+    metrics); vector values are written ``x,y,z`` in one quoted cell. Returns the path."""
+    csv_path = os.path.abspath(os.fspath(csv_path))
+    os.makedirs(os.path.dirname(csv_path), exist_ok=True)
+    columns = []
+    for row in rows:
+        for k in row:
+            if k not in columns:
+                columns.append(k)
+    tmp = csv_path + ".tmp"
+    try:
+        with open(tmp, "w", newline="") as f:
+            out = csv.writer(f)
+            out.writerow(columns)
+            for row in rows:
+                out.writerow([_cell(row[k]) if k in row else "" for k in columns])
+    except PermissionError as exc:
+        raise PermissionError(f"could not write the table {csv_path}: {exc.strerror}; choose a writable --out") \
+            from None
+    os.replace(tmp, csv_path)
+    return csv_path
