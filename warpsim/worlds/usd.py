@@ -161,7 +161,7 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
             end = layer.endTimeCode if end is None else max(end, layer.endTimeCode)
         span = max(span, float(info.get("span", 1.0)))
     missing = [g for g in range(int(world_count)) if g not in owner]
-    if missing:
+    if missing and worlds is None:  # a chosen subset (``worlds``) may skip batches without a layer
         raise ValueError(f"world {missing[0]} is in none of the {len(layer_paths)} batch layers; run its batch")
     chosen = list(range(int(world_count))) if worlds is None else [int(w) for w in worlds]
     for g in chosen:
