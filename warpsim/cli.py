@@ -66,9 +66,23 @@ def _parser():
                    help="also render the cache to a .gif/.mp4/.png beside it (see 'warpsim render')")
     i = sub.add_parser("info", help="summarise a USD cache")
     i.add_argument("cache", help="path of a .usd/.usda/.usdc file")
-    for module in COMMANDS.values():
-        _command_module(module).add_parser(sub)
+    i.add_argument("--verify", action="store_true",
+                   help="compare every chunk file's CRC-32 (reads them all; done anyway below 256 MiB)")
+    for name, module in COMMANDS.items():
+        try:
+            _command_module(module).add_parser(sub)
+        except Exception as exc:  # noqa: BLE001  (a broken command module must not take list/run/info down)
+            _BROKEN[name] = f"{type(exc).__name__}: {exc}"
+            sub.add_parser(name, help=f"(unavailable: {exc})", add_help=False).add_argument(
+                "rest", nargs=argparse.REMAINDER)
     return p
+
+
+_BROKEN = {}  # command name -> why its module failed to load
+
+
+def _one_line(exc):
+    return " ".join(str(exc).split("\n")).strip() or type(exc).__name__
 
 
 def _command_module(path):
@@ -91,13 +105,17 @@ def _cmd_list(out):
     return 0
 
 
-def _cmd_info(path, out):
+def _cmd_info(path, out, err=None, verify=False):
+    from .core.checks import MissingFileError
     from .usd.validate import cache_info
 
     try:
-        info = cache_info(path)
-    except ValueError as exc:
+        info = cache_info(path, verify=True if verify else None)
+    except MissingFileError as exc:
         raise UsageError(str(exc)) from None
+    except ValueError as exc:  # the root layer itself is damaged
+        print(f"warpsim: error: {_one_line(exc)}", file=err or sys.stderr)
+        return 1
     if info["frames"]:
         span = f"frames {info['start']}..{info['end']} ({info['frames']} frames at {info['fps']:g} fps, " \
                f"{(info['frames'] - 1) / info['fps']:.3g} s)"
@@ -113,7 +131,18 @@ def _cmd_info(path, out):
             ", ".join(f"{v:.4g}" for v in bounds[1]) + "]"
         kind = "animated" if prim["animated"] else "static"
         print(f"  {prim['path']:<28} {prim['type']:<15} {kind:<8}{count}{bounds}", file=out)
-    return 0
+    damaged = info.get("damaged")
+    if not damaged:
+        return 0
+    readable = ", ".join(f"{a}..{b}" for a, b in info["readable"]) or "none"
+    print(f"DAMAGED: {len(damaged)} chunk file(s) (checked: {info['checked']}); counts and bounds above cover the "
+          "readable frames only", file=out)
+    for fname, start, end, why in damaged:
+        print(f"  {fname}  frames {start}..{end}: {why}", file=out)
+    print(f"readable frames: {readable}", file=out)
+    print(f"warpsim: error: {path}: {len(damaged)} damaged chunk file(s) (first: {damaged[0][0]}, frames "
+          f"{damaged[0][1]}..{damaged[0][2]}, {damaged[0][3]}); readable frames {readable}", file=err or sys.stderr)
+    return 1
 
 
 def _parse_sets(cls, sets, integrator):
@@ -208,6 +237,7 @@ def _cmd_run(args, out, err):
     path = args.out or os.path.join("usd_out", f"{cls.name}.usda")
     if os.path.splitext(path)[1] not in ROOT_EXTENSIONS:
         raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
+    _check_out(path)
     if args.preview is not None:
         from .render.output import check_out
 
@@ -222,11 +252,14 @@ def _cmd_run(args, out, err):
     if args.resume:
         if not os.path.exists(ckpt_file):
             raise UsageError(f"--resume: no checkpoint {ckpt_file}; run with --checkpoint-every N first")
-        arrays, meta = load_checkpoint(ckpt_file)
+        try:
+            arrays, meta = load_checkpoint(ckpt_file)
+        except ValueError as exc:
+            raise UsageError(f"--resume: {_one_line(exc)}") from None
         if meta["scene"] != cls.name:
             raise UsageError(f"--resume: the checkpoint is of scene {meta['scene']!r}, not {cls.name!r}")
         for key, value in given.items():
-            saved = meta["params"][key]
+            saved = meta["params"].get(key)
             if (list(value) if isinstance(value, tuple) else value) != saved:
                 raise UsageError(f"--resume: {key}={value} differs from the checkpoint's {key}={saved}; "
                                  "a resumed run keeps the parameters it started with")
@@ -246,7 +279,11 @@ def _cmd_run(args, out, err):
     except ValueError as exc:
         raise UsageError(f"scene {cls.name!r}: {exc}") from None
     if ckpt is not None:
-        scene.restore(ckpt[0])
+        try:
+            scene.restore(ckpt[0])
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
+            raise UsageError(f"--resume: checkpoint {ckpt_file} does not fit scene {cls.name!r} ({type(exc).__name__}: "
+                             f"{_one_line(exc)}); run again without --resume") from None
     if start > args.frames + 1:
         raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
     # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps)
@@ -289,7 +326,7 @@ def _cmd_run(args, out, err):
                         progress.update(1)
                     if args.checkpoint_every and (frame % args.checkpoint_every == 0 or frame == args.frames):
                         save(frame)
-            except (SimulationError, ValueError) as exc:  # ValueError: the frame could not be written
+            except (SimulationError, ValueError, OSError) as exc:  # the frame could not be written (disk full)
                 if progress:
                     progress.close()
                     progress = None
@@ -319,21 +356,67 @@ def _cmd_run(args, out, err):
     return 0
 
 
+def _check_out(path):
+    """Create the folder of ``--out`` and make sure a file can be written there, so an
+    unusable path is one line and exit 2 before the scene is built."""
+    import tempfile
+
+    if os.path.isdir(path):
+        raise UsageError(f"--out {path!r} is a folder; name a file in it, e.g. {os.path.join(path, 'scene.usda')!r}")
+    folder = os.path.dirname(os.path.abspath(path))
+    probe = folder
+    while not os.path.lexists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        raise UsageError(f"--out {path!r}: {probe!r} is a file, not a folder; choose another --out")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError as exc:
+        raise UsageError(f"--out {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
+                         "writable folder") from None
+
+
+def _silence_stdout(out):
+    """After a closed pipe (``warpsim list | head -1``): send further output, including the
+    interpreter's final flush, to /dev/null instead of a BrokenPipeError traceback."""
+    if out is sys.stdout:
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):  # pragma: no cover - stdout without a file descriptor
+            pass
+
+
 def main(argv=None, out=None, err=None):
-    """Entry point; returns the exit status (0 ok, 1 simulation failed, 2 usage mistake)."""
+    """Entry point; returns the exit status (0 ok, 1 simulation failed or damaged cache, 2 usage
+    mistake: also any ValueError/FileNotFoundError/PermissionError before the simulation starts)."""
     out = out or sys.stdout
     err = err or sys.stderr
     try:
         args = _parser().parse_args(argv)
+        if args.command in _BROKEN:
+            print(f"warpsim: error: the '{args.command}' command failed to load ({_one_line(_BROKEN[args.command])})",
+                  file=err)
+            return 1
         if args.command == "list":
-            return _cmd_list(out)
-        if args.command == "info":
-            return _cmd_info(args.cache, out)
-        if args.command in COMMANDS:
-            return _command_module(COMMANDS[args.command]).run(args, out, err)
-        return _cmd_run(args, out, err)
+            status = _cmd_list(out)
+        elif args.command == "info":
+            status = _cmd_info(args.cache, out, err, args.verify)
+        elif args.command in COMMANDS:
+            status = _command_module(COMMANDS[args.command]).run(args, out, err)
+        else:
+            status = _cmd_run(args, out, err)
+        out.flush()  # a closed pipe shows up here, not in the interpreter's exit
+        return status
     except UsageError as exc:
-        print(f"warpsim: error: {exc}", file=err)
+        print(f"warpsim: error: {_one_line(exc)}", file=err)
+        return 2
+    except BrokenPipeError:
+        _silence_stdout(out)
+        return 0
+    except (ValueError, OSError) as exc:  # bad values and files found before the simulation starts
+        print(f"warpsim: error: {_one_line(exc)}", file=err)
         return 2
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else 0
