@@ -6,8 +6,10 @@
                       [--checkpoint-every N] [--resume]
     warpsim info CACHE                             prims, frame range, counts, bounds
 
-Exit status: 0 on success, 2 for usage mistakes (unknown scene or parameter, malformed value),
-1 when the simulation fails (the frames written so far stay readable).
+Exit status: 0 on success, 2 for usage mistakes (unknown scene or parameter, malformed value,
+an unusable --out, a damaged checkpoint: any bad value or file found before the simulation
+starts, reported as one line), 1 when the simulation fails (the frames written so far stay
+readable) or ``info`` finds damaged chunk files (it lists them and the frames still readable).
 """
 from __future__ import annotations
 
@@ -219,7 +221,7 @@ def _cmd_run(args, out, err):
     wp.config.quiet = True  # no kernel-cache chatter between the progress bar and the result
     if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
         wp.config.log_level = wp.LOG_WARNING
-    from .usd.checkpoint import load_checkpoint, save_checkpoint
+    from .usd.checkpoint import META_KEYS, load_checkpoint, save_checkpoint
     from .core.errors import SimulationError
     from .scenes import get_scene
     from .usd.writer import ROOT_EXTENSIONS, UsdCacheWriter
@@ -253,7 +255,7 @@ def _cmd_run(args, out, err):
         if not os.path.exists(ckpt_file):
             raise UsageError(f"--resume: no checkpoint {ckpt_file}; run with --checkpoint-every N first")
         try:
-            arrays, meta = load_checkpoint(ckpt_file)
+            arrays, meta = load_checkpoint(ckpt_file, required=META_KEYS)
         except ValueError as exc:
             raise UsageError(f"--resume: {_one_line(exc)}") from None
         if meta["scene"] != cls.name:

@@ -495,6 +495,11 @@ class ClothSimulator(Simulator):
         if int(substeps) < 1:
             raise ValueError(f"substeps = {substeps}; it must be >= 1")
         substeps = int(substeps)
+        if self.rollout is not None:  # differentiable: eager steps, one recorded state per sub-step
+            for _ in range(substeps):
+                Simulator.step(self, frame_dt / substeps)
+            self.frame_count += 1
+            return
         self.integrator.prepare(self.system)
         poses = self._collider_poses()
         if poses is None or poses != self._captured_poses:
@@ -539,6 +544,8 @@ class ClothSimulator(Simulator):
 
     def _advance_substep(self, h: float) -> None:
         """One eager sub-step for :meth:`Simulator.step` (adaptive sub-stepping included)."""
+        if self.rollout is not None:
+            return self.rollout.advance(h)
         self._substep(h, 0, pingpong=False)
         if not self._needs_time:
             wp.launch(KI.advance_time, 1, inputs=[self._time, h], device=self.device)

@@ -50,10 +50,15 @@ class Simulator:
         max_speed: speed [m/s] beyond which the run counts as blown up.
         check_every: test for blow-up every this many steps (0: never; the test reads one int
             back from the device).
+        differentiable: step out of place, one State per step, recorded on a ``wp.Tape``
+            (``sim.rollout``, a ``warpsim.diff.Rollout``: gradients of a loss with respect to
+            spring stiffness/damping, masses, the initial state and force coefficients; the
+            forward result equals the ordinary mode's). Raises ValueError for what cannot be
+            differentiated (adaptive steps, implicit Euler, continuous collision detection, ...).
     """
 
     def __init__(self, model, integrator="semi_implicit_euler", forces=None, colliders=(), *, adaptive=False,
-                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1):
+                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False):
         self.model = model
         self.device = model.device
         if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
@@ -103,6 +108,12 @@ class Simulator:
         self.substep_history = []
         """Sub-steps taken by each ``step(dt)`` call (adaptive runs)."""
         self.integrator.prepare(self.system)
+        self.rollout = None
+        """The differentiable rollout (``warpsim.diff.Rollout``) when ``differentiable=True``."""
+        if differentiable:
+            from ..diff import Rollout
+
+            self.rollout = Rollout(self)
 
     # ----------------------------------------------------------------------------------
     def _check_finite_host(self):
@@ -127,6 +138,8 @@ class Simulator:
 
     def _advance_substep(self, h: float) -> None:
         """One sub-step of ``h`` [s]: integrate, collide, advance the device clock."""
+        if self.rollout is not None:
+            return self.rollout.advance(h)
         st = self.state
         wp.copy(self._q_prev, st.positions)
         self.integrator.step(self.system, st.positions, st.velocities, self._time, h, f_out=st.forces)

@@ -30,6 +30,10 @@ class Bounce(SimulatorScene):
     def build(self, p):
         if p["mass"] <= 0:
             raise ValueError(f"mass={p['mass']}: the ball needs a mass > 0 [kg]")
+        if p["height"] < 0:
+            raise ValueError(f"height={p['height']:g}: the ball would start below the floor (y = 0); give height >= 0 [m]")
+        if p["dt"] <= 0:
+            raise ValueError(f"dt={p['dt']:g}: the time step must be > 0 [s]")
         b = ws.ModelBuilder()
         b.add_particle((0.0, p["height"], 0.0), vel=p["velocity"], mass=p["mass"])
         self.sim = ws.Simulator(b.finalize(self.device), integrator=p["integrator"],

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 
 import numpy as np
 
@@ -23,11 +24,30 @@ def save_checkpoint(path, arrays, meta):
     os.replace(tmp, path)
 
 
-def load_checkpoint(path):
-    """(arrays, meta) saved by :func:`save_checkpoint`."""
-    with np.load(os.fspath(path)) as data:
-        meta = json.loads(bytes(data["meta"]).decode())
-        arrays = {k[len("state/"):]: data[k] for k in data.files if k.startswith("state/")}
+META_KEYS = ("scene", "frame", "fps", "substeps", "params")
+"""Keys the command line's checkpoints carry in ``meta``."""
+
+
+def load_checkpoint(path, required=()):
+    """(arrays, meta) saved by :func:`save_checkpoint`. A missing file is a MissingFileError; an
+    empty, truncated or foreign file, or ``meta`` lacking a ``required`` key, a ValueError naming
+    the file (both are ValueErrors)."""
+    from ..core.checks import existing_file
+
+    path = existing_file(path, "checkpoint")
+    fix = "delete it and run again without --resume, or restore the file"
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(bytes(data["meta"]).decode())
+            arrays = {k[len("state/"):]: data[k] for k in data.files if k.startswith("state/")}
+    except (OSError, EOFError, ValueError, KeyError, UnicodeDecodeError, zipfile.BadZipFile) as exc:
+        size = os.path.getsize(path)
+        what = "is empty (0 bytes)" if size == 0 else f"is damaged or not a warpsim checkpoint ({size} bytes; " \
+            f"{type(exc).__name__}: {str(exc)[:120]})"
+        raise ValueError(f"checkpoint {path!r} {what}; {fix}") from None
+    missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
+    if missing:
+        raise ValueError(f"checkpoint {path!r} lacks {', '.join(missing)}; it is not a warpsim checkpoint: {fix}")
     return arrays, meta
 
 
