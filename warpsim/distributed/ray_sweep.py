@@ -31,8 +31,15 @@ import signal
 import socket
 import time
 
-from .batches import (batch_dir, batches_root, load_rows, publish_batch, remove_stale, split_batches,
-                      temp_batch_dir)
+from .batches import (
+    batch_dir,
+    batches_root,
+    load_rows,
+    publish_batch,
+    remove_stale,
+    split_batches,
+    temp_batch_dir,
+)
 from .manifest import SweepManifest, manifest_path, worlds_digest
 
 __all__ = ["add_ray_arguments", "run_batch_task", "run_ray_sweep"]
@@ -70,7 +77,7 @@ def run_batch_task(spec):
 
     ``spec`` keys: ``scene``, ``worlds`` (list of parameter dicts), ``first_world``, ``index``,
     ``frames``, ``fps``, ``substeps``, ``device``, ``final_dir``, ``layer_name``, ``runner`` (None:
-    ``warpsim.worlds.run_batch``) and ``kill_once`` (tests only: a marker path; the first attempt
+    ``warpsim.worlds.run_batch``), ``options`` (more keyword arguments for it) and ``kill_once`` (tests only: a marker path; the first attempt
     that finds no marker creates it and SIGKILLs its own worker after the layer is written but
     before it is published). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
     """
@@ -89,7 +96,8 @@ def run_batch_task(spec):
     try:
         rows = runner(spec["scene"], spec["worlds"], frames=spec["frames"], fps=spec["fps"],
                       substeps=spec["substeps"], device=spec["device"],
-                      layer_path=os.path.join(tmp, spec["layer_name"]), first_world=spec["first_world"])
+                      layer_path=os.path.join(tmp, spec["layer_name"]), first_world=spec["first_world"],
+                      **(spec.get("options") or {}))
     except Exception as exc:  # noqa: BLE001  (a batch that blows up is flagged, not fatal)
         error = f"{type(exc).__name__}: {exc}".splitlines()[0]
         rows = _blown_rows(spec["worlds"], spec["first_world"], error)
@@ -143,7 +151,7 @@ def _task_resources(ray, device):
 
 def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps=None, substeps=None,
                   device=None, batch_size=DEFAULT_BATCH_SIZE, address=None, num_cpus=None, resume=False,
-                  layout="variants", max_retries=3, runner=None, log=None, _kill_once=None):
+                  layout="variants", max_retries=3, runner=None, batch_options=None, log=None, _kill_once=None):
     """Run a sweep's worlds as Ray tasks, one per batch; write the table and the root USD.
 
     Args:
@@ -160,6 +168,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         resume: skip the batches the manifest lists with an unchanged checksum.
         max_retries: Ray task retries after a worker dies.
         runner: the batch function (default ``warpsim.worlds.run_batch``); it must be picklable.
+        batch_options: more keyword arguments for every ``runner`` call (e.g. ``track``).
         log: a file for one line per finished batch (None: silent).
 
     Returns:
@@ -172,7 +181,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     out_path = os.path.abspath(out_path)
     sweep = {"scene": scene_name, "world_count": len(world_params), "batch_size": batch_size,
              "frames": frames, "fps": fps, "substeps": substeps, "layout": layout,
-             "worlds_sha256": worlds_digest(world_params)}
+             "worlds_sha256": worlds_digest(world_params), "options": _describe(batch_options or {})}
     mpath = manifest_path(out_path)
     os.makedirs(os.path.dirname(out_path), exist_ok=True)
     if resume:
@@ -200,7 +209,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             spec = {"scene": scene_name, "worlds": world_params[first:first + count], "first_world": first,
                     "index": i, "frames": frames, "fps": fps, "substeps": substeps, "device": task_device,
                     "final_dir": batch_dir(out_path, i), "layer_name": _layer_name(out_path, i),
-                    "runner": runner, "kill_once": _kill_once}
+                    "runner": runner, "options": batch_options, "kill_once": _kill_once}
             pending[task.remote(spec)] = i
         fresh = {}
         while pending:
@@ -230,13 +239,24 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     from ..worlds import write_sweep_root, write_table
 
     write_table(table_path, rows)
-    layers = [os.path.join(batch_dir(out_path, i), _layer_name(out_path, i)) for i in range(len(batches))
-              if not manifest.batches[i]["error"]]
-    root = write_sweep_root(out_path, layers, len(world_params), layout=layout)
+    ok = [i for i in range(len(batches)) if not manifest.batches[i]["error"]]
+    layers = [os.path.join(batch_dir(out_path, i), _layer_name(out_path, i)) for i in ok]
+    worlds = None  # every world; only the worlds of batches with a layer when a batch failed
+    if len(ok) < len(batches):
+        worlds = [w for i in ok for w in range(batches[i][0], sum(batches[i]))]
+    root = write_sweep_root(out_path, layers, len(world_params), layout=layout, worlds=worlds) if layers else None
     remove_stale(out_path)
     return {"rows": rows, "root": root, "table": table_path, "ran": sorted(fresh), "skipped": skipped,
             "batches": {i: manifest.batches[i] for i in range(len(batches))},
             "seconds": time.perf_counter() - t_start}
+
+
+def _describe(options):
+    """JSON form of ``batch_options`` for the manifest (objects by their ``name`` or type)."""
+    import json
+
+    return json.loads(json.dumps(options, sort_keys=True,
+                                 default=lambda o: getattr(o, "name", type(o).__name__)))
 
 
 def _record(manifest, out_path, batches, i, result):
