@@ -328,18 +328,36 @@ def axpby(x: wp.array(dtype=float), y: wp.array(dtype=float), alpha: float, beta
 
 @wp.kernel
 def fluid_sums(labels: wp.array3d(dtype=int), open_mask: int, rhs: wp.array(dtype=float),
-               sums_out: wp.array(dtype=float)):
-    """sums_out += (sum of rhs over FLUID cells, FLUID cell count, FLUID cells next to AIR)."""
+               partial_out: wp.array2d(dtype=float)):
+    """partial_out[c % slots] += (rhs[c], 1, faces of c on AIR) over FLUID cells c; ``sum_slots``
+    then gives (sum of rhs over FLUID cells, FLUID cell count, FLUID faces next to AIR). Spreading
+    the sums over slots, and counting a cell's AIR faces before one atomic, keeps GPU atomics from
+    serialising on three addresses (H100, 128^3: 7.3 ms with every cell adding into them)."""
     i, j, k = wp.tid()
     if labels[i, j, k] != FLUID:
         return
     c = wp.vec3i(i, j, k)
-    wp.atomic_add(sums_out, 0, rhs[(i * labels.shape[1] + j) * labels.shape[2] + k])
-    wp.atomic_add(sums_out, 1, 1.0)
+    air = float(0.0)
     for a in range(3):
         for s in range(2):
             if label_at(labels, open_mask, c + axis_step(a) * (2 * s - 1)) == AIR:
-                wp.atomic_add(sums_out, 2, 1.0)
+                air += 1.0
+    flat = (i * labels.shape[1] + j) * labels.shape[2] + k
+    slot = flat % partial_out.shape[0]
+    wp.atomic_add(partial_out, slot, 0, rhs[flat])
+    wp.atomic_add(partial_out, slot, 1, 1.0)
+    if air > 0.0:
+        wp.atomic_add(partial_out, slot, 2, air)
+
+
+@wp.kernel
+def sum_slots(partial: wp.array2d(dtype=float), sums_out: wp.array(dtype=float)):
+    """sums_out[q] = sum over slots of partial[slot, q] (one thread per column q)."""
+    q = wp.tid()
+    total = float(0.0)
+    for slot in range(partial.shape[0]):
+        total += partial[slot, q]
+    sums_out[q] = total
 
 
 @wp.kernel

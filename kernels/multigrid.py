@@ -147,15 +147,6 @@ def sum_fluid_closed(labels: wp.array3d(dtype=int), domain_sums: wp.array(dtype=
 
 
 @wp.kernel
-def total_of_slots(partial_sums: wp.array(dtype=float), total_out: wp.array(dtype=float)):
-    """total_out[0] = sum of partial_sums (one thread)."""
-    s = float(0.0)
-    for i in range(partial_sums.shape[0]):
-        s += partial_sums[i]
-    total_out[0] = s
-
-
-@wp.kernel
 def remove_fluid_mean_closed(labels: wp.array3d(dtype=int), domain_sums: wp.array(dtype=float),
                              x_sum: wp.array(dtype=float), x_in: wp.array(dtype=float), x_out: wp.array(dtype=float)):
     """x_out = x_in minus its FLUID mean (x_sum[0] / FLUID count) in a closed domain, else x_in

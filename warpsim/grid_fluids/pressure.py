@@ -69,6 +69,7 @@ class PressureSolver:
         self.rhs = wp.zeros(n, dtype=float, device=d)
         self.q = wp.zeros(n, dtype=float, device=d)
         self._sums = wp.zeros(3, dtype=float, device=d)
+        self._slot_sums = wp.zeros((256, 3), dtype=float, device=d)  # fluid_sums partials (see the kernel)
         self._z = wp.zeros(n, dtype=float, device=d)
         self._diag_flat = self.diag.reshape((n,))
         # On the CPU, one "batch" spanning all cells makes warp.optim.linear's dot products run as
@@ -83,6 +84,7 @@ class PressureSolver:
             self._mg_in = wp.zeros(n, dtype=float, device=d)
             self._mean = wp.zeros(1, dtype=float, device=d)
             self._partial = wp.zeros(256, dtype=float, device=d)
+            self._partial_2d = self._partial.reshape((256, 1))
             self._M = LinearOperator((n, n), float, d, self._mg, batch_offsets=batch)
         elif preconditioner == "jacobi":
             self._M = LinearOperator((n, n), float, d, self._jacobi, batch_offsets=batch)
@@ -114,7 +116,7 @@ class PressureSolver:
         g, d = self.grid, self.device
         self._partial.zero_()
         wp.launch(KM.sum_fluid_closed, g.shape, inputs=[g.labels, self._sums, x], outputs=[self._partial], device=d)
-        wp.launch(KM.total_of_slots, 1, inputs=[self._partial], outputs=[self._mean], device=d)
+        wp.launch(K.sum_slots, 1, inputs=[self._partial_2d], outputs=[self._mean], device=d)
         wp.launch(KM.remove_fluid_mean_closed, g.shape, inputs=[g.labels, self._sums, self._mean, x], outputs=[out],
                   device=d)
 
@@ -169,8 +171,9 @@ class PressureSolver:
                   device=d)
         wp.launch(K.pressure_rhs, g.shape, inputs=[self.div, g.labels, target if use else g._no_phi, int(use), g.dx],
                   outputs=[self.rhs], device=d)
-        self._sums.zero_()
-        wp.launch(K.fluid_sums, g.shape, inputs=[g.labels, g.open_mask, self.rhs], outputs=[self._sums], device=d)
+        self._slot_sums.zero_()
+        wp.launch(K.fluid_sums, g.shape, inputs=[g.labels, g.open_mask, self.rhs], outputs=[self._slot_sums], device=d)
+        wp.launch(K.sum_slots, 3, inputs=[self._slot_sums], outputs=[self._sums], device=d)
         wp.launch(K.remove_rhs_mean, g.shape, inputs=[g.labels, self._sums], outputs=[self.rhs], device=d)
         # CG's recursively updated residual drifts from the true one in float32; a second, warm-started
         # pass restarts from the true residual b - A q (and stops at once when that already meets tol).
