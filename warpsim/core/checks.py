@@ -13,6 +13,7 @@ for files (subclasses of both ``FileNotFoundError``/``PermissionError`` and ``Va
 """
 from __future__ import annotations
 
+import errno
 import math
 import numbers
 import os
@@ -29,15 +30,19 @@ __all__ = [
 class MissingFileError(FileNotFoundError, ValueError):
     """A named input file does not exist (``.filename`` holds the path)."""
 
+    def __str__(self):
+        return str(self.strerror)
+
 
 class UnreadableFileError(PermissionError, ValueError):
     """A named input file exists but cannot be read (``.filename`` holds the path)."""
 
+    def __str__(self):
+        return str(self.strerror)
+
 
 def _file_error(cls, message, path):
-    err = cls(message)
-    err.filename = path
-    return err
+    return cls(errno.ENOENT if cls is MissingFileError else errno.EACCES, message, path)
 
 
 def show(value, limit: int = 60) -> str:
