@@ -25,6 +25,7 @@ COMMANDS = {
     "view": "warpsim.viewer.command",
     "render": "warpsim.render.command",
     "plot": "warpsim.render.plot",
+    "sweep": "warpsim.worlds.command",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
