@@ -406,8 +406,12 @@ def eval_neighbour_rules(
     limit(v_j + (slot - x_i) / draft_time - v_i, max_force) towards the nearest slot
     x_j - b0 h_j + s0 (side of i). Push (hard minimum distance d_min of the relation, no
     field-of-view filter): with the pair's offset predicted ``lookahead`` [s] ahead,
-    p = d + (v_j - v_i) lookahead, the sum of 0.5 (d_min - |p|) (-p / |p|) over j with |p| < d_min."""
-    i = wp.tid()
+    p = d + (v_j - v_i) lookahead, the sum of 0.5 (d_min - |p|) (-p / |p|) over j with |p| < d_min.
+
+    Threads take agents in the grid's cell order (``hash_grid_point_id``), so neighbouring threads
+    query the same cells and read the same neighbours (coherent gathers; each agent's result is
+    unchanged)."""
+    i = wp.hash_grid_point_id(grid, wp.tid())
     p = rules[kind[i]]
     xi = x[i]
     vi = v[i]
