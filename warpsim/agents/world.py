@@ -8,6 +8,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core import checks
 from ..kernels import agents as K
 
 
@@ -46,12 +47,41 @@ class Terrain:
     faces). Build with :meth:`flat`, :meth:`from_heights`, :meth:`from_function` or
     :meth:`from_mesh`."""
 
+    KINDS = {"flat": 0, "heights": 1, "mesh": 2}
+    """Terrain kinds by name; the constructor takes a name or its number."""
+
     def __init__(self, kind, height=0.0, heights=None, origin=(0.0, 0.0), spacing=1.0, points=None, faces=None):
-        self.kind = kind
-        self.flat_height = float(height)
+        """Validated here, so a bad argument fails now, not at the first step: ``kind`` "flat"
+        (0, the plane y = height), "heights" (1, ``heights`` (nx, nz) [m] at ``origin`` + (i, k)
+        ``spacing``) or "mesh" (2, ``points`` (v, 3), ``faces`` (m, 3))."""
+        fix = "use Terrain.flat(h), Terrain.from_heights(heights, spacing) or Terrain.from_mesh(points, faces)"
+        if isinstance(kind, str):
+            kind = self.KINDS[checks.choice(kind, "Terrain kind", tuple(self.KINDS), fix)]
+        elif isinstance(kind, bool) or kind not in (0, 1, 2):
+            raise ValueError(f"Terrain kind {checks.show(kind)} is unknown; use 'flat' (0), 'heights' (1) or "
+                             f"'mesh' (2); {fix}")
+        self.kind = int(kind)
+        self.flat_height = checks.finite(height, "Terrain height", "m")
+        self.spacing = checks.positive(spacing, "Terrain spacing", "m", "the height-field sample spacing")
+        o = _points(origin, "Terrain origin (x, z)", width=2)
+        if len(o) != 1:
+            raise ValueError(f"Terrain origin must be one (x, z) pair [m], got {len(o)}")
+        self.origin = (float(o[0, 0]), float(o[0, 1]))
+        if self.kind == 1:
+            if heights is None:
+                raise ValueError(f"Terrain kind 'heights' needs heights= (a 2-D array [m]); {fix}")
+            h = np.asarray(heights, dtype=np.float64) if not isinstance(heights, str) else np.zeros(0)
+            if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
+                raise ValueError(f"terrain heights must be a 2-D array of at least 2 x 2 samples, got shape {h.shape}")
+            if not np.isfinite(h).all():
+                i, k = np.argwhere(~np.isfinite(h))[0]
+                raise ValueError(f"terrain heights[{i}, {k}] is not finite")
+            heights = h
+        if self.kind == 2:
+            if points is None or faces is None:
+                raise ValueError(f"Terrain kind 'mesh' needs points= and faces=; {fix}")
+            points, faces = _mesh_arrays(points, faces, "terrain mesh")
         self.heights = heights
-        self.origin = (float(origin[0]), float(origin[1]))
-        self.spacing = float(spacing)
         self.points = points
         self.faces = faces
         self._cache = {}
@@ -59,10 +89,7 @@ class Terrain:
     @classmethod
     def flat(cls, height=0.0):
         """The plane y = height [m]."""
-        h = float(height)
-        if not math.isfinite(h):
-            raise ValueError(f"terrain height must be finite, got {height}")
-        return cls(0, height=h)
+        return cls(0, height=checks.finite(height, "terrain height", "m"))
 
     @classmethod
     def from_heights(cls, heights, spacing, origin=(0.0, 0.0)):
@@ -74,10 +101,7 @@ class Terrain:
         if not np.isfinite(h).all():
             i, k = np.argwhere(~np.isfinite(h))[0]
             raise ValueError(f"terrain heights[{i}, {k}] is not finite")
-        if not (math.isfinite(float(spacing)) and float(spacing) > 0.0):
-            raise ValueError(f"terrain spacing must be > 0 [m], got {spacing}")
-        o = _points(origin, "terrain origin (x, z)", width=2)[0]
-        return cls(1, height=float(h.min()), heights=h, origin=o, spacing=spacing)
+        return cls(1, height=float(h.min()), heights=h, origin=origin, spacing=spacing)
 
     @classmethod
     def from_function(cls, fn, lower, upper, spacing):
@@ -86,8 +110,7 @@ class Terrain:
         hi = _points(upper, "terrain upper (x, z)", width=2)[0]
         if not (hi > lo).all():
             raise ValueError(f"terrain upper {hi} must exceed lower {lo} in x and z")
-        if not (math.isfinite(float(spacing)) and float(spacing) > 0.0):
-            raise ValueError(f"terrain spacing must be > 0 [m], got {spacing}")
+        spacing = checks.positive(spacing, "terrain spacing", "m")
         n = np.maximum(np.ceil((hi - lo) / spacing).astype(int) + 1, 2)
         xs = lo[0] + spacing * np.arange(n[0])
         zs = lo[1] + spacing * np.arange(n[1])

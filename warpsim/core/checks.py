@@ -158,8 +158,8 @@ def choice(value, what: str, choices, fix: str = ""):
 
         close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1) if isinstance(value, str) \
             else []
-        hint = f" Did you mean {close[0]!r}?" if close else ""
-        raise ValueError(f"{what} {show(value)} is unknown; use one of {', '.join(map(repr, choices))}."
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"{what} {show(value)} is unknown; use one of {', '.join(map(repr, choices))}"
                          f"{hint}{_fix(fix)}")
     return value
 
