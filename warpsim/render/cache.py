@@ -62,11 +62,11 @@ def select_frames(available, frame=None, frames=None):
 
 
 def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=None, fps=None, device=None,
-                 guides=False, progress=None):
+                 guides=False, only=None, progress=None):
     """Render ``cache`` into ``out`` (.png: one frame, the last unless ``frame`` is given; .gif
     or .mp4: ``frames``, every frame by default). ``camera``: None (frame the scene's bounds
     over the drawn frames), a :class:`Camera` or ``"ex,ey,ez,tx,ty,tz"``. ``fps``: playback
-    rate (default the cache's). ``progress``: called with (frames done, frames in all) after each frame.
+    rate (default the cache's). ``only``: names of the prims to draw (default all). ``progress``: called with (frames done, frames in all) after each frame.
     Returns ``{"path", "frames", "seconds", "camera"}``."""
     width, height = parse_size(size) if isinstance(size, str) else check_size(*size)
     ext = check_out(out)
@@ -74,7 +74,7 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
         camera = parse_camera(camera)
     elif camera is not None and not isinstance(camera, Camera):
         raise ValueError(f"camera must be a Camera or 'ex,ey,ez,tx,ty,tz', got {camera!r}")
-    scene = CacheScene(cache, guides=guides)
+    scene = CacheScene(cache, guides=guides, only=only)
     if FORMATS[ext] == "image" and frame is None and frames is None:
         frame = scene.frames[-1] if scene.frames else None
     chosen = select_frames(scene.frames, frame, frames)

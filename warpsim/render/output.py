@@ -42,7 +42,9 @@ class _Png:
 
 
 class _Gif:
-    """Frames quantised to one shared 255-colour palette (taken from the first frame) as they come."""
+    """Frames quantised to one shared 255-colour palette (taken from the first frame) as they come.
+    Pillow stores identical consecutive frames once with their durations added (playback time is
+    kept)."""
 
     def __init__(self, path, fps):
         self.path, self.fps = path, float(fps)

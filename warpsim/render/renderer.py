@@ -60,7 +60,7 @@ class Renderer:
     def render(self, geom, camera, ground_y=None, linear=False):
         """(height, width, 3) uint8 sRGB image of ``geom`` seen by ``camera`` (float linear RGB
         with ``linear=True``). ``ground_y``: height of the ground plane [m] (None: the bottom of
-        the geometry's bounds; ``False``: no ground)."""
+        the geometry's bounds; ``False``: no ground; an empty frame has none)."""
         dev = self.device
         vec3 = wp.vec3
         keep = []  # device objects that must outlive the launch
@@ -102,7 +102,7 @@ class Renderer:
         lit.sky_low, lit.sky_high = vec3(*self.background[0]), vec3(*self.background[1])
         if ground_y is None:
             ground_y = None if bounds is None else float(bounds[0][1])
-        lit.ground = 0 if ground_y is None or ground_y is False else 1
+        lit.ground = 0 if ground_y is None or ground_y is False or bounds is None else 1  # nothing drawn: sky only
         lit.ground_y = 0.0 if not lit.ground else float(ground_y)
         extent = 1.0 if bounds is None else float(np.max(bounds[1] - bounds[0]))
         lit.checker = nice_step(extent)
@@ -126,7 +126,7 @@ class Renderer:
             glass_id, int(has_glass), self._array(geom.glass_colors, vec3), self._array(geom.glass_alpha, float),
             bvh_id, int(has_caps), cap_a, cap_b, cap_r, self._array(geom.cap_colors, vec3), vol,
         ], outputs=[self._image])
-        img = self._image.numpy().reshape(self.height, self.width, 3)
+        img = self._image.numpy().reshape(self.height, self.width, 3).copy()  # (a view on the CPU)
         del keep
         if linear:
             return img

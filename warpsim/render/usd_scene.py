@@ -42,10 +42,11 @@ class CacheScene:
     Args:
         path: the cache (``.usd``/``.usda``/``.usdc``); ValueError when it does not open.
         guides: also draw ``guide`` prims (with their ``displayOpacity``).
+        only: names (or paths) of the prims to draw; None draws every drawn prim.
     Attributes: ``frames`` (the integer time codes, empty for a static file), ``fps``.
     """
 
-    def __init__(self, path, guides=False):
+    def __init__(self, path, guides=False, only=None):
         from pxr import Usd, UsdGeom
 
         self.stage = open_stage(path)
@@ -63,7 +64,8 @@ class CacheScene:
             if str(prim.GetPath()) in skip:
                 it.PruneChildren()
                 continue
-            if prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer):
+            wanted = only is None or prim.GetName() in only or str(prim.GetPath()) in only
+            if wanted and (prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer)):
                 self.prims.append(prim)
 
     # ------------------------------------------------------------------ framing

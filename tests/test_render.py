@@ -1,0 +1,233 @@
+"""The preview renderer (warpsim.render, kernels/render.py) and ``warpsim render`` on the CPU.
+
+Analytic checks: a sphere's silhouette against its perspective projection, Beer-Lambert
+transmission through a uniform smoke slab, an empty scene against the sky formula; behaviour:
+GIF frame counts, clear errors (exit 2) for bad cameras, sizes and frame ranges, and the teapot
+seen through its box of walls as other USD tools show it (walls are translucent guides)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from warpsim.cli import main
+from warpsim.render import Camera, GeometryBuilder, Renderer
+from warpsim.render.cache import render_cache
+from warpsim.render.renderer import to_srgb8
+from warpsim.usd.writer import UsdCacheWriter
+
+W = H = 160
+
+
+def _run(*argv):
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    return main(list(argv), out, err), out.getvalue(), err.getvalue()
+
+
+def _red_mask(img):
+    """Pixels of a pure red object (sRGB uint8 or linear float) against the blue-white sky/ground."""
+    img = img.astype(np.float64)
+    return img[..., 0] - img[..., 1] > 0.2 * (255.0 if img.max() > 1.5 else 1.0)
+
+
+def _sphere_area_px(radius, dist, fov, height):
+    """Analytic silhouette area [px] of a sphere centred on the optical axis: a disc of image-plane
+    radius tan(asin(r / d)) = r / sqrt(d^2 - r^2) at unit focal distance."""
+    rho = radius / math.sqrt(dist * dist - radius * radius)
+    px = rho / math.tan(math.radians(0.5 * fov)) * 0.5 * height
+    return math.pi * px * px
+
+
+@pytest.mark.parametrize("radius, dist", [(0.5, 2.0), (0.3, 1.0)])
+def test_sphere_silhouette_matches_its_projection(radius, dist):
+    g = GeometryBuilder()
+    g.add_spheres([[0.0, 0.0, 0.0]], radius, (1.0, 0.0, 0.0))
+    cam = Camera((0.0, 0.0, dist), (0.0, 0.0, 0.0), fov=40.0)
+    img = Renderer(W, H, device="cpu").render(g.build(), cam, ground_y=False, linear=True)
+    area = _red_mask(img).sum()
+    expected = _sphere_area_px(radius, dist, 40.0, H)
+    assert abs(area - expected) / expected < 0.02, (area, expected)
+
+
+def test_sphere_prim_of_a_cache_projects_where_the_camera_says(tmp_path):
+    """A USD Sphere (translated) and a Points sphere through render_cache: each silhouette's area and
+    centre match the projection of the camera (an off-axis sphere projects to an ellipse whose
+    centre is near the projected centre)."""
+    path = str(tmp_path / "s.usda")
+    with UsdCacheWriter(path, fps=10) as w:
+        w.add_sphere("ball", (0.0, 0.4, 0.0), 0.4, color=(1.0, 0.0, 0.0))
+        w.add_points("p", radius=0.2, color=(0.0, 1.0, 0.0), velocities=False)
+        w.write_frame(0, {"p": {"points": [[0.7, 0.2, 0.0]]}})
+    cam = Camera((0.0, 0.4, 3.0), (0.0, 0.4, 0.0), fov=40.0)
+    out = str(tmp_path / "s.png")
+    render_cache(path, out, size=(W, H), camera=cam, device="cpu")
+    from PIL import Image
+
+    img = np.asarray(Image.open(out))
+    red = _red_mask(img)
+    expected = _sphere_area_px(0.4, 3.0, 40.0, H)
+    assert abs(red.sum() - expected) / expected < 0.02
+    rows, cols = np.nonzero(red)
+    assert abs(cols.mean() - W / 2) < 1.0 and abs(rows.mean() - H / 2) < 1.0
+    img = img.astype(int)
+    green = (img[..., 1] - img[..., 0] > 60) & (img[..., 1] - img[..., 2] > 60)
+    cx, cy = cam.project([[0.7, 0.2, 0.0]], W, H)[0][0]
+    rows, cols = np.nonzero(green)
+    assert green.sum() > 100 and abs(cols.mean() - cx) < 2.0 and abs(rows.mean() - cy) < 2.0
+
+
+def test_empty_scene_is_background_only(tmp_path):
+    path = str(tmp_path / "empty.usda")
+    with UsdCacheWriter(path, fps=10) as w:
+        w.add_points("p", count_changes=True, velocities=False)
+        for f in range(3):
+            w.write_frame(f, {"p": {"points": np.zeros((0, 3)), "ids": np.zeros(0, np.int64)}})
+    out = str(tmp_path / "empty.png")
+    cam = Camera((1.0, 2.0, 3.0), (0.0, 0.0, 0.0))
+    render_cache(path, out, size=(64, 48), camera=cam, device="cpu")
+    from PIL import Image
+
+    img = np.asarray(Image.open(out)).astype(int)
+    r = Renderer(64, 48, device="cpu")
+    f, right, up = cam.basis()
+    tx, ty = cam.tangents(64, 48)
+    j, i = np.meshgrid(np.arange(64), np.arange(48))
+    d = (f + ((2 * (j + 0.5) / 64 - 1) * tx)[..., None] * right + ((1 - 2 * (i + 0.5) / 48) * ty)[..., None] * up)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    s = np.clip(0.5 + 0.5 * d[..., 1:2], 0, 1)
+    sky = (1 - s) * np.asarray(r.background[0]) + s * np.asarray(r.background[1])
+    assert np.abs(img - to_srgb8(sky).astype(int)).max() <= 1
+
+
+def test_smoke_slab_transmits_beer_lambert():
+    """Black smoke of uniform density rho over L metres in front of the sky: the pixel is the sky
+    times exp(-sigma rho L) (sigma: the renderer's extinction per unit density)."""
+    rho, n, dx = 0.05, 8, 0.1
+    g = GeometryBuilder()
+    g.set_volume(np.full((n, n, n), rho), (-0.4, -0.4, -0.4), dx, color=(0.0, 0.0, 0.0))
+    cam = Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov=20.0)
+    r = Renderer(33, 33, device="cpu")
+    with_smoke = r.render(g.build(), cam, ground_y=False, linear=True)[16, 16]
+    sky = r.render(GeometryBuilder().build(), cam, ground_y=False, linear=True)[16, 16]
+    expected = math.exp(-r.smoke_extinction * rho * n * dx)
+    assert 0.05 < expected < 0.5
+    assert with_smoke / sky == pytest.approx([expected] * 3, rel=0.02)
+
+
+def _write_frames(path, frames):
+    with UsdCacheWriter(path, fps=12, chunk_size=4) as w:
+        w.add_points("p", radius=0.1, color=(1.0, 0.0, 0.0), velocities=False)
+        w.add_plane("floor", size=2.0)
+        for f in range(frames):
+            w.write_frame(f, {"p": {"points": [[0.15 * f, 0.1 + 0.1 * f, 0.0]]}})  # every frame differs
+
+
+def test_gif_has_the_asked_frames(tmp_path):
+    from PIL import Image
+
+    path = str(tmp_path / "c.usda")
+    _write_frames(path, 9)
+    for spec, count in (("0:4", 5), ("2:8:3", 3), (None, 9)):
+        out = str(tmp_path / f"c{count}.gif")
+        code, _, err = _run("render", path, "--out", out, "--size", "40x30", "--device", "cpu",
+                               "--no-progress", *(["--frames", spec] if spec else []))
+        assert code == 0, err
+        with Image.open(out) as im:
+            assert im.n_frames == count
+            durations = []
+            for k in range(count):
+                im.seek(k)
+                durations.append(im.info["duration"])
+            assert durations == [80] * count  # 12 fps in the GIF's 1/100 s steps
+
+
+def test_mp4_has_the_asked_frames(tmp_path):
+    import imageio.v2 as iio
+
+    path = str(tmp_path / "c.usda")
+    _write_frames(path, 6)
+    out = str(tmp_path / "c.mp4")
+    assert _run("render", path, "--out", out, "--size", "41x31", "--no-progress", "--device", "cpu")[0] == 0
+    with iio.get_reader(out) as reader:
+        assert reader.count_frames() == 6
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--camera", "1,1,1,1,1,1"], "same point"),
+    (["--camera", "1,2,3"], "six numbers"),
+    (["--size", "0x10"], "width 0"),
+    (["--size", "big"], "WIDTHxHEIGHT"),
+    (["--frames", "3:20"], "outside the cache's frames 0..5"),
+    (["--frames", "4:2"], "outside"),
+    (["--frame", "9"], "outside the cache's frames 0..5"),
+    (["--frames", "a:b"], "A:B"),
+    (["--out", "x.jpg"], ".png (one frame), .gif or .mp4"),
+    (["--out", "x.png", "--frames", "0:2"], "a .png holds one frame"),
+    (["--fps", "0"], "--fps"),
+])
+def test_bad_input_is_a_clear_usage_error(tmp_path, args, words):
+    path = str(tmp_path / "c.usda")
+    _write_frames(path, 6)
+    out = ["--out", str(tmp_path / "x.gif")] if "--out" not in args else []
+    code, _, err = _run("render", path, "--device", "cpu", "--no-progress", *out,
+                           *[str(tmp_path / a) if a.startswith("x.") else a for a in args])
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.startswith("warpsim: error:")]
+    assert len(lines) == 1 and words in lines[0], err
+    assert not list(tmp_path.glob("x.*"))  # nothing written
+
+
+def test_missing_cache_is_a_usage_error(tmp_path):
+    code, _, err = _run("render", str(tmp_path / "none.usda"), "--device", "cpu")
+    assert code == 2 and "does not exist" in err
+
+
+def test_teapot_is_seen_through_its_box(tmp_path):
+    """The teapot scene's walls are written as translucent guides: a default render (guides
+    hidden, as usdview and Blender do) shows the teapot's own pixels from a camera outside the box,
+    and with the guides drawn (displayOpacity 0.2) the teapot still shows through."""
+    from PIL import Image
+
+    cache = str(tmp_path / "teapot.usda")
+    code, _, err = _run("run", "teapot", "--frames", "2", "--out", cache, "--device", "cpu", "--no-progress",
+                        "--set", "resolution=3", "--set", "springs=false")
+    assert code == 0, err
+    cam = Camera((0.9, 0.9, 1.3), (0.0, 0.4, 0.0))  # outside the box of walls [-0.7, 0.7]^2 x [0, 1.4]
+    assert np.abs(cam.eye[[0, 2]]).max() > 0.7
+
+    def render(name, **kw):
+        out = str(tmp_path / f"{name}.png")
+        render_cache(cache, out, size=(120, 90), camera=cam, device="cpu", frame=2, **kw)
+        return np.asarray(Image.open(out)).astype(int)
+
+    from warpsim.render.usd_scene import CacheScene
+
+    r = Renderer(120, 90, device="cpu")
+    geom = CacheScene(cache, only=["teapot"]).geometry(2)
+    alone = to_srgb8(r.render(geom, cam, ground_y=False, linear=True)).astype(int)
+    geom.face_colors[:] = (1.0, 0.0, 0.0)
+    teapot = _red_mask(r.render(geom, cam, ground_y=False, linear=True))  # the teapot's own pixels
+    assert teapot.sum() > 300
+    default = render("default")
+    same = np.abs(default - alone).max(-1) <= 3
+    assert same[teapot].mean() > 0.95
+    guides = render("guides", guides=True)
+    walls_only = render("walls", guides=True, only=["walls"])
+    seen = np.abs(guides - walls_only).max(-1) > 8
+    assert seen[teapot].mean() > 0.9
+    # the walls do show as translucent guides: they change the picture around the teapot
+    assert (np.abs(guides - default).max(-1) > 8)[~teapot].mean() > 0.2
+
+
+def test_run_preview_writes_the_animation_beside_the_cache(tmp_path):
+    from PIL import Image
+
+    cache = tmp_path / "sub" / "b.usda"
+    code, _, err = _run("run", "pendulum", "--frames", "4", "--out", str(cache), "--preview", "b.gif",
+                           "--device", "cpu", "--no-progress")
+    assert code == 0, err
+    with Image.open(tmp_path / "sub" / "b.gif") as im:
+        assert im.n_frames == 5
+    assert _run("run", "pendulum", "--frames", "1", "--out", str(cache), "--preview", "b.jpg")[0] == 2
