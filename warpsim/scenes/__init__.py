@@ -57,6 +57,11 @@ __all__ = ["Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "regi
 _REGISTRY = {}
 _LOADED = False
 
+CONTAINER = {"opacity": 0.2, "purpose": "guide"}
+"""Display hints for boxes of walls and tanks (``writer.add_box(..., **CONTAINER)``): a guide with
+low ``displayOpacity``, which usdview and Blender hide by default and ``warpsim render --guides``
+draws translucent, so a default render shows what the container holds."""
+
 
 @dataclass(frozen=True)
 class Param:

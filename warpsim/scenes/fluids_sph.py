@@ -13,7 +13,7 @@ import numpy as np
 from ..bodies import colliders as C
 from ..particle_fluids.surface import FluidSurface
 from ..particle_fluids.pbf import KERNELS, Nozzle, ParticleFluid, Sink, fluid_block
-from . import Scene, register_scene
+from . import CONTAINER, Scene, register_scene
 
 _WATER = (0.15, 0.45, 0.9)
 _COMMON = {
@@ -57,6 +57,7 @@ class FluidScene(Scene):
 
     fluid = None
     surface = None
+    _frame_iterations = 0
 
     def make_surface(self, p):
         if p["surface"]:
@@ -66,21 +67,25 @@ class FluidScene(Scene):
     def declare_fluid(self, writer):
         writer.add_points("particles", count_changes=True, radius=0.5 * self.fluid.spacing, color=_WATER)
         writer.add_attribute("particles", "warpsim:densityError", "double")
+        writer.add_attribute("particles", "warpsim:iterations", "int")  # density iterations during the frame
         if self.surface is not None:
             writer.add_mesh("surface", topology_changes=True, velocities=False, color=_WATER)
 
     def frame_data(self):
         f = self.fluid
         data = {"particles": {"points": f.positions, "velocities": f.velocities, "ids": f.ids,
-                              "warpsim:densityError": f.density_error()[0]}}
+                              "warpsim:densityError": f.density_error()[0],
+                              "warpsim:iterations": self._frame_iterations}}
         if self.surface is not None:
             data["surface"] = self.surface.mesh().usd_frame()
         return data
 
     def advance(self, frame_dt, substeps):
         # substeps is a floor; the CFL condition may ask for more within each of them
+        before = self.fluid.total_iterations
         for _ in range(substeps):
             self.fluid.advance(frame_dt / substeps)
+        self._frame_iterations = self.fluid.total_iterations - before
 
     def checkpoint(self):
         return self.fluid.checkpoint()
@@ -118,7 +123,8 @@ class DamBreak(FluidScene):
     def declare(self, writer):
         self.declare_fluid(writer)
         pts, tris = open_box_mesh((0, 0, 0), self.params["box"], open_faces=("top", "front"))
-        writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7))
+        writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
+                               **CONTAINER)
 
 
 @register_scene("pour", "a stream poured from a nozzle into a container around a sphere; overflow drains "
@@ -157,6 +163,7 @@ class Pour(FluidScene):
     def declare(self, writer):
         self.declare_fluid(writer)
         pts, tris = self.container
-        writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7))
+        writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
+                               **CONTAINER)
         writer.add_sphere("obstacle", tuple(self.sphere.center), self.sphere.radius, color=(0.8, 0.4, 0.2))
         writer.add_plane("floor", size=1.0)

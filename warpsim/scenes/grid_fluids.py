@@ -19,7 +19,8 @@ from ..grid_fluids.levelset_liquid import LevelSetLiquid
 from ..grid_fluids.mac_grid import MacGrid
 from ..meshing.marching_cubes import MarchingCubes
 from ..grid_fluids.smoke import Smoke
-from . import Scene, register_scene
+from ..usd.sink import display_hints
+from . import CONTAINER, Scene, register_scene
 
 _WATER = (0.15, 0.45, 0.9)
 _SMOKE = (0.75, 0.75, 0.8)
@@ -119,17 +120,25 @@ class SmokeScene(GridFluidScene):
         self._centres = self.grid.positions("center").reshape(-1, 3).astype(np.float32)
 
     def declare(self, writer):
-        writer.add_points("smoke", count_changes=True, radius=0.5 * self.grid.dx, velocities=False, color=_SMOKE)
+        # cell-centre samples: widths (diameters) grow and displayOpacity rises with the density, so
+        # point-drawing tools show a plume; warpsim:cellSize lets volume renderers rebuild the grid
+        writer.add_points("smoke", count_changes=True, dynamic_widths=True, velocities=False, color=_SMOKE)
         writer.add_primvar("smoke", "density", "float[]", "vertex")
-        writer.add_mesh("smoke_surface", topology_changes=True, velocities=False, color=_SMOKE)
+        writer.add_primvar("smoke", "displayOpacity", "float[]", "vertex")
+        writer.add_attribute("smoke", "warpsim:cellSize", "double", value=self.grid.dx)
+        # the iso-surface is a guide (shown on request) so that it does not hide the plume
+        display_hints(writer.add_mesh("smoke_surface", topology_changes=True, velocities=False, color=_SMOKE),
+                      purpose="guide")
         writer.add_sphere("obstacle", *self.sphere, color=(0.8, 0.4, 0.2))
         writer.add_plane("floor", size=1.0)
 
     def frame_data(self):
         rho = self.solver.density.numpy().reshape(-1)
         keep = np.flatnonzero(rho > self.params["threshold"])
-        return {"smoke": {"points": self._centres[keep], "ids": keep.astype(np.int32),
-                          "density": rho[keep].astype(np.float32)},
+        rho = rho[keep].astype(np.float32)
+        fill = np.clip(rho, 0.0, 1.0)
+        return {"smoke": {"points": self._centres[keep], "ids": keep.astype(np.int32), "density": rho,
+                          "widths": self.grid.dx * (0.4 + 0.6 * fill), "displayOpacity": 0.8 * fill},
                 "smoke_surface": _surface_frame(self.mesher, self.solver.density, self.params["iso"])}
 
 
@@ -167,7 +176,8 @@ class LiquidScene(GridFluidScene):
         writer.add_mesh("surface", topology_changes=True, velocities=False, color=_WATER)
         writer.add_attribute("surface", "warpsim:volume", "double")
         pts, tris = _open_box(self.grid.lower, self.grid.upper)
-        writer.add_static_mesh("tank", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7))
+        writer.add_static_mesh("tank", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
+                               **CONTAINER)
 
     def frame_data(self):
         data = _surface_frame(self.mesher, self.solver.phi)
@@ -218,7 +228,8 @@ class FlipSplashScene(GridFluidScene):
         writer.add_points("particles", count_changes=True, radius=0.25 * self.grid.dx, color=_WATER)
         writer.add_mesh("surface", topology_changes=True, velocities=False, color=_WATER)
         pts, tris = _open_box(self.grid.lower, self.grid.upper)
-        writer.add_static_mesh("tank", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7))
+        writer.add_static_mesh("tank", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
+                               **CONTAINER)
 
     def frame_data(self):
         P = self.solver.particles
