@@ -131,7 +131,7 @@ def run(args, out, err):
                 worlds *= len(parse_vary(v, cls.params).values)
         world_params = sample_worlds(cls.name, fixed, args.vary, worlds, args.sample, args.seed)
         base = cls.resolve_params(world_params[0])
-        fps, substeps, _ = _timing(cls, base, args.fps, args.substeps)
+        fps, _, _ = _timing(cls, base, args.fps, args.substeps)
         track = resolve_track(cls, base, args.track, "cpu") if args.track else None
     except ValueError as exc:
         raise usage(str(exc)) from None

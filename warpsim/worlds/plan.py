@@ -81,6 +81,7 @@ class KeyEffect:
     scale: dict = field(default_factory=dict)    # array -> coefficient (E,) float64, nan where unchanged
     gravity: dict = field(default_factory=dict)  # force index -> C (3, d)
     planes: dict = field(default_factory=dict)   # collider index -> {attr: c (d,)}
+    origin: dict = field(default_factory=dict)   # vec3 array -> its values at p = 0 (float32), when buildable
 
     def predict(self, base, p):
         """The signature's varied parts at parameter value p (for the linearity check)."""
@@ -185,12 +186,12 @@ def make_plan(cls, base_scene, base_params, world_params, varied, build):
         values = [wp_[key] for wp_ in world_params]
         p0v = base_params[key]
         default = cls.params[key].default
-        distinct = sorted({v for v in values}, key=lambda v: np.linalg.norm(np.subtract(v, p0v)))
-        if len(distinct) == 1 and distinct[0] == p0v:
+        if all(v == p0v for v in values):
             continue
         if isinstance(default, (bool, str)):
             raise StructuralError(f"{key} is a {cls.params[key].type_name} choice; batched worlds share it: run "
                                   "one sweep per value (--set)")
+        distinct = sorted(set(values), key=lambda v: np.linalg.norm(np.subtract(v, p0v)))
         if isinstance(default, (tuple, list)):
             p0 = np.asarray(p0v, dtype=np.float64)
             effect = KeyEffect(key, p0)
@@ -209,6 +210,7 @@ def make_plan(cls, base_scene, base_params, world_params, varied, build):
             _diff_effect(key, base, first, p0, probes[0], effect, 0)
             for pv in probes[1:]:
                 _check_linear(key, effect, base, signature(build({**base_params, key: _cast(default, pv)})), pv)
+        _canonical(key, effect, base, base_params, default, build)
         if not (effect.vec3 or effect.scale or effect.gravity or effect.planes):
             raise StructuralError(f"{key} changes nothing a batch holds per world (it acts through the time step, "
                                   "the stepping or the display); set it with --set")
@@ -218,3 +220,29 @@ def make_plan(cls, base_scene, base_params, world_params, varied, build):
 
 def _cast(default, value):
     return round(value) if isinstance(default, int) and not isinstance(default, bool) else float(value)
+
+
+def _canonical(key, effect, base, base_params, default, build):
+    """Make a world's values independent of which world the batch was tiled from (so batches of
+    any size give the same worlds): shifted arrays start from their values at p = 0, and scaled
+    arrays use their exact values at p = 1, where the scene builds there."""
+    vector = isinstance(default, (tuple, list))
+    if effect.vec3:
+        zero = tuple(0.0 for _ in effect.p0) if vector else _cast(default, 0.0)
+        try:
+            sig0 = signature(build({**base_params, key: zero}))
+        except ValueError:
+            sig0 = None
+        if sig0 is not None:
+            predicted = effect.predict(base, np.zeros(len(effect.p0)))
+            if all(np.allclose(predicted[n], sig0[n], rtol=1e-5, atol=1e-6) for n in effect.vec3):
+                effect.origin = {n: sig0[n].astype(np.float32) for n in effect.vec3}
+    if effect.scale and not vector:
+        try:
+            sig1 = signature(build({**base_params, key: _cast(default, 1.0)}))
+        except ValueError:
+            return
+        for name, c in effect.scale.items():
+            changed = ~np.isnan(c)
+            if np.allclose(sig1[name][changed], c[changed], rtol=1e-5, atol=0.0):
+                c[changed] = sig1[name][changed]
