@@ -12,6 +12,7 @@ import pytest
 pxr = pytest.importorskip("pxr")
 from pxr import Sdf, Usd, UsdGeom
 
+from warpsim.usd.chunk_index import file_digest, read_index
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.usd.validate import cache_info, validate_cache
 
@@ -43,7 +44,7 @@ def test_round_trip_through_chunks_is_exact(tmp_path):
     assert w.close() == str(root)
     files = sorted(os.listdir(tmp_path))
     assert files == ["run.chunk000000.usdc", "run.chunk000004.usdc", "run.chunk000008.usdc",
-                     "run.manifest.usda", "run.usda"]
+                     "run.chunks.jsonl", "run.manifest.usda", "run.usda"]
     stage = Usd.Stage.Open(str(root))
     assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == 10
     assert stage.GetTimeCodesPerSecond() == 24 and stage.GetFramesPerSecond() == 24
@@ -309,9 +310,15 @@ def test_resume_keeps_earlier_frames_and_rewrites_later_ones(tmp_path):
     for f in range(13):
         expected = frame_points(f) if f < 6 else frame_points(f) + 100
         assert np.array_equal(get(stage, "/World/particles", "points", f), expected), f
-    assert sorted(x for x in os.listdir(tmp_path) if "chunk" in x) == [
+    assert sorted(x for x in os.listdir(tmp_path) if ".chunk0" in x) == [
         "r.chunk000000.usdc", "r.chunk000004.usdc", "r.chunk000006.usdc", "r.chunk000008.usdc",
         "r.chunk000012.usdc"]
+    index = read_index(str(tmp_path / "r.chunks.jsonl"))  # the resume rewrote the truncated chunk's record
+    assert sorted(index) == sorted(x for x in os.listdir(tmp_path) if ".chunk0" in x)
+    assert [(index[f]["start"], index[f]["end"]) for f in sorted(index)] == [(0, 3), (4, 5), (6, 7), (8, 11), (12, 12)]
+    for f, rec in index.items():
+        assert (rec["bytes"], rec["crc32"]) == file_digest(str(tmp_path / f))
+        assert rec["prims"]["particles"]["count"] == [len(frame_points(rec["start"]))] * 2
     truncated = Sdf.Layer.OpenAsAnonymous(str(tmp_path / "r.chunk000004.usdc"))
     assert truncated.ListTimeSamplesForPath("/World/particles.points") == [4.0, 5.0]
     assert validate_cache(stage) == []
