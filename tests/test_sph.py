@@ -620,13 +620,18 @@ def test_dam_break_example_runs(tmp_path):
 
     script = Path(__file__).resolve().parents[1] / "examples" / "dam_break.py"
     out = subprocess.run([sys.executable, str(script), "--frames", "3", "--spacing", "0.05", "--depth", "0.1",
-                          "--out", str(tmp_path / "db.usda")], capture_output=True, text=True, timeout=600,
+                          "--out", str(tmp_path / "db.usda"), "--figure", str(tmp_path / "front.png")],
+                         capture_output=True, text=True, timeout=600,
                          env=dict(os.environ, WARP_QUIET="1"))
     assert out.returncode == 0, out.stderr[-2000:]
     rows = [line.split() for line in out.stdout.splitlines() if line.strip()[:1].isdigit() and len(line.split()) == 6]
     assert [int(r[0]) for r in rows] == [1, 2, 3]
     assert float(rows[-1][2]) > 1.0  # the front has moved
     assert (tmp_path / "db.usda").exists()
+    from PIL import Image
+
+    with Image.open(tmp_path / "front.png") as fig:  # the surge front against Martin and Moyce
+        assert fig.size == (540, 360)
 
 
 def test_deep_column_small_steps_keep_peak_compression():
