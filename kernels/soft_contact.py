@@ -204,10 +204,11 @@ def push_soft_contacts(
     contact_normal: wp.array(dtype=wp.vec3),
     contact_depth: wp.array(dtype=float),
     particle_contacts: wp.array(dtype=int),
+    fraction: float,
     dx_io: wp.array(dtype=wp.vec3),
 ):
-    """Position push removing each contact's depth along its normal (mass-weighted: the centre
-    of mass does not move)."""
+    """Position push removing ``fraction`` of each contact's depth along its normal (mass-weighted:
+    the centre of mass does not move)."""
     v = wp.tid()
     t = contact_tri[v]
     if t < 0:
@@ -220,7 +221,7 @@ def push_soft_contacts(
     W = effective_inv_mass(p, i, j, k, bary, inv_mass)
     if W <= 0.0:
         return
-    push = (contact_scale(p, i, j, k, particle_contacts) * contact_depth[v] / W) * contact_normal[v]
+    push = (fraction * contact_scale(p, i, j, k, particle_contacts) * contact_depth[v] / W) * contact_normal[v]
     scatter_contact(p, i, j, k, bary, inv_mass, push, dx_io)
 
 

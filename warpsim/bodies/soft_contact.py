@@ -55,13 +55,16 @@ class SoftContact(Collider):
         iterations: impulse passes per step (Jacobi; more resolve a crowded contact better).
         search: how far behind a triangle [m] a vertex still counts as penetrating and is pushed
             back out (default 3 x thickness).
+        push: fraction of a contact's depth removed by moving positions each step (default 0.5;
+            1 removes it at once but makes resting contacts jitter: measured on a 4-torus heap,
+            kinetic energy at rest 0.02-0.05 J with 1, 0.002 J with 0.5, of a 13 J peak).
 
     After a step, ``contact_count`` (one read-back) is the number of vertex contacts found.
     """
 
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
-                 self_rest_distance: float | None = None):
+                 self_rest_distance: float | None = None, push: float = 0.5):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -88,6 +91,9 @@ class SoftContact(Collider):
                 raise ValueError(f"SoftContact {name} is {value}; it must be finite and >= 0 [m]")
         if len(self.faces) < 2 and not self.self_contact:
             raise ValueError("SoftContact with one body does nothing unless self_contact=True; give two bodies or more")
+        self.push = float(push)
+        if not (math.isfinite(self.push) and 0.0 <= self.push <= 1.0):
+            raise ValueError(f"SoftContact push is {push}; it must be in [0, 1] (fraction of the depth removed per step)")
         self._mesh = None
 
     def bind(self, model) -> None:
@@ -153,7 +159,7 @@ class SoftContact(Collider):
         contact = [self._contact_tri, self._contact_bary, self._contact_normal]
         wp.launch(K.push_soft_contacts, v,
                   inputs=[model.particle_inv_mass, self._tri, self._vertex, *contact, self._contact_depth,
-                          self._particle_contacts, self._dx], device=d)
+                          self._particle_contacts, self.push, self._dx], device=d)
         for _ in range(self.iterations):
             wp.launch(K.impulse_soft_contacts, v,
                       inputs=[state.velocities, model.particle_inv_mass, self._tri, self._vertex, *contact,
