@@ -83,21 +83,6 @@ class KeyEffect:
     planes: dict = field(default_factory=dict)   # collider index -> {attr: c (d,)}
     origin: dict = field(default_factory=dict)   # vec3 array -> its values at p = 0 (float32), when buildable
 
-    def predict(self, base, p):
-        """The signature's varied parts at parameter value p (for the linearity check)."""
-        dp = np.atleast_1d(np.asarray(p, dtype=np.float64)) - self.p0
-        out = {}
-        for name, (mask, C) in self.vec3.items():
-            a = base[name].copy()
-            a[mask] += C @ dp
-            out[name] = a
-        for name, c in self.scale.items():
-            a = base[name].copy()
-            changed = ~np.isnan(c)
-            a[changed] = c[changed] * float(dp[0] + self.p0[0])
-            out[name] = a
-        return out
-
 
 def _diff_effect(key, base, probe, p0, p1, effect, column):
     """Fill ``effect`` with what changed between base (p0) and probe (p1), for component ``column``."""
@@ -167,21 +152,18 @@ def _diff_effect(key, base, probe, p0, p1, effect, column):
                                       "with --set")
 
 
-def _check_linear(key, effect, base, probe, p):
-    predicted = effect.predict(base, p)
-    for name, a in predicted.items():
-        if not np.allclose(a, probe[name], rtol=1e-5, atol=1e-6):
-            raise StructuralError(f"{key} changes {name} nonlinearly; it cannot differ between worlds: set it "
-                                  "with --set")
-
-
 def make_plan(cls, base_scene, base_params, world_params, varied, build):
     """{key: KeyEffect} for every key in ``varied`` whose values differ between worlds.
 
     ``base_scene`` is world 0 built from ``base_params``; ``build(params) -> scene`` builds a
-    probe world (on the CPU); ``world_params`` is the list of full parameter dicts."""
+    probe world (on the CPU); ``world_params`` is the list of full parameter dicts. Builds: one
+    per scalar key (at its value farthest from world 0's; three for a vector key), then one with
+    every key moved at once (shifted keys to 0, scaled keys to 1, the rest to their other
+    extreme) that checks the whole plan for linearity and makes it canonical (see
+    :func:`_canonical`); if the scene refuses those values, one with every key at its other
+    extreme instead."""
     base = signature(base_scene)
-    plan = {}
+    plan, others = {}, {}
     for key in varied:
         values = [wp_[key] for wp_ in world_params]
         p0v = base_params[key]
@@ -199,50 +181,102 @@ def make_plan(cls, base_scene, base_params, world_params, varied, build):
                 probe_value = tuple(p0 + np.eye(len(p0))[c])
                 probe = signature(build({**base_params, key: probe_value}))
                 _diff_effect(key, base, probe, 0.0, 1.0, effect, c)
-            far = distinct[-1]
-            _check_linear(key, effect, base, signature(build({**base_params, key: far})), far)
+            others[key] = distinct[-1]
         else:
             p0 = float(p0v)
             effect = KeyEffect(key, np.array([p0]))
-            others = sorted({float(v) for v in values} - {p0})
-            probes = [others[-1]] + ([others[0]] if len(others) > 1 else [])
-            first = signature(build({**base_params, key: _cast(default, probes[0])}))
-            _diff_effect(key, base, first, p0, probes[0], effect, 0)
-            for pv in probes[1:]:
-                _check_linear(key, effect, base, signature(build({**base_params, key: _cast(default, pv)})), pv)
-        _canonical(key, effect, base, base_params, default, build)
+            ordered = sorted({float(v) for v in values} - {p0})
+            first = signature(build({**base_params, key: _cast(default, ordered[-1])}))
+            _diff_effect(key, base, first, p0, ordered[-1], effect, 0)
+            others[key] = _cast(default, ordered[0] if len(ordered) > 1 else 0.5 * (p0 + ordered[-1]))
         if not (effect.vec3 or effect.scale or effect.gravity or effect.planes):
             raise StructuralError(f"{key} changes nothing a batch holds per world (it acts through the time step, "
                                   "the stepping or the display); set it with --set")
         plan[key] = effect
+    if plan:
+        _combined_check(cls, base, base_params, plan, others, build)
     return plan
+
+
+def _predict(base, plan, values):
+    """Arrays and coefficients the plan predicts at ``values`` {key: value}."""
+    out = {name: base[name].copy() for name in VEC3_ARRAYS + FLOAT_ARRAYS}
+    forces = [dict(attrs) for _, attrs in base["forces"]]
+    colliders = [dict(attrs) for _, attrs in base["colliders"]]
+    for key, effect in plan.items():
+        dp = np.atleast_1d(np.asarray(values[key], dtype=np.float64)) - effect.p0
+        for name, (mask, C) in effect.vec3.items():
+            out[name][mask] += C @ dp
+        for name, c in effect.scale.items():
+            changed = ~np.isnan(c)
+            out[name][changed] = c[changed] * float(values[key])
+        for j, C in effect.gravity.items():
+            forces[j]["g"] = tuple(np.asarray(forces[j]["g"]) + C @ dp)
+        for j, attrs in effect.planes.items():
+            for attr, d in attrs.items():
+                colliders[j][attr] = colliders[j][attr] + float(d @ dp)
+    return out, forces, colliders
+
+
+def _mismatch(base, plan, values, sig):
+    """The first part of ``sig`` the plan does not predict at ``values`` (None: all agree)."""
+    arrays, forces, colliders = _predict(base, plan, values)
+    for name, a in arrays.items():
+        if not np.allclose(a, sig[name], rtol=1e-5, atol=1e-6):
+            return name
+    for j, attrs in enumerate(forces):
+        if "g" in attrs and not np.allclose(attrs["g"], sig["forces"][j][1]["g"], rtol=1e-6, atol=1e-9):
+            return f"the gravity of force {j}"
+    for j, attrs in enumerate(colliders):
+        for attr in PLANE_ATTRS:
+            if attr in attrs and not np.isclose(attrs[attr], sig["colliders"][j][1][attr], rtol=1e-6, atol=1e-9):
+                return f"the {attr} of collider {j}"
+    return None
+
+
+def _combined_check(cls, base, base_params, plan, others, build):
+    canonical = {}
+    for key, effect in plan.items():
+        default = cls.params[key].default
+        if effect.vec3:
+            canonical[key] = tuple(0.0 for _ in effect.p0) if isinstance(default, (tuple, list)) else _cast(default, 0)
+        elif effect.scale:
+            canonical[key] = _cast(default, 1.0)
+        else:
+            canonical[key] = others[key]
+    for values in (canonical, others):
+        try:
+            sig = signature(build({**base_params, **values}))
+        except ValueError:
+            continue  # the scene refuses these values together (e.g. a teapot at height 0)
+        if _mismatch(base, plan, values, sig) is not None:
+            for key in plan:  # name the key
+                single = signature(build({**base_params, key: values[key]}))
+                part = _mismatch(base, {key: plan[key]}, {**{k: plan[k].p0 for k in plan}, key: values[key]},
+                                 single)
+                if part is not None:
+                    raise StructuralError(f"{key} changes {part} nonlinearly; it cannot differ between worlds: set "
+                                          "it with --set")
+            raise StructuralError(f"{', '.join(plan)} act on the same values together; vary one of them")
+        if values is canonical:
+            _canonical(plan, sig)
+        return
+    raise StructuralError(f"could not check that {', '.join(plan)} act linearly: the scene refuses their other "
+                          "sampled values together; vary fewer parameters at once")
 
 
 def _cast(default, value):
     return round(value) if isinstance(default, int) and not isinstance(default, bool) else float(value)
 
 
-def _canonical(key, effect, base, base_params, default, build):
+def _canonical(plan, sig):
     """Make a world's values independent of which world the batch was tiled from (so batches of
-    any size give the same worlds): shifted arrays start from their values at p = 0, and scaled
-    arrays use their exact values at p = 1, where the scene builds there."""
-    vector = isinstance(default, (tuple, list))
-    if effect.vec3:
-        zero = tuple(0.0 for _ in effect.p0) if vector else _cast(default, 0.0)
-        try:
-            sig0 = signature(build({**base_params, key: zero}))
-        except ValueError:
-            sig0 = None
-        if sig0 is not None:
-            predicted = effect.predict(base, np.zeros(len(effect.p0)))
-            if all(np.allclose(predicted[n], sig0[n], rtol=1e-5, atol=1e-6) for n in effect.vec3):
-                effect.origin = {n: sig0[n].astype(np.float32) for n in effect.vec3}
-    if effect.scale and not vector:
-        try:
-            sig1 = signature(build({**base_params, key: _cast(default, 1.0)}))
-        except ValueError:
-            return
-        for name, c in effect.scale.items():
+    any size give the same worlds): shifted arrays start from their values at p = 0 and scaled
+    arrays use their exact values at p = 1, both read from ``sig`` (the scene built there)."""
+    for effect in plan.values():
+        movers = [e for e in plan.values() if set(e.vec3) & set(effect.vec3)]
+        if effect.vec3 and len(movers) == 1:
+            effect.origin = {n: sig[n].astype(np.float32) for n in effect.vec3}
+        for name, c in effect.scale.items() if not effect.vec3 else ():  # built at p = 1
             changed = ~np.isnan(c)
-            if np.allclose(sig1[name][changed], c[changed], rtol=1e-5, atol=0.0):
-                c[changed] = sig1[name][changed]
+            c[changed] = sig[name][changed]
