@@ -42,10 +42,15 @@ from .batches import (
 )
 from .manifest import SweepManifest, manifest_path, worlds_digest
 
-__all__ = ["add_ray_arguments", "run_batch_task", "run_ray_sweep"]
+__all__ = ["RaySweepError", "add_ray_arguments", "run_batch_task", "run_ray_sweep"]
 
 DEFAULT_BATCH_SIZE = 64
 LAYER_EXT = ".usdc"
+
+
+class RaySweepError(RuntimeError):
+    """A batch failed past its retries, or the driver cannot see a batch a worker wrote (exit 1);
+    the finished batches stay listed in the manifest, so ``--resume`` continues the sweep."""
 
 
 def add_ray_arguments(parser):
@@ -218,7 +223,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             try:
                 result = ray.get(done[0])
             except Exception as exc:  # noqa: BLE001  (Ray wraps worker deaths past max_retries)
-                raise RuntimeError(f"batch {i} (worlds {batches[i][0]}..{sum(batches[i]) - 1}) failed after "
+                raise RaySweepError(f"batch {i} (worlds {batches[i][0]}..{sum(batches[i]) - 1}) failed after "
                                    f"{max_retries} retries: {str(exc).splitlines()[0]}; the finished batches are "
                                    "in the manifest: run again with --resume") from None
             _record(manifest, out_path, batches, i, result)
@@ -265,7 +270,7 @@ def _record(manifest, out_path, batches, i, result):
 
     folder = batch_dir(out_path, i)
     if not os.path.isdir(folder) or tree_checksum(folder) != result["sha256"]:
-        raise RuntimeError(f"batch {i} was written on host {result['host']} to {folder}, which this driver "
+        raise RaySweepError(f"batch {i} was written on host {result['host']} to {folder}, which this driver "
                            "does not see (or sees changed): --out must be on a filesystem every Ray node shares")
     first, count = batches[i]
     manifest.record(i, {"first_world": first, "world_count": count,
