@@ -95,6 +95,7 @@ def run(args, out, err):
         wp.config.log_level = wp.LOG_WARNING
     from .. import cli
     from ..core.errors import SimulationError
+    from ..distributed.ray_sweep import RaySweepError
     from ..scenes import get_scene
     from .metrics import BUILTIN, parse_rank, parse_where, select
     from .sweep import run_batch, sample_worlds, write_table
@@ -174,7 +175,7 @@ def run(args, out, err):
             write_table(table, rows)
             layers = [layer]
             root = write_sweep_root(path, layers, len(world_params), layout=args.layout)
-    except (SimulationError, ValueError) as exc:
+    except (SimulationError, ValueError, RaySweepError) as exc:
         if progress:
             progress.close()
         if isinstance(exc, ValueError) and not isinstance(exc, SimulationError) and _is_usage(exc):
