@@ -28,14 +28,14 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from roofline import LaunchRecorder, copy_bandwidth  # noqa: E402
+from roofline import LaunchRecorder, copy_bandwidth
 
-import warpsim as ws  # noqa: E402
-from warpsim.bodies.softbody import add_soft_body  # noqa: E402
-from warpsim.bodies.teapot import teapot_mesh  # noqa: E402
-from warpsim.scenes import get_scene  # noqa: E402
-from warpsim.worlds import WorldBatch, sample_worlds  # noqa: E402
-from warpsim.worlds.sweep import frame_timing  # noqa: E402
+import warpsim as ws
+from warpsim.bodies.softbody import add_soft_body
+from warpsim.bodies.teapot import teapot_mesh
+from warpsim.scenes import get_scene
+from warpsim.worlds import WorldBatch, sample_worlds
+from warpsim.worlds.sweep import frame_timing
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
 
@@ -103,7 +103,7 @@ def main():
     build_builder = (time.perf_counter() - t0) * n / k
 
     P, S = batch.model.world_particle_count, batch.model.world_spring_count
-    fps, substeps, frame_dt = frame_timing(cls, batch.params[0])
+    _, substeps, frame_dt = frame_timing(cls, batch.params[0])
     print(f"device {device}: {n} teapot worlds x {P} particles, {S} springs = {n * P} particles; "
           f"{substeps} steps per frame; copy bandwidth {bandwidth / 1e9:.1f} GB/s")
     print(f"build: batch {build_batch:.3f} s, builder {build_builder:.2f} s "
@@ -131,7 +131,7 @@ def main():
         scene = cls(cls.resolve_params(worlds[w]), device=device)
         scene.sim.check_every = 0  # the batch checks once per frame on the device; so does this run
         one = frame_runner(lambda s=scene: s.advance(frame_dt, substeps), device, cuda)
-        total += timed(lambda: [one() for _ in range(args.frames)], device)
+        total += timed(lambda one=one: [one() for _ in range(args.frames)], device)
     sequential = total / ks / (args.frames * substeps) * n
     per_world = array_bytes(batch.model) + 4 * 12 * n * P  # model arrays + state, q_prev, forces, q_good
     print(f"step: batched {batched * 1e3:.4f} ms for {n} worlds; sequential {sequential * 1e3:.4f} ms "
@@ -143,8 +143,8 @@ def main():
     top = sorted(rec.bytes.items(), key=lambda kv: -kv[1])
     print("launch bytes per step: " + ", ".join(f"{key} {v / substeps / 1e6:.2f} MB" for key, v in top))
     if cuda:
-        free, total_mem = wp.get_mempool_used_mem_current(device), device.total_memory
-        print(f"device memory in use {free / 1e9:.2f} GB of {total_mem / 1e9:.1f} GB")
+        used = wp.get_mempool_used_mem_current(device)
+        print(f"device memory in use {used / 1e9:.2f} GB of {device.total_memory / 1e9:.1f} GB")
 
 
 if __name__ == "__main__":
