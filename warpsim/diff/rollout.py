@@ -157,6 +157,15 @@ class Rollout:
             self.times.append(wp.zeros(1, dtype=float, device=self.device))
             self._stages.append([(self._vec(), self._vec()) for _ in range(self._contact_launches)])
 
+    def integrated(self, k: int) -> tuple:
+        """(positions, velocities) of step k (1 <= k <= step_count) after integration and before
+        the contacts (``states[k]`` itself when there are no colliders), e.g. to interpolate where
+        a particle crossed a surface."""
+        if not 1 <= k <= self.step_count:
+            raise ValueError(f"integrated({k}): steps 1..{self.step_count} exist; give one of them")
+        stages = self._stages[k - 1]
+        return stages[0] if stages else (self.states[k].positions, self.states[k].velocities)
+
     # ----------------------------------------------------------------------------------
     def advance(self, h: float) -> None:
         """One step of ``h`` [s] from ``states[step_count]``, recorded on the tape."""
