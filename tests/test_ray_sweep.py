@@ -8,17 +8,24 @@ sweep resumed.
 """
 from __future__ import annotations
 
+import io
+import json
 import os
+import re
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
 
 from warpsim.distributed.batches import load_rows, publish_batch, split_batches, temp_batch_dir, tree_checksum
 from warpsim.distributed.manifest import SweepManifest, manifest_path
-from warpsim.worlds import run_batch, sample_worlds, write_sweep_root, write_table
+from warpsim.worlds import run_batch, sample_worlds
 
 SCENE = "springs"
-VARY = ["stiffness=50:2000", "damping=0.01,0.5"]
+VARY = ["stiffness=100,400,1000,1e9", "damping=0.01,0.5"]  # grid of 8; the last two worlds blow up
 WORLDS = 8
 FRAMES = 40
 
@@ -88,13 +95,16 @@ def cluster():
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    """The single-process sweep: (worlds, table text, {world: samples})."""
+    """The single-process sweep (``warpsim sweep`` without --ray): (worlds, table text, {world: samples})."""
+    from warpsim.cli import main
+
     folder = tmp_path_factory.mktemp("single")
+    err = io.StringIO()
+    assert main(["sweep", SCENE, "--worlds", str(WORLDS), "--frames", str(FRAMES), "--device", "cpu",
+                 "--out", str(folder / "s.usda"), "--no-progress", *[f"--vary={v}" for v in VARY]],
+                out=io.StringIO(), err=err) == 0, err.getvalue()
     worlds = sample_worlds(SCENE, {}, VARY, WORLDS)
-    rows = run_batch(SCENE, worlds, frames=FRAMES, device="cpu", layer_path=str(folder / "s.worlds.usdc"))
-    table = write_table(str(folder / "s.csv"), rows)
-    root = write_sweep_root(str(folder / "s.usda"), [str(folder / "s.worlds.usdc")], WORLDS)
-    return worlds, _read(table), _samples(root, WORLDS)
+    return worlds, _read(folder / "s.csv"), _samples(folder / "s.usda", WORLDS)
 
 
 def _read(path):
@@ -152,3 +162,71 @@ def test_ray_sweep_equals_single_process_and_survives_a_killed_worker(cluster, r
     # nothing partial is left or referenced: only the three published batch folders
     assert sorted(os.listdir(tmp_path / "ray" / "s.batches")) == ["batch_0000", "batch_0001", "batch_0002"]
     assert ".tmp-" not in _read(result["root"])
+
+
+def _listed(mpath):
+    """Batch indices a manifest lists as finished."""
+    with open(mpath) as fh:
+        return {int(k) for k in json.load(fh)["batches"]}
+
+
+def test_resume_after_the_driver_is_killed_runs_only_the_remaining_batches(cluster, reference, tmp_path):
+    from warpsim.cli import main
+
+    out = tmp_path / "s.usda"
+    argv = ["sweep", SCENE, "--worlds", str(WORLDS), "--frames", str(FRAMES), "--device", "cpu", "--out", str(out),
+            "--batch-size", "2", "--no-progress"] + [f"--vary={v}" for v in VARY]
+    driver = subprocess.Popen([sys.executable, "-m", "warpsim", *argv, "--ray", cluster], cwd=tmp_path,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    mpath = manifest_path(str(out))
+    try:
+        deadline = time.monotonic() + 90
+        while not (os.path.exists(mpath) and _listed(mpath)):
+            assert driver.poll() is None, driver.stderr.read().decode()
+            assert time.monotonic() < deadline, "no batch finished within 90 s"
+            time.sleep(0.02)
+    finally:
+        driver.send_signal(signal.SIGKILL)
+        driver.wait()
+        driver.stderr.close()
+    finished = _listed(mpath)
+    assert 1 <= len(finished) < 4, f"the driver was killed after batches {finished}"
+    stamps = {i: os.stat(tmp_path / "s.batches" / f"batch_{i:04d}").st_ino for i in finished}
+    assert not out.exists()  # no root before every batch is done
+
+    err = io.StringIO()
+    assert main([*argv, "--ray", cluster, "--resume"], out=io.StringIO(), err=err) == 0, err.getvalue()
+    ran = {int(m) - 1 for m in re.findall(r"^batch (\d+)/4 ", err.getvalue(), re.MULTILINE)}
+    assert ran == {0, 1, 2, 3} - finished  # the remaining batches only
+    for i, ino in stamps.items():  # the finished batches' folders were kept, not written again
+        assert os.stat(tmp_path / "s.batches" / f"batch_{i:04d}").st_ino == ino
+    _assert_same(reference, tmp_path / "s.csv", out)
+    rows = load_rows(str(tmp_path / "s.batches" / "batch_0003"))
+    assert [r["blown_up"] for r in rows] == [1, 1]  # the stiff batch blew up: flagged, not fatal
+    assert sorted(os.listdir(tmp_path / "s.batches")) == [f"batch_{i:04d}" for i in range(4)]
+
+
+def test_a_batch_that_raises_is_flagged_and_the_root_spans_the_other_batches(cluster, reference, tmp_path):
+    from warpsim.distributed.ray_sweep import run_ray_sweep
+
+    def runner(scene, worlds, *, first_world, **kw):  # pickled by value into the Ray task
+        if first_world == 2:
+            raise RuntimeError("out of device memory\n(details)")
+        return run_batch(scene, worlds, first_world=first_world, **kw)
+
+    worlds = reference[0][:6]
+    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, out_path=str(tmp_path / "s.usda"),
+                           table_path=str(tmp_path / "s.csv"), device="cpu", batch_size=2, runner=runner)
+    rows = result["rows"]
+    assert [r["world"] for r in rows] == list(range(6))
+    assert [r.get("batch_error") for r in rows] == [None, None, "RuntimeError: out of device memory", \
+        "RuntimeError: out of device memory", None, None]
+    assert [bool(r["blown_up"]) for r in rows] == [False, False, True, True, False, False]
+    assert result["batches"][1]["error"] and not result["batches"][0]["error"]
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(result["root"])
+    vset = stage.GetPrimAtPath("/World").GetVariantSets().GetVariantSet("world")
+    assert sorted(vset.GetVariantNames()) == [f"world_{w:06d}" for w in (0, 1, 4, 5)]
+    with open(result["table"]) as fh:
+        assert fh.read().count("RuntimeError: out of device memory") == 2
