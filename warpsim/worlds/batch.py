@@ -99,7 +99,16 @@ class WorldBatch:
         for name in VEC3_ARRAYS:
             mask = np.zeros(P, dtype=np.float32)
             shift = np.zeros((n, 3))
-            for effect in self.plan.values():
+            base = getattr(m0, name)
+            movers = [e for e in self.plan.values() if name in e.vec3]
+            if len(movers) == 1 and name in movers[0].origin:  # canonical: origin + C p_w
+                effect = movers[0]
+                changed, C = effect.vec3[name]
+                mask[changed] = 1.0
+                base = wp.array(effect.origin[name], dtype=wp.vec3, device=d)
+                shift = (self._deltas(effect) + effect.p0) @ C.T
+                movers = []
+            for effect in movers:
                 if name in effect.vec3:
                     changed, C = effect.vec3[name]
                     if mask.any() and not np.array_equal(mask > 0, changed):
@@ -108,7 +117,7 @@ class WorldBatch:
                     mask[changed] = 1.0
                     shift += self._deltas(effect) @ C.T
             out = wp.empty(n * P, dtype=wp.vec3, device=d)
-            wp.launch(KW.tile_vec3, n * P, inputs=[getattr(m0, name), wp.array(mask, dtype=float, device=d),
+            wp.launch(KW.tile_vec3, n * P, inputs=[base, wp.array(mask, dtype=float, device=d),
                                                     wp.array(shift.astype(np.float32), dtype=wp.vec3, device=d), out],
                       device=d)
             setattr(mb, name, out)
