@@ -359,11 +359,12 @@ def clamp_velocity_to_box(space: Space, x: wp.vec3, v: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def nearest_food(food: Food, x: wp.vec3, radius: float) -> int:
-    """Index of the nearest food source with bites left closer than radius, or -1."""
+def nearest_food(food: Food, x: wp.vec3, radius: float, start: int) -> int:
+    """Index of the nearest food source with bites left closer than radius, or -1; the sources
+    searched are ``start .. start + food.count`` (batched worlds: one block per world)."""
     best = int(-1)  # noqa: RUF046, UP018
     best_d = radius
-    for k in range(food.count):
+    for k in range(start, start + food.count):
         if food.amounts[k] > 0:
             d = wp.length(food.positions[k] - x)
             if d < best_d:
@@ -376,6 +377,16 @@ def nearest_food(food: Food, x: wp.vec3, radius: float) -> int:
 # Neighbour rules
 # --------------------------------------------------------------------------------------
 @wp.kernel
+def key_world_points(
+    x: wp.array(dtype=wp.vec3), agent_world: wp.array(dtype=int), world_stride: float,
+    keyed_out: wp.array(dtype=wp.vec3),
+):
+    """Grid points of batched worlds: each agent raised by world_stride [m] per world index along y."""
+    i = wp.tid()
+    keyed_out[i] = x[i] + wp.vec3(0.0, world_stride * float(agent_world[i]), 0.0)
+
+
+@wp.kernel
 def eval_neighbour_rules(
     grid: wp.uint64,
     x: wp.array(dtype=wp.vec3),
@@ -386,6 +397,8 @@ def eval_neighbour_rules(
     rules: wp.array(dtype=RuleParams),
     space: Space,
     lookahead: float,
+    agent_world: wp.array(dtype=int),
+    world_stride: float,
     separation_out: wp.array(dtype=wp.vec3),
     alignment_out: wp.array(dtype=wp.vec3),
     cohesion_out: wp.array(dtype=wp.vec3),
@@ -410,7 +423,11 @@ def eval_neighbour_rules(
 
     Threads take agents in the grid's cell order (``hash_grid_point_id``), so neighbouring threads
     query the same cells and read the same neighbours (coherent gathers; each agent's result is
-    unchanged)."""
+    unchanged).
+
+    Batched worlds: agents only see agents of their own world ``agent_world``; the grid holds each
+    world's agents raised by ``world_stride`` [m] per world index along y (0: one world), so a query
+    meets its own world's cells."""
     i = wp.hash_grid_point_id(grid, wp.tid())
     p = rules[kind[i]]
     xi = x[i]
@@ -459,10 +476,11 @@ def eval_neighbour_rules(
                         continue
                     if q[2] < space.lower[2] - rq or q[2] > space.upper[2] + rq:
                         continue
-                query = wp.hash_grid_query(grid, q, rq)
+                key = wp.vec3(0.0, world_stride * float(agent_world[i]), 0.0)
+                query = wp.hash_grid_query(grid, q + key, rq)
                 j = int(0)  # noqa: RUF046, UP018
                 while wp.hash_grid_query_next(query, j):
-                    if j == i:
+                    if j == i or agent_world[j] != agent_world[i]:
                         continue
                     d = x[j] - q
                     dist = wp.length(d)
@@ -554,6 +572,7 @@ def integrate_flyers(
     push: wp.array(dtype=wp.vec3),
     goals: wp.array(dtype=wp.vec3),
     dt: float,
+    agent_world: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     state: wp.array(dtype=int),
@@ -608,7 +627,7 @@ def integrate_flyers(
         a = (f.w_separation * separation[i] + f.w_alignment * alignment[i] + f.w_cohesion * cohesion[i]
              + f.w_draft * draft[i])
         if food.count > 0 and f.food_sense_radius > 0.0 and energy[i] < f.energy_max:
-            kf = nearest_food(food, xi, f.food_sense_radius)
+            kf = nearest_food(food, xi, f.food_sense_radius, agent_world[i] * food.count)
             if kf >= 0:
                 a = a + f.w_food * steer(food.positions[kf] - xi, vi, p.max_speed, p.max_force)
         if f.w_goal > 0.0:
@@ -658,7 +677,7 @@ def integrate_flyers(
     e = wp.max(energy[i] - f.drain_rate * (1.0 - f.draft_saving * benefit[i]) * dt, 0.0)
     bt = bite_timer[i] - dt
     if food.count > 0 and bt <= 0.0 and e < f.energy_max:
-        kf = nearest_food(food, xn, f.food_eat_radius)
+        kf = nearest_food(food, xn, f.food_eat_radius, agent_world[i] * food.count)
         if kf >= 0:
             old = wp.atomic_sub(food.amounts, kf, 1)
             if old > 0:

@@ -96,7 +96,7 @@ class Flock(_Agents):
         wp.launch(K.integrate_flyers, self.agent_count,
                   inputs=[self.rules, self.flight, self.space, self._obstacles, self._terrain, self._food, self.kinds,
                           self.separation, self.alignment, self.cohesion, self.draft, self.benefit, self.push,
-                          self.goals, dt],
+                          self.goals, dt, self.agent_world],
                   outputs=[self.positions, self.velocities, self.state, self.energy, self.timer, self.bite_timer,
                            self.bites, self.heading], device=self.device)
         self.time += dt

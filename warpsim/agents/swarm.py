@@ -90,6 +90,11 @@ class _Agents:
             dims = np.full(3, int(np.clip(np.ceil((2 * n) ** (1 / 3)), 4, 128)))
         self.grid = wp.HashGrid(int(dims[0]), int(dims[1]), int(dims[2]), device=d)
         self.grid.reserve(n)
+        self.agent_world = wp.zeros(n, dtype=int, device=d)
+        """World of each agent (batched worlds, ``warpsim.worlds``; 0 otherwise), shape (agent_count,)."""
+        self.world_stride = 0.0
+        """Grid offset [m] per world index along y (0: one world; see ``eval_neighbour_rules``)."""
+        self._grid_points = None
         self.time = 0.0
         """Simulated time [s]."""
         self.step_count = 0
@@ -141,10 +146,18 @@ class _Agents:
         """Rebuild the neighbour grid and evaluate the neighbour rules into ``separation``,
         ``alignment``, ``cohesion``, ``draft``, ``benefit``, ``push`` (hard distances predicted
         ``lookahead`` [s] ahead; the step passes dt) and ``neighbour_counts``."""
-        self.grid.build(self.positions, self.cell_size)
+        points = self.positions
+        if self.world_stride > 0.0:  # batched worlds: each world's agents in cells of their own
+            if self._grid_points is None:
+                self._grid_points = wp.zeros_like(self.positions)
+            wp.launch(K.key_world_points, self.agent_count,
+                      inputs=[self.positions, self.agent_world, self.world_stride, self._grid_points],
+                      device=self.device)
+            points = self._grid_points
+        self.grid.build(points, self.cell_size)
         wp.launch(K.eval_neighbour_rules, self.agent_count,
                   inputs=[self.grid.id, self.positions, self.velocities, self.kinds, self.groups, self.state,
-                          self.rules, self.space, float(lookahead)],
+                          self.rules, self.space, float(lookahead), self.agent_world, float(self.world_stride)],
                   outputs=[self.separation, self.alignment, self.cohesion, self.draft, self.benefit, self.push,
                            self.neighbour_counts], device=self.device)
 
