@@ -42,7 +42,7 @@ from .batches import (
 )
 from .manifest import SweepManifest, manifest_path, worlds_digest
 
-__all__ = ["RaySweepError", "add_ray_arguments", "run_batch_task", "run_ray_sweep"]
+__all__ = ["RaySweepError", "add_ray_arguments", "ray_usage_error", "run_batch_task", "run_ray_sweep"]
 
 DEFAULT_BATCH_SIZE = 64
 LAYER_EXT = ".usdc"
@@ -66,6 +66,24 @@ def add_ray_arguments(parser):
     g.add_argument("--resume", action="store_true",
                    help="with --ray: run only the batches the sweep's manifest does not list as finished")
     return g
+
+
+def ray_usage_error(args):
+    """A one-line complaint about the Ray options of parsed ``args``, or None when they are fine."""
+    if getattr(args, "ray", None) is None:
+        given = [flag for flag, value in (("--resume", getattr(args, "resume", False)),
+                                          ("--batch-size", getattr(args, "batch_size", None)),
+                                          ("--ray-cpus", getattr(args, "ray_cpus", None))) if value]
+        if given:
+            return f"{', '.join(given)} go{'es' if len(given) == 1 else ''} with --ray (a sweep on a Ray cluster)"
+        return None
+    if args.batch_size is not None and args.batch_size < 1:
+        return f"--batch-size {args.batch_size}: it must be >= 1 (worlds per Ray task)"
+    if args.ray_cpus is not None and args.ray_cpus < 1:
+        return f"--ray-cpus {args.ray_cpus}: it must be >= 1"
+    if args.ray_cpus is not None and args.ray != "local":
+        return "--ray-cpus sizes a local cluster; a running cluster at --ray ADDRESS has its own CPUs"
+    return None
 
 
 def _layer_name(out_path, index):
@@ -128,8 +146,6 @@ def _connect(address, num_cpus):
         return ray, False
     quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
     if address in (None, "local"):
-        if num_cpus is not None and num_cpus < 1:
-            raise ValueError(f"--ray-cpus {num_cpus}: it must be >= 1")
         ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
     else:
         try:
@@ -187,26 +203,35 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     sweep = {"scene": scene_name, "world_count": len(world_params), "batch_size": batch_size,
              "frames": frames, "fps": fps, "substeps": substeps, "layout": layout,
              "worlds_sha256": worlds_digest(world_params), "options": _describe(batch_options or {})}
+    from ..worlds.usd import LAYOUTS
+
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout {layout!r} is unknown; use one of {', '.join(LAYOUTS)}")
+    if num_cpus is not None and num_cpus < 1:
+        raise ValueError(f"--ray-cpus {num_cpus}: it must be >= 1")
     mpath = manifest_path(out_path)
-    os.makedirs(os.path.dirname(out_path), exist_ok=True)
+    manifest = None
     if resume:
         manifest = SweepManifest.load(mpath)
         problem = manifest.mismatch(sweep)
         if problem:
             raise ValueError(f"--resume: {problem}")
-    else:
-        import shutil
-
-        shutil.rmtree(batches_root(out_path), ignore_errors=True)  # the previous sweep of this name
-        manifest = SweepManifest.new(mpath, sweep)
-        manifest.save()
-    os.makedirs(batches_root(out_path), exist_ok=True)
-    skipped = [i for i in range(len(batches)) if resume and manifest.finished(i)]
-    todo = [i for i in range(len(batches)) if i not in skipped]
 
     ray, started = _connect(address, num_cpus)
     try:
-        options, task_device = _task_resources(ray, device)
+        options, task_device = _task_resources(ray, device)  # refuses a device before touching any file
+        os.makedirs(os.path.dirname(out_path), exist_ok=True)
+        if manifest is None:
+            import shutil
+
+            shutil.rmtree(batches_root(out_path), ignore_errors=True)  # the previous sweep of this name
+            if os.path.exists(out_path):
+                os.remove(out_path)  # its root referenced those batches
+            manifest = SweepManifest.new(mpath, sweep)
+            manifest.save()
+        os.makedirs(batches_root(out_path), exist_ok=True)
+        skipped = [i for i in range(len(batches)) if resume and manifest.finished(i)]
+        todo = [i for i in range(len(batches)) if i not in skipped]
         task = ray.remote(run_batch_task).options(max_retries=max_retries, retry_exceptions=False, **options)
         pending = {}
         for i in todo:
@@ -249,7 +274,10 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     worlds = None  # every world; only the worlds of batches with a layer when a batch failed
     if len(ok) < len(batches):
         worlds = [w for i in ok for w in range(batches[i][0], sum(batches[i]))]
-    root = write_sweep_root(out_path, layers, len(world_params), layout=layout, worlds=worlds) if layers else None
+    if not layers:
+        raise RaySweepError(f"every batch failed, e.g. batch 0: {manifest.batches[0]['error']}; the table "
+                            f"{table_path} lists the errors")
+    root = write_sweep_root(out_path, layers, len(world_params), layout=layout, worlds=worlds)
     remove_stale(out_path)
     return {"rows": rows, "root": root, "table": table_path, "ran": sorted(fresh), "skipped": skipped,
             "batches": {i: manifest.batches[i] for i in range(len(batches))},
