@@ -95,7 +95,7 @@ def run(args, out, err):
         wp.config.log_level = wp.LOG_WARNING
     from .. import cli
     from ..core.errors import SimulationError
-    from ..distributed.ray_sweep import RaySweepError
+    from ..distributed.ray_sweep import RaySweepError, ray_usage_error
     from ..scenes import get_scene
     from .metrics import BUILTIN, parse_rank, parse_where, select
     from .sweep import run_batch, sample_worlds, write_table
@@ -110,6 +110,8 @@ def run(args, out, err):
         raise usage(f"--frames {args.frames}: it must be >= 0")
     if args.layout not in LAYOUTS:
         raise usage(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
+    if ray_usage_error(args):
+        raise usage(ray_usage_error(args))
     if args.top is not None and args.top < 1:
         raise usage(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:
