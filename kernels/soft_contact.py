@@ -170,6 +170,12 @@ def find_soft_contacts(
 
 
 @wp.func
+def contact_particles(v: int, t: int, tri: wp.array(dtype=int), vertex_particle: wp.array(dtype=int)):
+    """(vertex particle, triangle particles i, j, k) of contact vertex v against triangle t."""
+    return vertex_particle[v], tri[3 * t], tri[3 * t + 1], tri[3 * t + 2]
+
+
+@wp.func
 def contact_scale(p: int, i: int, j: int, k: int, counts: wp.array(dtype=int)) -> float:
     """1 / the largest contact count among the four particles of a contact."""
     m = wp.max(wp.max(counts[p], counts[i]), wp.max(counts[j], counts[k]))
@@ -213,10 +219,7 @@ def push_soft_contacts(
     t = contact_tri[v]
     if t < 0:
         return
-    p = vertex_particle[v]
-    i = tri[3 * t]
-    j = tri[3 * t + 1]
-    k = tri[3 * t + 2]
+    p, i, j, k = contact_particles(v, t, tri, vertex_particle)
     bary = contact_bary[v]
     W = effective_inv_mass(p, i, j, k, bary, inv_mass)
     if W <= 0.0:
@@ -244,10 +247,7 @@ def impulse_soft_contacts(
     t = contact_tri[v]
     if t < 0:
         return
-    p = vertex_particle[v]
-    i = tri[3 * t]
-    j = tri[3 * t + 1]
-    k = tri[3 * t + 2]
+    p, i, j, k = contact_particles(v, t, tri, vertex_particle)
     bary = contact_bary[v]
     n = contact_normal[v]
     W = effective_inv_mass(p, i, j, k, bary, inv_mass)

@@ -116,7 +116,7 @@ def test_broken_spring_leaves_the_jacobian():
         system.eval_forces(q, qd, time, 0.0, f)
         return diag.numpy(), rows.numpy(), values.numpy(), f.numpy()
 
-    d0, r0, v0, f0 = blocks()
+    d0, r0, v0, _ = blocks()
     model.spring_broken.assign(np.array([1, 0], dtype=np.int32))
     d1, r1, v1, f1 = blocks()
     assert np.abs(v0[:2]).max() > 10.0 and np.abs(v1[:2]).max() == 0.0  # spring 0's couplings: zero

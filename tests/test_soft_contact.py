@@ -5,10 +5,10 @@ across a collision; the ``donuts`` heap comes to rest with no torus inside anoth
 import numpy as np
 import pytest
 import warp as wp
+from warpsim.kernels import soft_contact as K
 
 import warpsim as ws
 from warpsim.bodies import meshtools
-from warpsim.kernels import soft_contact as K
 from warpsim.scenes import get_scene
 
 DEVICE = "cpu"
@@ -90,7 +90,7 @@ def test_pressed_tori_never_interpenetrate_beyond_their_thickness(integrator, dt
         contact = ws.SoftContact([lower, upper], thickness=THICKNESS, friction=0.5)
         sim = ws.Simulator(model, integrator=integrator, forces=press, colliders=[contact] if with_contact else [])
         deepest, gaps = 0.0, []
-        substeps = int(round(1.0 / 60.0 / dt))
+        substeps = round(1.0 / 60.0 / dt)
         for _ in range(frames):
             for _ in range(substeps):
                 sim.step(dt)

@@ -30,7 +30,7 @@ class BreakReport:
 
     @property
     def count(self) -> int:
-        return int(len(self.springs))
+        return len(self.springs)
 
 
 class SpringFracture(Collider):

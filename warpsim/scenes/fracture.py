@@ -101,7 +101,7 @@ def add_ball(builder, center, radius, spacing, mass, velocity, stiffness, dampin
     of ``radius`` [m] at ``center``, ``mass`` [kg] shared equally, each joined to its 26 lattice
     neighbours by springs of ``stiffness`` [N/m]. Returns the particle indices."""
     h = float(spacing)
-    k = int(math.ceil(radius / h))
+    k = math.ceil(radius / h)
     g = np.arange(-k, k + 1)
     ijk = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     ijk = ijk[np.linalg.norm(ijk * h, axis=1) <= max(radius - 0.45 * h, 0.0) + 1e-9]
@@ -207,7 +207,7 @@ class WallScene(FractureScene):
         _positive(p, "ball_mass", "ball_radius", "mortar_strength", "spacing", "density", "bricks", "brick_size",
                   "gravity")
         h = p["spacing"]
-        nodes = tuple(int(round(s / h)) for s in p["brick_size"])
+        nodes = tuple(round(s / h) for s in p["brick_size"])
         if min(nodes) < 1 or any(abs(n * h - s) > 1e-6 for n, s in zip(nodes, p["brick_size"])):
             raise ValueError(f"brick_size={','.join(f'{s:g}' for s in p['brick_size'])} is not a multiple of "
                              f"spacing={h:g}; give sizes that are whole numbers of spacings")
