@@ -29,6 +29,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core import checks
 from ..core.builder import _vec3
 from ..core.collider import Collider
 from ..kernels import collide as K
@@ -46,7 +47,8 @@ def damping_ratio_for_restitution(restitution: float) -> float:
 
 
 def _coefficients(owner: str, restitution, friction, mode):
-    r, mu = float(restitution), float(friction)
+    r = checks.number(restitution, f"{owner} restitution", fix="give a number in [0, 1]")
+    mu = checks.number(friction, f"{owner} friction", fix="give a number >= 0")
     if not (math.isfinite(r) and 0.0 <= r <= 1.0):
         raise ValueError(f"{owner} restitution {restitution} must be in [0, 1]")
     if not (math.isfinite(mu) and mu >= 0.0):
@@ -62,7 +64,8 @@ class _Contact(Collider):
     def _set_contact(self, owner, restitution, friction, mode, thickness, stiffness):
         self.restitution, self.friction, self.mode = _coefficients(owner, restitution, friction, mode)
         self.mode_name = mode
-        thickness, stiffness = float(thickness), float(stiffness)
+        thickness = checks.number(thickness, f"{owner} thickness", "m", "give a number >= 0")
+        stiffness = checks.number(stiffness, f"{owner} stiffness", "N/m", "give a number > 0")
         if not (math.isfinite(thickness) and thickness >= 0.0):
             raise ValueError(f"{owner} thickness {thickness} must be finite and >= 0 [m]")
         if not (math.isfinite(stiffness) and stiffness > 0.0):
@@ -86,8 +89,9 @@ class Planes(_Contact):
 
     def __init__(self, normals, offsets, restitution=0.5, friction=0.0, mode="reflect", name="Planes", *,
                  thickness=0.0, stiffness=1.0e4):
-        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        offsets = np.asarray(offsets, dtype=np.float64).reshape(-1)
+        normals = checks.vectors(normals, f"{name} normals", item="normal")
+        offsets = checks.numbers_array([checks.number(o, f"{name} offset", "m") for o in np.atleast_1d(
+            np.asarray(offsets, dtype=object)).reshape(-1)], f"{name} offsets", item="offset", unit="m")
         if len(normals) != len(offsets):
             raise ValueError(f"{name}: {len(normals)} normals but {len(offsets)} offsets")
         lengths = np.linalg.norm(normals, axis=1)
@@ -333,7 +337,7 @@ class Capsule(_Kinematic):
                  mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="Capsule", continuous=True):
         self.continuous = bool(continuous)
         a, b = np.array(_vec3(a, f"{name} a")), np.array(_vec3(b, f"{name} b"))
-        radius = float(radius)
+        radius = checks.number(radius, f"{name} radius", "m", "give a number > 0")
         if not (math.isfinite(radius) and radius > 0.0):
             raise ValueError(f"{name} radius {radius} must be finite and > 0 [m]")
         self.radius = radius
@@ -551,9 +555,7 @@ class ParticleCollisions(Collider):
     def __init__(self, restitution=1.0, friction=0.0, separate=True, grid_dim=128):
         self.restitution, self.friction, _ = _coefficients("ParticleCollisions", restitution, friction, "reflect")
         self.separate = int(bool(separate))
-        if int(grid_dim) < 1:
-            raise ValueError(f"ParticleCollisions grid_dim {grid_dim} must be >= 1")
-        self.grid_dim = int(grid_dim)
+        self.grid_dim = checks.count(grid_dim, "ParticleCollisions grid_dim", fix="hash grid cells per axis, e.g. 128")
 
     def bind(self, model):
         super().bind(model)

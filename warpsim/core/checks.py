@@ -198,6 +198,12 @@ def _as_float_array(values, what, fix):
     return arr
 
 
+def float_array(values, what: str, fix: str = "") -> np.ndarray:
+    """``values`` as a float64 array (any shape; NaN allowed); ValueError naming ``what`` for
+    strings, None and ragged or non-numeric input."""
+    return np.asarray(_as_float_array(values, what, fix), dtype=np.float64)
+
+
 def vectors(values, what: str, width: int = 3, *, item: str = "row", min_count: int = 0, unit: str = "",
             fix: str = "") -> np.ndarray:
     """(N, width) float64 array of finite values; a flat list of ``N * width`` numbers or a

@@ -18,6 +18,7 @@ import warp as wp
 import warp.optim.linear as wpl
 import warp.sparse as wps
 
+from . import checks
 from ..kernels import integrate as K
 
 
@@ -137,14 +138,10 @@ class ImplicitEuler(Integrator):
         if linear_solver not in ("auto", "warp_cg", "block_cg"):
             raise ValueError(f"linear_solver {linear_solver!r} is unknown; use 'auto', 'warp_cg' or 'block_cg'")
         self.linear_solver = linear_solver
-        if int(newton_iterations) < 1:
-            raise ValueError(f"newton_iterations = {newton_iterations}; it must be >= 1")
-        if not cg_tol > 0.0:
-            raise ValueError(f"cg_tol = {cg_tol}; it must be > 0")
-        self.newton_iterations = int(newton_iterations)
-        self.newton_tol = float(newton_tol)
-        self.cg_tol = float(cg_tol)
-        self.cg_max_iterations = int(cg_max_iterations)
+        self.newton_iterations = checks.count(newton_iterations, "ImplicitEuler newton_iterations")
+        self.newton_tol = checks.nonnegative(newton_tol, "ImplicitEuler newton_tol")
+        self.cg_tol = checks.positive(cg_tol, "ImplicitEuler cg_tol", fix="a relative residual, e.g. 1e-7")
+        self.cg_max_iterations = checks.count(cg_max_iterations, "ImplicitEuler cg_max_iterations")
         self.last_newton_iterations = 0
         self.last_cg_iterations = 0
         self.last_cg_residual = 0.0

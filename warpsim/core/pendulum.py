@@ -7,6 +7,7 @@ import math
 import numpy as np
 import warp as wp
 
+from . import checks
 from .integrators import make_integrator
 from ..kernels import forces as KF
 from ..kernels import integrate as KI
@@ -18,6 +19,12 @@ def exact_period(amplitude: float, length: float = 1.0, gravity: float = 9.81) -
     """Exact period [s] of a pendulum released at rest from ``amplitude`` [rad]:
     T = 4 sqrt(l / g) K(sin(amplitude / 2)), K the complete elliptic integral of the first kind
     (computed with the arithmetic-geometric mean)."""
+    amplitude = checks.finite(amplitude, "exact_period amplitude", "rad")
+    length = checks.positive(length, "exact_period length", "m")
+    gravity = checks.positive(gravity, "exact_period gravity", "m/s^2")
+    if not abs(amplitude) < math.pi:
+        raise ValueError(f"exact_period amplitude {amplitude} must be below pi in magnitude (released at rest "
+                         "upside down, a pendulum never swings)")
     k = math.sin(abs(amplitude) / 2.0)
     a, b = 1.0, math.sqrt(1.0 - k * k)
     for _ in range(40):
@@ -37,11 +44,12 @@ class Pendulum:
 
     def __init__(self, angle, angular_velocity=0.0, length=1.0, mass=1.0, gravity=9.81, integrator="rk4",
                  device=None):
-        angle = np.atleast_1d(np.asarray(angle, dtype=np.float64))
+        angle = np.atleast_1d(checks.float_array(angle, "Pendulum angle"))
         n = len(angle)
-        omega = np.broadcast_to(np.asarray(angular_velocity, dtype=np.float64), (n,))
-        length = np.broadcast_to(np.asarray(length, dtype=np.float64), (n,))
-        mass = np.broadcast_to(np.asarray(mass, dtype=np.float64), (n,))
+        omega = np.broadcast_to(checks.float_array(angular_velocity, "Pendulum angular_velocity"), (n,))
+        length = np.broadcast_to(checks.float_array(length, "Pendulum length"), (n,))
+        mass = np.broadcast_to(checks.float_array(mass, "Pendulum mass"), (n,))
+        gravity = checks.number(gravity, "Pendulum gravity", "m/s^2")
         for name, values in (("angle", angle), ("angular_velocity", omega)):
             if not np.all(np.isfinite(values)):
                 raise ValueError(f"pendulum {int(np.flatnonzero(~np.isfinite(values))[0])} has a non-finite {name}")

@@ -59,10 +59,10 @@ class Simulator:
 
     def __init__(self, model, integrator="semi_implicit_euler", forces=None, colliders=(), *, adaptive=False,
                  max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False):
-        self.model = model
-        self.device = model.device
         if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
             raise ValueError(f"Simulator model must be a ws.Model (builder.finalize()), got {checks.show(model)}")
+        self.model = model
+        self.device = model.device
         self.integrator = make_integrator(integrator)
         forces = [Gravity()] if forces is None else checks.sequence_of(forces, "forces", Force, "forces=[ws.Gravity()]")
         colliders = checks.sequence_of(colliders, "colliders", Collider, "colliders=[ws.Plane()]")

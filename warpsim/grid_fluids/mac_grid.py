@@ -89,7 +89,7 @@ class MacGrid:
         for s in sides:
             allowed = SIDES if self.dim == 3 else SIDES[:4]
             if s not in allowed:
-                raise ValueError(f"open side {s!r} is unknown; use some of {allowed}")
+                raise ValueError(f"open_sides: open side {s!r} is unknown; use some of {allowed}")
             mask |= 1 << SIDES.index(s)
         self.open_sides, self.open_mask = sides, mask
         self.device = wp.get_device(device)

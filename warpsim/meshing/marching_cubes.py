@@ -100,6 +100,8 @@ def _check_shape(shape):
 def _check_vec3(value, name, positive):
     if isinstance(value, numbers.Real):
         value = (value, value, value)
+    if isinstance(value, (str, bytes)) or any(isinstance(v, (str, bytes)) for v in np.ravel(np.asarray(value, object))):
+        raise ValueError(f"{name} must be a number or 3 numbers, got {value!r}")
     try:
         values = tuple(float(v) for v in value)
     except TypeError:

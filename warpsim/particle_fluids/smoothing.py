@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from ..core import checks
 from ..core.builder import _vec3
 
 KERNELS = {"cubic": 0, "wendland": 1}
@@ -103,11 +104,10 @@ def fluid_block(lower, upper, spacing: float, jitter: float = 0.0, seed: int = 0
     spacing inside each face; shape (N, 3). ``jitter``: random offsets, a fraction of spacing."""
     lo = np.array(_vec3(lower, "fluid_block lower"))
     hi = np.array(_vec3(upper, "fluid_block upper"))
-    spacing = float(spacing)
-    if not (math.isfinite(spacing) and spacing > 0.0):
-        raise ValueError(f"fluid_block spacing must be > 0 [m], got {spacing}")
+    spacing = checks.positive(spacing, "fluid_block spacing", "m")
     if np.any(hi - lo < spacing):
-        raise ValueError(f"fluid_block: box {tuple(lo)}..{tuple(hi)} is thinner than one spacing {spacing} on an axis")
+        raise ValueError(f"fluid_block upper {hi.tolist()} must exceed lower {lo.tolist()} by at least one spacing "
+                         f"{spacing:g} m on every axis; enlarge the box or reduce the spacing")
     counts = np.floor((hi - lo) / spacing + 1e-6).astype(int)
     axes = [lo[k] + (np.arange(counts[k]) + 0.5) * spacing for k in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
