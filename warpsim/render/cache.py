@@ -62,7 +62,7 @@ def select_frames(available, frame=None, frames=None):
 
 
 def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=None, fps=None, device=None,
-                 guides=False, only=None, progress=None):
+                 guides=False, only=None, progress=None, gif_colors=255):
     """Render ``cache`` into ``out`` (.png: one frame, the last unless ``frame`` is given; .gif
     or .mp4: ``frames``, every frame by default). ``camera``: None (frame the scene's bounds
     over the drawn frames), a :class:`Camera` or ``"ex,ey,ez,tx,ty,tz"``. ``fps``: playback
@@ -84,13 +84,13 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     fps = scene.fps if fps is None else float(fps)
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"--fps {fps}: it must be > 0")
-    if camera is None:
-        bounds = scene.bounds(None if chosen == [None] else chosen)
+    if camera is None:  # frame what the scene holds: guides (container walls) drawn but not framed
+        bounds = (CacheScene(cache, only=only) if guides else scene).bounds(None if chosen == [None] else chosen)
         if bounds is None:
             bounds = np.array([[-1.0, 0.0, -1.0], [1.0, 1.0, 1.0]])
         camera = frame_bounds(bounds, width, height)
     renderer = Renderer(width, height, device=device)
-    sink = open_sink(out, fps)
+    sink = open_sink(out, fps, gif_colors)
     t0 = time.perf_counter()
     ground_y = _ground(scene, chosen)
     for k, f in enumerate(chosen):

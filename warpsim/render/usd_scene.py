@@ -1,7 +1,8 @@
 """Gathering a USD cache's prims into renderer geometry, frame by frame (``pxr`` imported lazily).
 
 Which prims are drawn, as USD tools do by default: imageable prims whose computed purpose is
-``default`` or ``render`` (``guide`` prims only with ``guides=True``; ``proxy`` never) and whose
+``default`` or ``render`` (``guide`` prims only with ``guides=True``, translucent: their
+``displayOpacity`` or ``GUIDE_OPACITY``; ``proxy`` never) and whose
 computed visibility is not ``invisible``. ``primvars:displayColor`` (constant, uniform or
 vertex) colours them and a constant ``primvars:displayOpacity`` < 1 makes them translucent.
 
@@ -22,6 +23,7 @@ from ..usd.validate import frame_codes, open_stage
 from .geometry import GeometryBuilder, cone_mesh, cube_mesh
 
 DRAWN_PURPOSES = ("default", "render")
+GUIDE_OPACITY = 0.25
 
 
 def quat_rotate(q, v):
@@ -117,6 +119,8 @@ class CacheScene:
             m = np.asarray(xf.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention: p' = [p 1] m
             kind = prim.GetTypeName()
             color, opacity = self._display(prim, t)
+            if opacity >= 1.0 and UsdGeom.Imageable(prim).ComputePurpose() == "guide":
+                opacity = GUIDE_OPACITY  # guides without a displayOpacity are drawn see-through
             handler = getattr(self, f"_add_{kind}", None)
             if handler is not None:
                 handler(g, prim, t, m, color, opacity)
