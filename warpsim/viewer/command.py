@@ -25,6 +25,8 @@ def add_parser(sub):
     v.add_argument("--max-points", type=int, default=200_000,
                    help="points drawn per particle prim; larger sets are shown as an even subset")
     v.add_argument("--paused", action="store_true", help="start paused")
+    v.add_argument("--environment", action="store_true",
+                   help="image-based lighting (prettier; slow where the browser has no GPU)")
     v.add_argument("--record-dir", default="usd_out", help="folder for recordings (default usd_out)")
     return v
 
@@ -75,7 +77,8 @@ def build(args):
     device = cli._device(args.device)
     try:
         return Viewer(cls, params, device, host=args.host, port=args.port, fps=args.fps, substeps=args.substeps,
-                      max_points=args.max_points, record_dir=args.record_dir, paused=args.paused)
+                      max_points=args.max_points, record_dir=args.record_dir, paused=args.paused,
+                      environment=args.environment)
     except ValueError as exc:
         raise cli.UsageError(f"scene {cls.name!r}: {exc}") from None
 

@@ -151,6 +151,8 @@ class PlaybackViewer:
         check_port(self.host, self.port)
         self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim playback", verbose=False)
         self.server.scene.set_up_direction("+y")
+        self.server.scene.configure_default_lights(True, cast_shadow=False)
+        self.server.scene.configure_environment_map(None)
         self.drawer = Drawer(self.server)
         gui = self.server.gui
         n = max(len(self.reader), 1)

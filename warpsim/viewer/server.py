@@ -33,6 +33,7 @@ def check_port(host, port):
     """Raise PortInUseError naming a free port when ``port`` on ``host`` cannot be bound."""
     def free(p):
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is free
             try:
                 s.bind((host, p))
                 return True
@@ -82,6 +83,7 @@ class Drawer:
                     if len(item.points) and len(item.triangles):
                         self.static_nodes.append(self.server.scene.add_mesh_simple(
                             f"/static/{name}", item.points, item.triangles, color=_rgb(item.color), side="double",
+                            cast_shadow=False, receive_shadow=False,
                             opacity=0.35 if name in ("walls", "container", "tank") else None))
             for name, item in items.items():
                 self._update(name, item, name in draggable)
@@ -142,7 +144,7 @@ class Drawer:
         color = _rgb(item.color)
         if sig[0] == "mesh":
             h = scene.add_mesh_simple(path, np.asarray(item.points, np.float32), item.triangles, color=color,
-                                      side="double")
+                                      side="double", cast_shadow=False, receive_shadow=False)
             if draggable:
                 self._drag_hook(h, name)
             return h
@@ -151,7 +153,8 @@ class Drawer:
             r = max(item.radius, 1e-3)
             h = scene.add_batched_meshes_simple(
                 path, v * r, f, np.tile([[1.0, 0.0, 0.0, 0.0]], (len(item.points), 1)),
-                np.asarray(item.points, np.float32), batched_colors=color, lod="off")
+                np.asarray(item.points, np.float32), batched_colors=color, lod="off",
+                cast_shadow=False, receive_shadow=False)
             self._drag_hook(h, name)
             return h
         if sig[0] == "cloud":
@@ -169,7 +172,8 @@ class Drawer:
                 continue
             handles.append(scene.add_batched_meshes_simple(
                 f"{path}/proto{k}", v, f, np.asarray(item.orientations[sel], np.float32),
-                np.asarray(item.points[sel], np.float32), batched_colors=color, lod="off"))
+                np.asarray(item.points[sel], np.float32), batched_colors=color, lod="off",
+                cast_shadow=False, receive_shadow=False))
         return handles
 
 
@@ -193,6 +197,9 @@ class Viewer:
         max_points: points drawn per points prim (strided subset beyond).
         record_dir: folder of recordings.
         paused: start paused.
+        draw_fps: most frames per second sent to the browser (the simulation may run faster).
+        environment: light the scene with viser's environment map too (prettier; a browser
+            without a GPU renders a frame in seconds instead of milliseconds with it).
 
     ``start()`` serves in background threads and returns at once (``url`` says where);
     ``run()`` serves until interrupted; ``stop()`` ends it, completing any recording. Example::
@@ -202,7 +209,8 @@ class Viewer:
     """
 
     def __init__(self, scene, params=None, device=None, *, host="127.0.0.1", port=8080, fps=None, substeps=None,
-                 max_points=200_000, record_dir="usd_out", paused=False, verbose=False):
+                 max_points=200_000, record_dir="usd_out", paused=False, draw_fps=30.0, environment=False,
+                 verbose=False):
         from ..scenes import Scene, get_scene
 
         if device is None:
@@ -234,6 +242,9 @@ class Viewer:
         self._stop = threading.Event()
         self._thread = None
         self._drawn_frame = None
+        self._drawn_at = 0.0
+        self.draw_fps = float(draw_fps)
+        self.environment = bool(environment)
 
     @property
     def url(self):
@@ -250,6 +261,9 @@ class Viewer:
         check_port(self.host, self.port)
         self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim", verbose=self.verbose)
         self.server.scene.set_up_direction("+y")
+        self.server.scene.configure_default_lights(True, cast_shadow=False)  # shadow maps cost most frames
+        if not self.environment:  # image-based lighting re-renders its maps: slow in software WebGL
+            self.server.scene.configure_environment_map(None)
         self._frame_camera()
         self.drawer = Drawer(self.server, on_drag=self._on_drag)
         self.controls = Controls(self)
@@ -306,6 +320,7 @@ class Viewer:
         if self.server is not None:
             self.drawer.draw(items, static, version, draggable)
         self._drawn_frame = (version, frame)
+        self._drawn_at = time.perf_counter()
 
     def update(self):
         """Redraw a ``ws.Simulator`` the caller steps (``ws.Viewer(sim)``)."""
@@ -321,7 +336,8 @@ class Viewer:
             stepped = False
             if s.playing and not self.user_driven:
                 stepped = s.advance()
-            if (s.version, s.frame) != self._drawn_frame:
+            due = time.perf_counter() - self._drawn_at >= 1.0 / self.draw_fps or not s.playing
+            if (s.version, s.frame) != self._drawn_frame and due:
                 try:
                     self.redraw()
                 except Exception as exc:  # noqa: BLE001  (a drawing failure must not stop the server)

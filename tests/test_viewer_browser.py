@@ -1,0 +1,200 @@
+"""End to end: ``warpsim view teapot`` in a real browser (Debian's Chromium, headless, driven by
+Playwright; WebGL through SwiftShader). The page loads and draws the teapot (a screenshot with
+the teapot's colour where the camera projects it; written to docs/viewer_teapot.png for the
+README), a parameter slider dragged with the mouse changes the running scene's parameter, a mouse
+drag on the teapot pulls the grabbed vertex toward the pointer, Record writes a cache that
+opens and validates, a blow-up shows the SimulationError in the page while the server keeps
+serving, and closing the page mid-drag lets go and completes a running recording."""
+from __future__ import annotations
+
+import io
+import os
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from warpsim.usd.validate import cache_info, validate_cache
+from warpsim.viewer.server import Viewer
+
+playwright = pytest.importorskip("playwright.sync_api")  # the test extra installs it (CI: .ci/run)
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--headless=new", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+WIDTH, HEIGHT = 1000, 640
+DOCS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs")
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait(cond, timeout=20.0, what="condition"):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def _project(cam, point):
+    """Pixel (x, y) of world ``point`` seen by a viser client camera (OpenCV convention: the
+    camera's +z looks forward, +y down; ``fov`` is vertical)."""
+    w, x, y, z = np.asarray(cam.wxyz, float)
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    p = rot.T @ (np.asarray(point, float) - np.asarray(cam.position, float))
+    f = (HEIGHT / 2) / np.tan(cam.fov / 2)
+    return WIDTH / 2 + f * p[0] / p[2], HEIGHT / 2 + f * p[1] / p[2]
+
+
+@pytest.fixture(scope="module")
+def viewer(tmp_path_factory):
+    out = tmp_path_factory.mktemp("recordings")
+    v = Viewer("teapot", params={"velocity": (0.0, 0.0, 0.0), "tilt": 0.0, "height": 0.05, "resolution": "4"},
+               device="cpu", port=_free_port(), record_dir=str(out)).start()
+    yield v
+    v.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} is missing: apt-get install chromium (.ci/run does)")
+    with playwright.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield b
+        b.close()
+
+
+def _open(browser, viewer):
+    page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
+    page.goto(viewer.url)
+    page.wait_for_selector("canvas", timeout=30_000)
+    page.get_by_text("restitution (live)").wait_for(timeout=30_000)
+    client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
+    return page, client
+
+
+def test_teapot_in_the_browser(viewer, browser):
+    s = viewer.session
+    page, client = _open(browser, viewer)
+    _wait(lambda: s.frame > 60, what="the simulation to run")  # the teapot settles on the floor
+
+    # 1. the canvas shows the teapot: its light grey-blue where the camera projects it, not the background
+    close = page.locator(".mantine-Notification-closeButton")  # viser's "software WebGL" notice
+    if close.count():
+        close.first.click()
+    time.sleep(1.0)
+    png = page.screenshot()
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float64)
+    assert img.std() > 10.0  # not a blank page
+    cam = client.camera
+    with s.lock:
+        verts = s.items["teapot"].points.copy()
+    px = np.array([_project(cam, p) for p in verts])
+    inside = (px[:, 0] > 0) & (px[:, 0] < WIDTH) & (px[:, 1] > 0) & (px[:, 1] < HEIGHT)
+    assert inside.mean() > 0.95
+    x0, y0 = px.min(0).astype(int)
+    x1, y1 = px.max(0).astype(int)
+    box = img[y0:y1 + 1, x0:min(x1 + 1, 660)]  # the GUI panel covers x > 665
+    background = np.median(img[5:60, 330:600], axis=(0, 1))  # an empty patch at the top
+    differs = np.abs(box - background).sum(axis=2) > 30
+    assert differs.mean() > 0.3, "the teapot is not drawn where the camera projects it"
+    os.makedirs(DOCS, exist_ok=True)
+    Image.open(io.BytesIO(png)).convert("RGB").quantize(64).save(os.path.join(DOCS, "viewer_teapot.png"),
+                                                                 optimize=True)
+
+    # 2. a slider dragged with the mouse changes the running scene's parameter (live)
+    row = page.get_by_text("restitution (live)").locator("xpath=ancestor::*[.//input][1]")
+    thumb = row.get_by_role("slider")
+    thumb.scroll_into_view_if_needed()
+    track = row.locator(".mantine-Slider-track")
+    tb, kb = track.bounding_box(), thumb.bounding_box()
+    page.mouse.move(kb["x"] + kb["width"] / 2, kb["y"] + kb["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(tb["x"] + 0.2 * tb["width"], kb["y"] + kb["height"] / 2, steps=8)
+    page.mouse.up()
+    _wait(lambda: abs(s.params["restitution"] - 0.5) > 0.1, what="the restitution change")
+    wall = s.scene.sim.colliders[0]
+    assert s.params["restitution"] == pytest.approx(0.2, abs=0.05)
+    assert wall.restitution == pytest.approx(s.params["restitution"])  # the running collider's
+    assert s.frame > 60  # applied live: no rebuild back to frame 0
+
+    # 3. a mouse drag on the teapot pulls the grabbed vertex toward the pointer
+    with s.lock:
+        verts = s.items["teapot"].points.copy()
+    eye = np.asarray(cam.position, float)
+    front = int(np.argmin(np.linalg.norm(verts - eye, axis=1)))  # nearest the camera: not occluded
+    sx, sy = _project(cam, verts[front])
+    page.mouse.move(sx, sy)
+    page.mouse.down()
+    page.mouse.move(sx, sy - 30, steps=5)
+    page.mouse.move(sx, sy - 90, steps=10)
+    grabbed = _wait(lambda: s.status()["grabbed"], what="the grab")
+    _wait(lambda: np.linalg.norm(s.status()["grabbed"]["target"] - grabbed["start"]) > 0.05, what="the target")
+    g = s.status()["grabbed"]
+    target, start = g["target"], g["start"]
+    assert np.linalg.norm(verts[g["vertex"]] - verts[front]) < 0.08  # the vertex under the pointer
+    tx, ty = _project(cam, target)
+    assert abs(tx - sx) < 12 and abs(ty - (sy - 90)) < 12  # the target lies under the pointer
+    assert target[1] > start[1] + 0.05  # pulled up
+    time.sleep(1.5)
+    x_now = s.grabbed_position()
+    assert np.linalg.norm(x_now - target) < 0.6 * np.linalg.norm(start - target)
+    page.mouse.up()
+    _wait(lambda: s.status()["grabbed"] is None, what="the release")
+
+    # 4. Record writes a cache that opens
+    page.get_by_role("button", name="Record").click()
+    _wait(lambda: s.status()["recording"], what="the recording to start")
+    frame0 = s.frame
+    _wait(lambda: s.frame > frame0 + 20, what="recorded frames")
+    page.get_by_role("button", name="Stop recording").click()
+    path = _wait(lambda: s.status()["recording"] is None and s.last_recording, what="the recording to stop")
+    assert validate_cache(path) == []
+    info = cache_info(path)
+    assert info["frames"] >= 21 and info["fps"] == pytest.approx(60.0)
+    assert {p["path"] for p in info["prims"]} >= {"/World/teapot", "/World/walls"}
+    page.close()
+
+
+def test_faults_in_the_browser(viewer, browser):
+    s = viewer.session
+    s.reset()
+    page, client = _open(browser, viewer)
+    _wait(lambda: s.frame > 30, what="the simulation to run")
+    # a blow-up pauses and shows the SimulationError in the page; the server keeps serving
+    s.set_param("stiffness", 4.0e6)  # live, far beyond what the explicit step can hold
+    _wait(lambda: s.status()["error"], what="the blow-up")
+    page.get_by_text("Simulation error").wait_for(timeout=15_000)
+    assert "blew up" in page.content()
+    s.set_param("stiffness", 40.0)  # the same value as before the blow-up is not 'unchanged': it rebuilt
+    page.get_by_role("button", name="Reset").click()
+    page.get_by_role("button", name="Play").click()
+    _wait(lambda: s.status()["error"] is None and s.frame > 10, what="serving after the failure")
+    # closing the page mid-drag releases the grab and completes the recording
+    with s.lock:
+        verts = s.items["teapot"].points.copy()
+    cam = client.camera
+    front = int(np.argmin(np.linalg.norm(verts - np.asarray(cam.position, float), axis=1)))
+    page.get_by_role("button", name="Record").click()
+    _wait(lambda: s.status()["recording"], what="the recording")
+    sx, sy = _project(cam, verts[front])
+    page.mouse.move(sx, sy)
+    page.mouse.down()
+    page.mouse.move(sx + 40, sy - 40, steps=8)
+    _wait(lambda: s.status()["grabbed"], what="the grab")
+    page.close()  # mouse still down
+    _wait(lambda: s.status()["grabbed"] is None, what="the release on disconnect")
+    _wait(lambda: s.status()["recording"] is None, what="the recording to complete")
+    assert validate_cache(s.last_recording) == []
