@@ -286,3 +286,19 @@ def test_wall_checkpoint_restores_the_broken_springs_bit_for_bit():
     assert [r.springs.tolist() for r in a.sim.fracture.history[3:]] == \
         [r.springs.tolist() for r in b.sim.fracture.history]
     assert [r.frame for r in b.sim.fracture.history] == [4, 5]
+
+
+def test_springs_break_inside_captured_frames():
+    """ClothSimulator replays each frame as a captured graph (CPU too): the mask lives on the
+    device, so a break inside a replayed frame is seen and the spring stays broken."""
+    model = _pulled_springs()
+    sim = ClothSimulator(model, integrator="implicit_euler", forces=[ws.ForceField(growing_load)])
+    assert sim.use_graph
+    sim.run(frames=45, frame_dt=1.0 / 60.0, substeps=10)
+    assert len(sim._graphs) == 1  # every frame after the first was a replay
+    hits = {r.frame: r.springs.tolist() for r in sim.fracture.history if r.count}
+    assert hits.get(31) == [0] or hits.get(30) == [0], hits  # 20 N at t = 0.5 s
+    assert sorted(s for v in hits.values() for s in v) == [0, 1]
+    # after the break: free fall under the load alone, v = -(RATE / m) (t^2 - t_b^2) / 2
+    v = sim.state.velocities.numpy()[1, 1]
+    assert v == pytest.approx(-(RATE / MASS) * 0.5 * (0.75 ** 2 - 0.5 ** 2), rel=0.02)
