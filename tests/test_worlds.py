@@ -221,3 +221,31 @@ def test_picking_parses_comparisons_and_never_evaluates_them():
     for bad in ("__import__('os').system('true')", "speed<1 or 1", "speed<>1", "speed<abc", "nope<1"):
         with pytest.raises(ValueError):
             parse_where(bad, names)
+
+
+def test_flock_worlds_keep_to_their_own_neighbours_and_food():
+    """Flocks of different seeds in one batch: each equals its own run alone, birds included that
+    ate from their own world's food (the neighbour grid and the food are keyed by world)."""
+    from warpsim.worlds.sweep import make_batch
+
+    cls = get_scene("flock")
+    params = [cls.resolve_params({"birds": 20, "geese": 4, "food": 2, "seed": s, "food_bites": 5 + s})
+              for s in (0, 1, 2)]
+    batch = make_batch(cls, params, device="cpu")
+    _, substeps, frame_dt = frame_timing(cls, params[0])
+    frames = 300  # long enough for hungry birds to reach food
+    for _ in range(frames):
+        batch.advance(frame_dt, substeps)
+    x, _ = batch.world_slices()
+    eaten = []
+    for w, p in enumerate(params):
+        scene = cls(p, device="cpu")
+        for _ in range(frames):
+            scene.advance(frame_dt, substeps)
+        assert np.abs(x[w] - scene.agents.positions.numpy()).max() <= 1.0e-6
+        left = batch.flock.food_amounts.numpy()[2 * w:2 * w + 2]
+        np.testing.assert_array_equal(left, scene.agents.food_amounts.numpy())
+        eaten.append(int(2 * (5 + p["seed"]) - left.sum()))
+    assert max(eaten) > 0  # some world's birds did eat
+    with pytest.raises(ValueError, match="birds changes the flock's agents"):
+        make_batch(cls, [{"birds": 20, "geese": 4}, {"birds": 21, "geese": 4}], device="cpu")

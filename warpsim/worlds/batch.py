@@ -247,8 +247,9 @@ class WorldBatch:
         st = self.sim.state
         return st.positions.numpy().reshape(n, P, 3), st.velocities.numpy().reshape(n, P, 3)
 
-    def world_frame_data(self, x, v):
-        """The scene's frame data for one world whose positions / velocities are ``x``, ``v`` (P, 3)."""
+    def world_frame_data(self, x, v, world=None):
+        """The scene's frame data for one world whose positions / velocities are ``x``, ``v`` (P, 3)
+        (``world``: its index in the batch, unused here: the slices say everything)."""
         sim0 = self.scene.sim
         saved = sim0.state
         view = copy.copy(saved)

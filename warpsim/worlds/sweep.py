@@ -14,7 +14,7 @@ from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
 from .usd import BatchLayerWriter
 
-__all__ = ["frame_timing", "run_batch", "sample_worlds", "write_table"]
+__all__ = ["frame_timing", "make_batch", "run_batch", "sample_worlds", "write_table"]
 
 
 def _typed_fixed(cls, fixed):
@@ -70,6 +70,17 @@ def _normalise(cls, params):
     return out
 
 
+def make_batch(cls, world_params, device=None):
+    """A :class:`WorldBatch`, or for flock scenes an :class:`warpsim.worlds.agents.AgentWorldBatch`."""
+    from .agents import is_agent_scene
+
+    if is_agent_scene(cls):
+        from .agents import AgentWorldBatch
+
+        return AgentWorldBatch(cls, world_params, device=device)
+    return WorldBatch(cls, world_params, device=device)
+
+
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None) -> list:
     """Step these worlds in one batched run and return one row per world.
@@ -94,14 +105,14 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
-    batch = WorldBatch(cls, world_params, device=device)
+    batch = make_batch(cls, world_params, device=device)
     stats = WorldMetrics(batch, track=track, user=metrics)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
 
     def write(frame):
         x, v = batch.world_slices()
         for w in range(batch.world_count):
-            writer.write_world(w, frame, batch.world_frame_data(x[w], v[w]))
+            writer.write_world(w, frame, batch.world_frame_data(x[w], v[w], w))
 
     def body():
         batch.advance(frame_dt, substeps)
