@@ -231,3 +231,37 @@ def test_run_preview_writes_the_animation_beside_the_cache(tmp_path):
     with Image.open(tmp_path / "sub" / "b.gif") as im:
         assert im.n_frames == 5
     assert _run("run", "pendulum", "--frames", "1", "--out", str(cache), "--preview", "b.jpg")[0] == 2
+
+
+def test_instances_curves_and_cubes_land_where_they_are(tmp_path):
+    """A PointInstancer (a red sphere and a green Y capsule prototype, per-instance colours) and a
+    blue curve as a tube: each colour's pixels are centred on the projection of its shape."""
+    path = str(tmp_path / "i.usda")
+    with UsdCacheWriter(path, fps=10) as w:
+        w.add_instancer("agents", [("sphere", {"radius": 0.15}), ("capsule", {"radius": 0.1, "height": 0.4,
+                                                                              "axis": "Y"})],
+                        count_changes=False, primvars={"displayColor": "color3f[]"})
+        w.add_curves("line", curve_vertex_counts=[3], width=0.08, color=(0.0, 0.0, 1.0))
+        w.write_frame(0, {"agents": {"positions": [[-0.6, 0.3, 0.0], [0.6, 0.3, 0.0]],
+                                     "orientations": [[0, 0, 0, 1], [0, 0, 0, 1]], "protoIndices": [0, 1],
+                                     "velocities": np.zeros((2, 3)), "displayColor": [[1, 0, 0], [0, 1, 0]]},
+                          "line": {"points": [[-0.6, -0.4, 0.0], [0.0, -0.4, 0.0], [0.6, -0.4, 0.0]]}})
+    cam = Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov=40.0)
+    out = str(tmp_path / "i.png")
+    render_cache(path, out, size=(W, H), camera=cam, device="cpu")
+    from PIL import Image
+
+    img = np.asarray(Image.open(out)).astype(int)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    masks = {"red": (r - g > 80) & (r - b > 80), "green": (g - r > 80) & (g - b > 80),
+             "blue": (b - r > 80) & (b - g > 80)}
+    centres = {"red": [-0.6, 0.3, 0.0], "green": [0.6, 0.3, 0.0], "blue": [0.0, -0.4, 0.0]}
+    for name, mask in masks.items():
+        rows, cols = np.nonzero(mask)
+        cx, cy = cam.project([centres[name]], W, H)[0][0]
+        assert mask.sum() > 50 and abs(cols.mean() - cx) < 2.5 and abs(rows.mean() - cy) < 2.5, name
+    # the capsule stands along Y: taller than wide (0.6 m by 0.2 m); the tube lies along X
+    rows, cols = np.nonzero(masks["green"])
+    assert np.ptp(rows) > 2.2 * np.ptp(cols)
+    rows, cols = np.nonzero(masks["blue"])
+    assert np.ptp(cols) > 8 * np.ptp(rows)
