@@ -44,6 +44,15 @@ __all__ = [
     "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
     "MacGrid", "PressureSolver", "Advector", "LevelSet", "LevelSetLiquid", "Smoke", "FlipLiquid", "Viscosity",
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
-    "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
+    "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
     "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
 ]
+
+
+def __getattr__(name):
+    """Lazy public names: ``ws.Viewer`` (the browser viewer) imports viser only when first used."""
+    if name == "Viewer":
+        from .viewer.server import Viewer
+
+        return Viewer
+    raise AttributeError(f"module 'warpsim' has no attribute {name!r}")

@@ -147,6 +147,10 @@ class SoftContact(Collider):
 
     def apply(self, model, state, q_prev, dt) -> None:
         d, n, v = model.device, model.particle_count, self.vertex_count
+        if d.is_cpu and d.is_capturing:
+            # wp.Mesh.refit on the CPU is a host call that a captured graph would not replay
+            raise ValueError("SoftContact cannot run inside a graph captured on the CPU (the BVH refit would not "
+                             "be replayed); use ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
         wp.copy(self._points, state.positions)
         self._mesh.refit()
         self._particle_contacts.zero_()
