@@ -124,10 +124,11 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     stats.update()
     write(0)
     for frame in range(1, int(frames) + 1):
-        if use_graph and graph is None and frame > 1:
+        if use_graph and graph is None and frame > 1:  # frame 1 ran eagerly: every module is loaded
             with wp.ScopedCapture(device=batch.device) as capture:
                 body()
             graph = capture.graph
+            wp.capture_launch(graph)  # capturing records the frame; this runs it
         elif graph is not None:
             wp.capture_launch(graph)
         else:
