@@ -100,7 +100,7 @@ class AgentWorldBatch:
                     keys = [key for key in self.varied if self.params[k][key] != base[key]]
                     raise StructuralError(f"{' or '.join(keys) or 'a parameter'} changes the flock's {part}; worlds "
                                           "of one batch share it: set it with --set")
-        self.foods = [s.food for s in scenes]
+        self.foods = [getattr(s, "food", None) for s in scenes]
         self.flock = self._concatenate([s.agents for s in scenes])
         n, a = self.world_count, self.scene.agents.agent_count
         d = self.device
@@ -190,5 +190,7 @@ class AgentWorldBatch:
             f = len(food.positions)
             view.food_amounts = wp.array(self._frame["food_amounts"][w * f:(w + 1) * f], dtype=int, device="cpu")
         scene = copy.copy(self.scene)
-        scene.agents, scene.food = view, food
+        scene.agents = view
+        if hasattr(scene, "food"):
+            scene.food = food
         return scene.frame_data()
