@@ -9,7 +9,8 @@ replay every launch backwards with its inputs intact. Nothing here is a new form
   (``resolve_plane``, ``capsule_contact_point``, ``apply_local_contact``) with discrete
   detection, one plane per launch (a loop that rewrites (x, v) is not differentiable in Warp);
 - ``integrate_cloth_out`` is the cloth solver's fused update ``v += h (w f + g), x += h v``
-  reading (q, qd, f) and writing (q_out, qd_out).
+  (the func ``cloth_velocity`` of ``integrate_cloth_particles``) reading (q, qd, f) and writing
+  (q_out, qd_out).
 
 Arrays: positions ``q`` [m], velocities ``qd`` [m/s], forces ``f`` [N], shape (particle_count,),
 ``wp.vec3``; ``inv_mass`` [1/kg], float (0 = pinned).
@@ -18,6 +19,7 @@ Arrays: positions ``q`` [m], velocities ``qd`` [m/s], forces ``f`` [N], shape (p
 import warp as wp
 
 from . import integrate as _integrate
+from .cloth import cloth_velocity
 from .collide import apply_local_contact, capsule_contact_point, resolve_plane
 
 wp.set_module_options({"enable_backward": True})
@@ -47,10 +49,7 @@ def integrate_cloth_out(
     """Cloth semi-implicit Euler (``kernels/cloth.py: integrate_cloth_particles``) out of place:
     v = qd + h (w f + g) on free particles (pinned keep qd), x = q + h v."""
     i = wp.tid()
-    w = inv_mass[i]
-    v = qd[i]
-    if w > 0.0:
-        v = v + h * (w * f[i] + gravity)
+    v = cloth_velocity(qd[i], f[i], inv_mass[i], gravity, h)
     qd_out[i] = v
     q_out[i] = q[i] + h * v
 

@@ -61,13 +61,18 @@ def integrate_cloth_particles(
     """v += h (f / m + g), x += h v on free particles (pinned ones keep their velocity); clears
     f for the next step's scatter."""
     i = wp.tid()
-    w = inv_mass[i]
-    v = qd_io[i]
-    if w > 0.0:
-        v = v + h * (w * f_io[i] + gravity)
+    v = cloth_velocity(qd_io[i], f_io[i], inv_mass[i], gravity, h)
     qd_io[i] = v
     q_io[i] = q_io[i] + h * v
     f_io[i] = wp.vec3()
+
+
+@wp.func
+def cloth_velocity(v: wp.vec3, f: wp.vec3, w: float, gravity: wp.vec3, h: float) -> wp.vec3:
+    """v + h (w f + g) for a free particle (inverse mass w > 0); a pinned one keeps v."""
+    if w > 0.0:
+        return v + h * (w * f + gravity)
+    return v
 
 
 @wp.func
