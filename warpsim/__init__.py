@@ -12,25 +12,37 @@ The sub-packages are the map: ``core`` (model, builder, forces, integrators, sim
 (command-line presets); the Warp kernels live in ``warpsim.kernels``.
 """
 
+# ruff: noqa: F401  (the names _load_all imports are published through globals())
 from ._version import __version__
-from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
-from .bodies import (
-    Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody, Sphere,
-    TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
-)
-from .bodies import SoftContact, torus_mesh
-from .core import BreakReport, SpringFracture, spring_segments
-from .cloth import (
-    Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh, cloth_energy,
-)
-from .core import (
-    INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity, ImplicitEuler,
-    Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem, SemiImplicitEuler,
-    SimulationError, Simulator, Springs, State, Wind, exact_period,
-)
-from .grid_fluids import Advector, FlipLiquid, LevelSet, LevelSetLiquid, MacGrid, PressureSolver, Smoke, Viscosity
-from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
-from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+
+
+def _load_all():
+    """Import every public name (on first use of one: ``import warpsim`` alone stays light, so
+    ``warpsim info`` starts without Warp; ``ws.Gravity`` or ``from warpsim import Gravity``
+    loads them all). Add new public names here and to ``__all__``."""
+    from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
+    from .bodies import (
+        Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody,
+        Sphere, TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
+    )
+    from .bodies import SoftContact, torus_mesh
+    from .core import BreakReport, SpringFracture, spring_segments
+    from .cloth import (
+        Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
+        cloth_energy,
+    )
+    from .core import (
+        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity,
+        ImplicitEuler, Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem,
+        SemiImplicitEuler, SimulationError, Simulator, Springs, State, Wind, exact_period,
+    )
+    from .grid_fluids import (
+        Advector, FlipLiquid, LevelSet, LevelSetLiquid, MacGrid, PressureSolver, Smoke, Viscosity,
+    )
+    from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
+    from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+    globals().update({k: v for k, v in locals().items() if not k.startswith("_")})
+
 
 __all__ = [
     "__version__", "ModelBuilder", "Model", "State", "Simulator", "SimulationError",
@@ -50,9 +62,13 @@ __all__ = [
 
 
 def __getattr__(name):
-    """Lazy public names: ``ws.Viewer`` (the browser viewer) imports viser only when first used."""
+    """Lazy public names: everything in ``__all__`` is imported on first use (see _load_all);
+    ``ws.Viewer`` (the browser viewer) imports viser only when first used."""
     if name == "Viewer":
         from .viewer.server import Viewer
 
         return Viewer
+    if name in __all__ and not name.startswith("__"):
+        _load_all()
+        return globals()[name]
     raise AttributeError(f"module 'warpsim' has no attribute {name!r}")

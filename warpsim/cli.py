@@ -43,7 +43,16 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
-def _parser():
+def _wanted_commands(argv):
+    """Command modules the parser must import for ``argv``: none for list/run/info (so ``warpsim
+    info`` starts in a fraction of a second), the one named, or all (help, mistakes)."""
+    first = next((a for a in (sys.argv[1:] if argv is None else argv) if not str(a).startswith("-")), None)
+    if first in ("list", "run", "info"):
+        return set()
+    return {first} if first in COMMANDS else None
+
+
+def _parser(argv=None):
     p = _Parser(prog="warpsim", description="Run warpsim scenes and stream them to USD caches.")
     names = ["list", "run", "info", *COMMANDS]
     sub = p.add_subparsers(dest="command", metavar="{" + ",".join(names) + "}", parser_class=_Parser)
@@ -71,7 +80,12 @@ def _parser():
     i.add_argument("cache", help="path of a .usd/.usda/.usdc file")
     i.add_argument("--verify", action="store_true",
                    help="compare every chunk file's CRC-32 (reads them all; done anyway below 256 MiB)")
+    wanted = _wanted_commands(argv)
     for name, module in COMMANDS.items():
+        if wanted is not None and name not in wanted:  # not asked for: a placeholder, its module unimported
+            sub.add_parser(name, help=f"(see 'warpsim {name} --help')", add_help=False).add_argument(
+                "rest", nargs=argparse.REMAINDER)
+            continue
         try:
             _command_module(module).add_parser(sub)
         except Exception as exc:  # noqa: BLE001  (a broken command module must not take list/run/info down)
@@ -397,7 +411,7 @@ def main(argv=None, out=None, err=None):
     out = out or sys.stdout
     err = err or sys.stderr
     try:
-        args = _parser().parse_args(argv)
+        args = _parser(argv).parse_args(argv)
         if args.command in _BROKEN:
             print(f"warpsim: error: the '{args.command}' command failed to load ({_one_line(_BROKEN[args.command])})",
                   file=err)
