@@ -123,12 +123,11 @@ def _cmd_list(out):
 
 
 def _cmd_info(path, out, err=None, verify=False):
-    from .core.checks import MissingFileError
     from .usd.validate import cache_info
 
     try:
         info = cache_info(path, verify=True if verify else None)
-    except MissingFileError as exc:
+    except FileNotFoundError as exc:  # checks.MissingFileError (not imported here: it would load Warp)
         raise UsageError(str(exc)) from None
     except ValueError as exc:  # the root layer itself is damaged
         print(f"warpsim: error: {_one_line(exc)}", file=err or sys.stderr)

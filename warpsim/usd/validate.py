@@ -23,6 +23,9 @@ _POINT_ATTR = {"Points": "points", "Mesh": "points", "BasisCurves": "points", "P
 
 def open_path(path):
     """``path`` as a str if a file exists there; MissingFileError (a ValueError) naming it otherwise."""
+    path = os.fspath(path)
+    if os.path.isfile(path) and os.access(path, os.R_OK):
+        return path  # the common case without importing warpsim.core (and Warp): 'warpsim info' stays fast
     from ..core.checks import existing_file
 
     return existing_file(path, "USD cache")
