@@ -9,7 +9,8 @@
 The sub-packages are the map: ``core`` (model, builder, forces, integrators, simulator),
 ``bodies`` (colliders, soft bodies, the teapot, dragging), ``cloth``, ``particle_fluids``,
 ``grid_fluids``, ``meshing``, ``agents``, ``usd`` (cache writer, prims, validation), ``scenes``
-(command-line presets); the Warp kernels live in ``warpsim.kernels``.
+(command-line presets), ``diff`` (differentiable runs: ``Simulator(..., differentiable=True)``);
+the Warp kernels live in ``warpsim.kernels``.
 """
 
 # ruff: noqa: F401  (the names _load_all imports are published through globals())
