@@ -265,3 +265,13 @@ def test_instances_curves_and_cubes_land_where_they_are(tmp_path):
     assert np.ptp(rows) > 2.2 * np.ptp(cols)
     rows, cols = np.nonzero(masks["blue"])
     assert np.ptp(cols) > 8 * np.ptp(rows)
+
+
+def test_gallery_makes_a_small_preview(tmp_path):
+    from PIL import Image
+
+    from warpsim.render import gallery
+
+    assert gallery.main(["--out", str(tmp_path), "--scenes", "bounce"]) == 0
+    with Image.open(tmp_path / "bounce.gif") as im:
+        assert im.size == gallery.SIZE and 2 <= im.n_frames <= gallery.MAX_FRAMES + 1
