@@ -23,6 +23,8 @@ Conventions: colours are linear RGB in [0, 1]; the output is an array of ``vec3`
 
 import warp as wp
 
+from .collide import ray_capsule_entry
+
 wp.set_module_options({"enable_backward": False})
 
 MAX_LAYERS = wp.constant(6)
@@ -72,54 +74,6 @@ class Volume:
 
 
 @wp.func
-def ray_capsule(o: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, r: float):
-    """Nearest t > 0 where the ray o + t d (|d| = 1) enters the capsule (a, b, r); -1 if none."""
-    ba = b - a
-    oa = o - a
-    baba = wp.dot(ba, ba)
-    if baba < 1.0e-20:  # a sphere
-        bq = wp.dot(oa, d)
-        cq = wp.dot(oa, oa) - r * r
-        hq = bq * bq - cq
-        if hq < 0.0:
-            return -1.0
-        t = -bq - wp.sqrt(hq)
-        if t < 0.0:
-            t = -bq + wp.sqrt(hq)
-        if t < 0.0:
-            return -1.0
-        return t
-    bard = wp.dot(ba, d)
-    baoa = wp.dot(ba, oa)
-    rdoa = wp.dot(d, oa)
-    oaoa = wp.dot(oa, oa)
-    qa = baba - bard * bard
-    qb = baba * rdoa - baoa * bard
-    qc = baba * oaoa - baoa * baoa - r * r * baba
-    h = qb * qb - qa * qc
-    if h >= 0.0 and qa > 1.0e-20:
-        t = (-qb - wp.sqrt(h)) / qa
-        y = baoa + t * bard
-        if t > 0.0 and y > 0.0 and y < baba:
-            return t
-    # the caps (spheres at a and b)
-    best = float(-1.0)
-    for k in range(2):
-        c = a
-        if k == 1:
-            c = b
-        oc = o - c
-        bq = wp.dot(oc, d)
-        cq = wp.dot(oc, oc) - r * r
-        hq = bq * bq - cq
-        if hq >= 0.0:
-            t = -bq - wp.sqrt(hq)
-            if t > 0.0 and (best < 0.0 or t < best):
-                best = t
-    return best
-
-
-@wp.func
 def capsule_normal(p: wp.vec3, a: wp.vec3, b: wp.vec3):
     """Outward unit normal of a capsule (a, b) at surface point p."""
     ba = b - a
@@ -139,7 +93,7 @@ def closest_capsule(bvh: wp.uint64, cap_a: wp.array(dtype=wp.vec3), cap_b: wp.ar
     query = wp.bvh_query_ray(bvh, o, d)
     k = int(0)
     while wp.bvh_query_next(query, k, best_t):
-        t = ray_capsule(o, d, cap_a[k], cap_b[k], cap_r[k])
+        t = ray_capsule_entry(o, d, cap_a[k], cap_b[k], cap_r[k])
         if t > 0.0 and t < best_t:
             best_t = t
             best = k

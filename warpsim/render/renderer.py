@@ -57,6 +57,14 @@ class Renderer:
     def _array(self, a, dtype):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
 
+    def _mesh(self, points, triangles, keep):
+        """(0/1, id) of a ``wp.Mesh`` of the triangles (id 0 when there are none)."""
+        if not len(triangles):
+            return 0, 0
+        mesh = wp.Mesh(self._array(points, wp.vec3), self._array(triangles.reshape(-1), wp.int32))
+        keep.append(mesh)
+        return 1, mesh.id
+
     def render(self, geom, camera, ground_y=None, linear=False):
         """(height, width, 3) uint8 sRGB image of ``geom`` seen by ``camera`` (float linear RGB
         with ``linear=True``). ``ground_y``: height of the ground plane [m] (None: the bottom of
@@ -64,18 +72,8 @@ class Renderer:
         dev = self.device
         vec3 = wp.vec3
         keep = []  # device objects that must outlive the launch
-        has_mesh = len(geom.triangles) > 0
-        mesh_id = 0
-        if has_mesh:
-            mesh = wp.Mesh(self._array(geom.points, vec3), self._array(geom.triangles.reshape(-1), wp.int32))
-            keep.append(mesh)
-            mesh_id = mesh.id
-        has_glass = len(geom.glass_triangles) > 0
-        glass_id = 0
-        if has_glass:
-            glass = wp.Mesh(self._array(geom.glass_points, vec3), self._array(geom.glass_triangles.reshape(-1), wp.int32))
-            keep.append(glass)
-            glass_id = glass.id
+        has_mesh, mesh_id = self._mesh(geom.points, geom.triangles, keep)
+        has_glass, glass_id = self._mesh(geom.glass_points, geom.glass_triangles, keep)
         has_caps = len(geom.cap_r) > 0
         bvh_id = 0
         cap_a = self._array(geom.cap_a, vec3)
