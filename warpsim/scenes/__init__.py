@@ -156,6 +156,8 @@ class Scene:
                                  f"{', '.join(cls.params) or 'none'}.{close_matches(key, cls.params)}")
             param = cls.params[key]
             out[key] = parse_value(param, key, value) if isinstance(value, str) else value
+        if isinstance(out.get("seed"), int) and not isinstance(out["seed"], bool) and out["seed"] < 0:
+            raise ValueError(f"seed={out['seed']}: a random seed must be an integer >= 0")
         return out
 
     def build(self, params):

@@ -146,6 +146,8 @@ class Pour(FluidScene):
         if not (p["rate_speed"] > 0 and p["nozzle_radius"] > 0 and p["pour_time"] > 0 and p["obstacle_radius"] > 0):
             raise ValueError("rate_speed, nozzle_radius, pour_time and obstacle_radius must be > 0")
         s = p["spacing"]
+        if not 0.0 < s < 0.1:  # the container walls are 0.5 spacing thick; sinks sit 1.5 spacings out
+            raise ValueError(f"spacing={s:g}: it must be in (0, 0.1) m for the 0.4 m container")
         half, height = 0.2, 0.3
         self.container = open_box_mesh((-half, 0.0, -half), (half, height, half))
         container = _collider("TriangleMesh", *self.container, thickness=0.5 * s)
