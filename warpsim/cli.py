@@ -125,6 +125,8 @@ def _cmd_list(out):
 def _cmd_info(path, out, err=None, verify=False):
     from .usd.validate import cache_info
 
+    if os.path.isdir(path):
+        raise UsageError(f"{path!r} is a folder; give the cache file in it (.usd, .usda or .usdc)")
     try:
         info = cache_info(path, verify=True if verify else None)
     except FileNotFoundError as exc:  # checks.MissingFileError (not imported here: it would load Warp)
