@@ -18,7 +18,8 @@ def format_status(status):
     """Markdown readout of ``Session.status()``."""
     state = "playing" if status["playing"] else ("failed" if status["error"] else "paused")
     text = (f"**{status['scene']}** {state}  \nframe {status['frame']} | t = {status['time']:.3f} s  \n"
-            f"{status['wall_ms']:.1f} ms/frame | {status['sim_rate']:.2f} sim s per wall s")
+            f"{status['wall_ms']:.1f} ms/frame + {status.get('draw_ms', 0.0):.1f} ms/draw | "
+            f"{status['sim_rate']:.2f} sim s per wall s")
     if status["grabbed"]:
         text += f"  \ndragging particle {status['grabbed']['particle']}"
     return text

@@ -209,7 +209,7 @@ class Viewer:
     """
 
     def __init__(self, scene, params=None, device=None, *, host="127.0.0.1", port=8080, fps=None, substeps=None,
-                 max_points=200_000, record_dir="usd_out", paused=False, draw_fps=30.0, environment=False,
+                 max_points=200_000, record_dir="usd_out", paused=False, draw_fps=45.0, environment=False,
                  verbose=False):
         from ..scenes import Scene, get_scene
 
@@ -243,6 +243,7 @@ class Viewer:
         self._thread = None
         self._drawn_frame = None
         self._drawn_at = 0.0
+        self.draw_count = 0  # frames sent to the browser
         self.draw_fps = float(draw_fps)
         self.environment = bool(environment)
 
@@ -313,7 +314,9 @@ class Viewer:
 
     # ------------------------------------------------------------------ frames
     def redraw(self):
+        """Send the session's current frame to the browser."""
         s = self.session
+        t0 = time.perf_counter()
         with s.lock:
             items, static, version, frame = dict(s.items), s.static, s.version, s.frame
             draggable = set(s.drag_map) & set(items)
@@ -321,6 +324,9 @@ class Viewer:
             self.drawer.draw(items, static, version, draggable)
         self._drawn_frame = (version, frame)
         self._drawn_at = time.perf_counter()
+        self.draw_count += 1
+        ms = 1e3 * (self._drawn_at - t0)
+        s.draw_ms = ms if s.draw_ms == 0.0 else 0.8 * s.draw_ms + 0.2 * ms
 
     def update(self):
         """Redraw a ``ws.Simulator`` the caller steps (``ws.Viewer(sim)``)."""

@@ -64,7 +64,8 @@ class Session:
         self.recorder = None
         self.last_recording = None
         self.messages = []  # (kind, text) for the page: parameter changes, recordings, errors
-        self.wall_ms = 0.0  # wall milliseconds per frame (simulate + draw), smoothed
+        self.wall_ms = 0.0  # wall milliseconds to simulate a frame, smoothed
+        self.draw_ms = 0.0  # wall milliseconds to draw one (set by the front end), smoothed
         self.sim_rate = 0.0  # simulated seconds per wall second, measured
         self.drag_stiffness = None  # None: chosen per scene (see _default_drag)
         self.version = 0  # bumped on every rebuild: the front end redraws static prims
@@ -86,7 +87,8 @@ class Session:
         self.frame = 0
         self.time = 0.0
         self.error = None
-        self.items = self.sink.draw(scene.frame_data(), 0)
+        self._items = self.sink.draw(scene.frame_data(), 0)
+        self._stale = False
         self.version += 1
 
     def reset(self):
@@ -98,27 +100,42 @@ class Session:
             self._say("info", "reset to frame 0")
 
     # ------------------------------------------------------------------ stepping
+    @property
+    def items(self):
+        """{name: DrawItem} of the current frame, made when first asked for after a step (the
+        display asks at its own rate, so frames it never shows cost no drawing)."""
+        with self.lock:
+            if self._stale:
+                try:
+                    self._items = self.sink.draw(self.scene.frame_data(), self.frame)
+                except ValueError as exc:  # e.g. NaN positions the simulator's check has not caught
+                    self._fail(exc, self.frame)
+                self._stale = False
+            return self._items
+
+    def _fail(self, exc, frame):
+        self.playing = False
+        self.error = f"frame {frame}: {exc}" if not str(exc).startswith("frame") else str(exc)
+        self._say("error", self.error)
+        self._close_recording("the simulation failed")
+
     def advance(self):
-        """Simulate and draw one frame; on a SimulationError pause and keep the message (returns
-        False). Returns True when a frame was made."""
+        """Simulate one frame (recorded when recording); on a SimulationError pause and keep the
+        message (returns False). Returns True when a frame was made."""
         with self.lock:
             if self.error is not None:
                 return False
             t0 = time.perf_counter()
             try:
                 self.scene.advance(self.frame_dt, self.substeps)
-                data = self.scene.frame_data()
-                self.items = self.sink.draw(data, self.frame + 1)
+                if self.recorder is not None:
+                    self.recorder.write(self.scene.frame_data())
             except (SimulationError, ValueError, FloatingPointError) as exc:
-                self.playing = False
-                self.error = f"frame {self.frame + 1}: {exc}" if not str(exc).startswith("frame") else str(exc)
-                self._say("error", self.error)
-                self._close_recording("the simulation failed")
+                self._fail(exc, self.frame + 1)
                 return False
             self.frame += 1
             self.time += self.frame_dt
-            if self.recorder is not None:
-                self.recorder.write(data)
+            self._stale = True
             ms = 1e3 * (time.perf_counter() - t0)
             self.wall_ms = ms if self.wall_ms == 0.0 else 0.8 * self.wall_ms + 0.2 * ms
             return True
@@ -127,11 +144,10 @@ class Session:
         """Draw the scene's current state as the next frame without stepping it (a simulator
         that the caller steps: ``ws.Viewer(sim).update()``)."""
         with self.lock:
-            data = self.scene.frame_data()
-            self.items = self.sink.draw(data, self.frame + 1)
             self.frame += 1
+            self._stale = True
             if self.recorder is not None:
-                self.recorder.write(data)
+                self.recorder.write(self.scene.frame_data())
 
     def frame_period(self):
         """Wall seconds one frame should take at the asked speed (0: as fast as possible)."""
@@ -332,6 +348,7 @@ class Session:
         """Frame, simulated time [s], wall ms per frame, simulated s per wall s, and state flags."""
         with self.lock:
             return {"scene": self.cls.name, "frame": self.frame, "time": self.time, "wall_ms": self.wall_ms,
+                    "draw_ms": self.draw_ms,
                     "sim_rate": self.sim_rate, "playing": self.playing, "speed": self.speed, "error": self.error,
                     "recording": None if self.recorder is None else self.recorder.path,
                     "recorded_frames": 0 if self.recorder is None else self.recorder.frames,
