@@ -101,12 +101,12 @@ def main(argv=None):
 
 def front_figure(times, fronts, args, path):
     """Surge front z/a against T = t sqrt(2 g / a): this run and Martin and Moyce's table."""
-    import os
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from warpsim.render.plot import save_figure
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(times, fronts, "-", label=f"PBF, spacing {args.spacing} m")
@@ -114,12 +114,7 @@ def front_figure(times, fronts, args, path):
     ax.set_xlabel("T = t sqrt(2 g / a)")
     ax.set_ylabel("front z / a")
     ax.set_title("dam break: surge front")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

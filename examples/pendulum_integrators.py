@@ -45,12 +45,12 @@ def main(argv=None):
 
 def energy_figure(runs, args, path):
     """E(t)/E(0) of every integrator on one axes (log scale when the drift spans decades)."""
-    import os
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from warpsim.render.plot import save_figure
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, run in runs.items():
@@ -58,12 +58,7 @@ def energy_figure(runs, args, path):
     ax.set_xlabel("time [s]")
     ax.set_ylabel("E(t) / E(0)")
     ax.set_title(f"pendulum energy drift, q0 = {args.angle} rad, dt = {args.dt} s")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

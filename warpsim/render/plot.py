@@ -101,15 +101,24 @@ def plot_cache(path, out=None, size=(8.0, 2.6)):
             ax.plot(times, values, label=label)
         ax.set_title(panel["title"], fontsize=10)
         ax.set_ylabel(panel["ylabel"])
-        ax.grid(alpha=0.3)
-        if len(panel["lines"]) > 1:
-            ax.legend(fontsize=8)
     axes[-1, 0].set_xlabel("time [s]")
-    fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out)
     return out, len(panels)
+
+
+def save_figure(fig, path, dpi=90, legend=True):
+    """Grid and legend on every axes of a matplotlib ``fig``, tight layout, write ``path``
+    (creating its folder) and close the figure (shared with the examples' figures)."""
+    import matplotlib.pyplot as plt
+
+    for ax in fig.axes:
+        ax.grid(alpha=0.3)
+        if legend and len(ax.get_lines()) > 1:
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
 
 
 def add_parser(sub):
