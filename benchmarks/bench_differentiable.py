@@ -28,8 +28,9 @@ import warp as wp
 
 wp.config.quiet = True
 
-import warpsim as ws  # noqa: E402
-from timing import time_per_call, time_per_graph_launch  # noqa: E402
+from timing import time_per_call, time_per_graph_launch
+
+import warpsim as ws
 
 FPS = 60.0
 

@@ -39,7 +39,7 @@ class Example:
         builder.add_particle((0.0, 0.04, 0.0), mass=1.0)
         self.sim = ws.Simulator(builder.finalize(device), "semi_implicit_euler", [ws.Gravity((0.0, -9.81, 0.0))],
                                 [ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=restitution)], differentiable=True)
-        self.steps = int(round(duration / dt))
+        self.steps = round(duration / dt)
         self.dt = dt
         self.target = np.asarray(target, dtype=np.float64)
         self.rollout = self.sim.rollout
@@ -71,7 +71,7 @@ class Example:
     def loss_and_gradient(self, v0):
         """|landing - target|^2 [m^2] and its gradient with respect to v0 [m^2 / (m/s)]:
         dL/d(the two endpoints of the crossing step) by hand, then the tape down to v0."""
-        point, t, k, a, b, s = self.landing(v0)
+        point, _, k, a, b, s = self.landing(v0)
         e = 2.0 * (point - self.target)
         dl_ds = e @ (b - a)
         ds_da, ds_db = -b[1] / (a[1] - b[1]) ** 2, a[1] / (a[1] - b[1]) ** 2

@@ -13,4 +13,4 @@ Entry points: :class:`Rollout` (``sim.rollout``: ``tape``, ``states``, ``reset``
 
 from .rollout import DIFFERENTIABLE_FORCES, Rollout, check_differentiable
 
-__all__ = ["Rollout", "check_differentiable", "DIFFERENTIABLE_FORCES"]
+__all__ = ["DIFFERENTIABLE_FORCES", "Rollout", "check_differentiable"]
