@@ -7,7 +7,9 @@ Measured in one process, on one device:
   step      one batched step of all N worlds (a frame of ``substeps`` steps captured as a CUDA graph
             on GPUs; eager on the CPU) against N single-world runs stepped one after another (each
             world its own scene and simulator, its frame also captured on GPUs); ``--sequential K``
-            worlds are run and the time scaled to N;
+            worlds are run and the time scaled to N; also the batch through the fused step
+            (``WorldBatch(fused=True)``: the cloth solver's particle-centric semi-implicit kernel,
+            gather mode on GPUs, frames captured by its ClothSimulator);
   bytes     bytes per batched step from the array arguments of every launch (each array counted
             once per launch: the compulsory traffic, a lower bound) plus the simulator's position
             copy, and the fraction of the card's copy bandwidth (a ``wp.copy`` of a large array,
@@ -124,6 +126,18 @@ def main():
     step_bytes = (sum(rec.bytes.values()) + copies) / substeps
     fraction = step_bytes / batched / bandwidth
 
+    # ---------------------------------------------------------------- batched, fused step
+    # the same worlds through the cloth solver's fused semi-implicit step (gather on GPUs)
+    fused_batch = WorldBatch(cls, worlds, device=device, fused=True)
+    run = frame_runner(lambda: fused_batch.advance(frame_dt, substeps), device, False)  # graphs inside
+    fused = timed(lambda: [run() for _ in range(args.frames)], device) / (args.frames * substeps)
+    fused_batch.sim.use_graph = False  # an eager frame, so that every launch is seen
+    with LaunchRecorder() as rec_fused:
+        fused_batch.advance(frame_dt, substeps)
+        wp.synchronize_device(device)
+    fused_bytes = sum(rec_fused.bytes.values()) / substeps
+    mode = fused_batch.sim.integrator.mode
+
     # ---------------------------------------------------------------- sequential
     ks = max(1, min(args.sequential, n))
     total = 0.0
@@ -138,6 +152,8 @@ def main():
           f"({ks} worlds timed, {sequential / n * 1e3:.4f} ms each, scaled to {n}); ratio {sequential / batched:.1f}x")
     print(f"bytes per batched step {step_bytes / 1e6:.2f} MB ({step_bytes / (n * P):.0f} B per particle): "
           f"{step_bytes / batched / 1e9:.1f} GB/s = {100 * fraction:.1f} % of the copy bandwidth")
+    print(f"fused ({mode}): batched {fused * 1e3:.4f} ms per step, ratio {sequential / fused:.1f}x to sequential; "
+          f"{fused_bytes / 1e6:.2f} MB per step = {100 * fused_bytes / fused / bandwidth:.1f} % of the copy bandwidth")
     print(f"memory: {per_world / n / 1e3:.1f} kB per world on the device (model + state arrays); "
           f"worlds blown up: {bad}; finite: {bool(np.isfinite(x).all())}")
     top = sorted(rec.bytes.items(), key=lambda kv: -kv[1])

@@ -33,13 +33,18 @@ __all__ = ["WorldBatch"]
 class WorldBatch:
     """N worlds of scene class ``cls`` with parameters ``world_params`` (one dict each).
 
+    ``fused=True`` steps a scene that uses ``ws.Simulator`` with semi-implicit Euler through the
+    cloth solver's fused step instead (``ClothSemiImplicitEuler``: one particle-centric kernel per
+    step without atomics on GPUs, frames as captured graphs): the same physics, summed in another
+    order (agrees to float32 rounding, not bit for bit).
+
     Attributes: ``scene`` (world 0 as built by the scene, used for declarations and frame
     data), ``sim`` (the batched simulator), ``model`` (the tiled model: ``world_count``,
     ``world_particle_count``, ``world_spring_count``, ``particle_world``), ``params`` (typed
     parameters per world), ``varied`` (keys that differ), ``world_bad`` (1 = blown up, frozen)
     and ``world_blown_frame`` (first bad frame, -1 none), both of shape (world_count,)."""
 
-    def __init__(self, cls, world_params, device=None):
+    def __init__(self, cls, world_params, device=None, *, fused=False):
         if len(world_params) < 1:
             raise ValueError("a batch needs at least one world")
         self.cls = cls
@@ -68,6 +73,7 @@ class WorldBatch:
 
         self.plan = make_plan(cls, self.scene, base, self.params, self.varied, probe)
         self.model = self._tile(sim0.model)
+        self.fused = bool(fused)
         self.sim = self._simulator(sim0)
         self.batch_scene = copy.copy(self.scene)
         self.batch_scene.sim = self.sim
@@ -212,6 +218,16 @@ class WorldBatch:
             else:
                 colliders.append(copy.copy(c))  # shared static or kinematic shape: each world meets its own copy
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
+        if self.fused and not hasattr(sim0, "use_graph"):
+            from ..cloth.solver import ClothSemiImplicitEuler, ClothSimulator
+            from ..core.integrators import SemiImplicitEuler
+
+            if not isinstance(sim0.integrator, SemiImplicitEuler):
+                raise StructuralError("fused=True steps with semi-implicit Euler; the scene uses "
+                                      f"{sim0.integrator.name}")
+            # the cloth's fused step: springs, gravity and the update in one particle-centric
+            # kernel (gather mode on GPUs), frames captured as graphs by the ClothSimulator
+            return ClothSimulator(self.model, ClothSemiImplicitEuler(), **kwargs)
         if hasattr(sim0, "use_graph"):
             kwargs["use_graph"] = sim0.use_graph
         return type(sim0)(self.model, integrator, **kwargs)
@@ -237,8 +253,12 @@ class WorldBatch:
                           m.particle_inv_mass], device=d)
 
     def advance(self, frame_dt, substeps) -> None:
-        """One frame for every world (the scene's own stepping on the batched simulator)."""
-        self.batch_scene.advance(frame_dt, substeps)
+        """One frame for every world (the scene's own stepping on the batched simulator; with
+        ``fused`` the ClothSimulator's captured frame)."""
+        if self.fused and not hasattr(self.scene.sim, "use_graph"):
+            self.sim.frame(frame_dt, substeps)
+        else:
+            self.batch_scene.advance(frame_dt, substeps)
         self.end_frame()
 
     def world_slices(self):
