@@ -206,3 +206,56 @@ def test_viewer_sink_subsamples_large_point_sets():
     pts = np.random.default_rng(0).random((10_000, 3)).astype(np.float32)
     item = sink.draw({"p": {"points": pts, "velocities": pts}})["p"]
     assert len(item.points) == 1000 and np.array_equal(item.points, pts[item.shown])
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_python_viewer_of_a_simulator_the_caller_steps():
+    """ws.Viewer(sim): the caller steps, update() draws; the mouse drag works on its particles."""
+    import warpsim as ws
+
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 1.0, 0.0), mass=0.0)
+    b.add_particle((0.1, 1.0, 0.0), mass=0.1, radius=0.02)
+    b.add_spring(0, 1, 50.0, 0.1)
+    sim = ws.Simulator(b.finalize(device="cpu"), forces=[ws.Gravity()])
+    viewer = ws.Viewer(sim, port=_free_port()).start()
+    try:
+        assert viewer.session.playing is False and set(viewer.session.items) == {"particles", "springs"}
+        for _ in range(10):
+            sim.step(1 / 60)
+        viewer.update()
+        np.testing.assert_allclose(viewer.session.items["particles"].points, sim.state.positions.numpy(), atol=0)
+        assert viewer.session.grab("particles", 0) == -1  # pinned: not grabbable
+        assert viewer.session.grab("particles", 1) == 1
+        viewer.session.drag_to((0.5, 1.0, 0.0))
+        for _ in range(120):
+            sim.step(1 / 240)
+        assert sim.state.positions.numpy()[1, 0] > 0.15  # pulled toward x = 0.5 against the spring
+    finally:
+        viewer.stop()
+
+
+def test_playback_viewer_serves_and_advances(tmp_path):
+    from warpsim.viewer.playback import PlaybackViewer
+
+    assert cli.main(["run", "springs", "--frames", "12", "--chunk", "5", "--no-progress", "--out",
+                     str(tmp_path / "s.usda")], io.StringIO(), io.StringIO()) == 0
+    pv = PlaybackViewer(str(tmp_path / "s.usda"), port=_free_port()).start()
+    try:
+        import time
+
+        t0 = time.time()
+        while pv._shown in (None, 0) and time.time() - t0 < 10:
+            time.sleep(0.05)
+        assert pv._shown not in (None, 0)  # playing at the cache's fps, frames read as shown
+        pv.playing = False
+        pv.show(12)
+        chain = pv.reader.items(12)["masses"].points
+        assert chain[-1, 1] < chain[0, 1]  # the chain has swung down from the horizontal
+    finally:
+        pv.stop()

@@ -2,6 +2,8 @@
 a points prim, its springs as curves) so the viewer draws it and the mouse can drag it."""
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from ..scenes import SimulatorScene
@@ -14,9 +16,9 @@ class SimulatorAdapter(SimulatorScene):
 
     name = "simulator"
     description = "a ws.Simulator stepped by the caller"
-    params = {}
+    params: ClassVar[dict] = {}
 
-    def __init__(self, sim):  # noqa: D107  (no build: the simulator exists)
+    def __init__(self, sim):
         self.sim = sim
         self.device = sim.device
         self.params = {}

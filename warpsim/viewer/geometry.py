@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-__all__ = ["triangulate", "curve_segments", "icosphere", "unit_mesh", "xyzw_to_wxyz", "subsample"]
+__all__ = ["curve_segments", "icosphere", "subsample", "triangulate", "unit_mesh", "xyzw_to_wxyz"]
 
 
 def triangulate(counts, indices):
@@ -53,7 +53,7 @@ def icosphere(subdivisions=1):
     for _ in range(int(subdivisions)):
         cache, out = {}, []
 
-        def mid(a, b):
+        def mid(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = verts[a] + verts[b]
@@ -122,4 +122,4 @@ def subsample(count, limit):
     """Indices of at most ``limit`` of ``count`` elements, evenly strided (None: all)."""
     if limit is None or count <= limit:
         return None
-    return np.arange(0, count, int(math.ceil(count / limit)))
+    return np.arange(0, count, math.ceil(count / limit))

@@ -50,7 +50,7 @@ def check_port(host, port):
 
 
 def _rgb(color):
-    return tuple(int(round(255 * min(max(float(c), 0.0), 1.0))) for c in color)
+    return tuple(round(255 * min(max(float(c), 0.0), 1.0)) for c in color)
 
 
 class Drawer:
@@ -98,7 +98,6 @@ class Drawer:
         handle.on_drag("left")(cb)
 
     def _update(self, name, item, draggable):
-        scene = self.server.scene
         path = f"/scene/{name}"
         n = len(item.points)
         if item.kind == "mesh":
@@ -128,9 +127,7 @@ class Drawer:
             handle.vertices = np.asarray(item.points, np.float32)
         elif sig[0] == "spheres":
             handle.batched_positions = np.asarray(item.points, np.float32)
-        elif sig[0] == "cloud":
-            handle.points = np.asarray(item.points, np.float32)
-        elif sig[0] == "segments":
+        elif sig[0] == "cloud" or sig[0] == "segments":
             handle.points = np.asarray(item.points, np.float32)
         else:
             for k, h in enumerate(handle):

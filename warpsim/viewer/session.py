@@ -184,7 +184,7 @@ class Session:
             elif isinstance(param.default, bool):
                 value = bool(value)
             elif isinstance(param.default, int):
-                value = int(round(float(value)))
+                value = round(float(value))
             elif isinstance(param.default, float):
                 value = float(value)
             elif isinstance(param.default, tuple):
