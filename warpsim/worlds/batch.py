@@ -235,7 +235,7 @@ class WorldBatch:
     # ------------------------------------------------------------------ stepping
     def can_capture(self) -> bool:
         """Whether a frame may be captured as one CUDA graph: not when the simulator captures its
-        own frames (cloth) or a collider follows a host ``motion`` callback."""
+        own frames (cloth, ``fused``) or a collider follows a host ``motion`` callback."""
         if hasattr(self.sim, "use_graph"):
             return False
         return not any(getattr(c, "motion", None) is not None for c in self.sim.colliders)

@@ -70,19 +70,20 @@ def _normalise(cls, params):
     return out
 
 
-def make_batch(cls, world_params, device=None):
-    """A :class:`WorldBatch`, or for flock scenes an :class:`warpsim.worlds.agents.AgentWorldBatch`."""
+def make_batch(cls, world_params, device=None, fused=False):
+    """A :class:`WorldBatch` (``fused``: see there), or for flock scenes an
+    :class:`warpsim.worlds.agents.AgentWorldBatch`."""
     from .agents import is_agent_scene
 
     if is_agent_scene(cls):
         from .agents import AgentWorldBatch
 
         return AgentWorldBatch(cls, world_params, device=device)
-    return WorldBatch(cls, world_params, device=device)
+    return WorldBatch(cls, world_params, device=device, fused=fused)
 
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
-              track=None, metrics=(), use_graph=None, progress=None) -> list:
+              track=None, metrics=(), use_graph=None, progress=None, fused=False) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -91,6 +92,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     :mod:`warpsim.worlds.metrics` and ``"blown_up"``. ``track``: {name: particle index within a
     world} for position metrics; ``metrics``: :class:`warpsim.worlds.metrics.UserMetric` list;
     ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
+    ``fused``: step through the fused semi-implicit kernel (:class:`WorldBatch`);
     ``progress(frame)``: called after each frame."""
     from ..scenes import get_scene
 
@@ -105,7 +107,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
-    batch = make_batch(cls, world_params, device=device)
+    batch = make_batch(cls, world_params, device=device, fused=fused)
     stats = WorldMetrics(batch, track=track, user=metrics)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
 
