@@ -238,3 +238,15 @@ def test_cloth_implicit_euler_and_breakable_springs_and_fluids_are_refused():
         ws.Simulator(b.finalize("cpu"), differentiable=True)
     with pytest.raises(ValueError, match="fluid solvers"):
         check_differentiable(ws.ParticleFluid.__new__(ws.ParticleFluid))
+
+
+def test_rollout_bad_input_is_named():
+    sim = ws.Simulator(spring_model(), differentiable=True)
+    sim.step(0.01)
+    target = wp.zeros(3, dtype=wp.vec3, device="cpu")
+    with pytest.raises(ValueError, match="2 targets for 1 steps"):
+        sim.rollout.trajectory_loss([target, target])
+    with pytest.raises(ValueError, match=r"integrated\(2\): steps 1..1 exist"):
+        sim.rollout.integrated(2)
+    with pytest.raises(ValueError, match="Springs is not one of"):
+        sim.rollout.coefficient_gradients(sim.forces[-1])
