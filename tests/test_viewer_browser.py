@@ -121,7 +121,7 @@ def test_teapot_in_the_browser(viewer, browser):
     tb, kb = track.bounding_box(), thumb.bounding_box()
     page.mouse.move(kb["x"] + kb["width"] / 2, kb["y"] + kb["height"] / 2)
     page.mouse.down()
-    page.mouse.move(tb["x"] + 0.2 * tb["width"], kb["y"] + kb["height"] / 2, steps=8)
+    page.mouse.move(tb["x"] + 0.2 * tb["width"], kb["y"] + kb["height"] / 2, steps=4)
     page.mouse.up()
     _wait(lambda: abs(s.params["restitution"] - 0.5) > 0.1, what="the restitution change")
     wall = s.scene.sim.colliders[0]
@@ -137,8 +137,8 @@ def test_teapot_in_the_browser(viewer, browser):
     sx, sy = _project(cam, verts[front])
     page.mouse.move(sx, sy)
     page.mouse.down()
-    page.mouse.move(sx, sy - 30, steps=5)
-    page.mouse.move(sx, sy - 90, steps=10)
+    page.mouse.move(sx, sy - 30, steps=3)
+    page.mouse.move(sx, sy - 90, steps=6)
     grabbed = _wait(lambda: s.status()["grabbed"], what="the grab")
     _wait(lambda: np.linalg.norm(s.status()["grabbed"]["target"] - grabbed["start"]) > 0.05, what="the target")
     g = s.status()["grabbed"]
@@ -147,9 +147,8 @@ def test_teapot_in_the_browser(viewer, browser):
     tx, ty = _project(cam, target)
     assert abs(tx - sx) < 12 and abs(ty - (sy - 90)) < 12  # the target lies under the pointer
     assert target[1] > start[1] + 0.05  # pulled up
-    time.sleep(1.5)
-    x_now = s.grabbed_position()
-    assert np.linalg.norm(x_now - target) < 0.6 * np.linalg.norm(start - target)
+    _wait(lambda: np.linalg.norm(s.grabbed_position() - target) < 0.6 * np.linalg.norm(start - target),
+          what="the vertex to follow the pointer")
     page.mouse.up()
     _wait(lambda: s.status()["grabbed"] is None, what="the release")
 
@@ -164,34 +163,26 @@ def test_teapot_in_the_browser(viewer, browser):
     info = cache_info(path)
     assert info["frames"] >= 21 and info["fps"] == pytest.approx(60.0)
     assert {p["path"] for p in info["prims"]} >= {"/World/teapot", "/World/walls"}
-    page.close()
 
-
-def test_faults_in_the_browser(viewer, browser):
-    s = viewer.session
-    s.reset()
-    page, client = _open(browser, viewer)
-    _wait(lambda: s.frame > 30, what="the simulation to run")
-    # a blow-up pauses and shows the SimulationError in the page; the server keeps serving
+    # 5. a blow-up pauses and shows the SimulationError in the page; the server keeps serving
     s.set_param("stiffness", 4.0e6)  # live, far beyond what the explicit step can hold
     _wait(lambda: s.status()["error"], what="the blow-up")
     page.get_by_text("Simulation error").wait_for(timeout=15_000)
     assert "blew up" in page.content()
-    s.set_param("stiffness", 40.0)  # the same value as before the blow-up is not 'unchanged': it rebuilt
+    s.set_param("stiffness", 40.0)  # after a failure nothing applies live: this rebuilds, clearing it
     page.get_by_role("button", name="Reset").click()
     page.get_by_role("button", name="Play").click()
     _wait(lambda: s.status()["error"] is None and s.frame > 10, what="serving after the failure")
-    # closing the page mid-drag releases the grab and completes the recording
+    # 6. closing the page mid-drag releases the grab and completes the recording
     with s.lock:
         verts = s.items["teapot"].points.copy()
-    cam = client.camera
     front = int(np.argmin(np.linalg.norm(verts - np.asarray(cam.position, float), axis=1)))
     page.get_by_role("button", name="Record").click()
     _wait(lambda: s.status()["recording"], what="the recording")
     sx, sy = _project(cam, verts[front])
     page.mouse.move(sx, sy)
     page.mouse.down()
-    page.mouse.move(sx + 40, sy - 40, steps=8)
+    page.mouse.move(sx + 40, sy - 40, steps=4)
     _wait(lambda: s.status()["grabbed"], what="the grab")
     page.close()  # mouse still down
     _wait(lambda: s.status()["grabbed"] is None, what="the release on disconnect")
