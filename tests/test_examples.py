@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -12,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # example script -> arguments that keep it short
 EXAMPLES = {
     "bouncing_ball.py": ["--frames", "3"],
-    "pendulum_integrators.py": ["--steps", "20", "--rows", "2"],
+    "pendulum_integrators.py": ["--steps", "20", "--rows", "2", "--figure", "out/energy.png"],
     "implicit_surface.py": ["--resolution", "24", "--out", "implicit_surface.usda"],
     "flock.py": ["--frames", "3", "--out", "flock.usda"],
     "fit_launch.py": ["--quick"],  # exits 1 unless the landing is within 1 mm of the target
@@ -26,10 +27,21 @@ def run_example(name, args, tmp_path):
                           capture_output=True, text=True, timeout=600)
 
 
+# example script -> the figure it saves (relative to its working folder) and its size [px]
+FIGURES = {"pendulum_integrators.py": ("out/energy.png", (630, 360))}
+
+
 @pytest.mark.parametrize("name", sorted(EXAMPLES))
 def test_example_runs(name, tmp_path):
     result = run_example(name, EXAMPLES[name], tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
+    if name in FIGURES:
+        from PIL import Image
+
+        path, size = FIGURES[name]
+        with Image.open(tmp_path / path) as fig:
+            assert fig.size == size
+            assert len(np.unique(np.asarray(fig.convert("RGB")).reshape(-1, 3), axis=0)) > 50  # curves drawn
 
 
 def test_bouncing_ball_prints_the_seed_frame_table(tmp_path):
