@@ -66,6 +66,9 @@ def test_viewer_sink_draws_what_the_writer_records(tmp_path, name):
     reader = CacheReader(path)
     assert len(reader) == 4
     assert set(reader.static) == set(session.static)
+    for prim, item in session.static.items():  # see-through containers stay see-through in both
+        assert reader.static[prim].opacity == item.opacity
+        np.testing.assert_allclose(reader.static[prim].points, item.points, atol=1e-5)
     for frame in (0, 3):
         read = reader.items(frame)
         assert set(read) == set(drawn[frame])

@@ -22,6 +22,14 @@ _DYNAMIC = ("Points", "Mesh", "BasisCurves", "PointInstancer")
 _GPRIMS = ("Sphere", "Cube", "Cone", "Capsule", "Cylinder")
 
 
+def _opacity(prim):
+    from pxr import UsdGeom
+
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayOpacity")
+    value = pv.Get() if pv else None
+    return float(value[0]) if value is not None and len(value) == 1 else None
+
+
 def _color(prim, default):
     from pxr import UsdGeom
 
@@ -60,6 +68,7 @@ class CacheReader:
                     item = self._item(prim, 0.0 if not self.frames else float(self.frames[0]))
                     if item is not None:
                         item.static = True
+                        item.opacity = _opacity(prim)
                         self.static[name] = item
             elif t in _GPRIMS:
                 attrs = {a.GetName(): a.Get() for a in prim.GetAttributes()}
@@ -67,7 +76,7 @@ class CacheReader:
                 m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(0.0), np.float64)
                 pts = (np.c_[v, np.ones(len(v))] @ m)[:, :3].astype(np.float32)
                 self.static[name] = DrawItem(name, "mesh", pts, _color(prim, (0.6, 0.6, 0.6)), triangles=f,
-                                             static=True)
+                                             static=True, opacity=_opacity(prim))
         self.version = 1
 
     def __len__(self):

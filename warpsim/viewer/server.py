@@ -84,7 +84,7 @@ class Drawer:
                         self.static_nodes.append(self.server.scene.add_mesh_simple(
                             f"/static/{name}", item.points, item.triangles, color=_rgb(item.color), side="double",
                             cast_shadow=False, receive_shadow=False,
-                            opacity=0.35 if name in ("walls", "container", "tank") else None))
+                            opacity=None if item.opacity is None else max(item.opacity, 0.1)))
             for name, item in items.items():
                 self._update(name, item, name in draggable)
 

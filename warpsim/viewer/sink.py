@@ -30,7 +30,7 @@ class DrawItem:
     ``orientations`` (n, 4) w, x, y, z, ``proto`` (n,) prototype index, ``prototypes`` a list
     of (vertices, triangles)). ``color`` RGB in [0, 1]; ``topology`` counts topology changes
     (a new number: redraw the triangles); ``shown`` (n,) indices of the drawn subset of a
-    subsampled points prim (None: all)."""
+    subsampled points prim (None: all); ``opacity`` the prim's constant displayOpacity (None: opaque)."""
 
     name: str
     kind: str
@@ -44,6 +44,7 @@ class DrawItem:
     static: bool = False
     topology: int = 0
     shown: np.ndarray = None
+    opacity: float = None
 
 
 def decl_color(decl, kind):
@@ -52,6 +53,14 @@ def decl_color(decl, kind):
     if attr is not None and attr.value is not None and len(attr.value):
         return tuple(float(c) for c in np.asarray(attr.value).reshape(-1, 3)[0])
     return DEFAULT_COLORS.get(kind, (0.7, 0.7, 0.7))
+
+
+def decl_opacity(decl):
+    """Constant displayOpacity of a declaration (containers are written see-through), or None."""
+    attr = decl.attrs.get("primvars:displayOpacity")
+    if attr is not None and attr.value is not None and len(attr.value):
+        return float(np.asarray(attr.value).reshape(-1)[0])
+    return None
 
 
 def _static(decl, name):
@@ -83,13 +92,13 @@ class ViewerSink(PrimSink):
                 pts = _static(decl, "points")
                 tris = triangulate(_static(decl, "faceVertexCounts"), _static(decl, "faceVertexIndices"))
                 out[name] = DrawItem(name, "mesh", np.asarray(pts, np.float32), decl_color(decl, "mesh"),
-                                     triangles=tris, static=True)
+                                     triangles=tris, static=True, opacity=decl_opacity(decl))
             elif isinstance(decl, GeomDecl):
                 attrs = {k: a.value for k, a in decl.attrs.items() if not a.dynamic}
                 verts, tris = unit_mesh(decl.type_name, attrs)
                 offset = np.asarray(attrs.get("xformOp:translate", (0.0, 0.0, 0.0)), np.float32)
                 out[name] = DrawItem(name, "mesh", verts + offset, decl_color(decl, "mesh"), triangles=tris,
-                                     static=True)
+                                     static=True, opacity=decl_opacity(decl))
         return out
 
     def draw(self, data, frame=None):
