@@ -278,6 +278,14 @@ def test_info_on_an_intact_cache_matches_reading_every_frame(ctx):
     assert [(r["start"], r["end"]) for r in index] == [(0, 7), (8, 15), (16, 23), (24, 30)]
 
 
+def test_info_without_chunk_index_still_finds_damage(ctx):
+    """Caches written before the chunk index existed: each chunk is opened in USD instead."""
+    path = ctx["fresh"](lambda d: ((d / "b.chunks.jsonl").unlink(), (d / "b.chunk000016.usdc").write_bytes(b"x")))
+    code, out, err = run("info", path)
+    assert code == 1 and "b.chunk000016.usdc  frames 16..23: damaged (does not open in USD" in out, out + err
+    assert "(checked: opened in USD)" in out and "readable frames: 0..15, 24..30" in out
+
+
 def test_info_on_a_file_that_is_not_usd_exits_1(ctx):
     code, out, err = run("info", str(ctx["dir"] / "text.usda"))
     assert code == 1 and out == ""

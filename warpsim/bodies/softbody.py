@@ -150,15 +150,16 @@ def interior_lattice(points, faces, cells: int):
 def _lattice_hint(points, faces, cells, budget=2.0e7):
     """The fix for an empty lattice: the smallest larger ``lattice_cells`` (up to 64, within a
     winding-number cost budget) that fits a particle, or interior='none' when none does."""
-    c = cells
+    c = tried = cells
     while c < 64:
         c = min(64, 2 * c)
         if (c ** 3) * len(faces) > budget:
             break
         if len(interior_lattice(points, faces, c)[0]):
             return f"lattice_cells={c} fits one (raise lattice_cells), or pass interior='none'"
-    return (f"the mesh is too thin for a lattice of up to lattice_cells={c}; pass interior='none' (surface springs "
-            "only) or thicken the mesh")
+        tried = c
+    return (f"the mesh is too thin for a lattice of up to lattice_cells={tried}; pass interior='none' (surface "
+            "springs only) or thicken the mesh")
 
 
 def _check_coefficient(owner, name, value, positive=False):
