@@ -1,0 +1,197 @@
+"""A gallery of a sweep's worlds in the browser viewer: every world side by side, click one to
+isolate it (``warpsim view SWEEP.usda`` on a root written by ``warpsim sweep``).
+
+:class:`GalleryReader` reads the worlds of a sweep root (a ``world`` variant set or a grid; a
+variant root is laid out as a grid in memory, exactly as ``write_sweep_root(layout="grid")``
+does) frame by frame, each prim drawn as ``world_GGGGGG/NAME`` moved by its world's place on the
+grid. :class:`GalleryViewer` is the playback viewer with a world menu: clicking a world's mesh in
+the page (or picking it in the menu) shows that world alone, clicking it again (or "all") shows
+every world. Drives no kernels; viser is imported when the viewer starts.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+from ..viewer.playback import _DYNAMIC, CacheReader, PlaybackViewer
+from .usd import write_sweep_root
+
+__all__ = ["GalleryReader", "GalleryViewer", "is_sweep_root"]
+
+ALL = "all worlds"
+
+
+def _root_worlds(path):
+    """(layout, [(world index, batch layer path)]) of a sweep root, or None if it is not one."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(os.fspath(path))
+    spec = layer.GetPrimAtPath("/World") if layer is not None else None
+    if spec is None:
+        return None
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    found = []
+
+    def add(prim_spec, name):
+        refs = prim_spec.referenceList.prependedItems
+        if name.startswith("world_") and len(refs) == 1:
+            found.append((int(name[6:]), os.path.normpath(os.path.join(folder, refs[0].assetPath))))
+
+    vset = spec.variantSets.get("world")
+    if vset is not None:
+        for name, variant in vset.variants.items():
+            add(variant.primSpec, name)
+        return ("variants", sorted(found)) if found else None
+    for name, child in spec.nameChildren.items():
+        add(child, name)
+    return ("grid", sorted(found)) if found else None
+
+
+def is_sweep_root(path) -> bool:
+    """Whether ``path`` is the root USD of a sweep (worlds referenced from batch layers)."""
+    try:
+        return _root_worlds(path) is not None
+    except Exception:  # noqa: BLE001  (not USD, unreadable: not a sweep root)
+        return False
+
+
+class GalleryReader(CacheReader):
+    """Frames of every world of a sweep root, laid out on a grid (see the module docstring)."""
+
+    def __init__(self, path, max_points=None):
+        from pxr import Usd, UsdGeom
+
+        from ..usd.validate import frame_codes
+
+        found = _root_worlds(path)
+        if found is None:
+            raise ValueError(f"{path} is not a sweep root (no 'world' variant set or world_ prims under /World)")
+        layout, worlds = found
+        self._tmp = None
+        grid_path = os.fspath(path)
+        if layout == "variants":  # the same worlds side by side, in memory
+            self._tmp = tempfile.TemporaryDirectory(prefix="warpsim_gallery_")
+            grid_path = os.path.join(self._tmp.name, "gallery.usda")
+            layers = sorted({layer for _, layer in worlds})
+            write_sweep_root(grid_path, layers, max(w for w, _ in worlds) + 1, layout="grid",
+                             worlds=[w for w, _ in worlds])
+            # references stay relative to the batch layers' folder: rewrite them absolute
+            from pxr import Sdf
+
+            layer = Sdf.Layer.FindOrOpen(grid_path)
+            for (w, batch), child in zip(worlds, layer.GetPrimAtPath("/World").nameChildren.values()):
+                ref = child.referenceList.prependedItems[0]
+                child.referenceList.prependedItems = [Sdf.Reference(batch, ref.primPath)]
+            layer.Save()
+        self.stage = Usd.Stage.Open(grid_path)
+        self.path = str(path)
+        self.frames = frame_codes(self.stage)
+        self.fps = float(self.stage.GetTimeCodesPerSecond() or 24.0)
+        self.max_points = max_points
+        self.worlds = [f"world_{w:06d}" for w, _ in worlds]
+        self.dynamic, self.static = [], {}
+        code0 = float(self.frames[0]) if self.frames else 0.0
+        for world in self.worlds:
+            top = self.stage.GetPrimAtPath(f"/World/{world}")
+            offset = np.asarray(UsdGeom.Xformable(top).ComputeLocalToWorldTransform(code0).ExtractTranslation(),
+                                np.float32)
+            for prim in Usd.PrimRange(top):
+                t = prim.GetTypeName()
+                if prim == top or "Prototypes" in str(prim.GetPath()) or t not in _DYNAMIC:
+                    continue
+                attr = prim.GetAttribute("positions" if t == "PointInstancer" else "points")
+                if attr.ValueMightBeTimeVarying() or t == "PointInstancer":
+                    self.dynamic.append((world, prim, offset))
+                else:
+                    item = self._placed(world, prim, offset, code0)
+                    if item is not None:
+                        item.static = True
+                        self.static[item.name] = item
+        self.version = 1
+
+    def _placed(self, world, prim, offset, code):
+        item = self._item(prim, code)
+        if item is None:
+            return None
+        item.name = f"{world}/{prim.GetName()}"
+        item.points = np.asarray(item.points, np.float32) + offset
+        return item
+
+    def items(self, index):
+        code = float(self.frames[index]) if self.frames else 0.0
+        out = {}
+        for world, prim, offset in self.dynamic:
+            item = self._placed(world, prim, offset, code)
+            if item is not None:
+                out[item.name] = item
+        return out
+
+
+class GalleryViewer(PlaybackViewer):
+    """The playback viewer over a :class:`GalleryReader`, with world isolation (click or menu)."""
+
+    def __init__(self, path, *, host="127.0.0.1", port=8080, max_points=200_000):
+        self.reader = GalleryReader(path, max_points=max_points)
+        self.host, self.port = host, int(port)
+        self.index = 0
+        self.playing = True
+        self.loop = True
+        self.server = None
+        self.isolated = None
+        """The world shown alone (``world_GGGGGG``) or None: every world."""
+        self._hooked = set()
+        import threading
+
+        self._stop = threading.Event()
+        self._shown = None
+        self._lock = threading.Lock()
+
+    def start(self):
+        super().start()
+        self.menu = self.server.gui.add_dropdown("world", (ALL, *self.reader.worlds), initial_value=ALL)
+
+        @self.menu.on_update
+        def _(_):
+            self.isolate(None if self.menu.value == ALL else self.menu.value)
+
+        self._refresh()
+        return self
+
+    def isolate(self, world):
+        """Show ``world`` alone (None: every world)."""
+        if world is not None and world not in self.reader.worlds:
+            raise ValueError(f"world {world!r} is not in this gallery; worlds: {', '.join(self.reader.worlds)}")
+        self.isolated = world
+        if self.menu.value != (world or ALL):
+            self.menu.value = world or ALL
+        self._refresh()
+
+    def show(self, index):
+        with self._lock:
+            super().show(index)
+            self._refresh()
+
+    def _handles(self):
+        for name, (node, _) in self.drawer.nodes.items():
+            for h in node if isinstance(node, list) else [node]:
+                yield name.split("/")[0], h
+        for h in self.drawer.static_nodes:
+            yield h.name.split("/")[2], h
+
+    def _refresh(self):
+        """Visibility per the isolated world; click handlers on new meshes."""
+        if self.server is None or getattr(self, "menu", None) is None:
+            return
+        for world, h in self._handles():
+            visible = self.isolated is None or world == self.isolated
+            if getattr(h, "visible", visible) != visible:
+                h.visible = visible
+            if id(h) not in self._hooked and hasattr(h, "on_click"):
+                self._hooked.add(id(h))
+
+                def clicked(_event, world=world):
+                    self.isolate(None if self.isolated == world else world)
+
+                h.on_click(clicked)
