@@ -58,10 +58,12 @@ def build(args):
     if os.path.splitext(args.scene)[1] in (".usd", ".usda", ".usdc"):
         if args.sets or args.integrator:
             raise cli.UsageError("--set and --integrator apply to scenes, not to a cache being played")
+        from ..worlds.gallery import GalleryViewer, is_sweep_root
         from .playback import PlaybackViewer
 
+        player = GalleryViewer if is_sweep_root(args.scene) else PlaybackViewer  # a sweep: its worlds side by side
         try:
-            return PlaybackViewer(args.scene, host=args.host, port=args.port, max_points=args.max_points)
+            return player(args.scene, host=args.host, port=args.port, max_points=args.max_points)
         except ValueError as exc:
             raise cli.UsageError(str(exc)) from None
     from ..scenes import get_scene
