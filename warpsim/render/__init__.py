@@ -8,8 +8,11 @@ Drives ``warpsim.kernels.render``. Entry points: Renderer, Camera, frame_bounds,
 render_cache (also ``warpsim render CACHE`` and ``warpsim plot CACHE``).
 """
 
+from .cache import render_cache
 from .camera import Camera, frame_bounds, parse_camera
 from .geometry import FrameGeometry, GeometryBuilder
 from .renderer import Renderer
+from .usd_scene import CacheScene
 
-__all__ = ["Camera", "FrameGeometry", "GeometryBuilder", "Renderer", "frame_bounds", "parse_camera"]
+__all__ = ["CacheScene", "Camera", "FrameGeometry", "GeometryBuilder", "Renderer", "frame_bounds", "parse_camera",
+           "render_cache"]

@@ -62,11 +62,13 @@ def select_frames(available, frame=None, frames=None):
 
 
 def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=None, fps=None, device=None,
-                 guides=False, only=None, progress=None, gif_colors=255):
+                 guides=False, only=None, progress=None, gif_colors=255, max_frames=None):
     """Render ``cache`` into ``out`` (.png: one frame, the last unless ``frame`` is given; .gif
     or .mp4: ``frames``, every frame by default). ``camera``: None (frame the scene's bounds
     over the drawn frames), a :class:`Camera` or ``"ex,ey,ez,tx,ty,tz"``. ``fps``: playback
-    rate (default the cache's). ``only``: names of the prims to draw (default all). ``progress``: called with (frames done, frames in all) after each frame.
+    rate (default the cache's). ``only``: names of the prims to draw (default all). ``max_frames``:
+    when no frames are named, draw every k-th frame so that at most this many are drawn (and play
+    them at fps / k, in real time). ``progress``: called with (frames done, frames in all) after each frame.
     Returns ``{"path", "frames", "seconds", "camera"}``."""
     width, height = parse_size(size) if isinstance(size, str) else check_size(*size)
     ext = check_out(out)
@@ -81,7 +83,11 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     if FORMATS[ext] == "image" and len(chosen) != 1:
         raise ValueError(f"--out {out!r}: a .png holds one frame but {len(chosen)} were asked; give --frame N "
                          "or write a .gif/.mp4")
-    fps = scene.fps if fps is None else float(fps)
+    step = 1
+    if max_frames is not None and frame is None and frames is None and len(chosen) > max_frames:
+        step = -(-len(chosen) // int(max_frames))
+        chosen = chosen[::step]
+    fps = scene.fps / step if fps is None else float(fps)
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"--fps {fps}: it must be > 0")
     if camera is None:  # frame what the scene holds: guides (container walls) drawn but not framed

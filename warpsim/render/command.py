@@ -22,7 +22,7 @@ def add_parser(sub):
 
 
 def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camera=None, fps=None, device=None,
-              guides=False, progress=True):
+              guides=False, progress=True, max_frames=None):
     """Shared by ``render`` and ``run --preview``: render and return the result dict; usage
     mistakes raise ``cli.UsageError``."""
     from ..cli import UsageError, _device
@@ -47,7 +47,7 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
 
     try:
         return render_cache(cache, out, frame=frame, frames=frames, size=size, camera=camera, fps=fps, device=device,
-                            guides=guides, progress=advance if progress else None)
+                            guides=guides, progress=advance if progress else None, max_frames=max_frames)
     except (ValueError, OSError) as exc:  # FileNotFoundError/PermissionError are OSErrors
         raise UsageError(str(exc)) from None
     finally:

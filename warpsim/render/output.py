@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import os
+import zlib
 
 import numpy as np
 
@@ -42,11 +43,11 @@ class _Png:
 
 
 class _Gif:
-    """Frames kept as RGB until :meth:`close`, then quantised to one palette of ``colors`` colours
-    taken from up to 8 frames spread over the clip (so colours that appear late stay true and
-    unchanged pixels stay identical between frames, which GIF stores once). Memory: 3 bytes per
-    pixel per frame. Pillow stores identical consecutive frames once with their durations added
-    (playback time is kept)."""
+    """Frames kept as zlib-compressed RGB until :meth:`close` (rendered frames compress about tenfold),
+    then quantised to one palette of ``colors`` colours taken from up to 8 frames spread over the
+    clip (so colours that appear late stay true and unchanged pixels stay identical between
+    frames, which GIF stores once). Pillow stores identical consecutive frames once with their
+    durations added (playback time is kept)."""
 
     def __init__(self, path, fps, colors=255):
         self.path, self.fps, self.colors = path, float(fps), int(colors)
@@ -54,8 +55,13 @@ class _Gif:
         self.count = 0
 
     def add(self, rgb):
-        self.frames.append(np.ascontiguousarray(rgb, np.uint8))
+        rgb = np.ascontiguousarray(rgb, np.uint8)
+        self.frames.append((rgb.shape, zlib.compress(rgb.tobytes(), 1)))
         self.count += 1
+
+    def _frame(self, k):
+        shape, data = self.frames[k]
+        return np.frombuffer(zlib.decompress(data), np.uint8).reshape(shape)
 
     def close(self):
         from PIL import Image
@@ -63,9 +69,10 @@ class _Gif:
         if not self.frames:
             raise ValueError(f"{self.path}: no frames to write")
         picks = np.unique(np.linspace(0, len(self.frames) - 1, min(8, len(self.frames))).round().astype(int))
-        mosaic = Image.fromarray(np.concatenate([self.frames[k] for k in picks], axis=0))
+        mosaic = Image.fromarray(np.concatenate([self._frame(k) for k in picks], axis=0))
         palette = mosaic.quantize(colors=self.colors, method=Image.Quantize.MEDIANCUT)
-        images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in self.frames]
+        images = [Image.fromarray(self._frame(k)).quantize(palette=palette, dither=Image.Dither.NONE)
+                  for k in range(len(self.frames))]
         duration = max(20, round(1000.0 / self.fps / 10.0) * 10)  # GIF delays are in 1/100 s
         images[0].save(self.path, save_all=True, append_images=images[1:], duration=duration, loop=0,
                        optimize=False, disposal=1)
