@@ -75,7 +75,7 @@ def _parser(argv=None):
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.add_argument("--preview", default=None, metavar="FILE.gif",
-                   help="also render the cache to a .gif/.mp4/.png beside it (see 'warpsim render')")
+                   help="also render the cache to a .gif/.mp4/.png beside it (at most 300 frames; see 'warpsim render')")
     i = sub.add_parser("info", help="summarise a USD cache")
     i.add_argument("cache", help="path of a .usd/.usda/.usdc file")
     i.add_argument("--verify", action="store_true",
@@ -368,7 +368,8 @@ def _cmd_run(args, out, err):
         from .render.command import render_to
 
         preview = os.path.join(os.path.dirname(writer.output_path), args.preview)
-        result = render_to(writer.output_path, preview, err, device=device, progress=not args.no_progress)
+        result = render_to(writer.output_path, preview, err, device=device, progress=not args.no_progress,
+                           max_frames=300)  # long runs: every k-th frame, played in real time
         print(f"preview: {os.path.relpath(result['path'])} ({result['frames']} frames, {result['seconds']:.2f} s)",
               file=out)
     return 0
