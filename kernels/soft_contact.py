@@ -2,10 +2,13 @@
 
 Per step (``warpsim.bodies.soft_contact.SoftContact`` launches them after integration):
 
-1. ``find_soft_contacts``: every contact vertex p queries the triangle BVH (a ``wp.Mesh`` over
-   all bodies' surface triangles, refitted every step) within ``search`` [m] and keeps the
-   nearest triangle of another body (of its own body too with self contact, except triangles
-   that touch it or lie within ``self_rest_distance`` of it in the rest pose). With c the closest
+1. ``find_soft_contacts``: every contact vertex p queries the triangle BVHs of the other bodies
+   (one ``wp.Mesh`` per body, refitted every step; its own too with self contact) within
+   ``search`` [m] and keeps the nearest triangle (never one that touches p or, on its own body,
+   lies within ``self_rest_distance`` of it in the rest pose). One BVH per body keeps a vertex's
+   own neighbourhood out of its queries (one BVH over all bodies was measured 27x slower on
+   the CPU, 53.6 against 1.96 ms for four separate tori of 2,000 vertices: every query walked
+   its own body's nearby triangles). With c the closest
    point (barycentrics b) and n_f the outward face normal, the signed distance is
    s = |p - c| in front of the face and -|p - c| behind it (only when p lies right behind the
    face: c inside the triangle); a contact has -search < s < thickness, normal n = (p - c)/|p - c|
@@ -79,12 +82,12 @@ def rest_distance(p: int, t: int, tri: wp.array(dtype=int), rest: wp.array(dtype
 
 @wp.kernel
 def find_soft_contacts(
-    mesh: wp.uint64,
+    meshes: wp.array(dtype=wp.uint64),
+    tri_start: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
     rest: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     tri: wp.array(dtype=int),
-    tri_body: wp.array(dtype=int),
     vertex_particle: wp.array(dtype=int),
     vertex_body: wp.array(dtype=int),
     thickness: float,
@@ -111,52 +114,54 @@ def find_soft_contacts(
     best_bary = wp.vec3()
     best_normal = wp.vec3()
     best_s = float(0.0)
-    query = wp.mesh_query_aabb(mesh, lower, upper)
-    t = int(0)
-    while wp.mesh_query_aabb_next(query, t):
-        i = tri[3 * t]
-        j = tri[3 * t + 1]
-        k = tri[3 * t + 2]
-        if tri_body[t] == body:
-            if self_contact == 0:
-                continue
-            if i == p or j == p or k == p:
-                continue
-            if rest_distance(p, t, tri, rest) < self_rest_distance:
-                continue
-        w = inv_mass[p] + inv_mass[i] + inv_mass[j] + inv_mass[k]
-        if w == 0.0:
+    for other in range(meshes.shape[0]):
+        if other == body and self_contact == 0:
             continue
-        a = q[i]
-        b = q[j]
-        c = q[k]
-        bary = triangle_barycentric(x, a, b, c)
-        cp = bary[0] * a + bary[1] * b + bary[2] * c
-        delta = x - cp
-        d = wp.length(delta)
-        nf = wp.cross(b - a, c - a)
-        area2 = wp.length(nf)
-        if area2 < 1.0e-20:
-            continue
-        nf = nf / area2
-        side = wp.dot(delta, nf)
-        s = d
-        n = nf
-        if side < 0.0:
-            # behind the face: a contact only when p lies right behind it (closest point inside)
-            if bary[0] <= 0.0 or bary[1] <= 0.0 or bary[2] <= 0.0:
+        query = wp.mesh_query_aabb(meshes[other], lower, upper)
+        local = int(0)
+        while wp.mesh_query_aabb_next(query, local):
+            t = tri_start[other] + local
+            i = tri[3 * t]
+            j = tri[3 * t + 1]
+            k = tri[3 * t + 2]
+            if other == body:
+                if i == p or j == p or k == p:
+                    continue
+                if rest_distance(p, t, tri, rest) < self_rest_distance:
+                    continue
+            w = inv_mass[p] + inv_mass[i] + inv_mass[j] + inv_mass[k]
+            if w == 0.0:
                 continue
-            s = -d
-        elif d > 1.0e-9:
-            n = delta / d
-        if s >= thickness or s <= -search:
-            continue
-        if d < best_d:
-            best_d = d
-            best = t
-            best_bary = bary
-            best_normal = n
-            best_s = s
+            a = q[i]
+            b = q[j]
+            c = q[k]
+            bary = triangle_barycentric(x, a, b, c)
+            cp = bary[0] * a + bary[1] * b + bary[2] * c
+            delta = x - cp
+            d = wp.length(delta)
+            nf = wp.cross(b - a, c - a)
+            area2 = wp.length(nf)
+            if area2 < 1.0e-20:
+                continue
+            nf = nf / area2
+            side = wp.dot(delta, nf)
+            s = d
+            n = nf
+            if side < 0.0:
+                # behind the face: a contact only when p lies right behind it (closest point inside)
+                if bary[0] <= 0.0 or bary[1] <= 0.0 or bary[2] <= 0.0:
+                    continue
+                s = -d
+            elif d > 1.0e-9:
+                n = delta / d
+            if s >= thickness or s <= -search:
+                continue
+            if d < best_d:
+                best_d = d
+                best = t
+                best_bary = bary
+                best_normal = n
+                best_s = s
     contact_tri_out[v] = best
     if best >= 0:
         contact_bary_out[v] = best_bary

@@ -2,9 +2,9 @@
 
 :class:`SoftContact` is a collider (it runs after integration, so it works with every
 integrator, semi-implicit and implicit Euler included). Each step it refits one ``wp.Mesh``
-BVH over the surface triangles of all its bodies (``mesh.refit()`` on a copy of the current
-positions), finds for every surface vertex the nearest triangle of another body (optionally of
-its own body: ``self_contact``) closer than ``thickness`` [m], pushes the pair apart and applies
+BVH per body over its surface triangles (``mesh.refit()`` on a copy of the current positions),
+finds for every surface vertex the nearest triangle of another body (optionally of its own
+body: ``self_contact``) closer than ``thickness`` [m], pushes the pair apart and applies
 an inelastic impulse with restitution and Coulomb friction. Impulses act on the vertex and,
 weighted by barycentrics, on the triangle's three vertices, equal and opposite: momentum is
 conserved exactly. Kernels: ``warpsim.kernels.soft_contact`` (the method is described there).
@@ -94,12 +94,12 @@ class SoftContact(Collider):
         self.push = float(push)
         if not (math.isfinite(self.push) and 0.0 <= self.push <= 1.0):
             raise ValueError(f"SoftContact push is {push}; it must be in [0, 1] (fraction of the depth removed per step)")
-        self._mesh = None
+        self._meshes = []
 
     def bind(self, model) -> None:
         super().bind(model)
         n = model.particle_count
-        tri, tri_body, vert, vert_body = [], [], [], []
+        tri, vert, vert_body = [], [], []
         seen = np.full(n, -1, dtype=np.int64)
         for k, faces in enumerate(self.faces):
             if faces.min() < 0 or faces.max() >= n:
@@ -112,20 +112,22 @@ class SoftContact(Collider):
                                  f"[{int(seen[shared[0]])}]; every body needs its own particles")
             seen[verts] = k
             tri.append(faces)
-            tri_body.append(np.full(len(faces), k))
             vert.append(verts)
             vert_body.append(np.full(len(verts), k))
         d = model.device
         i32 = np.int32
         self._tri = wp.array(np.concatenate(tri).reshape(-1).astype(i32), dtype=int, device=d)
-        self._tri_body = wp.array(np.concatenate(tri_body).astype(i32), dtype=int, device=d)
+        self._tri_start = wp.array(np.concatenate([[0], np.cumsum([len(f) for f in tri])]).astype(i32), dtype=int,
+                                   device=d)
         self._vertex = wp.array(np.concatenate(vert).astype(i32), dtype=int, device=d)
         self._vertex_body = wp.array(np.concatenate(vert_body).astype(i32), dtype=int, device=d)
         self.vertex_count = int(self._vertex.shape[0])
-        self.triangle_count = int(self._tri_body.shape[0])
+        self.triangle_count = sum(len(f) for f in tri)
         v = self.vertex_count
         self._points = wp.clone(model.particle_q)
-        self._mesh = wp.Mesh(points=self._points, indices=self._tri)
+        self._meshes = [wp.Mesh(points=self._points, indices=wp.array(f.reshape(-1).astype(i32), dtype=int, device=d))
+                        for f in tri]
+        self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=d)
         self._contact_tri = wp.zeros(v, dtype=int, device=d)
         self._contact_bary = wp.zeros(v, dtype=wp.vec3, device=d)
         self._contact_normal = wp.zeros(v, dtype=wp.vec3, device=d)
@@ -136,9 +138,9 @@ class SoftContact(Collider):
         self._dv = wp.zeros(n, dtype=wp.vec3, device=d)
 
     @property
-    def mesh(self) -> wp.Mesh:
-        """The BVH mesh over every body's triangles (points: positions at the last step)."""
-        return self._mesh
+    def meshes(self) -> list:
+        """One BVH ``wp.Mesh`` per body (points: positions at the last step)."""
+        return self._meshes
 
     @property
     def contact_count(self) -> int:
@@ -152,12 +154,13 @@ class SoftContact(Collider):
             raise ValueError("SoftContact cannot run inside a graph captured on the CPU (the BVH refit would not "
                              "be replayed); use ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
         wp.copy(self._points, state.positions)
-        self._mesh.refit()
+        for mesh in self._meshes:
+            mesh.refit()
         self._particle_contacts.zero_()
         self._total.zero_()
         wp.launch(K.find_soft_contacts, v,
-                  inputs=[self._mesh.id, state.positions, model.particle_q, model.particle_inv_mass, self._tri,
-                          self._tri_body, self._vertex, self._vertex_body, self.thickness, self.search,
+                  inputs=[self._mesh_ids, self._tri_start, state.positions, model.particle_q, model.particle_inv_mass,
+                          self._tri, self._vertex, self._vertex_body, self.thickness, self.search,
                           int(self.self_contact), self.self_rest_distance, self._contact_tri, self._contact_bary,
                           self._contact_normal, self._contact_depth, self._particle_contacts, self._total], device=d)
         contact = [self._contact_tri, self._contact_bary, self._contact_normal]
