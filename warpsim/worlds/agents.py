@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from ..agents import Flock, FoodSources
-from ..kernels import worlds as KW
+from .batch import end_frame
 from .plan import StructuralError
 
 __all__ = ["AgentWorldBatch", "is_agent_scene"]
@@ -150,15 +150,7 @@ class AgentWorldBatch:
         return False  # the neighbour grid is rebuilt every step (a HashGrid build on the host side)
 
     def end_frame(self) -> None:
-        st, m, d = self.sim.state, self.model, self.device
-        wp.launch(KW.count_frame, 1, inputs=[self.frame_counter], device=d)
-        wp.launch(KW.flag_blown_worlds, m.particle_count,
-                  inputs=[st.positions, st.velocities, m.particle_world, self.max_speed, self.world_bad], device=d)
-        wp.launch(KW.record_blow_ups, self.world_count, inputs=[self.world_bad, self.frame_counter,
-                                                                self.world_blown_frame], device=d)
-        wp.launch(KW.freeze_blown_worlds, m.particle_count,
-                  inputs=[m.particle_world, self.world_bad, self.q_good, st.positions, st.velocities,
-                          m.particle_inv_mass], device=d)
+        end_frame(self)
 
     def advance(self, frame_dt, substeps) -> None:
         h = frame_dt / substeps

@@ -242,15 +242,7 @@ class WorldBatch:
 
     def end_frame(self) -> None:
         """Flag worlds that blew up during the frame, freeze them, advance the frame counter."""
-        st, m, d = self.sim.state, self.model, self.device
-        wp.launch(KW.count_frame, 1, inputs=[self.frame_counter], device=d)
-        wp.launch(KW.flag_blown_worlds, m.particle_count,
-                  inputs=[st.positions, st.velocities, m.particle_world, self.max_speed, self.world_bad], device=d)
-        wp.launch(KW.record_blow_ups, self.world_count, inputs=[self.world_bad, self.frame_counter,
-                                                                self.world_blown_frame], device=d)
-        wp.launch(KW.freeze_blown_worlds, m.particle_count,
-                  inputs=[m.particle_world, self.world_bad, self.q_good, st.positions, st.velocities,
-                          m.particle_inv_mass], device=d)
+        end_frame(self)
 
     def advance(self, frame_dt, substeps) -> None:
         """One frame for every world (the scene's own stepping on the batched simulator; with
@@ -280,3 +272,18 @@ class WorldBatch:
             return self.scene.frame_data()
         finally:
             sim0.state = saved
+
+
+def end_frame(batch) -> None:
+    """The end of a frame for any batch (``sim.state``, ``model.particle_world``, ``world_bad``,
+    ``world_blown_frame``, ``frame_counter``, ``q_good``, ``max_speed``, ``device``): count the
+    frame, flag the worlds that blew up, record when, and freeze them at their last good positions."""
+    st, m, d = batch.sim.state, batch.model, batch.device
+    wp.launch(KW.count_frame, 1, inputs=[batch.frame_counter], device=d)
+    wp.launch(KW.flag_blown_worlds, m.particle_count,
+              inputs=[st.positions, st.velocities, m.particle_world, batch.max_speed, batch.world_bad], device=d)
+    wp.launch(KW.record_blow_ups, batch.world_count, inputs=[batch.world_bad, batch.frame_counter,
+                                                             batch.world_blown_frame], device=d)
+    wp.launch(KW.freeze_blown_worlds, m.particle_count,
+              inputs=[m.particle_world, batch.world_bad, batch.q_good, st.positions, st.velocities,
+                      m.particle_inv_mass], device=d)
