@@ -85,6 +85,12 @@ def build(args):
         raise cli.UsageError(f"scene {cls.name!r}: {exc}") from None
 
 
+def threading_is_main():
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
 def run(args, out, err):
     import warp as wp
 
@@ -100,7 +106,12 @@ def run(args, out, err):
         viewer.start()
     except PortInUseError as exc:  # taken between the check and the start
         raise cli.UsageError(str(exc)) from None
-    print(f"warpsim view: {viewer.url}   (Ctrl-C stops; recordings go to {getattr(args, 'record_dir', 'usd_out')}/)",
+    import signal
+
+    if threading_is_main():
+        signal.signal(signal.SIGTERM, lambda *_: viewer._stop.set())  # kill: stop cleanly, completing a recording
+    live = hasattr(viewer, "session")
+    print(f"warpsim view: {viewer.url}   (Ctrl-C stops" + (f"; recordings go to {args.record_dir}/)" if live else ")"),
           file=out, flush=True)
     viewer.run()
     return 0
