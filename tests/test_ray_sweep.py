@@ -77,6 +77,18 @@ def test_publish_is_whole_and_manifest_detects_a_changed_batch(tmp_path):
         SweepManifest.load(str(tmp_path / "none.ray-manifest.json"))
 
 
+def test_ray_options_without_ray_or_out_of_range_exit_2_with_one_line():
+    from warpsim.cli import main
+
+    base = ["sweep", SCENE, "--worlds", "2", "--vary", "stiffness=100,200", "--frames", "1", "--device", "cpu"]
+    for extra, words in [(["--resume"], "--resume goes with --ray"), (["--batch-size", "4"], "--batch-size goes"),
+                         (["--ray", "--batch-size", "0"], "--batch-size 0: it must be >= 1"),
+                         (["--ray", "--ray-cpus", "0"], "--ray-cpus 0: it must be >= 1")]:
+        err = io.StringIO()
+        assert main([*base, *extra], out=io.StringIO(), err=err) == 2
+        assert words in err.getvalue() and err.getvalue().count("\n") == 1, err.getvalue()
+
+
 # --- on a local cluster ---------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -176,7 +188,9 @@ def test_resume_after_the_driver_is_killed_runs_only_the_remaining_batches(clust
     out = tmp_path / "s.usda"
     argv = ["sweep", SCENE, "--worlds", str(WORLDS), "--frames", str(FRAMES), "--device", "cpu", "--out", str(out),
             "--batch-size", "2", "--no-progress"] + [f"--vary={v}" for v in VARY]
-    driver = subprocess.Popen([sys.executable, "-m", "warpsim", *argv, "--ray", cluster], cwd=tmp_path,
+    # a fresh shell's environment: the driver finds the cluster's authentication token by itself
+    env = {k: v for k, v in os.environ.items() if k != "RAY_AUTH_MODE"}
+    driver = subprocess.Popen([sys.executable, "-m", "warpsim", *argv, "--ray", cluster], cwd=tmp_path, env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     mpath = manifest_path(str(out))
     try:
@@ -194,6 +208,9 @@ def test_resume_after_the_driver_is_killed_runs_only_the_remaining_batches(clust
     stamps = {i: os.stat(tmp_path / "s.batches" / f"batch_{i:04d}").st_ino for i in finished}
     assert not out.exists()  # no root before every batch is done
 
+    err = io.StringIO()  # a resume must keep the sweep's settings
+    assert main([*argv, "--ray", cluster, "--resume", "--frames", "7"], out=io.StringIO(), err=err) == 2
+    assert "frames=7 differs from the manifest's frames=40" in err.getvalue() and _listed(mpath) == finished
     err = io.StringIO()
     assert main([*argv, "--ray", cluster, "--resume"], out=io.StringIO(), err=err) == 0, err.getvalue()
     ran = {int(m) - 1 for m in re.findall(r"^batch (\d+)/4 ", err.getvalue(), re.MULTILINE)}

@@ -29,6 +29,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import time
 
 from .batches import (
@@ -138,6 +139,12 @@ def run_batch_task(spec):
 
 def _connect(address, num_cpus):
     """``(ray, started)``: connect to ``address`` or start a local cluster (reuse an open connection)."""
+    remote = address not in (None, "local")
+    if remote and "RAY_AUTH_MODE" not in os.environ and "ray" not in sys.modules and _token_available():
+        # Ray >= 2.59 starts clusters with token authentication, and a driver that connects by address
+        # sends its token only in token mode, read when ray is imported (a cluster without
+        # authentication ignores the token)
+        os.environ["RAY_AUTH_MODE"] = "token"
     try:
         import ray
     except ImportError:
@@ -145,15 +152,23 @@ def _connect(address, num_cpus):
     if ray.is_initialized():
         return ray, False
     quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
-    if address in (None, "local"):
+    if not remote:
         ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
     else:
         try:
             ray.init(address=address, **quiet)
         except ConnectionError as exc:
-            raise ValueError(f"--ray {address}: no Ray cluster there ({exc}); start one with "
-                             "'ray start --head' and pass the address it prints") from None
+            raise ValueError(f"--ray {address}: no Ray cluster there, or its authentication token is not this "
+                             f"machine's ({exc}); start one with 'ray start --head' and pass the address it "
+                             "prints; with token authentication set RAY_AUTH_MODE=token and the cluster's token "
+                             "(ray get-auth-token) in ~/.ray/auth_token") from None
     return ray, True
+
+
+def _token_available():
+    """Whether a Ray authentication token is configured (RAY_AUTH_TOKEN[_PATH] or ~/.ray/auth_token)."""
+    return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+                or os.path.exists(os.path.join(os.path.expanduser("~"), ".ray", "auth_token")))
 
 
 def _task_resources(ray, device):
