@@ -16,6 +16,7 @@ interpreter start, imports and the summary). Both summaries must agree (frames, 
 Also reports what the index cost the writer: seconds spent in ``chunk_index.record`` and
 ``append_record`` (size, CRC-32 and one synced line per chunk) as a share of the run.
 """
+
 import argparse
 import os
 import resource
@@ -40,12 +41,29 @@ def make_cache(path, frames, chunk, device):
                 return fn(*a, **k)
             finally:
                 spent[0] += time.perf_counter() - t
+
         return wrapper
 
-    chunk_index.record, chunk_index.append_record = timed(chunk_index.record), timed(chunk_index.append_record)
+    chunk_index.record, chunk_index.append_record = (
+        timed(chunk_index.record),
+        timed(chunk_index.append_record),
+    )
     t0 = time.perf_counter()
-    code = cli.main(["run", "bounce", "--frames", str(frames), "--chunk", str(chunk), "--no-progress", "--device",
-                     device, "--out", path])
+    code = cli.main(
+        [
+            "run",
+            "bounce",
+            "--frames",
+            str(frames),
+            "--chunk",
+            str(chunk),
+            "--no-progress",
+            "--device",
+            device,
+            "--out",
+            path,
+        ]
+    )
     assert code == 0, code
     return time.perf_counter() - t0, spent[0]
 
@@ -62,8 +80,11 @@ def main():
     path = os.path.join(folder, f"bounce_{a.frames}.usda")
     if not os.path.exists(path):
         seconds, index_seconds = make_cache(path, a.frames, a.chunk, a.device)
-        print(f"made {path}: {a.frames + 1} frames in {seconds:.1f} s; chunk index upkeep {index_seconds:.2f} s "
-              f"({100 * index_seconds / seconds:.1f} % of the run)")
+        print(
+            f"made {path}: {a.frames + 1} frames in {seconds:.1f} s; "
+            f"chunk index upkeep {index_seconds:.2f} s "
+            f"({100 * index_seconds / seconds:.1f} % of the run)"
+        )
     from pxr import Usd
 
     from warpsim.usd.validate import cache_info
@@ -96,9 +117,13 @@ def main():
         cmd.append((wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime))
     wall, cpu = min(cmd)
     print(f"{a.frames + 1} frames in {chunks} chunk files")
-    print(f"cache_info, index (size + CRC-32): {t_index:.3f} s   index (size only): {t_size:.3f} s   "
-          f"every chunk: {t_all:.3f} s   ratio every chunk / index: {t_all / t_index:.0f}x")
-    print(f"'warpsim info' command: {wall:.2f} s wall, {cpu:.2f} s CPU (interpreter start and imports included)")
+    print(
+        f"cache_info, index (size + CRC-32): {t_index:.3f} s   index (size only): {t_size:.3f} s   "
+        f"every chunk: {t_all:.3f} s   ratio every chunk / index: {t_all / t_index:.0f}x"
+    )
+    print(
+        f"'warpsim info' command: {wall:.2f} s wall, {cpu:.2f} s CPU (interpreter start and imports included)"
+    )
 
 
 if __name__ == "__main__":

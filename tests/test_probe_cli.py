@@ -94,7 +94,8 @@ def chunk(name, action):
 
 
 def resume(path_fn, *extra):
-    return lambda c: ["run", "bounce", "--frames", "40", "--chunk", "8", "--resume", "--out", path_fn(c), *extra, *RUN]
+    return lambda c: ["run", "bounce", "--frames", "40", "--chunk", "8", "--resume", "--out", path_fn(c),
+                      *extra, *RUN]
 
 
 def scene(name, *sets):
@@ -116,7 +117,8 @@ CASES = [
     ("frames-neg", cmd("run", "bounce", "--frames", "-1", *RUN), ["--frames -1"]),
     ("frames-text", cmd("run", "bounce", "--frames", "x", *RUN), ["--frames", "'x'"]),
     ("chunk-zero", cmd("run", "bounce", "--chunk", "0", *RUN), ["--chunk 0"]),
-    ("checkpoint-every-neg", cmd("run", "bounce", "--checkpoint-every", "-1", *RUN), ["--checkpoint-every -1"]),
+    ("checkpoint-every-neg", cmd("run", "bounce", "--checkpoint-every", "-1", *RUN),
+     ["--checkpoint-every -1"]),
     ("fps-zero", cmd("run", "bounce", "--fps", "0", *RUN), ["--fps 0"]),
     ("fps-neg", cmd("run", "bounce", "--fps", "-5", *RUN), ["--fps -5"]),
     ("fps-nan", cmd("run", "bounce", "--fps", "nan", *RUN), ["--fps nan"]),
@@ -127,7 +129,8 @@ CASES = [
     ("integrator-none", cmd("run", "metaballs", "--integrator", "rk4", *RUN), ["no integrator choice"]),
     ("integrator-disagree", cmd("run", "bounce", "--integrator", "rk4", "--set", "integrator=rk2", *RUN),
      ["--integrator", "disagree"]),
-    ("device-unknown", cmd("run", "bounce", "--device", "tpu", "--no-progress"), ["--device 'tpu'", "available"]),
+    ("device-unknown", cmd("run", "bounce", "--device", "tpu", "--no-progress"),
+     ["--device 'tpu'", "available"]),
     ("set-malformed", cmd("run", "bounce", "--set", "restitution", *RUN), ["restitution", "KEY=VALUE"]),
     ("set-unknown-key", cmd("run", "bounce", "--set", "restitutin=0.3", *RUN),
      ["no parameter 'restitutin'", "Did you mean 'restitution'"]),
@@ -144,7 +147,8 @@ CASES = [
     ("out-parent-is-file", cmd("run", "bounce", "--out", "{dir}/afile/x.usda", *RUN), ["afile", "is a file"]),
     ("out-deep-parent-is-file", cmd("run", "bounce", "--out", "{dir}/afile/a/b/x.usda", *RUN),
      ["afile", "is a file"]),
-    ("out-is-folder", cmd("run", "bounce", "--out", "{dir}/folder.usda", *RUN), ["folder.usda", "is a folder"]),
+    ("out-is-folder", cmd("run", "bounce", "--out", "{dir}/folder.usda", *RUN),
+     ["folder.usda", "is a folder"]),
     ("out-unwritable", cmd("run", "bounce", "--out", "/proc/warpsim_probe.usda", *RUN),
      ["/proc", "cannot write"]),
     # ---- scene-level validation (before any step)
@@ -185,21 +189,24 @@ CASES = [
     ("dam-break-iterations", scene("dam_break", "iterations=0"), ["iterations = 0"]),
     ("pour-spacing", scene("pour", "spacing=-1"), ["spacing=-1"]),
     # ---- --resume: checkpoints
-    ("resume-no-checkpoint", lambda c: ["run", "bounce", "--resume", "--out", str(c["dir"] / "none.usda"), *RUN],
+    ("resume-no-checkpoint",
+     lambda c: ["run", "bounce", "--resume", "--out", str(c["dir"] / "none.usda"), *RUN],
      ["no checkpoint"]),
     ("resume-empty-checkpoint", resume(ckpt(write(b""))), ["checkpoint", "b.checkpoint.npz", "is empty"]),
     ("resume-truncated-checkpoint", resume(ckpt(truncate)), ["checkpoint", "b.checkpoint.npz", "damaged"]),
     ("resume-garbage-checkpoint", resume(ckpt(write(b"garbage" * 100))), ["b.checkpoint.npz", "damaged"]),
     ("resume-checkpoint-no-meta", resume(ckpt(lambda p: np.savez(open(p, "wb"), x=np.zeros(3)))),
      ["b.checkpoint.npz", "damaged or not a warpsim checkpoint"]),
-    ("resume-checkpoint-meta-keys", resume(ckpt(meta_only({"scene": "bounce"}))), ["b.checkpoint.npz", "lacks"]),
+    ("resume-checkpoint-meta-keys", resume(ckpt(meta_only({"scene": "bounce"}))),
+     ["b.checkpoint.npz", "lacks"]),
     ("resume-other-scene", resume(ckpt(meta_only({**GOOD_META, "scene": "pendulum", "params": {}}))),
      ["scene 'pendulum'", "not 'bounce'"]),
     ("resume-checkpoint-arrays", resume(ckpt(meta_only({**GOOD_META, "params": {}}))),
      ["does not fit scene 'bounce'", "without --resume"]),
     ("resume-param-differs", resume(lambda c: c["fresh"](), "--set", "mass=2"), ["mass=2.0 differs"]),
     ("resume-fps-differs", resume(lambda c: c["fresh"](), "--fps", "50"), ["--resume", "25 fps"]),
-    ("resume-beyond-frames", lambda c: ["run", "bounce", "--frames", "10", "--resume", "--out", c["fresh"](), *RUN],
+    ("resume-beyond-frames",
+     lambda c: ["run", "bounce", "--frames", "10", "--resume", "--out", c["fresh"](), *RUN],
      ["checkpoint is at frame 30", "--frames 10"]),
     # ---- --resume: damaged cache before the checkpoint is never resumed over
     ("resume-chunk-deleted", resume(chunk("b.chunk000008.usdc", "delete")),
@@ -207,7 +214,8 @@ CASES = [
     ("resume-chunk-truncated", resume(chunk("b.chunk000000.usdc", "truncate")),
      ["b.chunk000000.usdc", "damaged"]),
     ("resume-chunk-corrupted", resume(chunk("b.chunk000024.usdc", "flip")), ["b.chunk000024.usdc", "CRC-32"]),
-    ("resume-root-missing", resume(lambda c: c["fresh"](lambda d: (d / "b.usda").unlink())), ["does not exist"]),
+    ("resume-root-missing", resume(lambda c: c["fresh"](lambda d: (d / "b.usda").unlink())),
+     ["does not exist"]),
     # ---- info
     ("info-missing", cmd("info", "{dir}/missing.usda"), ["missing.usda", "does not exist"]),
     ("info-folder", cmd("info", "{dir}/folder.usda"), ["folder.usda", "is a folder"]),
@@ -250,7 +258,8 @@ def test_info_reports_damaged_chunks_and_readable_frames(ctx):
     assert "b.chunk000024.usdc  frames 24..30: damaged" in out
     assert "readable frames: 0..7, 16..23" in out
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("warpsim: error: ") and "2 damaged chunk file(s)" in lines[0]
+    assert len(lines) == 1 and lines[0].startswith("warpsim: error: ")
+    assert "2 damaged chunk file(s)" in lines[0]
     assert "readable frames 0..7, 16..23" in lines[0] and "Traceback" not in err
     # same-size corruption is found by the CRC-32 (checked by default below 256 MiB, or --verify)
     path = chunk("b.chunk000016.usdc", "flip")(ctx)
@@ -280,7 +289,8 @@ def test_info_on_an_intact_cache_matches_reading_every_frame(ctx):
 
 def test_info_without_chunk_index_still_finds_damage(ctx):
     """Caches written before the chunk index existed: each chunk is opened in USD instead."""
-    path = ctx["fresh"](lambda d: ((d / "b.chunks.jsonl").unlink(), (d / "b.chunk000016.usdc").write_bytes(b"x")))
+    path = ctx["fresh"](lambda d: ((d / "b.chunks.jsonl").unlink(),
+                                   (d / "b.chunk000016.usdc").write_bytes(b"x")))
     code, out, err = run("info", path)
     assert code == 1 and "b.chunk000016.usdc  frames 16..23: damaged (does not open in USD" in out, out + err
     assert "(checked: opened in USD)" in out and "readable frames: 0..15, 24..30" in out
@@ -304,7 +314,8 @@ def test_resume_after_a_good_checkpoint_still_works(ctx):
 def subprocess_run(*argv, shell=None):
     if shell:
         return subprocess.run(["bash", "-c", shell], capture_output=True, text=True, timeout=300)
-    return subprocess.run([sys.executable, "-m", "warpsim", *argv], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "warpsim", *argv], capture_output=True, text=True,
+                          timeout=300)
 
 
 def error_lines(stderr):
@@ -334,6 +345,7 @@ def test_console_entry_damaged_checkpoint_and_closed_pipe(ctx):
     lines = error_lines(proc.stderr)
     assert proc.returncode == 2 and len(lines) == 1 and "b.checkpoint.npz" in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
-    proc = subprocess_run(shell=f"{sys.executable} -m warpsim list | head -1; echo \"status=${{PIPESTATUS[0]}}\"")
+    pipe = f"{sys.executable} -m warpsim list | head -1; echo \"status=${{PIPESTATUS[0]}}\""
+    proc = subprocess_run(shell=pipe)
     assert proc.stdout.splitlines()[0].startswith("bounce ") and "status=0" in proc.stdout
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr

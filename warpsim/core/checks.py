@@ -11,6 +11,7 @@ Errors are ``ValueError`` (bad values) or :class:`MissingFileError` / :class:`Un
 for files (subclasses of both ``FileNotFoundError``/``PermissionError`` and ``ValueError``, so
 ``except ValueError`` keeps catching them).
 """
+
 from __future__ import annotations
 
 import errno
@@ -21,9 +22,24 @@ import os
 import numpy as np
 
 __all__ = [
-    "MissingFileError", "UnreadableFileError", "choice", "count", "existing_file", "finite", "in_range",
-    "integer", "mesh_vertices", "nonnegative", "number", "numbers_array", "positive", "same_length", "sequence_of",
-    "show", "vec3", "vectors",
+    "MissingFileError",
+    "UnreadableFileError",
+    "choice",
+    "count",
+    "existing_file",
+    "finite",
+    "in_range",
+    "integer",
+    "mesh_vertices",
+    "nonnegative",
+    "number",
+    "numbers_array",
+    "positive",
+    "same_length",
+    "sequence_of",
+    "show",
+    "vec3",
+    "vectors",
 ]
 
 
@@ -55,7 +71,7 @@ def show(value, limit: int = 60) -> str:
         text = repr(value)
         if not isinstance(value, (list, tuple, np.ndarray)):
             text = f"{text} ({type(value).__name__})"
-    return text if len(text) <= limit else text[:limit - 3] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _unit(unit):
@@ -91,8 +107,9 @@ def finite(value, what: str, unit: str = "", fix: str = "") -> float:
     return v
 
 
-def in_range(value, what: str, lo=None, hi=None, *, lo_open=False, hi_open=False, unit: str = "",
-             fix: str = "") -> float:
+def in_range(
+    value, what: str, lo=None, hi=None, *, lo_open=False, hi_open=False, unit: str = "", fix: str = ""
+) -> float:
     """A finite float with ``lo <= value <= hi`` (``<`` where ``lo_open``/``hi_open``)."""
     parts = []
     if lo is not None:
@@ -133,7 +150,11 @@ def integer(value, what: str, lo=None, hi=None, fix: str = "") -> int:
         raise ValueError(f"{what} must be {req}, got {show(value)}{_fix(fix)}")
     if isinstance(value, (numbers.Integral, np.integer)):
         v = int(value)
-    elif isinstance(value, (numbers.Real, np.floating)) and math.isfinite(float(value)) and float(value).is_integer():
+    elif (
+        isinstance(value, (numbers.Real, np.floating))
+        and math.isfinite(float(value))
+        and float(value).is_integer()
+    ):
         v = int(value)
     else:
         raise ValueError(f"{what} must be {req}, got {show(value)}{_fix(fix)}")
@@ -156,27 +177,36 @@ def choice(value, what: str, choices, fix: str = ""):
     if not ok:
         import difflib
 
-        close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1) if isinstance(value, str) \
+        close = (
+            difflib.get_close_matches(str(value), [str(c) for c in choices], n=1)
+            if isinstance(value, str)
             else []
+        )
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"{what} {show(value)} is unknown; use one of {', '.join(map(repr, choices))}"
-                         f"{hint}{_fix(fix)}")
+        raise ValueError(
+            f"{what} {show(value)} is unknown; use one of {', '.join(map(repr, choices))}{hint}{_fix(fix)}"
+        )
     return value
 
 
 def vec3(value, what: str, *, nonzero: bool = False, unit: str = "", fix: str = "") -> tuple:
     """A tuple of 3 finite floats (a sequence of numbers; strings are rejected)."""
     if isinstance(value, (str, bytes)) or value is None or isinstance(value, numbers.Number):
-        raise ValueError(f"{what} must be a sequence of 3 numbers{_unit(unit)}, got {show(value)}"
-                         f"{_fix(fix or 'e.g. (0.0, 1.0, 0.0)')}")
+        raise ValueError(
+            f"{what} must be a sequence of 3 numbers{_unit(unit)}, got {show(value)}"
+            f"{_fix(fix or 'e.g. (0.0, 1.0, 0.0)')}"
+        )
     try:
         items = list(value)
     except TypeError:
-        raise ValueError(f"{what} must be a sequence of 3 numbers{_unit(unit)}, got {show(value)}"
-                         f"{_fix(fix or 'e.g. (0.0, 1.0, 0.0)')}") from None
+        raise ValueError(
+            f"{what} must be a sequence of 3 numbers{_unit(unit)}, got {show(value)}"
+            f"{_fix(fix or 'e.g. (0.0, 1.0, 0.0)')}"
+        ) from None
     if len(items) != 3:
-        raise ValueError(f"{what} must have 3 components, got {len(items)}: {show(value)}"
-                         f"{_fix(fix or 'give (x, y, z)')}")
+        raise ValueError(
+            f"{what} must have 3 components, got {len(items)}: {show(value)}{_fix(fix or 'give (x, y, z)')}"
+        )
     out = []
     for k, c in enumerate(items):
         out.append(_to_float(c, f"{what} component {k}", "a number", fix or "give 3 numbers (x, y, z)"))
@@ -194,7 +224,9 @@ def _as_float_array(values, what, fix):
     try:
         arr = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{what} must be an array of numbers ({exc}), got {show(values)}{_fix(fix)}") from None
+        raise ValueError(
+            f"{what} must be an array of numbers ({exc}), got {show(values)}{_fix(fix)}"
+        ) from None
     return arr
 
 
@@ -204,35 +236,51 @@ def float_array(values, what: str, fix: str = "") -> np.ndarray:
     return np.asarray(_as_float_array(values, what, fix), dtype=np.float64)
 
 
-def vectors(values, what: str, width: int = 3, *, item: str = "row", min_count: int = 0, unit: str = "",
-            fix: str = "") -> np.ndarray:
+def vectors(
+    values, what: str, width: int = 3, *, item: str = "row", min_count: int = 0, unit: str = "", fix: str = ""
+) -> np.ndarray:
     """(N, width) float64 array of finite values; a flat list of ``N * width`` numbers or a
     single vector (N = 1) is accepted. Errors name the first bad row: ``{what} {item} 4``."""
     arr = _as_float_array(values, what, fix)
     if arr.ndim == 1 and arr.size == width:
         arr = arr.reshape(1, width)
     if arr.ndim != 2 or arr.shape[1] != width:
-        raise ValueError(f"{what} must have shape (N, {width}){_unit(unit)}, got shape {arr.shape}"
-                         f"{_fix(fix or f'give one row of {width} numbers per {item}')}")
+        raise ValueError(
+            f"{what} must have shape (N, {width}){_unit(unit)}, got shape {arr.shape}"
+            f"{_fix(fix or f'give one row of {width} numbers per {item}')}"
+        )
     bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
     if len(bad):
         k = int(bad[0])
-        raise ValueError(f"{what}: {item} {k} is not finite: {arr[k].tolist()}"
-                         f"{_fix(fix or f'give finite values (or remove {item} {k})')}")
+        raise ValueError(
+            f"{what}: {item} {k} is not finite: {arr[k].tolist()}"
+            f"{_fix(fix or f'give finite values (or remove {item} {k})')}"
+        )
     if len(arr) < min_count:
         raise ValueError(f"{what} needs at least {min_count} {item}(s), got {len(arr)}{_fix(fix)}")
     return arr
 
 
-def numbers_array(values, what: str, length=None, *, lo=None, lo_open=False, item: str = "entry",
-                  unit: str = "", fix: str = "") -> np.ndarray:
+def numbers_array(
+    values,
+    what: str,
+    length=None,
+    *,
+    lo=None,
+    lo_open=False,
+    item: str = "entry",
+    unit: str = "",
+    fix: str = "",
+) -> np.ndarray:
     """1-D float64 array of finite numbers (a scalar is broadcast to ``length``), optionally
     ``>= lo`` (``> lo`` with ``lo_open``)."""
     arr = _as_float_array(values, what, fix)
     if arr.ndim == 0 and length is not None:
         arr = np.full(int(length), float(arr))
     if arr.ndim != 1:
-        raise ValueError(f"{what} must be a 1-D sequence of numbers{_unit(unit)}, got shape {arr.shape}{_fix(fix)}")
+        raise ValueError(
+            f"{what} must be a 1-D sequence of numbers{_unit(unit)}, got shape {arr.shape}{_fix(fix)}"
+        )
     if length is not None and len(arr) != length:
         raise ValueError(f"{what} has {len(arr)} entries but {length} are needed{_fix(fix)}")
     bad = np.flatnonzero(~np.isfinite(arr))
@@ -250,8 +298,10 @@ def same_length(**arrays) -> int:
     items = [(name, len(a)) for name, a in arrays.items() if a is not None]
     for name, n in items[1:]:
         if n != items[0][1]:
-            raise ValueError(f"{items[0][0]} has {items[0][1]} entries but {name} has {n}; give one {name} "
-                             f"per {items[0][0]} entry")
+            raise ValueError(
+                f"{items[0][0]} has {items[0][1]} entries but {name} has {n}; give one {name} "
+                f"per {items[0][0]} entry"
+            )
     return items[0][1] if items else 0
 
 
@@ -259,25 +309,36 @@ def sequence_of(items, what: str, cls, example: str) -> list:
     """``items`` as a list of ``cls`` instances. A single instance (``forces=ws.Gravity()``) or
     a non-sequence gets a message showing the list form ``example``."""
     if isinstance(items, cls):
-        raise ValueError(f"{what} must be a list, got a single {type(items).__name__}; write {what}=[...] "
-                         f"(e.g. {example})")
+        raise ValueError(
+            f"{what} must be a list, got a single {type(items).__name__}; write {what}=[...] (e.g. {example})"
+        )
     if isinstance(items, (str, bytes, dict)):
-        raise ValueError(f"{what} must be a list of {cls.__name__} objects, got {show(items)}; e.g. {example}")
+        raise ValueError(
+            f"{what} must be a list of {cls.__name__} objects, got {show(items)}; e.g. {example}"
+        )
     try:
         out = list(items)
     except TypeError:
-        raise ValueError(f"{what} must be a list of {cls.__name__} objects, got {show(items)}; "
-                         f"e.g. {example}") from None
+        raise ValueError(
+            f"{what} must be a list of {cls.__name__} objects, got {show(items)}; e.g. {example}"
+        ) from None
     for k, obj in enumerate(out):
         if not isinstance(obj, cls):
-            raise ValueError(f"{what}[{k}] is {type(obj).__name__}, not a warpsim {cls.__name__}; e.g. {example}")
+            raise ValueError(
+                f"{what}[{k}] is {type(obj).__name__}, not a warpsim {cls.__name__}; e.g. {example}"
+            )
     return out
 
 
 def mesh_vertices(points, what: str = "mesh", *, fix: str = "") -> np.ndarray:
     """(V, 3) float64 vertices, every one finite; the error names the first bad vertex."""
-    return vectors(points, f"{what} vertices", 3, item="vertex",
-                   fix=fix or "fix or remove that vertex (NaN/inf coordinates cannot be meshed)")
+    return vectors(
+        points,
+        f"{what} vertices",
+        3,
+        item="vertex",
+        fix=fix or "fix or remove that vertex (NaN/inf coordinates cannot be meshed)",
+    )
 
 
 def existing_file(path, what: str = "file") -> str:
@@ -289,6 +350,9 @@ def existing_file(path, what: str = "file") -> str:
     if os.path.isdir(path):
         raise ValueError(f"{what} {path!r} is a folder, not a file; name the file inside it")
     if not os.access(path, os.R_OK):
-        raise _file_error(UnreadableFileError, f"{what} {path!r} cannot be read (permission denied); fix its "
-                          "permissions", path)
+        raise _file_error(
+            UnreadableFileError,
+            f"{what} {path!r} cannot be read (permission denied); fix its permissions",
+            path,
+        )
     return path

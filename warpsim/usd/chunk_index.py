@@ -15,6 +15,7 @@ refuses to continue a cache whose frames before the checkpoint are not all intac
 A torn last line (a process killed while appending) is ignored: the root layer, rewritten only
 after the line is synced, never lists that chunk.
 """
+
 from __future__ import annotations
 
 import json
@@ -23,8 +24,15 @@ import zlib
 
 import numpy as np
 
-__all__ = ["ChunkStats", "chunk_problem", "file_digest", "index_path", "read_index", "readable_ranges",
-           "write_index"]
+__all__ = [
+    "ChunkStats",
+    "chunk_problem",
+    "file_digest",
+    "index_path",
+    "read_index",
+    "readable_ranges",
+    "write_index",
+]
 
 SUFFIX = ".chunks.jsonl"
 
@@ -86,8 +94,14 @@ class ChunkStats:
 def record(path, start, end, stats):
     """The index line of the chunk file at ``path`` holding frames ``start..end``."""
     size, crc = file_digest(path)
-    return {"file": os.path.basename(path), "start": int(start), "end": int(end), "bytes": size, "crc32": crc,
-            "prims": stats.to_json()}
+    return {
+        "file": os.path.basename(path),
+        "start": int(start),
+        "end": int(end),
+        "bytes": size,
+        "crc32": crc,
+        "prims": stats.to_json(),
+    }
 
 
 def append_record(index_file, rec, durable=True):
