@@ -58,8 +58,8 @@ def main(argv=None):
 
     frame_dt, substeps, _ = frame_timing(cls, params)
     scene = cls(dict(params), device=a.device)  # the headless reference
-    model = getattr(getattr(scene, "sim", None), "model", None)
-    count = model.particle_count if model is not None else None
+    data = scene.frame_data()  # particles per points prim, as the scene hands them to every sink
+    count = sum(len(d["points"]) for name, d in data.items() if "points" in d and name not in ("springs", "drag"))
 
     # the viewer's loop, as fast as it can, drawing every frame
     v = Viewer(cls, params, a.device, port=_free_port(), max_points=a.max_points, paused=True,
@@ -114,7 +114,7 @@ def main(argv=None):
         print(f"viewer loop failed: {error}")
         return 1
     shown = {k: len(it.points) for k, it in s.items.items()}
-    print(f"scene {a.scene} on {a.device}: {count or '?'} particles, drawn {shown}, frame_dt {frame_dt:.4g} s, "
+    print(f"scene {a.scene} on {a.device}: {count} points, drawn {shown}, frame_dt {frame_dt:.4g} s, "
           f"{substeps} substeps{', browser connected' if a.browser else ''}; 3 rounds of {a.seconds:g} s, best")
     print(f"headless:  {headless_fps:.1f} frames/s ({1e3 / headless_fps:.2f} ms/frame)")
     print(f"viewer:    {viewer_fps:.1f} simulated frames/s, {shown_fps:.1f} displayed frames/s "
