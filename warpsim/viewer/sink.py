@@ -113,7 +113,8 @@ class ViewerSink(PrimSink):
                 continue
             samples = decl.frame_samples(data.get(name), frame)
             # own copies: on the CPU, state arrays are views that the next step overwrites
-            samples = {k: np.array(v, copy=True) if isinstance(v, np.ndarray) else v for k, v in samples.items()}
+            samples = {k: v.copy() if isinstance(v, np.ndarray) and v.base is not None else v
+                       for k, v in samples.items()}
             out[name] = self._item(name, decl, samples)
         return out
 
