@@ -247,3 +247,9 @@ def test_a_batch_that_raises_is_flagged_and_the_root_spans_the_other_batches(clu
     assert sorted(vset.GetVariantNames()) == [f"world_{w:06d}" for w in (0, 1, 4, 5)]
     with open(result["table"]) as fh:
         assert fh.read().count("RuntimeError: out of device memory") == 2
+    # --resume runs the failed batch again (the memory may be there now) and nothing else
+    again = run_ray_sweep(SCENE, worlds, frames=FRAMES, out_path=str(tmp_path / "s.usda"),
+                          table_path=str(tmp_path / "s.csv"), device="cpu", batch_size=2, resume=True)
+    assert again["ran"] == [1] and again["skipped"] == [0, 2]
+    with open(again["table"]) as fh:
+        assert fh.read().splitlines() == reference[1].splitlines()[:7]  # header + worlds 0..5

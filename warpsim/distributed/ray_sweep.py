@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -92,7 +93,7 @@ def _layer_name(out_path, index):
 
 
 def _blown_rows(world_params, first_world, error):
-    return [{"world": first_world + i, **params, "blown_up": True, "batch_error": error}
+    return [{"world": first_world + i, **params, "blown_up": 1, "batch_error": error}
             for i, params in enumerate(world_params)]
 
 
@@ -101,9 +102,9 @@ def run_batch_task(spec):
 
     ``spec`` keys: ``scene``, ``worlds`` (list of parameter dicts), ``first_world``, ``index``,
     ``frames``, ``fps``, ``substeps``, ``device``, ``final_dir``, ``layer_name``, ``runner`` (None:
-    ``warpsim.worlds.run_batch``), ``options`` (more keyword arguments for it) and ``kill_once`` (tests only: a marker path; the first attempt
-    that finds no marker creates it and SIGKILLs its own worker after the layer is written but
-    before it is published). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
+    ``warpsim.worlds.run_batch``), ``options`` (more keyword arguments for it) and ``kill_once``
+    (tests only: a marker path; the first attempt that finds no marker creates it and SIGKILLs its
+    own worker after the layer is written but before it is published). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
     """
     import warp as wp
 
@@ -126,7 +127,8 @@ def run_batch_task(spec):
         error = f"{type(exc).__name__}: {exc}".splitlines()[0]
         rows = _blown_rows(spec["worlds"], spec["first_world"], error)
         for name in os.listdir(tmp):  # no partial layer in a published batch
-            os.remove(os.path.join(tmp, name))
+            path = os.path.join(tmp, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
     marker = spec.get("kill_once")
     if marker and not os.path.exists(marker):
         with open(marker, "w") as fh:
@@ -201,7 +203,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         batch_size: worlds per Ray task.
         address: a running cluster's address, or None / ``"local"`` to start a local one with
             ``num_cpus`` CPUs (an open ``ray.init`` connection is reused either way).
-        resume: skip the batches the manifest lists with an unchanged checksum.
+        resume: skip the batches the manifest lists with an unchanged checksum and no error.
         max_retries: Ray task retries after a worker dies.
         runner: the batch function (default ``warpsim.worlds.run_batch``); it must be picklable.
         batch_options: more keyword arguments for every ``runner`` call (e.g. ``track``).
@@ -237,15 +239,14 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         options, task_device = _task_resources(ray, device)  # refuses a device before touching any file
         os.makedirs(os.path.dirname(out_path), exist_ok=True)
         if manifest is None:
-            import shutil
-
             shutil.rmtree(batches_root(out_path), ignore_errors=True)  # the previous sweep of this name
             if os.path.exists(out_path):
                 os.remove(out_path)  # its root referenced those batches
             manifest = SweepManifest.new(mpath, sweep)
             manifest.save()
         os.makedirs(batches_root(out_path), exist_ok=True)
-        skipped = [i for i in range(len(batches)) if resume and manifest.finished(i)]
+        # a resume runs again what is not listed, what changed on disk and what raised (maybe out of memory)
+        skipped = [i for i in range(len(batches)) if resume and manifest.finished(i) and not manifest.batches[i]["error"]]
         todo = [i for i in range(len(batches)) if i not in skipped]
         task = ray.remote(run_batch_task).options(max_retries=max_retries, retry_exceptions=False, **options)
         pending = {}
@@ -263,6 +264,8 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             try:
                 result = ray.get(done[0])
             except Exception as exc:  # noqa: BLE001  (Ray wraps worker deaths past max_retries)
+                for ref in pending:  # the sweep stops here; its other tasks need not run on
+                    ray.cancel(ref, force=True)
                 raise RaySweepError(f"batch {i} (worlds {batches[i][0]}..{sum(batches[i]) - 1}) failed after "
                                    f"{max_retries} retries: {str(exc).splitlines()[0]}; the finished batches are "
                                    "in the manifest: run again with --resume") from None
