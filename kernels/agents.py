@@ -20,6 +20,8 @@ hash grid at the images of the agent, so every pair interacts through its minimu
 
 import warp as wp
 
+from .worlds import world_key
+
 wp.set_module_options({"enable_backward": False})
 
 FLYING = wp.constant(0)
@@ -377,16 +379,6 @@ def nearest_food(food: Food, x: wp.vec3, radius: float, start: int) -> int:
 # Neighbour rules
 # --------------------------------------------------------------------------------------
 @wp.kernel
-def key_world_points(
-    x: wp.array(dtype=wp.vec3), agent_world: wp.array(dtype=int), world_stride: float,
-    keyed_out: wp.array(dtype=wp.vec3),
-):
-    """Grid points of batched worlds: each agent raised by world_stride [m] per world index along y."""
-    i = wp.tid()
-    keyed_out[i] = x[i] + wp.vec3(0.0, world_stride * float(agent_world[i]), 0.0)
-
-
-@wp.kernel
 def eval_neighbour_rules(
     grid: wp.uint64,
     x: wp.array(dtype=wp.vec3),
@@ -399,6 +391,7 @@ def eval_neighbour_rules(
     lookahead: float,
     agent_world: wp.array(dtype=int),
     world_stride: float,
+    world_side: int,
     separation_out: wp.array(dtype=wp.vec3),
     alignment_out: wp.array(dtype=wp.vec3),
     cohesion_out: wp.array(dtype=wp.vec3),
@@ -426,8 +419,8 @@ def eval_neighbour_rules(
     unchanged).
 
     Batched worlds: agents only see agents of their own world ``agent_world``; the grid holds each
-    world's agents raised by ``world_stride`` [m] per world index along y (0: one world), so a query
-    meets its own world's cells."""
+    world's agents moved by ``worlds.world_key`` (``world_stride`` [m] apart on a cube of side
+    ``world_side``; stride 0: one world), so a query meets its own world's cells."""
     i = wp.hash_grid_point_id(grid, wp.tid())
     p = rules[kind[i]]
     xi = x[i]
@@ -476,7 +469,7 @@ def eval_neighbour_rules(
                         continue
                     if q[2] < space.lower[2] - rq or q[2] > space.upper[2] + rq:
                         continue
-                key = wp.vec3(0.0, world_stride * float(agent_world[i]), 0.0)
+                key = world_key(agent_world[i], world_stride, world_side)
                 query = wp.hash_grid_query(grid, q + key, rq)
                 j = int(0)  # noqa: RUF046, UP018
                 while wp.hash_grid_query_next(query, j):

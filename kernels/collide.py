@@ -29,6 +29,8 @@ Particle-particle collisions (``count_particle_contacts`` / ``collide_particle_p
 
 import warp as wp
 
+from .worlds import world_key
+
 wp.set_module_options({"enable_backward": False})
 
 COLLIDE_REFLECT = wp.constant(0)
@@ -557,15 +559,20 @@ def count_particle_contacts(
     radius: wp.array(dtype=float),
     inv_mass: wp.array(dtype=float),
     max_radius: float,
+    particle_world: wp.array(dtype=int),
+    world_stride: float,
+    world_side: int,
     count_out: wp.array(dtype=int),
 ):
-    """count_out[i] = number of particles overlapping particle i (|x_j - x_i| < r_i + r_j)."""
+    """count_out[i] = number of particles overlapping particle i (|x_j - x_i| < r_i + r_j).
+    Batched worlds: only particles of i's world count; the grid holds x + world_key(world)."""
     i = wp.tid()
     x = q[i]
     ri = radius[i]
+    wi = particle_world[i]
     count = int(0)  # noqa: UP018, RUF046 (a Warp dynamic variable)
-    for j in wp.hash_grid_query(grid, x, ri + max_radius):
-        if j != i and (inv_mass[i] > 0.0 or inv_mass[j] > 0.0):
+    for j in wp.hash_grid_query(grid, x + world_key(wi, world_stride, world_side), ri + max_radius):
+        if j != i and particle_world[j] == wi and (inv_mass[i] > 0.0 or inv_mass[j] > 0.0):
             dist = wp.length(q[j] - x)
             if dist < ri + radius[j] and dist > 0.0:
                 count += 1
@@ -584,6 +591,9 @@ def collide_particle_pairs(
     restitution: float,
     friction: float,
     separate: int,
+    particle_world: wp.array(dtype=int),
+    world_stride: float,
+    world_side: int,
     q_out: wp.array(dtype=wp.vec3),
     qd_out: wp.array(dtype=wp.vec3),
 ):
@@ -594,14 +604,16 @@ def collide_particle_pairs(
     n = (x_b - x_a)/|x_b - x_a| when approaching (u_n = (v_b - v_a) . n < 0), tangential
     Coulomb friction at most mu J and never reversing the relative slip. With ``separate``
     the overlap is removed, split by inverse mass (centre of mass unchanged). Every pair is
-    scaled by 1 / max(contact_count[a], contact_count[b])."""
+    scaled by 1 / max(contact_count[a], contact_count[b]). Batched worlds: pairs within one
+    world only (see ``count_particle_contacts``)."""
     i = wp.tid()
     xi = q[i]
     ri = radius[i]
+    world_i = particle_world[i]
     dv = wp.vec3(0.0)
     dx = wp.vec3(0.0)
-    for j in wp.hash_grid_query(grid, xi, ri + max_radius):
-        if j == i:
+    for j in wp.hash_grid_query(grid, xi + world_key(world_i, world_stride, world_side), ri + max_radius):
+        if j == i or particle_world[j] != world_i:
             continue
         a = wp.min(i, j)
         b = wp.max(i, j)

@@ -13,6 +13,29 @@ wp.set_module_options({"enable_backward": False})
 
 
 # --------------------------------------------------------------------------------------
+# World keys: neighbour grids of batched worlds
+# --------------------------------------------------------------------------------------
+@wp.func
+def world_key(world: int, stride: float, side: int) -> wp.vec3:
+    """Offset [m] of a world's copy of space in a neighbour grid: world w sits at
+    stride * (w % side, (w / side) % side, w / side^2), so worlds fill a cube of side ``side``
+    (small offsets keep float32 positions precise) and a query meets its own world's cells."""
+    if stride == 0.0:
+        return wp.vec3(0.0)
+    return stride * wp.vec3(float(world % side), float((world / side) % side), float(world / (side * side)))
+
+
+@wp.kernel
+def key_world_points(
+    x: wp.array(dtype=wp.vec3), world: wp.array(dtype=int), stride: float, side: int,
+    keyed_out: wp.array(dtype=wp.vec3),
+):
+    """Grid points of batched worlds: x + world_key(world[i])."""
+    i = wp.tid()
+    keyed_out[i] = x[i] + world_key(world[i], stride, side)
+
+
+# --------------------------------------------------------------------------------------
 # Tiling (one world -> N worlds, on the device)
 # --------------------------------------------------------------------------------------
 @wp.kernel

@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels import agents as K
+from ..kernels import worlds as KW
 from .params import AgentState, _rule_struct
 from .world import Obstacles, Terrain, _points
 
@@ -93,7 +94,9 @@ class _Agents:
         self.agent_world = wp.zeros(n, dtype=int, device=d)
         """World of each agent (batched worlds, ``warpsim.worlds``; 0 otherwise), shape (agent_count,)."""
         self.world_stride = 0.0
-        """Grid offset [m] per world index along y (0: one world; see ``eval_neighbour_rules``)."""
+        """Grid offset [m] between worlds (0: one world; see ``eval_neighbour_rules``)."""
+        self.world_side = 1
+        """Worlds per side of the cube of world offsets in the grid."""
         self._grid_points = None
         self.time = 0.0
         """Simulated time [s]."""
@@ -150,14 +153,15 @@ class _Agents:
         if self.world_stride > 0.0:  # batched worlds: each world's agents in cells of their own
             if self._grid_points is None:
                 self._grid_points = wp.zeros_like(self.positions)
-            wp.launch(K.key_world_points, self.agent_count,
-                      inputs=[self.positions, self.agent_world, self.world_stride, self._grid_points],
-                      device=self.device)
+            wp.launch(KW.key_world_points, self.agent_count,
+                      inputs=[self.positions, self.agent_world, self.world_stride, self.world_side,
+                              self._grid_points], device=self.device)
             points = self._grid_points
         self.grid.build(points, self.cell_size)
         wp.launch(K.eval_neighbour_rules, self.agent_count,
                   inputs=[self.grid.id, self.positions, self.velocities, self.kinds, self.groups, self.state,
-                          self.rules, self.space, float(lookahead), self.agent_world, float(self.world_stride)],
+                          self.rules, self.space, float(lookahead), self.agent_world, float(self.world_stride),
+                          int(self.world_side)],
                   outputs=[self.separation, self.alignment, self.cohesion, self.draft, self.benefit, self.push,
                            self.neighbour_counts], device=self.device)
 

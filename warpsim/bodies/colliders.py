@@ -33,6 +33,7 @@ from ..core import checks
 from ..core.builder import _vec3
 from ..core.collider import Collider
 from ..kernels import collide as K
+from ..kernels import worlds as KW
 
 MODES = {"reflect": 0, "project": 1, "penalty": 2}
 
@@ -570,19 +571,36 @@ class ParticleCollisions(Collider):
         self._count = wp.zeros(n, dtype=int, device=d)
         self._q = wp.zeros(n, dtype=wp.vec3, device=d)
         self._qd = wp.zeros(n, dtype=wp.vec3, device=d)
+        # batched worlds (warpsim.worlds): pairs only within a world, each world's copy of space
+        # offset in the grid by a stride a few times its extent (one world: no offset)
+        worlds = getattr(model, "world_count", 1)
+        self._world = getattr(model, "particle_world", None) if worlds > 1 else None
+        if self._world is None:
+            self._world = wp.zeros(n, dtype=int, device=d)
+        q = model.particle_q.numpy()
+        extent = float(np.ptp(q, axis=0).max()) if n else 0.0
+        self._stride = 4.0 * (extent + 1.0 + 8.0 * self.max_radius) if worlds > 1 else 0.0
+        self._side = max(1, int(np.ceil(worlds ** (1.0 / 3.0) - 1e-9)))
+        self._keyed = wp.zeros(n, dtype=wp.vec3, device=d) if worlds > 1 else None
 
     def apply(self, model, state, q_prev, dt):
         n = model.particle_count
         if n == 0:
             return
         d = model.device
-        self.grid.build(state.positions, 2.0 * self.max_radius)
+        points = state.positions
+        if self._keyed is not None:
+            wp.launch(KW.key_world_points, n, inputs=[state.positions, self._world, self._stride, self._side,
+                                                      self._keyed], device=d)
+            points = self._keyed
+        self.grid.build(points, 2.0 * self.max_radius)
+        world = (self._world, self._stride, self._side)
         wp.launch(K.count_particle_contacts, n,
                   inputs=[self.grid.id, state.positions, model.particle_radius, model.particle_inv_mass,
-                          self.max_radius, self._count], device=d)
+                          self.max_radius, *world, self._count], device=d)
         wp.launch(K.collide_particle_pairs, n,
                   inputs=[self.grid.id, state.positions, state.velocities, model.particle_radius,
                           model.particle_inv_mass, self._count, self.max_radius, self.restitution, self.friction,
-                          self.separate, self._q, self._qd], device=d)
+                          self.separate, *world, self._q, self._qd], device=d)
         wp.copy(state.positions, self._q)
         wp.copy(state.velocities, self._qd)

@@ -139,8 +139,9 @@ class AgentWorldBatch:
         batch.heading.assign(cat("heading"))
         n, a = len(flocks), f0.agent_count
         batch.agent_world = wp.array(np.repeat(np.arange(n, dtype=np.int32), a), dtype=int, device=self.device)
-        height = float(hi[1] - lo[1]) if lo is not None else 1.0e3
-        batch.world_stride = 4.0 * (height + 4.0 * batch.cell_size) if n > 1 else 0.0
+        extent = float(np.max(hi - lo)) if lo is not None else 1.0e3
+        batch.world_stride = 4.0 * (extent + 4.0 * batch.cell_size) if n > 1 else 0.0
+        batch.world_side = max(1, int(np.ceil(n ** (1.0 / 3.0) - 1e-9)))
         if f0.food is not None:
             batch._food.count = len(f0.food.positions)  # one block of sources per world
         return batch

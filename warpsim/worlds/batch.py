@@ -8,7 +8,8 @@ per-world gravity and wall coefficients). ``model.particle_world`` (shape (N P,)
 particle to its world; world w owns particles ``w P .. (w + 1) P - 1``.
 
 Worlds never interact: springs join particles of one world, every force and collider acts per
-particle, and colliders that couple particles (particle-particle collisions) are refused. A
+particle, and particle-particle collisions pair particles of one world only (their hash grid is
+keyed by ``model.particle_world``). A
 world that blows up (non-finite state or a speed above the scene's ``max_speed``) is flagged at
 the end of the frame and frozen at its last good frame; the others run on.
 """
@@ -167,8 +168,9 @@ class WorldBatch:
             elif count:
                 raise StructuralError(f"model array {name} has dtype {base.dtype}; batched worlds tile int and float")
             setattr(mb, name, out)
-        for name, value in vars(m0).items():
-            if name.endswith("_count") and isinstance(value, int) and not hasattr(mb, name):
+        for name, value in vars(m0).items():  # further per-world counts (e.g. breakable_spring_count)
+            if name.endswith("_count") and isinstance(value, int) and not name.startswith(("world_", "particle_",
+                                                                                            "spring_")):
                 setattr(mb, name, n * value)
         mass = mb.particle_mass.numpy() if "particle_mass" in self._scaled() else None
         if mass is not None and (mass < 0).any():
@@ -212,11 +214,8 @@ class WorldBatch:
                 r = self._affine([c.restitution], None, coeff["restitution"])[:, 0]
                 mu = self._affine([c.friction], None, coeff["friction"])[:, 0]
                 colliders.append(WorldPlanes(c, r, mu))
-            elif type(c).__name__ == "ParticleCollisions":
-                raise StructuralError("particle-particle collisions would need a hash grid keyed by world; batched "
-                                      "worlds do not support them yet")
-            else:
-                colliders.append(copy.copy(c))  # shared static or kinematic shape: each world meets its own copy
+            else:  # shared shapes (each world meets its own copy); particle pairs keyed by world
+                colliders.append(copy.copy(c))
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
         if self.fused and not hasattr(sim0, "use_graph"):
             from ..cloth.solver import ClothSemiImplicitEuler, ClothSimulator
