@@ -60,6 +60,17 @@ def frame_runner(advance, device, use_graph):
     return lambda: wp.capture_launch(capture.graph)
 
 
+def measure_fused(batch, frames, frame_dt, substeps, device):
+    """(seconds per step, bytes per step, mode) of a ``fused=True`` batch."""
+    run = frame_runner(lambda: batch.advance(frame_dt, substeps), device, False)  # it captures its own graphs
+    seconds = timed(lambda: [run() for _ in range(frames)], device) / (frames * substeps)
+    batch.sim.use_graph = False  # an eager frame, so that every launch is seen
+    with LaunchRecorder() as rec:
+        batch.advance(frame_dt, substeps)
+        wp.synchronize_device(device)
+    return seconds, sum(rec.bytes.values()) / substeps, batch.sim.integrator.mode
+
+
 def array_bytes(obj):
     return sum(v.size * wp.types.type_size_in_bytes(v.dtype) for v in vars(obj).values() if isinstance(v, wp.array))
 
@@ -72,6 +83,8 @@ def main():
     p.add_argument("--builder-worlds", type=int, default=8, help="teapots built through add_soft_body (scaled)")
     p.add_argument("--frames", type=int, default=10, help="frames timed")
     p.add_argument("--resolution", default="low")
+    p.add_argument("--no-fused", action="store_true", help="skip the fused-step batch (its host-side adjacency "
+                                                             "build takes a while beyond ~1,000 worlds)")
     p.add_argument("--bandwidth-bytes", type=int, default=None, help="bytes of the bandwidth copy (default 1 GiB "
                                                                      "on GPUs, 256 MiB on the CPU)")
     args = p.parse_args()
@@ -128,15 +141,9 @@ def main():
 
     # ---------------------------------------------------------------- batched, fused step
     # the same worlds through the cloth solver's fused semi-implicit step (gather on GPUs)
-    fused_batch = WorldBatch(cls, worlds, device=device, fused=True)
-    run = frame_runner(lambda: fused_batch.advance(frame_dt, substeps), device, False)  # graphs inside
-    fused = timed(lambda: [run() for _ in range(args.frames)], device) / (args.frames * substeps)
-    fused_batch.sim.use_graph = False  # an eager frame, so that every launch is seen
-    with LaunchRecorder() as rec_fused:
-        fused_batch.advance(frame_dt, substeps)
-        wp.synchronize_device(device)
-    fused_bytes = sum(rec_fused.bytes.values()) / substeps
-    mode = fused_batch.sim.integrator.mode
+    fused_batch = None if args.no_fused else WorldBatch(cls, worlds, device=device, fused=True)
+    if fused_batch is not None:
+        fused, fused_bytes, mode = measure_fused(fused_batch, args.frames, frame_dt, substeps, device)
 
     # ---------------------------------------------------------------- sequential
     ks = max(1, min(args.sequential, n))
@@ -152,8 +159,10 @@ def main():
           f"({ks} worlds timed, {sequential / n * 1e3:.4f} ms each, scaled to {n}); ratio {sequential / batched:.1f}x")
     print(f"bytes per batched step {step_bytes / 1e6:.2f} MB ({step_bytes / (n * P):.0f} B per particle): "
           f"{step_bytes / batched / 1e9:.1f} GB/s = {100 * fraction:.1f} % of the copy bandwidth")
-    print(f"fused ({mode}): batched {fused * 1e3:.4f} ms per step, ratio {sequential / fused:.1f}x to sequential; "
-          f"{fused_bytes / 1e6:.2f} MB per step = {100 * fused_bytes / fused / bandwidth:.1f} % of the copy bandwidth")
+    if fused_batch is not None:
+        print(f"fused ({mode}): batched {fused * 1e3:.4f} ms per step, ratio {sequential / fused:.1f}x to sequential; "
+              f"{fused_bytes / 1e6:.2f} MB per step = {100 * fused_bytes / fused / bandwidth:.1f} % of the copy "
+              "bandwidth")
     print(f"memory: {per_world / n / 1e3:.1f} kB per world on the device (model + state arrays); "
           f"worlds blown up: {bad}; finite: {bool(np.isfinite(x).all())}")
     top = sorted(rec.bytes.items(), key=lambda kv: -kv[1])
