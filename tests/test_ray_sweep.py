@@ -89,6 +89,12 @@ def test_ray_options_without_ray_or_out_of_range_exit_2_with_one_line():
         assert words in err.getvalue() and err.getvalue().count("\n") == 1, err.getvalue()
 
 
+def test_import_warpsim_does_not_import_ray():
+    code = ("import sys, warpsim, warpsim.distributed.ray_sweep, warpsim.worlds.command, warpsim.cli as c; "
+            "c._parser(); assert 'ray' not in sys.modules, 'ray imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
 # --- on a local cluster ---------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
