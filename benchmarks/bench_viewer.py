@@ -37,7 +37,8 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--scene", default="teapot")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--seconds", type=float, default=3.0, help="wall seconds per timed round (3 rounds each)")
+    ap.add_argument("--seconds", type=float, default=2.0, help="wall seconds per timed loop")
+    ap.add_argument("--rounds", type=int, default=5, help="paired rounds (headless, viewer); the median is shown")
     ap.add_argument("--max-points", type=int, default=200_000)
     ap.add_argument("--draw-fps", type=float, default=45.0, help="the viewer's display rate cap (default 45, as the viewer)")
     ap.add_argument("--browser", action="store_true", help="connect headless Chromium to the server while timing")
@@ -101,10 +102,12 @@ def main(argv=None):
     s.speed = float("inf")
     headless_run(0.5)  # warm-up: kernel loads, graph capture
     viewer_run(1.0)
-    rounds = 3  # interleaved, best of each: the machine's other load hits both alike
-    results = [(headless_run(a.seconds), viewer_run(a.seconds)) for _ in range(rounds)]
-    headless_fps = max(r[0] for r in results)
-    viewer_fps, shown_fps = max((r[1] for r in results), key=lambda r: r[0])
+    # paired rounds (headless, then viewer): the ratio within a pair cancels slow changes in the
+    # machine's other load; the median pair is reported
+    results = [(headless_run(a.seconds), viewer_run(a.seconds)) for _ in range(a.rounds)]
+    results.sort(key=lambda r: r[0] / r[1][0])
+    headless_fps, (viewer_fps, shown_fps) = results[len(results) // 2]
+    spread = [100 * (r[0] / r[1][0] - 1) for r in results]
     error = s.error
     if browser is not None:
         browser.close()
@@ -115,12 +118,13 @@ def main(argv=None):
         return 1
     shown = {k: len(it.points) for k, it in s.items.items()}
     print(f"scene {a.scene} on {a.device}: {count} points, drawn {shown}, frame_dt {frame_dt:.4g} s, "
-          f"{substeps} substeps{', browser connected' if a.browser else ''}; 3 rounds of {a.seconds:g} s, best")
+          f"{substeps} substeps{', browser connected' if a.browser else ''}; median of {a.rounds} paired rounds "
+          f"of {a.seconds:g} s")
     print(f"headless:  {headless_fps:.1f} frames/s ({1e3 / headless_fps:.2f} ms/frame)")
     print(f"viewer:    {viewer_fps:.1f} simulated frames/s, {shown_fps:.1f} displayed frames/s "
           f"(display capped at {a.draw_fps:g}/s)")
-    print(f"overhead:  {100 * (headless_fps / viewer_fps - 1):.1f} % of the headless frame time; "
-          f"real time needs {1 / frame_dt:.1f} frames/s")
+    print(f"overhead:  {100 * (headless_fps / viewer_fps - 1):.1f} % of the headless frame time (rounds: "
+          f"{', '.join(f'{x:.0f}' for x in spread)} %); real time needs {1 / frame_dt:.1f} frames/s")
     return 0
 
 
