@@ -75,6 +75,9 @@ def test_viewer_sink_draws_what_the_writer_records(tmp_path, name):
         for prim, item in read.items():
             assert item.kind == drawn[frame][prim].kind
             np.testing.assert_allclose(item.points, drawn[frame][prim].points, atol=1e-6)
+            if item.kind == "instances":  # w, x, y, z from USD's quaternions equals the live conversion
+                np.testing.assert_allclose(item.orientations, drawn[frame][prim].orientations, atol=2e-3)
+                assert np.array_equal(item.proto, drawn[frame][prim].proto)
 
 
 def test_live_parameters_and_rebuilds():
