@@ -11,7 +11,8 @@
    worker dies (killed, out of memory, node lost) is run again by Ray (``max_retries``); the dead
    attempt's temporary folder is never referenced and is removed at the end.
 3. As each batch finishes the driver checks its folder's checksum and records it in the manifest
-   (``warpsim.distributed.manifest``); ``--resume`` runs only batches the manifest does not list.
+   (``warpsim.distributed.manifest``); ``--resume`` runs only the batches the manifest does not
+   list, whose files changed since, or whose run raised.
 4. With every batch done, the driver writes the metric table (one row per world, in world order)
    and the root USD that references every batch's layer, so the variant set ``world`` spans all
    batches. A batch whose run raised (a blow-up the batch could not contain) does not stop the
