@@ -30,6 +30,7 @@ COMMON = {
     "integrator": ("implicit_euler", "implicit_euler (Baraff-Witkin) or semi_implicit_euler", CLOTH_INTEGRATORS),
     "explicit_substeps": (40, "semi_implicit_euler only: steps per frame sub-step (~40 for stability)"),
     "cg_tol": (1.0e-4, "implicit_euler: CG tolerance relative to |b|"),
+    "wind": (0.0, "gusting wind speed along +z [m/s]; air drag 2 x particle mass [kg/s] while it blows"),
 }
 
 
@@ -59,17 +60,24 @@ class ClothScene(SimulatorScene):
         self.sphere = Sphere(self.sphere_center, p["sphere_radius"], restitution=0.0, friction=p["friction"],
                              thickness=p["thickness"])
         self.floor = ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=0.0, friction=p["friction"], mode="project")
-        self.sim = ClothSimulator(model, integrator, colliders=[self.sphere, self.floor])
+        mass = model.particle_mass.numpy()
+        self.wind_coefficient = 2.0 * float(mass[mass > 0].mean()) if (mass > 0).any() else 0.0  # [kg/s]
+        self.wind = ws.Wind((0.0, 0.0, 1.0), speed=p["wind"], coefficient=self.wind_coefficient if p["wind"] else 0.0)
+        self.sim = ClothSimulator(model, integrator, forces=[ws.Gravity(), self.wind],
+                                  colliders=[self.sphere, self.floor])
         self.steps_per_substep = 1 if p["integrator"] == "implicit_euler" else p["explicit_substeps"]
 
     def springs(self, p):
         k = p["damping"]
         return {"structural": (p["structural"], k), "shear": (p["shear"], k), "bend": (p["bend"], 0.25 * k)}
 
-    live_params = ("friction", "structural", "shear", "bend", "damping")
+    live_params = ("friction", "structural", "shear", "bend", "damping", "wind")
 
     def apply_param(self, key, value):
-        if key == "friction":
+        if key == "wind":
+            self.wind.speed = float(value)
+            self.wind.coefficient = self.wind_coefficient if value else 0.0
+        elif key == "friction":
             set_contact(self.sim.colliders, friction=value)
         elif key == "damping":
             for kind, (start, count) in self.cloth.springs.items():
