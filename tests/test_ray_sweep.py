@@ -77,16 +77,19 @@ def test_publish_is_whole_and_manifest_detects_a_changed_batch(tmp_path):
         SweepManifest.load(str(tmp_path / "none.ray-manifest.json"))
 
 
-def test_ray_options_without_ray_or_out_of_range_exit_2_with_one_line():
+def test_ray_options_without_ray_or_out_of_range_exit_2_with_one_line(tmp_path):
     from warpsim.cli import main
 
-    base = ["sweep", SCENE, "--worlds", "2", "--vary", "stiffness=100,200", "--frames", "1", "--device", "cpu"]
+    base = ["sweep", SCENE, "--worlds", "2", "--vary", "stiffness=100,200", "--frames", "1", "--device", "cpu",
+            "--out", str(tmp_path / "s.usda")]
     for extra, words in [(["--resume"], "--resume goes with --ray"), (["--batch-size", "4"], "--batch-size goes"),
                          (["--ray", "--batch-size", "0"], "--batch-size 0: it must be >= 1"),
-                         (["--ray", "--ray-cpus", "0"], "--ray-cpus 0: it must be >= 1")]:
+                         (["--ray", "--ray-cpus", "0"], "--ray-cpus 0: it must be >= 1"),
+                         (["--ray", "--resume"], "--resume: no manifest")]:
         err = io.StringIO()
         assert main([*base, *extra], out=io.StringIO(), err=err) == 2
         assert words in err.getvalue() and err.getvalue().count("\n") == 1, err.getvalue()
+    assert os.listdir(tmp_path) == []  # nothing written
 
 
 def test_import_warpsim_does_not_import_ray():

@@ -230,7 +230,10 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     mpath = manifest_path(out_path)
     manifest = None
     if resume:
-        manifest = SweepManifest.load(mpath)
+        try:
+            manifest = SweepManifest.load(mpath)
+        except FileNotFoundError as exc:  # a usage mistake on the command line (exit 2)
+            raise ValueError(str(exc)) from None
         problem = manifest.mismatch(sweep)
         if problem:
             raise ValueError(f"--resume: {problem}")
