@@ -3,16 +3,16 @@ share of each step spent in soft-body contact.
 
 The scene is built with ``--count`` tori of ``--segments`` x ``--sides`` surface vertices
 (default 12 tori of 50 x 40 = 2,000 vertices, plus each torus's interior lattice), dropped for
-``--settle`` steps so that they touch, then three things are timed in this process on the same
+``--settle`` steps of ``--dt`` so that they touch (blow-up checks on), then three things are timed in this process on the same
 heap: the full step (semi-implicit Euler, springs, box walls, SoftContact), the SoftContact stage
 alone (refit of the BVH over all triangles, contact search, pushes and impulses), and the step
 without SoftContact. Printed: ms per step, the contact stage's share of a step, the ratio of a
 step with contact to one without, and the number of vertex contacts. On CUDA the full step is
 also timed as a captured graph.
 
-    python benchmarks/bench_donuts.py --device cpu --count 12 --segments 50 --sides 40 --steps 20
-    python benchmarks/bench_donuts.py --device cpu --count 3 --segments 16 --sides 8   # quick check
-    python benchmarks/bench_donuts.py --device cuda:0 --settle 2000 --steps 500
+    python benchmarks/bench_donuts.py --device cpu --steps 20
+    python benchmarks/bench_donuts.py --device cpu --count 3 --segments 16 --sides 8 --settle 200  # quick
+    python benchmarks/bench_donuts.py --device cuda:0 --settle 3000 --steps 500
 """
 
 import argparse
@@ -27,7 +27,7 @@ from warpsim.scenes import get_scene
 def build(args, device):
     cls = get_scene("donuts")
     params = cls.resolve_params({"count": args.count, "segments": args.segments, "sides": args.sides,
-                                 "lattice_cells": args.lattice_cells})
+                                 "lattice_cells": args.lattice_cells, "dt": args.dt})
     return cls(params, device=device)
 
 
@@ -38,7 +38,9 @@ def main():
     parser.add_argument("--segments", type=int, default=50, help="torus segments around its axis")
     parser.add_argument("--sides", type=int, default=40, help="torus segments around its tube")
     parser.add_argument("--lattice-cells", type=int, default=10, help="interior lattice cells across a torus")
-    parser.add_argument("--settle", type=int, default=300, help="steps simulated before timing (tori touching)")
+    parser.add_argument("--dt", type=float, default=1.0 / 2400.0,
+                        help="time step [s] (the scene's 1/1200 s blows up at 2,000 vertices a torus)")
+    parser.add_argument("--settle", type=int, default=1000, help="steps simulated before timing (tori touching)")
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
     args = parser.parse_args()
     device = wp.get_device(args.device)
@@ -47,7 +49,6 @@ def main():
     t0 = time.perf_counter()
     scene = build(args, device)
     sim, contact = scene.sim, scene.contact
-    sim.check_every = 0  # no host read-back inside the timed steps
     dt = scene.params["dt"]
     model = sim.model
     print(f"device {device}; {args.count} tori x {args.segments * args.sides} surface vertices; "
@@ -57,6 +58,7 @@ def main():
     for _ in range(args.settle):
         sim.step(dt)
     wp.synchronize_device(device)
+    sim.check_every = 0  # blow-ups were checked every settling step; no host read-back while timing
     print(f"settled {args.settle} steps ({args.settle * dt:.3f} s simulated) in {time.perf_counter() - t0:.1f} s; "
           f"{contact.contact_count} vertex contacts, kinetic energy {scene.kinetic_energy():.3g} J")
 
