@@ -125,7 +125,11 @@ def reference(tmp_path_factory):
                  "--out", str(folder / "s.usda"), "--no-progress", *[f"--vary={v}" for v in VARY]],
                 out=io.StringIO(), err=err) == 0, err.getvalue()
     worlds = sample_worlds(SCENE, {}, VARY, WORLDS)
-    return worlds, _read(folder / "s.csv"), _samples(folder / "s.usda", WORLDS)
+    samples = _samples(folder / "s.usda", WORLDS)
+    key = next(k for k in samples[0] if k.endswith(".points"))
+    assert samples[0][key].shape[0] == FRAMES + 1  # every frame, and the worlds differ (the variant switches)
+    assert not np.allclose(samples[0][key], samples[2][key])
+    return worlds, _read(folder / "s.csv"), samples
 
 
 def _read(path):
