@@ -107,11 +107,14 @@ def cluster():
 
     import ray  # the ray extra (.ci/run installs it): these tests fail, never skip, without it
 
+    mode = os.environ.get("RAY_AUTH_MODE")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     try:
         yield ray.get_runtime_context().gcs_address
     finally:
         ray.shutdown()
+        if mode is None:  # ray.init sets it for this process; later tests start from the usual environment
+            os.environ.pop("RAY_AUTH_MODE", None)
 
 
 @pytest.fixture(scope="module")
