@@ -6,7 +6,11 @@ Modules:
   plan      how a varied parameter enters one world's arrays, found by building the scene a few times
   batch     :class:`WorldBatch`: world 0 tiled on the device into N worlds (``kernels/worlds.py``:
             tile_*, per-world gravity, blow-up flags and freezing), stepped by the scene's own
-            simulator class, one launch per stage for all worlds
+            simulator class, one launch per stage for all worlds (``fused=True``: the cloth
+            solver's fused semi-implicit kernel); particle-pair and agent neighbour grids are
+            keyed by world (``kernels/worlds.py: world_key``)
+  agents    :class:`AgentWorldBatch`: flocks (``flock``, ``school``) as one Flock with world-keyed
+            neighbours and per-world food
   forces    :class:`WorldGravity`, :class:`WorldPlanes` (per-world gravity, wall restitution and
             friction; ``kernels/collide.py: collide_planes_worlds``)
   metrics   per-world metrics on the device (centre of mass, peak speed, kinetic energy, tracked
@@ -14,6 +18,8 @@ Modules:
   usd       batch layers (``/Worlds/world_GGGGGG``) and the root: a ``world`` variant set or a grid
   sweep     :func:`sample_worlds`, :func:`run_batch`, :func:`write_table`
   command   ``warpsim sweep``
+  gallery   ``warpsim view SWEEP.usda``: the worlds side by side in the browser, click one to
+            isolate it (imports the viewer; not imported by this package)
 
 Entry points (the command line and the Ray driver ``warpsim.distributed`` both use them, so a
 Ray sweep and a single-process sweep give the same table and samples): :func:`sample_worlds`,
