@@ -173,6 +173,19 @@ def _assert_same(reference, table_path, root):
             np.testing.assert_allclose(got[w][key], samples[w][key], rtol=0, atol=1e-6, err_msg=f"world {w} {key}")
 
 
+def test_ray_without_an_address_starts_a_local_cluster_and_matches_the_single_process_sweep(reference, tmp_path):
+    # before the module's cluster exists: the command starts (and stops) its own, as a user's would
+    out = tmp_path / "s.usda"
+    r = subprocess.run([sys.executable, "-m", "warpsim", "sweep", SCENE, "--worlds", str(WORLDS), "--frames",
+                        str(FRAMES), "--device", "cpu", "--out", str(out), "--no-progress", "--ray", "--ray-cpus", "2",
+                        "--batch-size", "4", *[f"--vary={v}" for v in VARY]],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert r.returncode == 0, r.stderr
+    assert re.findall(r"^batch (\d)/2 ", r.stderr, re.MULTILINE) in (["1", "2"], ["2", "1"])
+    assert "2 blew up" in r.stdout
+    _assert_same(reference, tmp_path / "s.csv", out)
+
+
 def test_ray_sweep_equals_single_process_and_survives_a_killed_worker(cluster, reference, tmp_path):
     from warpsim.distributed.ray_sweep import run_ray_sweep
 
