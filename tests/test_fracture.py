@@ -14,7 +14,7 @@ from warpsim.scenes.fracture import pieces
 
 DEVICE = "cpu"
 RATE = 40.0  # load growth [N/s]
-K, C, MASS, DT = 200.0, 20.0, 0.1, 1.0e-3
+K, C, MASS, DT = 200.0, 20.0, 0.1, 2.0e-3
 
 
 @wp.func
@@ -49,7 +49,7 @@ def test_growing_load_breaks_within_one_step_of_threshold_and_the_spring_stops_a
     assert sim.fracture is not None and model.breakable_spring_count == 2
     low = [1, 3]
     strain, tension, broken, vy = [], [], [], []
-    for _ in range(900):
+    for _ in range(520):
         sim.step(DT)
         x, v = sim.state.positions.numpy(), sim.state.velocities.numpy()
         strain.append([np.linalg.norm(x[0] - x[1]) - 1.0, np.linalg.norm(x[2] - x[3]) - 1.0])
@@ -62,7 +62,7 @@ def test_growing_load_breaks_within_one_step_of_threshold_and_the_spring_stops_a
     assert broken[-1].all() and all(k > 0 for k in first)
     # force threshold: the first step that ends with a tension past 20 N is the step it breaks;
     # the tension k x + c x' equals the load minus m a, so that is when the load passes 20 N,
-    # t = 0.5 s, give or take the integrator's lag (measured: at most 2 steps, Baraff-Witkin)
+    # t = 0.5 s, give or take the integrator's lag (allowed: 3 steps; Baraff-Witkin lags most)
     assert first[0] == int(np.argmax(np.array(tension) > 20.0))
     assert abs(t[first[0]] - 20.0 / RATE) <= 3 * DT, (t[first[0]], name)
     # strain threshold: the first step that ends past 10 % strain is the step it breaks
