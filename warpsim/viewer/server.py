@@ -19,6 +19,7 @@ import numpy as np
 from .geometry import icosphere
 from .picking import pointer_ray
 from .session import Session
+from .sink import DrawItem
 
 __all__ = ["Drawer", "PortInUseError", "Viewer", "check_port"]
 
@@ -317,6 +318,11 @@ class Viewer:
         with s.lock:
             items, static, version, frame = dict(s.items), s.static, s.version, s.frame
             draggable = set(s.drag_map) & set(items)
+            if s.grabbed is not None:  # the mouse's spring: grabbed particle -> target, drawn on top
+                seg = np.stack([s.grabbed_position(), s.grabbed["target"]]).astype(np.float32)[None]
+                items["_mouse_drag"] = DrawItem("_mouse_drag", "segments", seg, (0.9, 0.2, 0.1), radius=0.002)
+            else:
+                items["_mouse_drag"] = DrawItem("_mouse_drag", "segments", np.zeros((0, 2, 3), np.float32))
         if self.server is not None:
             self.drawer.draw(items, static, version, draggable)
         self._drawn_frame = (version, frame)
