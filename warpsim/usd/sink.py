@@ -15,7 +15,7 @@ import re
 
 import numpy as np
 
-from .prims import CurvesDecl, GeomDecl, InstancerDecl, MeshDecl, PointsDecl, as_numpy, close_matches
+from .prims import CurvesDecl, GeomDecl, InstancerDecl, MeshDecl, PointsDecl, close_matches
 
 __all__ = ["PrimSink", "state_frame_data"]
 
