@@ -23,7 +23,7 @@ case "${1:-core}" in
     run python3 bench_viewer.py --device cpu
     ;;
   sweep)  # issue 21 on one GPU: the same sweep in one process and as Ray tasks of 256 worlds
-    V="--vary stiffness=20:60 --vary restitution=0.2:0.8 --sample lhs --seed 1 --frames ${FRAMES:-30} --no-progress"
+    V="--vary stiffness=20:60 --vary restitution=0.2:0.8 --sample lhs --seed 1 --frames ${FRAMES:-30} --no-progress ${SWEEP_EXTRA:-}"
     rm -rf /tmp/sweep1 /tmp/sweep2
     for mode in 1 2; do
       extra=""; [ "$mode" = 2 ] && extra="--ray --batch-size 256"
