@@ -10,7 +10,7 @@ run() { echo; echo "### $*"; timeout "${T:-240}" "$@" 2>&1 | quiet; }
 case "${1:-core}" in
   core)
     run python3 roofline.py --device "$D"
-    run python3 roofline.py --device "$D" --only smoke --smoke-check-every 0
+    run python3 roofline.py --device "$D" --only smoke --smoke-graph
     run python3 bench_worlds.py --device "$D" --worlds 1024
     T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --no-fused --sequential 4 --builder-worlds 2
     run python3 bench_donuts.py --device "$D" --settle 3000 --steps 500

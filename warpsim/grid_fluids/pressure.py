@@ -70,6 +70,7 @@ class PressureSolver:
         self.q = wp.zeros(n, dtype=float, device=d)
         self._sums = wp.zeros(3, dtype=float, device=d)
         self._slot_sums = wp.zeros((256, 3), dtype=float, device=d)  # fluid_sums partials (see the kernel)
+        self._first_iterations = wp.zeros(1, dtype=int, device=d)  # check_every=0: first CG pass's count
         self._z = wp.zeros(n, dtype=float, device=d)
         self._diag_flat = self.diag.reshape((n,))
         # On the CPU, one "batch" spanning all cells makes warp.optim.linear's dot products run as
@@ -179,10 +180,12 @@ class PressureSolver:
         # pass restarts from the true residual b - A q (and stops at once when that already meets tol).
         self.q.zero_()  # a cold start keeps float32 round-off proportional to this step's rhs
         first = result = self._cg()
+        if isinstance(first[0], wp.array):  # check_every=0: device-side counters, which the refinement
+            wp.copy(self._first_iterations, first[0])  # pass reuses: keep the first pass's count
         if self.refine:
             result = self._cg()
-        if isinstance(result[0], wp.array):  # check_every=0: device-side counters (first pass's iterations)
-            self.last_iterations = first[0]
+        if isinstance(result[0], wp.array):
+            self.last_iterations = self._first_iterations
             self.last_residual, self.last_tolerance = result[1], result[2]
         else:
             self.last_iterations = int(result[0]) + (int(first[0]) if self.refine else 0)

@@ -23,12 +23,17 @@ class Smoke:
         ambient_temperature: T_ambient [K] (temperatures are stored as offsets from any reference).
         vorticity: vorticity-confinement strength epsilon (0 disables).
         tol, preconditioner: pressure solver settings (see PressureSolver).
+        graph: on a CUDA device, record a step once as a CUDA graph (per dt) and replay it: the
+            pressure solver then decides convergence on the device (``check_every=0``, so
+            ``pressure.last_iterations`` is a device array) and the step reads nothing back
+            (H100, 128^3, mg: the host's launches and residual read-backs doubled the 15 ms of GPU
+            work to 29.5 ms per step). Ignored on the CPU.
 
     Attributes: ``density`` and ``temperature`` (wp.array3d at cell centres), ``pressure`` (PressureSolver).
     """
 
     def __init__(self, grid, scheme="maccormack", density_buoyancy=0.1, temperature_buoyancy=1.0,
-                 ambient_temperature=0.0, vorticity=0.0, tol=1.0e-5, preconditioner="mg"):
+                 ambient_temperature=0.0, vorticity=0.0, tol=1.0e-5, preconditioner="mg", graph=False):
         self.grid, self.device = grid, grid.device
         self.alpha = check_finite(density_buoyancy, "density_buoyancy")
         self.beta = check_finite(temperature_buoyancy, "temperature_buoyancy")
@@ -37,7 +42,10 @@ class Smoke:
         if self.vorticity < 0.0:
             raise ValueError(f"vorticity (confinement epsilon) must be >= 0, got {vorticity}")
         self.advector = Advector(grid, scheme)
-        self.pressure = PressureSolver(grid, tol=tol, preconditioner=preconditioner)
+        self.graph = bool(graph) and grid.device.is_cuda
+        self.pressure = PressureSolver(grid, tol=tol, preconditioner=preconditioner,
+                                       check_every=0 if self.graph else None)
+        self._graphs = {}  # (dt, pressure solver, source count) -> captured step
         d, shape = self.device, grid.shape
         self.density = wp.zeros(shape, dtype=float, device=d)
         self.temperature = wp.full(shape, self.ambient, dtype=float, device=d)
@@ -72,8 +80,21 @@ class Smoke:
 
     def step(self, dt):
         """Advance by ``dt`` [s]: sources, advection of density, temperature and velocity, buoyancy
-        and vorticity confinement, projection."""
+        and vorticity confinement, projection (replayed as a CUDA graph with ``graph=True``)."""
         dt = check_positive(dt, "dt")
+        if self.graph and self.steps > 0:  # the first step runs eagerly: kernels load outside any capture
+            key = (dt, id(self.pressure), len(self.sources))
+            if key not in self._graphs:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._step_kernels(dt)
+                self._graphs[key] = capture.graph
+            wp.capture_launch(self._graphs[key])
+        else:
+            self._step_kernels(dt)
+        self.time += dt
+        self.steps += 1
+
+    def _step_kernels(self, dt):
         g, d = self.grid, self.device
         for lo, hi, rho, temp in self.sources:
             wp.launch(KF.source_in_box, g.shape, inputs=[lo, hi, rho, g._wp_origin, g.dx], outputs=[self.density],
@@ -94,8 +115,6 @@ class Smoke:
                 if not (axis == 2 and g.dim == 2):
                     wp.launch(KF.add_cell_force, f.shape, inputs=[self._force, axis, dt], outputs=[f], device=d)
         self.pressure.project()
-        self.time += dt
-        self.steps += 1
 
     def checkpoint(self) -> dict:
         """Everything needed to continue bit for bit (host copies)."""
