@@ -7,11 +7,14 @@ two corners fixed, 60 fps, 16 sub-steps, positions copied to the host every fram
 
 warpsim builds the same cloth with ``add_cloth_grid`` and steps it with ``ClothSimulator``
 (semi-implicit Euler, each frame's 16 sub-steps replayed as one captured graph) while also
-colliding it with a floor and a sphere (``--no-collisions`` to skip them); both run in this
-process, frame by frame, interleaved. Then implicit Euler (Baraff-Witkin, one step per frame):
+colliding it with a floor and a sphere (``--no-collisions`` to skip them); ``--modes simulator``
+also steps it with the generic ``ws.Simulator`` at its defaults (semi-implicit Euler, gravity,
+blow-up test every step, one ``step()`` per sub-step); all run in this process, frame by frame,
+interleaved. Then implicit Euler (Baraff-Witkin, one step per frame):
 frame time and CG iterations.
 
     python benchmarks/bench_cloth.py --device cpu --dims 32 64 128 --implicit-dims 64 128
+    python benchmarks/bench_cloth.py --device cpu --dims 64 --implicit-dims --modes auto simulator --no-collisions
     python benchmarks/bench_cloth.py --device cuda:0 --dims 32 64 128 256 512 1024 --implicit-dims 64 128 256
 """
 
@@ -176,6 +179,17 @@ def run_explicit(dim, args, device, Cloth, WpIntegrator):
     dt = 1.0 / FPS
     runs = {}
     for mode in args.modes:
+        if mode == "simulator":  # the generic ws.Simulator, default settings (gravity, check every step)
+            sim = ws.Simulator(model, colliders=[] if args.no_collisions else colliders(dim, 0.01))
+            copy = host_copy(sim, device)
+
+            def generic(sim=sim, copy=copy):
+                for _ in range(SUBSTEPS):
+                    sim.step(dt / SUBSTEPS)
+                copy()
+
+            runs[mode] = (generic, Timer(device))
+            continue
         sim = ClothSimulator(model, ClothSemiImplicitEuler(None if mode == "auto" else mode),
                              colliders=[] if args.no_collisions else colliders(dim, 0.01))
         copy = host_copy(sim, device)
@@ -240,8 +254,10 @@ def main():
     parser.add_argument("--frames", type=int, default=60, help="timed frames per size")
     parser.add_argument("--implicit-frames", type=int, default=30)
     parser.add_argument("--warmup", type=int, default=3, help="untimed frames (compilation, graph capture)")
-    parser.add_argument("--modes", nargs="+", choices=["auto", "scatter", "gather"], default=["auto"],
-                        help="warpsim explicit kernel layouts to time (auto: scatter on CPU, gather on CUDA)")
+    parser.add_argument("--modes", nargs="+", choices=["auto", "scatter", "gather", "simulator"],
+                        default=["auto"],
+                        help="warpsim explicit kernel layouts to time (auto: scatter on CPU, gather on CUDA; "
+                             "simulator: the generic ws.Simulator with default settings, one step() per sub-step)")
     parser.add_argument("--no-collisions", action="store_true", help="warpsim without floor and sphere")
     parser.add_argument("--cg-tol", type=float, default=1.0e-4)
     parser.add_argument("--cg-max", type=int, default=200)

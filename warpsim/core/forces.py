@@ -14,6 +14,34 @@ from .builder import _vec3, check_indices
 from ..kernels import forces as K
 
 
+def _runtime():
+    """Warp's runtime (its ``tape`` attribute is the wp.Tape recording now, or None)."""
+    from warp._src import context
+
+    return context.runtime
+
+
+def cached_launch(kernel, dim, inputs, device, cache: dict, size: int = 8) -> None:
+    """``wp.launch(kernel, dim, inputs)`` through a recorded ``wp.Launch`` kept in ``cache`` per
+    (dim, arrays by identity, scalars by value): on the CPU packing a launch's arguments costs
+    ~1-2 us each, a recorded launch replays without it. At most ``size`` entries (then cleared);
+    each entry keeps its arrays referenced, so their ids cannot be reused while it lives. While a
+    ``wp.Tape`` records or a graph is being captured it launches plainly (both see only
+    ``wp.launch``)."""
+    if _runtime().tape is not None or wp.get_device(device).is_capturing:
+        wp.launch(kernel, dim, inputs=list(inputs), device=device)
+        return
+    key = (dim, *(id(a) if isinstance(a, wp.array) else (type(a).__name__, tuple(a) if hasattr(a, "__len__") else a)
+                  for a in inputs))
+    entry = cache.get(key)
+    if entry is None:
+        if len(cache) >= size:
+            cache.clear()
+        entry = (wp.launch(kernel, dim, inputs=list(inputs), device=device, record_cmd=True), inputs)
+        cache[key] = entry
+    entry[0].launch()
+
+
 class Force:
     """Base class. Subclasses implement ``eval`` and, when the force depends on positions or
     velocities, ``eval_jacobian`` (diagonal blocks into ``diag``, couplings as triplets)."""
@@ -179,15 +207,16 @@ class Springs(Force):
 
     def __init__(self, exact_jacobian: bool = False):
         self.exact_jacobian = exact_jacobian
+        self._launches = {}
 
     def eval(self, q, qd, time, time_offset, f_out):
         m = self.model
         if m.spring_count == 0:
             return
-        wp.launch(K.eval_springs, m.spring_count,
-                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
-                          m.spring_broken, f_out],
-                  device=m.device)
+        inputs = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_broken,
+                  f_out)
+        # the same launch every step: replayed recorded (a subclass that skipped __init__ has no cache)
+        cached_launch(K.eval_springs, m.spring_count, inputs, m.device, self.__dict__.setdefault("_launches", {}))
 
     def jacobian_triplet_count(self):
         return 2 * self.model.spring_count

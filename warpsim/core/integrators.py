@@ -19,6 +19,7 @@ import warp.optim.linear as wpl
 import warp.sparse as wps
 
 from . import checks
+from .forces import Gravity, cached_launch
 from ..kernels import integrate as K
 
 
@@ -65,12 +66,65 @@ class ExplicitEuler(Integrator):
 
 
 class SemiImplicitEuler(Integrator):
+    """Semi-implicit (symplectic) Euler. On particle systems (``ParticleSystem``) one pass
+    (``step_particles_semi_implicit``) integrates, hands out the step's force, clears the force
+    accumulator for the next step seeded with the first force when that is ``ws.Gravity`` (so
+    gravity costs no pass of its own), and optionally saves the start-of-step positions, advances
+    the device clock and runs the blow-up test (``fused_step``). Results are bit-identical to
+    separate passes. Masses are re-read every step; after changing ``model.particle_mass`` in
+    place between steps call ``reseed()`` (gravity otherwise lags one step)."""
+
     name = "semi_implicit_euler"
+
+    def _allocate(self, system):
+        d = system.device
+        self._fused = system.dtype is wp.vec3 and hasattr(system, "forces") and hasattr(system, "model")
+        self._seed_key = None
+        self._launches = {}
+        self._none_vec3 = wp.zeros(0, dtype=wp.vec3, device=d)
+        self._none_float = wp.zeros(0, dtype=float, device=d)
+        self._none_int = wp.zeros(0, dtype=int, device=d)
+
+    def fuses(self, system) -> bool:
+        """True when ``fused_step`` serves ``system`` in one particle pass."""
+        self.prepare(system)
+        return self._fused
+
+    def reseed(self) -> None:
+        """Re-seed the force accumulator at the next step (after in-place mass changes)."""
+        self._seed_key = None
 
     def step(self, system, q, qd, time, dt, f_out=None):
         self.prepare(system)
+        if self._fused:
+            self.fused_step(system, q, qd, time, dt, f_out)
+            return
         f = self._forces(system, q, qd, time, 0.0, f_out)
         _launch(K.step_semi_implicit_euler, system, [q, qd, f, system.inv_mass, dt, q, qd])
+
+    def fused_step(self, system, q, qd, time, dt, f_out=None, q_prev_out=None, advance_time=False, check=None):
+        """One step of a particle system in place. ``q_prev_out`` (n,) receives the start-of-step
+        positions; ``advance_time``: time[0] += dt; ``check`` = (max_speed [m/s], first_bad (1,)
+        int array): atomic-min the index of a particle whose new state is non-finite or faster
+        than max_speed into first_bad (as ``find_blow_up``; the caller keeps it at n otherwise)."""
+        self.prepare(system)
+        forces = system.forces
+        first = forces[0] if forces else None
+        seeded = type(first) is Gravity  # exactly uniform gravity (a subclass may override eval)
+        g = first.g if seeded else (0.0, 0.0, 0.0)
+        rest = forces[1:] if seeded else forces
+        gravity = wp.vec3(*g)
+        key = (id(first), tuple(g), id(system.mass))
+        if key != self._seed_key:
+            _launch(K.seed_forces, system, [system.mass, gravity, self.f])
+            self._seed_key = key
+        for force in rest:
+            force.eval(q, qd, time, 0.0, self.f)
+        max_speed, first_bad = (0.0, self._none_int) if check is None else check
+        inputs = (self.f, system.mass, system.inv_mass, gravity, float(dt), q, qd,
+                  self._none_vec3 if f_out is None else f_out, self._none_vec3 if q_prev_out is None else q_prev_out,
+                  time if advance_time else self._none_float, int(check is not None), float(max_speed), first_bad)
+        cached_launch(K.step_particles_semi_implicit, system.count, inputs, system.device, self._launches)
 
 
 class RK2(Integrator):

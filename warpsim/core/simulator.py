@@ -98,7 +98,9 @@ class Simulator:
         self._q_prev = wp.zeros_like(self.state.positions)
         self._time = wp.zeros(1, dtype=float, device=d)
         self._scratch_float = wp.zeros(1, dtype=float, device=d)
-        self._first_bad = wp.zeros(1, dtype=int, device=d)
+        self._first_bad = wp.full(1, self.system.count, dtype=int, device=d)  # kept at count: nothing bad
+        self._check_due = False  # the current sub-step ends a step whose blow-up test is due
+        self._device_checked = False  # that test already ran inside the integrator's pass
         self.time = 0.0
         """Simulated time [s]."""
         self.step_count = 0
@@ -141,6 +143,19 @@ class Simulator:
         if self.rollout is not None:
             return self.rollout.advance(h)
         st = self.state
+        fuses = getattr(self.integrator, "fuses", None)
+        if fuses is not None and fuses(self.system):
+            # one particle pass: q_prev (for the colliders), integration, the step's force, gravity
+            # for the next step, the clock and (without colliders, whose passes come later) the
+            # blow-up test
+            check = (self.max_speed, self._first_bad) if self._check_due and not self.colliders else None
+            self.integrator.fused_step(self.system, st.positions, st.velocities, self._time, h, f_out=st.forces,
+                                       q_prev_out=self._q_prev if self.colliders else None, advance_time=True,
+                                       check=check)
+            self._device_checked = check is not None
+            for c in self.colliders:
+                c.apply(self.model, st, self._q_prev, h)
+            return
         wp.copy(self._q_prev, st.positions)
         self.integrator.step(self.system, st.positions, st.velocities, self._time, h, f_out=st.forces)
         for c in self.colliders:
@@ -160,15 +175,22 @@ class Simulator:
         dt = check_dt(dt)
         n = self._substeps_for(dt)
         h = dt / n
-        for _ in range(n):
+        due = bool(self.check_every) and (self.step_count + n) % self.check_every < n
+        for k in range(n):
+            self._check_due = due and k == n - 1
+            self._device_checked = False
             self._advance_substep(h)
             self.time += h
             self.step_count += 1
+        self._check_due = False
         self.last_substeps = n
         if self.adaptive:
             self.substep_history.append(n)
-        if self.check_every and self.step_count % self.check_every < n:
-            self.check()
+        if due:
+            # a test fused into the last pass leaves first_bad at count when all is well; anything
+            # else is confirmed (and reported) by check() on the same state
+            if not self._device_checked or int(self._first_bad.numpy()[0]) < self.system.count:
+                self.check()
         return n
 
     def check(self) -> None:
