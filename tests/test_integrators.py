@@ -287,3 +287,95 @@ def test_every_integrator_runs_every_force(device):
         x = sim.state.positions.numpy()
         assert np.all(np.isfinite(x)) and np.all(x[:, 1] >= -1e-6), integrator
         assert sim.time == pytest.approx(5 / 60)
+
+
+# ----------------------------------------------------------------------------------------
+# The Simulator's fused semi-implicit pass against the separate passes it replaces
+# ----------------------------------------------------------------------------------------
+def _separate_passes_step(sim, h):
+    """One Simulator sub-step the way it ran before the passes were fused: copy q_prev, zero f,
+    every force in order, the semi-implicit update, the colliders, the clock."""
+    from warpsim.kernels import integrate as KI
+
+    st, s = sim.state, sim.system
+    wp.copy(sim._q_prev, st.positions)
+    st.forces.zero_()
+    for f in s.forces:
+        with wp.Tape():  # a recording tape: every launch goes through plain wp.launch
+            f.eval(st.positions, st.velocities, sim._time, 0.0, st.forces)
+    wp.launch(KI.step_semi_implicit_euler, s.count,
+              inputs=[st.positions, st.velocities, st.forces, s.inv_mass, h, st.positions, st.velocities], device="cpu")
+    for c in sim.colliders:
+        c.apply(sim.model, st, sim._q_prev, h)
+    wp.launch(KI.advance_time, 1, inputs=[sim._time, h], device="cpu")
+
+
+@pytest.mark.parametrize("case", ["default", "gravity_first", "gravity_later"])
+def test_fused_semi_implicit_step_is_bit_identical_to_separate_passes(case):
+    def make():
+        b = ws.ModelBuilder()
+        ws.add_cloth_grid(b, (5, 5), (0.5, 0.5), origin=(0.0, 1.0, 0.0), pin=["corner_00"], particle_mass=0.02)
+        forces = {"default": None,
+                  "gravity_first": [ws.Gravity(), ws.Wind(coefficient=0.02), ws.Drag(0.01, 0.01)],
+                  "gravity_later": [ws.Wind(coefficient=0.02), ws.Gravity((0.0, -3.0, 1.0))]}[case]
+        colliders = [] if case == "default" else [ws.Plane(offset=0.8, restitution=0.3, friction=0.2)]
+        return ws.Simulator(b.finalize("cpu"), forces=forces, colliders=colliders)
+
+    fused, separate = make(), make()
+    assert fused.integrator.fuses(fused.system)
+    h = 1.0 / 600.0
+    for k in range(240):
+        if k == 120:  # gravity changed between steps (as the scenes' set_gravity does) takes effect at once
+            for sim in (fused, separate):
+                next(f for f in sim.forces if isinstance(f, ws.Gravity)).g = (0.5, -20.0, 0.0)
+        fused.step(h)
+        _separate_passes_step(separate, h)
+    for name in ("positions", "velocities", "forces"):
+        assert np.array_equal(getattr(fused.state, name).numpy(), getattr(separate.state, name).numpy()), name
+    assert np.array_equal(fused._time.numpy(), separate._time.numpy())
+    assert fused.state.positions.numpy()[:, 1].min() < 0.9  # it fell
+    if case != "default":
+        assert fused.state.positions.numpy()[:, 1].min() >= 0.8 - 1e-6  # and the plane held it
+
+
+@pytest.mark.parametrize("check_every", [1, 4])
+def test_fused_blow_up_test_reports_the_step_speed_crosses_the_bound(check_every):
+    # v_k = k h a = 0.1 k m/s: |v| first exceeds max_speed = 1.05 m/s after step 11; the test runs
+    # on steps that are multiples of check_every
+    b = ws.ModelBuilder()
+    b.add_particle((0, 0, 0), mass=1.0)
+    sim = ws.Simulator(b.finalize("cpu"), forces=[ws.ConstantForce((1.0, 0.0, 0.0))], max_speed=1.05,
+                       check_every=check_every)
+    with pytest.raises(ws.SimulationError) as info:
+        for _ in range(30):
+            sim.step(0.1)
+    expected = 11 if check_every == 1 else 12
+    assert info.value.step == expected == sim.step_count and info.value.particle == 0
+
+
+def test_fused_blow_up_test_equals_find_blow_up():
+    """The fused pass's one-comparison test flags exactly the particles find_blow_up flags."""
+    from warpsim.kernels import integrate as KI
+
+    inf, nan, big = np.inf, np.nan, 3.0e38
+    x = np.array([[inf, 0, 0], [nan, 0, 0], [0, 0, 0], [0, 0, 0], [big, big, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0],
+                  [0, -inf, 0]], dtype=np.float32)
+    v = np.array([[0, 0, 0], [0, 0, 0], [inf, 0, 0], [0, nan, 0], [0, 0, 0], [2.0, 0, 0], [1.5, 1.5, 0],
+                  [big, big, big], [0, 0, 0]], dtype=np.float32)
+    expected = [0, 0, 0, 0, 7, 7, 0, 0, 0]  # 7: not flagged (finite 3e38 position; |v| = 2.0 is not above 2.0)
+    for i in range(len(x)):
+        flags = []
+        for fused in (True, False):
+            q = wp.array(x[i:i + 1], dtype=wp.vec3, device="cpu")
+            qd = wp.array(v[i:i + 1], dtype=wp.vec3, device="cpu")
+            bad = wp.full(1, 7, dtype=int, device="cpu")
+            if fused:  # h = 0 and f = 0: the state is tested as it is
+                f = wp.zeros(1, dtype=wp.vec3, device="cpu")
+                none = wp.zeros(0, dtype=wp.vec3, device="cpu")
+                wp.launch(KI.step_particles_semi_implicit, 1,
+                          inputs=[f, wp.ones(1, dtype=float), wp.ones(1, dtype=float), wp.vec3(), 0.0, q, qd, none,
+                                  none, wp.zeros(0, dtype=float), 1, 2.0, bad], device="cpu")
+            else:
+                wp.launch(KI.find_blow_up, 1, inputs=[q, qd, 2.0, bad], device="cpu")
+            flags.append(int(bad.numpy()[0]))
+        assert flags == [expected[i], expected[i]], (i, flags)
