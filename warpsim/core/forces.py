@@ -6,6 +6,8 @@ number of times without allocating. Forces only accumulate; the caller zeroes ``
 
 from __future__ import annotations
 
+import ctypes
+
 import numpy as np
 import warp as wp
 
@@ -21,25 +23,52 @@ def _runtime():
     return context.runtime
 
 
-def cached_launch(kernel, dim, inputs, device, cache: dict, size: int = 8) -> None:
+def cached_launch(kernel, dim, inputs, device, cache: dict, key=None, size: int = 8) -> None:
     """``wp.launch(kernel, dim, inputs)`` through a recorded ``wp.Launch`` kept in ``cache`` per
     (dim, arrays by identity, scalars by value): on the CPU packing a launch's arguments costs
     ~1-2 us each, a recorded launch replays without it. At most ``size`` entries (then cleared);
     each entry keeps its arrays referenced, so their ids cannot be reused while it lives. While a
     ``wp.Tape`` records or a graph is being captured it launches plainly (both see only
-    ``wp.launch``)."""
+    ``wp.launch``). ``key``: the caller's own hashable stand-in for (dim, inputs) with the same
+    meaning (cheaper than the generic one)."""
     if _runtime().tape is not None or wp.get_device(device).is_capturing:
         wp.launch(kernel, dim, inputs=list(inputs), device=device)
         return
-    key = (dim, *(id(a) if isinstance(a, wp.array) else (type(a).__name__, tuple(a) if hasattr(a, "__len__") else a)
-                  for a in inputs))
+    if key is None:
+        key = (dim, *(id(a) if isinstance(a, wp.array) else (type(a).__name__, tuple(a) if hasattr(a, "__len__") else a)
+                      for a in inputs))
     entry = cache.get(key)
     if entry is None:
         if len(cache) >= size:
             cache.clear()
-        entry = (wp.launch(kernel, dim, inputs=list(inputs), device=device, record_cmd=True), inputs)
-        cache[key] = entry
-    entry[0].launch()
+        cmd = wp.launch(kernel, dim, inputs=list(inputs), device=device, record_cmd=True)
+        cmd.launch()  # this call's launch (it also fills Warp's struct-type cache _cpu_replay reads)
+        cache[key] = (_cpu_replay(cmd) or cmd.launch, inputs)
+        return
+    entry[0]()
+
+
+def _cpu_replay(cmd):
+    """A callable that runs the recorded CPU launch ``cmd`` with its argument struct packed once
+    (what ``wp.Launch.launch`` does on the CPU, less re-packing ~10 ctypes fields per call:
+    ~8 us a launch), or None where that path does not apply (CUDA, tiled launches, Warp
+    internals not as expected: then ``cmd.launch`` is used)."""
+    try:
+        if not cmd.device.is_cpu or cmd.block_dim > 1 or cmd.adjoint:
+            return None
+        params = cmd.params
+        struct, fields = cmd.kernel._invoke_cache[(tuple(type(p) for p in params[1:]), False)]
+        args = struct()
+        for i, field in enumerate(fields):
+            setattr(args, field[0], params[1 + i])
+        forward, bounds, packed = cmd.hooks.forward, ctypes.byref(params[0]), ctypes.byref(args)
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return None
+
+    def replay(args=args, params=params):  # the defaults keep the packed structs alive
+        forward(bounds, packed)
+
+    return replay
 
 
 class Force:
@@ -216,7 +245,8 @@ class Springs(Force):
         inputs = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_broken,
                   f_out)
         # the same launch every step: replayed recorded (a subclass that skipped __init__ has no cache)
-        cached_launch(K.eval_springs, m.spring_count, inputs, m.device, self.__dict__.setdefault("_launches", {}))
+        cached_launch(K.eval_springs, m.spring_count, inputs, m.device, self.__dict__.setdefault("_launches", {}),
+                      key=(m.spring_count, *map(id, inputs)))
 
     def jacobian_triplet_count(self):
         return 2 * self.model.spring_count

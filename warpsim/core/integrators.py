@@ -124,7 +124,9 @@ class SemiImplicitEuler(Integrator):
         inputs = (self.f, system.mass, system.inv_mass, gravity, float(dt), q, qd,
                   self._none_vec3 if f_out is None else f_out, self._none_vec3 if q_prev_out is None else q_prev_out,
                   time if advance_time else self._none_float, int(check is not None), float(max_speed), first_bad)
-        cached_launch(K.step_particles_semi_implicit, system.count, inputs, system.device, self._launches)
+        key = (system.count, *map(id, inputs[:3]), *map(id, inputs[5:10]), id(first_bad), float(dt), tuple(g),
+               inputs[10], inputs[11])
+        cached_launch(K.step_particles_semi_implicit, system.count, inputs, system.device, self._launches, key=key)
 
 
 class RK2(Integrator):
