@@ -12,7 +12,7 @@ from ..kernels import integrate as K
 from .collider import Collider
 from . import checks
 from .errors import SimulationError
-from .forces import Force, Gravity
+from .forces import Force, Gravity, cached_launch
 from .fracture import SpringFracture
 from .model import Model
 from .integrators import make_integrator
@@ -99,6 +99,7 @@ class Simulator:
         self._time = wp.zeros(1, dtype=float, device=d)
         self._scratch_float = wp.zeros(1, dtype=float, device=d)
         self._first_bad = wp.full(1, self.system.count, dtype=int, device=d)  # kept at count: nothing bad
+        self._check_launches = {}
         self._check_due = False  # the current sub-step ends a step whose blow-up test is due
         self._device_checked = False  # that test already ran inside the integrator's pass
         self.time = 0.0
@@ -197,8 +198,9 @@ class Simulator:
         """Raise SimulationError if a particle has a non-finite state or exceeds max_speed."""
         count = self.system.count
         self._first_bad.fill_(count)
-        wp.launch(K.find_blow_up, count, inputs=[self.state.positions, self.state.velocities, self.max_speed,
-                                                 self._first_bad], device=self.device)
+        inputs = (self.state.positions, self.state.velocities, float(self.max_speed), self._first_bad)
+        cached_launch(K.find_blow_up, count, inputs, self.device, self._check_launches,
+                      key=(count, id(inputs[0]), id(inputs[1]), inputs[2], id(inputs[3])))
         bad = int(self._first_bad.numpy()[0])
         if bad < count:
             x = self.state.positions.numpy()[bad]
