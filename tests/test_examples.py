@@ -51,6 +51,48 @@ def test_bouncing_ball_prints_the_seed_frame_table(tmp_path):
     assert rows[2][2] == pytest.approx(0.5 * 0.007088, abs=1e-6) and rows[2][3] == pytest.approx(0.3924, abs=1e-4)
 
 
+
+def _fit_launch():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("fit_launch", ROOT / "examples" / "fit_launch.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.Example(duration=1.1, device="cpu")
+
+
+def test_fit_launch_gradient_matches_central_differences():
+    """The example's dL/dv0 (crossings seeded by hand, the tape through the reflection) against
+    central differences of its own loss, at launches whose two touch-down steps stay put."""
+    example = _fit_launch()
+    for v in (np.array([2.0, 2.3, 0.5]), np.array([1.5, 2.8, 0.4])):
+        _, grad = example.loss_and_gradient(v)
+        steps = [k for k, *_ in example.touchdowns(v)]
+        fd = []
+        for i in range(3):
+            h = np.eye(3)[i] * 1.0e-3
+            assert [k for k, *_ in example.touchdowns(v + h)] == steps == [k for k, *_ in example.touchdowns(v - h)]
+            fd.append((example.loss_and_gradient(v + h)[0] - example.loss_and_gradient(v - h)[0]) / 2.0e-3)
+        assert np.abs(grad - fd).max() < 1.0e-3 * np.abs(fd).max()
+
+
+def test_fit_launch_landing_time_is_a_sawtooth_under_reflection():
+    """The docstring's reason for fitting the first-bounce time, not the landing time: with the
+    lecture's reflection the landing time falls with vy while the first bounce stays in one step
+    and jumps up by about 2.7 dt when it moves on; the first-bounce time rises smoothly."""
+    example = _fit_launch()
+    landing, bounce = [], []
+    for vy in np.arange(2.0, 2.2001, 0.01):
+        _, t, t1 = example.result(np.array([1.0, vy, 0.3]))
+        landing.append(t)
+        bounce.append(t1)
+    d_landing, d_bounce = np.diff(landing), np.diff(bounce)
+    assert np.all((d_bounce > 0.0015) & (d_bounce < 0.0025))  # ~ dt1/dvy = (1 + vy / |v_impact|) / g
+    falls, jumps = d_landing[d_landing < 0.0], d_landing[d_landing > 0.0]
+    assert len(falls) >= 14 and np.all(falls > -0.004)
+    assert len(jumps) == 4 and np.all((jumps > 2.5 * example.dt) & (jumps < 2.9 * example.dt))
+    assert landing[-1] > landing[0]  # the trend the exact gradient does not see
+
 def test_every_example_is_listed():
     scripts = {p.name for p in (ROOT / "examples").glob("*.py")}
     missing = scripts - set(EXAMPLES) - OTHER_TESTED
