@@ -67,6 +67,11 @@ def _crossing(a, b):
 
 class Example:
     def __init__(self, target=(1.5, 0.0, 0.4), bounce_time=0.455, duration=1.2, dt=0.01, device=None):
+        if target[1] != 0.0:
+            raise ValueError(f"target {tuple(target)}: the landing point lies on the floor; give y = 0")
+        if not (0.0 < bounce_time < duration and 0.0 < dt < bounce_time):
+            raise ValueError(f"bounce_time {bounce_time} s, duration {duration} s, dt {dt} s: "
+                             "give 0 < dt < bounce_time < duration")
         self.scene_params = {"dt": dt}
         scene = get_scene("bounce")(self.scene_params, device=device)
         s = scene.sim
@@ -179,15 +184,22 @@ def main(argv=None):
     wp.config.quiet = True
     if args.quick:
         args.duration = 1.1
-    example = Example(tuple(args.target), args.bounce_time, args.duration, args.dt, device=args.device)
-    result, v0, runs = example.fit(args.guess)
+    try:
+        example = Example(tuple(args.target), args.bounce_time, args.duration, args.dt, device=args.device)
+    except ValueError as error:
+        parser.error(str(error))
+    try:
+        result, v0, runs = example.fit(args.guess)
+    except ValueError as error:  # a trial launch that does not bounce and land in time
+        parser.error(str(error))
     point, t, t1 = example.result(v0)
     miss = float(np.linalg.norm(point - example.target))
-    off = 100.0 * (np.asarray(args.guess) - v0) / np.where(v0 != 0.0, v0, 1.0)
+    off = ", ".join(f"{g - v:+.2f} m/s" + (f" ({100.0 * (g - v) / v:+.0f} %)" if abs(v) > 1.0e-2 else "")
+                    for g, v in zip(args.guess, v0))
     print(f"L-BFGS: {runs} run(s), {result.nit} iterations in the last, {example.evaluations} simulations + gradients "
           f"in all; loss {result.fun:.3e} m^2")
     print(f"launch velocity v0 = ({v0[0]:.5f}, {v0[1]:.5f}, {v0[2]:.5f}) m/s; the guess was "
-          f"({off[0]:+.0f} %, {off[1]:+.0f} %, {off[2]:+.0f} %) off")
+          f"off by {off}")
     print(f"first bounce at t = {t1:.5f} s (asked {example.bounce_time:.5f} s); touch-down after 1 bounce at "
           f"t = {t:.5f} s, ({point[0]:.5f}, {point[1]:.5f}, {point[2]:.5f}) m: {1000.0 * miss:.4f} mm from the target")
     p_scene, t_scene, t1_scene = example.check_with_scene(v0)
