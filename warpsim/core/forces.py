@@ -10,17 +10,11 @@ import ctypes
 
 import numpy as np
 import warp as wp
+from warp._src import context as _warp_context
 
 from . import checks
 from .builder import _vec3, check_indices
 from ..kernels import forces as K
-
-
-def _runtime():
-    """Warp's runtime (its ``tape`` attribute is the wp.Tape recording now, or None)."""
-    from warp._src import context
-
-    return context.runtime
 
 
 def cached_launch(kernel, dim, inputs, device, cache: dict, key=None, size: int = 8) -> None:
@@ -31,7 +25,8 @@ def cached_launch(kernel, dim, inputs, device, cache: dict, key=None, size: int 
     ``wp.Tape`` records or a graph is being captured it launches plainly (both see only
     ``wp.launch``). ``key``: the caller's own hashable stand-in for (dim, inputs) with the same
     meaning (cheaper than the generic one)."""
-    if _runtime().tape is not None or wp.get_device(device).is_capturing:
+    if _warp_context.runtime.tape is not None or (device if isinstance(device, wp.Device) else
+                                                   wp.get_device(device)).is_capturing:
         wp.launch(kernel, dim, inputs=list(inputs), device=device)
         return
     if key is None:
