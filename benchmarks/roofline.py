@@ -136,11 +136,12 @@ def sph_workload(n, device):
     return (lambda: fluid.advance(1.0 / 60.0)), steps, fluid.active_count, "particle"
 
 
-def boids_workload(n, device):
+def boids_workload(n, device, cell_factor=1.0):
     from bench_boids import PARAMS, make_flock_state
 
     x, v, L = make_flock_state(n, 20.0, 0)
     flock = ws.Flock(x, v, params=PARAMS, bounds=((0, 0, 0), (L, L, L)), wrap=True, device=device)
+    flock.cell_size *= cell_factor  # hash-grid cell edge as a multiple of the query radius (experiment)
     flock.step(1.0 / 60.0)
     return (lambda: flock.step(1.0 / 60.0)), 1, n, "agent"
 
@@ -183,6 +184,8 @@ def main():
     p.add_argument("--agents", type=int, default=1_000_000)
     p.add_argument("--grid", type=int, default=128)
     p.add_argument("--cloth", type=int, default=256)
+    p.add_argument("--boids-cell-factor", type=float, default=1.0,
+                   help="boids: hash-grid cell edge / query radius (1: the library's choice)")
     p.add_argument("--smoke-graph", action="store_true",
                    help="smoke: Smoke(graph=True), the step replayed as a CUDA graph (CG checks on the device)")
     p.add_argument("--only", nargs="+", choices=sorted(WORKLOADS), default=sorted(WORKLOADS))
@@ -195,7 +198,7 @@ def main():
         print("(no CUDA: per-kernel GPU times are not available; wall times and byte counts only)")
     for name in args.only:
         make, size_arg = WORKLOADS[name]
-        extra = {"graph": args.smoke_graph} if name == "smoke" else {}
+        extra = {"smoke": {"graph": args.smoke_graph}, "boids": {"cell_factor": args.boids_cell_factor}}.get(name, {})
         run, steps, count, unit = make(getattr(args, size_arg), device, **extra)
         rows, wall = profile(run, device, steps)
         report(f"{name} ({count:,} {unit}s)", rows, wall, bandwidth, count, unit)
