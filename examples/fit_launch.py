@@ -41,8 +41,9 @@ touch-down step in force at the solution gives the last digits. The gradient is 
 exactly where a crossing sits on a step boundary (s = 0 or 1). Where the first bounce crosses
 from one step to the next the landing jumps by dP ~ 2.7 dt |v_horizontal|, so the loss has a
 local minimum on that boundary when |t1 - t1*| < dP / c: a bounce time t1* = k dt puts the
-solution on a jump (measured: L-BFGS stops up to 20 mm off), and a weak time weight traps the fit
-one step away (c = 10 m/s: 4 of 13 random guesses at 25-175 % of the answer stopped 5-35 ms off
+solution on a jump (measured with --quick at c = 100 m/s: t1* = 0.45 s and 0.46 s still landed
+0.03 and 0.005 mm off, t1* = 0.30 s stopped 808 mm off and exits 1), and a weak time weight
+traps the fit one step away (c = 10 m/s: 4 of 13 random guesses at 25-175 % of the answer stopped 5-35 ms off
 t1*; c = 30 m/s: 8 of 12 starts failed for a 6.7 m/s throw, 3 of them leaving the 2.5 s window).
 At c = 100 m/s, with t1* inside a step, every measured start met the script's test (1 mm,
 0.1 ms): 13 random guesses at 25-175 % of the answer and, for six targets (t1* = 0.305 to
