@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from .geometry import curve_segments, subsample, triangulate, unit_mesh, xyzw_to_wxyz
+from .serving import Serving
 from .sink import DrawItem
 
 __all__ = ["CacheReader", "PlaybackViewer"]
@@ -135,7 +136,7 @@ class CacheReader:
         return None
 
 
-class PlaybackViewer:
+class PlaybackViewer(Serving):
     """Serves a cache: timeline slider, play / pause, loop; frames read when shown."""
 
     def __init__(self, path, *, host="127.0.0.1", port=8080, max_points=200_000):
@@ -210,17 +211,6 @@ class PlaybackViewer:
             if self.index != self._shown:
                 self.show(self.index)
             self._stop.wait(max(0.0, period - (time.perf_counter() - t0)))
-
-    def run(self):
-        if self.server is None:
-            self.start()
-        try:
-            while not self._stop.is_set():
-                time.sleep(0.2)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            self.stop()
 
     def stop(self):
         self._stop.set()

@@ -18,6 +18,7 @@ import numpy as np
 
 from .geometry import icosphere
 from .picking import pointer_ray
+from .serving import Serving
 from .session import Session
 from .sink import DrawItem
 
@@ -182,7 +183,7 @@ class _Nothing:
         pass
 
 
-class Viewer:
+class Viewer(Serving):
     """A live browser view of a scene (``warpsim view``; ``ws.Viewer`` in scripts and notebooks).
 
     Args:
@@ -287,18 +288,6 @@ class Viewer:
         self.server.initial_camera.look_at = tuple(center)
         self.server.initial_camera.position = tuple(center + np.array([0.0, 0.35, 1.0]) * 1.6 * size)
         self.server.initial_camera.up = (0.0, 1.0, 0.0)
-
-    def run(self):
-        """Serve until Ctrl-C (or :meth:`stop` from another thread)."""
-        if self.server is None:
-            self.start()
-        try:
-            while not self._stop.is_set():
-                time.sleep(0.2)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            self.stop()
 
     def stop(self):
         """Stop stepping and serving; any recording is completed first."""
