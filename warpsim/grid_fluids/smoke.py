@@ -45,7 +45,7 @@ class Smoke:
         self.graph = bool(graph) and grid.device.is_cuda
         self.pressure = PressureSolver(grid, tol=tol, preconditioner=preconditioner,
                                        check_every=0 if self.graph else None)
-        self._graphs = {}  # (dt, pressure solver, source count) -> captured step
+        self._graphs = {}  # (dt, id of the pressure solver, source count) -> (captured step, solver)
         d, shape = self.device, grid.shape
         self.density = wp.zeros(shape, dtype=float, device=d)
         self.temperature = wp.full(shape, self.ambient, dtype=float, device=d)
@@ -87,8 +87,9 @@ class Smoke:
             if key not in self._graphs:
                 with wp.ScopedCapture(device=self.device) as capture:
                     self._step_kernels(dt)
-                self._graphs[key] = capture.graph
-            wp.capture_launch(self._graphs[key])
+                # the solver stays referenced with its graph, so its id cannot be reused by a new one
+                self._graphs[key] = (capture.graph, self.pressure)
+            wp.capture_launch(self._graphs[key][0])
         else:
             self._step_kernels(dt)
         self.time += dt
