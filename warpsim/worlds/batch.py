@@ -45,16 +45,25 @@ class WorldBatch:
     data), ``sim`` (the batched simulator), ``model`` (the tiled model: ``world_count``,
     ``world_particle_count``, ``world_spring_count``, ``particle_world``), ``params`` (typed
     parameters per world), ``varied`` (keys that differ), ``world_bad`` (1 = blown up, frozen)
-    and ``world_blown_frame`` (first bad frame, -1 none), both of shape (world_count,)."""
+    and ``world_blown_frame`` (first bad frame, -1 none), both of shape (world_count,).
 
-    def __init__(self, cls, world_params, device=None, *, fused=False):
+    ``reference_params``: the parameter list of the sweep these worlds belong to (None: the
+    worlds themselves). Its first world is the tiling base and its values shape the plan, so a
+    world gets the same arrays, and with the fixed-order gathers the same bits every step,
+    whichever batch it runs in: a world of a sweep re-runs alone exactly
+    (:func:`warpsim.worlds.rerun.rerun_world`)."""
+
+    def __init__(self, cls, world_params, device=None, *, fused=False, reference_params=None):
         if len(world_params) < 1:
             raise ValueError("a batch needs at least one world")
         self.cls = cls
         self.device = wp.get_device(device)
         self.params = [cls.resolve_params(p) for p in world_params]
-        base = self.params[0]
-        self.varied = [k for k in cls.params if any(p[k] != base[k] for p in self.params)]
+        reference = self.params if reference_params is None else [cls.resolve_params(p) for p in reference_params]
+        if not reference:
+            raise ValueError("reference_params is empty; give the sweep's parameter list (or None)")
+        base = reference[0]
+        self.varied = [k for k in cls.params if any(p[k] != base[k] for p in reference + self.params)]
         self.scene = cls(base, device=self.device)
         sim0 = getattr(self.scene, "sim", None)
         if sim0 is None or not hasattr(sim0, "model"):
@@ -74,7 +83,8 @@ class WorldBatch:
                 bad = {k: p[k] for k in self.varied if p[k] != base[k]}
                 raise ValueError(f"a world with {', '.join(f'{k}={v}' for k, v in bad.items())}: {exc}") from None
 
-        self.plan = make_plan(cls, self.scene, base, self.params, self.varied, probe)
+        self.plan = make_plan(cls, self.scene, base, reference if reference_params is None else
+                              reference + self.params, self.varied, probe)
         self.model = self._tile(sim0.model)
         self.fused = bool(fused)
         self.sim = self._simulator(sim0)
