@@ -66,8 +66,7 @@ def test_shared_topology_is_stored_once():
     per_world = [name for name, a in vars(m).items() if isinstance(a, wp.array) and a.shape[0] >= len(worlds) * S]
     assert per_world == []  # no array per spring per world
     springs = batch.stepper.springs
-    assert springs.ends.shape[0] == 2 * S and springs.springs.shape[0] == 2 * S
-    assert springs.stiffness_base.shape[0] == S
+    assert springs.entries.shape[0] == 2 * S and springs.keys.shape[0] == 2 * S  # once, not per world
 
 
 def test_shared_world_gathers_follow_the_atomics_path_within_a_micrometre_over_240_steps():

@@ -17,6 +17,10 @@ Modules:
             particles, user ``@wp.func`` metrics), ``--rank`` / ``--where`` picking
   usd       batch layers (``/Worlds/world_GGGGGG``) and the root: a ``world`` variant set or a grid
   sweep     :func:`sample_worlds`, :func:`run_batch`, :func:`write_table`
+  shared    the shared-topology path of a batch (the default for mass-spring scenes): springs stored
+            once, one fused kernel per sub-step (``kernels/world_step.py``)
+  rerun     one world of a sweep re-run alone, bit for bit (``--from-sweep``, ``--rerun``,
+            :func:`rerun_world`); the sweep's manifest ``<stem>.sweep.json``
   command   ``warpsim sweep``
   gallery   ``warpsim view SWEEP.usda``: the worlds side by side in the browser, click one to
             isolate it (imports the viewer; not imported by this package)
@@ -28,8 +32,9 @@ Ray sweep and a single-process sweep give the same table and samples): :func:`sa
 """
 from .batch import WorldBatch
 from .metrics import UserMetric, WorldMetrics
+from .rerun import rerun_world
 from .sweep import run_batch, sample_worlds, write_table
 from .usd import write_sweep_root
 
-__all__ = ["UserMetric", "WorldBatch", "WorldMetrics", "run_batch", "sample_worlds", "write_sweep_root",
-           "write_table"]
+__all__ = ["UserMetric", "WorldBatch", "WorldMetrics", "rerun_world", "run_batch", "sample_worlds",
+           "write_sweep_root", "write_table"]
