@@ -28,6 +28,7 @@ def _load_all():
     )
     from .bodies import SoftContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
     from .cloth import (
         Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
         cloth_energy,
@@ -59,6 +60,7 @@ __all__ = [
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
     "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
+    "StabilityLimit", "StabilityWarning",
 ]
 
 

@@ -16,6 +16,7 @@ from .forces import Force, Gravity, cached_launch
 from .fracture import SpringFracture
 from .model import Model
 from .integrators import make_integrator
+from . import stability as stab
 from .system import ParticleSystem
 
 REMEDY = "use a smaller dt, more sub-steps (or adaptive=True), or integrator='implicit_euler'"
@@ -50,6 +51,9 @@ class Simulator:
         max_speed: speed [m/s] beyond which the run counts as blown up.
         check_every: test for blow-up every this many steps (0: never; the test reads one int
             back from the device).
+        warn_unstable: before the first step of each new step size, compare it with
+            ``stable_dt()`` and issue one ``ws.StabilityWarning`` naming the limiting spring when
+            it is above (not while a graph is being captured, nor in adaptive runs).
         differentiable: step out of place, one State per step, recorded on a ``wp.Tape``
             (``sim.rollout``, a ``warpsim.diff.Rollout``: gradients of a loss with respect to
             spring stiffness/damping, masses, the initial state and force coefficients; the
@@ -58,7 +62,8 @@ class Simulator:
     """
 
     def __init__(self, model, integrator="semi_implicit_euler", forces=None, colliders=(), *, adaptive=False,
-                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False):
+                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False,
+                 warn_unstable=True):
         if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
             raise ValueError(f"Simulator model must be a ws.Model (builder.finalize()), got {checks.show(model)}")
         self.model = model
@@ -91,6 +96,9 @@ class Simulator:
         self.max_substeps = max_substeps
         self.max_speed = max_speed
         self.check_every = check_every
+        self.warn_unstable = bool(warn_unstable)
+        self._stability = None  # the last StabilityLimit (auto sub-steps reuse it until invalidated)
+        self._checked_dt = None  # the step size last compared with the limit
 
         self.state = model.state()
         self._check_finite_host()
@@ -171,11 +179,50 @@ class Simulator:
         self.integrator._system = None  # prepare() is idempotent per system: force a re-allocation
         self.integrator.prepare(self.system)
 
+    # ------------------------------------------------------------------ stability
+    def stability(self, iterations: int = stab.POWER_ITERATIONS) -> "stab.StabilityLimit":
+        """The largest stable step and what sets it (``ws.StabilityLimit``: limiting spring or
+        collider, its k and m, per-spring and per-particle limits), from the model's springs,
+        masses, damping, linear drag and penalty colliders at the current positions with this
+        integrator's stability region; see ``warpsim.core.stability`` for the bound's assumptions."""
+        self._stability = stab.particle_limits(self.model, self.state.positions, self.integrator, self.forces,
+                                               self.colliders, iterations=iterations)[0]
+        return self._stability
+
+    def stable_dt(self) -> float:
+        """Largest stable step [s] of this model with its integrator (inf: unrestricted, e.g.
+        implicit Euler; 0.0: no step is stable, e.g. undamped springs with explicit Euler)."""
+        return self.stability().dt
+
+    def invalidate_stability(self) -> None:
+        """Forget the cached limit (after changing stiffness, masses or colliders in place)."""
+        self._stability = None
+        self._checked_dt = None
+
+    def auto_substeps(self, frame_dt: float, safety: float = stab.AUTO_SAFETY, minimum: int = 1) -> int:
+        """Sub-steps for a frame of ``frame_dt`` [s] keeping every step <= ``safety`` x the
+        stability limit (the limit is computed once and cached until ``invalidate_stability``)."""
+        if self._stability is None:
+            self.stability()
+        return self._stability.substeps_for(frame_dt, safety, minimum)
+
+    def _warn_if_unstable(self, h: float) -> None:
+        self._checked_dt = h
+        if self.adaptive or wp.get_device(self.device).is_capturing:
+            return
+        limit = self._stability if self._stability is not None else self.stability()
+        if limit.exceeded_by(h):
+            import warnings
+
+            warnings.warn(limit.warning(h), stab.StabilityWarning, stacklevel=3)
+
     def step(self, dt: float) -> int:
         """Advance by ``dt`` [s]; returns the number of sub-steps taken."""
         dt = check_dt(dt)
         n = self._substeps_for(dt)
         h = dt / n
+        if self.warn_unstable and h != self._checked_dt:
+            self._warn_if_unstable(h)
         due = bool(self.check_every) and (self.step_count + n) % self.check_every < n
         for k in range(n):
             self._check_due = due and k == n - 1
@@ -211,14 +258,17 @@ class Simulator:
                 step=self.step_count, time=self.time, particle=bad,
             )
 
-    def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps: int = 1, callback=None, writer=None):
-        """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps.
+    def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps=1, callback=None, writer=None):
+        """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps
+        (``"auto"``: as many as keep each step within half the stability limit, see ``auto_substeps``).
 
         Frame 0 is the initial state. After each frame ``callback(frame, sim)`` is called and
         ``writer.write(frame, state)`` streams it. A blow-up raises SimulationError with ``frame``
         set; frames already handed to the writer stay written."""
         frame_dt = check_dt(frame_dt)
-        substeps = checks.count(substeps, "run substeps", fix="give steps per frame, e.g. 1")
+        if substeps == "auto":
+            substeps = self.auto_substeps(frame_dt)
+        substeps = checks.count(substeps, "run substeps", fix="give steps per frame, e.g. 1, or 'auto'")
         frames = checks.count(frames, "run frames", minimum=0, fix="give the number of frames, e.g. 120")
         if writer is not None:
             writer.write(0, self.state)
