@@ -156,3 +156,61 @@ def test_pendulum_limit():
     assert limit.limiting == "pendulum" and limit.index == 1
     assert limit.dt == pytest.approx(2.0 / math.sqrt(9.81 / 0.25))
     assert ws.Pendulum(0.1, integrator="explicit_euler", device="cpu").stable_dt() == 0.0
+
+
+def _blows_up(make_sim, dt, steps):
+    """True when a run of ``steps`` steps of ``dt`` from a small random velocity field reaches a
+    speed of 1 m/s (100x the start) or a non-finite state: the linear instability of the stiffest mode."""
+    sim = make_sim()
+    for _ in range(steps):
+        sim.step(dt)
+    v = np.abs(sim.state.velocities.numpy())
+    return not (np.isfinite(v).all() and v.max() < 1.0)
+
+
+def _bisect_limit(make_sim, guess, steps, iterations=6):
+    lo, hi = 0.5 * guess, 2.0 * guess
+    assert not _blows_up(make_sim, lo, steps) and _blows_up(make_sim, hi, steps)
+    for _ in range(iterations):
+        mid = math.sqrt(lo * hi)
+        if _blows_up(make_sim, mid, steps):
+            hi = mid
+        else:
+            lo = mid
+    return math.sqrt(lo * hi)
+
+
+def _jiggled(model, integrator="semi_implicit_euler"):
+    sim = ws.Simulator(model, integrator=integrator, forces=[], check_every=0, warn_unstable=False)
+    v = np.random.default_rng(1).normal(0.0, 0.01, (model.particle_count, 3))
+    v[model.particle_inv_mass.numpy() == 0.0] = 0.0
+    sim.state.velocities.assign(v.astype(np.float32))
+    return sim
+
+
+def test_grid_cloth_limit_matches_bisection():
+    def make():
+        b = ws.ModelBuilder()
+        ws.add_cloth_grid(b, resolution=(6, 6), size=(0.5, 0.5), particle_mass=0.01, pin=[0, 6])
+        return _jiggled(b.finalize("cpu"))
+
+    predicted = make().stable_dt()
+    assert 0.0 < predicted < math.inf
+    empirical = _bisect_limit(make, predicted, steps=1500)
+    assert predicted == pytest.approx(empirical, rel=0.2)
+
+
+@pytest.mark.parametrize("stiffness", [40.0, 80.0])
+def test_teapot_limit_matches_bisection(stiffness):
+    from warpsim.scenes import get_scene
+
+    scene = get_scene("teapot")({"resolution": "3", "stiffness": stiffness}, device="cpu")
+
+    def make():
+        return _jiggled(scene.model)
+
+    limit = make().stability()
+    assert limit.limiting == "spring"
+    assert limit.omega_bound >= limit.omega_max
+    empirical = _bisect_limit(make, limit.dt, steps=1500)
+    assert limit.dt == pytest.approx(empirical, rel=0.2)
