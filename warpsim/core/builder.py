@@ -9,7 +9,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
-from .model import Model
+from .model import Model, spring_adjacency
 
 
 def _vec3(value, what: str) -> tuple:
@@ -193,6 +193,9 @@ class ModelBuilder:
         model.spring_break_force = wp.array(force, dtype=float, device=d)
         model.spring_broken = wp.zeros(m, dtype=int, device=d)
         model.breakable_spring_count = int(np.count_nonzero(np.isfinite(strain) | np.isfinite(force)))
+        offsets, springs = spring_adjacency(np.array(self.spring_indices, dtype=np.int64).reshape(2 * m), n)
+        model.particle_spring_offsets = wp.array(offsets, dtype=int, device=d)
+        model.particle_springs = wp.array(springs, dtype=int, device=d)
         return model
 
 

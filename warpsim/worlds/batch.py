@@ -23,12 +23,14 @@ import warp as wp
 from ..bodies.colliders import Planes
 from ..cloth.solver import ClothImplicitEuler
 from ..core.integrators import ImplicitEuler
-from ..core.model import Model
+from ..core.model import Model, ensure_spring_adjacency
 from ..kernels import worlds as KW
 from .forces import WorldGravity, WorldPlanes
 from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, make_plan
 
 __all__ = ["WorldBatch"]
+
+ADJACENCY_ARRAYS = ("particle_spring_offsets", "particle_springs")
 
 
 class WorldBatch:
@@ -152,7 +154,8 @@ class WorldBatch:
                                                             world_values, max(len(keys), 1), out], device=d)
             setattr(mb, name, out)
         for name, base in vars(m0).items():  # further per-element arrays (e.g. breakable springs)
-            if not isinstance(base, wp.array) or hasattr(mb, name) or name in ("particle_inv_mass", "spring_indices"):
+            if not isinstance(base, wp.array) or hasattr(mb, name) or name in ("particle_inv_mass", "spring_indices",
+                                                                              *ADJACENCY_ARRAYS):
                 continue
             count = P if name.startswith("particle_") else S if name.startswith("spring_") else None
             if count is None or base.shape[0] != count:
@@ -181,7 +184,21 @@ class WorldBatch:
         mb.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
         if S:
             wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, mb.spring_indices], device=d)
+        self._tile_adjacency(m0, mb)
         return mb
+
+    def _tile_adjacency(self, m0, mb):
+        """World w's CSR spring adjacency = world 0's with springs + w S and offsets + 2 w S: each
+        particle sums its springs in the same order as in a run of its world alone."""
+        n, P, S, d = self.world_count, m0.particle_count, m0.spring_count, self.device
+        ensure_spring_adjacency(m0)
+        mb.particle_spring_offsets = wp.full(n * P + 1, 2 * n * S, dtype=int, device=d)
+        mb.particle_springs = wp.empty(2 * n * S, dtype=int, device=d)
+        if P:
+            wp.launch(KW.tile_spring_indices, n * P, inputs=[m0.particle_spring_offsets[:P], 2 * S,
+                                                            mb.particle_spring_offsets[: n * P]], device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.particle_springs, S, mb.particle_springs], device=d)
 
     def _scaled(self):
         return {name for e in self.plan.values() for name in e.scale}
