@@ -96,13 +96,15 @@ def compare_caches(path_a: Path, path_b: Path):
                 if earliest is None or (frame is not None and earliest[0] is not None and frame < earliest[0]):
                     earliest = diff
                 continue
-            for t in [Usd.TimeCode.Default(), *times_a]:
-                if earliest is not None and not t.IsDefault() and earliest[0] is not None and t >= earliest[0]:
+            for frame in [None, *times_a]:  # None: the default (unsampled) value
+                if earliest is not None and frame is not None and earliest[0] is not None and frame >= earliest[0]:
                     break
+                t = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(frame)
                 found = _first_difference(_as_array(attr_a.Get(t)), _as_array(attr_b.Get(t)))
                 if found is not None:
-                    frame = None if t.IsDefault() else t
                     earliest = (frame, str(path), name, *found)
+                    if frame is None:  # a default value differs: nothing comes earlier
+                        return earliest
                     break
     return earliest
 
