@@ -1,7 +1,8 @@
 """Bookkeeping for particles that live on a MAC grid (particle level set markers, FLIP particles):
-per-cell counts with a rank for each particle, culling of crowded cells, and stream compaction of
-the live particles. A particle is live when its ``alive`` value is non-zero and its index is below
-count[0]."""
+per-cell counts, the cell-ordered particle list (a stable sort by cell) with a rank for each
+particle, culling of crowded cells, appends in cell order and stream compaction of the live
+particles: no output position depends on the order threads run in. A particle is live when its
+``alive`` value is non-zero and its index is below count[0]."""
 
 import warp as wp
 
@@ -27,16 +28,48 @@ def count_per_cell(
     origin: wp.vec3,
     dx: float,
     cell_count_io: wp.array3d(dtype=int),
-    rank_out: wp.array(dtype=int),
+    keys_out: wp.array(dtype=int),
+    ids_out: wp.array(dtype=int),
 ):
-    """cell_count += 1 for the cell of every live particle; rank = its arrival order in that cell."""
+    """cell_count += 1 for the cell of every live particle (integer atomics: the counts do not
+    depend on the order); keys = the particle's flat cell index (the cell count for a dead one, so
+    it sorts last) and ids = p, the pairs that a stable sort turns into the cell-ordered list."""
     p = wp.tid()
-    rank_out[p] = -1
-    if p >= count[0] or alive[p] == 0.0:
-        return
-    c = particle_cell(pos[p], origin, 1.0 / dx, cell_count_io.shape[0], cell_count_io.shape[1],
-                      cell_count_io.shape[2])
-    rank_out[p] = wp.atomic_add(cell_count_io, c[0], c[1], c[2], 1)
+    nx = cell_count_io.shape[0]
+    ny = cell_count_io.shape[1]
+    nz = cell_count_io.shape[2]
+    key = nx * ny * nz
+    if p < count[0] and alive[p] != 0.0:
+        c = particle_cell(pos[p], origin, 1.0 / dx, nx, ny, nz)
+        wp.atomic_add(cell_count_io, c[0], c[1], c[2], 1)
+        key = (c[0] * ny + c[1]) * nz + c[2]
+    keys_out[p] = key
+    ids_out[p] = p
+
+
+@wp.kernel
+def rank_in_cell(keys: wp.array(dtype=int), ids: wp.array(dtype=int), cell_start: wp.array(dtype=int),
+                 rank_out: wp.array(dtype=int)):
+    """rank of the particle at sorted position s = s - start of its cell (its order among the live
+    particles of the cell by index: the sort is stable), -1 for dead particles."""
+    s = wp.tid()
+    key = keys[s]
+    rank = int(-1)
+    if key < cell_start.shape[0]:
+        rank = s - cell_start[key]
+    rank_out[ids[s]] = rank
+
+
+@wp.kernel
+def advance_count(emitted: wp.array(dtype=int), offsets: wp.array(dtype=int), capacity: int,
+                  count_io: wp.array(dtype=int), next_id_io: wp.array(dtype=int)):
+    """After an append in cell order (counts ``emitted`` per cell, ``offsets`` their exclusive
+    prefix sum): count += the appended total, next_id += those that fitted below ``capacity``."""
+    last = emitted.shape[0] - 1
+    total = offsets[last] + emitted[last]
+    base = count_io[0]
+    count_io[0] = base + total
+    next_id_io[0] = next_id_io[0] + wp.max(0, wp.min(total, capacity - base))
 
 
 @wp.kernel
