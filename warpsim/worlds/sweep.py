@@ -114,6 +114,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     stats = WorldMetrics(batch, track=track, user=metrics)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
     recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name)
+    for i, p in enumerate(getattr(batch, "params", given)):
+        writer.set_world_params(i, p)
 
     def write(frame):
         x, v = batch.world_slices()
