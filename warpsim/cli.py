@@ -26,6 +26,8 @@ COMMANDS = {
     "render": "warpsim.render.command",
     "plot": "warpsim.render.plot",
     "sweep": "warpsim.worlds.command",
+    "query": "warpsim.worlds.query_command",
+    "pick": "warpsim.worlds.pick",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's

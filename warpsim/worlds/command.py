@@ -4,12 +4,14 @@
                   [--seed S] [--frames N] [--fps F] [--substeps S] [--device D] [--out PATH]
                   [--set KEY=VALUE ...] [--layout variants|grid] [--table CSV] [--track NAME=INDEX ...]
                   [--rank METRIC [--top K]] [--where METRIC<VALUE ...]
+                  [--inside BOX@T0:T1 ...] [--outside BOX@T0:T1 ...] [--occupancy-res R]
 
 Writes ``PATH`` (default ``usd_out/SCENE_sweep.usda``): a root whose ``/World`` carries a variant
 set ``world`` (or, with ``--layout grid``, every world side by side), the batch layer beside it
 (``<stem>.batch_0000.usdc``) and the table ``<stem>.csv`` (one row per world: parameters and
-metrics). ``--rank``/``--where`` print the picked worlds and write ``<stem>.picked.usda`` holding
-only those. Exit status 2 for usage mistakes (one line), 1 when the run fails.
+metrics) and the occupancy record ``<stem>.occupancy.npz`` (:mod:`warpsim.worlds.occupancy`;
+``warpsim query`` asks it later). ``--rank``/``--where``/``--inside``/``--outside`` print the
+picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage mistakes (one line), 1 when the run fails.
 """
 from __future__ import annotations
 
@@ -44,6 +46,18 @@ def add_parser(sub):
     s.add_argument("--top", type=int, default=None, metavar="K", help="keep the first K worlds of --rank")
     s.add_argument("--where", action="append", default=[], metavar="METRIC<VALUE",
                    help="keep worlds whose metric passes (< <= > >= == !=; repeatable)")
+    s.add_argument("--inside", action="append", default=[], metavar="X0,Y0,Z0,X1,Y1,Z1@T0:T1",
+                   help="keep worlds with a (tracked) particle inside the box [m] at some frame of the window [s] "
+                        "(repeatable; adds insideK_time, insideK_entry, insideK_share to rank by)")
+    s.add_argument("--outside", action="append", default=[], metavar="X0,Y0,Z0,X1,Y1,Z1@T0:T1",
+                   help="keep worlds with no (tracked) particle inside the box during the window (repeatable)")
+    s.add_argument("--occupancy-res", type=int, default=None, metavar="R",
+                   help="cells along the longest side of the occupancy record's grid (default 16)")
+    s.add_argument("--occupancy-bounds", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                   help="box [m] the occupancy grid covers (default: frame 0's extent, padded)")
+    from .query import accept_negative_boxes
+
+    accept_negative_boxes(s)
     s.add_argument("--fused", action="store_true",
                    help="step mass-spring scenes through the fused semi-implicit kernel (faster on GPUs; agrees "
                         "to float32 rounding)")
@@ -101,6 +115,7 @@ def run(args, out, err):
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
     from ..scenes import get_scene
     from .metrics import BUILTIN, parse_rank, parse_where, select
+    from .query import apply_regions, region_columns
     from .sweep import run_batch, sample_worlds, write_table
     from .usd import LAYOUTS, write_sweep_root
 
@@ -145,6 +160,8 @@ def run(args, out, err):
     for name in track or {}:
         names += [f"{name}_x", f"{name}_y", f"{name}_z", f"{name}_peak_y"]
     try:  # picking is checked before anything runs
+        regions, occupancy = _regions(args, fps)
+        names += region_columns(regions)
         rank = parse_rank(args.rank, names) if args.rank else None
         where = [parse_where(w, names) for w in args.where]
     except ValueError as exc:
@@ -174,7 +191,8 @@ def run(args, out, err):
                                 dynamic_ncols=True)
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=layer, first_world=0, track=track,
-                             progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused)
+                             progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
+                             occupancy={**occupancy, "path": _record_path(path)})
             if progress:
                 progress.close()
                 progress = None
@@ -192,9 +210,17 @@ def run(args, out, err):
     print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {fps:g} fps on {device}"
           f"{f' ({blown} blew up and were frozen)' if blown else ''}", file=out)
     print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
-    if args.rank or args.where:
-        picked = select(rows, rank=rank, top=args.top, where=where)
+    candidates = rows
+    if getattr(args, "ray", None) is None:
+        from .occupancy import OccupancyRecord
+
+        record = OccupancyRecord.load(_record_path(path))
+        print(record.describe(), file=out)
+        candidates = apply_regions(rows, record, regions)
+    if args.rank or args.where or regions:
+        picked = select(candidates, rank=rank, top=args.top, where=where)
         shown = [k for k in world_params[0]] + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where]
+                                                 + region_columns(regions)
                                                  if m not in world_params[0]]
         shown = list(dict.fromkeys(shown))
         print(f"picked {len(picked)} of {len(rows)} worlds:", file=out)
@@ -206,6 +232,30 @@ def run(args, out, err):
                                          worlds=[r["world"] for r in picked])
             print(f"picked worlds: {os.path.relpath(pick_path)}", file=out)
     return 0
+
+
+def _record_path(root):
+    from .occupancy import occupancy_path
+
+    return occupancy_path(root)
+
+
+def _regions(args, fps):
+    """(regions, occupancy options) from --inside/--outside/--occupancy-*; windows checked
+    against the run's frames. ValueError (one line) for a bad box, window or resolution."""
+    from .occupancy import DEFAULT_RESOLUTION, parse_bounds
+    from .query import check_window, parse_region
+
+    regions = [parse_region(t, True) for t in args.inside] + [parse_region(t, False) for t in args.outside]
+    for r in regions:
+        check_window(r, fps, args.frames + 1)
+    if regions and getattr(args, "ray", None) is not None:
+        raise ValueError("--inside/--outside need the occupancy record of a single-process sweep; drop --ray")
+    res = DEFAULT_RESOLUTION if args.occupancy_res is None else args.occupancy_res
+    if not 1 <= res <= 256:
+        raise ValueError(f"--occupancy-res {res}: give 1..256 cells along the grid's longest side")
+    bounds = parse_bounds(args.occupancy_bounds) if args.occupancy_bounds else None
+    return regions, {"resolution": res, "bounds": bounds}
 
 
 def _timing(cls, params, fps, substeps):

@@ -16,37 +16,12 @@ import tempfile
 import numpy as np
 
 from ..viewer.playback import _DYNAMIC, CacheReader, PlaybackViewer
+from .roots import root_worlds as _root_worlds
 from .usd import write_sweep_root
 
 __all__ = ["GalleryReader", "GalleryViewer", "is_sweep_root"]
 
 ALL = "all worlds"
-
-
-def _root_worlds(path):
-    """(layout, [(world index, batch layer path)]) of a sweep root, or None if it is not one."""
-    from pxr import Sdf
-
-    layer = Sdf.Layer.FindOrOpen(os.fspath(path))
-    spec = layer.GetPrimAtPath("/World") if layer is not None else None
-    if spec is None:
-        return None
-    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    found = []
-
-    def add(prim_spec, name):
-        refs = prim_spec.referenceList.prependedItems
-        if name.startswith("world_") and len(refs) == 1:
-            found.append((int(name[6:]), os.path.normpath(os.path.join(folder, refs[0].assetPath))))
-
-    vset = spec.variantSets.get("world")
-    if vset is not None:
-        for name, variant in vset.variants.items():
-            add(variant.primSpec, name)
-        return ("variants", sorted(found)) if found else None
-    for name, child in spec.nameChildren.items():
-        add(child, name)
-    return ("grid", sorted(found)) if found else None
 
 
 def is_sweep_root(path) -> bool:

@@ -83,7 +83,7 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
-              track=None, metrics=(), use_graph=None, progress=None, fused=False) -> list:
+              track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -93,7 +93,10 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     world} for position metrics; ``metrics``: :class:`warpsim.worlds.metrics.UserMetric` list;
     ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
     ``fused``: step through the fused semi-implicit kernel (:class:`WorldBatch`);
-    ``progress(frame)``: called after each frame."""
+    ``progress(frame)``: called after each frame; ``occupancy``: None, or {"path": record file,
+    "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
+    occupancy record of these worlds (:mod:`warpsim.worlds.occupancy`; the tracked particles
+    when ``track`` is given, else every particle)."""
     from ..scenes import get_scene
 
     cls = get_scene(scene_name)
@@ -110,6 +113,9 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     batch = make_batch(cls, world_params, device=device, fused=fused)
     stats = WorldMetrics(batch, track=track, user=metrics)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
+    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name)
+    for i, p in enumerate(getattr(batch, "params", given)):
+        writer.set_world_params(i, p)
 
     def write(frame):
         x, v = batch.world_slices()
@@ -119,11 +125,16 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     def body():
         batch.advance(frame_dt, substeps)
         stats.update()
+        if recorder is not None:
+            recorder.update()
 
     graph = None
     if use_graph is None:
         use_graph = batch.device.is_cuda and batch.can_capture()
     stats.update()
+    if recorder is not None:
+        recorder.update()
+        recorder.after_frame()
     write(0)
     for frame in range(1, int(frames) + 1):
         if use_graph and graph is None and frame > 1:  # frame 1 ran eagerly: every module is loaded
@@ -135,11 +146,27 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
             wp.capture_launch(graph)
         else:
             body()
+        if recorder is not None:
+            recorder.after_frame()
         write(frame)
         if progress is not None:
             progress(frame)
     writer.close(scene_name)
+    if recorder is not None:
+        recorder.finish().save(occupancy["path"])
     return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
+
+
+def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name):
+    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record)."""
+    if not occupancy:
+        return None
+    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder
+
+    return OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
+                             track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
+                             resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
+                             first_world=first_world, scene=scene_name)
 
 
 def _cell(value):

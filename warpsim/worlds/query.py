@@ -1,0 +1,194 @@
+"""Spacetime queries over an occupancy record: IN / NOT IN a box during a window.
+
+``--inside "x0,y0,z0,x1,y1,z1@t0:t1"`` keeps the worlds in which some recorded particle is
+inside the box (corners [m], inclusive) at some frame of the window (seconds; frame f lies at
+f / fps; ``@t0:`` runs to the end, ``@:t1`` from the start, no ``@`` the whole run);
+``--outside`` keeps the worlds in which none is. Regions combine with AND. Each ``--inside``
+(the k-th, counted from 1) adds columns a world can be ranked or filtered by:
+
+  insideK_time    time inside during the window [s] (frames with a particle inside / fps)
+  insideK_entry   first time inside during the window [s] (nan: never)
+  insideK_share   largest share of the world's recorded particles inside at one frame of the
+                  window, in [0, 1] (exact records only; nan otherwise)
+
+Answers come from the cells of :class:`warpsim.worlds.occupancy.OccupancyRecord`: conservative to
+one cell (a world whose particles come within one cell of the box may be kept by IN and dropped
+by NOT IN). Where the record keeps exact positions (few particles per world), the worlds the
+cells leave in doubt are decided exactly from them: the answer is then exact.
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from .occupancy import parse_bounds
+
+__all__ = ["Region", "RegionAnswer", "answer_region", "apply_regions", "check_window", "parse_region",
+           "region_columns"]
+
+
+@dataclass(frozen=True)
+class Region:
+    """A box lo..hi [m] during t0..t1 [s] (None: open end); ``inside`` True for IN, False for NOT IN."""
+
+    inside: bool
+    lo: tuple
+    hi: tuple
+    t0: float | None
+    t1: float | None
+    text: str
+
+    @property
+    def flag(self) -> str:
+        return "--inside" if self.inside else "--outside"
+
+
+NEGATIVE_START = re.compile(r"^-\d*\.?\d+([eE][-+]?\d+)?(,|@|$)")
+"""Arguments argparse must read as values, not options: ``-0.1,0,0,...`` (a box whose first
+corner is negative). Set as a parser's ``_negative_number_matcher`` (see :func:`accept_negative_boxes`)."""
+
+
+def accept_negative_boxes(parser):
+    """Let ``--inside -0.1,0,0,0.1,1,0.1@0:1`` parse (argparse takes a leading '-' for an option
+    unless the whole word is a negative number); ``--inside=...`` always works."""
+    parser._negative_number_matcher = NEGATIVE_START
+    return parser
+
+
+def parse_region(text, inside=True) -> Region:
+    """A :class:`Region` from ``"x0,y0,z0,x1,y1,z1[@t0:t1]"``; ValueError (one line) naming the item."""
+    flag = "--inside" if inside else "--outside"
+    text = str(text).strip()
+    box, at, window = text.partition("@")
+    lo, hi = parse_bounds(box, f"{flag} box")
+    t0 = t1 = None
+    if at:
+        a, colon, b = window.partition(":")
+        if not colon:
+            raise ValueError(f"{flag} {text!r}: write the window as @T0:T1 in seconds (e.g. @0.5:1), or leave it out "
+                             "for the whole run")
+        try:
+            t0 = float(a) if a.strip() else None
+            t1 = float(b) if b.strip() else None
+        except ValueError:
+            raise ValueError(f"{flag} {text!r}: the window {window!r} is not T0:T1 in seconds") from None
+        for t in (t0, t1):
+            if t is not None and not math.isfinite(t):
+                raise ValueError(f"{flag} {text!r}: window times must be finite seconds")
+        if t0 is not None and t1 is not None and t1 < t0:
+            raise ValueError(f"{flag} {text!r}: the window ends ({t1:g} s) before it starts ({t0:g} s); give T0 <= T1")
+    return Region(bool(inside), tuple(lo), tuple(hi), t0, t1, text)
+
+
+def check_window(region, fps, frame_count, first_frame=0):
+    """(f0, f1): the first and last frame index (from ``first_frame``) inside the region's
+    window; ValueError when the window misses every frame of the run (0 .. (F - 1) / fps s)."""
+    end = (first_frame + frame_count - 1) / fps
+    t0 = first_frame / fps if region.t0 is None else region.t0
+    t1 = end if region.t1 is None else region.t1
+    tol = 1e-9 * max(1.0, abs(end))
+    if t1 < first_frame / fps - tol or t0 > end + tol:
+        raise ValueError(f"{region.flag} {region.text!r}: the window {t0:g}..{t1:g} s is outside the sweep's time "
+                         f"{first_frame / fps:g}..{end:g} s ({frame_count} frames at {fps:g} fps)")
+    f0 = max(math.ceil(t0 * fps - 1e-6), first_frame) - first_frame
+    f1 = min(math.floor(t1 * fps + 1e-6), first_frame + frame_count - 1) - first_frame
+    if f1 < f0:
+        raise ValueError(f"{region.flag} {region.text!r}: no frame lies in {t0:g}..{t1:g} s (frames every "
+                         f"{1 / fps:g} s); widen the window")
+    return f0, f1
+
+
+def region_columns(regions) -> list:
+    """Names of the columns the ``--inside`` regions add (see the module docstring)."""
+    names = []
+    k = 0
+    for r in regions:
+        if r.inside:
+            k += 1
+            names += [f"inside{k}_time", f"inside{k}_entry", f"inside{k}_share"]
+    return names
+
+
+@dataclass
+class RegionAnswer:
+    """Per world of a record: ``match`` (IN: inside at some frame of the window; NOT IN: never),
+    ``time`` [s], ``entry`` [s] (nan: never inside), ``share`` in [0, 1] (nan: no exact positions),
+    ``exact`` (whether decided from exact positions)."""
+
+    match: np.ndarray
+    time: np.ndarray
+    entry: np.ndarray
+    share: np.ndarray
+    exact: bool
+
+
+def _cell_hits(record, region, f0, f1):
+    """(W, F_window) bool: frames of the window at which a world occupies a cell the box touches."""
+    W = record.world_count
+    nwords = record.pair_bits.shape[1]
+    window = np.zeros(nwords * 32, dtype=bool)
+    window[f0:f1 + 1] = True
+    wmask = np.packbits(window, bitorder="little").view(np.uint32)
+    touched = record.grid.box_cells(region.lo, region.hi)
+    sel = np.flatnonzero(touched[record.pair_cell])
+    sub = record.pair_bits[sel] & wmask
+    keep = sub.any(axis=1)
+    sel, sub = sel[keep], sub[keep]
+    hits = np.zeros((W, nwords), dtype=np.uint32)
+    if len(sel):
+        worlds = record.pair_world[sel]
+        starts = np.flatnonzero(np.r_[True, worlds[1:] != worlds[:-1]])
+        hits[worlds[starts]] = np.bitwise_or.reduceat(sub, starts, axis=0)
+    frames = np.unpackbits(hits.view(np.uint8), axis=1, bitorder="little").astype(bool)
+    return frames[:, f0:f1 + 1]
+
+
+def answer_region(record, region) -> RegionAnswer:
+    """Answer one region over every world of ``record`` (see the module docstring)."""
+    f0, f1 = check_window(region, record.fps, record.frame_count, record.first_frame)
+    frames = _cell_hits(record, region, f0, f1)
+    W = record.world_count
+    share = np.full(W, np.nan)
+    exact = record.exact
+    if exact:  # decide the worlds the cells leave in doubt from their exact positions
+        doubt = np.flatnonzero(frames.any(axis=1))
+        s = record.samples[doubt, f0:f1 + 1].astype(np.float64)  # (D, Fw, K, 3)
+        inside = ((s >= np.asarray(region.lo)) & (s <= np.asarray(region.hi))).all(axis=-1)
+        frames = np.zeros_like(frames)
+        frames[doubt] = inside.any(axis=-1)
+        share[:] = 0.0
+        if inside.shape[-1]:
+            share[doubt] = inside.mean(axis=-1).max(axis=-1, initial=0.0)
+    count = frames.sum(axis=1)
+    ever = count > 0
+    entry = np.full(W, np.nan)
+    entry[ever] = (record.first_frame + f0 + frames[ever].argmax(axis=1)) / record.fps
+    return RegionAnswer(ever if region.inside else ~ever, count / record.fps, entry, share, exact)
+
+
+def apply_regions(rows, record, regions):
+    """The rows (one per world, ``row["world"]`` its global index) that pass every region, each
+    with the columns of :func:`region_columns` added; ValueError for a world the record lacks."""
+    if not regions:
+        return list(rows)
+    answers = [answer_region(record, r) for r in regions]
+    out = []
+    names = region_columns(regions)
+    for row in rows:
+        w = int(row["world"]) - record.first_world
+        if not 0 <= w < record.world_count:
+            raise ValueError(f"world {row['world']} is not in the occupancy record (worlds {record.first_world}.."
+                             f"{record.first_world + record.world_count - 1}); run the sweep again")
+        if not all(a.match[w] for a in answers):
+            continue
+        extra, k = {}, 0
+        for r, a in zip(regions, answers):
+            if r.inside:
+                extra.update({names[3 * k]: float(a.time[w]), names[3 * k + 1]: float(a.entry[w]),
+                              names[3 * k + 2]: float(a.share[w])})
+                k += 1
+        out.append({**row, **extra})
+    return out
