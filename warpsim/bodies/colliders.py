@@ -189,8 +189,8 @@ def quat_from_matrix(m) -> np.ndarray:
         q[k] = 0.25 * s
         q[i] = (m[i, k] + m[k, i]) / s
         q[j] = (m[j, k] + m[k, j]) / s
-    q = np.array(q)
-    return q / np.linalg.norm(q)
+    quat = np.array(q)
+    return quat / np.linalg.norm(quat)
 
 
 def quat_slerp(a, b, s: float) -> np.ndarray:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -89,8 +90,9 @@ class SoftBody:
         start = self.spring_start
         for name, count in counts.items():
             if name == kind:
-                return range(start, start + count)
+                break
             start += count
+        return range(start, start + counts[kind])
 
 
 def bending_pairs(faces) -> np.ndarray:
@@ -143,8 +145,8 @@ def interior_lattice(points, faces, cells: int):
         j[ok] = grid[tuple(nb[ok].T)]
         sel = j >= 0
         pairs.append(np.stack([np.flatnonzero(sel), j[sel]], axis=1))
-    pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
-    return centers[keep], pairs, h
+    pair_array = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+    return centers[keep], pair_array, h
 
 
 def _lattice_hint(points, faces, cells, budget=2.0e7):
@@ -309,7 +311,7 @@ def load_mesh(path, *, weld_tolerance: float = 1.0e-7):
         if os.path.getsize(path) == 0:
             raise ValueError(f"mesh file {path!r} is empty (0 bytes); export the mesh again")
         try:
-            mesh = trimesh.load(path, force="mesh", process=False)
+            mesh: Any = trimesh.load(path, force="mesh", process=False)  # a Trimesh (force="mesh")
             points, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
         except (ImportError, MemoryError):
             raise

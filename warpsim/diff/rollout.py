@@ -42,6 +42,7 @@ total force.
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -55,7 +56,7 @@ DIFFERENTIABLE_FORCES = (Gravity, ConstantForce, Wind, Drag, Magnets, Springs)
 """Force types a differentiable run accepts."""
 
 # force type -> its coefficients, each (name, attribute, unit values): the force is linear in them
-_LINEAR = {
+_LINEAR: dict[type, list[tuple[str, str, list[Any]]]] = {
     Gravity: [("g", "g", [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)])],
     ConstantForce: [("force", "force", [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)])],
     Drag: [("linear", "linear", [1.0]), ("quadratic", "quadratic", [1.0])],
