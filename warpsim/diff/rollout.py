@@ -63,6 +63,10 @@ _LINEAR: dict[type, list[tuple[str, str, list[Any]]]] = {
     Wind: [("coefficient", "coefficient", [1.0])],
 }
 
+# ClothSemiImplicitEuler.name: matched by name, since warpsim.cloth.solver imports the Simulator, which
+# imports this module (tests/test_import_graph.py checks the two agree)
+CLOTH_SEMI_IMPLICIT = "cloth_semi_implicit_euler"
+
 _FLUIDS = ("ParticleFluid", "FlipLiquid", "Smoke", "LevelSetLiquid", "LevelSet", "MacGrid", "PressureSolver")
 
 
@@ -79,13 +83,11 @@ def check_differentiable(sim) -> None:
     if name in _FLUIDS or not hasattr(sim, "integrator"):
         _refuse(f"{name}", "is not differentiable (fluid solvers project pressure iteratively and rebuild "
                 "neighbour grids; no backward pass exists for them)", "use ws.Simulator on a particle/spring model")
-    from ..cloth.solver import ClothSemiImplicitEuler
-
     if getattr(sim, "adaptive", False):
         _refuse("adaptive sub-stepping", "picks the number of sub-steps from the state, a choice with no derivative",
                 "use adaptive=False and fixed steps")
     integ = sim.integrator
-    if not isinstance(integ, (ExplicitEuler, SemiImplicitEuler, ClothSemiImplicitEuler)):
+    if not (isinstance(integ, (ExplicitEuler, SemiImplicitEuler)) or integ.name == CLOTH_SEMI_IMPLICIT):
         if "implicit_euler" in integ.name:
             _refuse(f"integrator {integ.name!r}", "solves each step with a Newton / conjugate-gradient loop that "
                     "is not differentiated", "use integrator='semi_implicit_euler' or 'explicit_euler'")
@@ -128,12 +130,10 @@ class Rollout:
 
     def __init__(self, sim):
         check_differentiable(sim)
-        from ..cloth.solver import ClothSemiImplicitEuler
-
         self.sim = sim
         self.model = model = sim.model
         self.device = sim.device
-        self.cloth = isinstance(sim.integrator, ClothSemiImplicitEuler)
+        self.cloth = sim.integrator.name == CLOTH_SEMI_IMPLICIT
         self.tape = wp.Tape()
         for arr in (model.particle_mass, model.particle_inv_mass, model.spring_rest_length, model.spring_stiffness,
                     model.spring_damping):
