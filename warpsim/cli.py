@@ -68,7 +68,8 @@ def _parser(argv=None):
     r.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="set a scene parameter (repeatable)")
     r.add_argument("--chunk", type=int, default=24, help="frames per chunk file (default 24)")
-    r.add_argument("--flatten", action="store_true", help="also write one self-contained .usdc at the end")
+    r.add_argument("--flatten", action="store_true", help="at the end, replace the chunked cache by one self-contained .usdc "
+                   "(--out NAME.usda becomes NAME.usdc; the .usda and its chunk files are removed)")
     r.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="save the simulation state beside the cache every N frames")
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")

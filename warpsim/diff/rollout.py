@@ -246,9 +246,13 @@ class Rollout:
         """Record loss = weight sum_k sum_i |q_k,i - target_k,i|^2 [m^2] over the states
         ``steps`` (default: the last one) against ``targets`` (one (n,) vec3 array per step);
         returns the (1,) loss array (zeroed first; allocated when ``loss`` is None)."""
+        given = steps is not None
         steps = [self.step_count] if steps is None else list(steps)
         if len(targets) != len(steps):
-            raise ValueError(f"trajectory_loss: {len(targets)} targets for {len(steps)} steps; give one per step")
+            which = f"steps={steps}" if given else f"steps=None means the last step only ({self.step_count})"
+            raise ValueError(f"trajectory_loss: {len(targets)} targets for {len(steps)} step(s) ({which}); give one "
+                             "target per step and name the step of each with steps=[k1, k2, ...] (step k is "
+                             "rollout.states[k])")
         if loss is None:
             loss = wp.zeros(1, dtype=float, device=self.device, requires_grad=True)
         loss.zero_()
