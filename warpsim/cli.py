@@ -19,6 +19,9 @@ import os
 import sys
 import time
 
+from .cli_common import UsageError
+from .cli_common import device_arg as _device
+
 __all__ = ["COMMANDS", "UsageError", "main"]
 
 COMMANDS = {
@@ -34,10 +37,6 @@ COMMANDS = {
 sub-parsers; imports nothing heavy) and ``run(args, out, err) -> int`` (exit status; raise
 :class:`UsageError` for a usage mistake, reported as one line with exit 2). Reuse this module's
 ``_parse_sets``, ``_timing`` and ``_device`` for scene names, ``--set`` and ``--device``."""
-
-
-class UsageError(Exception):
-    """A mistake in the command line: reported with exit status 2."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -71,7 +70,8 @@ def _parser(argv=None):
     r.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="set a scene parameter (repeatable)")
     r.add_argument("--chunk", type=int, default=24, help="frames per chunk file (default 24)")
-    r.add_argument("--flatten", action="store_true", help="also write one self-contained .usdc at the end")
+    r.add_argument("--flatten", action="store_true", help="at the end, replace the chunked cache by one self-contained .usdc "
+                   "(--out NAME.usda becomes NAME.usdc; the .usda and its chunk files are removed)")
     r.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="save the simulation state beside the cache every N frames")
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
@@ -214,18 +214,6 @@ def _timing(cls, params, given, fps, substeps):
     else:
         fps = fps or cls.fps
     return float(f"{fps:.12g}"), substeps, params  # 1 / (0.04 * 1) -> 25, not 25.000000000000004
-
-
-def _device(name):
-    import warp as wp
-
-    if name is None:
-        return "cuda:0" if wp.is_cuda_available() else "cpu"
-    try:
-        return str(wp.get_device(name))
-    except Exception as exc:  # noqa: BLE001  (Warp raises plain Exception/RuntimeError/ValueError)
-        choices = [str(d) for d in wp.get_devices()]
-        raise UsageError(f"--device {name!r} is not available ({exc}); available: {', '.join(choices)}") from None
 
 
 def checkpoint_path(cache_path):

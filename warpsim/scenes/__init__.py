@@ -46,7 +46,7 @@ import importlib
 import pkgutil
 import sys
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, Optional
 
 import numpy as np
 
@@ -69,7 +69,7 @@ class Param:
 
     default: object
     help: str = ""
-    choices: tuple = None
+    choices: Optional[tuple] = None
 
     @property
     def type_name(self):
@@ -218,7 +218,7 @@ class SimulatorScene(Scene):
     """A Scene driving one ``ws.Simulator`` in ``self.sim``: stepping, checkpoints and the
     frame data of points prims declared with ``from_state=True`` come for free."""
 
-    sim = None
+    sim: Any = None
     _state_prims = None
 
     def advance(self, frame_dt, substeps):
