@@ -26,6 +26,7 @@ if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and 
     )
     from .bodies import SoftContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
     from .cloth import (
         Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
         cloth_energy,
