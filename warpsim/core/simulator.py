@@ -180,12 +180,14 @@ class Simulator:
         self.integrator.prepare(self.system)
 
     # ------------------------------------------------------------------ stability
-    def stability(self, iterations: int = stab.POWER_ITERATIONS) -> "stab.StabilityLimit":
+    def stability(self, positions=None, iterations: int = stab.POWER_ITERATIONS) -> "stab.StabilityLimit":
         """The largest stable step and what sets it (``ws.StabilityLimit``: limiting spring or
         collider, its k and m, per-spring and per-particle limits), from the model's springs,
-        masses, damping, linear drag and penalty colliders at the current positions with this
-        integrator's stability region; see ``warpsim.core.stability`` for the bound's assumptions."""
-        self._stability = stab.particle_limits(self.model, self.state.positions, self.integrator, self.forces,
+        masses, damping, linear drag and penalty colliders linearised about ``positions`` (None:
+        the current state) with this integrator's stability region; see
+        ``warpsim.core.stability`` for the bound's assumptions."""
+        q = self.state.positions if positions is None else positions
+        self._stability = stab.particle_limits(self.model, q, self.integrator, self.forces,
                                                self.colliders, iterations=iterations)[0]
         return self._stability
 
@@ -201,9 +203,11 @@ class Simulator:
 
     def auto_substeps(self, frame_dt: float, safety: float = stab.AUTO_SAFETY, minimum: int = 1) -> int:
         """Sub-steps for a frame of ``frame_dt`` [s] keeping every step <= ``safety`` x the
-        stability limit (the limit is computed once and cached until ``invalidate_stability``)."""
+        stability limit, at least ``minimum``. The limit is computed once about the model's initial
+        positions (so a resumed or re-run simulation picks the same count) and cached until
+        ``invalidate_stability``."""
         if self._stability is None:
-            self.stability()
+            self.stability(positions=self.model.particle_q)
         return self._stability.substeps_for(frame_dt, safety, minimum)
 
     def _warn_if_unstable(self, h: float) -> None:
