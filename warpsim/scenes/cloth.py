@@ -104,6 +104,7 @@ class ClothScene(SimulatorScene):
 
     def advance(self, frame_dt, substeps):
         self.sim.frame(frame_dt, self.frame_steps(frame_dt, substeps))
+        self.sim.check_frame(frame_dt)
 
     def frame_steps(self, frame_dt, substeps):
         steps = "auto" if substeps == "auto" else substeps * self.steps_per_substep
