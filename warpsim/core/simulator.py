@@ -183,6 +183,7 @@ class Simulator:
         self.forces = self.system.forces
         self.integrator._system = None  # prepare() is idempotent per system: force a re-allocation
         self.integrator.prepare(self.system)
+        self.invalidate_stability()
 
     # ------------------------------------------------------------------ stability
     def stability(self, positions=None, iterations: int = stab.POWER_ITERATIONS) -> "stab.StabilityLimit":

@@ -32,6 +32,8 @@ Assumptions of the model estimate (``particle_limits``):
   springs' dampers plus linear ``Drag``; this is exact for a single spring and for damping
   proportional to stiffness (modes then decouple), an estimate otherwise.
 - Other forces (magnets, wind, user fields, quadratic drag) are taken as non-stiff.
+- A drag spring holding a particle (``ws.DragSpring``) is a separate oscillator k / m of that
+  particle in the integrator's region.
 - Penalty colliders (``mode="penalty"``) act after every integrator as a velocity impulse, i.e.
   like semi-implicit Euler on a spring k_c to a fixed point, omega_c = sqrt(k_c / m), damping
   ratio from their restitution; they are a separate oscillator (limit taken as the smaller of
@@ -326,6 +328,18 @@ def _penalty(colliders):
     return best
 
 
+def _point_springs(forces):
+    """(particle, stiffness [N/m], damping [N s/m]) of springs pulling one particle to a target
+    (``ws.DragSpring`` while it holds a particle)."""
+    out = []
+    for f in forces or ():
+        particle = getattr(f, "particle", None)
+        if isinstance(particle, (int, np.integer)) and particle >= 0 and hasattr(f, "stiffness") \
+                and hasattr(f, "target_at"):
+            out.append((int(particle), float(f.stiffness), float(getattr(f, "damping", 0.0))))
+    return out
+
+
 def _linear_drag(forces):
     from .forces import Drag
 
@@ -441,6 +455,17 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
                 reason = (f"penalty contact k = {k_c:.4g} N/m on particle {lightest} (m = {m:.4g} kg): omega = "
                           f"{omega_c:.4g} rad/s, zeta = {zeta_c:.3g}; contact impulses act like semi-implicit Euler, "
                           f"stable for dt <= 2 / (omega (zeta + sqrt(1 + zeta^2))) = {dt_c:.4g} s")
+        for p, k_d, c_d in _point_springs(forces):  # a particle held by a drag spring: an oscillator of its own
+            if world[p] != w or not moving[p] or k_d <= 0.0:
+                continue
+            omega_d = math.sqrt(k_d * inv_mass[p])
+            zeta_d = c_d * inv_mass[p] / (2.0 * omega_d)
+            dt_d = stable_step(method, omega_d, zeta_d)
+            if dt_d < dt:
+                dt, omega, zeta = dt_d, omega_d, zeta_d
+                kind, index, stiffness, m, damping, particle = "particle", p, k_d, float(mass[p]), c_d, p
+                reason = _reason(method, omega_d, zeta_d, dt_d, f"particle {p} held by a drag spring: k = {k_d:.4g} "
+                                                               f"N/m, m = {m:.4g} kg")
         limits.append(StabilityLimit(
             dt=dt, integrator=method, omega_max=omega, damping_ratio=zeta, limiting=kind, index=index,
             stiffness=stiffness, mass=m, damping=damping, particle=particle, omega_bound=math.sqrt(bound[w]),

@@ -247,7 +247,7 @@ class WorldBatch:
         """One frame for every world (the scene's own stepping on the batched simulator; with
         ``fused`` the ClothSimulator's captured frame)."""
         if self.fused and not hasattr(self.scene.sim, "use_graph"):
-            self.sim.frame(frame_dt, substeps)
+            self.sim.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))  # auto sub-steps too
         else:
             self.batch_scene.advance(frame_dt, substeps)
         self.end_frame()
