@@ -110,3 +110,55 @@ def gershgorin_rows(
             k = stiffness[s]
             total = total + k * (wi + wp.sqrt(wi * inv_mass[adjacent_particle[a]]))
     out[i] = total
+
+
+@wp.kernel
+def frame_motion(
+    q: wp.array(dtype=wp.vec3),
+    q_frame_start: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    particle_world: wp.array(dtype=int),
+    inv_frame_dt: float,
+    speed_out: wp.array(dtype=float),
+    motion_out: wp.array(dtype=float),
+):
+    """Per world: speed_out[w] = max |v| [m/s] and motion_out[w] = max |q - q_frame_start| / frame_dt
+    [m/s] over its moving particles (atomic max: order independent); non-finite values count as inf."""
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    w = particle_world[i]
+    s = wp.length(qd[i])
+    m = wp.length(q[i] - q_frame_start[i]) * inv_frame_dt
+    if not wp.isfinite(s):
+        s = 1.0e30
+    if not wp.isfinite(m):
+        m = 1.0e30
+    wp.atomic_max(speed_out, w, s)
+    wp.atomic_max(motion_out, w, m)
+
+
+@wp.kernel
+def flag_incoherent_worlds(
+    speed: wp.array(dtype=float),
+    motion: wp.array(dtype=float),
+    ratio: float,
+    min_speed: float,
+    frames: int,
+    frame_counter: wp.array(dtype=int),
+    streak: wp.array(dtype=int),
+    unstable_frame_out: wp.array(dtype=int),
+):
+    """A world whose fastest particle is ``ratio`` x faster than any particle moved over the frame
+    (and above ``min_speed`` [m/s]) for ``frames`` frames in a row is unstable: unstable_frame_out[w]
+    gets the frame (kept at -1 otherwise); frame 0 (no motion yet) is skipped."""
+    w = wp.tid()
+    if frame_counter[0] < 1:
+        return
+    if speed[w] > ratio * motion[w] and speed[w] > min_speed:
+        streak[w] = streak[w] + 1
+    else:
+        streak[w] = 0
+    if streak[w] >= frames and unstable_frame_out[w] < 0:
+        unstable_frame_out[w] = frame_counter[0]

@@ -63,7 +63,11 @@ def _parser(argv=None):
     r.add_argument("scene", help="scene name (see 'warpsim list')")
     r.add_argument("--frames", type=int, default=120, help="frames to simulate after frame 0 (default 120)")
     r.add_argument("--fps", type=float, default=None, help="frames per second of the cache (default: the scene's)")
-    r.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    r.add_argument("--substeps", type=substeps_arg, default=None,
+                   help="simulation steps per frame, or 'auto': as many as the stability limit needs (default: "
+                        "the scene's)")
+    r.add_argument("--strict", action="store_true",
+                   help="exit 2 before running when the time step is above the stability limit (default: warn)")
     r.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc; default usd_out/SCENE.usda)")
@@ -98,6 +102,36 @@ def _parser(argv=None):
 
 
 _BROKEN = {}  # command name -> why its module failed to load
+
+
+def substeps_arg(text):
+    """``--substeps`` value: an int, or "auto" (sub-step inside the stability limit)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number or 'auto'") from None
+
+
+def auto_substeps(cls, substeps, given) -> bool:
+    """Whether frames sub-step automatically: ``--substeps auto``, or the scene's default when
+    neither ``--substeps N`` nor ``--set dt=...`` fixed the step by hand."""
+    if substeps == "auto":
+        return True
+    return substeps is None and bool(getattr(cls, "substeps_auto", False)) and "dt" not in given
+
+
+def stability_check(scene, frame_dt, substeps, strict, err) -> None:
+    """Before the first step: one ``warpsim: warning:`` line on ``err`` when the scene's step is
+    above its stability limit (naming the limiter and the remedies), or with ``strict`` a
+    :class:`UsageError` (exit 2)."""
+    line = scene.stability_warning(frame_dt, substeps)
+    if line is None:
+        return
+    if strict:
+        raise UsageError(f"--strict: {line}")
+    print(f"warpsim: warning: {line}", file=err)
 
 
 def _one_line(exc):
@@ -196,9 +230,9 @@ def _parse_sets(cls, sets, integrator):
 
 def _timing(cls, params, given, fps, substeps):
     """(fps, substeps, params) from the flags and the scene's defaults; see warpsim.scenes."""
-    if substeps is not None and substeps < 1:
+    if substeps is not None and substeps != "auto" and substeps < 1:
         raise UsageError(f"--substeps {substeps}: it must be >= 1")
-    substeps = substeps or cls.substeps
+    substeps = cls.substeps if substeps in (None, "auto") else substeps
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise UsageError(f"--fps {fps}: it must be > 0")
     if "dt" in cls.params:
@@ -275,11 +309,14 @@ def _cmd_run(args, out, err):
         ckpt = (arrays, meta)
         start = int(meta["frame"]) + 1
         fps, substeps = float(meta["fps"]), int(meta["substeps"])
-        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (None, substeps):
+        auto = bool(meta.get("auto_substeps", False))
+        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (
+                None, substeps, "auto" if auto else None):
             raise UsageError(f"--resume: the checkpoint was made at {fps:g} fps with {substeps} substeps")
         params = cls.resolve_params(given)
     else:
         params = cls.resolve_params(given)
+        auto = auto_substeps(cls, args.substeps, given)
         fps, substeps, params = _timing(cls, params, given, args.fps, args.substeps)
     device = _device(args.device)
     try:
@@ -294,8 +331,11 @@ def _cmd_run(args, out, err):
                              f"{_one_line(exc)}); run again without --resume") from None
     if start > args.frames + 1:
         raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
-    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps)
+    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps);
+    # with auto sub-steps at most that, and within the stability limit
     frame_dt = params["dt"] * substeps if "dt" in params else 1.0 / fps
+    scene.auto_substeps = auto
+    stability_check(scene, frame_dt, substeps, args.strict, err)
     try:
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
                                 resume_frame=start if args.resume else None)
@@ -309,7 +349,7 @@ def _cmd_run(args, out, err):
     def save(frame):
         writer.flush()  # the cache holds every frame up to the checkpoint before it exists
         save_checkpoint(ckpt_file, scene.checkpoint(), {
-            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps,
+            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps, "auto_substeps": auto,
             "params": {k: list(v) if isinstance(v, tuple) else v for k, v in params.items()}})
 
     progress = None
@@ -320,6 +360,11 @@ def _cmd_run(args, out, err):
                         dynamic_ncols=True)
     frame = start
     t0 = time.perf_counter()
+    import warnings
+
+    from .core.stability import StabilityWarning
+
+    warnings.simplefilter("ignore", StabilityWarning)  # said once above, as one line
     try:
         with writer:
             try:

@@ -202,6 +202,7 @@ class WallScene(FractureScene):
     particle indices."""
 
     smoke_params: ClassVar[dict] = {"bricks": (2.0, 2.0), "ball_speed": 20.0}
+    substeps_auto = True  # sub-step inside the stiff brick springs' stability limit
 
     def build(self, p):
         _positive(p, "ball_mass", "ball_radius", "mortar_strength", "spacing", "density", "bricks", "brick_size",
@@ -268,6 +269,7 @@ class DonutsScene(SimulatorScene):
     the SoftContact."""
 
     smoke_params: ClassVar[dict] = {"count": 2, "segments": 10, "sides": 6, "lattice_cells": 5}
+    substeps_auto = True  # sub-step inside the tori's spring limit
 
     def build(self, p):
         _positive(p, "count", "segments", "sides", "major_radius", "minor_radius", "mass", "stiffness",

@@ -264,10 +264,30 @@ class WorldBatch:
         """One frame for every world (the scene's own stepping on the batched simulator; with
         ``fused`` the ClothSimulator's captured frame)."""
         if self.fused and not hasattr(self.scene.sim, "use_graph"):
-            self.sim.frame(frame_dt, substeps)
+            self.sim.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))  # auto sub-steps too
         else:
             self.batch_scene.advance(frame_dt, substeps)
         self.end_frame()
+
+    def stable_dt(self) -> np.ndarray:
+        """Largest stable step [s] of each world, shape (world_count,) (``Simulator.stability``
+        per world: power iteration normalised per world)."""
+        return np.array([limit.dt for limit in self.stability()])
+
+    def stability(self) -> list:
+        """One ``ws.StabilityLimit`` per world, linearised about the initial positions."""
+        from ..core.stability import particle_limits
+
+        sim = self.sim
+        return particle_limits(self.model, self.model.particle_q, sim.integrator, sim.forces, sim.colliders,
+                               particle_world=self.model.particle_world.numpy(), world_count=self.world_count)
+
+    def stability_warning(self, frame_dt, substeps):
+        """One line naming the worlds whose step is above their limit (None when none is)."""
+        from ..core.stability import worlds_warning
+
+        labels = [", ".join(f"{k}={p[k]}" for k in self.varied) for p in self.params]
+        return worlds_warning(self.stability(), frame_dt / self.batch_scene.frame_steps(frame_dt, substeps), labels)
 
     def world_slices(self):
         """Host copies (N, P, 3) of the positions and velocities."""

@@ -22,6 +22,8 @@ LAYER_EXT = ".usdc"
 
 
 def add_parser(sub):
+    from .. import cli
+
     s = sub.add_parser("sweep", help="many worlds of a scene in one batched run: USD variants, a table, picking")
     s.add_argument("scene", help="scene name (see 'warpsim list')")
     s.add_argument("--worlds", type=int, default=None, help="number of worlds (grid: default the listed values)")
@@ -31,7 +33,10 @@ def add_parser(sub):
     s.add_argument("--seed", type=int, default=0, help="seed of random / lhs sampling (default 0)")
     s.add_argument("--frames", type=int, default=120, help="frames after frame 0 (default 120)")
     s.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
-    s.add_argument("--substeps", type=int, default=None, help="steps per frame (default: the scene's)")
+    s.add_argument("--substeps", type=cli.substeps_arg, default=None,
+                   help="steps per frame, or 'auto': inside the stiffest world's stability limit (default: the scene's)")
+    s.add_argument("--strict", action="store_true",
+                   help="exit 2 before running when a world's step is above its stability limit (default: warn)")
     s.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     s.add_argument("--out", default=None, help="root USD to write (default usd_out/SCENE_sweep.usda)")
     s.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
@@ -69,6 +74,15 @@ def add_parser(sub):
     else:
         add_ray_arguments(s)
     return s
+
+
+def _stability_warning(line, strict, err):
+    """Before the first frame: one warning line on ``err`` (``--strict``: a usage error, exit 2)."""
+    from .. import cli
+
+    if strict:
+        raise cli.UsageError(f"--strict: {line}")
+    print(f"warpsim: warning: {line}", file=err)
 
 
 def resolve_track(cls, params, items, device):
@@ -152,7 +166,7 @@ def run(args, out, err):
                 worlds *= len(parse_vary(v, cls.params).values)
         world_params = sample_worlds(cls.name, fixed, args.vary, worlds, args.sample, args.seed)
         base = cls.resolve_params(world_params[0])
-        fps, _, _ = _timing(cls, base, args.fps, args.substeps)
+        fps, _, _ = _timing(cls, base, args.fps, None if args.substeps == "auto" else args.substeps)
         track = resolve_track(cls, base, args.track, "cpu") if args.track else None
     except ValueError as exc:
         raise usage(str(exc)) from None
@@ -167,6 +181,11 @@ def run(args, out, err):
     except ValueError as exc:
         raise usage(str(exc)) from None
     device = cli._device(args.device)
+    import warnings
+
+    from ..core.stability import StabilityWarning
+
+    warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
     layer = f"{stem}.batch_0000{LAYER_EXT}"
     progress = None
     try:
@@ -192,7 +211,8 @@ def run(args, out, err):
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
-                             occupancy={**occupancy, "path": _record_path(path)})
+                             occupancy={**occupancy, "path": _record_path(path)},
+                             warn=lambda line: _stability_warning(line, args.strict, err))
             if progress:
                 progress.close()
                 progress = None
@@ -207,8 +227,12 @@ def run(args, out, err):
         print(f"warpsim: sweep failed: {str(exc).splitlines()[0]}", file=err)
         return 1
     blown = sum(1 for r in rows if r.get("blown_up"))
+    unstable = sum(1 for r in rows if r.get("unstable"))
+    note = f"{blown - unstable} blew up and were frozen" if blown > unstable else ""
+    if unstable:
+        note += f"{', ' if note else ''}{unstable} went unstable (column unstable)"
     print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {fps:g} fps on {device}"
-          f"{f' ({blown} blew up and were frozen)' if blown else ''}", file=out)
+          f"{f' ({note})' if note else ''}", file=out)
     print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
     candidates = rows
     if getattr(args, "ray", None) is None:

@@ -83,7 +83,8 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
-              track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None) -> list:
+              track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
+              warn=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -96,7 +97,10 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     ``progress(frame)``: called after each frame; ``occupancy``: None, or {"path": record file,
     "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
     occupancy record of these worlds (:mod:`warpsim.worlds.occupancy`; the tracked particles
-    when ``track`` is given, else every particle)."""
+    when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
+    default to it, unless ``dt`` is given): every frame sub-steps inside the stiffest world's
+    stability limit; ``warn(line)``: called once before the first frame when a world's step is
+    above its stability limit (it may raise to stop the run)."""
     from ..scenes import get_scene
 
     cls = get_scene(scene_name)
@@ -107,11 +111,19 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     if not world_params:
         raise ValueError("run_batch needs at least one world")
     fps_given = fps
+    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
+                                  and "dt" not in world_params[0])
+    substeps = None if substeps == "auto" else substeps
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    stats = WorldMetrics(batch, track=track, user=metrics)
+    batch.batch_scene.auto_substeps = auto
+    if warn is not None:
+        line = batch.stability_warning(frame_dt, substeps)
+        if line is not None:
+            warn(line)
+    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
     recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name)
     for i, p in enumerate(getattr(batch, "params", given)):
