@@ -4,6 +4,7 @@
     warpsim run SCENE [--frames N] [--fps F] [--substeps S] [--integrator NAME] [--device D]
                       [--out PATH] [--set KEY=VALUE ...] [--chunk K] [--flatten]
                       [--checkpoint-every N] [--resume]
+    warpsim run SCENE --from-sweep ROOT --world N   world N of a sweep, alone, bit for bit
     warpsim info CACHE                             prims, frame range, counts, bounds
 
 Exit status: 0 on success, 2 for usage mistakes (unknown scene or parameter, malformed value,
@@ -61,7 +62,8 @@ def _parser(argv=None):
     sub.add_parser("list", help="list the scenes and their parameters")
     r = sub.add_parser("run", help="simulate a scene and write a USD cache")
     r.add_argument("scene", help="scene name (see 'warpsim list')")
-    r.add_argument("--frames", type=int, default=120, help="frames to simulate after frame 0 (default 120)")
+    r.add_argument("--frames", type=int, default=None,
+                   help="frames to simulate after frame 0 (default 120; with --from-sweep: the sweep's)")
     r.add_argument("--fps", type=float, default=None, help="frames per second of the cache (default: the scene's)")
     r.add_argument("--substeps", type=substeps_arg, default=None,
                    help="simulation steps per frame, or 'auto': as many as the stability limit needs (default: "
@@ -80,6 +82,9 @@ def _parser(argv=None):
                    help="save the simulation state beside the cache every N frames")
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--from-sweep", default=None, metavar="ROOT",
+                   help="re-run one world of the sweep whose root is ROOT exactly (with --world N)")
+    r.add_argument("--world", type=int, default=None, metavar="N", help="the world of --from-sweep to re-run")
     r.add_argument("--preview", default=None, metavar="FILE.gif",
                    help="also render the cache to a .gif/.mp4/.png beside it (at most 300 frames; see 'warpsim render')")
     i = sub.add_parser("info", help="summarise a USD cache")
@@ -270,6 +275,12 @@ def _cmd_run(args, out, err):
         cls = get_scene(args.scene)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if args.from_sweep is not None or args.world is not None:  # one world of a sweep, exactly
+        from .worlds.rerun import run_command
+
+        return run_command(args, out, err)
+    if args.frames is None:
+        args.frames = 120
     if args.frames < 0:
         raise UsageError(f"--frames {args.frames}: it must be >= 0")
     if args.chunk < 1:

@@ -3,7 +3,7 @@
     warpsim sweep SCENE --worlds N --vary KEY=LO:HI[:log] --vary KEY=A,B,C [--sample grid|random|lhs]
                   [--seed S] [--frames N] [--fps F] [--substeps S] [--device D] [--out PATH]
                   [--set KEY=VALUE ...] [--layout variants|grid] [--table CSV] [--track NAME=INDEX ...]
-                  [--rank METRIC [--top K]] [--where METRIC<VALUE ...]
+                  [--rank METRIC [--top K]] [--where METRIC<VALUE ...] [--rerun N]
                   [--inside BOX@T0:T1 ...] [--outside BOX@T0:T1 ...] [--occupancy-res R]
 
 Writes ``PATH`` (default ``usd_out/SCENE_sweep.usda``): a root whose ``/World`` carries a variant
@@ -67,6 +67,9 @@ def add_parser(sub):
                    help="step mass-spring scenes through the fused semi-implicit kernel (faster on GPUs; agrees "
                         "to float32 rounding)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.add_argument("--rerun", type=int, default=None, metavar="N",
+                   help="run only world N of this sweep, alone, exactly as in the whole sweep (writes "
+                        "<stem>.world_NNNNNN.usda)")
     try:
         from ..distributed.ray_sweep import add_ray_arguments
     except ImportError:  # pragma: no cover - the distributed package is optional
@@ -181,6 +184,10 @@ def run(args, out, err):
     except ValueError as exc:
         raise usage(str(exc)) from None
     device = cli._device(args.device)
+    if args.rerun is not None:
+        from .rerun import rerun_in_sweep
+
+        return rerun_in_sweep(args, cls, world_params, path, device, out, err)
     import warnings
 
     from ..core.stability import StabilityWarning
@@ -219,6 +226,10 @@ def run(args, out, err):
             write_table(table, rows)
             layers = [layer]
             root = write_sweep_root(path, layers, len(world_params), layout=args.layout)
+        from .rerun import write_manifest  # what re-running one world exactly needs
+
+        write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
+                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused)
     except (SimulationError, ValueError, RaySweepError) as exc:
         if progress:
             progress.close()
