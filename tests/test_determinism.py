@@ -106,10 +106,13 @@ def test_cell_ranks_follow_particle_index_within_each_cell():
         seen[flat[p]] = rank_ref[p] + 1
     assert np.array_equal(P.rank.numpy(), rank_ref)
     assert np.array_equal(counts.numpy().reshape(-1), np.bincount(flat[live], minlength=g.cell_count))
+    half = ((x / g.dx - cell) >= 0.5).astype(int)
+    octant = 8 * flat + half[:, 0] + 2 * half[:, 1] + 4 * half[:, 2]
     order = P.sorted_ids.numpy()[: live.sum()]
-    assert np.array_equal(order, np.flatnonzero(live)[np.argsort(flat[live], kind="stable")])
-    start = P.cell_start.numpy()
-    assert np.array_equal(start, np.concatenate([[0], np.cumsum(counts.numpy().reshape(-1))[:-1]]))
+    assert np.array_equal(order, np.flatnonzero(live)[np.argsort(octant[live], kind="stable")])
+    per_octant = np.bincount(octant[live], minlength=8 * g.cell_count)
+    assert np.array_equal(P.octant_count.numpy(), per_octant)
+    assert np.array_equal(P.octant_start.numpy(), np.concatenate([[0], np.cumsum(per_octant)[:-1]]))
 
 
 def _flip_pair(shape, seed=1):
