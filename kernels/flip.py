@@ -34,15 +34,26 @@ def hat_weight(g: float, node: int) -> float:
 
 
 @wp.func
-def cell_range(node: int, below: int, above: int, cells: int) -> wp.vec2i:
-    """Cells node - below .. node + above clamped into [0, cells - 1] (first, last)."""
-    return wp.vec2i(wp.max(node - below, 0), wp.min(node + above, cells - 1))
+def half_range(node: int, staggered: int, cells: int) -> wp.vec2i:
+    """Half-cells (index 2 c + upper) whose particles can reach grid node ``node`` of one axis,
+    clamped into the grid: cells node - 1 and node along a face's normal (``staggered``, nodes on
+    cell faces), else the upper half of cell node - 1, cell node and the lower half of node + 1
+    (nodes at cell centres). Returns (first, last)."""
+    first = wp.where(staggered != 0, 2 * node - 2, 2 * node - 1)
+    return wp.vec2i(wp.max(first, 0), wp.min(first + 3, 2 * cells - 1))
+
+
+@wp.func
+def octant_of(hx: int, hy: int, hz: int, ny: int, nz: int) -> int:
+    """Octant index (flat cell * 8 + x + 2 y + 4 z halves) of half-cell indices (hx, hy, hz)."""
+    return (((hx / 2) * ny + hy / 2) * nz + hz / 2) * 8 + hx % 2 + 2 * (hy % 2) + 4 * (hz % 2)
 
 
 @wp.kernel
 def gather_face_velocity(
     cell_count: wp.array3d(dtype=int),
-    cell_start: wp.array(dtype=int),
+    octant_start: wp.array(dtype=int),
+    octant_count: wp.array(dtype=int),
     sorted_ids: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
     vel: wp.array(dtype=wp.vec3),
@@ -53,27 +64,26 @@ def gather_face_velocity(
 ):
     """P2G as a gather: face (i, j, k) of ``axis`` (u: 0, v: 1, w: 2) = sum_p w_p v_p[axis] /
     sum_p w_p over the particles whose trilinear stencil holds the face (0 where none does), w_p
-    the trilinear weight. The candidates are the particles of the cells around the face, visited in
-    cell order and, within a cell, in the cell-sorted list's order (``GridParticles.count_cells``):
-    a fixed order, so the sums are the same bits every run (float atomics add in arrival order).
-    A one-cell-thick array (2D) weighs every particle 1 along z."""
+    the trilinear weight. The candidates are the particles of the cell octants that can reach the
+    face (:func:`half_range`), visited in octant order and, within one, by particle index
+    (``GridParticles.count_cells``): a fixed order, so the sums are the same bits every run (float
+    atomics add in arrival order). A one-cell-thick array (2D) weighs every particle 1 along z."""
     i, j, k = wp.tid()
-    nx = cell_count.shape[0]
     ny = cell_count.shape[1]
     nz = cell_count.shape[2]
     offset = wp.vec3(wp.where(axis == 0, 0.0, 0.5), wp.where(axis == 1, 0.0, 0.5), wp.where(axis == 2, 0.0, 0.5))
     flat_z = f_out.shape[2] == 1
-    # particles of cell c reach the faces c - 1 .. c + 1 across an axis, c .. c + 1 along ``axis``
-    ri = cell_range(i, 1, wp.where(axis == 0, 0, 1), nx)
-    rj = cell_range(j, 1, wp.where(axis == 1, 0, 1), ny)
-    rk = cell_range(k, 1, wp.where(axis == 2, 0, 1), nz)
+    rx = half_range(i, wp.where(axis == 0, 1, 0), cell_count.shape[0])
+    ry = half_range(j, wp.where(axis == 1, 1, 0), ny)
+    rz = half_range(k, wp.where(axis == 2, 1, 0), nz)
     total = float(0.0)
     weight = float(0.0)
-    for ci in range(ri[0], ri[1] + 1):
-        for cj in range(rj[0], rj[1] + 1):
-            for ck in range(rk[0], rk[1] + 1):
-                start = cell_start[(ci * ny + cj) * nz + ck]
-                for e in range(start, start + cell_count[ci, cj, ck]):
+    for hx in range(rx[0], rx[1] + 1):
+        for hy in range(ry[0], ry[1] + 1):
+            for hz in range(rz[0], rz[1] + 1):
+                o = octant_of(hx, hy, hz, ny, nz)
+                start = octant_start[o]
+                for e in range(start, start + octant_count[o]):
                     p = sorted_ids[e]
                     g = (x[p] - origin) / dx - offset
                     wa = hat_weight(g[0], i)
@@ -313,8 +323,8 @@ def particle_sdf(
 
 @wp.kernel
 def gather_particle_density(
-    cell_count: wp.array3d(dtype=int),
-    cell_start: wp.array(dtype=int),
+    octant_start: wp.array(dtype=int),
+    octant_count: wp.array(dtype=int),
     sorted_ids: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
@@ -325,20 +335,21 @@ def gather_particle_density(
     [particles per cell]. Stencil nodes beyond the grid fold back onto the edge cell (a mirror
     image across the wall), so a uniform packing of n particles per cell reads n up to the walls; a
     one-cell-thick axis (2D) puts the whole weight in its single layer. A gather over the particles
-    of the cells around (cell order, then the cell-sorted list's order: the same bits every run)."""
+    of the cell octants around (octant order, then particle index: the same bits every run)."""
     i, j, k = wp.tid()
     nx = rho_out.shape[0]
     ny = rho_out.shape[1]
     nz = rho_out.shape[2]
-    ri = cell_range(i, 1, 1, nx)
-    rj = cell_range(j, 1, 1, ny)
-    rk = cell_range(k, 1, 1, nz)
+    rx = half_range(i, 0, nx)
+    ry = half_range(j, 0, ny)
+    rz = half_range(k, 0, nz)
     rho = float(0.0)
-    for ci in range(ri[0], ri[1] + 1):
-        for cj in range(rj[0], rj[1] + 1):
-            for ck in range(rk[0], rk[1] + 1):
-                start = cell_start[(ci * ny + cj) * nz + ck]
-                for e in range(start, start + cell_count[ci, cj, ck]):
+    for hx in range(rx[0], rx[1] + 1):
+        for hy in range(ry[0], ry[1] + 1):
+            for hz in range(rz[0], rz[1] + 1):
+                o = octant_of(hx, hy, hz, ny, nz)
+                start = octant_start[o]
+                for e in range(start, start + octant_count[o]):
                     g = (x[sorted_ids[e]] - origin) / dx - CENTER
                     i0 = int(wp.floor(g[0]))
                     j0 = int(wp.floor(g[1]))

@@ -106,10 +106,13 @@ def test_cell_ranks_follow_particle_index_within_each_cell():
         seen[flat[p]] = rank_ref[p] + 1
     assert np.array_equal(P.rank.numpy(), rank_ref)
     assert np.array_equal(counts.numpy().reshape(-1), np.bincount(flat[live], minlength=g.cell_count))
+    half = ((x / g.dx - cell) >= 0.5).astype(int)
+    octant = 8 * flat + half[:, 0] + 2 * half[:, 1] + 4 * half[:, 2]
     order = P.sorted_ids.numpy()[: live.sum()]
-    assert np.array_equal(order, np.flatnonzero(live)[np.argsort(flat[live], kind="stable")])
-    start = P.cell_start.numpy()
-    assert np.array_equal(start, np.concatenate([[0], np.cumsum(counts.numpy().reshape(-1))[:-1]]))
+    assert np.array_equal(order, np.flatnonzero(live)[np.argsort(octant[live], kind="stable")])
+    per_octant = np.bincount(octant[live], minlength=8 * g.cell_count)
+    assert np.array_equal(P.octant_count.numpy(), per_octant)
+    assert np.array_equal(P.octant_start.numpy(), np.concatenate([[0], np.cumsum(per_octant)[:-1]]))
 
 
 def _flip_pair(shape, seed=1):
@@ -236,3 +239,23 @@ def test_check_determinism_finds_the_first_differing_sample(tmp_path):
     frame, prim, attr, index, va, vb = check.compare_caches(tmp_path / "a.usda", tmp_path / "c.usda")
     assert (frame, prim, attr, index) == (2, "/world/points", "points", 3)
     assert va[1] != vb[1]
+
+
+# ------------------------------------------------------------------------ boids' food
+def test_contended_food_goes_to_the_lowest_index_agents_and_never_below_zero():
+    n = 10
+    rng = np.random.default_rng(2)
+    p = ws.BoidParams(max_speed=1.0, min_speed=0.1, food_sense_radius=5.0, food_eat_radius=1.0, food_energy=0.1,
+                      bite_interval=1.0, separation_radius=0.05, perception_radius=0.1)
+    x = rng.uniform(-0.1, 0.1, (n, 3)) + np.array([0.0, 2.0, 0.0])
+    v = np.tile([0.1, 0.0, 0.0], (n, 1))
+    energy = np.full(n, 0.5)
+    energy[1] = p.energy_max  # sated: does not ask
+    food = ws.FoodSources([[0.0, 2.0, 0.0], [50.0, 2.0, 0.0]], [3, 7])
+    flock = ws.Flock(x, v, params=p, food=food, energy=energy, device=DEV)
+    flock.step(0.01)
+    bites = flock.bites.numpy()
+    assert bites.tolist() == [1, 0, 1, 1] + [0] * (n - 4)  # agents 0, 2, 3 get the 3 bites
+    assert flock.food_amounts.numpy().tolist() == [0, 7]
+    e = flock.energy.numpy()
+    assert np.all(e[[0, 2, 3]] > e[4:].max())

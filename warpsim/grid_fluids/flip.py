@@ -187,8 +187,8 @@ class FlipLiquid:
         if self.deterministic:
             for axis, f in enumerate(g.faces):
                 wp.launch(K.gather_face_velocity, f.shape,
-                          inputs=[self.cell_count, P.cell_start, P.sorted_ids, P["x"], P["v"], axis, g._wp_origin,
-                                  g.dx], outputs=[f], device=d)
+                          inputs=[self.cell_count, P.octant_start, P.octant_count, P.sorted_ids, P["x"], P["v"], axis,
+                                  g._wp_origin, g.dx], outputs=[f], device=d)
         else:
             for s, w in zip(self._sums, self._weights):
                 s.zero_()
@@ -247,7 +247,7 @@ class FlipLiquid:
         g, P = self.grid, self.particles
         if self.deterministic:
             wp.launch(K.gather_particle_density, g.shape,
-                      inputs=[self.cell_count, P.cell_start, P.sorted_ids, P["x"], g._wp_origin, g.dx],
+                      inputs=[P.octant_start, P.octant_count, P.sorted_ids, P["x"], g._wp_origin, g.dx],
                       outputs=[self.density], device=self.device)
         else:
             self.density.zero_()

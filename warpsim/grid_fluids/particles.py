@@ -38,8 +38,8 @@ class GridParticles:
         # (cell, particle) pairs; the stable radix sort needs room for 2n of each
         self._keys = wp.zeros(2 * n, dtype=int, device=d)
         self._ids = wp.zeros(2 * n, dtype=int, device=d)
-        self.sorted_ids = self._ids[:n]  # particle indices in cell order (by index within a cell)
-        self.cell_start = None  # flat cell index -> first entry of its particles in sorted_ids
+        self.sorted_ids = self._ids[:n]  # particle indices by cell octant, then index (``count_cells``)
+        self.octant_start = self.octant_count = None  # per octant: first entry in sorted_ids, length
         self._emitted = self._emit_offsets = None  # per-cell counts of an append and their prefix sums
         self._no_ids = wp.zeros(1, dtype=int, device=d)
         self._flags = wp.zeros(n, dtype=int, device=d)
@@ -58,19 +58,24 @@ class GridParticles:
 
     def count_cells(self, grid, cell_count, position="x"):
         """cell_count (int, grid shape) = live particles per cell; ``sorted_ids`` = the live particles
-        in cell order (flat cell index, then particle index), ``cell_start`` = where each cell's run
-        begins, ``rank`` = a particle's order within its cell (-1 when dead). A stable sort, not an
-        atomic counter, orders them, so the lists are the same on every run and device."""
+        ordered by cell octant (flat cell index * 8 + x + 2 y + 4 z of the cell halves they lie in),
+        then by index; ``octant_start`` / ``octant_count`` (cells * 8) = where each octant's run
+        begins and its length; ``rank`` = a particle's order by index among its cell's live
+        particles (-1 when dead). A stable sort, not an atomic counter, orders them, so the lists
+        are the same on every run and device."""
         d, n = self.device, self.capacity
-        cells = cell_count.size
-        if self.cell_start is None or self.cell_start.shape[0] != cells:
-            self.cell_start = wp.zeros(cells, dtype=int, device=d)
+        octants = 8 * cell_count.size
+        if self.octant_start is None or self.octant_start.shape[0] != octants:
+            self.octant_start = wp.zeros(octants, dtype=int, device=d)
+            self.octant_count = wp.zeros(octants, dtype=int, device=d)
         cell_count.zero_()
+        self.octant_count.zero_()
         wp.launch(K.count_per_cell, n, inputs=[self.count, self.fields[position], self.alive, grid._wp_origin, grid.dx],
-                  outputs=[cell_count, self._keys, self._ids], device=d)
+                  outputs=[cell_count, self.octant_count, self._keys, self._ids], device=d)
         wp.utils.radix_sort_pairs(self._keys, self._ids, n)
-        wp.utils.array_scan(cell_count.reshape((cells,)), self.cell_start, inclusive=False)
-        wp.launch(K.rank_in_cell, n, inputs=[self._keys, self._ids, self.cell_start], outputs=[self.rank], device=d)
+        wp.utils.array_scan(self.octant_count, self.octant_start, inclusive=False)
+        wp.launch(K.rank_in_cell, n, inputs=[self._keys, self._ids, self.octant_start, self.octant_count],
+                  outputs=[self.rank], device=d)
 
     def begin_append(self, cells: int):
         """Zeroed per-cell counts (int, (cells,)) for the counting pass of an append in cell order,
