@@ -58,12 +58,13 @@ def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None
 
 class QueryPanel:
     """The spacetime query of a gallery (see the module docstring). ``viewer``: a started
-    :class:`warpsim.worlds.gallery.GalleryViewer`; ``top``: worlds listed; ``thumbnails``: draw
-    a picture per listed world (in a background thread)."""
+    :class:`warpsim.worlds.gallery.GalleryViewer`; ``record``: its occupancy record (default:
+    read from beside ``viewer.root``); ``top``: worlds listed; ``thumbnails``: draw a picture per
+    listed world (in a background thread)."""
 
-    def __init__(self, viewer, *, top=12, thumbnails=True):
+    def __init__(self, viewer, *, record=None, top=12, thumbnails=True):
         self.viewer = viewer
-        self.record = OccupancyRecord.load(occupancy_path(viewer.root))
+        self.record = record if record is not None else OccupancyRecord.load(occupancy_path(viewer.root))
         self.top = int(top)
         self.thumbnails = bool(thumbnails)
         self.hidden = set()
