@@ -9,7 +9,8 @@ The record (``OccupancyRecorder``, made on the device while the sweep runs; kern
 ``kernels/occupancy.py``):
 
 - a grid of cubic cells of side ``h`` [m] over the scene's bounds (``bounds``, default: the
-  worlds' frame-0 extent padded by half its largest side on every side), ``resolution`` cells
+  worlds' frame-0 extent and the scene's static geometry (floor, walls), padded by a quarter of
+  its largest side on every side), ``resolution`` cells
   along its longest side, plus one outside layer per side that catches everything beyond;
 - per world and occupied cell, the frames it is occupied, bit-packed over time (32 frames a
   word): the pairs (world, cell) are sorted by world then cell (a CSR by world), so a record
@@ -134,14 +135,14 @@ class OccupancyGrid:
 
 
 def default_bounds(points):
-    """The worlds' extent (points (N, 3) [m], finite) padded by half its largest side (at least
-    0.1 m) on every side."""
+    """The worlds' extent (points (N, 3) [m], finite) padded by a quarter of its largest side (at
+    least 5 cm) on every side."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(1)]
     if not len(p):
         return np.full(3, -1.0), np.full(3, 1.0)
     lo, hi = p.min(0), p.max(0)
-    pad = max(0.5 * float(np.max(hi - lo)), 0.1)
+    pad = max(0.25 * float(np.max(hi - lo)), 0.05)
     return lo - pad, hi + pad
 
 
@@ -242,13 +243,15 @@ class OccupancyRecorder:
     ``batch``: a :class:`warpsim.worlds.batch.WorldBatch` (``sim.state.positions``,
     ``model.world_particle_count``, ``world_count``, ``device``); ``frames``: frames after frame 0;
     ``particles``: indices within a world to record (None: all); ``bounds``: (lo, hi) [m] (None:
-    :func:`default_bounds` of frame 0); ``resolution``: cells along the longest side;
+    :func:`default_bounds` of frame 0 and of the corners ``include`` (lo, hi) [m], e.g. the
+    scene's static geometry: floor, walls); ``resolution``: cells along the longest side;
     ``exact_max``: keep exact positions when at most this many particles per world are recorded.
     :meth:`update` launches kernels only (capture-safe); call it for frame 0 and after every
     frame, then :meth:`after_frame` on the host, then :meth:`finish`."""
 
     def __init__(self, batch, frames, *, particles=None, track_names=(), bounds=None,
-                 resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene=""):
+                 resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene="",
+                 include=None):
         self.device = batch.device
         n, P = batch.world_count, batch.model.world_particle_count
         self.batch = batch
@@ -256,7 +259,9 @@ class OccupancyRecorder:
         if len(local) and (local.min() < 0 or local.max() >= P):
             raise ValueError(f"recorded particle {int(local.max())} is out of range [0, {P}) for one world")
         if bounds is None:
-            x = batch.sim.state.positions.numpy().reshape(n, P, 3)[:, local]
+            x = batch.sim.state.positions.numpy().reshape(n, P, 3)[:, local].reshape(-1, 3)
+            if include is not None:
+                x = np.concatenate([x, np.asarray(include, np.float64).reshape(-1, 3)])
             bounds = default_bounds(x)
         self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
         self.frame_count = int(frames) + 1

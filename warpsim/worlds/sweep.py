@@ -113,7 +113,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     batch = make_batch(cls, world_params, device=device, fused=fused)
     stats = WorldMetrics(batch, track=track, user=metrics)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
-    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name)
+    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
     for i, p in enumerate(getattr(batch, "params", given)):
         writer.set_world_params(i, p)
 
@@ -157,16 +157,18 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
 
 
-def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name):
-    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record)."""
+def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer):
+    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record);
+    its default grid also covers the static geometry the writer has seen (floor, walls)."""
     if not occupancy:
         return None
     from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder
 
+    static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
     return OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
                              track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
                              resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
-                             first_world=first_world, scene=scene_name)
+                             first_world=first_world, scene=scene_name, include=static)
 
 
 def _cell(value):
