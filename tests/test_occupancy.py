@@ -199,3 +199,17 @@ def test_tracked_record_equals_the_cached_samples_and_their_cells(tmp_path):
         got = {(int(c), int(f)) for c, row in zip(record.pair_cell[rows], bits) for f in np.flatnonzero(row)}
         assert got == want
         assert len({c for c, _ in want}) > 1  # the mass moves through several cells
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--occupancy-res", "0"], ["--occupancy-res 0", "1..256"]),
+    (["--occupancy-bounds", "0,0,0,1,-1,1"], ["y1 = -1 < y0 = 0"]),
+    (["--inside", "0,0,0,1,1,1@0:1", "--ray"], ["drop --ray"]),
+])
+def test_bad_record_options_exit_2_before_running(tmp_path, args, words):
+    code, out, err = run("sweep", "bounce", "--worlds", 2, "--vary", "height=0.1:0.2", "--frames", 5,
+                         "--no-progress", "--out", tmp_path / "s.usda", *args)
+    assert code == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and all(w in lines[0] for w in words), err
+    assert not (tmp_path / "s.usda").exists()

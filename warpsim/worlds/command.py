@@ -11,7 +11,8 @@ set ``world`` (or, with ``--layout grid``, every world side by side), the batch 
 (``<stem>.batch_0000.usdc``) and the table ``<stem>.csv`` (one row per world: parameters and
 metrics) and the occupancy record ``<stem>.occupancy.npz`` (:mod:`warpsim.worlds.occupancy`;
 ``warpsim query`` asks it later). ``--rank``/``--where``/``--inside``/``--outside`` print the
-picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage mistakes (one line), 1 when the run fails.
+picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage
+mistakes (one line), 1 when the run fails.
 """
 from __future__ import annotations
 

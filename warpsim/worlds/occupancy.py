@@ -45,6 +45,9 @@ DEFAULT_RESOLUTION = 16
 EXACT_MAX = 8
 """Recorded particles per world up to which exact positions are kept."""
 SAMPLE_BYTES_MAX = 1 << 30
+BLOCK_BYTES_MAX = 1 << 30
+"""Device bytes of a batch's 32-frame block (world_count x cells x 4) above which the recorder
+halves the resolution until it fits (the record then states the coarser cells)."""
 
 
 def occupancy_path(root_or_table) -> str:
@@ -263,7 +266,12 @@ class OccupancyRecorder:
             if include is not None:
                 x = np.concatenate([x, np.asarray(include, np.float64).reshape(-1, 3)])
             bounds = default_bounds(x)
+        resolution = int(resolution)
         self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
+        while n * self.grid.cell_count * 4 > BLOCK_BYTES_MAX and resolution > 2:
+            resolution //= 2
+            self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
+        self.resolution = resolution
         self.frame_count = int(frames) + 1
         self.world_count, self.world_particle_count = n, P
         self.local = wp.array(local.astype(np.int32), dtype=int, device=self.device)
