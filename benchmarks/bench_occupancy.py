@@ -33,7 +33,7 @@ import numpy as np
 import warp as wp
 
 from warpsim.worlds import run_batch, sample_worlds
-from warpsim.worlds.occupancy import OccupancyRecord, OccupancyRecorder
+from warpsim.worlds.occupancy import OccupancyRecord
 from warpsim.worlds.query import Region, answer_region
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
@@ -54,14 +54,17 @@ def stepping_record(args, worlds, folder):
     timed apart (synchronised), its record saved."""
     from warpsim.scenes import get_scene
     from warpsim.worlds.metrics import WorldMetrics
-    from warpsim.worlds.sweep import frame_timing, make_batch
+    from warpsim.worlds.sweep import _recorder, frame_timing, make_batch
+    from warpsim.worlds.usd import BatchLayerWriter
 
     cls = get_scene(args.scene)
     _, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
     batch = make_batch(cls, worlds, device=args.device)
     stats = WorldMetrics(batch)
-    particles = list(args.track_map.values()) if args.track_map else None
-    rec = OccupancyRecorder(batch, args.frames, particles=particles, resolution=args.resolution)
+    # the recorder a sweep makes (its grid also covers the static geometry the USD writer declares)
+    writer = BatchLayerWriter(os.path.join(folder, "stepping.usdc"), batch.scene, 0, batch.world_count, 60.0)
+    rec = _recorder(batch, {"resolution": args.resolution}, args.frames, args.track_map or None, 60.0, 0,
+                    args.scene, writer)
     batch.advance(frame_dt, substeps)  # loads every module (this frame is not timed)
     stats.update()
     wp.synchronize_device(args.device)
