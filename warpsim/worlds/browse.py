@@ -8,7 +8,8 @@ occupancy record (:mod:`warpsim.worlds.occupancy`):
   "box min" / "box max"); the box is drawn in the frame of the isolated world (world 0's when
   none is), so its corners are the record's coordinates [m];
 - the time window [s] (a two-handled slider), IN / NOT IN, the ranking (first entry, time
-  inside, share of particles inside, world) and "show matches only" (hides the other worlds);
+  inside, share of particles inside, world) and "show matches only" (hides the other worlds,
+  except the first, in whose frame the box is drawn);
 - the matching worlds, ranked, each a button (click: that world alone, playing from frame 0) and
   a small picture (warpsim's renderer, one per world made on first show after the sweep and
   kept in ``<stem>.thumbs/world_GGGGGG.png``).
@@ -204,7 +205,9 @@ class QueryPanel:
             self.matches = [int(first + w) for w in matched]
             self._list(answer, matched)
             names = {f"world_{g:06d}" for g in self.matches}
-            self.hidden = set(self.viewer.reader.worlds) - names if self.matches_only.value else set()
+            anchor = {self.viewer.reader.worlds[0]} if self.viewer.reader.worlds else set()
+            # the world the box is drawn in stays shown, as the box's reference
+            self.hidden = set(self.viewer.reader.worlds) - names - anchor if self.matches_only.value else set()
             with self.viewer._lock:
                 self.viewer._refresh()
             self.answer_seconds = time.perf_counter() - start
