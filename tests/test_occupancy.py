@@ -213,3 +213,36 @@ def test_bad_record_options_exit_2_before_running(tmp_path, args, words):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and all(w in lines[0] for w in words), err
     assert not (tmp_path / "s.usda").exists()
+
+
+def test_answers_refined_from_the_cached_positions(tmp_path):
+    """A chain of 10 masses keeps no exact positions in its record; the worlds the cells leave in
+    doubt are read back from the USD cache, so the answer equals the brute-force one over every
+    cached point; with no budget to read, the cells' answer is a superset within one cell."""
+    from pxr import Usd, UsdGeom
+
+    from warpsim.worlds.query import cached_positions
+
+    root = tmp_path / "c.usda"
+    code, out, err = run("sweep", "springs", "--worlds", 6, "--vary", "stiffness=50:800:log", "--frames", 30,
+                         "--no-progress", "--device", "cpu", "--out", root,
+                         "--inside", "0.5,0.6,-0.1,1.2,0.95,0.1@0.2:0.5")
+    assert code == 0, err
+    record = OccupancyRecord.load(occupancy_path(root))
+    assert not record.exact and record.source_prim in ("masses", "springs")
+    assert "answers: exact (the cached positions)" in out
+    layer = Usd.Stage.Open(str(tmp_path / "c.batch_0000.usdc"))
+    f0, f1 = 0.2 * record.fps, 0.5 * record.fps
+    lo, hi = np.array([0.5, 0.6, -0.1]), np.array([1.2, 0.95, 0.1])
+    brute = []
+    for w in range(6):
+        attr = UsdGeom.Points(layer.GetPrimAtPath(f"/Worlds/world_{w:06d}/masses")).GetPointsAttr()
+        pts = np.array([np.array(attr.Get(f)) for f in range(int(round(f0)), int(round(f1)) + 1)], np.float64)
+        brute.append(bool(((pts >= lo) & (pts <= hi)).all(-1).any()))
+    assert 0 < sum(brute) < 6  # the box separates the stiff chains from the soft ones
+    assert picked_worlds(out) == [w for w in range(6) if brute[w]]
+    region = parse_region("0.5,0.6,-0.1,1.2,0.95,0.1@0.2:0.5")
+    refined = answer_region(record, region, cached_positions(root, record))
+    cells = answer_region(record, region, cached_positions(root, record), budget=0)
+    assert refined.exact and not cells.exact
+    assert list(refined.match) == brute and (cells.match >= refined.match).all()

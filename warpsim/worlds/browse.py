@@ -15,7 +15,9 @@ occupancy record (:mod:`warpsim.worlds.occupancy`):
   kept in ``<stem>.thumbs/world_GGGGGG.png``).
 
 A query is asked when a gizmo is released or a setting changes (not while dragging), from the
-record alone (:func:`warpsim.worlds.query.answer_region`): milliseconds for 10,000 worlds.
+record (:func:`warpsim.worlds.query.answer_region`): milliseconds for 10,000 worlds; exact when
+the record keeps positions or at most :data:`REFINE_BUDGET` world-frames in doubt are read back
+from the cache, else conservative to one cell (the summary says which).
 """
 from __future__ import annotations
 
@@ -26,11 +28,14 @@ import time
 import numpy as np
 
 from .occupancy import OccupancyRecord, occupancy_path
-from .query import Region, answer_region
+from .query import Region, answer_region, cached_positions
 
 __all__ = ["RANKS", "QueryPanel", "thumbnail"]
 
 RANKS = ("first entry", "time inside", "share inside", "world")
+REFINE_BUDGET = 2_000
+"""World-frames the gallery reads back from the cache to make an answer exact (more: cells only,
+so an answer stays well under a second)."""
 MODES = ("IN", "NOT IN")
 THUMB_SIZE = (128, 96)
 
@@ -67,6 +72,7 @@ class QueryPanel:
         self.viewer = viewer
         self.record = record if record is not None else OccupancyRecord.load(occupancy_path(viewer.root))
         self.top = int(top)
+        self.positions = cached_positions(viewer.root, self.record) if viewer.root else None
         self.thumbnails = bool(thumbnails)
         self.hidden = set()
         """Worlds (``world_GGGGGG``) hidden because they do not match (with "show matches only")."""
@@ -191,7 +197,7 @@ class QueryPanel:
             start = time.perf_counter()
             region = self.region()
             try:
-                answer = answer_region(self.record, region)
+                answer = answer_region(self.record, region, self.positions, budget=REFINE_BUDGET)
             except ValueError as exc:
                 self.summary.content = f"**{exc}**"
                 return
@@ -214,7 +220,8 @@ class QueryPanel:
             self.summary.content = (f"**{len(self.matches)} of {self.record.world_count} worlds** "
                                     f"{'IN' if region.inside else 'NOT IN'} the box during "
                                     f"{self.window.value[0]:.3g}..{self.window.value[1]:.3g} s "
-                                    f"({1e3 * self.answer_seconds:.1f} ms)")
+                                    f"({'exact' if answer.exact else f'to one cell of {self.record.grid.cell_size:.3g} m'}"
+                                    f", {1e3 * self.answer_seconds:.1f} ms)")
 
     def _list(self, answer, matched):
         for h in self._items:

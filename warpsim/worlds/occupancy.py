@@ -83,6 +83,23 @@ def _is_float(s):
     return True
 
 
+def find_source_prim(frame_data, positions, particles) -> str:
+    """The name of a prim in one world's ``frame_data`` ({prim: {"points": ...}}) whose points hold
+    ``positions[particles]`` (one world's particle positions (P, 3)) at the same indices, bit for
+    bit; ``""`` when none does (then answers cannot be refined from the cache)."""
+    local = np.asarray(particles, np.int64)
+    want = np.asarray(positions, np.float32)[local]
+    for name in sorted(frame_data):
+        points = (frame_data[name] or {}).get("points")
+        if points is None:
+            continue
+        points = np.asarray(points.numpy() if hasattr(points, "numpy") else points, np.float32)
+        if points.ndim == 2 and points.shape[1] == 3 and len(points) > int(local.max(initial=-1)) and \
+                np.array_equal(points[local], want):
+            return str(name)
+    return ""
+
+
 class OccupancyGrid:
     """Cubic cells of side ``cell_size`` [m] from ``lo`` [m]; ``dims`` cells per axis including
     one outside layer on each side (inner cells: ``dims - 2``)."""
@@ -153,7 +170,8 @@ class OccupancyRecord:
     """A loaded or finished record (see the module docstring for the fields)."""
 
     def __init__(self, *, grid, fps, first_frame, frame_count, first_world, world_count, world_particle_count,
-                 particles, track_names, world_start, pair_cell, pair_bits, samples=None, scene="", version=""):
+                 particles, track_names, world_start, pair_cell, pair_bits, samples=None, scene="", version="",
+                 source_prim=""):
         self.grid = grid
         self.fps = float(fps)
         self.first_frame, self.frame_count = int(first_frame), int(frame_count)
@@ -167,6 +185,9 @@ class OccupancyRecord:
         self.pair_world = np.repeat(np.arange(self.world_count, dtype=np.int64), np.diff(self.world_start))
         self.samples = None if samples is None else np.asarray(samples, np.float32)
         self.scene, self.version = str(scene), str(version)
+        self.source_prim = str(source_prim)
+        """The animated prim of each world whose cached points hold the recorded particles at
+        their indices (``""``: none found), so answers can be refined from the cache."""
 
     @property
     def exact(self) -> bool:
@@ -195,7 +216,8 @@ class OccupancyRecord:
                       world_count=np.array(self.world_count),
                       world_particle_count=np.array(self.world_particle_count), particles=self.particles,
                       track_names=np.array(self.track_names, dtype=str).reshape(-1),
-                      world_start=self.world_start, pair_cell=self.pair_cell, pair_bits=self.pair_bits)
+                      world_start=self.world_start, pair_cell=self.pair_cell, pair_bits=self.pair_bits,
+                      source_prim=np.array(self.source_prim))
         if self.samples is not None:
             arrays["samples"] = self.samples
         tmp = path + ".tmp.npz"
@@ -225,7 +247,8 @@ class OccupancyRecord:
                        particles=z["particles"], track_names=list(z["track_names"]), world_start=z["world_start"],
                        pair_cell=z["pair_cell"], pair_bits=z["pair_bits"],
                        samples=z["samples"] if "samples" in z.files else None, scene=str(z["scene"]),
-                       version=str(z["version"]))
+                       version=str(z["version"]),
+                       source_prim=str(z["source_prim"]) if "source_prim" in z.files else "")
         except (OSError, KeyError, ValueError) as exc:
             raise ValueError(f"{path} is not a warpsim occupancy record ({type(exc).__name__}: {exc}); run the "
                              "sweep again") from None
@@ -237,7 +260,8 @@ class OccupancyRecord:
         return (f"occupancy record: {self.world_count} worlds x {self.frame_count} frames at {self.fps:g} fps, "
                 f"{inner} cells of {self.grid.cell_size:.4g} m over [{', '.join(f'{v:.4g}' for v in self.grid.lo)}]"
                 f"..[{', '.join(f'{v:.4g}' for v in self.grid.hi)}] m, {what}, "
-                f"{'exact positions kept' if self.exact else 'answers conservative to one cell'}")
+                f"{'exact positions kept' if self.exact else 'answers conservative to one cell'}"
+                f"{f', refined from the cached {self.source_prim} points where cheap' if self.source_prim and not self.exact else ''}")
 
 
 class OccupancyRecorder:
@@ -281,6 +305,9 @@ class OccupancyRecorder:
         self.samples = wp.zeros(n * self.frame_count * len(local) if exact else 0, dtype=wp.vec3, device=self.device)
         self.fps, self.first_world, self.scene = float(fps), int(first_world), str(scene)
         self.particles, self.track_names = local, list(track_names)
+        self.source_prim = ""
+        """Set by the sweep (:func:`find_source_prim`): the prim whose cached points hold the
+        recorded particles."""
         self._blocks = []  # (block index, nonzero flat indices, words)
         self._seen = 0
         g = self.grid
@@ -331,4 +358,4 @@ class OccupancyRecorder:
                                world_particle_count=self.world_particle_count, particles=self.particles,
                                track_names=self.track_names, world_start=start,
                                pair_cell=(keys % cells).astype(np.uint32), pair_bits=bits, samples=samples,
-                               scene=self.scene)
+                               scene=self.scene, source_prim=self.source_prim)

@@ -162,13 +162,17 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
     its default grid also covers the static geometry the writer has seen (floor, walls)."""
     if not occupancy:
         return None
-    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder
+    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder, find_source_prim
 
     static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
-    return OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
-                             track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
-                             resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
-                             first_world=first_world, scene=scene_name, include=static)
+    recorder = OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
+                                 track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
+                                 resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
+                                 first_world=first_world, scene=scene_name, include=static)
+    x0 = batch.sim.state.positions.numpy()[: batch.model.world_particle_count]  # world 0
+    v0 = batch.sim.state.velocities.numpy()[: batch.model.world_particle_count]
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    return recorder
 
 
 def _cell(value):
