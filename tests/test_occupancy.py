@@ -174,3 +174,75 @@ def test_root_without_record_exits_2(sweep, tmp_path):
     assert code == 2 and "no occupancy record" in err and len(err.strip().splitlines()) == 1, err
     code, _, err = run("query", tmp_path / "copy.csv", "--inside", f"{BOX}@0:0.5")
     assert code == 2 and err.startswith("warpsim: error:") and len(err.strip().splitlines()) == 1, err
+
+
+def test_tracked_record_equals_the_cached_samples_and_their_cells(tmp_path):
+    """--track records that particle only: its exact positions equal the USD samples bit for
+    bit, and the packed cell bits decode to exactly the cells of those positions, frame by frame
+    (41 frames: two 32-frame words)."""
+    from pxr import Usd, UsdGeom
+
+    root = tmp_path / "s.usda"
+    code, _, err = run("sweep", "springs", "--worlds", 3, "--vary", "stiffness=100:400", "--set", "count=3",
+                       "--frames", 40, "--no-progress", "--device", "cpu", "--out", root, "--track", "mid=1")
+    assert code == 0, err
+    record = OccupancyRecord.load(occupancy_path(root))
+    assert record.track_names == ["mid"] and list(record.particles) == [1] and record.exact
+    layer = Usd.Stage.Open(str(tmp_path / "s.batch_0000.usdc"))
+    for w in range(3):
+        attr = UsdGeom.Points(layer.GetPrimAtPath(f"/Worlds/world_{w:06d}/masses")).GetPointsAttr()
+        cached = np.array([np.array(attr.Get(f))[1] for f in range(41)], np.float32)
+        assert np.array_equal(record.samples[w, :, 0], cached)
+        want = {(int(c), f) for f, c in enumerate(record.grid.cells_of(cached))}
+        rows = slice(record.world_start[w], record.world_start[w + 1])
+        bits = np.unpackbits(record.pair_bits[rows].view(np.uint8), axis=1, bitorder="little")
+        got = {(int(c), int(f)) for c, row in zip(record.pair_cell[rows], bits) for f in np.flatnonzero(row)}
+        assert got == want
+        assert len({c for c, _ in want}) > 1  # the mass moves through several cells
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--occupancy-res", "0"], ["--occupancy-res 0", "1..256"]),
+    (["--occupancy-bounds", "0,0,0,1,-1,1"], ["y1 = -1 < y0 = 0"]),
+    (["--inside", "0,0,0,1,1,1@0:1", "--ray"], ["drop --ray"]),
+])
+def test_bad_record_options_exit_2_before_running(tmp_path, args, words):
+    code, out, err = run("sweep", "bounce", "--worlds", 2, "--vary", "height=0.1:0.2", "--frames", 5,
+                         "--no-progress", "--out", tmp_path / "s.usda", *args)
+    assert code == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and all(w in lines[0] for w in words), err
+    assert not (tmp_path / "s.usda").exists()
+
+
+def test_answers_refined_from_the_cached_positions(tmp_path):
+    """A chain of 10 masses keeps no exact positions in its record; the worlds the cells leave in
+    doubt are read back from the USD cache, so the answer equals the brute-force one over every
+    cached point; with no budget to read, the cells' answer is a superset within one cell."""
+    from pxr import Usd, UsdGeom
+
+    from warpsim.worlds.query import cached_positions
+
+    root = tmp_path / "c.usda"
+    code, out, err = run("sweep", "springs", "--worlds", 6, "--vary", "stiffness=50:800:log", "--frames", 30,
+                         "--no-progress", "--device", "cpu", "--out", root,
+                         "--inside", "0.5,0.6,-0.1,1.2,0.95,0.1@0.2:0.5")
+    assert code == 0, err
+    record = OccupancyRecord.load(occupancy_path(root))
+    assert not record.exact and record.source_prim in ("masses", "springs")
+    assert "answers: exact (the cached positions)" in out
+    layer = Usd.Stage.Open(str(tmp_path / "c.batch_0000.usdc"))
+    f0, f1 = 0.2 * record.fps, 0.5 * record.fps
+    lo, hi = np.array([0.5, 0.6, -0.1]), np.array([1.2, 0.95, 0.1])
+    brute = []
+    for w in range(6):
+        attr = UsdGeom.Points(layer.GetPrimAtPath(f"/Worlds/world_{w:06d}/masses")).GetPointsAttr()
+        pts = np.array([np.array(attr.Get(f)) for f in range(int(round(f0)), int(round(f1)) + 1)], np.float64)
+        brute.append(bool(((pts >= lo) & (pts <= hi)).all(-1).any()))
+    assert 0 < sum(brute) < 6  # the box separates the stiff chains from the soft ones
+    assert picked_worlds(out) == [w for w in range(6) if brute[w]]
+    region = parse_region("0.5,0.6,-0.1,1.2,0.95,0.1@0.2:0.5")
+    refined = answer_region(record, region, cached_positions(root, record))
+    cells = answer_region(record, region, cached_positions(root, record), budget=0)
+    assert refined.exact and not cells.exact
+    assert list(refined.match) == brute and (cells.match >= refined.match).all()

@@ -11,7 +11,8 @@ set ``world`` (or, with ``--layout grid``, every world side by side), the batch 
 (``<stem>.batch_0000.usdc``) and the table ``<stem>.csv`` (one row per world: parameters and
 metrics) and the occupancy record ``<stem>.occupancy.npz`` (:mod:`warpsim.worlds.occupancy`;
 ``warpsim query`` asks it later). ``--rank``/``--where``/``--inside``/``--outside`` print the
-picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage mistakes (one line), 1 when the run fails.
+picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage
+mistakes (one line), 1 when the run fails.
 """
 from __future__ import annotations
 
@@ -249,9 +250,15 @@ def run(args, out, err):
     if getattr(args, "ray", None) is None:
         from .occupancy import OccupancyRecord
 
+        from .query import answer_region, answers_note, cached_positions
+
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
-        candidates = apply_regions(rows, record, regions)
+        positions = cached_positions(root, record) if regions else None
+        answers = [answer_region(record, r, positions) for r in regions]
+        candidates = apply_regions(rows, record, regions, answers=answers)
+        if regions:
+            print(answers_note(record, regions, answers), file=out)
     if args.rank or args.where or regions:
         picked = select(candidates, rank=rank, top=args.top, where=where)
         shown = [k for k in world_params[0]] + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where]

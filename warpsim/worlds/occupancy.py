@@ -9,7 +9,8 @@ The record (``OccupancyRecorder``, made on the device while the sweep runs; kern
 ``kernels/occupancy.py``):
 
 - a grid of cubic cells of side ``h`` [m] over the scene's bounds (``bounds``, default: the
-  worlds' frame-0 extent padded by half its largest side on every side), ``resolution`` cells
+  worlds' frame-0 extent and the scene's static geometry (floor, walls), padded by a quarter of
+  its largest side on every side), ``resolution`` cells
   along its longest side, plus one outside layer per side that catches everything beyond;
 - per world and occupied cell, the frames it is occupied, bit-packed over time (32 frames a
   word): the pairs (world, cell) are sorted by world then cell (a CSR by world), so a record
@@ -44,6 +45,9 @@ DEFAULT_RESOLUTION = 16
 EXACT_MAX = 8
 """Recorded particles per world up to which exact positions are kept."""
 SAMPLE_BYTES_MAX = 1 << 30
+BLOCK_BYTES_MAX = 1 << 30
+"""Device bytes of a batch's 32-frame block (world_count x cells x 4) above which the recorder
+halves the resolution until it fits (the record then states the coarser cells)."""
 
 
 def occupancy_path(root_or_table) -> str:
@@ -77,6 +81,23 @@ def _is_float(s):
     except ValueError:
         return False
     return True
+
+
+def find_source_prim(frame_data, positions, particles) -> str:
+    """The name of a prim in one world's ``frame_data`` ({prim: {"points": ...}}) whose points hold
+    ``positions[particles]`` (one world's particle positions (P, 3)) at the same indices, bit for
+    bit; ``""`` when none does (then answers cannot be refined from the cache)."""
+    local = np.asarray(particles, np.int64)
+    want = np.asarray(positions, np.float32)[local]
+    for name in sorted(frame_data):
+        points = (frame_data[name] or {}).get("points")
+        if points is None:
+            continue
+        points = np.asarray(points.numpy() if hasattr(points, "numpy") else points, np.float32)
+        if points.ndim == 2 and points.shape[1] == 3 and len(points) > int(local.max(initial=-1)) and \
+                np.array_equal(points[local], want):
+            return str(name)
+    return ""
 
 
 class OccupancyGrid:
@@ -134,14 +155,14 @@ class OccupancyGrid:
 
 
 def default_bounds(points):
-    """The worlds' extent (points (N, 3) [m], finite) padded by half its largest side (at least
-    0.1 m) on every side."""
+    """The worlds' extent (points (N, 3) [m], finite) padded by a quarter of its largest side (at
+    least 5 cm) on every side."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(1)]
     if not len(p):
         return np.full(3, -1.0), np.full(3, 1.0)
     lo, hi = p.min(0), p.max(0)
-    pad = max(0.5 * float(np.max(hi - lo)), 0.1)
+    pad = max(0.25 * float(np.max(hi - lo)), 0.05)
     return lo - pad, hi + pad
 
 
@@ -149,7 +170,8 @@ class OccupancyRecord:
     """A loaded or finished record (see the module docstring for the fields)."""
 
     def __init__(self, *, grid, fps, first_frame, frame_count, first_world, world_count, world_particle_count,
-                 particles, track_names, world_start, pair_cell, pair_bits, samples=None, scene="", version=""):
+                 particles, track_names, world_start, pair_cell, pair_bits, samples=None, scene="", version="",
+                 source_prim=""):
         self.grid = grid
         self.fps = float(fps)
         self.first_frame, self.frame_count = int(first_frame), int(frame_count)
@@ -163,6 +185,9 @@ class OccupancyRecord:
         self.pair_world = np.repeat(np.arange(self.world_count, dtype=np.int64), np.diff(self.world_start))
         self.samples = None if samples is None else np.asarray(samples, np.float32)
         self.scene, self.version = str(scene), str(version)
+        self.source_prim = str(source_prim)
+        """The animated prim of each world whose cached points hold the recorded particles at
+        their indices (``""``: none found), so answers can be refined from the cache."""
 
     @property
     def exact(self) -> bool:
@@ -191,7 +216,8 @@ class OccupancyRecord:
                       world_count=np.array(self.world_count),
                       world_particle_count=np.array(self.world_particle_count), particles=self.particles,
                       track_names=np.array(self.track_names, dtype=str).reshape(-1),
-                      world_start=self.world_start, pair_cell=self.pair_cell, pair_bits=self.pair_bits)
+                      world_start=self.world_start, pair_cell=self.pair_cell, pair_bits=self.pair_bits,
+                      source_prim=np.array(self.source_prim))
         if self.samples is not None:
             arrays["samples"] = self.samples
         tmp = path + ".tmp.npz"
@@ -221,7 +247,8 @@ class OccupancyRecord:
                        particles=z["particles"], track_names=list(z["track_names"]), world_start=z["world_start"],
                        pair_cell=z["pair_cell"], pair_bits=z["pair_bits"],
                        samples=z["samples"] if "samples" in z.files else None, scene=str(z["scene"]),
-                       version=str(z["version"]))
+                       version=str(z["version"]),
+                       source_prim=str(z["source_prim"]) if "source_prim" in z.files else "")
         except (OSError, KeyError, ValueError) as exc:
             raise ValueError(f"{path} is not a warpsim occupancy record ({type(exc).__name__}: {exc}); run the "
                              "sweep again") from None
@@ -233,7 +260,8 @@ class OccupancyRecord:
         return (f"occupancy record: {self.world_count} worlds x {self.frame_count} frames at {self.fps:g} fps, "
                 f"{inner} cells of {self.grid.cell_size:.4g} m over [{', '.join(f'{v:.4g}' for v in self.grid.lo)}]"
                 f"..[{', '.join(f'{v:.4g}' for v in self.grid.hi)}] m, {what}, "
-                f"{'exact positions kept' if self.exact else 'answers conservative to one cell'}")
+                f"{'exact positions kept' if self.exact else 'answers conservative to one cell'}"
+                f"{f', refined from the cached {self.source_prim} points where cheap' if self.source_prim and not self.exact else ''}")
 
 
 class OccupancyRecorder:
@@ -242,13 +270,15 @@ class OccupancyRecorder:
     ``batch``: a :class:`warpsim.worlds.batch.WorldBatch` (``sim.state.positions``,
     ``model.world_particle_count``, ``world_count``, ``device``); ``frames``: frames after frame 0;
     ``particles``: indices within a world to record (None: all); ``bounds``: (lo, hi) [m] (None:
-    :func:`default_bounds` of frame 0); ``resolution``: cells along the longest side;
+    :func:`default_bounds` of frame 0 and of the corners ``include`` (lo, hi) [m], e.g. the
+    scene's static geometry: floor, walls); ``resolution``: cells along the longest side;
     ``exact_max``: keep exact positions when at most this many particles per world are recorded.
     :meth:`update` launches kernels only (capture-safe); call it for frame 0 and after every
     frame, then :meth:`after_frame` on the host, then :meth:`finish`."""
 
     def __init__(self, batch, frames, *, particles=None, track_names=(), bounds=None,
-                 resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene=""):
+                 resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene="",
+                 include=None):
         self.device = batch.device
         n, P = batch.world_count, batch.model.world_particle_count
         self.batch = batch
@@ -256,9 +286,16 @@ class OccupancyRecorder:
         if len(local) and (local.min() < 0 or local.max() >= P):
             raise ValueError(f"recorded particle {int(local.max())} is out of range [0, {P}) for one world")
         if bounds is None:
-            x = batch.sim.state.positions.numpy().reshape(n, P, 3)[:, local]
+            x = batch.sim.state.positions.numpy().reshape(n, P, 3)[:, local].reshape(-1, 3)
+            if include is not None:
+                x = np.concatenate([x, np.asarray(include, np.float64).reshape(-1, 3)])
             bounds = default_bounds(x)
+        resolution = int(resolution)
         self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
+        while n * self.grid.cell_count * 4 > BLOCK_BYTES_MAX and resolution > 2:
+            resolution //= 2
+            self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
+        self.resolution = resolution
         self.frame_count = int(frames) + 1
         self.world_count, self.world_particle_count = n, P
         self.local = wp.array(local.astype(np.int32), dtype=int, device=self.device)
@@ -268,6 +305,9 @@ class OccupancyRecorder:
         self.samples = wp.zeros(n * self.frame_count * len(local) if exact else 0, dtype=wp.vec3, device=self.device)
         self.fps, self.first_world, self.scene = float(fps), int(first_world), str(scene)
         self.particles, self.track_names = local, list(track_names)
+        self.source_prim = ""
+        """Set by the sweep (:func:`find_source_prim`): the prim whose cached points hold the
+        recorded particles."""
         self._blocks = []  # (block index, nonzero flat indices, words)
         self._seen = 0
         g = self.grid
@@ -318,4 +358,4 @@ class OccupancyRecorder:
                                world_particle_count=self.world_particle_count, particles=self.particles,
                                track_names=self.track_names, world_start=start,
                                pair_cell=(keys % cells).astype(np.uint32), pair_bits=bits, samples=samples,
-                               scene=self.scene)
+                               scene=self.scene, source_prim=self.source_prim)

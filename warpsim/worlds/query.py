@@ -13,8 +13,10 @@ f / fps; ``@t0:`` runs to the end, ``@:t1`` from the start, no ``@`` the whole r
 
 Answers come from the cells of :class:`warpsim.worlds.occupancy.OccupancyRecord`: conservative to
 one cell (a world whose particles come within one cell of the box may be kept by IN and dropped
-by NOT IN). Where the record keeps exact positions (few particles per world), the worlds the
-cells leave in doubt are decided exactly from them: the answer is then exact.
+by NOT IN). The worlds the cells leave in doubt are then decided exactly where that is cheap:
+from the exact positions the record keeps (few particles per world), or else read back from the
+sweep's USD cache (:class:`CachedPositions`) when at most :data:`REFINE_BUDGET` world-frames
+are in doubt. Each answer says whether it is exact.
 """
 from __future__ import annotations
 
@@ -26,8 +28,8 @@ import numpy as np
 
 from .occupancy import parse_bounds
 
-__all__ = ["Region", "RegionAnswer", "answer_region", "apply_regions", "check_window", "parse_region",
-           "region_columns"]
+__all__ = ["CachedPositions", "Region", "RegionAnswer", "answer_region", "answers_note", "apply_regions",
+           "cached_positions", "check_window", "parse_region", "region_columns"]
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,16 @@ def check_window(region, fps, frame_count, first_frame=0):
     return f0, f1
 
 
+def answers_note(record, regions, answers) -> str:
+    """One line saying how exact the answers are."""
+    loose = [r.flag for r, a in zip(regions, answers) if not a.exact]
+    if not loose:
+        return "answers: exact (" + ("the record's positions" if record.exact else "the cached positions") + ")"
+    return (f"answers: conservative to one cell ({record.grid.cell_size:.3g} m) for {', '.join(loose)} (too many "
+            "worlds in doubt to read back, or no cached points of the recorded particles); --track a few "
+            "particles for exact answers")
+
+
 def region_columns(regions) -> list:
     """Names of the columns the ``--inside`` regions add (see the module docstring)."""
     names = []
@@ -146,16 +158,69 @@ def _cell_hits(record, region, f0, f1):
     return frames[:, f0:f1 + 1]
 
 
-def answer_region(record, region) -> RegionAnswer:
-    """Answer one region over every world of ``record`` (see the module docstring)."""
+REFINE_BUDGET = 20_000
+"""World-frames of cached positions read at most to refine one answer (beyond: cells only)."""
+
+
+class CachedPositions:
+    """The recorded particles' positions read back from a sweep's batch layers (the points of
+    the record's ``source_prim``): ``positions(world, f0, f1)`` -> (f1 - f0 + 1, K, 3) float32 for
+    the record's world index ``world`` and frames f0..f1 counted from its first frame."""
+
+    def __init__(self, root, record):
+        from .roots import sweep_root_files
+
+        self.owner = dict(sweep_root_files(root)["worlds"])
+        self.record = record
+        self._layers = {}
+
+    def __call__(self, world, f0, f1):
+        from pxr import Sdf
+
+        g = self.record.first_world + int(world)
+        path = self.owner[g]
+        layer = self._layers.get(path)
+        if layer is None:
+            layer = self._layers[path] = Sdf.Layer.FindOrOpen(path)
+        attr = Sdf.Path(f"/Worlds/world_{g:06d}/{self.record.source_prim}.points")
+        out = []
+        for f in range(self.record.first_frame + f0, self.record.first_frame + f1 + 1):
+            value = layer.QueryTimeSample(attr, float(f))
+            if value is None:  # no sample at this frame: the one held from before
+                ok, below, _ = layer.GetBracketingTimeSamplesForPath(attr, float(f))
+                value = layer.QueryTimeSample(attr, below) if ok else None
+            if value is None:
+                raise ValueError(f"world {g} has no cached {self.record.source_prim} points at frame {f}")
+            out.append(np.asarray(value, np.float32)[self.record.particles])
+        return np.stack(out)
+
+
+def cached_positions(root, record):
+    """A :class:`CachedPositions` for a record that keeps no exact positions but whose
+    particles are found in the cache (``record.source_prim``); None otherwise."""
+    if record.exact or not record.source_prim:
+        return None
+    return CachedPositions(root, record)
+
+
+def answer_region(record, region, positions=None, budget=REFINE_BUDGET) -> RegionAnswer:
+    """Answer one region over every world of ``record`` (see the module docstring).
+    ``positions``: a :class:`CachedPositions` (or any callable like it) that decides the worlds
+    the cells leave in doubt exactly when at most ``budget`` world-frames are in doubt."""
     f0, f1 = check_window(region, record.fps, record.frame_count, record.first_frame)
     frames = _cell_hits(record, region, f0, f1)
     W = record.world_count
     share = np.full(W, np.nan)
-    exact = record.exact
-    if exact:  # decide the worlds the cells leave in doubt from their exact positions
-        doubt = np.flatnonzero(frames.any(axis=1))
-        s = record.samples[doubt, f0:f1 + 1].astype(np.float64)  # (D, Fw, K, 3)
+    doubt = np.flatnonzero(frames.any(axis=1))
+    s = None
+    if record.exact:  # decide the worlds the cells leave in doubt from their exact positions
+        s = record.samples[doubt, f0:f1 + 1]  # (D, Fw, K, 3)
+    elif positions is not None and len(doubt) * (f1 - f0 + 1) <= budget:  # from the cache
+        s = np.stack([positions(w, f0, f1) for w in doubt]) if len(doubt) else \
+            np.zeros((0, f1 - f0 + 1, len(record.particles), 3), np.float32)
+    exact = s is not None
+    if exact:
+        s = s.astype(np.float64)
         inside = ((s >= np.asarray(region.lo)) & (s <= np.asarray(region.hi))).all(axis=-1)
         frames = np.zeros_like(frames)
         frames[doubt] = inside.any(axis=-1)
@@ -169,12 +234,14 @@ def answer_region(record, region) -> RegionAnswer:
     return RegionAnswer(ever if region.inside else ~ever, count / record.fps, entry, share, exact)
 
 
-def apply_regions(rows, record, regions):
+def apply_regions(rows, record, regions, positions=None, answers=None):
     """The rows (one per world, ``row["world"]`` its global index) that pass every region, each
-    with the columns of :func:`region_columns` added; ValueError for a world the record lacks."""
+    with the columns of :func:`region_columns` added; ValueError for a world the record lacks.
+    ``positions``: see :func:`answer_region`; ``answers``: the regions' answers if already made."""
     if not regions:
         return list(rows)
-    answers = [answer_region(record, r) for r in regions]
+    if answers is None:
+        answers = [answer_region(record, r, positions) for r in regions]
     out = []
     names = region_columns(regions)
     for row in rows:

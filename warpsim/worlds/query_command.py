@@ -62,7 +62,7 @@ def run(args, out, err):
     from .command import _format
     from .metrics import parse_rank, parse_where, select
     from .occupancy import OccupancyRecord
-    from .query import answer_region, apply_regions, parse_region, region_columns
+    from .query import answer_region, answers_note, apply_regions, cached_positions, parse_region, region_columns
     from .roots import sweep_root_files
     from .usd import write_sweep_root
 
@@ -79,13 +79,15 @@ def run(args, out, err):
         names = list(rows[0]) + region_columns(regions)
         rank = parse_rank(args.rank, names) if args.rank else None
         where = [parse_where(w, names) for w in args.where]
-        for r in regions:
-            answer_region(record, r)  # checks the window before anything is printed
-        candidates = apply_regions(rows, record, regions)
+        positions = cached_positions(args.root, record) if regions else None
+        answers = [answer_region(record, r, positions) for r in regions]  # windows checked here
+        candidates = apply_regions(rows, record, regions, answers=answers)
     except (FileNotFoundError, ValueError) as exc:
         raise usage(str(exc)) from None
     params = [k for k in rows[0] if k != "world" and k not in _metric_columns(rows[0])]
     print(record.describe(), file=out)
+    if regions:
+        print(answers_note(record, regions, answers), file=out)
     picked = select(candidates, rank=rank, top=args.top, where=where)
     shown = params + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where] + region_columns(regions)
                       if m not in params]

@@ -125,7 +125,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
             warn(line)
     stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
-    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name)
+    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
     for i, p in enumerate(getattr(batch, "params", given)):
         writer.set_world_params(i, p)
 
@@ -169,16 +169,22 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
 
 
-def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name):
-    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record)."""
+def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer):
+    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record);
+    its default grid also covers the static geometry the writer has seen (floor, walls)."""
     if not occupancy:
         return None
-    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder
+    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder, find_source_prim
 
-    return OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
-                             track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
-                             resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
-                             first_world=first_world, scene=scene_name)
+    static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
+    recorder = OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
+                                 track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
+                                 resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
+                                 first_world=first_world, scene=scene_name, include=static)
+    x0 = batch.sim.state.positions.numpy()[: batch.model.world_particle_count]  # world 0
+    v0 = batch.sim.state.velocities.numpy()[: batch.model.world_particle_count]
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    return recorder
 
 
 def _cell(value):
