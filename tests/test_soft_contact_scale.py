@@ -174,11 +174,14 @@ def test_batched_worlds_each_collide_their_own_tori(tmp_path):
     params = {"count": 2, **SMALL}
     batch = WorldBatch(cls, [params, params], device=DEVICE)
     alone = cls(cls.resolve_params(params), device=DEVICE)
+    contact = next(c for c in batch.sim.colliders if isinstance(c, ws.SoftContact))
+    touched = 0
     for _ in range(30):
         batch.advance(1.0 / 60.0, cls.substeps)
         alone.advance(1.0 / 60.0, cls.substeps)
-    contact = next(c for c in batch.sim.colliders if isinstance(c, ws.SoftContact))
-    assert contact.world_count == 2 and contact.contact_count > 10  # both worlds' tori touched
+        assert contact.contact_count == 2 * alone.contact.contact_count  # each world has the contacts of a run alone
+        touched = max(touched, alone.contact.contact_count)
+    assert contact.world_count == 2 and touched > 10
     x, v = batch.world_slices()
     assert np.array_equal(x[0], x[1]) and np.array_equal(v[0], v[1])
     assert np.array_equal(x[0], alone.sim.state.positions.numpy())
@@ -211,17 +214,53 @@ def test_bad_donuts_input_exits_2_with_one_line(tmp_path, setting, words):
         assert word in lines[0]
 
 
-def test_stable_inner_steps_follow_the_spring_limit():
-    """The donuts scene splits its step where semi-implicit Euler's limit h omega <= 2 needs it:
-    one torus on its own at the scene's step and at the chosen sub-step (largest speed bounded)."""
-    from warpsim.scenes.fracture import _largest_spring_eigenvalue
+@pytest.mark.parametrize("damping", [0.0, 3.0])
+def test_spring_stability_limit_is_where_semi_implicit_euler_blows_up(damping):
+    """Two 1 kg particles on a spring k: omega^2 = 2k/m and gamma = 2c/m exactly; semi-implicit
+    Euler stays bounded just below h_max = (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2 and grows
+    just above it."""
+    from warpsim.scenes.fracture import _largest_spring_eigenvalue, stable_inner_steps
 
-    # a single spring of two 1 kg particles: omega^2 = 2 k / m exactly
+    k = 50.0
     q = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    value = _largest_spring_eigenvalue(q, np.ones(2), np.array([[0, 1]]), np.array([50.0]))
-    assert value == pytest.approx(100.0, rel=1e-9)
+    omega2 = _largest_spring_eigenvalue(q, np.ones(2), np.array([[0, 1]]), np.array([k]))
+    assert omega2 == pytest.approx(2.0 * k, rel=1e-9)
+    gamma = 2.0 * damping
+    h_max = (np.sqrt(gamma**2 + 4.0 * omega2) - gamma) / omega2
+    assert stable_inner_steps(q, np.ones(2), np.array([[0, 1]]), np.array([k]), np.array([damping]),
+                              "semi_implicit_euler", 2.0 * h_max) == 3  # 2 h_max at 0.8 h_max a step
+    amplitude = {}
+    for factor in (0.98, 1.02):
+        b = ws.ModelBuilder()
+        b.add_particle((0.0, 0.0, 0.0))
+        b.add_particle((1.01, 0.0, 0.0))
+        b.add_spring(0, 1, k, damping, rest_length=1.0)
+        sim = ws.Simulator(b.finalize(DEVICE), forces=[], max_speed=1e30)
+        try:
+            for _ in range(400):
+                sim.step(factor * h_max)
+            x = sim.state.positions.numpy()
+            amplitude[factor] = abs(x[1, 0] - x[0, 0] - 1.0)
+        except ws.SimulationError:  # overflowed: grew without bound
+            amplitude[factor] = np.inf
+    assert amplitude[0.98] < 0.011 and amplitude[1.02] > 0.1
+
+
+def test_donuts_scene_sub_steps_keep_a_stiff_torus_stable():
+    """A torus 130x stiffer than the default at the scene's step: the chosen inner steps keep it
+    at rest on the floor; one step per scene step blows up."""
     cls = get_scene("donuts")
-    scene = cls(cls.resolve_params({"count": 2, "segments": 30, "sides": 24, "lattice_cells": 8, "stiffness": 600.0}),
-                device=DEVICE)
-    assert scene.inner_steps >= 2
-    wp.synchronize()
+    params = cls.resolve_params({"count": 1, **SMALL, "stiffness": 20000.0})
+    outcome = {}
+    for forced in (None, 1):
+        scene = cls(params, device=DEVICE)
+        if forced:
+            assert scene.inner_steps >= 3
+            scene.inner_steps = forced
+        try:
+            for _ in range(20):
+                scene.advance(1.0 / 60.0, cls.substeps)
+            outcome[forced] = scene.kinetic_energy()
+        except ws.SimulationError:
+            outcome[forced] = "blew up"
+    assert outcome[1] == "blew up" and outcome[None] < 1.0

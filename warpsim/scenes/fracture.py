@@ -256,7 +256,10 @@ def _largest_spring_eigenvalue(q, mass, springs, coefficient, iterations: int = 
     x = np.random.default_rng(0).normal(size=q.shape)
     value = 0.0
     for _ in range(iterations):
-        x /= np.linalg.norm(x)
+        norm = np.linalg.norm(x)
+        if norm == 0.0:  # A x = 0: every coefficient is 0
+            return 0.0
+        x /= norm
         y = x * scale
         f = (coefficient * ((y[i] - y[j]) * n).sum(1))[:, None] * n
         out = np.stack([np.bincount(i, f[:, c], len(q)) - np.bincount(j, f[:, c], len(q)) for c in range(3)], 1)
