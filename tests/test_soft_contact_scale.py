@@ -244,7 +244,7 @@ def test_spring_stability_limit_is_where_semi_implicit_euler_blows_up(damping):
         except ws.SimulationError:  # overflowed: grew without bound
             amplitude[factor] = np.inf
     # bounded below the limit (undamped: by 0.01 / sqrt(1 - 0.98^2) = 0.05 m), unbounded above it
-    assert amplitude[0.98] < 0.051 and amplitude[1.02] > 1.0
+    assert amplitude[0.98] < 0.051 and amplitude[1.02] > 0.1  # grew 10x from 0.01 m
 
 
 def test_donuts_scene_sub_steps_keep_a_stiff_torus_stable():
