@@ -276,6 +276,8 @@ class WorldBatch:
                 r = self._affine([c.restitution], None, coeff["restitution"])[:, 0]
                 mu = self._affine([c.friction], None, coeff["friction"])[:, 0]
                 colliders.append(WorldPlanes(c, r, mu))
+            elif hasattr(c, "tile"):  # per-world contact between bodies (ws.SoftContact): each world's own
+                colliders.append(c.tile(self.world_count, self.model.world_particle_count))
             else:  # shared shapes (each world meets its own copy); particle pairs keyed by world
                 colliders.append(copy.copy(c))
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
