@@ -92,14 +92,12 @@ def threading_is_main():
 
 
 def run(args, out, err):
-    import warp as wp
+    from ..verbosity import set_warp_verbosity
 
     from .. import cli
     from .server import PortInUseError
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # Warp's module-load lines only with --verbose
     _viser_or_usage()
     viewer = build(args)
     try:

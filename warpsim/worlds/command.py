@@ -91,11 +91,9 @@ def _format(value):
 
 
 def run(args, out, err):
-    import warp as wp
+    from ..verbosity import set_warp_verbosity
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from .. import cli
     from ..core.errors import SimulationError
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
