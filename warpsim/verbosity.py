@@ -41,6 +41,6 @@ def set_warp_verbosity(verbose: Optional[bool] = None) -> None:
     import warp as wp
 
     quiet = not warp_verbose()
-    wp.config.quiet = quiet  # Warp < 1.19
+    setattr(wp.config, "quiet", quiet)  # Warp < 1.19 (gone in 1.19, where log_level below applies)
     if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
         wp.config.log_level = wp.LOG_WARNING if quiet else wp.LOG_INFO
