@@ -244,8 +244,10 @@ def _cmd_run(args, out, err):
         raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
     _check_out(path)
     if args.preview is not None:
+        from .extras import render_modules, require_extra
         from .render.output import check_out
 
+        require_extra("render", f"--preview {args.preview}", render_modules(args.preview))  # before simulating
         try:
             check_out(os.path.join(os.path.dirname(path), args.preview))
         except (ValueError, OSError) as exc:

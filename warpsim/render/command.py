@@ -27,6 +27,9 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
     mistakes raise ``cli.UsageError``."""
     from ..cli_common import UsageError
     from ..cli_common import device_arg as _device
+    from ..extras import render_modules, require_extra
+
+    require_extra("render", f"writing {os.path.basename(str(out))}", render_modules(out))
     from .cache import render_cache
 
     if not os.path.exists(cache):

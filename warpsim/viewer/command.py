@@ -32,12 +32,9 @@ def add_parser(sub):
 
 
 def _viser_or_usage():
-    from ..cli_common import UsageError
+    from ..extras import require_extra
 
-    try:
-        import viser  # noqa: F401
-    except ImportError:
-        raise UsageError('the viewer needs viser: pip install -e ".[viewer]"') from None
+    require_extra("viewer", "warpsim view")
 
 
 def build(args):
@@ -97,8 +94,8 @@ def run(args, out, err):
     from .. import cli
     from .server import PortInUseError
 
+    _viser_or_usage()  # before any work
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
-    _viser_or_usage()
     viewer = build(args)
     try:
         viewer.start()

@@ -113,6 +113,10 @@ def run(args, out, err):
         raise usage(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
     if ray_usage_error(args):
         raise usage(ray_usage_error(args))
+    if getattr(args, "ray", None) is not None:
+        from ..extras import require_extra
+
+        require_extra("ray", "warpsim sweep --ray")
     if args.top is not None and args.top < 1:
         raise usage(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:
