@@ -30,6 +30,7 @@ COMMANDS = {
     "render": "warpsim.render.command",
     "plot": "warpsim.render.plot",
     "sweep": "warpsim.worlds.command",
+    "export": "warpsim.render.export_command",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
