@@ -123,11 +123,9 @@ def _format(value):
 
 
 def run(args, out, err):
-    import warp as wp
+    from ..verbosity import set_warp_verbosity
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from .. import cli
     from ..core.errors import SimulationError
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
@@ -148,6 +146,10 @@ def run(args, out, err):
         raise usage(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
     if ray_usage_error(args):
         raise usage(ray_usage_error(args))
+    if getattr(args, "ray", None) is not None:
+        from ..extras import require_extra
+
+        require_extra("ray", "warpsim sweep --ray")
     if args.top is not None and args.top < 1:
         raise usage(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:
