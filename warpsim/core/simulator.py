@@ -61,6 +61,10 @@ class Simulator:
                  max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False):
         if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
             raise ValueError(f"Simulator model must be a ws.Model (builder.finalize()), got {checks.show(model)}")
+        for flag, value in (("differentiable", differentiable), ("adaptive", adaptive)):
+            if not isinstance(value, (bool, np.bool_)):  # 'no' is truthy: never turn a mode on by accident
+                raise TypeError(f"Simulator {flag} must be True or False, got {checks.show(value)}; e.g. "
+                                f"{flag}=True")
         self.model = model
         self.device = model.device
         self.integrator = make_integrator(integrator)
