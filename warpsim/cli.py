@@ -423,25 +423,29 @@ def _cmd_run(args, out, err):
     return 0
 
 
-def _check_out(path):
-    """Create the folder of ``--out`` and make sure a file can be written there, so an
-    unusable path is one line and exit 2 before the scene is built."""
+def _check_out(path, flag="--out"):
+    """Create the folder of ``--out`` (or another output option ``flag``) and make sure a file
+    can be written there, so an unusable path is one line and exit 2 before the scene is built."""
     import tempfile
 
     if os.path.isdir(path):
-        raise UsageError(f"--out {path!r} is a folder; name a file in it, e.g. {os.path.join(path, 'scene.usda')!r}")
+        raise UsageError(f"{flag} {path!r} is a folder; name a file in it, e.g. "
+                         f"{os.path.join(path, 'scene' + (os.path.splitext(path)[1] or '.usda'))!r}")
     folder = os.path.dirname(os.path.abspath(path))
     probe = folder
     while not os.path.lexists(probe):
         probe = os.path.dirname(probe)
     if not os.path.isdir(probe):
-        raise UsageError(f"--out {path!r}: {probe!r} is a file, not a folder; choose another --out")
+        raise UsageError(f"{flag} {path!r}: {probe!r} is a file, not a folder; choose another {flag}")
     try:
         os.makedirs(folder, exist_ok=True)
         tempfile.TemporaryFile(dir=folder).close()
     except OSError as exc:
-        raise UsageError(f"--out {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
+        raise UsageError(f"{flag} {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
                          "writable folder") from None
+    if os.path.lexists(path) and not os.access(path, os.W_OK):
+        raise UsageError(f"{flag} {path!r} exists and is not writable; choose another {flag} or change its "
+                         "permissions")
 
 
 def _silence_stdout(out):

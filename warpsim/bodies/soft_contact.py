@@ -80,15 +80,16 @@ class SoftContact(Collider):
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
         self.faces = [_body_faces(b, k) for k, b in enumerate(bodies)]
-        for name, value, positive in (("thickness", thickness, True), ("friction", friction, False)):
-            v = float(value)
-            if not math.isfinite(v) or v < 0.0 or (positive and v == 0.0):
-                raise ValueError(f"SoftContact {name} is {value}; it must be finite and {'> 0' if positive else '>= 0'}")
-        restitution = float(restitution)
-        if not (math.isfinite(restitution) and 0.0 <= restitution <= 1.0):
-            raise ValueError(f"SoftContact restitution is {restitution}; it must be in [0, 1]")
-        if int(iterations) < 1:
-            raise ValueError(f"SoftContact iterations is {iterations}; it must be >= 1")
+        from ..core import checks
+
+        thickness = checks.positive(thickness, "SoftContact thickness", unit="m", fix="e.g. 0.005")
+        friction = checks.nonnegative(friction, "SoftContact friction", fix="e.g. 0.5")
+        restitution = checks.in_range(restitution, "SoftContact restitution", 0.0, 1.0, fix="e.g. 0.0")
+        iterations = checks.integer(iterations, "SoftContact iterations", lo=1, hi=1000, fix="e.g. 4")
+        for name, value in (("search", search), ("self_rest_distance", self_rest_distance)):
+            if value is not None:
+                checks.nonnegative(value, f"SoftContact {name}", unit="m", fix="or None for the default")
+        push = checks.in_range(push, "SoftContact push", 0.0, 1.0, fix="a fraction of the depth removed per step")
         self.thickness = float(thickness)
         self.friction = float(friction)
         self.restitution = restitution

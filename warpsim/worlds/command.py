@@ -19,6 +19,8 @@ from __future__ import annotations
 import os
 import sys
 
+from . import preflight
+
 LAYER_EXT = ".usdc"
 
 
@@ -159,6 +161,17 @@ def run(args, out, err):
     if ext not in (".usd", ".usda", ".usdc"):
         raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
     table = args.table or stem + ".csv"
+    try:  # seed, world count, --ray address: before anything is sampled
+        preflight.check_seed(args.seed)
+        if args.worlds is not None:
+            preflight.check_worlds(args.worlds)
+        preflight.check_ray_address(getattr(args, "ray", None))
+    except ValueError as exc:
+        raise usage(str(exc)) from None
+    cli._check_out(path, "--out")
+    if os.path.splitext(table)[1].lower() != ".csv":
+        raise usage(f"--table {table!r} must end in .csv")
+    cli._check_out(table, "--table")
     fixed = cli._parse_sets(cls, args.sets, None)
     worlds = args.worlds
     try:
@@ -184,6 +197,14 @@ def run(args, out, err):
         names += region_columns(regions)
         rank = parse_rank(args.rank, names) if args.rank else None
         where = [parse_where(w, names) for w in args.where]
+        numeric = preflight.numeric_columns(world_params)
+        for flag, metric in ([("--rank", rank[0])] if rank else []) + [("--where", w[0]) for w in where]:
+            if metric in world_params[0] and metric not in numeric:
+                value = world_params[0][metric]
+                kind = "a vector" if isinstance(value, (tuple, list)) else f"a {type(value).__name__}"
+                raise ValueError(f"{flag} {metric}: parameter {metric} is {kind} ({_format(value)}), not one number; "
+                                 f"{flag} compares numbers: a metric ({', '.join(BUILTIN[:3])}, ...) or a numeric "
+                                 f"parameter ({', '.join(sorted(numeric)) or 'none here'})")
     except ValueError as exc:
         raise usage(str(exc)) from None
     device = cli._device(args.device)
@@ -196,6 +217,11 @@ def run(args, out, err):
     from ..core.stability import StabilityWarning
 
     warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
+    if getattr(args, "ray", None) is None:
+        try:
+            _check_memory(cls, base, len(world_params), device)
+        except ValueError as exc:
+            raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
     progress = None
     try:
@@ -300,6 +326,15 @@ def _regions(args, fps):
         raise ValueError(f"--occupancy-res {res}: give 1..256 cells along the grid's longest side")
     bounds = parse_bounds(args.occupancy_bounds) if args.occupancy_bounds else None
     return regions, {"resolution": res, "bounds": bounds}
+
+
+def _check_memory(cls, base, worlds, device):
+    """Refuse a sweep whose memory estimate (from world 0 built on the CPU) does not fit."""
+    scene = cls(base, device="cpu")
+    model = getattr(getattr(scene, "sim", None), "model", None)
+    if model is None:
+        return
+    preflight.check_sweep_memory(cls.name, int(model.particle_count), int(model.spring_count), worlds, device)
 
 
 def _timing(cls, params, fps, substeps):

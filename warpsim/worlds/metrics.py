@@ -45,6 +45,10 @@ class UserMetric:
     def __init__(self, name, func):
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
             raise ValueError(f"metric name {name!r} must be an identifier (letters, digits, '_')")
+        taken = [n for n in (str(name), f"{name}_peak") if n in BUILTIN]
+        if taken:
+            raise ValueError(f"metric name {name!r} would replace the built-in column {taken[0]!r}; choose another "
+                             f"name (built-in: {', '.join(BUILTIN)})")
         if not isinstance(func, wp.Function):
             raise ValueError(  # noqa: TRY004 (bad input is a ValueError throughout warpsim)
 f"metric {name!r} needs a @wp.func of (wp.vec3, wp.vec3, float) -> float")
@@ -68,6 +72,16 @@ class WorldMetrics:
             if not 0 <= int(index) < P:
                 raise ValueError(f"tracked particle {name}={index} is out of range [0, {P}) for one world")
         self.user = list(user)
+        columns = list(BUILTIN) + [f"{n}{s}" for n in self.track for s in ("_x", "_y", "_z", "_peak_y")]
+        for metric in self.user:
+            if not isinstance(metric, UserMetric):
+                raise TypeError(f"metrics must be UserMetric objects, got {metric!r}; e.g. "
+                                "UserMetric('height', my_func)")
+            for column in (metric.name, f"{metric.name}_peak"):
+                if column in columns:
+                    raise ValueError(f"metric {metric.name!r} gives column {column!r}, which another metric or "
+                                     "tracked particle already fills; give each metric its own name")
+                columns.append(column)
         inf = float("inf")
         self.moment = wp.zeros(n, dtype=wp.vec3, device=d)
         self.mass = wp.zeros(n, dtype=float, device=d)

@@ -169,6 +169,10 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
     out_path = os.path.abspath(os.fspath(out_path))
     if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
         raise ValueError(f"root {out_path!r} must end in .usd, .usda or .usdc")
+    layer_paths = [os.path.abspath(os.fspath(p)) for p in layer_paths]
+    if out_path in layer_paths:
+        raise ValueError(f"root {out_path!r} is also one of the batch layers it would reference; writing it would "
+                         "overwrite that layer's worlds: give the root another name")
     owner, fps, start, end, span = {}, None, None, None, 0.0
     for p in layer_paths:
         layer, info = _layer_info(p)
