@@ -42,6 +42,7 @@ def _load_all():
     )
     from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
     from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+    from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
     globals().update({k: v for k, v in locals().items() if not k.startswith("_")})
 
 
@@ -59,6 +60,7 @@ __all__ = [
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
     "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
+    "Strands", "add_strands", "StrandForce", "StrandRoots", "strand_stable_dt", "sag_free", "SagFreeReport",
 ]
 
 
