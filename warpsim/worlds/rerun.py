@@ -241,7 +241,7 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
 def run_command(args, out, err) -> int:
     """``warpsim run SCENE --from-sweep ROOT --world N [--frames F] [--fps F] [--substeps S]
     [--device D] [--out PATH]``; UsageError (exit 2) for bad input found before the run."""
-    from .. import cli
+    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     usage = cli.UsageError
@@ -256,23 +256,23 @@ def run_command(args, out, err) -> int:
         manifest = read_manifest(args.from_sweep, scene=args.scene)
         world = _check_world(args.world, len(manifest["worlds"]), args.from_sweep)
     except ValueError as exc:
-        raise usage(cli._one_line(exc)) from None
+        raise usage(cli.one_line(exc)) from None
     frames = manifest["frames"] if args.frames is None else args.frames
     if frames < 0:
         raise usage(f"--frames {frames}: it must be >= 0")
     path = args.out or world_cache_path(args.from_sweep, world)
     if os.path.splitext(path)[1] not in (".usd", ".usda", ".usdc"):
         raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
-    device = cli._device(args.device) if args.device is not None else None
+    device = cli.device_arg(args.device) if args.device is not None else None
     if device is None and manifest["device"] is not None:
-        device = cli._device(manifest["device"])  # the sweep's device must be here
+        device = cli.device_arg(manifest["device"])  # the sweep's device must be here
     return _run_and_report(manifest, world, path, frames, args.fps, args.substeps, device,
                            not args.no_progress, out, err, SimulationError)
 
 
 def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_progress, out, err,
                     SimulationError) -> int:
-    from .. import cli
+    from .. import cli_common as cli
 
     for line in _differences(manifest, fps, substeps, device):
         print(f"warpsim: warning: {line}: world {world} will differ from its samples in the sweep", file=err)
@@ -288,10 +288,10 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
                            substeps=run_substeps, device=device, fused=manifest["fused"],
                            progress=(lambda f: progress.update(1)) if progress else None)
     except SimulationError as exc:
-        print(f"warpsim: simulation failed: {cli._one_line(exc)}", file=err)
+        print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
         return 1
     except ValueError as exc:
-        raise cli.UsageError(cli._one_line(exc)) from None
+        raise cli.UsageError(cli.one_line(exc)) from None
     finally:
         if progress:
             progress.close()
@@ -304,13 +304,13 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
 def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     """``warpsim sweep ... --rerun N``: world N of the sweep these arguments describe, alone, into
     ``<stem>.world_NNNNNN.usda`` beside ``path`` (the sweep's root)."""
-    from .. import cli
+    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     try:
         world = _check_world(args.rerun, len(world_params), f"described ({len(world_params)} worlds)")
     except ValueError as exc:
-        raise cli.UsageError(f"--rerun: {cli._one_line(exc)}") from None
+        raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
     manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
                 "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
     from .sweep import frame_timing
@@ -319,7 +319,7 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
         manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(cls, cls.resolve_params(world_params[0]),
                                                                         args.fps, args.substeps)
     except ValueError as exc:
-        raise cli.UsageError(cli._one_line(exc)) from None
+        raise cli.UsageError(cli.one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,
                            not args.no_progress, out, err, SimulationError)
 
