@@ -14,13 +14,11 @@ the Warp kernels live in ``warpsim.kernels``.
 """
 
 # ruff: noqa: F401  (the names _load_all imports are published through globals())
+from typing import TYPE_CHECKING
+
 from ._version import __version__
 
-
-def _load_all():
-    """Import every public name (on first use of one: ``import warpsim`` alone stays light, so
-    ``warpsim info`` starts without Warp; ``ws.Gravity`` or ``from warpsim import Gravity``
-    loads them all). Add new public names here and to ``__all__``."""
+if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and autodoc (_load_all stays lazy)
     from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
     from .bodies import (
         Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody,
@@ -28,6 +26,8 @@ def _load_all():
     )
     from .bodies import SoftContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
+    from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
     from .cloth import (
         Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
         cloth_energy,
@@ -42,6 +42,37 @@ def _load_all():
     )
     from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
     from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+    from .viewer.server import Viewer
+    from .worlds.rerun import rerun_world
+
+
+def _load_all():
+    """Import every public name (on first use of one: ``import warpsim`` alone stays light, so
+    ``warpsim info`` starts without Warp; ``ws.Gravity`` or ``from warpsim import Gravity``
+    loads them all). Add new public names here and to ``__all__``."""
+    from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
+    from .bodies import (
+        Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody,
+        Sphere, TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
+    )
+    from .bodies import SoftContact, torus_mesh
+    from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
+    from .cloth import (
+        Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
+        cloth_energy,
+    )
+    from .core import (
+        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity,
+        ImplicitEuler, Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem,
+        SemiImplicitEuler, SimulationError, Simulator, Springs, State, Wind, exact_period,
+    )
+    from .grid_fluids import (
+        Advector, FlipLiquid, LevelSet, LevelSetLiquid, MacGrid, PressureSolver, Smoke, Viscosity,
+    )
+    from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
+    from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+    from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
     from .worlds.rerun import rerun_world
     globals().update({k: v for k, v in locals().items() if not k.startswith("_")})
 
@@ -60,6 +91,8 @@ __all__ = [
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
     "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
+    "StabilityLimit", "StabilityWarning",
+    "Strands", "add_strands", "StrandForce", "StrandRoots", "strand_stable_dt", "sag_free", "SagFreeReport",
     "rerun_world",
 ]
 

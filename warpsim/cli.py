@@ -20,6 +20,10 @@ import os
 import sys
 import time
 
+from .cli_common import UsageError
+from .cli_common import device_arg as _device
+from .verbosity import choose_warp_verbosity, set_warp_verbosity
+
 __all__ = ["COMMANDS", "UsageError", "main"]
 
 COMMANDS = {
@@ -27,16 +31,15 @@ COMMANDS = {
     "render": "warpsim.render.command",
     "plot": "warpsim.render.plot",
     "sweep": "warpsim.worlds.command",
+    "query": "warpsim.worlds.query_command",
+    "pick": "warpsim.worlds.pick",
+    "export": "warpsim.render.export_command",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
 sub-parsers; imports nothing heavy) and ``run(args, out, err) -> int`` (exit status; raise
 :class:`UsageError` for a usage mistake, reported as one line with exit 2). Reuse this module's
 ``_parse_sets``, ``_timing`` and ``_device`` for scene names, ``--set`` and ``--device``."""
-
-
-class UsageError(Exception):
-    """A mistake in the command line: reported with exit status 2."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -55,6 +58,8 @@ def _wanted_commands(argv):
 
 def _parser(argv=None):
     p = _Parser(prog="warpsim", description="Run warpsim scenes and stream them to USD caches.")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Warp's start-up banner and kernel-module load lines (also accepted after the command)")
     names = ["list", "run", "info", *COMMANDS]
     sub = p.add_subparsers(dest="command", metavar="{" + ",".join(names) + "}", parser_class=_Parser)
     sub.required = True
@@ -64,14 +69,19 @@ def _parser(argv=None):
     r.add_argument("--frames", type=int, default=None,
                    help="frames to simulate after frame 0 (default 120; with --from-sweep: the sweep's)")
     r.add_argument("--fps", type=float, default=None, help="frames per second of the cache (default: the scene's)")
-    r.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    r.add_argument("--substeps", type=substeps_arg, default=None,
+                   help="simulation steps per frame, or 'auto': as many as the stability limit needs (default: "
+                        "the scene's)")
+    r.add_argument("--strict", action="store_true",
+                   help="exit 2 before running when the time step is above the stability limit (default: warn)")
     r.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc; default usd_out/SCENE.usda)")
     r.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="set a scene parameter (repeatable)")
     r.add_argument("--chunk", type=int, default=24, help="frames per chunk file (default 24)")
-    r.add_argument("--flatten", action="store_true", help="also write one self-contained .usdc at the end")
+    r.add_argument("--flatten", action="store_true", help="at the end, replace the chunked cache by one self-contained .usdc "
+                   "(--out NAME.usda becomes NAME.usdc; the .usda and its chunk files are removed)")
     r.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="save the simulation state beside the cache every N frames")
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
@@ -101,6 +111,36 @@ def _parser(argv=None):
 
 
 _BROKEN = {}  # command name -> why its module failed to load
+
+
+def substeps_arg(text):
+    """``--substeps`` value: an int, or "auto" (sub-step inside the stability limit)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number or 'auto'") from None
+
+
+def auto_substeps(cls, substeps, given) -> bool:
+    """Whether frames sub-step automatically: ``--substeps auto``, or the scene's default when
+    neither ``--substeps N`` nor ``--set dt=...`` fixed the step by hand."""
+    if substeps == "auto":
+        return True
+    return substeps is None and bool(getattr(cls, "substeps_auto", False)) and "dt" not in given
+
+
+def stability_check(scene, frame_dt, substeps, strict, err) -> None:
+    """Before the first step: one ``warpsim: warning:`` line on ``err`` when the scene's step is
+    above its stability limit (naming the limiter and the remedies), or with ``strict`` a
+    :class:`UsageError` (exit 2)."""
+    line = scene.stability_warning(frame_dt, substeps)
+    if line is None:
+        return
+    if strict:
+        raise UsageError(f"--strict: {line}")
+    print(f"warpsim: warning: {line}", file=err)
 
 
 def _one_line(exc):
@@ -199,9 +239,9 @@ def _parse_sets(cls, sets, integrator):
 
 def _timing(cls, params, given, fps, substeps):
     """(fps, substeps, params) from the flags and the scene's defaults; see warpsim.scenes."""
-    if substeps is not None and substeps < 1:
+    if substeps is not None and substeps != "auto" and substeps < 1:
         raise UsageError(f"--substeps {substeps}: it must be >= 1")
-    substeps = substeps or cls.substeps
+    substeps = cls.substeps if substeps in (None, "auto") else substeps
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise UsageError(f"--fps {fps}: it must be > 0")
     if "dt" in cls.params:
@@ -219,29 +259,13 @@ def _timing(cls, params, given, fps, substeps):
     return float(f"{fps:.12g}"), substeps, params  # 1 / (0.04 * 1) -> 25, not 25.000000000000004
 
 
-def _device(name):
-    import warp as wp
-
-    if name is None:
-        return "cuda:0" if wp.is_cuda_available() else "cpu"
-    try:
-        return str(wp.get_device(name))
-    except Exception as exc:  # noqa: BLE001  (Warp raises plain Exception/RuntimeError/ValueError)
-        choices = [str(d) for d in wp.get_devices()]
-        raise UsageError(f"--device {name!r} is not available ({exc}); available: {', '.join(choices)}") from None
-
-
 def checkpoint_path(cache_path):
     """The checkpoint file kept beside a cache: ``<stem>.checkpoint.npz``."""
     return os.path.splitext(os.path.abspath(cache_path))[0] + ".checkpoint.npz"
 
 
 def _cmd_run(args, out, err):
-    import warp as wp
-
-    wp.config.quiet = True  # no kernel-cache chatter between the progress bar and the result
-    if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # no kernel-cache chatter between the progress bar and the result (unless --verbose)
     from .usd.checkpoint import META_KEYS, load_checkpoint, save_checkpoint
     from .core.errors import SimulationError
     from .scenes import get_scene
@@ -268,8 +292,10 @@ def _cmd_run(args, out, err):
         raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
     _check_out(path)
     if args.preview is not None:
+        from .extras import render_modules, require_extra
         from .render.output import check_out
 
+        require_extra("render", f"--preview {args.preview}", render_modules(args.preview))  # before simulating
         try:
             check_out(os.path.join(os.path.dirname(path), args.preview))
         except (ValueError, OSError) as exc:
@@ -296,11 +322,14 @@ def _cmd_run(args, out, err):
         ckpt = (arrays, meta)
         start = int(meta["frame"]) + 1
         fps, substeps = float(meta["fps"]), int(meta["substeps"])
-        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (None, substeps):
+        auto = bool(meta.get("auto_substeps", False))
+        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (
+                None, substeps, "auto" if auto else None):
             raise UsageError(f"--resume: the checkpoint was made at {fps:g} fps with {substeps} substeps")
         params = cls.resolve_params(given)
     else:
         params = cls.resolve_params(given)
+        auto = auto_substeps(cls, args.substeps, given)
         fps, substeps, params = _timing(cls, params, given, args.fps, args.substeps)
     device = _device(args.device)
     try:
@@ -315,8 +344,11 @@ def _cmd_run(args, out, err):
                              f"{_one_line(exc)}); run again without --resume") from None
     if start > args.frames + 1:
         raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
-    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps)
+    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps);
+    # with auto sub-steps at most that, and within the stability limit
     frame_dt = params["dt"] * substeps if "dt" in params else 1.0 / fps
+    scene.auto_substeps = auto
+    stability_check(scene, frame_dt, substeps, args.strict, err)
     try:
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
                                 resume_frame=start if args.resume else None)
@@ -330,7 +362,7 @@ def _cmd_run(args, out, err):
     def save(frame):
         writer.flush()  # the cache holds every frame up to the checkpoint before it exists
         save_checkpoint(ckpt_file, scene.checkpoint(), {
-            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps,
+            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps, "auto_substeps": auto,
             "params": {k: list(v) if isinstance(v, tuple) else v for k, v in params.items()}})
 
     progress = None
@@ -341,6 +373,11 @@ def _cmd_run(args, out, err):
                         dynamic_ncols=True)
     frame = start
     t0 = time.perf_counter()
+    import warnings
+
+    from .core.stability import StabilityWarning
+
+    warnings.simplefilter("ignore", StabilityWarning)  # said once above, as one line
     try:
         with writer:
             try:
@@ -386,25 +423,29 @@ def _cmd_run(args, out, err):
     return 0
 
 
-def _check_out(path):
-    """Create the folder of ``--out`` and make sure a file can be written there, so an
-    unusable path is one line and exit 2 before the scene is built."""
+def _check_out(path, flag="--out"):
+    """Create the folder of ``--out`` (or another output option ``flag``) and make sure a file
+    can be written there, so an unusable path is one line and exit 2 before the scene is built."""
     import tempfile
 
     if os.path.isdir(path):
-        raise UsageError(f"--out {path!r} is a folder; name a file in it, e.g. {os.path.join(path, 'scene.usda')!r}")
+        raise UsageError(f"{flag} {path!r} is a folder; name a file in it, e.g. "
+                         f"{os.path.join(path, 'scene' + (os.path.splitext(path)[1] or '.usda'))!r}")
     folder = os.path.dirname(os.path.abspath(path))
     probe = folder
     while not os.path.lexists(probe):
         probe = os.path.dirname(probe)
     if not os.path.isdir(probe):
-        raise UsageError(f"--out {path!r}: {probe!r} is a file, not a folder; choose another --out")
+        raise UsageError(f"{flag} {path!r}: {probe!r} is a file, not a folder; choose another {flag}")
     try:
         os.makedirs(folder, exist_ok=True)
         tempfile.TemporaryFile(dir=folder).close()
     except OSError as exc:
-        raise UsageError(f"--out {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
+        raise UsageError(f"{flag} {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
                          "writable folder") from None
+    if os.path.lexists(path) and not os.access(path, os.W_OK):
+        raise UsageError(f"{flag} {path!r} exists and is not writable; choose another {flag} or change its "
+                         "permissions")
 
 
 def _silence_stdout(out):
@@ -423,7 +464,11 @@ def main(argv=None, out=None, err=None):
     mistake: also any ValueError/FileNotFoundError/PermissionError before the simulation starts)."""
     out = out or sys.stdout
     err = err or sys.stderr
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbose = "--verbose" in argv
+    argv = [a for a in argv if a != "--verbose"]  # a global flag, wherever it stands
     try:
+        choose_warp_verbosity(True if verbose else None)  # applied where a command imports Warp
         args = _parser(argv).parse_args(argv)
         if args.command in _BROKEN:
             print(f"warpsim: error: the '{args.command}' command failed to load ({_one_line(_BROKEN[args.command])})",

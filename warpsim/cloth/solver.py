@@ -527,6 +527,8 @@ class ClothSimulator(Simulator):
         if int(substeps) < 1:
             raise ValueError(f"substeps = {substeps}; it must be >= 1")
         substeps = int(substeps)
+        if self.warn_unstable and frame_dt / substeps != self._checked_dt:
+            self._warn_if_unstable(frame_dt / substeps)  # once per step size, before the first step
         if self.rollout is not None:  # differentiable: eager steps, one recorded state per sub-step
             for _ in range(substeps):
                 Simulator.step(self, frame_dt / substeps)

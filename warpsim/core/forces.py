@@ -7,6 +7,7 @@ number of times without allocating. Forces only accumulate; the caller zeroes ``
 from __future__ import annotations
 
 import ctypes
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -26,7 +27,8 @@ def cached_launch(kernel, dim, inputs, device, cache: dict, key=None, size: int 
     ``wp.Tape`` records or a graph is being captured it launches plainly (both see only
     ``wp.launch``). ``key``: the caller's own hashable stand-in for (dim, inputs) with the same
     meaning (cheaper than the generic one)."""
-    if _warp_context.runtime.tape is not None or (device if isinstance(device, wp.Device) else
+    runtime: Any = _warp_context.runtime  # never None once Warp is initialised
+    if runtime.tape is not None or (device if isinstance(device, wp.Device) else
                                                    wp.get_device(device)).is_capturing:
         wp.launch(kernel, dim, inputs=list(inputs), device=device)
         return
@@ -133,8 +135,13 @@ class Wind(Force):
         if np.linalg.norm(d) == 0.0:
             raise ValueError("Wind direction is the zero vector; give a direction")
         self.direction = tuple(d / np.linalg.norm(d))
-        for name in ("speed", "gust_amplitude", "gust_frequency", "turn_amplitude", "turn_frequency", "coefficient"):
-            setattr(self, name, checks.finite(locals()[name], f"Wind {name}", fix="give a finite number"))
+        fix = "give a finite number"
+        self.speed = checks.finite(speed, "Wind speed", fix=fix)
+        self.gust_amplitude = checks.finite(gust_amplitude, "Wind gust_amplitude", fix=fix)
+        self.gust_frequency = checks.finite(gust_frequency, "Wind gust_frequency", fix=fix)
+        self.turn_amplitude = checks.finite(turn_amplitude, "Wind turn_amplitude", fix=fix)
+        self.turn_frequency = checks.finite(turn_frequency, "Wind turn_frequency", fix=fix)
+        self.coefficient = checks.finite(coefficient, "Wind coefficient", fix=fix)
         if self.coefficient < 0.0:
             raise ValueError(f"Wind coefficient {self.coefficient} < 0; give c >= 0 [kg/s]")
         self.gust_phase = tuple(np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, 3))

@@ -46,6 +46,19 @@ class Model:
         particle in this fixed order, so every run sums them alike (bit-reproducible)
     """
 
+    particle_q: wp.array
+    particle_qd: wp.array
+    particle_mass: wp.array
+    particle_inv_mass: wp.array
+    particle_radius: wp.array
+    spring_indices: wp.array
+    spring_rest_length: wp.array
+    spring_stiffness: wp.array
+    spring_damping: wp.array
+    spring_break_strain: wp.array
+    spring_break_force: wp.array
+    spring_broken: wp.array
+
     def __init__(self, device):
         self.device = wp.get_device(device)
         self.particle_count = 0

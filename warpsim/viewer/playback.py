@@ -108,7 +108,8 @@ class CacheReader:
             counts = np.asarray(prim.GetAttribute("faceVertexCounts").Get(code) or [], np.int64)
             idx = np.asarray(prim.GetAttribute("faceVertexIndices").Get(code) or [], np.int64)
             return DrawItem(name, "mesh", pts, _color(prim, (0.75, 0.75, 0.8)), triangles=triangulate(counts, idx),
-                            topology=hash((len(counts), len(idx), int(idx.sum()) if len(idx) else 0)))
+                            topology=hash((len(counts), len(idx), int(idx.sum()) if len(idx) else 0)),
+                            opacity=_opacity(prim))  # see-through containers, also in the sweep gallery
         if t == "BasisCurves":
             pts = np.asarray(prim.GetAttribute("points").Get(code) or [], np.float32).reshape(-1, 3)
             counts = prim.GetAttribute("curveVertexCounts").Get(code)
@@ -140,6 +141,10 @@ class PlaybackViewer(Serving):
     """Serves a cache: timeline slider, play / pause, loop; frames read when shown."""
 
     def __init__(self, path, *, host="127.0.0.1", port=8080, max_points=200_000):
+        from .server import check_serving_args
+
+        _, port, max_points = check_serving_args(port=port, max_points=max_points, host=host,
+                                                 what="PlaybackViewer")
         self.reader = CacheReader(path, max_points=max_points)
         self.host, self.port = host, int(port)
         self.index = 0

@@ -28,7 +28,7 @@ from ..core.model import Model, ensure_spring_adjacency
 from ..kernels import worlds as KW
 from .forces import WorldGravity, WorldPlanes
 from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, make_plan
-from .shared import SPRING_PARAMS, SharedStepper, eligibility, world_walls
+from .shared import SPRING_PARAMS, SharedStepper, SharedWorldSimulator, eligibility, world_walls
 
 __all__ = ["WorldBatch"]
 
@@ -276,6 +276,8 @@ class WorldBatch:
                 r = self._affine([c.restitution], None, coeff["restitution"])[:, 0]
                 mu = self._affine([c.friction], None, coeff["friction"])[:, 0]
                 colliders.append(WorldPlanes(c, r, mu))
+            elif hasattr(c, "tile"):  # per-world contact between bodies (ws.SoftContact): each world's own
+                colliders.append(c.tile(self.world_count, self.model.world_particle_count))
             else:  # shared shapes (each world meets its own copy); particle pairs keyed by world
                 colliders.append(copy.copy(c))
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
@@ -291,7 +293,34 @@ class WorldBatch:
             return ClothSimulator(self.model, ClothSemiImplicitEuler(), **kwargs)
         if hasattr(sim0, "use_graph"):
             kwargs["use_graph"] = sim0.use_graph
+        if self.shared:
+            sim = SharedWorldSimulator(self.model, integrator, **kwargs)
+            sim.stability_model = self._stability_model
+            return sim
         return type(sim0)(self.model, integrator, **kwargs)
+
+    def _stability_model(self):
+        """The batch model with every world's springs tiled, for the stability analysis of the
+        shared path (whose model stores the springs once): built on demand and not kept."""
+        if not self.shared:
+            return self.model
+        m0 = self.scene.sim.model
+        n, P, S, d = self.world_count, m0.particle_count, m0.spring_count, self.device
+        m = copy.copy(self.model)  # the per-particle arrays are shared; the springs are added
+        m.spring_count = n * S
+        m.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
+        m.spring_broken = wp.zeros(n * S, dtype=int, device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, m.spring_indices], device=d)
+        for name in SPRING_PARAMS:
+            base, key, coefficient = self._scales[name]
+            out = wp.empty(n * S, dtype=float, device=d)
+            if S:
+                wp.launch(KW.tile_float, n * S, inputs=[wp.array(np.asarray(base, dtype=np.float32), dtype=float,
+                                                                 device=d), key, coefficient, self._world_values,
+                                                        self._key_count, out], device=d)
+            setattr(m, name, out)
+        return m
 
     # ------------------------------------------------------------------ stepping
     def can_capture(self) -> bool:
@@ -309,12 +338,32 @@ class WorldBatch:
         """One frame for every world (the scene's own stepping on the batched simulator; with
         ``fused`` the ClothSimulator's captured frame)."""
         if self.stepper is not None:
-            self.stepper.frame(frame_dt, substeps)
+            self.stepper.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))  # auto sub-steps too
         elif self.fused and not hasattr(self.scene.sim, "use_graph"):
-            self.sim.frame(frame_dt, substeps)
+            self.sim.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))
         else:
             self.batch_scene.advance(frame_dt, substeps)
         self.end_frame()
+
+    def stable_dt(self) -> np.ndarray:
+        """Largest stable step [s] of each world, shape (world_count,) (``Simulator.stability``
+        per world: power iteration normalised per world)."""
+        return np.array([limit.dt for limit in self.stability()])
+
+    def stability(self) -> list:
+        """One ``ws.StabilityLimit`` per world, linearised about the initial positions."""
+        from ..core.stability import particle_limits
+
+        sim = self.sim
+        return particle_limits(self._stability_model(), self.model.particle_q, sim.integrator, sim.forces,
+                               sim.colliders, particle_world=self.model.particle_world.numpy(), world_count=self.world_count)
+
+    def stability_warning(self, frame_dt, substeps):
+        """One line naming the worlds whose step is above their limit (None when none is)."""
+        from ..core.stability import worlds_warning
+
+        labels = [", ".join(f"{k}={p[k]}" for k in self.varied) for p in self.params]
+        return worlds_warning(self.stability(), frame_dt / self.batch_scene.frame_steps(frame_dt, substeps), labels)
 
     def world_slices(self):
         """Host copies (N, P, 3) of the positions and velocities."""

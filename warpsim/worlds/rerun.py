@@ -61,21 +61,25 @@ def _typed(cls, params: dict) -> dict:
 
 
 def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps=None, device=None,
-                   fused=False) -> str:
+                   fused=False, frame_steps=None) -> str:
     """Write the manifest of the sweep whose root is ``root``; ``world_params`` as given to
-    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's).
-    Returns its path."""
+    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's;
+    ``"auto"``), ``frame_steps`` the steps each frame took (``run_batch(info=...)``; None:
+    unknown). Returns its path."""
     from .. import __version__
     from ..scenes import get_scene
 
     from .sweep import frame_timing
 
     cls = get_scene(scene_name)
-    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps, substeps)
+    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps,
+                                            None if substeps == "auto" else substeps)
     data = {"format": FORMAT, "version": MANIFEST_VERSION, "warpsim": __version__, "scene": cls.name,
             "defaults": scene_defaults(cls), "frames": int(frames),
-            "fps": None if fps is None else float(fps), "substeps": None if substeps is None else int(substeps),
+            "fps": None if fps is None else float(fps),
+            "substeps": substeps if substeps in (None, "auto") else int(substeps),
             "run_fps": run_fps, "run_substeps": run_substeps,
+            "frame_steps": None if frame_steps is None else int(frame_steps),
             "device": None if device is None else str(device), "fused": bool(fused),
             "worlds": [{k: _json_value(v) for k, v in p.items()} for p in world_params]}
     path = manifest_path(root)
@@ -107,6 +111,7 @@ def read_manifest(root, scene=None) -> dict:
         if not isinstance(worlds, list) or not worlds:
             raise ValueError("no worlds")
         data["run_fps"], data["run_substeps"] = float(data["run_fps"]), int(data["run_substeps"])
+        data.setdefault("frame_steps", None)
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path} is not a readable warpsim sweep manifest ({exc}); run the sweep again") from None
     if data.get("warpsim") != __version__:
@@ -143,32 +148,67 @@ def _check_world(world, count, root) -> int:
     return world
 
 
+def _steps(manifest) -> int:
+    """The steps per frame the sweep took (its settings' count where the run did not say)."""
+    return manifest["frame_steps"] if manifest.get("frame_steps") is not None else manifest["run_substeps"]
+
+
 def _differences(manifest, fps, substeps, device) -> list:
     """Why a re-run at these settings will not equal the sweep's samples (empty: it will)."""
     out = []
     if fps is not None and not math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12):
         out.append(f"--fps {fps:g} (the sweep: {manifest['run_fps']:g})")
-    if substeps is not None and int(substeps) != manifest["run_substeps"]:
-        out.append(f"--substeps {substeps} (the sweep: {manifest['run_substeps']})")
+    if substeps is not None and int(substeps) != _steps(manifest):
+        out.append(f"--substeps {substeps} (the sweep: {_steps(manifest)} steps a frame)")
     if device is not None and manifest["device"] is not None and str(device) != manifest["device"]:
         out.append(f"device {device} (the sweep ran on {manifest['device']})")
     return out
 
 
 def _settings(manifest, fps, substeps) -> tuple:
-    """(fps, substeps) to run with: the sweep's own (as it was given them: None = the scene's)
-    unless another value is asked for."""
+    """(fps, substeps, frame_steps) to run with: the sweep's own (fps and substeps as it was given
+    them: None = the scene's; the steps its frames took) unless another value is asked for."""
     same_fps = fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)
-    same_substeps = substeps is None or int(substeps) == manifest["run_substeps"]
-    return (manifest["fps"] if same_fps else fps), (manifest["substeps"] if same_substeps else substeps)
+    same_substeps = substeps is None or int(substeps) == _steps(manifest)
+    if same_substeps:
+        return (manifest["fps"] if same_fps else fps), manifest["substeps"], manifest.get("frame_steps")
+    return (manifest["fps"] if same_fps else fps), int(substeps), int(substeps)
+
+
+def _auto(cls, world_params, substeps) -> bool:
+    """Whether ``run_batch`` sub-steps these worlds automatically (its rule)."""
+    return substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
+                                  and "dt" not in world_params[0])
+
+
+def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False) -> int:
+    """The steps per frame ``run_batch`` takes for these worlds: with automatic sub-steps the
+    stiffest world's limit decides, so the whole sweep's batch is built (not run) to find it."""
+    from ..scenes import get_scene
+    from .sweep import frame_timing, make_batch
+
+    cls = get_scene(scene_name)
+    world_params = [_typed(cls, p) for p in world_params]
+    fps_given = fps
+    fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
+                                        None if substeps == "auto" else substeps)
+    if not _auto(cls, world_params, substeps):
+        return count
+    if "dt" in cls.params and fps_given is not None:
+        world_params = [{**p, "dt": frame_dt / count} for p in world_params]
+    batch = make_batch(cls, world_params, device=device, fused=fused)
+    batch.batch_scene.auto_substeps = True
+    return int(batch.batch_scene.frame_steps(frame_dt, count))
 
 
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
-              progress=None) -> str:
+              frame_steps=None, progress=None) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
     :func:`warpsim.worlds.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
-    and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
-    the cache path. ``progress(frame)`` is called after each frame."""
+    and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache).
+    ``frame_steps``: the steps each of the sweep's frames took (None: found as the sweep finds
+    them, see :func:`sweep_frame_steps`). Returns the cache path. ``progress(frame)`` is called
+    after each frame."""
     from ..scenes import get_scene
     from ..usd.writer import UsdCacheWriter
     from .agents import is_agent_scene
@@ -180,11 +220,18 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     world = _check_world(world, len(world_params), "given")
     if is_agent_scene(cls):
         raise ValueError(f"scene {cls.name!r} is a flock: re-running one of its worlds alone is not supported")
+    if frame_steps is None:
+        frame_steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=device,
+                                        fused=fused)
     fps_given = fps
-    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
+    fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
+                                        None if substeps == "auto" else substeps)
     if "dt" in cls.params and fps_given is not None:  # as run_batch does
-        world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
+        world_params = [{**p, "dt": frame_dt / count} for p in world_params]
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
+    steps = int(frame_steps)  # the sweep's own step count (automatic sub-steps: its stiffest world's)
+    batch.batch_scene.frame_steps = lambda frame_dt, substeps: steps
+    substeps = count
     writer = UsdCacheWriter(out, fps=fps)
     batch.scene.declare(writer)
     writer.begin()
@@ -228,11 +275,11 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
             warnings.warn(message, stacklevel=2)
         else:
             warn(message)
-    run_fps, run_substeps = _settings(manifest, fps, substeps)
+    run_fps, run_substeps, frame_steps = _settings(manifest, fps, substeps)
     run_device = device if device is not None else manifest["device"]
     return run_world(manifest["scene"], manifest["worlds"], world, out=out or world_cache_path(root, world),
                      frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
-                     fused=manifest["fused"], progress=progress)
+                     fused=manifest["fused"], frame_steps=frame_steps, progress=progress)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -241,7 +288,7 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
 def run_command(args, out, err) -> int:
     """``warpsim run SCENE --from-sweep ROOT --world N [--frames F] [--fps F] [--substeps S]
     [--device D] [--out PATH]``; UsageError (exit 2) for bad input found before the run."""
-    from .. import cli
+    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     usage = cli.UsageError
@@ -256,27 +303,27 @@ def run_command(args, out, err) -> int:
         manifest = read_manifest(args.from_sweep, scene=args.scene)
         world = _check_world(args.world, len(manifest["worlds"]), args.from_sweep)
     except ValueError as exc:
-        raise usage(cli._one_line(exc)) from None
+        raise usage(cli.one_line(exc)) from None
     frames = manifest["frames"] if args.frames is None else args.frames
     if frames < 0:
         raise usage(f"--frames {frames}: it must be >= 0")
     path = args.out or world_cache_path(args.from_sweep, world)
     if os.path.splitext(path)[1] not in (".usd", ".usda", ".usdc"):
         raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
-    device = cli._device(args.device) if args.device is not None else None
+    device = cli.device_arg(args.device) if args.device is not None else None
     if device is None and manifest["device"] is not None:
-        device = cli._device(manifest["device"])  # the sweep's device must be here
+        device = cli.device_arg(manifest["device"])  # the sweep's device must be here
     return _run_and_report(manifest, world, path, frames, args.fps, args.substeps, device,
                            not args.no_progress, out, err, SimulationError)
 
 
 def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_progress, out, err,
                     SimulationError) -> int:
-    from .. import cli
+    from .. import cli_common as cli
 
     for line in _differences(manifest, fps, substeps, device):
         print(f"warpsim: warning: {line}: world {world} will differ from its samples in the sweep", file=err)
-    run_fps, run_substeps = _settings(manifest, fps, substeps)
+    run_fps, run_substeps, frame_steps = _settings(manifest, fps, substeps)
     progress = None
     if show_progress:
         from tqdm import tqdm
@@ -285,13 +332,13 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
                         dynamic_ncols=True)
     try:
         result = run_world(manifest["scene"], manifest["worlds"], world, out=path, frames=frames, fps=run_fps,
-                           substeps=run_substeps, device=device, fused=manifest["fused"],
+                           substeps=run_substeps, device=device, fused=manifest["fused"], frame_steps=frame_steps,
                            progress=(lambda f: progress.update(1)) if progress else None)
     except SimulationError as exc:
-        print(f"warpsim: simulation failed: {cli._one_line(exc)}", file=err)
+        print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
         return 1
     except ValueError as exc:
-        raise cli.UsageError(cli._one_line(exc)) from None
+        raise cli.UsageError(cli.one_line(exc)) from None
     finally:
         if progress:
             progress.close()
@@ -304,22 +351,23 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
 def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     """``warpsim sweep ... --rerun N``: world N of the sweep these arguments describe, alone, into
     ``<stem>.world_NNNNNN.usda`` beside ``path`` (the sweep's root)."""
-    from .. import cli
+    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     try:
         world = _check_world(args.rerun, len(world_params), f"described ({len(world_params)} worlds)")
     except ValueError as exc:
-        raise cli.UsageError(f"--rerun: {cli._one_line(exc)}") from None
+        raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
     manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
-                "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
+                "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None,
+                "frame_steps": None}  # found as the sweep finds them (run_world)
     from .sweep import frame_timing
 
     try:
-        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(cls, cls.resolve_params(world_params[0]),
-                                                                        args.fps, args.substeps)
+        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(
+            cls, cls.resolve_params(world_params[0]), args.fps, None if args.substeps == "auto" else args.substeps)
     except ValueError as exc:
-        raise cli.UsageError(cli._one_line(exc)) from None
+        raise cli.UsageError(cli.one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,
                            not args.no_progress, out, err, SimulationError)
 
