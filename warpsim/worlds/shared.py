@@ -12,6 +12,8 @@ pair and writes the other), masses, inverse masses, radii and the per-world valu
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import warp as wp
 
@@ -33,7 +35,8 @@ def eligibility(sim0) -> str | None:
         return f"the integrator is {sim0.integrator.name}, not semi_implicit_euler"
     if getattr(sim0, "adaptive", False):
         return "adaptive sub-stepping"
-    if getattr(sim0, "fracture", None) is not None or getattr(sim0.model, "breakable_spring_count", 0):
+    breakable = int(getattr(sim0.model, "breakable_spring_count", 0) or 0)
+    if getattr(sim0, "fracture", None) is not None or breakable > 0:
         return "breakable springs"
     if getattr(sim0, "rollout", None) is not None:
         return "a differentiable run"
@@ -138,7 +141,7 @@ class SharedWorldSimulator(Simulator):
     springs once, outside it): its stability analysis (``stability``, ``auto_substeps``) reads
     ``stability_model()``, the batch model with every world's springs tiled, built on demand."""
 
-    stability_model = None
+    stability_model: Any = None
 
     def stability(self, *args, **kwargs):
         model = self.model
