@@ -9,10 +9,13 @@ Measured in one process, on one device:
             on GPUs; eager on the CPU) against N single-world runs stepped one after another (each
             world its own scene and simulator, its frame also captured on GPUs); ``--sequential K``
             worlds are run and the time scaled to N. Paths (``--paths``): ``shared`` (the default
-            of WorldBatch: topology stored once, one fused kernel per sub-step), ``tiled``
+            of WorldBatch: topology stored once, one fused kernel per sub-step), ``block``
+            (``block_per_world=True``: the shared path with a whole frame in one launch, a thread
+            block per world), ``tiled``
             (``shared=False``: every array per world, one launch per stage) and ``fused``
             (``fused=True``: the cloth solver's particle-centric kernel);
-  equal     whether the shared and tiled paths end in the same bits (they should: same arithmetic);
+  equal     whether the shared, block and tiled paths end in the same bits (they should: same
+            arithmetic);
   bytes     bytes per batched step from the array arguments of every launch (each array counted
             once per launch: the compulsory traffic, a lower bound), the fraction of the H100's
             3.35 TB/s and of the card's copy bandwidth measured here (``wp.copy``, read + write);
@@ -112,7 +115,8 @@ def main():
                                                                    "0: skip)")
     p.add_argument("--frames", type=int, default=10, help="frames timed")
     p.add_argument("--resolution", default="low")
-    p.add_argument("--paths", default="shared,tiled,fused", help="batch paths to measure: shared, tiled, fused")
+    p.add_argument("--paths", default="shared,block,tiled,fused",
+                   help="batch paths to measure: shared, block (shared, a frame per launch), tiled, fused")
     p.add_argument("--no-fused", action="store_true", help="(as --paths without fused)")
     p.add_argument("--bandwidth-bytes", type=int, default=None, help="bytes of the bandwidth copy (default 1 GiB "
                                                                      "on GPUs, 256 MiB on the CPU)")
@@ -127,9 +131,9 @@ def main():
     cuda = device.is_cuda
     n = args.worlds
     paths = [x for x in args.paths.split(",") if x and not (args.no_fused and x == "fused")]
-    bad_paths = [x for x in paths if x not in ("shared", "tiled", "fused")]
+    bad_paths = [x for x in paths if x not in ("shared", "block", "tiled", "fused")]
     if bad_paths or not paths:
-        p.error(f"--paths {args.paths!r}: give some of shared, tiled, fused")
+        p.error(f"--paths {args.paths!r}: give some of shared, block, tiled, fused")
     cls = get_scene("teapot")
     fixed = {"resolution": args.resolution, "springs": False}
     worlds = sample_worlds("teapot", fixed, VARY, n, sample="lhs", seed=0)
@@ -156,9 +160,9 @@ def main():
     # ---------------------------------------------------------------- batched paths
     final = {}
     for path in paths:
-        kwargs = {"shared": path == "shared", "fused": path == "fused"}
+        kwargs = {"shared": path in ("shared", "block"), "fused": path == "fused", "block_per_world": path == "block"}
         if path == "fused":
-            kwargs.pop("shared")
+            kwargs = {"fused": True}
         batch, seconds_build, held = build(cls, worlds, device, **kwargs)
         step, step_bytes, rec = measure(batch, args.frames, frame_dt, substeps, device)
         x = batch.sim.state.positions.numpy()
@@ -177,10 +181,11 @@ def main():
         print("  launches per step: " + ", ".join(f"{key} x{rec.calls[key] / substeps:g} {v / substeps / 1e6:.2f} MB"
                                                 for key, v in top))
         del batch
-    if "shared" in final and "tiled" in final:
-        a, b = final["shared"], final["tiled"]
-        print(f"shared vs tiled after the same frames: {'bit-identical' if a.tobytes() == b.tobytes() else 'DIFFER'}"
-              f" (max |dx| {np.abs(a - b).max():.3g} m)")
+    for other in ("block", "tiled"):
+        if "shared" in final and other in final:
+            a, b = final["shared"], final[other]
+            print(f"shared vs {other} after the same frames: "
+                  f"{'bit-identical' if a.tobytes() == b.tobytes() else 'DIFFER'} (max |dx| {np.abs(a - b).max():.3g} m)")
 
     # ---------------------------------------------------------------- build: builder reference
     k = max(0, min(args.builder_worlds, n))

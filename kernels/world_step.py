@@ -66,26 +66,23 @@ class WorldWalls:
     collider_count: int
 
 
-@wp.kernel
-def step_shared_worlds(
+@wp.func
+def step_shared_particle(
+    t: int,
+    w: int,
+    p: int,
+    first: int,
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
     inv_mass: wp.array(dtype=float),
     radius: wp.array(dtype=float),
     world_gravity: wp.array(dtype=wp.vec3),
-    particle_count: int,
     springs: SharedSprings,
     walls: WorldWalls,
     h: float,
-    q_out: wp.array(dtype=wp.vec3),
-    qd_out: wp.array(dtype=wp.vec3),
 ):
-    """One step of particle t = w P + p (module docstring); P = ``particle_count`` per world, h [s]."""
-    t = wp.tid()
-    w = t / particle_count
-    p = t - w * particle_count
-    first = w * particle_count
+    """The stepped (x, v) of particle t = first + p of world w (module docstring)."""
     f = wp.vec3() + mass[t] * world_gravity[w]
     x = q[t]
     v = qd[t]
@@ -115,5 +112,88 @@ def step_shared_worlds(
             x, v = resolve_plane(x, v, walls.normals[g], walls.offsets[g], d + walls.thickness[c], walls.mode[c],
                                  walls.restitution[wc], walls.friction[wc], walls.stiffness[c],
                                  walls.damping_ratio[wc], im, h)
+    return x, v
+
+
+@wp.kernel
+def step_shared_worlds(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    world_gravity: wp.array(dtype=wp.vec3),
+    particle_count: int,
+    springs: SharedSprings,
+    walls: WorldWalls,
+    h: float,
+    q_out: wp.array(dtype=wp.vec3),
+    qd_out: wp.array(dtype=wp.vec3),
+):
+    """One step of particle t = w P + p (module docstring); P = ``particle_count`` per world, h [s]."""
+    t = wp.tid()
+    w = t / particle_count
+    p = t - w * particle_count
+    x, v = step_shared_particle(t, w, p, w * particle_count, q, qd, mass, inv_mass, radius, world_gravity, springs,
+                                walls, h)
     q_out[t] = x
     qd_out[t] = v
+
+
+@wp.func_native("WP_TILE_SYNC();")
+def sync_block():
+    """Barrier of the thread block (``__syncthreads`` on CUDA; a no-op for CPU launches, whose
+    blocks are one thread)."""
+    ...
+
+
+@wp.kernel
+def frame_shared_worlds(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    q_spare: wp.array(dtype=wp.vec3),
+    qd_spare: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    world_gravity: wp.array(dtype=wp.vec3),
+    particle_count: int,
+    lanes: int,
+    springs: SharedSprings,
+    walls: WorldWalls,
+    h: float,
+    substeps: int,
+):
+    """A whole frame of ``substeps`` steps of h [s] in one launch, one thread block per world:
+    launched with dim = world_count x ``lanes`` and block_dim = ``lanes`` (1 on the CPU: one
+    thread steps a whole world). Lane l steps particles l, l + lanes, ... of its world from one
+    buffer pair into the other (q, qd -> spares on even steps, back on odd ones), then the block
+    waits for every lane (``sync_block``) before the next step reads its neighbours; after an odd
+    count each lane copies its own particles home. The same arithmetic as
+    ``step_shared_worlds``, sub-step by sub-step: the same bits."""
+    tid = wp.tid()
+    w = tid / lanes
+    lane = tid - w * lanes
+    first = w * particle_count
+    for k in range(substeps):
+        p = lane
+        while p < particle_count:
+            t = first + p
+            if k % 2 == 0:
+                x, v = step_shared_particle(t, w, p, first, q, qd, mass, inv_mass, radius, world_gravity, springs,
+                                            walls, h)
+                q_spare[t] = x
+                qd_spare[t] = v
+            else:
+                x, v = step_shared_particle(t, w, p, first, q_spare, qd_spare, mass, inv_mass, radius,
+                                            world_gravity, springs, walls, h)
+                q[t] = x
+                qd[t] = v
+            p += lanes
+        sync_block()
+    if substeps % 2 == 1:
+        p = lane
+        while p < particle_count:
+            q[first + p] = q_spare[first + p]
+            qd[first + p] = qd_spare[first + p]
+            p += lanes

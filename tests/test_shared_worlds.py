@@ -102,3 +102,17 @@ def test_shared_true_names_what_the_scene_lacks():
     with pytest.raises(StructuralError, match="ClothSimulator"):
         WorldBatch(cls, worlds, device="cpu", shared=True)
     assert not WorldBatch(cls, worlds, device="cpu").shared  # cloth keeps its own simulator
+
+
+@pytest.mark.parametrize("substeps", [3, 4])  # odd: the frame ends in the spare buffers and copies home
+def test_one_launch_per_frame_gives_the_per_step_paths_bits(substeps):
+    cls, worlds = _worlds("teapot")
+    _, _, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    steps = WorldBatch(cls, worlds, device="cpu")
+    blocks = WorldBatch(cls, worlds, device="cpu", block_per_world=True)
+    _fixed_steps(steps, blocks)
+    xs, vs = _frames(steps, frame_dt / 10 * substeps, substeps, 6)
+    xb, vb = _frames(blocks, frame_dt / 10 * substeps, substeps, 6)
+    assert blocks.stepper.block_per_world and blocks.sim.state.positions is blocks.stepper._home[0]
+    assert xs.tobytes() == xb.tobytes() and vs.tobytes() == vb.tobytes()
+    assert np.abs(xs - blocks.scene.sim.model.particle_q.numpy()[None]).max() > 1e-3

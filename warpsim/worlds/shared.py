@@ -54,14 +54,18 @@ def eligibility(sim0) -> str | None:
 
 class SharedStepper:
     """Steps the worlds of ``batch`` (a WorldBatch on the shared path) in place of its simulator:
-    ``frame(frame_dt, substeps)`` runs the sub-steps, one launch each, and leaves the state in
-    ``batch.sim.state`` (no allocation: a frame captures as a CUDA graph).
+    ``frame(frame_dt, substeps)`` runs the sub-steps, one launch each (``block_per_world``: the
+    whole frame in one launch, one thread block of ``lanes`` threads per world, the same bits),
+    and leaves the state in ``batch.sim.state`` (no allocation: a frame captures as a CUDA graph).
 
     ``scales``: {spring array name: (base (S,) host, key (S,) device int, coefficient (S,) device
     float)} and ``world_values`` (device, world_count K) as the tiling computed them."""
 
-    def __init__(self, batch, m0, scales, world_values, key_count, gravity, walls):
+    def __init__(self, batch, m0, scales, world_values, key_count, gravity, walls, block_per_world=False,
+                 lanes=128):
         d = batch.device
+        self.block_per_world = bool(block_per_world)
+        self.lanes = 1 if d.is_cpu else int(lanes)  # CPU launches run blocks of one thread
         self.springs = shared_springs(m0, scales, world_values, key_count, d)
         self.world_gravity = wp.array(np.asarray(gravity, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
         self.walls = walls
@@ -84,7 +88,9 @@ class SharedStepper:
 
     def frame(self, frame_dt: float, substeps: int) -> None:
         h = frame_dt / substeps
-        for _ in range(int(substeps)):
+        if self.block_per_world:
+            self._frame_blocks(h, int(substeps))
+        for _ in range(0 if self.block_per_world else int(substeps)):
             self.step(h)
         st = self.batch.sim.state
         if st.positions is not self._home[0]:  # the frame ends in the state's own arrays
@@ -94,6 +100,16 @@ class SharedStepper:
         sim = self.batch.sim
         sim.time += frame_dt
         sim.step_count += int(substeps)
+
+    def _frame_blocks(self, h: float, substeps: int) -> None:
+        """The whole frame in one launch, one thread block of ``lanes`` threads per world."""
+        b, st = self.batch, self.batch.sim.state
+        m = b.model
+        wp.launch(K.frame_shared_worlds, b.world_count * self.lanes,
+                  inputs=[st.positions, st.velocities, self._spare[0], self._spare[1], m.particle_mass,
+                          m.particle_inv_mass, m.particle_radius, self.world_gravity, m.world_particle_count,
+                          self.lanes, self.springs, self.walls, float(h), int(substeps)],
+                  block_dim=self.lanes, device=b.device)
 
     def device_bytes(self) -> int:
         """Bytes of the shared arrays (stored once for all worlds) and the spare state pair."""
