@@ -244,11 +244,12 @@ def run(args, out, err):
 
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
+            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
                              occupancy={**occupancy, "path": _record_path(path)},
-                             warn=lambda line: _stability_warning(line, args.strict, err))
+                             warn=lambda line: _stability_warning(line, args.strict, err), timing=run_timing)
             if progress:
                 progress.close()
                 progress = None
@@ -258,7 +259,8 @@ def run(args, out, err):
         from .rerun import write_manifest  # what re-running one world exactly needs
 
         write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused)
+                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused,
+                       frame_steps=run_timing.get("frame_steps"))
     except (SimulationError, ValueError, RaySweepError) as exc:
         if progress:
             progress.close()

@@ -61,10 +61,11 @@ def _typed(cls, params: dict) -> dict:
 
 
 def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps=None, device=None,
-                   fused=False) -> str:
+                   fused=False, frame_steps=None) -> str:
     """Write the manifest of the sweep whose root is ``root``; ``world_params`` as given to
-    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's).
-    Returns its path."""
+    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
+    ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
+    resolved over all worlds, so a world alone must be told). Returns its path."""
     from .. import __version__
     from ..scenes import get_scene
 
@@ -77,6 +78,7 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
             "fps": None if fps is None else float(fps), "substeps": None if substeps is None else int(substeps),
             "run_fps": run_fps, "run_substeps": run_substeps,
             "device": None if device is None else str(device), "fused": bool(fused),
+            "frame_steps": None if frame_steps is None else int(frame_steps),
             "worlds": [{k: _json_value(v) for k, v in p.items()} for p in world_params]}
     path = manifest_path(root)
     tmp = path + ".tmp"
@@ -163,12 +165,20 @@ def _settings(manifest, fps, substeps) -> tuple:
     return (manifest["fps"] if same_fps else fps), (manifest["substeps"] if same_substeps else substeps)
 
 
+def _frame_steps(manifest, fps, substeps):
+    """The steps per frame the sweep's batch took (auto sub-steps resolve over all its worlds, so
+    a world alone is told the count), or None when other settings were asked for."""
+    same = (fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)) and substeps is None
+    return manifest.get("frame_steps") if same else None
+
+
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
-              progress=None) -> str:
+              progress=None, frame_steps=None) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
     :func:`warpsim.worlds.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
     and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
-    the cache path. ``progress(frame)`` is called after each frame."""
+    the cache path. ``progress(frame)`` is called after each frame; ``frame_steps``: the steps per
+    frame the whole batch took (its manifest's ``frame_steps``), None to let the world decide."""
     from ..scenes import get_scene
     from ..usd.writer import UsdCacheWriter
     from .agents import is_agent_scene
@@ -185,6 +195,7 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     if "dt" in cls.params and fps_given is not None:  # as run_batch does
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
+    batch.batch_scene.frame_steps_fixed = frame_steps
     writer = UsdCacheWriter(out, fps=fps)
     batch.scene.declare(writer)
     writer.begin()
@@ -232,7 +243,7 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
     run_device = device if device is not None else manifest["device"]
     return run_world(manifest["scene"], manifest["worlds"], world, out=out or world_cache_path(root, world),
                      frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
-                     fused=manifest["fused"], progress=progress)
+                     fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -286,7 +297,8 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
     try:
         result = run_world(manifest["scene"], manifest["worlds"], world, out=path, frames=frames, fps=run_fps,
                            substeps=run_substeps, device=device, fused=manifest["fused"],
-                           progress=(lambda f: progress.update(1)) if progress else None)
+                           progress=(lambda f: progress.update(1)) if progress else None,
+                           frame_steps=_frame_steps(manifest, fps, substeps))
     except SimulationError as exc:
         print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
         return 1
