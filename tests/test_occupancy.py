@@ -199,6 +199,10 @@ def test_tracked_record_equals_the_cached_samples_and_their_cells(tmp_path):
         got = {(int(c), int(f)) for c, row in zip(record.pair_cell[rows], bits) for f in np.flatnonzero(row)}
         assert got == want
         assert len({c for c, _ in want}) > 1  # the mass moves through several cells
+    lo, hi = record.occupied_bounds()  # every recorded position lies in the occupied cells' bounds
+    inner = record.samples.reshape(-1, 3)
+    inner = inner[((inner >= record.grid.lo) & (inner < record.grid.hi)).all(1)]
+    assert len(inner) and (inner >= lo - 1e-6).all() and (inner <= hi + 1e-6).all()
 
 
 @pytest.mark.parametrize("args, words", [
