@@ -64,7 +64,7 @@ def test_dragging_the_box_changes_the_list(root):
                 close.first.click()
             page.wait_for_timeout(1500)
             # the gizmo's y arrow: press on it, drag upward, release
-            scale = 0.15 * float(np.max(query.record.grid.hi - query.record.grid.lo))
+            scale = query.gizmo_scale
             x0, y0 = _project(client.camera, corner + np.array([0.0, 0.7 * scale, 0.0]))
             x1, y1 = _project(client.camera, corner + np.array([0.0, 0.7 * scale + 0.5, 0.0]))
             assert 0 < x0 < WIDTH and 0 < y1 < y0 < HEIGHT

@@ -104,7 +104,8 @@ class QueryPanel:
             self.matches_only = gui.add_checkbox("show matches only", True)
             self.summary = gui.add_markdown("")
             self.listing = gui.add_folder("matches")
-        scale = float(np.max(inner_hi - inner_lo)) * 0.15
+        self.gizmo_scale = scale = float(np.max(inner_hi - inner_lo)) * 0.15
+        """Length [m] of the corner gizmos' arrows."""
         self.box = server.scene.add_box("/query/box", color=(60, 140, 255), dimensions=tuple(self.hi - self.lo),
                                         position=tuple(self.origin + center), opacity=0.3, cast_shadow=False,
                                         receive_shadow=False)
