@@ -2,7 +2,8 @@
 Playwright; WebGL through SwiftShader): ``warpsim view`` on a sweep root with an occupancy record
 shows the query box; dragging the box's corner gizmo with the mouse moves the box, and on release
 the listed worlds change to those the record says are inside it (the same as
-:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone."""
+:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone; without a browser, the panel ranks by first entry or
+time inside, NOT IN gives the complement, and "show matches only" hides the rest."""
 from __future__ import annotations
 
 import argparse
@@ -84,5 +85,28 @@ def test_dragging_the_box_changes_the_list(root):
             page.get_by_role("button", name=f"#1 world {after[0]}", exact=False).first.click()
             _wait(lambda: viewer.isolated == f"world_{after[0]:06d}", timeout=30, what="the click to play a world")
             browser.close()
+    finally:
+        viewer.stop()
+
+
+def test_panel_ranks_negates_and_hides(root):
+    viewer = GalleryViewer(str(root), port=_free_port(), thumbnails=False).start()
+    try:
+        query = viewer.query
+        query.window.value = (0.1, 0.5)
+        query.set_box((-0.1, 0.3, -0.1), (0.1, 0.6, 0.1))
+        answer = answer_region(query.record, query.region())
+        inside = [int(w) for w in np.flatnonzero(answer.match)]
+        assert 0 < len(inside) < 9
+        assert query.matches == sorted(inside, key=lambda w: (answer.entry[w], w))  # first entry first
+        query.rank.value = "time inside"
+        assert query.matches == sorted(inside, key=lambda w: (-answer.time[w], w))
+        assert query.hidden == {f"world_{w:06d}" for w in range(1, 9) if w not in inside}  # world 0 holds the box
+        query.mode.value = "NOT IN"
+        assert sorted(query.matches) == [w for w in range(9) if w not in inside]
+        query.matches_only.value = False
+        assert query.hidden == set()
+        query.play(query.matches[0])
+        assert viewer.isolated == f"world_{query.matches[0]:06d}" and viewer.playing and viewer.index == 0
     finally:
         viewer.stop()
