@@ -2,8 +2,9 @@
 Playwright; WebGL through SwiftShader): ``warpsim view`` on a sweep root with an occupancy record
 shows the query box; dragging the box's corner gizmo with the mouse moves the box, and on release
 the listed worlds change to those the record says are inside it (the same as
-:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone; without a browser, the panel ranks by first entry or
-time inside, NOT IN gives the complement, and "show matches only" hides the rest."""
+:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone.
+Without a browser: the panel ranks by first entry or time inside, NOT IN gives the complement,
+and "show matches only" hides the rest."""
 from __future__ import annotations
 
 import argparse
