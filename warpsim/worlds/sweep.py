@@ -185,9 +185,8 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
                                  track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
                                  resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
                                  first_world=first_world, scene=scene_name, include=static)
-    x0 = batch.sim.state.positions.numpy()[: batch.model.world_particle_count]  # world 0
-    v0 = batch.sim.state.velocities.numpy()[: batch.model.world_particle_count]
-    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    x, v = batch.world_slices()  # world 0's frame data names the prim holding the recorded particles
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x[0], v[0], 0), x[0], recorder.particles)
     return recorder
 
 
