@@ -189,7 +189,11 @@ class Scene:
         """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with ``auto_substeps`` (or
         ``substeps="auto"``) at least that many and enough to keep each step within
         ``warpsim.core.stability.AUTO_SAFETY`` x the limit of ``self.sim`` (computed once about the
-        initial positions, again after a parameter change)."""
+        initial positions, again after a parameter change). ``self.frame_steps_fixed`` (an int, set
+        by a re-run of one world of a sweep) overrides both: the count the whole batch took."""
+        fixed = getattr(self, "frame_steps_fixed", None)
+        if fixed is not None:
+            return int(fixed)
         auto = substeps == "auto" or self.auto_substeps
         base = 1 if substeps == "auto" else int(substeps)
         sim = getattr(self, "sim", None)

@@ -28,7 +28,7 @@ from ..core.model import Model, ensure_spring_adjacency
 from ..kernels import worlds as KW
 from .forces import WorldGravity, WorldPlanes
 from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, make_plan
-from .shared import SPRING_PARAMS, SharedStepper, SharedWorldSimulator, eligibility, world_walls
+from .shared import SPRING_PARAMS, SharedStepper, eligibility, world_walls
 
 __all__ = ["WorldBatch"]
 
@@ -115,6 +115,7 @@ class WorldBatch:
                                          self._key_count, gravity, world_walls(self.sim.colliders,
                                                                                self.world_count, self.device),
                                          block_per_world=block_per_world)
+            self.sim.stability_model = self._springs_model
         self.batch_scene = copy.copy(self.scene)
         self.batch_scene.sim = self.sim
         if hasattr(self.batch_scene, "model"):
@@ -297,34 +298,7 @@ class WorldBatch:
             return ClothSimulator(self.model, ClothSemiImplicitEuler(), **kwargs)
         if hasattr(sim0, "use_graph"):
             kwargs["use_graph"] = sim0.use_graph
-        if self.shared:
-            sim = SharedWorldSimulator(self.model, integrator, **kwargs)
-            sim.stability_model = self._stability_model
-            return sim
         return type(sim0)(self.model, integrator, **kwargs)
-
-    def _stability_model(self):
-        """The batch model with every world's springs tiled, for the stability analysis of the
-        shared path (whose model stores the springs once): built on demand and not kept."""
-        if not self.shared:
-            return self.model
-        m0 = self.scene.sim.model
-        n, P, S, d = self.world_count, m0.particle_count, m0.spring_count, self.device
-        m = copy.copy(self.model)  # the per-particle arrays are shared; the springs are added
-        m.spring_count = n * S
-        m.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
-        m.spring_broken = wp.zeros(n * S, dtype=int, device=d)
-        if S:
-            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, m.spring_indices], device=d)
-        for name in SPRING_PARAMS:
-            base, key, coefficient = self._scales[name]
-            out = wp.empty(n * S, dtype=float, device=d)
-            if S:
-                wp.launch(KW.tile_float, n * S, inputs=[wp.array(np.asarray(base, dtype=np.float32), dtype=float,
-                                                                 device=d), key, coefficient, self._world_values,
-                                                        self._key_count, out], device=d)
-            setattr(m, name, out)
-        return m
 
     # ------------------------------------------------------------------ stepping
     def can_capture(self) -> bool:
@@ -359,8 +333,35 @@ class WorldBatch:
         from ..core.stability import particle_limits
 
         sim = self.sim
-        return particle_limits(self._stability_model(), self.model.particle_q, sim.integrator, sim.forces,
-                               sim.colliders, particle_world=self.model.particle_world.numpy(), world_count=self.world_count)
+        return particle_limits(self._springs_model(), self.model.particle_q, sim.integrator, sim.forces, sim.colliders,
+                               particle_world=self.model.particle_world.numpy(), world_count=self.world_count)
+
+    def _springs_model(self):
+        """The model whose springs the stability estimate reads: the batch's own, or on the shared
+        path (springs stored once) a stand-in with every world's springs tiled, built for the
+        estimate and dropped after it (the tiled path's arrays, the same values)."""
+        if not self.shared:
+            return self.model
+        import types
+
+        m0, n, d = self.scene.sim.model, self.world_count, self.device
+        P, S = m0.particle_count, m0.spring_count
+        stand_in = types.SimpleNamespace(**{k: v for k, v in vars(self.model).items()})
+        stand_in.spring_count = n * S
+        stand_in.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, stand_in.spring_indices],
+                      device=d)
+        for name in SPRING_PARAMS:
+            base, key, coefficient = self._scales[name]
+            out = wp.empty(n * S, dtype=float, device=d)
+            if S:
+                wp.launch(KW.tile_float, n * S, inputs=[wp.array(base, dtype=float, device=d), key, coefficient,
+                                                        self._world_values, self._key_count, out], device=d)
+            setattr(stand_in, name, out)
+        for name in ("spring_broken", "_stability_adjacency"):
+            vars(stand_in).pop(name, None)
+        return stand_in
 
     def stability_warning(self, frame_dt, substeps):
         """One line naming the worlds whose step is above their limit (None when none is)."""

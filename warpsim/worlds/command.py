@@ -223,7 +223,6 @@ def run(args, out, err):
         except ValueError as exc:
             raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
-    run_info = {}  # the steps per frame the run took (for re-runs of one world)
     progress = None
     try:
         if getattr(args, "ray", None) is not None:
@@ -245,11 +244,12 @@ def run(args, out, err):
 
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
+            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                             device=device, layer_path=layer, first_world=0, track=track, info=run_info,
+                             device=device, layer_path=layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
                              occupancy={**occupancy, "path": _record_path(path)},
-                             warn=lambda line: _stability_warning(line, args.strict, err))
+                             warn=lambda line: _stability_warning(line, args.strict, err), timing=run_timing)
             if progress:
                 progress.close()
                 progress = None
@@ -260,7 +260,7 @@ def run(args, out, err):
 
         write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                        device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused,
-                       frame_steps=run_info.get("frame_steps"))
+                       frame_steps=run_timing.get("frame_steps"))
     except (SimulationError, ValueError, RaySweepError) as exc:
         if progress:
             progress.close()
@@ -279,7 +279,6 @@ def run(args, out, err):
     candidates = rows
     if getattr(args, "ray", None) is None:
         from .occupancy import OccupancyRecord
-
         from .query import answer_region, answers_note, cached_positions
 
         record = OccupancyRecord.load(_record_path(path))

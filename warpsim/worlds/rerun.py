@@ -63,24 +63,24 @@ def _typed(cls, params: dict) -> dict:
 def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps=None, device=None,
                    fused=False, frame_steps=None) -> str:
     """Write the manifest of the sweep whose root is ``root``; ``world_params`` as given to
-    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's;
-    ``"auto"``), ``frame_steps`` the steps each frame took (``run_batch(info=...)``; None:
-    unknown). Returns its path."""
+    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
+    ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
+    resolved over all worlds, so a world alone must be told). Returns its path."""
     from .. import __version__
     from ..scenes import get_scene
 
     from .sweep import frame_timing
 
     cls = get_scene(scene_name)
-    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps,
-                                            None if substeps == "auto" else substeps)
+    base = None if substeps == "auto" else substeps
+    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps, base)
     data = {"format": FORMAT, "version": MANIFEST_VERSION, "warpsim": __version__, "scene": cls.name,
             "defaults": scene_defaults(cls), "frames": int(frames),
             "fps": None if fps is None else float(fps),
-            "substeps": substeps if substeps in (None, "auto") else int(substeps),
+            "substeps": None if substeps is None else ("auto" if substeps == "auto" else int(substeps)),
             "run_fps": run_fps, "run_substeps": run_substeps,
-            "frame_steps": None if frame_steps is None else int(frame_steps),
             "device": None if device is None else str(device), "fused": bool(fused),
+            "frame_steps": None if frame_steps is None else int(frame_steps),
             "worlds": [{k: _json_value(v) for k, v in p.items()} for p in world_params]}
     path = manifest_path(root)
     tmp = path + ".tmp"
@@ -111,7 +111,6 @@ def read_manifest(root, scene=None) -> dict:
         if not isinstance(worlds, list) or not worlds:
             raise ValueError("no worlds")
         data["run_fps"], data["run_substeps"] = float(data["run_fps"]), int(data["run_substeps"])
-        data.setdefault("frame_steps", None)
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path} is not a readable warpsim sweep manifest ({exc}); run the sweep again") from None
     if data.get("warpsim") != __version__:
@@ -148,42 +147,48 @@ def _check_world(world, count, root) -> int:
     return world
 
 
-def _steps(manifest) -> int:
-    """The steps per frame the sweep took (its settings' count where the run did not say)."""
-    return manifest["frame_steps"] if manifest.get("frame_steps") is not None else manifest["run_substeps"]
-
-
 def _differences(manifest, fps, substeps, device) -> list:
     """Why a re-run at these settings will not equal the sweep's samples (empty: it will)."""
     out = []
     if fps is not None and not math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12):
         out.append(f"--fps {fps:g} (the sweep: {manifest['run_fps']:g})")
-    if substeps is not None and int(substeps) != _steps(manifest):
-        out.append(f"--substeps {substeps} (the sweep: {_steps(manifest)} steps a frame)")
+    if not _same_substeps(manifest, substeps):
+        out.append(f"--substeps {substeps} (the sweep: {manifest['run_substeps']})")
     if device is not None and manifest["device"] is not None and str(device) != manifest["device"]:
         out.append(f"device {device} (the sweep ran on {manifest['device']})")
     return out
 
 
+def _same_substeps(manifest, substeps) -> bool:
+    """Whether ``--substeps`` (None, an int or "auto") asks for what the sweep was run with."""
+    given = manifest["substeps"]
+    if substeps is None or str(substeps) == str(given):
+        return True
+    if "auto" in (str(substeps), str(given)):
+        return False
+    return int(substeps) == manifest["run_substeps"]
+
+
 def _settings(manifest, fps, substeps) -> tuple:
-    """(fps, substeps, frame_steps) to run with: the sweep's own (fps and substeps as it was given
-    them: None = the scene's; the steps its frames took) unless another value is asked for."""
+    """(fps, substeps) to run with: the sweep's own (as it was given them: None = the scene's)
+    unless another value is asked for."""
     same_fps = fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)
-    same_substeps = substeps is None or int(substeps) == _steps(manifest)
-    if same_substeps:
-        return (manifest["fps"] if same_fps else fps), manifest["substeps"], manifest.get("frame_steps")
-    return (manifest["fps"] if same_fps else fps), int(substeps), int(substeps)
+    same_substeps = _same_substeps(manifest, substeps)
+    return (manifest["fps"] if same_fps else fps), (manifest["substeps"] if same_substeps else substeps)
 
 
-def _auto(cls, world_params, substeps) -> bool:
-    """Whether ``run_batch`` sub-steps these worlds automatically (its rule)."""
-    return substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
-                                  and "dt" not in world_params[0])
+def _frame_steps(manifest, fps, substeps):
+    """The steps per frame the sweep's batch took (auto sub-steps resolve over all its worlds, so
+    a world alone is told the count), or None when other settings were asked for."""
+    same = (fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)) and _same_substeps(manifest,
+                                                                                                       substeps)
+    return manifest.get("frame_steps") if same else None
 
 
 def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False) -> int:
-    """The steps per frame ``run_batch`` takes for these worlds: with automatic sub-steps the
-    stiffest world's limit decides, so the whole sweep's batch is built (not run) to find it."""
+    """The steps per frame :func:`warpsim.worlds.sweep.run_batch` takes for these worlds (as given
+    to it): with automatic sub-steps the stiffest world's limit decides, so the sweep's batch is
+    built (not run) to find them."""
     from ..scenes import get_scene
     from .sweep import frame_timing, make_batch
 
@@ -192,7 +197,9 @@ def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, devi
     fps_given = fps
     fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
                                         None if substeps == "auto" else substeps)
-    if not _auto(cls, world_params, substeps):
+    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
+                                  and "dt" not in world_params[0])  # run_batch's rule
+    if not auto:
         return count
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / count} for p in world_params]
@@ -202,13 +209,12 @@ def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, devi
 
 
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
-              frame_steps=None, progress=None) -> str:
+              progress=None, frame_steps=None) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
     :func:`warpsim.worlds.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
-    and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache).
-    ``frame_steps``: the steps each of the sweep's frames took (None: found as the sweep finds
-    them, see :func:`sweep_frame_steps`). Returns the cache path. ``progress(frame)`` is called
-    after each frame."""
+    and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
+    the cache path. ``progress(frame)`` is called after each frame; ``frame_steps``: the steps per
+    frame the whole batch took (its manifest's ``frame_steps``), None to let the world decide."""
     from ..scenes import get_scene
     from ..usd.writer import UsdCacheWriter
     from .agents import is_agent_scene
@@ -220,18 +226,15 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     world = _check_world(world, len(world_params), "given")
     if is_agent_scene(cls):
         raise ValueError(f"scene {cls.name!r} is a flock: re-running one of its worlds alone is not supported")
-    if frame_steps is None:
-        frame_steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=device,
-                                        fused=fused)
     fps_given = fps
-    fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
-                                        None if substeps == "auto" else substeps)
+    auto = substeps == "auto"
+    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, None if auto else substeps)
     if "dt" in cls.params and fps_given is not None:  # as run_batch does
-        world_params = [{**p, "dt": frame_dt / count} for p in world_params]
+        world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
-    steps = int(frame_steps)  # the sweep's own step count (automatic sub-steps: its stiffest world's)
-    batch.batch_scene.frame_steps = lambda frame_dt, substeps: steps
-    substeps = count
+    batch.batch_scene.frame_steps_fixed = frame_steps
+    if auto:
+        batch.batch_scene.auto_substeps = True
     writer = UsdCacheWriter(out, fps=fps)
     batch.scene.declare(writer)
     writer.begin()
@@ -275,11 +278,11 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
             warnings.warn(message, stacklevel=2)
         else:
             warn(message)
-    run_fps, run_substeps, frame_steps = _settings(manifest, fps, substeps)
+    run_fps, run_substeps = _settings(manifest, fps, substeps)
     run_device = device if device is not None else manifest["device"]
     return run_world(manifest["scene"], manifest["worlds"], world, out=out or world_cache_path(root, world),
                      frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
-                     fused=manifest["fused"], frame_steps=frame_steps, progress=progress)
+                     fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -323,7 +326,7 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
 
     for line in _differences(manifest, fps, substeps, device):
         print(f"warpsim: warning: {line}: world {world} will differ from its samples in the sweep", file=err)
-    run_fps, run_substeps, frame_steps = _settings(manifest, fps, substeps)
+    run_fps, run_substeps = _settings(manifest, fps, substeps)
     progress = None
     if show_progress:
         from tqdm import tqdm
@@ -332,8 +335,9 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
                         dynamic_ncols=True)
     try:
         result = run_world(manifest["scene"], manifest["worlds"], world, out=path, frames=frames, fps=run_fps,
-                           substeps=run_substeps, device=device, fused=manifest["fused"], frame_steps=frame_steps,
-                           progress=(lambda f: progress.update(1)) if progress else None)
+                           substeps=run_substeps, device=device, fused=manifest["fused"],
+                           progress=(lambda f: progress.update(1)) if progress else None,
+                           frame_steps=_frame_steps(manifest, fps, substeps))
     except SimulationError as exc:
         print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
         return 1
@@ -359,13 +363,15 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     except ValueError as exc:
         raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
     manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
-                "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None,
-                "frame_steps": None}  # found as the sweep finds them (run_world)
+                "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
     from .sweep import frame_timing
 
     try:
         manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(
             cls, cls.resolve_params(world_params[0]), args.fps, None if args.substeps == "auto" else args.substeps)
+        # automatic sub-steps follow the sweep's stiffest world: found as the sweep finds them
+        manifest["frame_steps"] = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps,
+                                                    device=device, fused=bool(args.fused))
     except ValueError as exc:
         raise cli.UsageError(cli.one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,

@@ -152,22 +152,6 @@ def shared_springs(m0, scales, world_values, key_count, device) -> K.SharedSprin
     return s
 
 
-class SharedWorldSimulator(Simulator):
-    """The batch's own simulator on the shared path (state, gravity, walls; its model stores the
-    springs once, outside it): its stability analysis (``stability``, ``auto_substeps``) reads
-    ``stability_model()``, the batch model with every world's springs tiled, built on demand."""
-
-    stability_model: Any = None
-
-    def stability(self, *args, **kwargs):
-        model = self.model
-        self.model = self.stability_model() if self.stability_model is not None else model
-        try:
-            return super().stability(*args, **kwargs)
-        finally:
-            self.model = model
-
-
 def world_walls(colliders, world_count, device) -> K.WorldWalls:
     """The WorldWalls of plane colliders (``ws.Planes`` or per-world ``WorldPlanes``), in order."""
     from .forces import WorldPlanes

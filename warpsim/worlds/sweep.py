@@ -84,7 +84,7 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
-              warn=None, info=None) -> list:
+              warn=None, timing=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -100,8 +100,9 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
     default to it, unless ``dt`` is given): every frame sub-steps inside the stiffest world's
     stability limit; ``warn(line)``: called once before the first frame when a world's step is
-    above its stability limit (it may raise to stop the run); ``info``: a dict that receives
-    ``frame_steps`` (the steps each frame took: what a re-run of one world needs)."""
+    above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
+    ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
+    a world re-run alone needs it to take the same steps)."""
     from ..scenes import get_scene
 
     cls = get_scene(scene_name)
@@ -119,10 +120,12 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    batch.batch_scene.auto_substeps = auto
-    if info is not None:
-        info["frame_steps"] = int(batch.batch_scene.frame_steps(frame_dt, substeps))
-    if warn is not None:
+    scene = getattr(batch, "batch_scene", None)  # None: a batch of flocks (no springs, no sub-step limit)
+    if scene is not None:
+        scene.auto_substeps = auto
+    if timing is not None and scene is not None:
+        timing["frame_steps"] = int(scene.frame_steps(frame_dt, substeps))
+    if warn is not None and scene is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
@@ -184,9 +187,8 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
                                  track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
                                  resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
                                  first_world=first_world, scene=scene_name, include=static)
-    x0 = batch.sim.state.positions.numpy()[: batch.model.world_particle_count]  # world 0
-    v0 = batch.sim.state.velocities.numpy()[: batch.model.world_particle_count]
-    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    x, v = batch.world_slices()  # world 0's frame data names the prim holding the recorded particles
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x[0], v[0], 0), x[0], recorder.particles)
     return recorder
 
 
