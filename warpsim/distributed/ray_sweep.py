@@ -222,6 +222,15 @@ def _task_resources(ray, device):
     return {"num_cpus": 1}, "cpu"
 
 
+def _driver_device(device):
+    """Where the driver resolves a sweep-wide setting: the sweep's kind of device when it has one."""
+    import warp as wp
+
+    if device == "cpu" or not wp.is_cuda_available():
+        return "cpu"
+    return "cuda:0"
+
+
 def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps=None, substeps=None,
                   device=None, batch_size=DEFAULT_BATCH_SIZE, address=None, num_cpus=None, resume=False,
                   layout="variants", max_retries=3, runner=None, batch_options=None, log=None, _kill_once=None):
@@ -250,6 +259,15 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     """
     t_start = time.perf_counter()
     world_params = list(world_params)
+    if "frame_steps" not in (batch_options or {}):
+        # automatic sub-steps resolve over the whole sweep (its stiffest world), as in one process,
+        # not per batch: every batch is told the count (warpsim.worlds.rerun.sweep_frame_steps)
+        from ..worlds.rerun import sweep_frame_steps
+
+        steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=_driver_device(device),
+                                  fused=bool((batch_options or {}).get("fused")))
+        if steps is not None:
+            batch_options = {**(batch_options or {}), "frame_steps": steps}
     batches = split_batches(len(world_params), batch_size)
     out_path = os.path.abspath(out_path)
     sweep = {"scene": scene_name, "world_count": len(world_params), "batch_size": batch_size,

@@ -223,17 +223,26 @@ def run(args, out, err):
         except ValueError as exc:
             raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
+    run_timing = {}  # the steps per frame the run took (a Ray sweep's batches do not say)
     progress = None
     try:
         if getattr(args, "ray", None) is not None:
             from ..distributed.ray_sweep import DEFAULT_BATCH_SIZE, run_ray_sweep
+            from .rerun import sweep_frame_steps
 
+            # automatic sub-steps resolve over the whole sweep, not per batch (its stiffest world)
+            steps = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps, device=device,
+                                      fused=bool(args.fused))
+            if steps is not None:
+                run_timing["frame_steps"] = steps
             result = run_ray_sweep(cls.name, world_params, frames=args.frames, out_path=path, table_path=table,
                                    fps=args.fps, substeps=args.substeps, device=args.device,
                                    batch_size=args.batch_size or DEFAULT_BATCH_SIZE, address=args.ray,
                                    num_cpus=args.ray_cpus, resume=args.resume, layout=args.layout,
                                    batch_options={**({"track": track} if track else {}),
-                                                  **({"fused": True} if args.fused else {})} or None, log=err)
+                                                  **({"fused": True} if args.fused else {}),
+                                                  **({"frame_steps": steps} if steps is not None else {})} or None,
+                                   log=err)
             rows, root = result["rows"], result["root"]
             import glob
 
@@ -244,7 +253,6 @@ def run(args, out, err):
 
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
-            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,

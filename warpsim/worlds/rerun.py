@@ -185,10 +185,10 @@ def _frame_steps(manifest, fps, substeps):
     return manifest.get("frame_steps") if same else None
 
 
-def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False) -> int:
+def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False):
     """The steps per frame :func:`warpsim.worlds.sweep.run_batch` takes for these worlds (as given
-    to it): with automatic sub-steps the stiffest world's limit decides, so the sweep's batch is
-    built (not run) to find them."""
+    to it) when it sub-steps automatically: the stiffest world's limit decides, so the sweep's
+    batch is built (not run) to find them. None when the count is fixed (the settings give it)."""
     from ..scenes import get_scene
     from .sweep import frame_timing, make_batch
 
@@ -200,12 +200,15 @@ def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, devi
     auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
                                   and "dt" not in world_params[0])  # run_batch's rule
     if not auto:
-        return count
+        return None
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / count} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    batch.batch_scene.auto_substeps = True
-    return int(batch.batch_scene.frame_steps(frame_dt, count))
+    scene = getattr(batch, "batch_scene", None)
+    if scene is None:  # flocks: no sub-step limit
+        return None
+    scene.auto_substeps = True
+    return int(scene.frame_steps(frame_dt, count))
 
 
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,

@@ -84,7 +84,7 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
-              warn=None, timing=None) -> list:
+              warn=None, timing=None, frame_steps=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -102,7 +102,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     stability limit; ``warn(line)``: called once before the first frame when a world's step is
     above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
     ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
-    a world re-run alone needs it to take the same steps)."""
+    a world re-run alone needs it to take the same steps); ``frame_steps``: take this many steps
+    every frame instead (a Ray sweep's batches take the count resolved over the whole sweep)."""
     from ..scenes import get_scene
 
     cls = get_scene(scene_name)
@@ -123,6 +124,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     scene = getattr(batch, "batch_scene", None)  # None: a batch of flocks (no springs, no sub-step limit)
     if scene is not None:
         scene.auto_substeps = auto
+        if frame_steps is not None:
+            scene.frame_steps_fixed = int(frame_steps)
     if timing is not None and scene is not None:
         timing["frame_steps"] = int(scene.frame_steps(frame_dt, substeps))
     if warn is not None and scene is not None:
