@@ -223,6 +223,7 @@ def run(args, out, err):
         except ValueError as exc:
             raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
+    run_timing = {}  # the steps per frame the single-process batch took (Ray batches: not recorded)
     progress = None
     try:
         if getattr(args, "ray", None) is not None:
@@ -244,7 +245,6 @@ def run(args, out, err):
 
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
-            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
