@@ -25,8 +25,8 @@ def label_for(key, param, live=False):
     slider), and ``(live)`` for parameters applied to the running simulation."""
     unit = "ms" if key == "dt" else None
     if unit is None and isinstance(param.default, (int, float, tuple, list)) and not isinstance(param.default, bool):
-        match = _UNIT.search(param.help or "")
-        unit = match.group(1) if match else None
+        units = [u for u in _UNIT.findall(param.help or "") if "," not in u]  # "[0, 1]" is a range
+        unit = units[0] if units else None
     return key + (f" [{unit}]" if unit else "") + (" (live)" if live else "")
 
 
