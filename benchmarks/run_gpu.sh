@@ -12,7 +12,8 @@ case "${1:-core}" in
     run python3 roofline.py --device "$D"
     run python3 roofline.py --device "$D" --only smoke --smoke-graph
     run python3 bench_worlds.py --device "$D" --worlds 1024
-    T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --no-fused --sequential 4 --builder-worlds 2
+    T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --paths shared,block,tiled --sequential 4 --builder-worlds 2
+    T=500 run python3 bench_worlds.py --device "$D" --worlds 100000 --paths shared,block --sequential 4 --builder-worlds 0
     run python3 bench_donuts.py --device "$D" --settle 3000 --steps 500
     run python3 bench_differentiable.py --device "$D" --dims 64 128 256 --steps 1000
     ;;

@@ -239,7 +239,8 @@ class Springs(Force):
 
     ``deterministic`` (default True): forces and Jacobian blocks are gathered per particle over
     the model's CSR adjacency (``model.particle_springs``) in a fixed order, so two runs give the
-    same bits on any device. False: the former per-spring scatter with float atomics, whose
+    same bits on any device (on the CPU each spring is evaluated once into a buffer and then
+    gathered: the same sums, bit for bit, about twice as fast there). False: the former per-spring scatter with float atomics, whose
     summation order (and so the last bits, which chaotic scenes amplify) varies run to run on
     GPUs; an opt-out for speed measurements. Under a recording ``wp.Tape`` the gather computes
     the forces and the tape records the scatter kernel for the backward pass (the adjoint of
@@ -273,6 +274,16 @@ class Springs(Force):
         ensure_spring_adjacency(m)
         inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
         tape = _warp_context.runtime.tape
+        if tape is None and m.device.is_cpu:  # each spring once, then the same fixed-order sums
+            spring_f = self._spring_forces(m)
+            first = (*scatter[:7], spring_f)
+            cached_launch(K.eval_spring_forces, m.spring_count, first, m.device, launches,
+                          key=("springs", m.spring_count, *map(id, first)))
+            second = (m.spring_indices, m.spring_broken, m.particle_spring_offsets, m.particle_springs, spring_f,
+                      f_out)
+            cached_launch(K.gather_spring_forces, m.particle_count, second, m.device, launches,
+                          key=("sums", m.particle_count, *map(id, second)))
+            return
         if tape is None:
             cached_launch(K.eval_springs_gather, m.particle_count, inputs, m.device, launches,
                           key=("gather", m.particle_count, *map(id, inputs)))
@@ -281,6 +292,14 @@ class Springs(Force):
         # through the scatter kernel's adjoint (a loop-carried gather has none in Warp)
         wp.launch(K.eval_springs_gather, m.particle_count, inputs=list(inputs), device=m.device, record_tape=False)
         tape.record_launch(K.eval_springs, m.spring_count, 0, list(scatter), [], m.device)
+
+    def _spring_forces(self, model):
+        """Per-spring force buffer (spring_count,) of the CPU's two-pass gather (allocated once)."""
+        buf = self.__dict__.get("_spring_f")
+        if buf is None or buf.shape[0] != model.spring_count or buf.device != model.device:
+            buf = wp.zeros(model.spring_count, dtype=wp.vec3, device=model.device)
+            self._spring_f = buf
+        return buf
 
     def jacobian_triplet_count(self):
         return 2 * self.model.spring_count

@@ -185,6 +185,29 @@ def _frame_steps(manifest, fps, substeps):
     return manifest.get("frame_steps") if same else None
 
 
+def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False) -> int:
+    """The steps per frame :func:`warpsim.worlds.sweep.run_batch` takes for these worlds (as given
+    to it): with automatic sub-steps the stiffest world's limit decides, so the sweep's batch is
+    built (not run) to find them."""
+    from ..scenes import get_scene
+    from .sweep import frame_timing, make_batch
+
+    cls = get_scene(scene_name)
+    world_params = [_typed(cls, p) for p in world_params]
+    fps_given = fps
+    fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
+                                        None if substeps == "auto" else substeps)
+    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
+                                  and "dt" not in world_params[0])  # run_batch's rule
+    if not auto:
+        return count
+    if "dt" in cls.params and fps_given is not None:
+        world_params = [{**p, "dt": frame_dt / count} for p in world_params]
+    batch = make_batch(cls, world_params, device=device, fused=fused)
+    batch.batch_scene.auto_substeps = True
+    return int(batch.batch_scene.frame_steps(frame_dt, count))
+
+
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
               progress=None, frame_steps=None) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
@@ -344,8 +367,11 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     from .sweep import frame_timing
 
     try:
-        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(cls, cls.resolve_params(world_params[0]),
-                                                                        args.fps, args.substeps)
+        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(
+            cls, cls.resolve_params(world_params[0]), args.fps, None if args.substeps == "auto" else args.substeps)
+        # automatic sub-steps follow the sweep's stiffest world: found as the sweep finds them
+        manifest["frame_steps"] = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps,
+                                                    device=device, fused=bool(args.fused))
     except ValueError as exc:
         raise cli.UsageError(cli.one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,
