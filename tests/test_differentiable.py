@@ -244,7 +244,8 @@ def test_rollout_bad_input_is_named():
     sim = ws.Simulator(spring_model(), differentiable=True)
     sim.step(0.01)
     target = wp.zeros(3, dtype=wp.vec3, device="cpu")
-    with pytest.raises(ValueError, match="2 targets for 1 steps"):
+    with pytest.raises(ValueError, match=r"2 targets for 1 step\(s\) \(steps=None means the last step only \(1\)\).*"
+                       r"steps=\[k1, k2"):
         sim.rollout.trajectory_loss([target, target])
     with pytest.raises(ValueError, match=r"integrated\(2\): steps 1..1 exist"):
         sim.rollout.integrated(2)

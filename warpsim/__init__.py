@@ -14,7 +14,34 @@ the Warp kernels live in ``warpsim.kernels``.
 """
 
 # ruff: noqa: F401  (the names _load_all imports are published through globals())
+from typing import TYPE_CHECKING
+
 from ._version import __version__
+
+if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and autodoc (_load_all stays lazy)
+    from .agents import AgentState, BoidParams, Crowd, Flock, FoodSources, Obstacles, Terrain, WalkerParams
+    from .bodies import (
+        Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody,
+        Sphere, TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
+    )
+    from .bodies import SoftContact, torus_mesh
+    from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
+    from .cloth import (
+        Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
+        cloth_energy,
+    )
+    from .core import (
+        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity,
+        ImplicitEuler, Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem,
+        SemiImplicitEuler, SimulationError, Simulator, Springs, State, Wind, exact_period,
+    )
+    from .grid_fluids import (
+        Advector, FlipLiquid, LevelSet, LevelSetLiquid, MacGrid, PressureSolver, Smoke, Viscosity,
+    )
+    from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
+    from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+    from .viewer.server import Viewer
 
 
 def _load_all():
@@ -28,6 +55,7 @@ def _load_all():
     )
     from .bodies import SoftContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
     from .cloth import (
         Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
         cloth_energy,
@@ -59,6 +87,7 @@ __all__ = [
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
     "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
+    "StabilityLimit", "StabilityWarning",
 ]
 
 

@@ -20,6 +20,10 @@ from .world import Obstacles, Terrain, _points
 class _Agents:
     """Arrays, neighbour grid and the rules kernel shared by Flock and Crowd."""
 
+    state: wp.array
+    """Each agent's AgentState as an int, shape (agent_count,) (set by Flock / Crowd)."""
+    _upright: bool
+
     def _setup(self, positions, velocities, kinds, groups, rules: list, bounds, wrap, margin, obstacles, terrain,
                goals, device):
         self.device = wp.get_device(device)

@@ -34,6 +34,7 @@ from ..core.builder import _vec3
 from ..core.collider import Collider
 from ..kernels import collide as K
 from ..kernels import worlds as KW
+from .mesh_io import load_mesh
 
 MODES = {"reflect": 0, "project": 1, "penalty": 2}
 
@@ -189,8 +190,8 @@ def quat_from_matrix(m) -> np.ndarray:
         q[k] = 0.25 * s
         q[i] = (m[i, k] + m[k, i]) / s
         q[j] = (m[j, k] + m[k, j]) / s
-    q = np.array(q)
-    return q / np.linalg.norm(q)
+    quat = np.array(q)
+    return quat / np.linalg.norm(quat)
 
 
 def quat_slerp(a, b, s: float) -> np.ndarray:
@@ -506,8 +507,6 @@ class TriangleMesh(_Kinematic):
     @classmethod
     def from_file(cls, path, **kwargs):
         """Load OBJ/STL/PLY/GLB/OFF (trimesh) or USD (.usd/.usda/.usdc, first Mesh prim)."""
-        from .softbody import load_mesh
-
         points, faces = load_mesh(path)
         return cls(points, faces, **kwargs)
 

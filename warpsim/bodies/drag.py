@@ -20,6 +20,7 @@ simulation time, so a scripted drag needs no host work per step::
 from __future__ import annotations
 
 import math
+from typing import Any, Optional
 
 import numpy as np
 import warp as wp
@@ -75,11 +76,12 @@ class DragSpring(Force):
                 raise ValueError(f"DragSpring {name} {value} must be finite and >= 0")
         self.stiffness, self.damping = float(stiffness), float(damping)
         self.particle = -1
-        self._keys = None
+        self._keys: Any = None  # (times (K,) [s], points (K, 3) [m]) once bound
         self._window = (-_FOREVER, _FOREVER)
         self._arrays = None
         if path is not None and target is not None:
             raise ValueError("DragSpring: give either a fixed target or a keyframed path, not both")
+        self._pending: Optional[tuple] = None
         if particle is not None:
             self._pending = (particle, target, path, release)
         else:

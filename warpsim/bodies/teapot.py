@@ -281,7 +281,7 @@ def teapot_mesh(resolution="low", *, scale: float = 0.1, y_up: bool = True, fit_
         faces.append(f + offset)
         labels.append(np.full(len(f), k))
         offset += len(p)
-    points = np.concatenate(points)
+    merged = np.concatenate(points)
     if y_up:
-        points = np.stack([points[:, 0], points[:, 2], -points[:, 1]], axis=1)
-    return TeapotMesh(points * scale, np.concatenate(faces), np.concatenate(labels), names, n)
+        merged = np.stack([merged[:, 0], merged[:, 2], -merged[:, 1]], axis=1)
+    return TeapotMesh(merged * scale, np.concatenate(faces), np.concatenate(labels), names, n)

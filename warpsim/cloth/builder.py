@@ -299,7 +299,7 @@ def mesh_springs(vertices: np.ndarray, triangles: np.ndarray, bend_angle_deg: fl
         nbrs[a].append(b)
         nbrs[b].append(a)
     cos_min = math.cos(math.radians(bend_angle_deg))
-    bend = set()
+    bend_pairs: set[tuple[int, int]] = set()
     for i in range(n):
         for j in nbrs[i]:
             d0 = x[j] - x[i]
@@ -313,9 +313,9 @@ def mesh_springs(vertices: np.ndarray, triangles: np.ndarray, bend_angle_deg: fl
                 if c > best_cos:
                     best, best_cos = k, c
             if best >= 0 and best != i:
-                bend.add((min(i, best), max(i, best)))
+                bend_pairs.add((min(i, best), max(i, best)))
     edge_set = {tuple(p) for p in structural.tolist()}
-    bend = np.array(sorted(p for p in bend if p not in edge_set), dtype=np.int64).reshape(-1, 2)
+    bend = np.array(sorted(p for p in bend_pairs if p not in edge_set), dtype=np.int64).reshape(-1, 2)
     return {"structural": structural.astype(np.int64), "shear": shear.astype(np.int64), "bend": bend}
 
 

@@ -155,7 +155,7 @@ def integer(value, what: str, lo=None, hi=None, fix: str = "") -> int:
         and math.isfinite(float(value))
         and float(value).is_integer()
     ):
-        v = int(value)
+        v = int(float(value))
     else:
         raise ValueError(f"{what} must be {req}, got {show(value)}{_fix(fix)}")
     if (lo is not None and v < lo) or (hi is not None and v > hi):

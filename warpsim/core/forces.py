@@ -7,6 +7,7 @@ number of times without allocating. Forces only accumulate; the caller zeroes ``
 from __future__ import annotations
 
 import ctypes
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -14,6 +15,7 @@ from warp._src import context as _warp_context
 
 from . import checks
 from .builder import _vec3, check_indices
+from .model import ensure_spring_adjacency
 from ..kernels import forces as K
 
 
@@ -25,7 +27,8 @@ def cached_launch(kernel, dim, inputs, device, cache: dict, key=None, size: int 
     ``wp.Tape`` records or a graph is being captured it launches plainly (both see only
     ``wp.launch``). ``key``: the caller's own hashable stand-in for (dim, inputs) with the same
     meaning (cheaper than the generic one)."""
-    if _warp_context.runtime.tape is not None or (device if isinstance(device, wp.Device) else
+    runtime: Any = _warp_context.runtime  # never None once Warp is initialised
+    if runtime.tape is not None or (device if isinstance(device, wp.Device) else
                                                    wp.get_device(device)).is_capturing:
         wp.launch(kernel, dim, inputs=list(inputs), device=device)
         return
@@ -132,8 +135,13 @@ class Wind(Force):
         if np.linalg.norm(d) == 0.0:
             raise ValueError("Wind direction is the zero vector; give a direction")
         self.direction = tuple(d / np.linalg.norm(d))
-        for name in ("speed", "gust_amplitude", "gust_frequency", "turn_amplitude", "turn_frequency", "coefficient"):
-            setattr(self, name, checks.finite(locals()[name], f"Wind {name}", fix="give a finite number"))
+        fix = "give a finite number"
+        self.speed = checks.finite(speed, "Wind speed", fix=fix)
+        self.gust_amplitude = checks.finite(gust_amplitude, "Wind gust_amplitude", fix=fix)
+        self.gust_frequency = checks.finite(gust_frequency, "Wind gust_frequency", fix=fix)
+        self.turn_amplitude = checks.finite(turn_amplitude, "Wind turn_amplitude", fix=fix)
+        self.turn_frequency = checks.finite(turn_frequency, "Wind turn_frequency", fix=fix)
+        self.coefficient = checks.finite(coefficient, "Wind coefficient", fix=fix)
         if self.coefficient < 0.0:
             raise ValueError(f"Wind coefficient {self.coefficient} < 0; give c >= 0 [kg/s]")
         self.gust_phase = tuple(np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, 3))
@@ -227,21 +235,52 @@ class Springs(Force):
 
     The Simulator adds this force automatically when the model has springs. Broken springs
     (``model.spring_broken``, see ``warpsim.core.fracture``) exert nothing and have no Jacobian. ``exact_jacobian``
-    selects the true Jacobian (tests) instead of the solver's symmetric, clamped form."""
+    selects the true Jacobian (tests) instead of the solver's symmetric, clamped form.
 
-    def __init__(self, exact_jacobian: bool = False):
+    ``deterministic`` (default True): forces and Jacobian blocks are gathered per particle over
+    the model's CSR adjacency (``model.particle_springs``) in a fixed order, so two runs give the
+    same bits on any device. False: the former per-spring scatter with float atomics, whose
+    summation order (and so the last bits, which chaotic scenes amplify) varies run to run on
+    GPUs; an opt-out for speed measurements. Under a recording ``wp.Tape`` the gather computes
+    the forces and the tape records the scatter kernel for the backward pass (the adjoint of
+    the same sum)."""
+
+    def __init__(self, exact_jacobian: bool = False, deterministic: bool = True):
+        if not isinstance(deterministic, (bool, np.bool_)):
+            raise TypeError(f"Springs deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.exact_jacobian = exact_jacobian
+        self.deterministic = bool(deterministic)
         self._launches = {}
+
+    def bind(self, model):
+        super().bind(model)
+        ensure_spring_adjacency(model)
+
+    def _gathers(self) -> bool:
+        return self.__dict__.get("deterministic", True)
 
     def eval(self, q, qd, time, time_offset, f_out):
         m = self.model
         if m.spring_count == 0:
             return
-        inputs = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_broken,
-                  f_out)
-        # the same launch every step: replayed recorded (a subclass that skipped __init__ has no cache)
-        cached_launch(K.eval_springs, m.spring_count, inputs, m.device, self.__dict__.setdefault("_launches", {}),
-                      key=(m.spring_count, *map(id, inputs)))
+        launches = self.__dict__.setdefault("_launches", {})  # a subclass that skipped __init__ has none
+        scatter = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
+                   m.spring_broken, f_out)
+        if not self._gathers():  # the same launch every step: replayed recorded
+            cached_launch(K.eval_springs, m.spring_count, scatter, m.device, launches,
+                          key=(m.spring_count, *map(id, scatter)))
+            return
+        ensure_spring_adjacency(m)
+        inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
+        tape = _warp_context.runtime.tape
+        if tape is None:
+            cached_launch(K.eval_springs_gather, m.particle_count, inputs, m.device, launches,
+                          key=("gather", m.particle_count, *map(id, inputs)))
+            return
+        # recording: the gather computes the forward result, the tape differentiates the same sum
+        # through the scatter kernel's adjoint (a loop-carried gather has none in Warp)
+        wp.launch(K.eval_springs_gather, m.particle_count, inputs=list(inputs), device=m.device, record_tape=False)
+        tape.record_launch(K.eval_springs, m.spring_count, 0, list(scatter), [], m.device)
 
     def jacobian_triplet_count(self):
         return 2 * self.model.spring_count
@@ -250,10 +289,14 @@ class Springs(Force):
         m = self.model
         if m.spring_count == 0:
             return
-        wp.launch(K.eval_springs_jacobian, m.spring_count,
-                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
-                          m.spring_broken, float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values],
-                  device=m.device)
+        common = [q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_broken]
+        tail = [float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values]
+        if self._gathers():
+            ensure_spring_adjacency(m)
+            wp.launch(K.eval_springs_jacobian_gather, m.particle_count,
+                      inputs=[*common, m.particle_spring_offsets, m.particle_springs, *tail], device=m.device)
+        else:
+            wp.launch(K.eval_springs_jacobian, m.spring_count, inputs=[*common, *tail], device=m.device)
 
 
 class ForceField(Force):

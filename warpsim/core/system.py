@@ -7,6 +7,8 @@ forces and, for implicit Euler, force Jacobians. The same five integrators drive
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import warp as wp
 
@@ -17,9 +19,9 @@ from ..kernels import forces as K
 class DynamicSystem:
     """Interface shared by all systems (see module docstring)."""
 
-    device = None
-    dtype = wp.vec3
-    block_type = wp.mat33
+    device: Any = None
+    dtype: Any = wp.vec3
+    block_type: Any = wp.mat33
     count = 0
     mass: wp.array
     inv_mass: wp.array

@@ -42,6 +42,7 @@ total force.
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -55,12 +56,16 @@ DIFFERENTIABLE_FORCES = (Gravity, ConstantForce, Wind, Drag, Magnets, Springs)
 """Force types a differentiable run accepts."""
 
 # force type -> its coefficients, each (name, attribute, unit values): the force is linear in them
-_LINEAR = {
+_LINEAR: dict[type, list[tuple[str, str, list[Any]]]] = {
     Gravity: [("g", "g", [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)])],
     ConstantForce: [("force", "force", [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)])],
     Drag: [("linear", "linear", [1.0]), ("quadratic", "quadratic", [1.0])],
     Wind: [("coefficient", "coefficient", [1.0])],
 }
+
+# ClothSemiImplicitEuler.name: matched by name, since warpsim.cloth.solver imports the Simulator, which
+# imports this module (tests/test_import_graph.py checks the two agree)
+CLOTH_SEMI_IMPLICIT = "cloth_semi_implicit_euler"
 
 _FLUIDS = ("ParticleFluid", "FlipLiquid", "Smoke", "LevelSetLiquid", "LevelSet", "MacGrid", "PressureSolver")
 
@@ -78,13 +83,11 @@ def check_differentiable(sim) -> None:
     if name in _FLUIDS or not hasattr(sim, "integrator"):
         _refuse(f"{name}", "is not differentiable (fluid solvers project pressure iteratively and rebuild "
                 "neighbour grids; no backward pass exists for them)", "use ws.Simulator on a particle/spring model")
-    from ..cloth.solver import ClothSemiImplicitEuler
-
     if getattr(sim, "adaptive", False):
         _refuse("adaptive sub-stepping", "picks the number of sub-steps from the state, a choice with no derivative",
                 "use adaptive=False and fixed steps")
     integ = sim.integrator
-    if not isinstance(integ, (ExplicitEuler, SemiImplicitEuler, ClothSemiImplicitEuler)):
+    if not (isinstance(integ, (ExplicitEuler, SemiImplicitEuler)) or integ.name == CLOTH_SEMI_IMPLICIT):
         if "implicit_euler" in integ.name:
             _refuse(f"integrator {integ.name!r}", "solves each step with a Newton / conjugate-gradient loop that "
                     "is not differentiated", "use integrator='semi_implicit_euler' or 'explicit_euler'")
@@ -127,12 +130,10 @@ class Rollout:
 
     def __init__(self, sim):
         check_differentiable(sim)
-        from ..cloth.solver import ClothSemiImplicitEuler
-
         self.sim = sim
         self.model = model = sim.model
         self.device = sim.device
-        self.cloth = isinstance(sim.integrator, ClothSemiImplicitEuler)
+        self.cloth = sim.integrator.name == CLOTH_SEMI_IMPLICIT
         self.tape = wp.Tape()
         for arr in (model.particle_mass, model.particle_inv_mass, model.spring_rest_length, model.spring_stiffness,
                     model.spring_damping):
@@ -247,13 +248,17 @@ class Rollout:
         returns the (1,) loss array (zeroed first; allocated when ``loss`` is None)."""
         from ..core import checks
 
+        given = steps is not None
         steps = [self.step_count] if steps is None else list(steps)
         if isinstance(targets, wp.array) or (isinstance(targets, np.ndarray) and targets.ndim == 2):
             raise TypeError("trajectory_loss targets is one array; give a list with one (n, 3) target per step, "
                             "e.g. [target]")
         targets = list(targets)
         if len(targets) != len(steps):
-            raise ValueError(f"trajectory_loss: {len(targets)} targets for {len(steps)} steps; give one per step")
+            which = f"steps={steps}" if given else f"steps=None means the last step only ({self.step_count})"
+            raise ValueError(f"trajectory_loss: {len(targets)} targets for {len(steps)} step(s) ({which}); give one "
+                             "target per step and name the step of each with steps=[k1, k2, ...] (step k is "
+                             "rollout.states[k])")
         steps = [checks.integer(k, "trajectory_loss step", lo=0, hi=self.step_count,
                                 fix=f"steps recorded so far: 0..{self.step_count}") for k in steps]
         weight = checks.finite(weight, "trajectory_loss weight")

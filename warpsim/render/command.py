@@ -25,7 +25,8 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
               guides=False, progress=True, max_frames=None):
     """Shared by ``render`` and ``run --preview``: render and return the result dict; usage
     mistakes raise ``cli.UsageError``."""
-    from ..cli import UsageError, _device
+    from ..cli_common import UsageError
+    from ..cli_common import device_arg as _device
     from .cache import render_cache
 
     if not os.path.exists(cache):

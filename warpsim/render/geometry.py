@@ -9,6 +9,7 @@ exact. Units are metres; colours linear RGB in [0, 1].
 """
 from __future__ import annotations
 
+from typing import Optional
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,7 +33,7 @@ class FrameGeometry:
     cap_b: np.ndarray  # (C, 3) capsule end b [m]
     cap_r: np.ndarray  # (C,) radius [m]
     cap_colors: np.ndarray  # (C, 3)
-    volume: dict = None  # {"density": (nx, ny, nz), "origin": (3,), "dx": float, "color": (3,)} or None
+    volume: Optional[dict] = None  # {"density": (nx, ny, nz), "origin": (3,), "dx": float, "color": (3,)} or None
 
     def bounds(self):
         """Axis-aligned bounds [[lo], [hi]] [m] of everything drawn (None when empty)."""
@@ -129,7 +130,7 @@ class GeometryBuilder:
     _meshes: list = field(default_factory=list)
     _glass: list = field(default_factory=list)
     _caps: list = field(default_factory=list)
-    volume: dict = None
+    volume: Optional[dict] = None
 
     def add_mesh(self, points, counts, indices, color=None, opacity=1.0, smooth=True):
         """Polygons (points (V, 3), counts (P,), indices) coloured by one colour, one per vertex

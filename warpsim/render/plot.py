@@ -128,7 +128,7 @@ def add_parser(sub):
 
 
 def run(args, out, err):
-    from ..cli import UsageError
+    from ..cli_common import UsageError
 
     if not os.path.exists(args.cache):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")

@@ -46,7 +46,7 @@ import importlib
 import pkgutil
 import sys
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, Optional
 
 import numpy as np
 
@@ -69,7 +69,7 @@ class Param:
 
     default: object
     help: str = ""
-    choices: tuple = None
+    choices: Optional[tuple] = None
 
     @property
     def type_name(self):
@@ -136,6 +136,9 @@ class Scene:
     params: ClassVar[dict] = {}
     fps: ClassVar[float] = 60.0
     substeps: ClassVar[int] = 1
+    substeps_auto: ClassVar[bool] = False
+    """True for scenes whose frames sub-step automatically inside the stability limit by default
+    (``auto_substeps``; the command line turns it off when dt or --substeps N is given by hand)."""
     smoke_params: ClassVar[dict] = {}  # small parameter values for the test suite's smoke run
 
     def __init__(self, params=None, device=None):
@@ -144,7 +147,43 @@ class Scene:
         self.device = wp.get_device(device)
         self.params = self.resolve_params(params or {})
         self.frame = 0
+        self.auto_substeps = bool(type(self).substeps_auto)
+        """Sub-step each frame at least ``substeps`` times and as often as half the stability limit
+        needs (see :meth:`steps_for`)."""
         self.build(self.params)
+
+    def stability(self):
+        """The ``ws.StabilityLimit`` of the scene's simulator (``self.sim``, linearised about its
+        initial positions) or None for scenes without one."""
+        sim = getattr(self, "sim", None)
+        if not hasattr(sim, "stability"):
+            return None
+        return sim.stability(positions=sim.model.particle_q)
+
+    def frame_steps(self, frame_dt, substeps) -> int:
+        """Steps :meth:`advance` takes in a frame (``steps_for`` unless a scene steps otherwise)."""
+        return self.steps_for(frame_dt, substeps)
+
+    def stability_warning(self, frame_dt, substeps):
+        """One line when the step this scene takes (frame_dt / steps) is above its stability
+        limit, naming the limiter and the remedies; None when it is inside or unknown."""
+        limit = self.stability()
+        if limit is None:
+            return None
+        h = frame_dt / self.frame_steps(frame_dt, substeps)
+        return limit.warning(h) if limit.exceeded_by(h) else None
+
+    def steps_for(self, frame_dt, substeps) -> int:
+        """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with ``auto_substeps`` (or
+        ``substeps="auto"``) at least that many and enough to keep each step within
+        ``warpsim.core.stability.AUTO_SAFETY`` x the limit of ``self.sim`` (computed once about the
+        initial positions, again after a parameter change)."""
+        auto = substeps == "auto" or self.auto_substeps
+        base = 1 if substeps == "auto" else int(substeps)
+        sim = getattr(self, "sim", None)
+        if not auto or not hasattr(sim, "auto_substeps"):
+            return base
+        return sim.auto_substeps(frame_dt, minimum=base)
 
     @classmethod
     def resolve_params(cls, given):
@@ -189,6 +228,9 @@ class Scene:
             return False
         self.apply_param(key, value)
         self.params[key] = value
+        sim = getattr(self, "sim", None)
+        if hasattr(sim, "invalidate_stability"):  # stiffness, masses, contacts: the limit moves
+            sim.invalidate_stability()
         return True
 
     def apply_param(self, key, value) -> None:
@@ -218,13 +260,15 @@ class SimulatorScene(Scene):
     """A Scene driving one ``ws.Simulator`` in ``self.sim``: stepping, checkpoints and the
     frame data of points prims declared with ``from_state=True`` come for free."""
 
-    sim = None
+    sim: Any = None
     _state_prims = None
 
     def advance(self, frame_dt, substeps):
-        h = frame_dt / substeps
-        for _ in range(substeps):
+        n = self.frame_steps(frame_dt, substeps)
+        h = frame_dt / n
+        for _ in range(n):
             self.sim.step(h)
+        self.sim.check_frame(frame_dt)  # velocities no motion explains: an instability the speed bound misses
 
     def frame_data(self):
         state = self.sim.state

@@ -12,7 +12,7 @@ food sources are ``Points`` whose widths follow the bites left.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import warp as wp
@@ -50,8 +50,8 @@ class AgentScene(Scene):
     """Base of the agent scenes: ``self.agents`` is a Flock or Crowd stepped with ``dt``
     (the ``dt`` parameter) ``substeps`` times per frame."""
 
-    agents = None
-    species_colors = None  # colour while flying/walking per species (None: by state only)
+    agents: Any = None
+    species_colors: Any = None  # colour while flying/walking per species (None: by state only)
 
     def advance(self, frame_dt, substeps):
         h = frame_dt / substeps

@@ -32,7 +32,7 @@ def add_parser(sub):
 
 
 def _viser_or_usage():
-    from ..cli import UsageError
+    from ..cli_common import UsageError
 
     try:
         import viser  # noqa: F401

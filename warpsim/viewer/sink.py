@@ -8,6 +8,7 @@ particle gathering, counts, extents) and returns :class:`DrawItem`\\ s that the 
 """
 from __future__ import annotations
 
+from typing import Optional
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,14 +38,14 @@ class DrawItem:
     points: np.ndarray
     color: tuple = (0.7, 0.7, 0.7)
     radius: float = 0.01
-    triangles: np.ndarray = None
-    orientations: np.ndarray = None
-    proto: np.ndarray = None
+    triangles: Optional[np.ndarray] = None
+    orientations: Optional[np.ndarray] = None
+    proto: Optional[np.ndarray] = None
     prototypes: list = field(default_factory=list)
     static: bool = False
     topology: int = 0
-    shown: np.ndarray = None
-    opacity: float = None
+    shown: Optional[np.ndarray] = None
+    opacity: Optional[float] = None
 
 
 def decl_color(decl, kind):

@@ -15,6 +15,7 @@ Draws come from ``numpy.random.default_rng(seed)``: the same seed gives the same
 """
 from __future__ import annotations
 
+from typing import Optional
 import math
 from dataclasses import dataclass
 
@@ -30,7 +31,7 @@ class VarySpec:
     """One varied parameter: ``values`` (a list) or ``lo``/``hi`` (a range, ``log`` spacing)."""
 
     key: str
-    values: tuple = None
+    values: Optional[tuple] = None
     lo: object = None
     hi: object = None
     log: bool = False

@@ -73,6 +73,14 @@ class BatchLayerWriter:
         self._save_bytes = save_bytes
         self._last = {}
 
+    def set_world_params(self, local, params):
+        """Author world ``local``'s parameters on its prim: ``customData["warpsim"]`` holds
+        ``world`` (the global index) and ``params`` {name: value}, so a root or a picked file that
+        references the prim carries them (not only the CSV)."""
+        spec = self.layer.GetPrimAtPath(f"/Worlds/{world_prim_name(self.first_world + local)}")
+        spec.customData = {"warpsim": {"world": self.first_world + int(local),
+                                       "params": {str(k): _custom_value(v) for k, v in params.items()}}}
+
     def write_world(self, local, frame, data):
         """Samples of one world (``local`` in 0..world_count-1) at ``frame`` from the scene's frame data."""
         from ..usd.writer import to_vt
@@ -118,6 +126,17 @@ class BatchLayerWriter:
         if not layer.Save():
             raise OSError(f"could not save {self.path}")
         return self.path
+
+
+def _custom_value(value):
+    """A parameter value as USD customData holds it (vectors as double arrays)."""
+    from pxr import Vt
+
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return Vt.DoubleArray([float(v) for v in value])
+    return str(value)
 
 
 def _layer_info(path):
