@@ -67,15 +67,15 @@ def add_ray_arguments(parser):
     g.add_argument("--ray-cpus", type=int, default=None, metavar="N",
                    help="CPUs of a local cluster started by --ray (default: all)")
     g.add_argument("--resume", action="store_true",
-                   help="with --ray: run only the batches the sweep's manifest does not list as finished")
+                   help="continue an interrupted sweep: with --ray run only the batches its manifest does not list "
+                        "as finished; without, keep the completed chunks of the batch layer and write on")
     return g
 
 
 def ray_usage_error(args):
     """A one-line complaint about the Ray options of parsed ``args``, or None when they are fine."""
     if getattr(args, "ray", None) is None:
-        given = [flag for flag, value in (("--resume", getattr(args, "resume", False)),
-                                          ("--batch-size", getattr(args, "batch_size", None)),
+        given = [flag for flag, value in (("--batch-size", getattr(args, "batch_size", None)),
                                           ("--ray-cpus", getattr(args, "ray_cpus", None))) if value]
         if given:
             return f"{', '.join(given)} go{'es' if len(given) == 1 else ''} with --ray (a sweep on a Ray cluster)"
