@@ -341,7 +341,10 @@ def check_damage(path, allow_damaged=False, what="draw"):
     first = report["damaged"][0]
     readable = describe_ranges(report["readable"])
     span = f"frames {first[1]}..{first[2]}" if first[1] is not None else "every frame"
-    if not allow_damaged:
+    if not allow_damaged or not report["readable"]:
+        if not report["readable"]:
+            raise DamagedCacheError(f"cache {os.fspath(path)!r} is damaged: {first[0]} ({span}) is {first[3]} and no "
+                                    f"frame is readable; nothing to {what}: restore the file or run again", report)
         raise DamagedCacheError(f"cache {os.fspath(path)!r} is damaged: {len(report['damaged'])} chunk file(s), "
                                 f"first {first[0]} ({span}) is {first[3]}; readable frames: {readable}; {what} only "
                                 "those with --allow-damaged (allow_damaged=True), or restore the file", report)
