@@ -3,8 +3,8 @@
 * FLIP particle-to-grid: the cell sort + gathers (``FlipLiquid(deterministic=True)``, default)
   against the atomic scatter (``deterministic=False``), the transfer alone and a whole step;
 * FLIP particle density: the gather against the atomic scatter;
-* the pressure solver's domain sums: the fixed-order slots + folding against the former 256-slot
-  float atomics (kept below as the reference).
+* the pressure solver's domain sums on an n^3 grid: the fixed-order slots + folding against the
+  former 256-slot float atomics (kept below as the reference).
 
     python benchmarks/bench_determinism.py --device cuda:0 --resolution 64
     python benchmarks/bench_determinism.py --device cpu --resolution 20
@@ -20,10 +20,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from warpsim.core.reduction import FixedOrderReduction  # noqa: E402
 from warpsim.grid_fluids.flip import FlipLiquid  # noqa: E402
 from warpsim.grid_fluids.mac_grid import MacGrid  # noqa: E402
 from warpsim.kernels import flip as KF  # noqa: E402
@@ -84,6 +86,8 @@ def main(argv=None):
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's preferred)")
     parser.add_argument("--resolution", type=int, default=48, help="FLIP cells along x (default 48)")
     parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--sum-grid", type=int, default=None,
+                        help="cells per side of the domain-sum grid (default 128 on GPUs, 32 on the CPU)")
     args = parser.parse_args(argv)
     device = wp.get_device(args.device)
     det, atomic = make_flip(args.resolution, True, device), make_flip(args.resolution, False, device)
@@ -120,21 +124,22 @@ def main(argv=None):
     report("FLIP whole step (1/60 s)", median_ms(lambda: det.step(1.0 / 60), device, max(3, args.repeats // 4)),
            median_ms(lambda: atomic.step(1.0 / 60), device, max(3, args.repeats // 4)))
 
-    solver = det.pressure
-    red = solver._domain_reduction
+    n = args.sum_grid or (128 if device.is_cuda else 32)
+    labels = wp.full((n, n, n), FLUID, dtype=int, device=device)
+    rhs = wp.array(np.random.default_rng(0).normal(size=n ** 3).astype(np.float32), dtype=float, device=device)
+    red = FixedOrderReduction(3, device=device)
     slots = wp.zeros((256, 3), dtype=float, device=device)
+    open_top = 1 << 3  # +y open: FLUID cells below it touch AIR
 
     def fixed_sums():
-        wp.launch(KG.fluid_sums, red.slots, inputs=[g.labels, g.open_mask, solver.rhs], outputs=[red.partials],
-                  device=device)
+        wp.launch(KG.fluid_sums, red.slots, inputs=[labels, open_top, rhs], outputs=[red.partials], device=device)
         red.finish()
 
     def former_sums():
         slots.zero_()
-        wp.launch(former_fluid_sums, g.shape, inputs=[g.labels, g.open_mask, solver.rhs], outputs=[slots],
-                  device=device)
+        wp.launch(former_fluid_sums, labels.shape, inputs=[labels, open_top, rhs], outputs=[slots], device=device)
 
-    report("pressure domain sums (fixed order)", median_ms(fixed_sums, device, args.repeats),
+    report(f"pressure domain sums {n}^3 (fixed order)", median_ms(fixed_sums, device, args.repeats),
            median_ms(former_sums, device, args.repeats))
 
 

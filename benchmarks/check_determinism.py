@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import filecmp
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -117,7 +118,7 @@ def files_identical(dir_a: Path, dir_b: Path) -> bool:
     return all(filecmp.cmp(dir_a / n, dir_b / n, shallow=False) for n in names_a)
 
 
-def _short(values, limit=6):
+def _short(values):
     text = str(values)
     return text if len(text) < 120 else text[:117] + "..."
 
@@ -127,7 +128,8 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="", help="Warp device, e.g. cpu or cuda:0 (default: warpsim's default)")
     parser.add_argument("--frames", type=int, default=30, help="frames per run (default 30)")
     parser.add_argument("--scenes", nargs="*", default=None, help="scene names (default: every scene)")
-    parser.add_argument("--keep", default=None, help="folder to keep the caches in (default: a temporary one)")
+    parser.add_argument("--keep", default=None,
+                        help="folder to keep the caches in (default: a temporary folder, removed at the end)")
     parser.add_argument("--set", action="append", default=[], metavar="SCENE:KEY=VALUE",
                         help="a scene parameter for one scene (repeatable)")
     args = parser.parse_args(argv)
@@ -155,6 +157,7 @@ def main(argv=None) -> int:
                        for d in dirs]
         except RuntimeError as exc:
             print(f"{scene:12s} run failed: {exc}")
+            print(f"caches kept in {work}")
             return 2
         diff = compare_caches(dirs[0] / f"{scene}.usda", dirs[1] / f"{scene}.usda")
         same_bytes = files_identical(*dirs)
@@ -168,6 +171,8 @@ def main(argv=None) -> int:
             where = "default value" if frame is None else f"frame {frame:g}"
             print(f"{scene:12s} DIFFERS at {where}, {prim}.{attr}, index {index}: {_short(a)} vs {_short(b)} {timing}")
     print(f"{len(chosen) - failures} of {len(chosen)} scenes identical")
+    if not args.keep:
+        shutil.rmtree(work, ignore_errors=True)
     return 0 if failures == 0 else 1
 
 

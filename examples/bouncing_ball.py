@@ -11,9 +11,8 @@ the frame table: time, position, velocity.
 
 import argparse
 
-import warp as wp
-
 import warpsim as ws
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -44,8 +43,9 @@ def main(argv=None):
     parser.add_argument("--restitution", type=float, default=0.5)
     parser.add_argument("--integrator", default="semi_implicit_euler", choices=sorted(ws.INTEGRATORS))
     parser.add_argument("--device", default=None)
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     example = Example(restitution=args.restitution, dt=args.dt, integrator=args.integrator, device=args.device)
     print(f"{'frame':>5} {'t [s]':>7} {'x':>9} {'y [m]':>10} {'v_y [m/s]':>10}")
     for frame in range(args.frames + 1):

@@ -7,19 +7,19 @@ as a captured graph) and the cloth as a USD mesh with fixed topology and per-fra
 velocities. It prints, every 10 frames, the lowest point, the closest approach to the sphere
 surface (never below the thickness) and the CG iterations.
 
-    python examples/cloth_drape.py --frames 120 --resolution 40 --out cloth_drape.usdc
+    python examples/cloth_drape.py --frames 120 --resolution 40 --out usd_out/cloth_drape.usdc
 """
 
 import argparse
 
 import numpy as np
-import warp as wp
 
 import warpsim as ws
 from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.solver import ClothImplicitEuler, ClothSimulator
 from warpsim.bodies.colliders import Sphere
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -49,9 +49,10 @@ def main(argv=None):
     parser.add_argument("--resolution", type=int, default=32, help="cells per side")
     parser.add_argument("--friction", type=float, default=0.4)
     parser.add_argument("--device", default=None)
-    parser.add_argument("--out", default="cloth_drape.usdc")
+    parser.add_argument("--out", default="usd_out/cloth_drape.usdc")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     example = Example(args.resolution, friction=args.friction, device=args.device)
     writer = UsdCacheWriter(args.out, fps=60.0)
     example.declare(writer)

@@ -7,18 +7,18 @@ a few frames (warpsim stops it with a SimulationError naming frame and particle)
 Euler after Baraff & Witkin (1998), one sparse CG solve per step, swings the sheet down stably.
 The table lists, per frame, the implicit run's CG iterations and residual and its energies.
 
-    python examples/cloth_implicit.py --frames 60 --stiffness 1e4 --out cloth_implicit.usda
+    python examples/cloth_implicit.py --frames 60 --stiffness 1e4 --out usd_out/cloth_implicit.usda
 """
 
 import argparse
 
 import numpy as np
-import warp as wp
 
 import warpsim as ws
 from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.solver import ClothImplicitEuler, ClothSimulator, cloth_energy
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -43,9 +43,10 @@ def main(argv=None):
     parser.add_argument("--stiffness", type=float, default=1.0e4, help="spring stiffness [N/m]")
     parser.add_argument("--dt", type=float, default=1.0 / 60.0, help="time step = frame time [s]")
     parser.add_argument("--device", default=None)
-    parser.add_argument("--out", default=None, help="USD cache of the implicit run (.usda/.usdc)")
+    parser.add_argument("--out", default=None, help="USD cache of the implicit run (.usda/.usdc), e.g. usd_out/cloth_implicit.usda")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
 
     explicit = Example("semi_implicit_euler", args.resolution, args.stiffness, device=args.device)
     try:

@@ -21,6 +21,7 @@ import warp as wp
 import warpsim as ws
 from warpsim.bodies.colliders import Capsule, ParticleCollisions, Sphere
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 def head_on(c_r, ma=1.0, mb=3.0, ua=2.0, ub=-1.0, device=None):
@@ -67,8 +68,9 @@ def main(argv=None):
     parser.add_argument("--restitution", type=float, default=0.6)
     parser.add_argument("--out", default="usd_out/collisions.usda")
     parser.add_argument("--device", default=None)
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
 
     print("head-on collision, m_a = 1 kg at +2 m/s, m_b = 3 kg at -1 m/s")
     print(f"{'c_R':>5} {'v_a':>9} {'exact':>9} {'v_b':>9} {'exact':>9}")

@@ -17,11 +17,11 @@ import argparse
 import math
 
 import numpy as np
-import warp as wp
 
 from warpsim.particle_fluids.surface import FluidSurface
 from warpsim.particle_fluids.pbf import ParticleFluid, fluid_block
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 G = 9.81
 # Martin and Moyce (1952), Phil. Trans. R. Soc. A 244, 312-324, Table 2 (n^2 = 2, a = 2.25 in)
@@ -74,8 +74,9 @@ def main(argv=None):
     parser.add_argument("--device", default=None)
     parser.add_argument("--out", default="usd_out/dam_break.usda")
     parser.add_argument("--figure", default="usd_out/dam_break_front.png", help="surge-front figure ('' for none)")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     example = Example(args.a, args.spacing, args.depth, args.iterations, not args.no_surface, args.device)
     scale = math.sqrt(2.0 * G / args.a)
     print(f"{example.fluid.active_count} particles; Martin & Moyce (1952) n^2 = 2")

@@ -11,7 +11,7 @@ and the gradients with respect to every structural spring (``model.spring_stiffn
 log(stiffness), log(damping). Shear and bend springs keep their known values. The script prints
 the iterations, the values found and their errors against the hidden ones.
 
-    python examples/fit_cloth.py --resolution 8 --frames 30 --out fit_cloth_target.usdc
+    python examples/fit_cloth.py --resolution 8 --frames 30 --out usd_out/fit_cloth_target.usdc
 """
 
 import argparse
@@ -23,6 +23,7 @@ from scipy.optimize import minimize
 import warpsim as ws
 from warpsim.usd.validate import open_stage
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -112,9 +113,10 @@ def main(argv=None):
     parser.add_argument("--guess", type=float, nargs=2, default=(25.0, 0.2))
     parser.add_argument("--quick", action="store_true", help="a smaller cloth and fewer frames (tests)")
     parser.add_argument("--device", default=None)
-    parser.add_argument("--out", default="fit_cloth_target.usdc", help="the target cache")
+    parser.add_argument("--out", default="usd_out/fit_cloth_target.usdc", help="the target cache")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     if args.quick:
         args.resolution, args.frames = 5, 12
     write_target(args.out, args.resolution, args.frames, *args.hidden, device=args.device)

@@ -61,6 +61,7 @@ from scipy.optimize import minimize
 
 import warpsim as ws
 from warpsim.scenes import get_scene
+from warpsim.verbosity import set_warp_verbosity
 
 TIME_SCALE = 100.0  # c [m/s]: weight of the bounce-time error in the loss (1 ms counts as 10 cm)
 
@@ -186,8 +187,9 @@ def main(argv=None):
     parser.add_argument("--guess", type=float, nargs=3, default=(1.5, 2.8, 0.4), help="initial v0 [m/s]")
     parser.add_argument("--quick", action="store_true", help="a shorter flight (tests)")
     parser.add_argument("--device", default=None)
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     if args.quick:
         args.duration = 1.1
     try:

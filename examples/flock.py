@@ -15,9 +15,9 @@ a PointInstancer oriented along their velocity, coloured by state).
 import argparse
 
 import numpy as np
-import warp as wp
 
 from warpsim.agents import AgentState, BoidParams, Flock, FoodSources, Obstacles, Terrain, polarization
+from warpsim.verbosity import set_warp_verbosity
 
 SIZE = 40.0  # side of the periodic world [m]
 
@@ -89,8 +89,9 @@ def main(argv=None):
     parser.add_argument("--print-every", type=int, default=48)
     parser.add_argument("--device", default=None)
     parser.add_argument("--out", default=None, help="USD cache to write, e.g. usd_out/flock.usda")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     example = Example(args.birds, args.geese, device=args.device)
     writer = None
     if args.out:

@@ -15,6 +15,7 @@ import warp as wp
 from warpsim.kernels.implicit_fields import gyroid_ball
 
 from warpsim.meshing.marching_cubes import marching_cubes
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -51,8 +52,9 @@ def main(argv=None):
     parser.add_argument("--device", default=None)
     parser.add_argument("--resolution", type=int, default=96, help="grid nodes per axis")
     parser.add_argument("--out", default="usd_out/implicit_surface.usda")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     example = Example(args.device, args.resolution)
     area, volume, chi = example.stats()
     print(f"{example.mesh.vertex_count} vertices, {example.mesh.face_count} triangles, area {area:.4f} m^2, "

@@ -17,6 +17,7 @@ from warpsim.grid_fluids.levelset_liquid import LevelSetLiquid
 from warpsim.grid_fluids.mac_grid import MacGrid
 from warpsim.meshing.marching_cubes import MarchingCubes
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -54,7 +55,9 @@ def main():
     parser.add_argument("--resolution", type=int, default=24, help="cells along the 1 m tank")
     parser.add_argument("--no-particles", action="store_true", help="plain level set (no marker particles)")
     parser.add_argument("--out", default="usd_out/levelset_liquid.usda")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args()
+    set_warp_verbosity(args.verbose)
     with wp.ScopedDevice(args.device):
         example = Example(args.resolution, particle_level_set=not args.no_particles)
         with UsdCacheWriter(args.out, fps=args.fps) as writer:

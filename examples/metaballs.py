@@ -12,9 +12,9 @@ where they change; points, normals and extent are sampled every frame.
 import argparse
 
 import numpy as np
-import warp as wp
 from warpsim.meshing.marching_cubes import topology_changed
 from warpsim.meshing.metaballs import Metaballs
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -46,8 +46,9 @@ def main(argv=None):
     parser.add_argument("--frames", type=int, default=90)
     parser.add_argument("--resolution", type=int, default=64, help="grid nodes per axis")
     parser.add_argument("--out", default="usd_out/metaballs.usda")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     from warpsim.usd.writer import UsdCacheWriter
 
     example = Example(args.device, args.resolution)

@@ -13,9 +13,8 @@ The figure (E/E0 against time, one line per integrator) goes to ``--figure`` (ma
 
 import argparse
 
-import warp as wp
-
 import warpsim as ws
+from warpsim.verbosity import set_warp_verbosity
 
 
 def main(argv=None):
@@ -26,8 +25,9 @@ def main(argv=None):
     parser.add_argument("--rows", type=int, default=10, help="table rows to print")
     parser.add_argument("--device", default=None)
     parser.add_argument("--figure", default="usd_out/pendulum_integrators.png", help="energy drift figure ('' for none)")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     names = list(ws.INTEGRATORS)
     runs = {n: ws.Pendulum(args.angle, integrator=n, device=args.device).run(args.steps, args.dt) for n in names}
     e0 = runs[names[0]]["total"][0, 0]

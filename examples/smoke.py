@@ -18,6 +18,7 @@ from warpsim.grid_fluids.mac_grid import MacGrid
 from warpsim.meshing.marching_cubes import MarchingCubes
 from warpsim.grid_fluids.smoke import Smoke
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -65,7 +66,9 @@ def main():
     parser.add_argument("--fps", type=float, default=24.0)
     parser.add_argument("--resolution", type=int, default=24, help="cells across the 1 m wide domain")
     parser.add_argument("--out", default="usd_out/smoke.usda")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args()
+    set_warp_verbosity(args.verbose)
     with wp.ScopedDevice(args.device):
         example = Example(args.resolution)
         with UsdCacheWriter(args.out, fps=args.fps) as writer:

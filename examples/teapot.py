@@ -16,15 +16,16 @@ then stops and names the frame, the particle and the remedy, e.g. ``--integrator
 
 import argparse
 import math
+import sys
 
 import numpy as np
-import warp as wp
 
 import warpsim as ws
 from warpsim.bodies.drag import DragSpring
 from warpsim.bodies.softbody import add_soft_body
 from warpsim.bodies.teapot import teapot_mesh
 from warpsim.usd.writer import UsdCacheWriter
+from warpsim.verbosity import set_warp_verbosity
 
 
 class Example:
@@ -87,11 +88,13 @@ def main(argv=None):
     parser.add_argument("--integrator", default="semi_implicit_euler", choices=sorted(ws.INTEGRATORS))
     parser.add_argument("--out", default="usd_out/teapot_example.usda")
     parser.add_argument("--device", default=None)
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     example = Example(args.resolution, args.mass, args.stiffness, args.damping, args.dt, args.integrator,
                       args.device)
     print(f"teapot: {example.model.particle_count} particles, {example.model.spring_count} springs")
+    failed = None
     with UsdCacheWriter(args.out, fps=60) as writer:
         example.declare(writer)
         writer.write_frame(0, example.frame_data())
@@ -99,7 +102,7 @@ def main(argv=None):
             try:
                 example.step_frame()
             except ws.SimulationError as err:
-                print(f"frame {frame}: {err}")
+                failed = f"frame {frame}: {err}"
                 break
             if example.grabbed < 0 and example.sim.time >= 0.6:
                 example.pick_and_drag()
@@ -109,8 +112,12 @@ def main(argv=None):
                 x = example.sim.state.positions.numpy()
                 print(f"frame {frame:4d}  t = {example.sim.time:5.2f} s  lowest y = {x[:, 1].min():.3f} m  "
                       f"centre = ({x[:, 0].mean():+.3f}, {x[:, 1].mean():.3f}, {x[:, 2].mean():+.3f}) m")
+    if failed:
+        print(f"teapot: the simulation blew up at {failed}\nkept frames 0..{frame - 1} in {args.out}", file=sys.stderr)
+        return 1
     print(f"wrote {args.out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -136,7 +136,8 @@ def particles_to_grid(
     w_sum: wp.array3d(dtype=float),
     w_weight: wp.array3d(dtype=float),
 ):
-    """P2G: accumulate weighted particle velocity components and weights on the faces."""
+    """P2G scatter: accumulate weighted particle velocity components and weights on the faces with
+    float atomics (``FlipLiquid(deterministic=False)``; the default gathers, :func:`gather_face_velocity`)."""
     p = wp.tid()
     if p >= count[0] or alive[p] == 0.0:
         return
@@ -382,7 +383,8 @@ def particle_density(
     """rho += trilinear (hat) weights of every live particle at the cell centres [particles per
     cell]. Stencil nodes beyond the grid fold back onto the edge cell (a mirror image across the
     wall), so a uniform packing of n particles per cell reads n up to the walls; a one-cell-thick
-    axis (2D) puts the whole weight in its single layer. Zero rho first."""
+    axis (2D) puts the whole weight in its single layer. Zero rho first. Float atomics
+    (``FlipLiquid(deterministic=False)``; the default gathers, :func:`gather_particle_density`)."""
     p = wp.tid()
     if p >= count[0] or alive[p] == 0.0:
         return

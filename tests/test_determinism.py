@@ -1,8 +1,9 @@
 """Bit-reproducible stages (issue 27): the fixed-order reductions, the FLIP particle-to-grid gathers
 over the cell-sorted particle list, cell ranks and appends in cell order, PBF's iteration control,
-the pressure solver's domain sums, the level-set volume and marching cubes' output order. Each
-converted stage is checked against NumPy or against its former float-atomic path (within float
-rounding), and whole runs against a second identical run (bit for bit). CPU, small sizes."""
+the pressure solver's domain sums, the level-set volume, boids' food and marching cubes' output
+order. Each converted stage is checked against NumPy or against its former float-atomic path
+(within float rounding), and whole runs against a second identical run (bit for bit). Small sizes;
+the tests taking ``device`` also run on CUDA when present (where atomics would differ run to run)."""
 
 import importlib.util
 from pathlib import Path
@@ -115,11 +116,11 @@ def test_cell_ranks_follow_particle_index_within_each_cell():
     assert np.array_equal(P.octant_start.numpy(), np.concatenate([[0], np.cumsum(per_octant)[:-1]]))
 
 
-def _flip_pair(shape, seed=1):
+def _flip_pair(shape, device, seed=1):
     """Two FLIP liquids on twin grids with the same particles: the gather path and the atomic one."""
     out = []
     for deterministic in (True, False):
-        g = MacGrid(shape, 1.0 / shape[1], device=DEV)
+        g = MacGrid(shape, 1.0 / shape[1], device=device)
         f = FlipLiquid(g, reseed_every=0, density_correction=0.0, seed=seed, deterministic=deterministic)
         f.add_box((0.1,) * len(shape), (0.7, 0.6) + ((0.5,) if len(shape) == 3 else ()))
         rng = np.random.default_rng(seed)
@@ -129,8 +130,8 @@ def _flip_pair(shape, seed=1):
 
 
 @pytest.mark.parametrize("shape", [(12, 10), (8, 7, 6)])
-def test_flip_gathers_equal_the_atomic_scatter(shape):
-    gather, scatter = _flip_pair(shape)
+def test_flip_gathers_equal_the_atomic_scatter(shape, device):
+    gather, scatter = _flip_pair(shape, device)
     for f in (gather, scatter):
         f._transfer_to_grid()
     for a, b in zip(gather.grid.faces[: len(shape)], scatter.grid.faces):  # (2D: w stays 0)
@@ -143,8 +144,8 @@ def test_flip_gathers_equal_the_atomic_scatter(shape):
     np.testing.assert_allclose(rho_a, rho_b, rtol=1e-6, atol=1e-6)
 
 
-def _run_flip(steps):
-    g = MacGrid((14, 12), 1.0 / 12, device=DEV)
+def _run_flip(steps, device=DEV):
+    g = MacGrid((14, 12), 1.0 / 12, device=device)
     f = FlipLiquid(g, min_per_cell=3, max_per_cell=5)
     f.add_box((0.0, 0.0), (0.5, 0.7))
     for _ in range(steps):
@@ -152,8 +153,8 @@ def _run_flip(steps):
     return f
 
 
-def test_flip_runs_are_bit_identical_and_reseeding_appends_in_cell_order():
-    a, b = _run_flip(12), _run_flip(12)
+def test_flip_runs_are_bit_identical_and_reseeding_appends_in_cell_order(device):
+    a, b = _run_flip(12, device), _run_flip(12, device)
     for name in ("x", "v", "id", "alive"):
         assert a.particles[name].numpy().tobytes() == b.particles[name].numpy().tobytes()
     assert a.particles.count.numpy()[0] == b.particles.count.numpy()[0]
@@ -174,16 +175,16 @@ def test_flip_runs_are_bit_identical_and_reseeding_appends_in_cell_order():
 
 
 # ------------------------------------------------------------------------ PBF
-def _run_pbf(steps):
+def _run_pbf(steps, device=DEV):
     fluid = ParticleFluid(fluid_block((0, 0, 0), (0.2, 0.3, 0.1), 0.025), spacing=0.025,
-                          domain=((0, 0, 0), (0.5, 0.5, 0.1)), device=DEV)
+                          domain=((0, 0, 0), (0.5, 0.5, 0.1)), device=device)
     for _ in range(steps):
         fluid.step(1.0 / 240)
     return fluid
 
 
-def test_pbf_runs_are_bit_identical_and_its_compression_sums_match_numpy():
-    a, b = _run_pbf(6), _run_pbf(6)
+def test_pbf_runs_are_bit_identical_and_its_compression_sums_match_numpy(device):
+    a, b = _run_pbf(6, device), _run_pbf(6, device)
     assert a.positions.numpy().tobytes() == b.positions.numpy().tobytes()
     assert a.velocities.numpy().tobytes() == b.velocities.numpy().tobytes()
     assert a._total_iterations.numpy()[0] == b._total_iterations.numpy()[0] > 6
@@ -195,15 +196,15 @@ def test_pbf_runs_are_bit_identical_and_its_compression_sums_match_numpy():
 
 
 # ------------------------------------------------------------------------ marching cubes
-def test_marching_cubes_gives_the_same_vertex_and_face_order_every_call():
+def test_marching_cubes_gives_the_same_vertex_and_face_order_every_call(device):
     n = 24
     x = np.linspace(-1.0, 1.0, n)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
     field = (np.sqrt(X ** 2 + (1.3 * Y) ** 2 + Z ** 2) - 0.7 + 0.05 * np.sin(7 * X)).astype(np.float32)
-    mesher = ws.MarchingCubes((n, n, n), device=DEV)
-    first = mesher.mesh(wp.array(field, dtype=float, device=DEV)).numpy()
+    mesher = ws.MarchingCubes((n, n, n), device=device)
+    first = mesher.mesh(wp.array(field, dtype=float, device=device)).numpy()
     for _ in range(2):
-        again = ws.MarchingCubes((n, n, n), device=DEV).mesh(wp.array(field, dtype=float, device=DEV)).numpy()
+        again = ws.MarchingCubes((n, n, n), device=device).mesh(wp.array(field, dtype=float, device=device)).numpy()
         for a, b in zip(first, again):
             assert a.tobytes() == b.tobytes()
     assert len(first[0]) > 100
@@ -242,7 +243,7 @@ def test_check_determinism_finds_the_first_differing_sample(tmp_path):
 
 
 # ------------------------------------------------------------------------ boids' food
-def test_contended_food_goes_to_the_lowest_index_agents_and_never_below_zero():
+def test_contended_food_goes_to_the_lowest_index_agents_and_never_below_zero(device):
     n = 10
     rng = np.random.default_rng(2)
     p = ws.BoidParams(max_speed=1.0, min_speed=0.1, food_sense_radius=5.0, food_eat_radius=1.0, food_energy=0.1,
@@ -252,7 +253,7 @@ def test_contended_food_goes_to_the_lowest_index_agents_and_never_below_zero():
     energy = np.full(n, 0.5)
     energy[1] = p.energy_max  # sated: does not ask
     food = ws.FoodSources([[0.0, 2.0, 0.0], [50.0, 2.0, 0.0]], [3, 7])
-    flock = ws.Flock(x, v, params=p, food=food, energy=energy, device=DEV)
+    flock = ws.Flock(x, v, params=p, food=food, energy=energy, device=device)
     flock.step(0.01)
     bites = flock.bites.numpy()
     assert bites.tolist() == [1, 0, 1, 1] + [0] * (n - 4)  # agents 0, 2, 3 get the 3 bites

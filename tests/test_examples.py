@@ -110,3 +110,50 @@ OTHER_TESTED = {
     "smoke.py",  # tests/test_grid_fluids.py
     "levelset_liquid.py",  # tests/test_grid_fluids.py
 }
+
+
+def test_teapot_that_blows_up_exits_1_and_says_so(tmp_path):
+    # 20 g spread over 538 particles with 40 N/m springs at dt = 1/600 s is far past the stability limit
+    result = run_example("teapot.py", ["--mass", "0.02", "--frames", "3", "--out", "t.usda"], tmp_path)
+    assert result.returncode == 1, result.stdout[-2000:] + result.stderr[-2000:]
+    assert "blew up at frame 1" in result.stderr and "wrote" not in result.stdout
+    assert (tmp_path / "t.usda").is_file()  # the frames before the blow-up stay readable
+
+
+def test_examples_print_warp_module_lines_only_with_verbose(tmp_path):
+    quiet = run_example("bouncing_ball.py", ["--frames", "2"], tmp_path)
+    loud = run_example("bouncing_ball.py", ["--frames", "2", "--verbose"], tmp_path)
+    assert quiet.returncode == 0 and loud.returncode == 0
+    assert "Module warpsim.kernels" not in quiet.stdout + quiet.stderr
+    assert "Module warpsim.kernels" in loud.stdout + loud.stderr  # the flag reaches Warp
+
+
+def test_cli_prints_warp_module_lines_only_with_verbose(tmp_path):
+    def run(*extra):
+        return subprocess.run([sys.executable, "-m", "warpsim", "run", "bounce", "--frames", "2", "--no-progress",
+                               "--out", "b.usda", *extra], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+
+    quiet, loud = run(), run("--verbose")
+    assert quiet.returncode == 0 and loud.returncode == 0, quiet.stderr + loud.stderr
+    assert "Module warpsim.kernels" not in quiet.stdout + quiet.stderr
+    assert "Module warpsim.kernels" in loud.stdout + loud.stderr
+
+
+def test_examples_write_under_usd_out():
+    """Every output flag's default (``--out``, ``--figure``) is under usd_out/ (or None / '')."""
+    import ast
+
+    bad = []
+    for path in sorted((ROOT / "examples").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument" and node.args):
+                continue
+            flag = getattr(node.args[0], "value", None)
+            default = next((k.value for k in node.keywords if k.arg == "default"), None)
+            if flag in ("--out", "--figure") and isinstance(default, ast.Constant) and default.value:
+                if not str(default.value).startswith("usd_out/"):
+                    bad.append(f"{path.name} {flag}={default.value!r}")
+        for line in path.read_text().splitlines():  # the usage lines in the docstring too
+            if line.startswith("    python examples/") and "--out " in line and "--out usd_out/" not in line:
+                bad.append(f"{path.name}: {line.strip()}")
+    assert not bad, f"examples writing outside usd_out/: {bad}"

@@ -48,6 +48,7 @@ def test_shared_path_is_bit_identical_to_the_tiled_path_and_to_each_world_alone(
     # world 0 (the tiling base) equals its scene run alone bit for bit; every world within rounding
     for w in range(len(worlds)):
         scene = cls(cls.resolve_params(worlds[w]), device="cpu")
+        scene.frame_steps_fixed = shared.batch_scene.frame_steps(frame_dt, substeps)  # auto: the batch's count
         for _ in range(frames):
             scene.advance(frame_dt, substeps)
         alone = scene.sim.state.positions.numpy()

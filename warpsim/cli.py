@@ -22,6 +22,7 @@ import time
 
 from .cli_common import UsageError
 from .cli_common import device_arg as _device
+from .verbosity import choose_warp_verbosity, set_warp_verbosity
 
 __all__ = ["COMMANDS", "UsageError", "main"]
 
@@ -32,6 +33,7 @@ COMMANDS = {
     "sweep": "warpsim.worlds.command",
     "query": "warpsim.worlds.query_command",
     "pick": "warpsim.worlds.pick",
+    "export": "warpsim.render.export_command",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
 ``warpsim.viewer.command``) defines ``add_parser(sub)`` (adds its sub-parser to argparse's
@@ -56,6 +58,8 @@ def _wanted_commands(argv):
 
 def _parser(argv=None):
     p = _Parser(prog="warpsim", description="Run warpsim scenes and stream them to USD caches.")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Warp's start-up banner and kernel-module load lines (also accepted after the command)")
     names = ["list", "run", "info", *COMMANDS]
     sub = p.add_subparsers(dest="command", metavar="{" + ",".join(names) + "}", parser_class=_Parser)
     sub.required = True
@@ -263,11 +267,7 @@ def checkpoint_path(cache_path):
 
 
 def _cmd_run(args, out, err):
-    import warp as wp
-
-    wp.config.quiet = True  # no kernel-cache chatter between the progress bar and the result
-    if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # no kernel-cache chatter between the progress bar and the result (unless --verbose)
     from .usd.checkpoint import META_KEYS, load_checkpoint, save_checkpoint
     from .core.errors import SimulationError
     from .scenes import get_scene
@@ -294,8 +294,10 @@ def _cmd_run(args, out, err):
         raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
     _check_out(path)
     if args.preview is not None:
+        from .extras import render_modules, require_extra
         from .render.output import check_out
 
+        require_extra("render", f"--preview {args.preview}", render_modules(args.preview))  # before simulating
         try:
             check_out(os.path.join(os.path.dirname(path), args.preview))
         except (ValueError, OSError) as exc:
@@ -464,7 +466,11 @@ def main(argv=None, out=None, err=None):
     mistake: also any ValueError/FileNotFoundError/PermissionError before the simulation starts)."""
     out = out or sys.stdout
     err = err or sys.stderr
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbose = "--verbose" in argv
+    argv = [a for a in argv if a != "--verbose"]  # a global flag, wherever it stands
     try:
+        choose_warp_verbosity(True if verbose else None)  # applied where a command imports Warp
         args = _parser(argv).parse_args(argv)
         if args.command in _BROKEN:
             print(f"warpsim: error: the '{args.command}' command failed to load ({_one_line(_BROKEN[args.command])})",

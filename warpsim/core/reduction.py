@@ -9,7 +9,8 @@ import warp as wp
 
 from ..kernels import reduce as K
 
-DEFAULT_SLOTS = 4096  # threads of the first stage (each sums every 4096-th value)
+CPU_SLOTS = 4096  # threads of the first stage on the CPU (each sums every 4096-th value)
+CUDA_SLOTS = 32768  # on GPUs: enough threads to keep the device busy (a 128^3 grid: 64 values each)
 DEFAULT_GROUP = 64  # rows folded into one by each later stage
 
 
@@ -23,18 +24,21 @@ class FixedOrderReduction:
     Args:
         columns: quantities reduced side by side.
         first_max_column: columns from this one on are maxima, the ones before sums (default: all sums).
-        slots: rows of :attr:`partials` (threads of the first stage).
+        slots: rows of :attr:`partials` (threads of the first stage; default 4096 on the CPU, 32768 on
+            GPUs).
         group: rows folded into one per later stage.
         device: Warp device.
     """
 
-    def __init__(self, columns: int, first_max_column: int | None = None, slots: int = DEFAULT_SLOTS,
+    def __init__(self, columns: int, first_max_column: int | None = None, slots: int | None = None,
                  group: int = DEFAULT_GROUP, device=None):
+        self.device = wp.get_device(device)
+        if slots is None:
+            slots = CUDA_SLOTS if self.device.is_cuda else CPU_SLOTS
         if int(columns) != columns or columns < 1:
             raise ValueError(f"reduction columns must be a positive integer, got {columns!r}")
         if int(slots) != slots or slots < 1 or int(group) != group or group < 2:
             raise ValueError(f"reduction slots must be >= 1 and group >= 2 (integers), got {slots!r}, {group!r}")
-        self.device = wp.get_device(device)
         self.columns = int(columns)
         self.first_max_column = self.columns if first_max_column is None else int(first_max_column)
         self.group = int(group)

@@ -103,6 +103,10 @@ class Simulator:
         self.check_every = check_every
         self.warn_unstable = bool(warn_unstable)
         self._stability = None  # the last StabilityLimit (auto sub-steps reuse it until invalidated)
+        self.stability_model = None
+        """None, or a callable returning the model the stability estimate reads in place of
+        ``model`` (a batch of worlds whose springs are stored once and stepped outside this
+        simulator hands a stand-in holding every world's springs)."""
         self._checked_dt = None  # the step size last compared with the limit
 
         self.state = model.state()
@@ -197,7 +201,8 @@ class Simulator:
         the current state) with this integrator's stability region; see
         ``warpsim.core.stability`` for the bound's assumptions."""
         q = self.state.positions if positions is None else positions
-        self._stability = stab.particle_limits(self.model, q, self.integrator, self.forces,
+        model = self.model if self.stability_model is None else self.stability_model()
+        self._stability = stab.particle_limits(model, q, self.integrator, self.forces,
                                                self.colliders, iterations=iterations)[0]
         return self._stability
 

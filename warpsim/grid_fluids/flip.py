@@ -44,9 +44,9 @@ class FlipLiquid:
         density_tol: relative CG tolerance of the correction solve.
         max_density_target: cap on s per step (limits the displacement after a violent impact).
         deterministic: True (default): particle-to-grid sums are gathers over the cell-sorted particle
-            list in a fixed order and reseeded particles are appended in cell order, so two runs give
-            the same bits on every device. False: the sums scatter with float atomics (faster on
-            GPUs; on a GPU the summation order, and so the result's last bits, vary run to run).
+            list in a fixed order, so two runs give the same bits on every device. False: the sums
+            scatter with float atomics (faster; on a GPU the summation order, and so the result's last
+            bits, vary run to run). Reseeding appends particles in cell order either way.
         seed: random seed for particle placement.
         extrapolation_layers: faces filled beyond the liquid each step.
 
@@ -288,9 +288,10 @@ class FlipLiquid:
         # min_per_cell as well as the count) are reseeded, so few particles (and little mass) are added
         min_density = 1.0e30
         if self.correction is not None:
-            # the compaction renumbered the particles: sort them again for the density gather (the
-            # counts become min(count, max_per_cell), which changes no label and no reseeding decision)
-            P.count_cells(g, self.cell_count)
+            if self.deterministic:
+                # the compaction renumbered the particles: sort them again for the density gather (the
+                # counts become min(count, max_per_cell), which changes no label and no reseeding decision)
+                P.count_cells(g, self.cell_count)
             self._splat_density()
             min_density = float(self.min_per_cell)
         # new particles are appended in cell order (count, prefix sum, write): the same slots and ids

@@ -30,15 +30,16 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
     from ..cli_common import UsageError
     from ..cli_common import device_arg as _device
     from ..usd.validate import DamagedCacheError
+    from ..extras import render_modules, require_extra
+
+    require_extra("render", f"writing {os.path.basename(str(out))}", render_modules(out))
     from .cache import render_cache
 
     if not os.path.exists(cache):
         raise UsageError(f"cache {cache!r} does not exist; write one with 'warpsim run SCENE'")
-    import warp as wp
+    from ..verbosity import set_warp_verbosity
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):  # Warp >= 1.19 filters its messages by level
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # Warp's module-load lines only with --verbose
     device = _device(device)
     bars = []
 

@@ -139,6 +139,9 @@ def add_parser(sub):
 
 def run(args, out, err):
     from ..cli_common import UsageError
+    from ..extras import require_extra
+
+    require_extra("plot", "warpsim plot")
 
     if not os.path.exists(args.cache):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")

@@ -57,10 +57,22 @@ __all__ = ["Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "regi
 _REGISTRY = {}
 _LOADED = False
 
-CONTAINER = {"opacity": 0.2, "purpose": "guide"}
-"""Display hints for boxes of walls and tanks (``writer.add_box(..., **CONTAINER)``): a guide with
-low ``displayOpacity``, which usdview and Blender hide by default and ``warpsim render --guides``
-draws translucent, so a default render shows what the container holds."""
+CONTAINER = {"opacity": 0.2, "purpose": "render"}
+"""Display hints for boxes of walls and tanks (``writer.add_box(..., **CONTAINER)``): render-purpose
+geometry (Blender's importer and renderers load it; ``guide`` is kept for pure helpers, which they
+skip) with a low ``displayOpacity`` and a bound ``UsdPreviewSurface`` material of that opacity, so
+the container shows and what it holds shows through it."""
+
+
+def add_floor(writer, lower, upper, *, margin=0.5, color=(0.55, 0.55, 0.55)):
+    """Declare an opaque floor prim under a container: a +Y-facing quad at height ``lower[1]`` [m]
+    covering the container's footprint [lower, upper] widened by ``margin`` times its size on every
+    side, so DCC tools show what the bodies rest on (the container's own walls are see-through)."""
+    lo, hi = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+    pad = margin * (hi - lo)
+    x0, x1, z0, z1, y = lo[0] - pad[0], hi[0] + pad[0], lo[2] - pad[2], hi[2] + pad[2], lo[1]
+    points = np.array([[x0, y, z0], [x0, y, z1], [x1, y, z1], [x1, y, z0]])  # counter-clockwise from +Y
+    return writer.add_static_mesh("floor", points, [4], [0, 1, 2, 3], color=color, double_sided=False)
 
 
 @dataclass(frozen=True)
@@ -177,7 +189,11 @@ class Scene:
         """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with ``auto_substeps`` (or
         ``substeps="auto"``) at least that many and enough to keep each step within
         ``warpsim.core.stability.AUTO_SAFETY`` x the limit of ``self.sim`` (computed once about the
-        initial positions, again after a parameter change)."""
+        initial positions, again after a parameter change). ``self.frame_steps_fixed`` (an int, set
+        by a re-run of one world of a sweep) overrides both: the count the whole batch took."""
+        fixed = getattr(self, "frame_steps_fixed", None)
+        if fixed is not None:
+            return int(fixed)
         auto = substeps == "auto" or self.auto_substeps
         base = 1 if substeps == "auto" else int(substeps)
         sim = getattr(self, "sim", None)

@@ -13,7 +13,7 @@ import numpy as np
 from ..bodies import colliders as C
 from ..particle_fluids.surface import FluidSurface
 from ..particle_fluids.pbf import KERNELS, Nozzle, ParticleFluid, Sink, fluid_block
-from . import CONTAINER, Scene, register_scene
+from . import CONTAINER, Scene, add_floor, register_scene
 
 _WATER = (0.15, 0.45, 0.9)
 _COMMON = {
@@ -125,6 +125,7 @@ class DamBreak(FluidScene):
         pts, tris = open_box_mesh((0, 0, 0), self.params["box"], open_faces=("top", "front"))
         writer.add_static_mesh("container", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
                                **CONTAINER)
+        add_floor(writer, pts.min(0), pts.max(0))
 
 
 @register_scene("pour", "a stream poured from a nozzle into a container around a sphere; overflow drains "

@@ -32,7 +32,7 @@ from ..bodies.shapes import torus_mesh
 from ..bodies.soft_contact import SoftContact
 from ..bodies.softbody import add_soft_body
 from ..core.fracture import spring_segments
-from . import CONTAINER, SimulatorScene, register_scene
+from . import CONTAINER, SimulatorScene, add_floor, register_scene
 
 INTEGRATORS = tuple(sorted(ws.INTEGRATORS))
 
@@ -432,7 +432,8 @@ class DonutsScene(SimulatorScene):
     def declare(self, writer):
         writer.add_mesh("donuts", np.full(len(self.faces), 3), self.faces.reshape(-1), color=(0.85, 0.6, 0.35))
         writer.add_attribute("donuts", "warpsim:kineticEnergy", "double")
-        writer.add_box("walls", self.lower, self.upper, **CONTAINER)  # see-through guide walls
+        writer.add_box("walls", self.lower, self.upper, **CONTAINER)  # see-through walls
+        add_floor(writer, self.lower, self.upper)
 
     def frame_data(self):
         st = self.sim.state

@@ -20,7 +20,7 @@ from ..grid_fluids.mac_grid import MacGrid
 from ..meshing.marching_cubes import MarchingCubes
 from ..grid_fluids.smoke import Smoke
 from ..usd.sink import display_hints
-from . import CONTAINER, Scene, register_scene
+from . import CONTAINER, Scene, add_floor, register_scene
 
 _WATER = (0.15, 0.45, 0.9)
 _SMOKE = (0.75, 0.75, 0.8)
@@ -178,6 +178,7 @@ class LiquidScene(GridFluidScene):
         pts, tris = _open_box(self.grid.lower, self.grid.upper)
         writer.add_static_mesh("tank", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
                                **CONTAINER)
+        add_floor(writer, self.grid.lower, self.grid.upper)
 
     def frame_data(self):
         data = _surface_frame(self.mesher, self.solver.phi)
@@ -230,6 +231,7 @@ class FlipSplashScene(GridFluidScene):
         pts, tris = _open_box(self.grid.lower, self.grid.upper)
         writer.add_static_mesh("tank", pts, np.full(len(tris), 3), tris.reshape(-1), color=(0.7, 0.7, 0.7),
                                **CONTAINER)
+        add_floor(writer, self.grid.lower, self.grid.upper)
 
     def frame_data(self):
         P = self.solver.particles

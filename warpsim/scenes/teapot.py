@@ -13,7 +13,7 @@ from ..bodies.colliders import Capsule, Quad, Sphere, TriangleMesh
 from ..bodies.drag import parse_drag_spec, scripted_drag
 from ..bodies.softbody import add_soft_body
 from ..bodies.teapot import teapot_mesh
-from . import CONTAINER, SimulatorScene, register_scene
+from . import CONTAINER, SimulatorScene, add_floor, register_scene
 from .live import set_contact, set_gravity, set_springs
 
 ANCHORS = ("spout", "handle", "knob", "bottom")
@@ -156,6 +156,7 @@ class TeapotScene(SimulatorScene):
         if self.params["springs"]:
             writer.add_curves("springs", self.model.spring_indices.numpy(), width=0.001, color=(0.3, 0.3, 0.3))
         writer.add_box("walls", self.lower, self.upper, **CONTAINER)
+        add_floor(writer, self.lower, self.upper)
         ob = self.obstacle
         if isinstance(ob, Sphere):
             writer.add_sphere("obstacle", tuple(ob.center), ob.radius)

@@ -117,8 +117,9 @@ class Attr:
     """One attribute of a declared prim: static (``value`` set) or sampled per frame."""
 
     def __init__(self, name, type_name, value=None, dynamic=False, on_change=False, custom=False,
-                 metadata=None, uniform=False, derived=False):
+                 metadata=None, uniform=False, derived=False, connection=None):
         self.name = name
+        self.connection = connection  # relative path of the attribute this one reads (shader outputs)
         self.type_name = type_name
         self.value = value
         self.dynamic = dynamic
@@ -133,6 +134,7 @@ class PrimDecl:
     """A prim under the cache's root prim: USD type, attributes and per-frame sample preparation."""
 
     type_name = "Xform"
+    api_schemas: list = []  # applied API schemas (e.g. MaterialBindingAPI), authored as prim metadata
 
     def __init__(self, name, **_):
         self.name = name
@@ -145,7 +147,8 @@ class PrimDecl:
 
     # -- declaration helpers -------------------------------------------------------------
     def static(self, name, type_name, value, **kw):
-        self.attrs[name] = Attr(name, type_name, value=coerce(type_name, value, f"{self.name}.{name}"), **kw)
+        value = None if value is None else coerce(type_name, value, f"{self.name}.{name}")
+        self.attrs[name] = Attr(name, type_name, value=value, **kw)  # None: declared without a value
 
     def dynamic(self, name, type_name, **kw):
         self.attrs[name] = Attr(name, type_name, dynamic=True, **kw)
@@ -532,3 +535,28 @@ class InstancerDecl(PrimDecl):
         out["extent"] = _extent(pos, self.bound)
         _check_finite(out["extent"], where, "positions")
         return out
+
+
+MATERIAL_NAME = "preview_material"
+
+
+def bind_preview_material(decl, color=(0.6, 0.6, 0.6), opacity=1.0, roughness=0.6) -> None:
+    """Give ``decl`` a ``UsdPreviewSurface`` material (a ``Material`` child named
+    ``preview_material`` holding a ``Shader``) bound through ``MaterialBindingAPI``: DCC tools
+    (Blender's importer, usdview, Houdini) read its ``inputs:opacity``, which ``displayOpacity``
+    alone does not carry to them, so a see-through container shows what it holds.
+    ``color`` in [0, 1] (3,); ``opacity`` in [0, 1]."""
+    shader = PrimDecl("PreviewSurface")
+    shader.type_name = "Shader"
+    shader.static("info:id", "token", "UsdPreviewSurface", uniform=True)
+    shader.static("inputs:diffuseColor", "color3f", tuple(float(c) for c in color))
+    shader.static("inputs:opacity", "float", float(opacity))
+    shader.static("inputs:roughness", "float", float(roughness))
+    shader.static("outputs:surface", "token", None)
+    material = PrimDecl(MATERIAL_NAME)
+    material.type_name = "Material"
+    material.static("outputs:surface", "token", None, connection="PreviewSurface.outputs:surface")
+    material.children.append(("PreviewSurface", shader))
+    decl.children.append((MATERIAL_NAME, material))
+    decl.relationships["material:binding"] = [MATERIAL_NAME]
+    decl.api_schemas = ["MaterialBindingAPI"]

@@ -15,7 +15,7 @@ import re
 
 import numpy as np
 
-from .prims import CurvesDecl, GeomDecl, InstancerDecl, MeshDecl, PointsDecl, close_matches
+from .prims import CurvesDecl, GeomDecl, InstancerDecl, MeshDecl, PointsDecl, bind_preview_material, close_matches
 
 __all__ = ["PrimSink", "state_frame_data"]
 
@@ -32,11 +32,17 @@ PURPOSES = ("default", "render", "proxy", "guide")
 
 
 def display_hints(decl, opacity=None, purpose=None):
-    """Author a constant ``primvars:displayOpacity`` and the ``purpose`` on a declaration."""
+    """Author a constant ``primvars:displayOpacity`` and the ``purpose`` on a declaration; with an
+    opacity, also a bound ``UsdPreviewSurface`` material of that opacity and the prim's colour (what
+    Blender's importer and usdview read as see-through; ``displayOpacity`` alone they do not)."""
     if opacity is not None:
         if not 0.0 <= float(opacity) <= 1.0:
             raise ValueError(f"prim {decl.name!r}: opacity must lie in [0, 1], got {opacity!r}")
         decl.add_primvar("displayOpacity", "float[]", "constant", [float(opacity)])
+        color = decl.attrs.get("primvars:displayColor")
+        rgb = np.asarray(color.value, np.float64).reshape(-1, 3)[0] if color is not None and color.value is not None \
+            else (0.6, 0.6, 0.6)
+        bind_preview_material(decl, rgb, float(opacity))
     if purpose is not None:
         if purpose not in PURPOSES:
             raise ValueError(f"prim {decl.name!r}: purpose {purpose!r} is not one of {PURPOSES}."

@@ -359,6 +359,9 @@ class UsdCacheWriter(PrimSink):
         spec = Sdf.CreatePrimInLayer(layer, path)
         spec.specifier = Sdf.SpecifierDef
         spec.typeName = decl.type_name
+        schemas = getattr(decl, "api_schemas", None)
+        if schemas and not manifest:
+            spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=list(schemas)))
         for attr in decl.attrs.values():
             if manifest and not attr.dynamic:
                 continue
@@ -367,8 +370,10 @@ class UsdCacheWriter(PrimSink):
                                   attr.custom)
             for key, value in attr.metadata.items():
                 a.SetInfo(key, value)
-            if not attr.dynamic:
+            if not attr.dynamic and attr.value is not None:
                 a.default = to_vt(attr.type_name, attr.value)
+            if getattr(attr, "connection", None):
+                a.connectionPathList.explicitItems.append(path.AppendPath(Sdf.Path(attr.connection)))
         if manifest:
             return
         for rel_name, targets in decl.relationships.items():

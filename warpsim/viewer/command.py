@@ -35,12 +35,9 @@ def add_parser(sub):
 
 
 def _viser_or_usage():
-    from ..cli_common import UsageError
+    from ..extras import require_extra
 
-    try:
-        import viser  # noqa: F401
-    except ImportError:
-        raise UsageError('the viewer needs viser: pip install -e ".[viewer]"') from None
+    require_extra("viewer", "warpsim view")
 
 
 def build(args):
@@ -105,15 +102,13 @@ def threading_is_main():
 
 
 def run(args, out, err):
-    import warp as wp
+    from ..verbosity import set_warp_verbosity
 
     from .. import cli
     from .server import PortInUseError
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
-    _viser_or_usage()
+    _viser_or_usage()  # before any work
+    set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from ..usd.validate import DamagedCacheError
 
     try:

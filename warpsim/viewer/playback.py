@@ -108,7 +108,8 @@ class CacheReader:
             counts = np.asarray(prim.GetAttribute("faceVertexCounts").Get(code) or [], np.int64)
             idx = np.asarray(prim.GetAttribute("faceVertexIndices").Get(code) or [], np.int64)
             return DrawItem(name, "mesh", pts, _color(prim, (0.75, 0.75, 0.8)), triangles=triangulate(counts, idx),
-                            topology=hash((len(counts), len(idx), int(idx.sum()) if len(idx) else 0)))
+                            topology=hash((len(counts), len(idx), int(idx.sum()) if len(idx) else 0)),
+                            opacity=_opacity(prim))  # see-through containers, also in the sweep gallery
         if t == "BasisCurves":
             pts = np.asarray(prim.GetAttribute("points").Get(code) or [], np.float32).reshape(-1, 3)
             counts = prim.GetAttribute("curveVertexCounts").Get(code)

@@ -111,6 +111,7 @@ class WorldBatch:
             self.stepper = SharedStepper(self, sim0.model, self._scales, self._world_values,
                                          self._key_count, gravity, world_walls(self.sim.colliders,
                                                                                self.world_count, self.device))
+            self.sim.stability_model = self._springs_model
         self.batch_scene = copy.copy(self.scene)
         self.batch_scene.sim = self.sim
         if hasattr(self.batch_scene, "model"):
@@ -328,8 +329,35 @@ class WorldBatch:
         from ..core.stability import particle_limits
 
         sim = self.sim
-        return particle_limits(self.model, self.model.particle_q, sim.integrator, sim.forces, sim.colliders,
+        return particle_limits(self._springs_model(), self.model.particle_q, sim.integrator, sim.forces, sim.colliders,
                                particle_world=self.model.particle_world.numpy(), world_count=self.world_count)
+
+    def _springs_model(self):
+        """The model whose springs the stability estimate reads: the batch's own, or on the shared
+        path (springs stored once) a stand-in with every world's springs tiled, built for the
+        estimate and dropped after it (the tiled path's arrays, the same values)."""
+        if not self.shared:
+            return self.model
+        import types
+
+        m0, n, d = self.scene.sim.model, self.world_count, self.device
+        P, S = m0.particle_count, m0.spring_count
+        stand_in = types.SimpleNamespace(**{k: v for k, v in vars(self.model).items()})
+        stand_in.spring_count = n * S
+        stand_in.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, stand_in.spring_indices],
+                      device=d)
+        for name in SPRING_PARAMS:
+            base, key, coefficient = self._scales[name]
+            out = wp.empty(n * S, dtype=float, device=d)
+            if S:
+                wp.launch(KW.tile_float, n * S, inputs=[wp.array(base, dtype=float, device=d), key, coefficient,
+                                                        self._world_values, self._key_count, out], device=d)
+            setattr(stand_in, name, out)
+        for name in ("spring_broken", "_stability_adjacency"):
+            vars(stand_in).pop(name, None)
+        return stand_in
 
     def stability_warning(self, frame_dt, substeps):
         """One line naming the worlds whose step is above their limit (None when none is)."""

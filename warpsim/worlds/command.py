@@ -127,11 +127,9 @@ def _format(value):
 
 
 def run(args, out, err):
-    import warp as wp
+    from ..verbosity import set_warp_verbosity
 
-    wp.config.quiet = True
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
+    set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from .. import cli
     from ..core.errors import SimulationError
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
@@ -154,6 +152,10 @@ def run(args, out, err):
         raise usage(ray_usage_error(args))
     if args.chunk < 1:
         raise usage(f"--chunk {args.chunk}: it must be >= 1 (frames per chunk file)")
+    if getattr(args, "ray", None) is not None:
+        from ..extras import require_extra
+
+        require_extra("ray", "warpsim sweep --ray")
     if args.top is not None and args.top < 1:
         raise usage(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:
@@ -214,16 +216,16 @@ def run(args, out, err):
         from .rerun import rerun_in_sweep
 
         return rerun_in_sweep(args, cls, world_params, path, device, out, err)
-    if getattr(args, "ray", None) is None:
-        try:
-            _check_memory(cls, base, len(world_params), device)
-        except ValueError as exc:
-            raise usage(str(exc)) from None
     import warnings
 
     from ..core.stability import StabilityWarning
 
     warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
+    if getattr(args, "ray", None) is None:
+        try:
+            _check_memory(cls, base, len(world_params), device)
+        except ValueError as exc:
+            raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
     progress = None
     try:
@@ -257,12 +259,13 @@ def run(args, out, err):
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
             record = _record_path(path)
+            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=staging.layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
                              occupancy={**occupancy, "path": staging.partial(record)},
                              warn=lambda line: _stability_warning(line, args.strict, err), chunk_size=args.chunk,
-                             resume_frame=first)
+                             resume_frame=first, timing=run_timing)
             if progress:
                 progress.close()
                 progress = None
@@ -274,7 +277,8 @@ def run(args, out, err):
         from .rerun import write_manifest  # what re-running one world exactly needs
 
         write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused)
+                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused,
+                       frame_steps=run_timing.get("frame_steps"))
     except (SimulationError, ValueError, RaySweepError) as exc:
         if progress:
             progress.close()

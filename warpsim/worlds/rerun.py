@@ -61,10 +61,11 @@ def _typed(cls, params: dict) -> dict:
 
 
 def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps=None, device=None,
-                   fused=False) -> str:
+                   fused=False, frame_steps=None) -> str:
     """Write the manifest of the sweep whose root is ``root``; ``world_params`` as given to
-    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's).
-    Returns its path."""
+    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
+    ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
+    resolved over all worlds, so a world alone must be told). Returns its path."""
     from .. import __version__
     from ..scenes import get_scene
 
@@ -77,6 +78,7 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
             "fps": None if fps is None else float(fps), "substeps": None if substeps is None else int(substeps),
             "run_fps": run_fps, "run_substeps": run_substeps,
             "device": None if device is None else str(device), "fused": bool(fused),
+            "frame_steps": None if frame_steps is None else int(frame_steps),
             "worlds": [{k: _json_value(v) for k, v in p.items()} for p in world_params]}
     path = manifest_path(root)
     tmp = path + ".tmp"
@@ -163,12 +165,20 @@ def _settings(manifest, fps, substeps) -> tuple:
     return (manifest["fps"] if same_fps else fps), (manifest["substeps"] if same_substeps else substeps)
 
 
+def _frame_steps(manifest, fps, substeps):
+    """The steps per frame the sweep's batch took (auto sub-steps resolve over all its worlds, so
+    a world alone is told the count), or None when other settings were asked for."""
+    same = (fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)) and substeps is None
+    return manifest.get("frame_steps") if same else None
+
+
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
-              progress=None) -> str:
+              progress=None, frame_steps=None) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
     :func:`warpsim.worlds.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
     and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
-    the cache path. ``progress(frame)`` is called after each frame."""
+    the cache path. ``progress(frame)`` is called after each frame; ``frame_steps``: the steps per
+    frame the whole batch took (its manifest's ``frame_steps``), None to let the world decide."""
     from ..scenes import get_scene
     from ..usd.writer import UsdCacheWriter
     from .agents import is_agent_scene
@@ -185,6 +195,7 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     if "dt" in cls.params and fps_given is not None:  # as run_batch does
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
+    batch.batch_scene.frame_steps_fixed = frame_steps
     writer = UsdCacheWriter(out, fps=fps)
     batch.scene.declare(writer)
     writer.begin()
@@ -232,7 +243,7 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
     run_device = device if device is not None else manifest["device"]
     return run_world(manifest["scene"], manifest["worlds"], world, out=out or world_cache_path(root, world),
                      frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
-                     fused=manifest["fused"], progress=progress)
+                     fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -241,7 +252,7 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
 def run_command(args, out, err) -> int:
     """``warpsim run SCENE --from-sweep ROOT --world N [--frames F] [--fps F] [--substeps S]
     [--device D] [--out PATH]``; UsageError (exit 2) for bad input found before the run."""
-    from .. import cli
+    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     usage = cli.UsageError
@@ -256,23 +267,23 @@ def run_command(args, out, err) -> int:
         manifest = read_manifest(args.from_sweep, scene=args.scene)
         world = _check_world(args.world, len(manifest["worlds"]), args.from_sweep)
     except ValueError as exc:
-        raise usage(cli._one_line(exc)) from None
+        raise usage(cli.one_line(exc)) from None
     frames = manifest["frames"] if args.frames is None else args.frames
     if frames < 0:
         raise usage(f"--frames {frames}: it must be >= 0")
     path = args.out or world_cache_path(args.from_sweep, world)
     if os.path.splitext(path)[1] not in (".usd", ".usda", ".usdc"):
         raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
-    device = cli._device(args.device) if args.device is not None else None
+    device = cli.device_arg(args.device) if args.device is not None else None
     if device is None and manifest["device"] is not None:
-        device = cli._device(manifest["device"])  # the sweep's device must be here
+        device = cli.device_arg(manifest["device"])  # the sweep's device must be here
     return _run_and_report(manifest, world, path, frames, args.fps, args.substeps, device,
                            not args.no_progress, out, err, SimulationError)
 
 
 def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_progress, out, err,
                     SimulationError) -> int:
-    from .. import cli
+    from .. import cli_common as cli
 
     for line in _differences(manifest, fps, substeps, device):
         print(f"warpsim: warning: {line}: world {world} will differ from its samples in the sweep", file=err)
@@ -286,12 +297,13 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
     try:
         result = run_world(manifest["scene"], manifest["worlds"], world, out=path, frames=frames, fps=run_fps,
                            substeps=run_substeps, device=device, fused=manifest["fused"],
-                           progress=(lambda f: progress.update(1)) if progress else None)
+                           progress=(lambda f: progress.update(1)) if progress else None,
+                           frame_steps=_frame_steps(manifest, fps, substeps))
     except SimulationError as exc:
-        print(f"warpsim: simulation failed: {cli._one_line(exc)}", file=err)
+        print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
         return 1
     except ValueError as exc:
-        raise cli.UsageError(cli._one_line(exc)) from None
+        raise cli.UsageError(cli.one_line(exc)) from None
     finally:
         if progress:
             progress.close()
@@ -304,13 +316,13 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
 def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     """``warpsim sweep ... --rerun N``: world N of the sweep these arguments describe, alone, into
     ``<stem>.world_NNNNNN.usda`` beside ``path`` (the sweep's root)."""
-    from .. import cli
+    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     try:
         world = _check_world(args.rerun, len(world_params), f"described ({len(world_params)} worlds)")
     except ValueError as exc:
-        raise cli.UsageError(f"--rerun: {cli._one_line(exc)}") from None
+        raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
     manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
                 "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
     from .sweep import frame_timing
@@ -319,7 +331,7 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
         manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(cls, cls.resolve_params(world_params[0]),
                                                                         args.fps, args.substeps)
     except ValueError as exc:
-        raise cli.UsageError(cli._one_line(exc)) from None
+        raise cli.UsageError(cli.one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,
                            not args.no_progress, out, err, SimulationError)
 

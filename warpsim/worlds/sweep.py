@@ -84,7 +84,7 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
-              warn=None, chunk_size=24, resume_frame=None) -> list:
+              warn=None, timing=None, chunk_size=24, resume_frame=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -104,7 +104,9 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
     default to it, unless ``dt`` is given): every frame sub-steps inside the stiffest world's
     stability limit; ``warn(line)``: called once before the first frame when a world's step is
-    above its stability limit (it may raise to stop the run)."""
+    above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
+    ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
+    a world re-run alone needs it to take the same steps)."""
     from ..scenes import get_scene
 
     cls = get_scene(scene_name)
@@ -123,6 +125,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
     batch.batch_scene.auto_substeps = auto
+    if timing is not None:
+        timing["frame_steps"] = int(batch.batch_scene.frame_steps(frame_dt, substeps))
     if warn is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:

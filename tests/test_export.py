@@ -1,0 +1,135 @@
+"""``warpsim export``: one frame of a cache as .obj/.ply/.stl/.glb, read back with trimesh and
+compared with the positions written for that frame; particles meshed with ``--surface`` enclose
+the volume of the ball they fill; every mistake is one line with exit status 2 and no file."""
+
+import io
+
+import numpy as np
+import pytest
+
+from warpsim import cli
+from warpsim.usd.writer import UsdCacheWriter
+
+trimesh = pytest.importorskip("trimesh")
+
+TET_POINTS = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+TET_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # outward
+
+
+def ball_points(radius=0.1, spacing=0.01):
+    g = np.arange(-radius, radius + 1e-9, spacing)
+    p = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    return p[np.linalg.norm(p, axis=1) <= radius]
+
+
+def shift(frame):
+    return np.array([0.1 * frame, 0.5, 0.0])
+
+
+def write_cache(path, frames=3, with_guide_only=False):
+    """A tetrahedron (mesh) moving +0.1 m in x per frame, a ball of particles, a two-curve polyline
+    set and a static box (1 x 2 x 3 m)."""
+    ball = ball_points()
+    with UsdCacheWriter(str(path), fps=30) as w:
+        if with_guide_only:
+            w.add_box("walls", (0, 0, 0), (1, 1, 1), purpose="guide")
+            for f in range(frames):
+                w.write_frame(f, {})
+            return ball
+        w.add_mesh("tet", [3] * 4, TET_FACES.reshape(-1), velocities=False)
+        w.add_points("ball", radius=0.005, velocities=False)
+        w.add_curves("hair", curve_vertex_counts=[3, 2])
+        w.add_box("box", (2.0, 0.0, 0.0), (3.0, 2.0, 3.0))
+        for f in range(frames):
+            w.write_frame(f, {"tet": {"points": TET_POINTS + shift(f)},
+                              "ball": {"points": ball + shift(f)},
+                              "hair": {"points": np.array([[0, 0, 0], [0, 1, 0], [0, 2, 0], [1, 0, 0], [1, 1, 0]])
+                                       + shift(f)}})
+    return ball
+
+
+def run_cli(argv):
+    out, err = io.StringIO(), io.StringIO()
+    return cli.main(["export", *map(str, argv)], out, err), out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    path = tmp_path_factory.mktemp("export") / "c.usda"
+    write_cache(path)
+    return path
+
+
+def test_obj_per_prim_holds_the_frames_geometry(cache, tmp_path):
+    code, out, err = run_cli([cache, "--frame", 1, "--out", tmp_path / "f.obj"])
+    assert code == 0, err
+    tet = trimesh.load(tmp_path / "f_tet.obj", process=False)
+    np.testing.assert_allclose(tet.vertices, TET_POINTS + shift(1), atol=1e-6)
+    np.testing.assert_array_equal(tet.faces, TET_FACES)
+    assert tet.is_watertight and tet.volume == pytest.approx(1.0 / 6.0, rel=1e-6)  # outward winding kept
+    box = trimesh.load(tmp_path / "f_box.obj", process=False)
+    assert box.volume == pytest.approx(1.0 * 2.0 * 3.0, rel=1e-6)
+    text = (tmp_path / "f_hair.obj").read_text()
+    assert sum(line.startswith("l ") for line in text.splitlines()) == 3  # 2 + 1 segments
+    points = (tmp_path / "f_ball.obj").read_text().splitlines()
+    assert sum(line.startswith("p ") for line in points) == len(ball_points())
+    assert "wrote frame 1 to 4 files" in out
+
+
+def test_ply_points_and_stl_mesh_and_last_frame_default(cache, tmp_path):
+    assert run_cli([cache, "--out", tmp_path / "p.ply"])[0] == 0  # default: the last frame (2)
+    cloud = trimesh.load(tmp_path / "p_ball.ply")
+    np.testing.assert_allclose(np.sort(cloud.vertices, axis=0), np.sort(ball_points() + shift(2), axis=0), atol=1e-6)
+    code, _, err = run_cli([cache, "--frame", 0, "--out", tmp_path / "s.stl", "--surface"])
+    assert code == 2 and "prim 'hair' is curves and .stl holds triangles only" in err  # before any file
+    assert not list(tmp_path.glob("s*.stl"))
+    guides = tmp_path / "g.usda"
+    write_cache(guides, with_guide_only=True)
+    assert run_cli([guides, "--out", tmp_path / "walls.stl", "--guides"])[0] == 0
+    walls = trimesh.load(tmp_path / "walls.stl")
+    assert walls.volume == pytest.approx(1.0, rel=1e-6)  # the unit box, outward
+
+
+def test_glb_merge_holds_every_prim(cache, tmp_path):
+    code, out, err = run_cli([cache, "--frame", 2, "--out", tmp_path / "all.glb", "--merge"])
+    assert code == 0, err
+    scene = trimesh.load(tmp_path / "all.glb")
+    assert set(scene.geometry) >= {"tet", "ball", "box"}
+    tet = scene.geometry["tet"]
+    np.testing.assert_allclose(np.sort(tet.vertices, 0), np.sort(TET_POINTS + shift(2), 0), atol=1e-6)
+
+
+def test_surface_encloses_the_particle_ball(cache, tmp_path):
+    code, _, err = run_cli([cache, "--frame", 1, "--out", tmp_path / "m.obj", "--surface", "--device", "cpu"])
+    assert code == 0, err
+    text = (tmp_path / "m_ball.obj").read_text()
+    assert "\np " not in text  # no point cloud left
+    ball = trimesh.load(tmp_path / "m_ball.obj", process=False)
+    assert ball.is_watertight
+    volume = 4.0 / 3.0 * np.pi * 0.1 ** 3  # particles fill a ball of radius 0.1 m on a 1 cm lattice
+    assert abs(ball.volume) == pytest.approx(volume, rel=0.05)  # measured: equivalent radius 0.1002 m
+    np.testing.assert_allclose(ball.vertices.mean(0), shift(1), atol=0.01)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--frame", 7, "--out", "x.obj"], "--frame 7: cache"),
+    (["--frame", -1, "--out", "x.obj"], "has frames 0..2"),
+    (["--out", "x.fbx"], "unknown suffix '.fbx'"),
+    (["--out", "x.stl"], "holds triangles only; pass --surface"),
+    (["--out", "x.ply", "--merge"], "one kind; merge into .obj or .glb"),
+])
+def test_mistakes_are_one_line_and_write_nothing(cache, tmp_path, argv, says):
+    argv = [str(tmp_path / a) if str(a).startswith("x.") else a for a in argv]
+    code, out, err = run_cli([cache, *argv])
+    assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
+    assert not list(tmp_path.iterdir())
+
+
+def test_empty_cache_is_one_line(tmp_path):
+    path = tmp_path / "g.usda"
+    write_cache(path, with_guide_only=True)
+    code, _, err = run_cli([path, "--out", tmp_path / "g.obj"])
+    assert code == 2 and "holds nothing to export at frame 2" in err and "--guides" in err
+    assert run_cli([path, "--out", tmp_path / "g.obj", "--guides"])[0] == 0  # the guide box, when asked
+    code, _, err = run_cli([tmp_path / "none.usda", "--out", tmp_path / "n.obj"])
+    assert code == 2 and "does not exist" in err

@@ -1,0 +1,53 @@
+"""``warpsim export CACHE [--frame N] --out FILE.obj|.ply|.stl|.glb [--surface] [--merge] [--guides]``:
+one frame's geometry as files other tools read (see :mod:`warpsim.render.export`)."""
+
+from __future__ import annotations
+
+import os
+
+
+def add_parser(sub):
+    p = sub.add_parser("export", help="write one frame of a USD cache as .obj, .ply, .stl or .glb geometry")
+    p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
+    p.add_argument("--frame", type=int, default=None, help="frame to export (default: the last)")
+    p.add_argument("--out", required=True, help="file to write: .obj, .ply, .stl or .glb (one file per prim, "
+                   "named OUT-STEM_PRIM.SUFFIX, unless --merge)")
+    p.add_argument("--surface", action="store_true",
+                   help="particles as a closed marching-cubes surface instead of a point cloud")
+    p.add_argument("--spacing", type=float, default=None,
+                   help="--surface grid spacing [m] (default: the particles' width or neighbour distance)")
+    p.add_argument("--merge", action="store_true", help="every prim into the one file --out")
+    p.add_argument("--guides", action="store_true", help="also export guide prims (pure helpers)")
+    p.add_argument("--device", default=None, help="Warp device for --surface (default: CUDA when present)")
+
+
+def run(args, out, err):
+    from ..cli_common import UsageError
+    from ..cli_common import device_arg
+    from .export import FORMATS, export_frame
+
+    suffix = os.path.splitext(args.out)[1].lower()
+    if suffix not in FORMATS:
+        raise UsageError(f"--out {args.out!r}: unknown suffix {suffix or '(none)'!r}; write one of {', '.join(FORMATS)}")
+    if not os.path.exists(args.cache):
+        raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
+    if args.spacing is not None and not args.spacing > 0.0:
+        raise UsageError(f"--spacing {args.spacing}: it must be > 0 [m]")
+    device = None
+    if args.surface:
+        from ..verbosity import set_warp_verbosity
+
+        set_warp_verbosity()
+        device = device_arg(args.device)
+    try:
+        result = export_frame(args.cache, args.out, args.frame, surface=args.surface, merge=args.merge,
+                              guides=args.guides, spacing=args.spacing, device=device)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    for name, kind, verts, elems in result["parts"]:
+        what = {"mesh": f"{elems} triangles", "curves": f"{elems} segments", "points": "points"}[kind]
+        print(f"  {name}: {kind}, {verts} vertices" + ("" if kind == "points" else f", {what}"), file=out)
+    paths = result["paths"]
+    print(f"wrote frame {result['frame']} to {paths[0]}" if len(paths) == 1 else
+          f"wrote frame {result['frame']} to {len(paths)} files: {', '.join(paths)}", file=out)
+    return 0
