@@ -124,9 +124,11 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    batch.batch_scene.auto_substeps = auto
+    stepped = getattr(batch, "batch_scene", None)  # flocks (AgentWorldBatch) step their own way
+    if stepped is not None:
+        stepped.auto_substeps = auto
     if timing is not None:
-        timing["frame_steps"] = int(batch.batch_scene.frame_steps(frame_dt, substeps))
+        timing["frame_steps"] = int(stepped.frame_steps(frame_dt, substeps) if stepped is not None else substeps)
     if warn is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
