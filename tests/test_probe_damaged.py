@@ -145,3 +145,15 @@ def test_info_on_a_fifo_answers_at_once(tmp_path):
     t0 = time.perf_counter()
     code, _, err = run("info", str(fifo))
     assert code == 2 and "not a regular file" in err and time.perf_counter() - t0 < 5
+
+
+@pytest.mark.parametrize("command", ["info", "render", "plot"])
+@pytest.mark.parametrize("content", [b"#usda 1.0\n(((( nonsense", b"PXR-USDC" + b"\0" * 100, b""])
+def test_a_file_that_is_not_usd_is_named_in_warpsims_words(tmp_path, command, content):
+    bad = tmp_path / "bad.usda" if content.startswith(b"#usda") or not content else tmp_path / "bad.usdc"
+    bad.write_bytes(content)
+    extra = ["--out", str(tmp_path / "x.png")] if command != "info" else []
+    code, _, err = run(command, str(bad), *extra, *(RUN if command == "render" else []))
+    lines = err.strip().splitlines()
+    assert code in (1, 2) and len(lines) == 1 and "pxrInternal" not in err and "line " not in err.split("says")[0], err
+    assert bad.name in lines[0] and ("is empty (0 bytes)" if not content else "is not a readable USD file") in lines[0]

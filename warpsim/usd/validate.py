@@ -35,6 +35,29 @@ def open_path(path):
     return existing_file(path, "USD cache")
 
 
+def pxr_reason(exc, limit=160) -> str:
+    """What a ``pxr`` error says, without its internal prefix ("Error in 'pxrInternal_...' at line
+    N in file ... : 'text'" -> "text"); the last message when there are several."""
+    import re
+
+    text = str(exc).strip()
+    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)", text, re.S)
+    reason = (found[-1] if found else text.splitlines()[-1] if text else type(exc).__name__).strip()
+    reason = " ".join(reason.split())
+    return reason if len(reason) <= limit else reason[: limit - 3] + "..."
+
+
+def _not_usd(path, exc):
+    """ValueError for a file that does not open as USD: warpsim's words, pxr's reason trailing."""
+    path = os.fspath(path)
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        size = None
+    what = "is empty (0 bytes)" if size == 0 else "is not a readable USD file (truncated, damaged or another format)"
+    return ValueError(f"USD cache {path!r} {what}; write it again with 'warpsim run' (USD says: {pxr_reason(exc)})")
+
+
 def open_stage(path_or_stage):
     """``Usd.Stage`` for a path (ValueError if it does not open) or an already open stage."""
     from pxr import Usd
@@ -45,7 +68,7 @@ def open_stage(path_or_stage):
     try:
         stage = Usd.Stage.Open(path)
     except Exception as exc:  # noqa: BLE001  (pxr raises Tf.ErrorException)
-        raise ValueError(f"USD cache {path!r} does not open: {str(exc).strip().splitlines()[-1][:200]}") from None
+        raise _not_usd(path, exc) from None
     if stage is None:
         raise ValueError(f"USD cache {path!r} does not open")
     return stage
@@ -198,7 +221,7 @@ def chunk_health(path, verify=None):
     try:
         layer = Sdf.Layer.OpenAsAnonymous(path)
     except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
-        raise ValueError(f"USD cache {path!r} does not open: {str(exc).strip().splitlines()[-1][:160]}") from None
+        raise _not_usd(path, exc) from None
     if layer is None:
         raise ValueError(f"USD cache {path!r} does not open")
     chunks = _root_chunks(layer)
@@ -242,7 +265,7 @@ def sweep_layers(path):
     try:
         layer = Sdf.Layer.OpenAsAnonymous(path)
     except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
-        raise ValueError(f"USD cache {path!r} does not open: {str(exc).strip().splitlines()[-1][:160]}") from None
+        raise _not_usd(path, exc) from None
     if layer is None:
         raise ValueError(f"USD cache {path!r} does not open")
     folder = os.path.dirname(path)
@@ -281,7 +304,8 @@ def damage_report(path, verify=None):
         try:
             sub = chunk_health(layer_path, verify)
         except ValueError as exc:
-            damaged.append((name, start, end, f"damaged (does not open in USD: {str(exc).split(': ', 1)[-1][:120]})"))
+            why = str(exc).rsplit("(USD says: ", 1)[-1].rstrip(")") if "USD says" in str(exc) else str(exc)
+            damaged.append((name, start, end, f"damaged (does not open in USD: {why[:100]})"))
             continue
         if sub is None:  # one self-contained layer: it must open
             checked.add("opened in USD")

@@ -120,13 +120,13 @@ class SweepStaging:
             return 0
         from pxr import Sdf
 
-        from ..usd.validate import _root_chunks
+        from ..usd.validate import _root_chunks, pxr_reason
 
         try:
             chunks = _root_chunks(Sdf.Layer.OpenAsAnonymous(self.layer))
         except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
             raise ValueError(f"--resume: the interrupted sweep's layer {self.layer} does not open ("
-                             f"{str(exc).strip().splitlines()[-1][:120]}); run the sweep without --resume") from None
+                             f"{pxr_reason(exc, 120)}); run the sweep without --resume") from None
         return chunks[-1][1] + 1 if chunks else 0
 
     def partial(self, path):
