@@ -159,6 +159,7 @@ def _connect(address, num_cpus):
     quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
     if not remote:
         ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
+        _watch_local_cluster(ray)
     else:
         try:
             ray.init(address=address, **quiet)
@@ -168,6 +169,19 @@ def _connect(address, num_cpus):
                              "prints; with token authentication set RAY_AUTH_MODE=token and the cluster's token "
                              "(ray get-auth-token) in ~/.ray/auth_token") from None
     return ray, True
+
+
+def _watch_local_cluster(ray):
+    """A killed driver must not leave the cluster it started running: see ``watchdog``."""
+    from .watchdog import start_watchdog
+
+    session = None
+    try:  # ray has no public accessor for the session folder
+        session = ray._private.worker.global_worker.node.get_session_dir_path()
+    except Exception:  # noqa: BLE001
+        latest = os.path.join("/tmp", "ray", "session_latest")
+        session = os.path.realpath(latest) if os.path.exists(latest) else None
+    start_watchdog(session)
 
 
 CONNECT_TIMEOUT_S = 10.0
