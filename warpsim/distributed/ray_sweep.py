@@ -291,12 +291,20 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         options, task_device = _task_resources(ray, device)  # refuses a device before touching any file
         os.makedirs(os.path.dirname(out_path), exist_ok=True)
         if manifest is None:
-            shutil.rmtree(batches_root(out_path), ignore_errors=True)  # the previous sweep of this name
-            if os.path.exists(out_path):
-                os.remove(out_path)  # its root referenced those batches
+            broot = None
+            if os.path.exists(out_path) and os.path.isdir(batches_root(out_path)):
+                # a finished sweep of this name stays whole (its root references these batches) until
+                # this one is complete: write beside it, remove it at the end
+                import secrets
+
+                broot = os.path.basename(batches_root(out_path)) + "-" + secrets.token_hex(4)
+            else:
+                shutil.rmtree(batches_root(out_path), ignore_errors=True)  # an interrupted sweep of this name
             manifest = SweepManifest.new(mpath, sweep)
+            manifest.batches_root = broot
             manifest.save()
-        os.makedirs(batches_root(out_path), exist_ok=True)
+        broot = manifest.batches_root
+        os.makedirs(batches_root(out_path, broot), exist_ok=True)
         # a resume runs again what is not listed, what changed on disk and what raised (maybe out of memory)
         skipped = [i for i in range(len(batches)) if resume and manifest.finished(i) and not manifest.batches[i]["error"]]
         todo = [i for i in range(len(batches)) if i not in skipped]
@@ -306,7 +314,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             first, count = batches[i]
             spec = {"scene": scene_name, "worlds": world_params[first:first + count], "first_world": first,
                     "index": i, "frames": frames, "fps": fps, "substeps": substeps, "device": task_device,
-                    "final_dir": batch_dir(out_path, i), "layer_name": _layer_name(out_path, i),
+                    "final_dir": batch_dir(out_path, i, broot), "layer_name": _layer_name(out_path, i),
                     "runner": runner, "options": batch_options, "kill_once": _kill_once}
             pending[task.remote(spec)] = i
         fresh = {}
@@ -334,13 +342,13 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
 
     rows = []
     for i in range(len(batches)):
-        rows.extend(fresh[i] if i in fresh else load_rows(batch_dir(out_path, i)))
+        rows.extend(fresh[i] if i in fresh else load_rows(batch_dir(out_path, i, broot)))
     rows.sort(key=lambda r: r["world"])
     from ..worlds import write_sweep_root, write_table
 
     write_table(table_path, rows)
     ok = [i for i in range(len(batches)) if not manifest.batches[i]["error"]]
-    layers = [os.path.join(batch_dir(out_path, i), _layer_name(out_path, i)) for i in ok]
+    layers = [os.path.join(batch_dir(out_path, i, broot), _layer_name(out_path, i)) for i in ok]
     worlds = None  # every world; only the worlds of batches with a layer when a batch failed
     if len(ok) < len(batches):
         worlds = [w for i in ok for w in range(batches[i][0], sum(batches[i]))]
@@ -348,8 +356,15 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         raise RaySweepError(f"every batch failed, e.g. batch 0: {manifest.batches[0]['error']}; the table "
                             f"{table_path} lists the errors")
     root = write_sweep_root(out_path, layers, len(world_params), layout=layout, worlds=worlds)
-    remove_stale(out_path)
-    return {"rows": rows, "root": root, "table": table_path, "ran": sorted(fresh), "skipped": skipped,
+    remove_stale(out_path, broot)
+    import glob
+
+    current = batches_root(out_path, broot)
+    for folder in glob.glob(glob.escape(batches_root(out_path)) + "*"):  # the replaced sweep's batches
+        if os.path.isdir(folder) and os.path.abspath(folder) != current:
+            shutil.rmtree(folder, ignore_errors=True)
+    return {"rows": rows, "root": root, "table": table_path, "layers": layers, "ran": sorted(fresh),
+            "skipped": skipped,
             "batches": {i: manifest.batches[i] for i in range(len(batches))},
             "seconds": time.perf_counter() - t_start}
 
@@ -366,7 +381,7 @@ def _record(manifest, out_path, batches, i, result):
     """Check batch ``i``'s published folder as the driver sees it, then list it in the manifest."""
     from .batches import tree_checksum
 
-    folder = batch_dir(out_path, i)
+    folder = batch_dir(out_path, i, manifest.batches_root)
     if not os.path.isdir(folder) or tree_checksum(folder) != result["sha256"]:
         raise RaySweepError(f"batch {i} was written on host {result['host']} to {folder}, which this driver "
                            "does not see (or sees changed): --out must be on a filesystem every Ray node shares")

@@ -228,6 +228,7 @@ def run(args, out, err):
             raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
     progress = None
+    run_timing = {}  # steps per frame the single-process batch took (the Ray driver records none)
     try:
         if getattr(args, "ray", None) is not None:
             from ..distributed.ray_sweep import DEFAULT_BATCH_SIZE, run_ray_sweep
@@ -239,9 +240,7 @@ def run(args, out, err):
                                    batch_options={**({"track": track} if track else {}),
                                                   **({"fused": True} if args.fused else {})} or None, log=err)
             rows, root = result["rows"], result["root"]
-            import glob
-
-            layers = sorted(glob.glob(os.path.join(glob.escape(stem) + ".batches", "batch_*", "*" + LAYER_EXT)))
+            layers = result["layers"]
         else:
             from .staging import SweepStaging, settings_digest
 
@@ -259,7 +258,6 @@ def run(args, out, err):
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
             record = _record_path(path)
-            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=staging.layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
