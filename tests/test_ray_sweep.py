@@ -83,7 +83,7 @@ def test_ray_options_without_ray_or_out_of_range_exit_2_with_one_line(tmp_path):
 
     base = ["sweep", SCENE, "--worlds", "2", "--vary", "stiffness=100,200", "--frames", "1", "--device", "cpu",
             "--out", str(tmp_path / "s.usda")]
-    for extra, words in [(["--resume"], "--resume goes with --ray"), (["--batch-size", "4"], "--batch-size goes"),
+    for extra, words in [(["--resume"], "--resume: no interrupted sweep"), (["--batch-size", "4"], "--batch-size goes"),
                          (["--ray", "--batch-size", "0"], "--batch-size 0: it must be >= 1"),
                          (["--ray", "--ray-cpus", "0"], "--ray-cpus 0: it must be >= 1"),
                          (["--ray", "--resume"], "--resume: no manifest")]:
