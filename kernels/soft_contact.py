@@ -26,12 +26,14 @@ faces beside rs): s = |c1 - c2| < thickness, normal (c1 - c2)/|c1 - c2|. Behind 
 contact: there the surface may just curve away (the saddle inside a torus), and a body whose
 edges crossed is pushed out by its vertices. Every vertex (edge) keeps its nearest contact,
 ties broken by the lower triangle (edge) index, so the result does not depend on the order in
-which the BVH returns candidates. Depth = thickness - s.
+which the BVH returns candidates.
 
 A contact joins four particles k with weights a_k (vertex-triangle: 1, -b_0, -b_1, -b_2; edge-edge:
 1 - u, u, -(1 - t), -t): the relative velocity is sum a_k v_k, the effective inverse mass
-W = sum a_k^2 w_k. ``push_contacts`` removes ``fraction`` of the depth along n, ``impulse_contacts``
-applies J = -(1 + e) u_n / W when u_n < 0 and Coulomb friction up to mu J; particle k receives
+W = sum a_k^2 w_k. Each of ``iterations`` passes (Jacobi: deltas from the same state, then
+applied) lets ``push_contacts`` remove ``fraction`` of the depth thickness - (sum a_k x_k) . n at
+the current positions (at detection, thickness - s) and ``impulse_contacts`` apply
+J = -(1 + e) u_n / W when u_n < 0 and Coulomb friction up to mu J; particle k receives
 a_k w_k (impulse): sum m dv = J sum a_k = 0, momentum is conserved (pinned particles, w = 0, never
 move). Each contact is scaled by 1 / (largest contact count among its particles): a particle in
 several contacts receives a convex combination (Jacobi averaging).
@@ -168,28 +170,28 @@ def vertex_triangle_candidate(
 
 @wp.func
 def vertex_triangle_test(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, thickness: float, search: float):
-    """(distance [m], barycentrics, normal, signed distance s) of vertex x against triangle abc;
-    distance -1 when they are no contact (module docstring)."""
+    """(distance [m], barycentrics, normal) of vertex x against triangle abc; distance -1 when
+    they are no contact (module docstring)."""
     bary = triangle_barycentric(x, a, b, c)
     delta = x - (bary[0] * a + bary[1] * b + bary[2] * c)
     d = wp.length(delta)
     nf = wp.cross(b - a, c - a)
     area2 = wp.length(nf)
     if area2 < 1.0e-20:
-        return -1.0, bary, nf, 0.0
+        return -1.0, bary, nf
     nf = nf / area2
     s = d
     n = nf
     if wp.dot(delta, nf) < 0.0:
         # behind the face: a contact only when x lies right behind it (closest point inside)
         if bary[0] <= 0.0 or bary[1] <= 0.0 or bary[2] <= 0.0:
-            return -1.0, bary, n, 0.0
+            return -1.0, bary, n
         s = -d
     elif d > 1.0e-9:
         n = delta / d
     if s >= thickness or s <= -search:
-        return -1.0, bary, n, 0.0
-    return d, bary, n, s
+        return -1.0, bary, n
+    return d, bary, n
 
 
 @wp.func
@@ -222,17 +224,17 @@ def edge_edge_test(
     f: int, xa: wp.vec3, xb: wp.vec3, edges: wp.array(dtype=int), edge_tris: wp.array(dtype=int),
     tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), thickness: float,
 ):
-    """(distance [m], (u, t), normal, signed distance s) of edge xa-xb against edge f; distance -1
-    when they are no contact (module docstring)."""
+    """(distance [m], (u, t), normal) of edge xa-xb against edge f; distance -1 when they are no
+    contact (module docstring)."""
     xc = q[edges[2 * f]]
     xd = q[edges[2 * f + 1]]
     ut = segment_closest_params(xa, xb, xc, xd)
     # closest points inside both edges, edges not near parallel: otherwise a vertex is nearest
     # and the vertex-triangle contact handles it
     if ut[0] <= 0.0 or ut[0] >= 1.0 or ut[1] <= 0.0 or ut[1] >= 1.0:
-        return -1.0, ut, wp.vec3(), 0.0
+        return -1.0, ut, wp.vec3()
     if wp.length(wp.cross(xb - xa, xd - xc)) < EDGE_MIN_SINE * wp.length(xb - xa) * wp.length(xd - xc):
-        return -1.0, ut, wp.vec3(), 0.0
+        return -1.0, ut, wp.vec3()
     delta = (xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))
     d = wp.length(delta)
     side = wp.vec3()
@@ -243,10 +245,8 @@ def edge_edge_test(
     # in front of the faces beside f only: behind them (the edges have crossed) the surface
     # may just curve away (saddles of a torus), and the vertex-triangle contacts push out
     if d <= 1.0e-9 or d >= thickness or wp.dot(delta, side) < 0.0:
-        return -1.0, ut, wp.vec3(), 0.0
-    n = delta / d
-    s = d
-    return d, ut, n, s
+        return -1.0, ut, wp.vec3()
+    return d, ut, delta / d
 
 
 @wp.func
@@ -257,15 +257,13 @@ def nearer(d: float, index: int, best_d: float, best: int) -> bool:
 
 @wp.func
 def store_contact(
-    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, depth: float,
+    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3,
     contact_particles_out: wp.array(dtype=wp.vec4i), contact_weights_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3), contact_depth_out: wp.array(dtype=float),
-    particle_contacts_io: wp.array(dtype=int), contact_total_io: wp.array(dtype=int), kind: int,
+    contact_normal_out: wp.array(dtype=wp.vec3), particle_contacts_io: wp.array(dtype=int), contact_total_io: wp.array(dtype=int), kind: int,
 ):
     contact_particles_out[slot] = particles
     contact_weights_out[slot] = weights
     contact_normal_out[slot] = normal
-    contact_depth_out[slot] = depth
     for k in range(4):
         wp.atomic_add(particle_contacts_io, particles[k], 1)
     wp.atomic_add(contact_total_io, kind, 1)
@@ -279,18 +277,18 @@ def clear_contact(slot: int, contact_particles_out: wp.array(dtype=wp.vec4i)):
 # ------------------------------------------------------------------------------ vertex-triangle
 @wp.func
 def finish_vertex_contact(
-    v: int, p: int, best: int, best_bary: wp.vec3, best_normal: wp.vec3, best_s: float, thickness: float,
+    v: int, p: int, best: int, best_bary: wp.vec3, best_normal: wp.vec3,
     tri: wp.array(dtype=int), contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4), contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float), particle_contacts_io: wp.array(dtype=int),
+    particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
     if best < 0:
         clear_contact(v, contact_particles_out)
         return
     store_contact(v, wp.vec4i(p, tri[3 * best], tri[3 * best + 1], tri[3 * best + 2]),
-                  wp.vec4(1.0, -best_bary[0], -best_bary[1], -best_bary[2]), best_normal, thickness - best_s,
-                  contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                  wp.vec4(1.0, -best_bary[0], -best_bary[1], -best_bary[2]), best_normal,
+                  contact_particles_out, contact_weights_out, contact_normal_out,
                   particle_contacts_io, contact_total_io, 0)
 
 
@@ -313,7 +311,6 @@ def find_vertex_contacts(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -328,23 +325,21 @@ def find_vertex_contacts(
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    best_s = float(0.0)
     query = wp.mesh_query_aabb(meshes[world], x - wp.vec3(reach), x + wp.vec3(reach))
     local = int(0)
     while wp.mesh_query_aabb_next(query, local):
         t = world_tri_start[world] + local
         if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, bary, n, s = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
                                              search)
         if d >= 0.0 and nearer(d, t, best_d, best):
             best_d = d
             best = t
             best_bary = bary
             best_normal = n
-            best_s = s
-    finish_vertex_contact(v, p, best, best_bary, best_normal, best_s, thickness, tri, contact_particles_out,
-                          contact_weights_out, contact_normal_out, contact_depth_out, particle_contacts_io,
+    finish_vertex_contact(v, p, best, best_bary, best_normal, tri, contact_particles_out,
+                          contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
 
 
@@ -366,7 +361,6 @@ def find_vertex_contacts_all_pairs(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -380,20 +374,18 @@ def find_vertex_contacts_all_pairs(
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    best_s = float(0.0)
     for t in range(world_tri_start[world], world_tri_start[world + 1]):
         if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, bary, n, s = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
                                              search)
         if d >= 0.0 and nearer(d, t, best_d, best):
             best_d = d
             best = t
             best_bary = bary
             best_normal = n
-            best_s = s
-    finish_vertex_contact(v, p, best, best_bary, best_normal, best_s, thickness, tri, contact_particles_out,
-                          contact_weights_out, contact_normal_out, contact_depth_out, particle_contacts_io,
+    finish_vertex_contact(v, p, best, best_bary, best_normal, tri, contact_particles_out,
+                          contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
 
 
@@ -413,10 +405,10 @@ def edge_bounds(
 
 @wp.func
 def finish_edge_contact(
-    slot: int, e: int, best: int, best_ut: wp.vec2, best_normal: wp.vec3, best_s: float, thickness: float,
+    slot: int, e: int, best: int, best_ut: wp.vec2, best_normal: wp.vec3,
     edges: wp.array(dtype=int), contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4), contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float), particle_contacts_io: wp.array(dtype=int),
+    particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
     if best < 0:
@@ -425,8 +417,8 @@ def finish_edge_contact(
     u = best_ut[0]
     t = best_ut[1]
     store_contact(slot, wp.vec4i(edges[2 * e], edges[2 * e + 1], edges[2 * best], edges[2 * best + 1]),
-                  wp.vec4(1.0 - u, u, t - 1.0, -t), best_normal, thickness - best_s,
-                  contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                  wp.vec4(1.0 - u, u, t - 1.0, -t), best_normal,
+                  contact_particles_out, contact_weights_out, contact_normal_out,
                   particle_contacts_io, contact_total_io, 1)
 
 
@@ -450,7 +442,6 @@ def find_edge_contacts(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -463,22 +454,20 @@ def find_edge_contacts(
     best_d = float(1.0e30)
     best_ut = wp.vec2()
     best_normal = wp.vec3()
-    best_s = float(0.0)
     query = wp.bvh_query_aabb(bvhs[world], wp.min(xa, xb) - wp.vec3(thickness), wp.max(xa, xb) + wp.vec3(thickness))
     local = int(0)
     while wp.bvh_query_next(query, local):
         f = world_edge_start[world] + local
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, ut, n, s = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        d, ut, n = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f
             best_ut = ut
             best_normal = n
-            best_s = s
-    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, best_s, thickness, edges,
-                        contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, edges,
+                        contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
 
 
@@ -501,7 +490,6 @@ def find_edge_contacts_all_pairs(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -514,19 +502,17 @@ def find_edge_contacts_all_pairs(
     best_d = float(1.0e30)
     best_ut = wp.vec2()
     best_normal = wp.vec3()
-    best_s = float(0.0)
     for f in range(world_edge_start[world], world_edge_start[world + 1]):
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, ut, n, s = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        d, ut, n = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f
             best_ut = ut
             best_normal = n
-            best_s = s
-    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, best_s, thickness, edges,
-                        contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, edges,
+                        contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
 
 
@@ -566,17 +552,19 @@ def scatter_contact(
 
 @wp.kernel
 def push_contacts(
+    q: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     contact_particles: wp.array(dtype=wp.vec4i),
     contact_weights: wp.array(dtype=wp.vec4),
     contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
     particle_contacts: wp.array(dtype=int),
+    thickness: float,
     fraction: float,
     dx_io: wp.array2d(dtype=wp.int64),
 ):
-    """Position push removing ``fraction`` of each contact's depth along its normal (mass-weighted:
-    the centre of mass does not move)."""
+    """Position push removing ``fraction`` of each contact's depth thickness - (sum a_k x_k) . n
+    at the current positions (mass-weighted: the centre of mass does not move; no pull when the
+    pair is already apart)."""
     c = wp.tid()
     particles = contact_particles[c]
     if particles[0] < 0:
@@ -585,7 +573,14 @@ def push_contacts(
     W = effective_inv_mass(particles, weights, inv_mass)
     if W <= 0.0:
         return
-    push = (fraction * contact_scale(particles, particle_contacts) * contact_depth[c] / W) * contact_normal[c]
+    gap = wp.vec3()
+    for k in range(4):
+        gap += weights[k] * q[particles[k]]
+    n = contact_normal[c]
+    depth = thickness - wp.dot(gap, n)
+    if depth <= 0.0:
+        return
+    push = (fraction * contact_scale(particles, particle_contacts) * depth / W) * n
     scatter_contact(particles, weights, inv_mass, push, dx_io)
 
 
