@@ -21,10 +21,12 @@ c lies inside the triangle); a contact has -search < s < thickness, normal n = (
 in front, n_f behind. Edge pq against edge rs (closest points c1 = p + u (q - p), c2 = r + t (s - r),
 Ericson 5.1.9), only with both closest points inside their edges (0 < u, t < 1) and edges at
 least ``EDGE_MIN_SINE`` from parallel (otherwise a vertex is nearest and the vertex-triangle test
-covers it), and only in front of rs ((c1 - c2) . n_e > 0, n_e the summed outward normals of the
-faces beside rs): s = |c1 - c2| < thickness, normal (c1 - c2)/|c1 - c2|. Behind rs is no edge
-contact: there the surface may just curve away (the saddle inside a torus), and a body whose
-edges crossed is pushed out by its vertices. Every vertex (edge) keeps its nearest contact,
+covers it): a contact when |c1 - c2| < thickness, normal (c1 - c2)/|c1 - c2|, or when the same
+points at the start of the step (``q_prev``) lay on the other side ((c1 - c2) . (c1' - c2') < 0:
+the edges passed through each other during the step) and |c1 - c2| < search, normal
+(c1' - c2')/|c1' - c2'| (back to the side they came from). The edge BVH holds each edge's bounds
+over the step (start and end).
+Every vertex (edge) keeps its nearest contact,
 ties broken by the lower triangle (edge) index, so the result does not depend on the order in
 which the BVH returns candidates.
 
@@ -136,17 +138,6 @@ def rest_distance(p: int, t: int, tri: wp.array(dtype=int), rest: wp.array(dtype
     return wp.length(x - (w[0] * a + w[1] * b + w[2] * c))
 
 
-@wp.func
-def face_normal(t: int, tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3)) -> wp.vec3:
-    """Unit outward normal of triangle t (zero for a degenerate triangle)."""
-    a = q[tri[3 * t]]
-    n = wp.cross(q[tri[3 * t + 1]] - a, q[tri[3 * t + 2]] - a)
-    length = wp.length(n)
-    if length < 1.0e-20:
-        return wp.vec3()
-    return n / length
-
-
 # ------------------------------------------------------------------------------ narrow phase
 @wp.func
 def vertex_triangle_candidate(
@@ -221,13 +212,15 @@ def edge_edge_candidate(
 
 @wp.func
 def edge_edge_test(
-    f: int, xa: wp.vec3, xb: wp.vec3, edges: wp.array(dtype=int), edge_tris: wp.array(dtype=int),
-    tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), thickness: float,
+    f: int, xa: wp.vec3, xb: wp.vec3, pa: wp.vec3, pb: wp.vec3, edges: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3), thickness: float, search: float,
 ):
-    """(distance [m], (u, t), normal) of edge xa-xb against edge f; distance -1 when they are no
-    contact (module docstring)."""
-    xc = q[edges[2 * f]]
-    xd = q[edges[2 * f + 1]]
+    """(distance [m], (u, t), normal) of edge xa-xb (at the step's start pa-pb) against edge f;
+    distance -1 when they are no contact (module docstring)."""
+    c = edges[2 * f]
+    dd = edges[2 * f + 1]
+    xc = q[c]
+    xd = q[dd]
     ut = segment_closest_params(xa, xb, xc, xd)
     # closest points inside both edges, edges not near parallel: otherwise a vertex is nearest
     # and the vertex-triangle contact handles it
@@ -237,14 +230,14 @@ def edge_edge_test(
         return -1.0, ut, wp.vec3()
     delta = (xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))
     d = wp.length(delta)
-    side = wp.vec3()
-    for k in range(2):
-        t = edge_tris[2 * f + k]
-        if t >= 0:
-            side = side + face_normal(t, tri, q)
-    # in front of the faces beside f only: behind them (the edges have crossed) the surface
-    # may just curve away (saddles of a torus), and the vertex-triangle contacts push out
-    if d <= 1.0e-9 or d >= thickness or wp.dot(delta, side) < 0.0:
+    # the same points at the start of the step: which side e was on
+    before = (pa + ut[0] * (pb - pa)) - (q_prev[c] + ut[1] * (q_prev[dd] - q_prev[c]))
+    if wp.dot(delta, before) < 0.0:
+        # e passed through f during the step: push it back to the side it came from
+        if d >= search or wp.length(before) < 1.0e-12:
+            return -1.0, ut, wp.vec3()
+        return d, ut, wp.normalize(before)
+    if d <= 1.0e-9 or d >= thickness:
         return -1.0, ut, wp.vec3()
     return d, ut, delta / d
 
@@ -392,15 +385,15 @@ def find_vertex_contacts_all_pairs(
 # ------------------------------------------------------------------------------ edge-edge
 @wp.kernel
 def edge_bounds(
-    edges: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), margin: float,
+    edges: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3),
     lowers_out: wp.array(dtype=wp.vec3), uppers_out: wp.array(dtype=wp.vec3),
 ):
-    """Bounds of edge e grown by ``margin`` [m] (for the edge BVH)."""
+    """Bounds of edge e over the step (its positions at the start and now), for the edge BVH."""
     e = wp.tid()
-    a = q[edges[2 * e]]
-    b = q[edges[2 * e + 1]]
-    lowers_out[e] = wp.min(a, b) - wp.vec3(margin)
-    uppers_out[e] = wp.max(a, b) + wp.vec3(margin)
+    a = edges[2 * e]
+    b = edges[2 * e + 1]
+    lowers_out[e] = wp.min(wp.min(q[a], q[b]), wp.min(q_prev[a], q_prev[b]))
+    uppers_out[e] = wp.max(wp.max(q[a], q[b]), wp.max(q_prev[a], q_prev[b]))
 
 
 @wp.func
@@ -429,9 +422,8 @@ def find_edge_contacts(
     edge_world: wp.array(dtype=int),
     edges: wp.array(dtype=int),
     edge_body: wp.array(dtype=int),
-    edge_tris: wp.array(dtype=int),
-    tri: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
+    q_prev: wp.array(dtype=wp.vec3),
     rest: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     thickness: float,
@@ -450,17 +442,21 @@ def find_edge_contacts(
     world = edge_world[e]
     xa = q[edges[2 * e]]
     xb = q[edges[2 * e + 1]]
+    pa = q_prev[edges[2 * e]]
+    pb = q_prev[edges[2 * e + 1]]
     best = int(-1)
     best_d = float(1.0e30)
     best_ut = wp.vec2()
     best_normal = wp.vec3()
-    query = wp.bvh_query_aabb(bvhs[world], wp.min(xa, xb) - wp.vec3(thickness), wp.max(xa, xb) + wp.vec3(thickness))
+    lower = wp.min(wp.min(xa, xb), wp.min(pa, pb)) - wp.vec3(thickness)
+    upper = wp.max(wp.max(xa, xb), wp.max(pa, pb)) + wp.vec3(thickness)
+    query = wp.bvh_query_aabb(bvhs[world], lower, upper)
     local = int(0)
     while wp.bvh_query_next(query, local):
         f = world_edge_start[world] + local
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, ut, n = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f
@@ -477,9 +473,8 @@ def find_edge_contacts_all_pairs(
     edge_world: wp.array(dtype=int),
     edges: wp.array(dtype=int),
     edge_body: wp.array(dtype=int),
-    edge_tris: wp.array(dtype=int),
-    tri: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
+    q_prev: wp.array(dtype=wp.vec3),
     rest: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     thickness: float,
@@ -498,6 +493,8 @@ def find_edge_contacts_all_pairs(
     world = edge_world[e]
     xa = q[edges[2 * e]]
     xb = q[edges[2 * e + 1]]
+    pa = q_prev[edges[2 * e]]
+    pb = q_prev[edges[2 * e + 1]]
     best = int(-1)
     best_d = float(1.0e30)
     best_ut = wp.vec2()
@@ -505,7 +502,7 @@ def find_edge_contacts_all_pairs(
     for f in range(world_edge_start[world], world_edge_start[world + 1]):
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, ut, n = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f

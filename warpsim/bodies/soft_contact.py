@@ -131,9 +131,8 @@ class SoftContact(Collider):
         if body_world is None:
             body_world = np.zeros(len(self.faces), dtype=np.int64)
         order = np.argsort(body_world, kind="stable")  # bodies world by world
-        tri, tri_body, vert, vert_body, edges, edge_tris, edge_body = [], [], [], [], [], [], []
+        tri, tri_body, vert, vert_body, edges, edge_body = [], [], [], [], [], []
         seen = np.full(n, -1, dtype=np.int64)
-        tri_count = 0
         for k in order:
             faces = self.faces[k]
             if faces.min() < 0 or faces.max() >= n:
@@ -145,20 +144,13 @@ class SoftContact(Collider):
                 raise ValueError(f"SoftContact bodies[{k}]: particle {int(shared[0])} also belongs to bodies"
                                  f"[{int(seen[shared[0]])}]; every body needs its own particles")
             seen[verts] = k
-            body_edges, _, edge_of = meshtools.edge_topology(faces)
-            beside = np.full((len(body_edges), 2), -1, dtype=np.int64)  # the (up to) two faces beside an edge
-            face_of = tri_count + np.arange(len(edge_of)) % len(faces)
-            for r in np.argsort(edge_of, kind="stable"):
-                slot = 0 if beside[edge_of[r], 0] < 0 else 1
-                beside[edge_of[r], slot] = face_of[r]
+            body_edges, _, _ = meshtools.edge_topology(faces)
             tri.append(faces)
             tri_body.append(np.full(len(faces), k))
             vert.append(verts)
             vert_body.append(np.full(len(verts), k))
             edges.append(body_edges)
-            edge_tris.append(beside)
             edge_body.append(np.full(len(body_edges), k))
-            tri_count += len(faces)
         worlds = int(body_world.max()) + 1
         sorted_world = body_world[order]
         counts = {"tri": [len(f) for f in tri], "vert": [len(v) for v in vert], "edge": [len(e) for e in edges]}
@@ -193,12 +185,11 @@ class SoftContact(Collider):
         if self.edge_contact:
             self._edges = ints(edges)
             self._edge_body = ints(edge_body)
-            self._edge_tris = ints(edge_tris)
             self._edge_world = ints(np.repeat(sorted_world, counts["edge"]))
             self._world_edge_start = ints(world_edge_start)
             self._edge_lower = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
             self._edge_upper = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
-            self._launch_edge_bounds(model.particle_q)
+            self._launch_edge_bounds(model.particle_q, model.particle_q)
             self._bvhs = [wp.Bvh(self._edge_lower[int(world_edge_start[w]):int(world_edge_start[w + 1])],
                                  self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])])
                           for w in range(worlds)]
@@ -212,8 +203,8 @@ class SoftContact(Collider):
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
 
-    def _launch_edge_bounds(self, q) -> None:
-        wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, 0.0, self._edge_lower, self._edge_upper],
+    def _launch_edge_bounds(self, q, q_prev) -> None:
+        wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, q_prev, self._edge_lower, self._edge_upper],
                   device=self.model.device)
 
     @property
@@ -256,12 +247,12 @@ class SoftContact(Collider):
             wp.launch(K.find_vertex_contacts, v, inputs=[self._mesh_ids, self._world_tri_start, *vertex, *common,
                                                          *contact], device=d)
         if e:
-            edge = [self._edge_world, self._edges, self._edge_body, self._edge_tris, self._tri, state.positions]
+            edge = [self._edge_world, self._edges, self._edge_body, state.positions, q_prev]
             if all_pairs:
                 wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, *edge, *common, v,
                                                                      *contact], device=d)
             else:
-                self._launch_edge_bounds(state.positions)
+                self._launch_edge_bounds(state.positions, q_prev)
                 for bvh in self._bvhs:
                     bvh.refit()
                 wp.launch(K.find_edge_contacts, e, inputs=[self._bvh_ids, self._world_edge_start, *edge, *common, v,
