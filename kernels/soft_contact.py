@@ -4,14 +4,14 @@ them after integration.
 
 Broad phase (one structure for all bodies of a world, refitted every step):
 
-* ``find_vertex_contacts``: every contact vertex queries one ``wp.Mesh`` BVH over the contact
-  triangles of *all* bodies of its world once, with a box of half width
+* ``find_vertex_contacts``: every contact vertex queries one ``wp.Bvh`` over the bounds of the
+  contact triangles of *all* bodies of its world (``triangle_bounds``) once, with a box of half width
   ``max(thickness, search)``; triangles of its own body are skipped unless self contact is on
   (then triangles touching the vertex, or within ``self_rest_distance`` of it in the rest pose,
   are skipped). The cost per vertex depends on the local density only, so a step is linear in
   the number of bodies (the former search visited every other body's BVH from every vertex).
 * ``find_edge_contacts``: every surface edge queries one ``wp.Bvh`` over the bounds of all
-  surface edges of its world (``edge_bounds`` writes them, the BVH is refitted).
+  surface edges of its world (``edge_bounds``). Both BVHs are rebuilt (or refitted) every step.
 * ``find_*_all_pairs``: the same narrow phase over every triangle / edge of the world, no
   broad phase (the reference the tests compare with; O(vertices x triangles)).
 
@@ -287,7 +287,7 @@ def finish_vertex_contact(
 
 @wp.kernel
 def find_vertex_contacts(
-    meshes: wp.array(dtype=wp.uint64),
+    tri_bvhs: wp.array(dtype=wp.uint64),
     world_tri_start: wp.array(dtype=int),
     vertex_world: wp.array(dtype=int),
     vertex_particle: wp.array(dtype=int),
@@ -318,9 +318,9 @@ def find_vertex_contacts(
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    query = wp.mesh_query_aabb(meshes[world], x - wp.vec3(reach), x + wp.vec3(reach))
+    query = wp.bvh_query_aabb(tri_bvhs[world], x - wp.vec3(reach), x + wp.vec3(reach))
     local = int(0)
-    while wp.mesh_query_aabb_next(query, local):
+    while wp.bvh_query_next(query, local):
         t = world_tri_start[world] + local
         if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
@@ -383,6 +383,20 @@ def find_vertex_contacts_all_pairs(
 
 
 # ------------------------------------------------------------------------------ edge-edge
+@wp.kernel
+def triangle_bounds(
+    tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
+    lowers_out: wp.array(dtype=wp.vec3), uppers_out: wp.array(dtype=wp.vec3),
+):
+    """Bounds of triangle t at the current positions, for the triangle BVH."""
+    t = wp.tid()
+    a = q[tri[3 * t]]
+    b = q[tri[3 * t + 1]]
+    c = q[tri[3 * t + 2]]
+    lowers_out[t] = wp.min(wp.min(a, b), c)
+    uppers_out[t] = wp.max(wp.max(a, b), c)
+
+
 @wp.kernel
 def edge_bounds(
     edges: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3),
