@@ -137,6 +137,8 @@ class Strands:
             data[name] = wp.array(getattr(self, name).astype(f32), dtype=wp.vec3, device=d)
         data["root_normal"] = wp.array(self.normal_world.astype(f32), dtype=wp.vec3, device=d)
         data["bend_rest"] = wp.zeros(self.strand_count * self.stride, dtype=wp.vec3, device=d)
+        data["frame_t"] = wp.zeros(self.strand_count * self.stride, dtype=wp.vec3, device=d)  # force scratch
+        data["frame_n"] = wp.zeros(self.strand_count * self.stride, dtype=wp.vec3, device=d)
         # the groomed shape is the bending rest state
         wp.launch(K.bend_rest_from_world, self.strand_count,
                   inputs=[model.particle_q, self.first, self.stride, data["root_normal"], data["bend_rest"], 1,
