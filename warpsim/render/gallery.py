@@ -31,6 +31,8 @@ CLIPS = {
     "school": (90, [], True),
     "zombies": (240, ["zombies=60"], True),
     "crowd": (120, ["people=60"], True),
+    "wall": (24, ["ball_speed=6"], True),  # the impact and the first pieces (later they fly metres away)
+    "donuts": (90, ["count=6", "segments=16", "sides=8", "lattice_cells=5"], True),
 }
 SIZE = (200, 150)
 MAX_FRAMES = 30
