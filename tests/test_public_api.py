@@ -81,7 +81,8 @@ def test_public_functions_annotate_their_return():
             continue
         obj = getattr(warpsim, name)
         if inspect.isclass(obj):
-            funcs = [(f"{name}.{k}", v) for k, v in vars(obj).items() if not k.startswith("_") and inspect.isfunction(v)]
+            funcs = [(f"{name}.{k}", v) for k, v in vars(obj).items()
+                     if not k.startswith("_") and inspect.isfunction(v)]
         else:
             funcs = [(name, obj)] if inspect.isfunction(obj) else []
         missing.update(q for q, f in funcs if inspect.signature(f).return_annotation is inspect.Signature.empty)
