@@ -156,7 +156,8 @@ class TerrainData:
 
 @wp.struct
 class Food:
-    """Food sources: positions [m] and bites left (int, consumed with atomics)."""
+    """Food sources: positions [m] and bites left (int; a step's bites are granted in agent order
+    by :func:`grant_bites`, the same on every run and device)."""
 
     positions: wp.array(dtype=wp.vec3)
     amounts: wp.array(dtype=int)
@@ -574,6 +575,7 @@ def integrate_flyers(
     bite_timer: wp.array(dtype=float),
     bites: wp.array(dtype=int),
     heading: wp.array(dtype=wp.vec3),
+    bite_request_out: wp.array(dtype=int),
 ):
     """Advance agent i by dt (in place).
 
@@ -584,9 +586,12 @@ def integrate_flyers(
     separation and obstacles, halves its horizontal speed and sinks at descent_speed; touching
     the ground + min_height it is RESTING for rest_time (energy refills at energy_max /
     rest_time), then takes off along its heading at takeoff_speed with full energy. Eating: one
-    bite (atomic) from the nearest stocked source within the eat radius every bite_interval
-    while energy < energy_max, adding food_energy."""
+    bite from the nearest stocked source within the eat radius every bite_interval while
+    energy < energy_max, adding food_energy. Food amounts are only read here (a snapshot of the
+    step's start): bite_request_out[i] = 2 kf + (1 if the agent turned LANDING this step), or -1,
+    asks for a bite of source kf, and :func:`grant_bites` grants them in agent order."""
     i = wp.tid()
+    bite_request_out[i] = -1
     k = kind[i]
     p = rules[k]
     f = flight[k]
@@ -669,19 +674,16 @@ def integrate_flyers(
 
     e = wp.max(energy[i] - f.drain_rate * (1.0 - f.draft_saving * benefit[i]) * dt, 0.0)
     bt = bite_timer[i] - dt
+    kf = int(-1)
     if food.count > 0 and bt <= 0.0 and e < f.energy_max:
         kf = nearest_food(food, xn, f.food_eat_radius, agent_world[i] * food.count)
-        if kf >= 0:
-            old = wp.atomic_sub(food.amounts, kf, 1)
-            if old > 0:
-                e = wp.min(e + f.food_energy, f.energy_max)
-                bites[i] = bites[i] + 1
-                bt = f.bite_interval
-            else:
-                wp.atomic_add(food.amounts, kf, 1)
     bite_timer[i] = wp.max(bt, 0.0)
+    landed = int(0)
     if s == FLYING and f.drain_rate > 0.0 and e <= f.land_threshold:
         s = LANDING
+        landed = 1
+    if kf >= 0:
+        bite_request_out[i] = 2 * kf + landed
 
     if wp.length(vn) > 1.0e-6:
         heading[i] = wp.normalize(vn)
@@ -689,6 +691,63 @@ def integrate_flyers(
     state[i] = s
     x[i] = xn
     v[i] = vn
+
+
+@wp.kernel
+def key_bite_requests(request: wp.array(dtype=int), food_total: int, requests_io: wp.array(dtype=int),
+                      keys_out: wp.array(dtype=int), ids_out: wp.array(dtype=int)):
+    """Per agent i: key = the requested source (food_total when none, so it sorts last), id = i;
+    requests_io[source] += 1 (integer counts: order-free)."""
+    i = wp.tid()
+    key = food_total
+    r = request[i]
+    if r >= 0:
+        key = r / 2
+        wp.atomic_add(requests_io, key, 1)
+    keys_out[i] = key
+    ids_out[i] = i
+
+
+@wp.kernel
+def grant_bites(
+    flight: wp.array(dtype=FlightParams),
+    kind: wp.array(dtype=int),
+    keys: wp.array(dtype=int),
+    ids: wp.array(dtype=int),
+    request: wp.array(dtype=int),
+    first_request: wp.array(dtype=int),
+    amounts: wp.array(dtype=int),
+    energy: wp.array(dtype=float),
+    bite_timer: wp.array(dtype=float),
+    bites: wp.array(dtype=int),
+    state: wp.array(dtype=int),
+):
+    """Requests sorted by source, then agent index (a stable sort of ``key_bite_requests``'s pairs;
+    first_request = exclusive prefix sum of the per-source counts): the r-th requester of a source
+    gets a bite when r < its bites left, so the lowest-index agents eat first on every device. A
+    bite adds food_energy (capped at energy_max), counts in ``bites`` and restarts the bite timer;
+    an agent that turned LANDING this step and is above land_threshold after the bite flies on."""
+    s = wp.tid()
+    kf = keys[s]
+    if kf >= amounts.shape[0]:
+        return
+    if s - first_request[kf] >= amounts[kf]:
+        return
+    i = ids[s]
+    f = flight[kind[i]]
+    e = wp.min(energy[i] + f.food_energy, f.energy_max)
+    energy[i] = e
+    bites[i] = bites[i] + 1
+    bite_timer[i] = f.bite_interval
+    if request[i] % 2 == 1 and e > f.land_threshold:
+        state[i] = FLYING
+
+
+@wp.kernel
+def consume_food(requests: wp.array(dtype=int), amounts_io: wp.array(dtype=int)):
+    """Bites left -= the bites granted (min(requests, bites left))."""
+    k = wp.tid()
+    amounts_io[k] = amounts_io[k] - wp.min(requests[k], amounts_io[k])
 
 
 # --------------------------------------------------------------------------------------

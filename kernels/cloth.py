@@ -214,6 +214,61 @@ def assemble_cloth_springs(
 
 
 @wp.kernel
+def assemble_cloth_springs_gather(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
+    spring_slots: wp.array(dtype=int),
+    particle_spring_offsets: wp.array(dtype=int),
+    particle_springs: wp.array(dtype=int),
+    inv_mass: wp.array(dtype=float),
+    ck: float,
+    cd: float,
+    cf: float,
+    cw: float,
+    full_geometric: int,
+    rhs_io: wp.array(dtype=wp.vec3),
+    diag_io: wp.array(dtype=wp.mat33),
+    values_io: wp.array(dtype=wp.mat33),
+):
+    """``assemble_cloth_springs`` per particle i, without atomics: over the springs touching i in
+    the fixed CSR order (ascending spring index), diag_i += J, b_i += +-r (spring s evaluated from
+    its end 2s) and the coupling block of row i, (i, other end), -= J (unless an end is pinned;
+    springs sharing a block are summed by this one thread, in order)."""
+    i = wp.tid()
+    D = wp.mat33()
+    b = wp.vec3()
+    for a in range(particle_spring_offsets[i], particle_spring_offsets[i + 1]):
+        s = particle_springs[a]
+        if spring_broken[s] == 0:
+            si = spring_indices[2 * s]
+            sj = spring_indices[2 * s + 1]
+            xij = q[si] - q[sj]
+            rest = spring_rest_length[s]
+            k = spring_stiffness[s]
+            kd = spring_damping[s]
+            Jx, Jv = spring_jacobians(xij, rest, k, kd, full_geometric)
+            J = ck * Jx + cd * Jv
+            D = D + J
+            r = cf * spring_force(xij, qd[si] - qd[sj], rest, k, kd) + cw * (Jx * (w[si] - w[sj]))
+            slot = spring_slots[2 * s]
+            if si == i:
+                b = b + r
+            else:
+                b = b - r
+                slot = spring_slots[2 * s + 1]
+            if inv_mass[si] > 0.0 and inv_mass[sj] > 0.0:
+                values_io[slot] = values_io[slot] - J
+    diag_io[i] = diag_io[i] + D
+    rhs_io[i] = rhs_io[i] + b
+
+
+@wp.kernel
 def finish_cloth_system(
     diag: wp.array(dtype=wp.mat33),
     position_diag: wp.array(dtype=wp.mat33),
@@ -288,14 +343,15 @@ def cg_dots(
     c: wp.array(dtype=wp.vec3),
     d: wp.array(dtype=wp.vec3),
     stride: int,
-    slot_ab: int,
     slot_cd: int,
-    scalars_io: wp.array(dtype=float),
+    partial_out: wp.array(dtype=float),
 ):
-    """scalars[slot_ab] += sum a_i . b_i and, when slot_cd >= 0, scalars[slot_cd] += sum c_i . d_i.
-    Launched with dim (blocks, DOT_BLOCK) and block_dim DOT_BLOCK: each thread strides over the
-    arrays by ``stride`` = blocks * DOT_BLOCK, then a block-wide tile sum adds one value per block
-    (no allocation, so it can sit inside a conditional graph node)."""
+    """Block partial sums of a_i . b_i into partial_out[block] and, when slot_cd >= 0, of c_i . d_i
+    into partial_out[blocks + block]. Launched with dim (blocks, DOT_BLOCK) and block_dim
+    DOT_BLOCK: each thread strides over the arrays by ``stride`` = blocks * DOT_BLOCK, then a
+    block-wide tile sum (a fixed tree) gives the block's value, added once onto the zero slot
+    (exact); ``cg_sum_partials`` adds the blocks in order and clears the slots (no atomics: the same bits every run; no allocation, so it can sit inside a
+    conditional graph node)."""
     block, lane = wp.tid()
     i = block * DOT_BLOCK + lane
     n = a.shape[0]
@@ -306,9 +362,28 @@ def cg_dots(
         if slot_cd >= 0:
             cd += wp.dot(c[i], d[i])
         i += stride
-    wp.tile_atomic_add(scalars_io, wp.tile_sum(wp.tile(ab)), offset=slot_ab)
+    # one add per slot onto 0 (cg_sum_partials clears them): exact, so order does not matter
+    wp.tile_atomic_add(partial_out, wp.tile_sum(wp.tile(ab)), offset=block)
     if slot_cd >= 0:
-        wp.tile_atomic_add(scalars_io, wp.tile_sum(wp.tile(cd)), offset=slot_cd)
+        wp.tile_atomic_add(partial_out, wp.tile_sum(wp.tile(cd)), offset=stride / DOT_BLOCK + block)
+
+
+@wp.kernel
+def cg_sum_partials(partials: wp.array(dtype=float), blocks: int, slot_ab: int, slot_cd: int,
+                    scalars_io: wp.array(dtype=float)):
+    """scalars[slot_ab] += the ``blocks`` partial sums of ``cg_dots`` in block order (and
+    scalars[slot_cd] += the second set when slot_cd >= 0) and clears them; one thread."""
+    ab = float(0.0)  # noqa: UP018
+    cd = float(0.0)  # noqa: UP018
+    for k in range(blocks):
+        ab += partials[k]
+        partials[k] = 0.0
+        if slot_cd >= 0:
+            cd += partials[blocks + k]
+            partials[blocks + k] = 0.0
+    scalars_io[slot_ab] = scalars_io[slot_ab] + ab
+    if slot_cd >= 0:
+        scalars_io[slot_cd] = scalars_io[slot_cd] + cd
 
 
 @wp.kernel

@@ -2,7 +2,12 @@
 weights, cell labels from particles, reseeding of sparse interior cells, pushing particles out
 of solids, a particle signed-distance field for the liquid surface, and the particle density and
 divergence target of the volume (density) correction. Layout: kernels/advect.py;
-particle bookkeeping: kernels/grid_particles.py."""
+particle bookkeeping: kernels/grid_particles.py.
+
+Particle-to-grid sums (face velocities, particle density) are gathers over the cell-sorted particle
+list in a fixed order, so a run is bit-reproducible on every device; the scatters with float atomics
+(``particles_to_grid``, ``particle_density``; faster on GPUs, the sum order then varies run to run)
+serve ``FlipLiquid(deterministic=False)``."""
 
 import warp as wp
 
@@ -12,6 +17,82 @@ from .grid import AIR, FLUID, SOLID, axis_step, label_at
 wp.set_module_options({"enable_backward": False})
 
 CENTER = wp.constant(wp.vec3(0.5, 0.5, 0.5))
+
+
+@wp.func
+def hat_weight(g: float, node: int) -> float:
+    """Weight of grid node ``node`` in the linear interpolation at continuous index g: 1 - t at
+    floor(g), t at floor(g) + 1 (t = g - floor(g)), 0 elsewhere."""
+    i0 = int(wp.floor(g))
+    t = g - float(i0)
+    w = float(0.0)
+    if node == i0:
+        w = 1.0 - t
+    elif node == i0 + 1:
+        w = t
+    return w
+
+
+@wp.func
+def half_range(node: int, staggered: int, cells: int) -> wp.vec2i:
+    """Half-cells (index 2 c + upper) whose particles can reach grid node ``node`` of one axis,
+    clamped into the grid: cells node - 1 and node along a face's normal (``staggered``, nodes on
+    cell faces), else the upper half of cell node - 1, cell node and the lower half of node + 1
+    (nodes at cell centres). Returns (first, last)."""
+    first = wp.where(staggered != 0, 2 * node - 2, 2 * node - 1)
+    return wp.vec2i(wp.max(first, 0), wp.min(first + 3, 2 * cells - 1))
+
+
+@wp.func
+def octant_of(hx: int, hy: int, hz: int, ny: int, nz: int) -> int:
+    """Octant index (flat cell * 8 + x + 2 y + 4 z halves) of half-cell indices (hx, hy, hz)."""
+    return (((hx / 2) * ny + hy / 2) * nz + hz / 2) * 8 + hx % 2 + 2 * (hy % 2) + 4 * (hz % 2)
+
+
+@wp.kernel
+def gather_face_velocity(
+    cell_count: wp.array3d(dtype=int),
+    octant_start: wp.array(dtype=int),
+    octant_count: wp.array(dtype=int),
+    sorted_ids: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    vel: wp.array(dtype=wp.vec3),
+    axis: int,
+    origin: wp.vec3,
+    dx: float,
+    f_out: wp.array3d(dtype=float),
+):
+    """P2G as a gather: face (i, j, k) of ``axis`` (u: 0, v: 1, w: 2) = sum_p w_p v_p[axis] /
+    sum_p w_p over the particles whose trilinear stencil holds the face (0 where none does), w_p
+    the trilinear weight. The candidates are the particles of the cell octants that can reach the
+    face (:func:`half_range`), visited in octant order and, within one, by particle index
+    (``GridParticles.count_cells``): a fixed order, so the sums are the same bits every run (float
+    atomics add in arrival order). A one-cell-thick array (2D) weighs every particle 1 along z."""
+    i, j, k = wp.tid()
+    ny = cell_count.shape[1]
+    nz = cell_count.shape[2]
+    offset = wp.vec3(wp.where(axis == 0, 0.0, 0.5), wp.where(axis == 1, 0.0, 0.5), wp.where(axis == 2, 0.0, 0.5))
+    flat_z = f_out.shape[2] == 1
+    rx = half_range(i, wp.where(axis == 0, 1, 0), cell_count.shape[0])
+    ry = half_range(j, wp.where(axis == 1, 1, 0), ny)
+    rz = half_range(k, wp.where(axis == 2, 1, 0), nz)
+    total = float(0.0)
+    weight = float(0.0)
+    for hx in range(rx[0], rx[1] + 1):
+        for hy in range(ry[0], ry[1] + 1):
+            for hz in range(rz[0], rz[1] + 1):
+                o = octant_of(hx, hy, hz, ny, nz)
+                start = octant_start[o]
+                for e in range(start, start + octant_count[o]):
+                    p = sorted_ids[e]
+                    g = (x[p] - origin) / dx - offset
+                    wa = hat_weight(g[0], i)
+                    wb = wa * hat_weight(g[1], j)
+                    wc = wb * wp.where(flat_z, 1.0, hat_weight(g[2], k))
+                    if wc > 0.0:
+                        total += wc * vel[p][axis]
+                        weight += wc
+    f_out[i, j, k] = wp.where(weight > 0.0, total / wp.max(weight, 1.0e-30), 0.0)
 
 
 @wp.func
@@ -55,7 +136,8 @@ def particles_to_grid(
     w_sum: wp.array3d(dtype=float),
     w_weight: wp.array3d(dtype=float),
 ):
-    """P2G: accumulate weighted particle velocity components and weights on the faces."""
+    """P2G scatter: accumulate weighted particle velocity components and weights on the faces with
+    float atomics (``FlipLiquid(deterministic=False)``; the default gathers, :func:`gather_face_velocity`)."""
     p = wp.tid()
     if p >= count[0] or alive[p] == 0.0:
         return
@@ -160,6 +242,9 @@ def reseed_interior(
     dx: float,
     count: wp.array(dtype=int),
     next_id: wp.array(dtype=int),
+    write: int,
+    emitted_io: wp.array(dtype=int),
+    offsets: wp.array(dtype=int),
     x_out: wp.array(dtype=wp.vec3),
     vel_out: wp.array(dtype=wp.vec3),
     alive_out: wp.array(dtype=float),
@@ -167,8 +252,11 @@ def reseed_interior(
 ):
     """Interior FLUID cells (every neighbour FLUID or SOLID) holding fewer than min_per_cell
     particles and whose hat-weighted ``density`` is below ``min_density`` (pass a huge value to
-    ignore it) get new ones at random positions with the grid velocity (appended via count[0], with
-    fresh ids from next_id[0])."""
+    ignore it) get new ones at random positions with the grid velocity. Two passes append in cell
+    order: write = 0 stores each cell's new-particle count in emitted_io[cell] (flat index; zero it
+    first), write = 1 puts particle m' of the cell at slot count[0] + offsets[cell] + m' with id
+    next_id[0] + offsets[cell] + m' (offsets: exclusive prefix sum of the counts), up to the arrays'
+    capacity; the host then advances count[0] and next_id[0] (``GridParticles.finish_append``)."""
     i, j, k = wp.tid()
     n = cell_count[i, j, k]
     if labels[i, j, k] != FLUID or n >= min_per_cell or density[i, j, k] >= min_density:
@@ -178,19 +266,24 @@ def reseed_interior(
         for s in range(2):
             if label_at(labels, open_mask, c + axis_step(a) * (2 * s - 1)) == AIR:
                 return
+    flat = (i * labels.shape[1] + j) * labels.shape[2] + k
+    if write == 0:
+        emitted_io[flat] = min_per_cell - n
+        return
     inv_dx = 1.0 / dx
     lower = origin + wp.vec3(float(i), float(j), float(k)) * dx
     for m in range(n, min_per_cell):
-        state = wp.rand_init(seed, ((i * labels.shape[1] + j) * labels.shape[2] + k) * min_per_cell + m)
+        state = wp.rand_init(seed, flat * min_per_cell + m)
         x = lower + wp.vec3(wp.randf(state), wp.randf(state), wp.randf(state)) * dx
         if dim == 2:
             x = wp.vec3(x[0], x[1], origin[2] + 0.5 * dx)
-        slot = wp.atomic_add(count, 0, 1)
+        rank = offsets[flat] + m - n
+        slot = count[0] + rank
         if slot < x_out.shape[0]:
             x_out[slot] = x
             vel_out[slot] = sample_velocity(u, v, w, origin, inv_dx, x)
             alive_out[slot] = 1.0
-            id_out[slot] = wp.atomic_add(next_id, 0, 1)
+            id_out[slot] = next_id[0] + rank
 
 
 @wp.kernel
@@ -230,6 +323,55 @@ def particle_sdf(
 
 
 @wp.kernel
+def gather_particle_density(
+    octant_start: wp.array(dtype=int),
+    octant_count: wp.array(dtype=int),
+    sorted_ids: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    dx: float,
+    rho_out: wp.array3d(dtype=float),
+):
+    """rho = sum of the trilinear (hat) weights of every live particle at this cell centre
+    [particles per cell]. Stencil nodes beyond the grid fold back onto the edge cell (a mirror
+    image across the wall), so a uniform packing of n particles per cell reads n up to the walls; a
+    one-cell-thick axis (2D) puts the whole weight in its single layer. A gather over the particles
+    of the cell octants around (octant order, then particle index: the same bits every run)."""
+    i, j, k = wp.tid()
+    nx = rho_out.shape[0]
+    ny = rho_out.shape[1]
+    nz = rho_out.shape[2]
+    rx = half_range(i, 0, nx)
+    ry = half_range(j, 0, ny)
+    rz = half_range(k, 0, nz)
+    rho = float(0.0)
+    for hx in range(rx[0], rx[1] + 1):
+        for hy in range(ry[0], ry[1] + 1):
+            for hz in range(rz[0], rz[1] + 1):
+                o = octant_of(hx, hy, hz, ny, nz)
+                start = octant_start[o]
+                for e in range(start, start + octant_count[o]):
+                    g = (x[sorted_ids[e]] - origin) / dx - CENTER
+                    i0 = int(wp.floor(g[0]))
+                    j0 = int(wp.floor(g[1]))
+                    k0 = int(wp.floor(g[2]))
+                    t = g - wp.vec3(float(i0), float(j0), float(k0))
+                    # every stencil node (a, b, c) that folds onto this cell adds its weight, in stencil order
+                    for a in range(2):
+                        if wp.clamp(i0 + a, 0, nx - 1) == i:
+                            wa = wp.where(a == 0, 1.0 - t[0], t[0])
+                            for b in range(2):
+                                if wp.clamp(j0 + b, 0, ny - 1) == j:
+                                    wb = wa * wp.where(b == 0, 1.0 - t[1], t[1])
+                                    for c in range(2):
+                                        if wp.clamp(k0 + c, 0, nz - 1) == k:
+                                            wc = wb * wp.where(c == 0, 1.0 - t[2], t[2])
+                                            if wc > 0.0:
+                                                rho += wc
+    rho_out[i, j, k] = rho
+
+
+@wp.kernel
 def particle_density(
     count: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
@@ -241,7 +383,8 @@ def particle_density(
     """rho += trilinear (hat) weights of every live particle at the cell centres [particles per
     cell]. Stencil nodes beyond the grid fold back onto the edge cell (a mirror image across the
     wall), so a uniform packing of n particles per cell reads n up to the walls; a one-cell-thick
-    axis (2D) puts the whole weight in its single layer. Zero rho first."""
+    axis (2D) puts the whole weight in its single layer. Zero rho first. Float atomics
+    (``FlipLiquid(deterministic=False)``; the default gathers, :func:`gather_particle_density`)."""
     p = wp.tid()
     if p >= count[0] or alive[p] == 0.0:
         return

@@ -1,7 +1,12 @@
 """Force kernels: every force accumulates into ``f_out`` (shape (particle_count,), [N]).
 
 Jacobian kernels add ``ck * df/dx + cd * df/dv`` for each force: per-particle diagonal blocks go
-into ``diag_out`` (atomic adds), coupling blocks between two particles are written as triplets.
+into ``diag_out``, coupling blocks between two particles are written as triplets.
+
+Springs are summed per particle (``eval_springs_gather``, ``eval_springs_jacobian_gather``) over
+the model's CSR adjacency in a fixed order, so runs are bit-reproducible on every device; the
+scatter kernels with float atomics (``eval_springs``, ``eval_springs_jacobian``) remain for the
+``deterministic=False`` opt-out and for differentiable runs.
 The implicit integrator calls them with ``ck = -h**2`` and ``cd = -h``; tests call them with
 ``(1, 0)`` and ``(0, 1)`` to compare against finite differences.
 
@@ -216,6 +221,52 @@ def eval_springs(
 
 
 @wp.func
+def damped_spring_force(xi: wp.vec3, xj: wp.vec3, vi: wp.vec3, vj: wp.vec3, rest: float, k: float,
+                        kd: float) -> wp.vec3:
+    """Force [N] on end i of a damped spring (end j gets minus it); zero for coincident ends. The
+    same arithmetic as ``eval_springs``, so gathers and scatters agree term by term."""
+    u = xi - xj
+    l = wp.length(u)
+    if l < 1.0e-12:
+        return wp.vec3()
+    d = u / l
+    dldt = wp.dot(vi - vj, d)
+    return -(k * (l - rest) + kd * dldt) * d
+
+
+@wp.kernel
+def eval_springs_gather(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
+    particle_spring_offsets: wp.array(dtype=int),
+    particle_springs: wp.array(dtype=int),
+    f_out: wp.array(dtype=wp.vec3),
+):
+    """Per particle i: f_out[i] += the forces of the springs touching it, summed in the fixed
+    order of its CSR row (ascending spring index): no atomics, the same bits every run.
+    Spring s's force is evaluated from its end 2s (as ``eval_springs``) and negated at end 2s+1."""
+    i = wp.tid()
+    f = wp.vec3()
+    for a in range(particle_spring_offsets[i], particle_spring_offsets[i + 1]):
+        s = particle_springs[a]
+        if spring_broken[s] == 0:
+            si = spring_indices[2 * s]
+            sj = spring_indices[2 * s + 1]
+            fs = damped_spring_force(q[si], q[sj], qd[si], qd[sj], spring_rest_length[s], spring_stiffness[s],
+                                     spring_damping[s])
+            if si == i:
+                f = f + fs
+            else:
+                f = f - fs
+    f_out[i] = f_out[i] + f
+
+
+@wp.func
 def spring_block(
     u: wp.vec3, v: wp.vec3, rest: float, k: float, kd: float, ck: float, cd: float, exact: int
 ) -> wp.mat33:
@@ -278,6 +329,51 @@ def eval_springs_jacobian(
     rows_out[2 * s + 1] = j
     cols_out[2 * s + 1] = i
     values_out[2 * s + 1] = -J
+
+
+@wp.kernel
+def eval_springs_jacobian_gather(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
+    particle_spring_offsets: wp.array(dtype=int),
+    particle_springs: wp.array(dtype=int),
+    ck: float,
+    cd: float,
+    exact: int,
+    diag_out: wp.array(dtype=wp.mat33),
+    rows_out: wp.array(dtype=int),
+    cols_out: wp.array(dtype=int),
+    values_out: wp.array(dtype=wp.mat33),
+):
+    """``eval_springs_jacobian`` per particle, without atomics: diag_out[i] += the blocks J of the
+    springs touching i in CSR order; spring s's triplets (2s, 2s+1) are written by the thread of
+    its end 2s."""
+    i = wp.tid()
+    D = wp.mat33()
+    for a in range(particle_spring_offsets[i], particle_spring_offsets[i + 1]):
+        s = particle_springs[a]
+        si = spring_indices[2 * s]
+        sj = spring_indices[2 * s + 1]
+        J = wp.mat33()
+        if spring_broken[s] == 0:
+            J = spring_block(
+                q[si] - q[sj], qd[si] - qd[sj], spring_rest_length[s], spring_stiffness[s], spring_damping[s], ck,
+                cd, exact
+            )
+        D = D + J
+        if si == i:
+            rows_out[2 * s] = si
+            cols_out[2 * s] = sj
+            values_out[2 * s] = -J
+            rows_out[2 * s + 1] = sj
+            cols_out[2 * s + 1] = si
+            values_out[2 * s + 1] = -J
+    diag_out[i] = diag_out[i] + D
 
 
 # --------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ rebuild phi around them from their spheres phi_p(x) = s (r - |x - x_p|).
 import warp as wp
 
 from .advect import sample_at
+from .grid import cell_of
 
 wp.set_module_options({"enable_backward": False})
 
@@ -150,14 +151,19 @@ def pls_seed(
     r_max: float,
     cell_count: wp.array3d(dtype=int),
     count: wp.array(dtype=int),
+    write: int,
+    emitted_io: wp.array(dtype=int),
+    offsets: wp.array(dtype=int),
     pos_out: wp.array(dtype=wp.vec3),
     radius_out: wp.array(dtype=float),
     sign_out: wp.array(dtype=float),
 ):
     """Top up every cell with |phi| < band [m] at its centre from cell_count to ``per_cell`` particles
     (alternating signs), each attracted toward a random target level s * [r_min, band] along the
-    normal (Enright et al. 2002); particles that miss their side are dropped. Appends via count[0]
-    up to the arrays' capacity."""
+    normal (Enright et al. 2002); particles that miss their side are dropped. Two passes append in
+    cell order: write = 0 counts each cell's particles into emitted_io[cell] (flat index), write = 1
+    puts them at count[0] + offsets[cell] + m' (offsets: exclusive prefix sum of the counts), up to
+    the arrays' capacity; the host then advances count[0]."""
     i, j, k = wp.tid()
     if wp.abs(phi[i, j, k]) >= band:
         return
@@ -166,8 +172,10 @@ def pls_seed(
     ny = phi.shape[1]
     nz = phi.shape[2]
     lower = origin + wp.vec3(float(i), float(j), float(k)) * dx
+    flat = (i * ny + j) * nz + k
+    emitted = int(0)
     for m in range(cell_count[i, j, k], per_cell):
-        state = wp.rand_init(seed, ((i * ny + j) * nz + k) * per_cell + m)
+        state = wp.rand_init(seed, flat * per_cell + m)
         x = lower + wp.vec3(wp.randf(state), wp.randf(state), wp.randf(state)) * dx
         if dim == 2:
             x = wp.vec3(x[0], x[1], origin[2] + 0.5 * dx)
@@ -183,11 +191,14 @@ def pls_seed(
         inside_box = inside_box and x[0] <= origin[0] + float(nx) * dx and x[1] <= origin[1] + float(ny) * dx
         inside_box = inside_box and x[2] <= origin[2] + float(nz) * dx
         if sp >= r_min and sp <= band and inside_box:
-            slot = wp.atomic_add(count, 0, 1)
-            if slot < pos_out.shape[0]:
+            slot = count[0] + offsets[flat] + emitted
+            if write != 0 and slot < pos_out.shape[0]:
                 pos_out[slot] = x
                 radius_out[slot] = wp.clamp(sp, r_min, r_max)
                 sign_out[slot] = s
+            emitted += 1
+    if write == 0:
+        emitted_io[flat] = emitted
 
 
 @wp.kernel
@@ -283,18 +294,25 @@ def liquid_volume(
     solid_phi: wp.array3d(dtype=float),
     eps: float,
     cell_volume: float,
-    volume_out: wp.array(dtype=float),
+    partial_out: wp.array2d(dtype=float),
 ):
-    """volume += cell_volume H_eps(-phi) over non-solid cells, H_eps the smoothed Heaviside of half
-    width eps [m] (sub-cell accurate liquid volume [m^3], area in 2D with a unit-thick slab)."""
-    i, j, k = wp.tid()
-    if solid_phi[i, j, k] < 0.0:
-        return
-    x = -phi[i, j, k]
-    h = float(0.0)
-    if x >= eps:
-        h = 1.0
-    elif x > -eps:
-        h = 0.5 * (1.0 + x / eps + wp.sin(wp.pi * x / eps) / wp.pi)
-    if h > 0.0:
-        wp.atomic_add(volume_out, 0, h * cell_volume)
+    """partial_out[s, 0] = sum of cell_volume H_eps(-phi) over the non-solid cells s, s + S, ...
+    (flat index, S slots, one thread each, index order), H_eps the smoothed Heaviside of half
+    width eps [m]; folded in a fixed order by ``warpsim.core.reduction`` into the sub-cell accurate
+    liquid volume [m^3] (area in 2D with a unit-thick slab), the same bits every run."""
+    s = wp.tid()
+    total = float(0.0)
+    flat = s
+    count = phi.shape[0] * phi.shape[1] * phi.shape[2]
+    while flat < count:
+        c = cell_of(flat, phi.shape[1], phi.shape[2])
+        if solid_phi[c[0], c[1], c[2]] >= 0.0:
+            x = -phi[c[0], c[1], c[2]]
+            h = float(0.0)
+            if x >= eps:
+                h = 1.0
+            elif x > -eps:
+                h = 0.5 * (1.0 + x / eps + wp.sin(wp.pi * x / eps) / wp.pi)
+            total += h * cell_volume
+        flat += partial_out.shape[0]
+    partial_out[s, 0] = total

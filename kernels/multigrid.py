@@ -12,7 +12,7 @@ Flat vectors use the (i ny + j) nz + k layout of kernels/grid.py.
 
 import warp as wp
 
-from .grid import AIR, FLUID, SOLID
+from .grid import AIR, FLUID, SOLID, cell_of
 
 wp.set_module_options({"enable_backward": False})
 
@@ -135,15 +135,22 @@ def prolong_add(
 
 @wp.kernel
 def sum_fluid_closed(labels: wp.array3d(dtype=int), domain_sums: wp.array(dtype=float), x: wp.array(dtype=float),
-                     partial_sums_out: wp.array(dtype=float)):
-    """partial_sums_out[c % len] += x[c] over FLUID cells c, only in a closed domain (``domain_sums``
-    from grid.fluid_sums: [2] = 0 FLUID faces on AIR, [1] > 0 FLUID cells); spreading the sum over
-    several slots keeps GPU atomics from serialising on one address."""
-    i, j, k = wp.tid()
-    if domain_sums[2] > 0.0 or domain_sums[1] == 0.0 or labels[i, j, k] != FLUID:
-        return
-    c = (i * labels.shape[1] + j) * labels.shape[2] + k
-    wp.atomic_add(partial_sums_out, c % partial_sums_out.shape[0], x[c])
+                     partial_out: wp.array2d(dtype=float)):
+    """partial_out[s, 0] = sum of x[c] over the FLUID cells c = s, s + S, ... (S slots, one thread
+    each, index order), only in a closed domain (``domain_sums`` from grid.fluid_sums: [2] = 0 FLUID
+    faces on AIR, [1] > 0 FLUID cells; else 0); the host folds the slots in a fixed order
+    (``warpsim.core.reduction``), so the sum is the same bits every run."""
+    s = wp.tid()
+    total = float(0.0)
+    if domain_sums[2] == 0.0 and domain_sums[1] > 0.0:
+        count = labels.shape[0] * labels.shape[1] * labels.shape[2]
+        c = s
+        while c < count:
+            cell = cell_of(c, labels.shape[1], labels.shape[2])
+            if labels[cell[0], cell[1], cell[2]] == FLUID:
+                total += x[c]
+            c += partial_out.shape[0]
+    partial_out[s, 0] = total
 
 
 @wp.kernel

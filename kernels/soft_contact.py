@@ -1,33 +1,53 @@
-"""Soft-body contact kernels: vertices of one body against the triangles of another (or of itself).
+"""Soft-body contact kernels: vertices against triangles and edges against edges of other bodies
+(or of the same body with self contact). ``warpsim.bodies.soft_contact.SoftContact`` launches
+them after integration.
 
-Per step (``warpsim.bodies.soft_contact.SoftContact`` launches them after integration):
+Broad phase (one structure for all bodies of a world, refitted every step):
 
-1. ``find_soft_contacts``: every contact vertex p queries the triangle BVHs of the other bodies
-   (one ``wp.Mesh`` per body, refitted every step; its own too with self contact) within
-   ``search`` [m] and keeps the nearest triangle (never one that touches p or, on its own body,
-   lies within ``self_rest_distance`` of it in the rest pose). One BVH per body keeps a vertex's
-   own neighbourhood out of its queries (one BVH over all bodies was measured 27x slower on
-   the CPU, 53.6 against 1.96 ms for four separate tori of 2,000 vertices: every query walked
-   its own body's nearby triangles). With c the closest
-   point (barycentrics b) and n_f the outward face normal, the signed distance is
-   s = |p - c| in front of the face and -|p - c| behind it (only when p lies right behind the
-   face: c inside the triangle); a contact has -search < s < thickness, normal n = (p - c)/|p - c|
-   in front, n_f behind, depth thickness - s. Every particle counts the contacts it takes part in.
-2. ``push_soft_contacts`` / ``impulse_soft_contacts``: the vertex and the triangle's three
-   vertices (weights b) act as one two-body contact with inverse mass
-   W = w_p + sum_k b_k^2 w_k. The position push removes the depth, the normal impulse
-   J = -(1 + e) u_n / W stops the approach (u_n = (v_p - sum b_k v_k) . n < 0), Coulomb friction
-   takes at most mu J of the slip. The vertex gets +w_p J and triangle vertex k gets -b_k w_k J,
-   so sum m dv = 0: momentum is conserved exactly (pinned particles, w = 0, never move). Each
-   contact is scaled by 1 / (largest contact count among its four particles), so a particle in
-   several contacts receives a convex combination (Jacobi averaging; no overshoot). Deltas are
-   summed with atomics into ``dx``/``dv`` and applied by ``apply_soft_contact_deltas``; the
-   impulse pass is repeated ``iterations`` times on the updated velocities.
+* ``find_vertex_contacts``: every contact vertex queries one ``wp.Mesh`` BVH over the contact
+  triangles of *all* bodies of its world once, with a box of half width
+  ``max(thickness, search)``; triangles of its own body are skipped unless self contact is on
+  (then triangles touching the vertex, or within ``self_rest_distance`` of it in the rest pose,
+  are skipped). The cost per vertex depends on the local density only, so a step is linear in
+  the number of bodies (the former search visited every other body's BVH from every vertex).
+* ``find_edge_contacts``: every surface edge queries one ``wp.Bvh`` over the bounds of all
+  surface edges of its world (``edge_bounds`` writes them, the BVH is refitted).
+* ``find_*_all_pairs``: the same narrow phase over every triangle / edge of the world, no
+  broad phase (the reference the tests compare with; O(vertices x triangles)).
+
+Narrow phase. Vertex p against triangle abc: with c the closest point (barycentrics b) and n_f
+the outward face normal, s = |p - c| in front of the face, -|p - c| right behind it (only when
+c lies inside the triangle); a contact has -search < s < thickness, normal n = (p - c)/|p - c|
+in front, n_f behind. Edge pq against edge rs (closest points c1 = p + u (q - p), c2 = r + t (s - r),
+Ericson 5.1.9), only with both closest points inside their edges (0 < u, t < 1) and edges at
+least ``EDGE_MIN_SINE`` from parallel (otherwise a vertex is nearest and the vertex-triangle test
+covers it), and only in front of rs ((c1 - c2) . n_e > 0, n_e the summed outward normals of the
+faces beside rs): s = |c1 - c2| < thickness, normal (c1 - c2)/|c1 - c2|. Behind rs is no edge
+contact: there the surface may just curve away (the saddle inside a torus), and a body whose
+edges crossed is pushed out by its vertices. Every vertex (edge) keeps its nearest contact,
+ties broken by the lower triangle (edge) index, so the result does not depend on the order in
+which the BVH returns candidates. Depth = thickness - s.
+
+A contact joins four particles k with weights a_k (vertex-triangle: 1, -b_0, -b_1, -b_2; edge-edge:
+1 - u, u, -(1 - t), -t): the relative velocity is sum a_k v_k, the effective inverse mass
+W = sum a_k^2 w_k. ``push_contacts`` removes ``fraction`` of the depth along n, ``impulse_contacts``
+applies J = -(1 + e) u_n / W when u_n < 0 and Coulomb friction up to mu J; particle k receives
+a_k w_k (impulse): sum m dv = J sum a_k = 0, momentum is conserved (pinned particles, w = 0, never
+move). Each contact is scaled by 1 / (largest contact count among its particles): a particle in
+several contacts receives a convex combination (Jacobi averaging).
+
+Reproducibility: the deltas are summed in 64-bit fixed point (``FIXED_SCALE`` units per metre or
+metre per second, resolution 2.3e-10) with integer atomics, and integer addition does not depend
+on order: two runs are bit-identical on any device, and no float atomics are used.
 """
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
+
+FIXED_SCALE = wp.constant(4294967296.0)  # 2^32 fixed-point units per metre (m/s) for the deltas
+FIXED_INV_SCALE = wp.constant(1.0 / 4294967296.0)
+EDGE_MIN_SINE = wp.constant(0.2)  # edges closer to parallel (about 11.5 degrees) are left to vertex contacts
 
 
 @wp.func
@@ -70,6 +90,40 @@ def triangle_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.v
 
 
 @wp.func
+def segment_closest_params(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec2:
+    """Parameters (u, t) in [0, 1] of the closest points p1 + u (q1 - p1) and p2 + t (q2 - p2)
+    of two segments (Ericson, Real-Time Collision Detection, 5.1.9)."""
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    eps = float(1.0e-20)
+    u = float(0.0)
+    t = float(0.0)
+    if a <= eps and e <= eps:
+        return wp.vec2(0.0, 0.0)
+    if a <= eps:
+        return wp.vec2(0.0, wp.clamp(f / e, 0.0, 1.0))
+    c = wp.dot(d1, r)
+    if e <= eps:
+        return wp.vec2(wp.clamp(-c / a, 0.0, 1.0), 0.0)
+    b = wp.dot(d1, d2)
+    denom = a * e - b * b
+    if denom > eps * a * e:
+        u = wp.clamp((b * f - c * e) / denom, 0.0, 1.0)
+    t = (b * u + f) / e
+    if t < 0.0:
+        t = 0.0
+        u = wp.clamp(-c / a, 0.0, 1.0)
+    elif t > 1.0:
+        t = 1.0
+        u = wp.clamp((b - c) / a, 0.0, 1.0)
+    return wp.vec2(u, t)
+
+
+@wp.func
 def rest_distance(p: int, t: int, tri: wp.array(dtype=int), rest: wp.array(dtype=wp.vec3)) -> float:
     """Distance from particle p to triangle t in the rest pose [m]."""
     a = rest[tri[3 * t]]
@@ -80,185 +134,486 @@ def rest_distance(p: int, t: int, tri: wp.array(dtype=int), rest: wp.array(dtype
     return wp.length(x - (w[0] * a + w[1] * b + w[2] * c))
 
 
+@wp.func
+def face_normal(t: int, tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    """Unit outward normal of triangle t (zero for a degenerate triangle)."""
+    a = q[tri[3 * t]]
+    n = wp.cross(q[tri[3 * t + 1]] - a, q[tri[3 * t + 2]] - a)
+    length = wp.length(n)
+    if length < 1.0e-20:
+        return wp.vec3()
+    return n / length
+
+
+# ------------------------------------------------------------------------------ narrow phase
+@wp.func
+def vertex_triangle_candidate(
+    p: int, body: int, t: int, tri: wp.array(dtype=int), tri_body: wp.array(dtype=int),
+    rest: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), self_contact: int, self_rest_distance: float,
+) -> bool:
+    """Whether vertex p (of ``body``) may touch triangle t at all (topology filters only)."""
+    own = tri_body[t] == body
+    if own and self_contact == 0:
+        return False
+    i = tri[3 * t]
+    j = tri[3 * t + 1]
+    k = tri[3 * t + 2]
+    if own:
+        if i == p or j == p or k == p:
+            return False
+        if rest_distance(p, t, tri, rest) < self_rest_distance:
+            return False
+    return inv_mass[p] + inv_mass[i] + inv_mass[j] + inv_mass[k] > 0.0
+
+
+@wp.func
+def vertex_triangle_test(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, thickness: float, search: float):
+    """(distance [m], barycentrics, normal, signed distance s) of vertex x against triangle abc;
+    distance -1 when they are no contact (module docstring)."""
+    bary = triangle_barycentric(x, a, b, c)
+    delta = x - (bary[0] * a + bary[1] * b + bary[2] * c)
+    d = wp.length(delta)
+    nf = wp.cross(b - a, c - a)
+    area2 = wp.length(nf)
+    if area2 < 1.0e-20:
+        return -1.0, bary, nf, 0.0
+    nf = nf / area2
+    s = d
+    n = nf
+    if wp.dot(delta, nf) < 0.0:
+        # behind the face: a contact only when x lies right behind it (closest point inside)
+        if bary[0] <= 0.0 or bary[1] <= 0.0 or bary[2] <= 0.0:
+            return -1.0, bary, n, 0.0
+        s = -d
+    elif d > 1.0e-9:
+        n = delta / d
+    if s >= thickness or s <= -search:
+        return -1.0, bary, n, 0.0
+    return d, bary, n, s
+
+
+@wp.func
+def edge_edge_candidate(
+    e: int, f: int, edges: wp.array(dtype=int), edge_body: wp.array(dtype=int), rest: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float), self_contact: int, self_rest_distance: float,
+) -> bool:
+    """Whether edge e may touch edge f at all (topology filters only)."""
+    if e == f:
+        return False
+    own = edge_body[e] == edge_body[f]
+    if own and self_contact == 0:
+        return False
+    a = edges[2 * e]
+    b = edges[2 * e + 1]
+    c = edges[2 * f]
+    d = edges[2 * f + 1]
+    if own:
+        if a == c or a == d or b == c or b == d:
+            return False
+        ut = segment_closest_params(rest[a], rest[b], rest[c], rest[d])
+        gap = (rest[a] + ut[0] * (rest[b] - rest[a])) - (rest[c] + ut[1] * (rest[d] - rest[c]))
+        if wp.length(gap) < self_rest_distance:
+            return False
+    return inv_mass[a] + inv_mass[b] + inv_mass[c] + inv_mass[d] > 0.0
+
+
+@wp.func
+def edge_edge_test(
+    f: int, xa: wp.vec3, xb: wp.vec3, edges: wp.array(dtype=int), edge_tris: wp.array(dtype=int),
+    tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), thickness: float,
+):
+    """(distance [m], (u, t), normal, signed distance s) of edge xa-xb against edge f; distance -1
+    when they are no contact (module docstring)."""
+    xc = q[edges[2 * f]]
+    xd = q[edges[2 * f + 1]]
+    ut = segment_closest_params(xa, xb, xc, xd)
+    # closest points inside both edges, edges not near parallel: otherwise a vertex is nearest
+    # and the vertex-triangle contact handles it
+    if ut[0] <= 0.0 or ut[0] >= 1.0 or ut[1] <= 0.0 or ut[1] >= 1.0:
+        return -1.0, ut, wp.vec3(), 0.0
+    if wp.length(wp.cross(xb - xa, xd - xc)) < EDGE_MIN_SINE * wp.length(xb - xa) * wp.length(xd - xc):
+        return -1.0, ut, wp.vec3(), 0.0
+    delta = (xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))
+    d = wp.length(delta)
+    side = wp.vec3()
+    for k in range(2):
+        t = edge_tris[2 * f + k]
+        if t >= 0:
+            side = side + face_normal(t, tri, q)
+    # in front of the faces beside f only: behind them (the edges have crossed) the surface
+    # may just curve away (saddles of a torus), and the vertex-triangle contacts push out
+    if d <= 1.0e-9 or d >= thickness or wp.dot(delta, side) < 0.0:
+        return -1.0, ut, wp.vec3(), 0.0
+    n = delta / d
+    s = d
+    return d, ut, n, s
+
+
+@wp.func
+def nearer(d: float, index: int, best_d: float, best: int) -> bool:
+    """Nearest first, ties to the lower index (order independent)."""
+    return d < best_d or (d == best_d and index < best)
+
+
+@wp.func
+def store_contact(
+    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, depth: float,
+    contact_particles_out: wp.array(dtype=wp.vec4i), contact_weights_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3), contact_depth_out: wp.array(dtype=float),
+    particle_contacts_io: wp.array(dtype=int), contact_total_io: wp.array(dtype=int), kind: int,
+):
+    contact_particles_out[slot] = particles
+    contact_weights_out[slot] = weights
+    contact_normal_out[slot] = normal
+    contact_depth_out[slot] = depth
+    for k in range(4):
+        wp.atomic_add(particle_contacts_io, particles[k], 1)
+    wp.atomic_add(contact_total_io, kind, 1)
+
+
+@wp.func
+def clear_contact(slot: int, contact_particles_out: wp.array(dtype=wp.vec4i)):
+    contact_particles_out[slot] = wp.vec4i(-1, -1, -1, -1)
+
+
+# ------------------------------------------------------------------------------ vertex-triangle
+@wp.func
+def finish_vertex_contact(
+    v: int, p: int, best: int, best_bary: wp.vec3, best_normal: wp.vec3, best_s: float, thickness: float,
+    tri: wp.array(dtype=int), contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4), contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float), particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int),
+):
+    if best < 0:
+        clear_contact(v, contact_particles_out)
+        return
+    store_contact(v, wp.vec4i(p, tri[3 * best], tri[3 * best + 1], tri[3 * best + 2]),
+                  wp.vec4(1.0, -best_bary[0], -best_bary[1], -best_bary[2]), best_normal, thickness - best_s,
+                  contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                  particle_contacts_io, contact_total_io, 0)
+
+
 @wp.kernel
-def find_soft_contacts(
+def find_vertex_contacts(
     meshes: wp.array(dtype=wp.uint64),
-    tri_start: wp.array(dtype=int),
+    world_tri_start: wp.array(dtype=int),
+    vertex_world: wp.array(dtype=int),
+    vertex_particle: wp.array(dtype=int),
+    vertex_body: wp.array(dtype=int),
+    tri: wp.array(dtype=int),
+    tri_body: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
     rest: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
-    tri: wp.array(dtype=int),
-    vertex_particle: wp.array(dtype=int),
-    vertex_body: wp.array(dtype=int),
     thickness: float,
     search: float,
     self_contact: int,
     self_rest_distance: float,
-    contact_tri_out: wp.array(dtype=int),
-    contact_bary_out: wp.array(dtype=wp.vec3),
+    contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
-    """Nearest triangle contact of contact vertex v (module docstring, step 1); -1 when none."""
+    """Nearest triangle contact of contact vertex v through its world's triangle BVH (slot v)."""
     v = wp.tid()
     p = vertex_particle[v]
     body = vertex_body[v]
+    world = vertex_world[v]
     x = q[p]
     reach = wp.max(thickness, search)
-    lower = x - wp.vec3(reach)
-    upper = x + wp.vec3(reach)
     best = int(-1)
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
     best_s = float(0.0)
-    for other in range(meshes.shape[0]):
-        if other == body and self_contact == 0:
+    query = wp.mesh_query_aabb(meshes[world], x - wp.vec3(reach), x + wp.vec3(reach))
+    local = int(0)
+    while wp.mesh_query_aabb_next(query, local):
+        t = world_tri_start[world] + local
+        if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        query = wp.mesh_query_aabb(meshes[other], lower, upper)
-        local = int(0)
-        while wp.mesh_query_aabb_next(query, local):
-            t = tri_start[other] + local
-            i = tri[3 * t]
-            j = tri[3 * t + 1]
-            k = tri[3 * t + 2]
-            if other == body:
-                if i == p or j == p or k == p:
-                    continue
-                if rest_distance(p, t, tri, rest) < self_rest_distance:
-                    continue
-            w = inv_mass[p] + inv_mass[i] + inv_mass[j] + inv_mass[k]
-            if w == 0.0:
-                continue
-            a = q[i]
-            b = q[j]
-            c = q[k]
-            bary = triangle_barycentric(x, a, b, c)
-            cp = bary[0] * a + bary[1] * b + bary[2] * c
-            delta = x - cp
-            d = wp.length(delta)
-            nf = wp.cross(b - a, c - a)
-            area2 = wp.length(nf)
-            if area2 < 1.0e-20:
-                continue
-            nf = nf / area2
-            side = wp.dot(delta, nf)
-            s = d
-            n = nf
-            if side < 0.0:
-                # behind the face: a contact only when p lies right behind it (closest point inside)
-                if bary[0] <= 0.0 or bary[1] <= 0.0 or bary[2] <= 0.0:
-                    continue
-                s = -d
-            elif d > 1.0e-9:
-                n = delta / d
-            if s >= thickness or s <= -search:
-                continue
-            if d < best_d:
-                best_d = d
-                best = t
-                best_bary = bary
-                best_normal = n
-                best_s = s
-    contact_tri_out[v] = best
-    if best >= 0:
-        contact_bary_out[v] = best_bary
-        contact_normal_out[v] = best_normal
-        contact_depth_out[v] = thickness - best_s
-        wp.atomic_add(particle_contacts_io, p, 1)
-        wp.atomic_add(particle_contacts_io, tri[3 * best], 1)
-        wp.atomic_add(particle_contacts_io, tri[3 * best + 1], 1)
-        wp.atomic_add(particle_contacts_io, tri[3 * best + 2], 1)
-        wp.atomic_add(contact_total_io, 0, 1)
+        d, bary, n, s = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+                                             search)
+        if d >= 0.0 and nearer(d, t, best_d, best):
+            best_d = d
+            best = t
+            best_bary = bary
+            best_normal = n
+            best_s = s
+    finish_vertex_contact(v, p, best, best_bary, best_normal, best_s, thickness, tri, contact_particles_out,
+                          contact_weights_out, contact_normal_out, contact_depth_out, particle_contacts_io,
+                          contact_total_io)
+
+
+@wp.kernel
+def find_vertex_contacts_all_pairs(
+    world_tri_start: wp.array(dtype=int),
+    vertex_world: wp.array(dtype=int),
+    vertex_particle: wp.array(dtype=int),
+    vertex_body: wp.array(dtype=int),
+    tri: wp.array(dtype=int),
+    tri_body: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    thickness: float,
+    search: float,
+    self_contact: int,
+    self_rest_distance: float,
+    contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int),
+):
+    """As ``find_vertex_contacts`` over every triangle of the world (no broad phase; reference)."""
+    v = wp.tid()
+    p = vertex_particle[v]
+    body = vertex_body[v]
+    world = vertex_world[v]
+    x = q[p]
+    best = int(-1)
+    best_d = float(1.0e30)
+    best_bary = wp.vec3()
+    best_normal = wp.vec3()
+    best_s = float(0.0)
+    for t in range(world_tri_start[world], world_tri_start[world + 1]):
+        if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
+            continue
+        d, bary, n, s = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+                                             search)
+        if d >= 0.0 and nearer(d, t, best_d, best):
+            best_d = d
+            best = t
+            best_bary = bary
+            best_normal = n
+            best_s = s
+    finish_vertex_contact(v, p, best, best_bary, best_normal, best_s, thickness, tri, contact_particles_out,
+                          contact_weights_out, contact_normal_out, contact_depth_out, particle_contacts_io,
+                          contact_total_io)
+
+
+# ------------------------------------------------------------------------------ edge-edge
+@wp.kernel
+def edge_bounds(
+    edges: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), margin: float,
+    lowers_out: wp.array(dtype=wp.vec3), uppers_out: wp.array(dtype=wp.vec3),
+):
+    """Bounds of edge e grown by ``margin`` [m] (for the edge BVH)."""
+    e = wp.tid()
+    a = q[edges[2 * e]]
+    b = q[edges[2 * e + 1]]
+    lowers_out[e] = wp.min(a, b) - wp.vec3(margin)
+    uppers_out[e] = wp.max(a, b) + wp.vec3(margin)
 
 
 @wp.func
-def contact_particles(v: int, t: int, tri: wp.array(dtype=int), vertex_particle: wp.array(dtype=int)):
-    """(vertex particle, triangle particles i, j, k) of contact vertex v against triangle t."""
-    return vertex_particle[v], tri[3 * t], tri[3 * t + 1], tri[3 * t + 2]
+def finish_edge_contact(
+    slot: int, e: int, best: int, best_ut: wp.vec2, best_normal: wp.vec3, best_s: float, thickness: float,
+    edges: wp.array(dtype=int), contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4), contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float), particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int),
+):
+    if best < 0:
+        clear_contact(slot, contact_particles_out)
+        return
+    u = best_ut[0]
+    t = best_ut[1]
+    store_contact(slot, wp.vec4i(edges[2 * e], edges[2 * e + 1], edges[2 * best], edges[2 * best + 1]),
+                  wp.vec4(1.0 - u, u, t - 1.0, -t), best_normal, thickness - best_s,
+                  contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                  particle_contacts_io, contact_total_io, 1)
 
 
+@wp.kernel
+def find_edge_contacts(
+    bvhs: wp.array(dtype=wp.uint64),
+    world_edge_start: wp.array(dtype=int),
+    edge_world: wp.array(dtype=int),
+    edges: wp.array(dtype=int),
+    edge_body: wp.array(dtype=int),
+    edge_tris: wp.array(dtype=int),
+    tri: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    thickness: float,
+    search: float,
+    self_contact: int,
+    self_rest_distance: float,
+    slot_offset: int,
+    contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int),
+):
+    """Nearest edge contact of surface edge e through its world's edge BVH (slot offset + e)."""
+    e = wp.tid()
+    world = edge_world[e]
+    xa = q[edges[2 * e]]
+    xb = q[edges[2 * e + 1]]
+    best = int(-1)
+    best_d = float(1.0e30)
+    best_ut = wp.vec2()
+    best_normal = wp.vec3()
+    best_s = float(0.0)
+    query = wp.bvh_query_aabb(bvhs[world], wp.min(xa, xb) - wp.vec3(thickness), wp.max(xa, xb) + wp.vec3(thickness))
+    local = int(0)
+    while wp.bvh_query_next(query, local):
+        f = world_edge_start[world] + local
+        if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
+            continue
+        d, ut, n, s = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        if d >= 0.0 and nearer(d, f, best_d, best):
+            best_d = d
+            best = f
+            best_ut = ut
+            best_normal = n
+            best_s = s
+    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, best_s, thickness, edges,
+                        contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                        particle_contacts_io, contact_total_io)
+
+
+@wp.kernel
+def find_edge_contacts_all_pairs(
+    world_edge_start: wp.array(dtype=int),
+    edge_world: wp.array(dtype=int),
+    edges: wp.array(dtype=int),
+    edge_body: wp.array(dtype=int),
+    edge_tris: wp.array(dtype=int),
+    tri: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    thickness: float,
+    search: float,
+    self_contact: int,
+    self_rest_distance: float,
+    slot_offset: int,
+    contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_depth_out: wp.array(dtype=float),
+    particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int),
+):
+    """As ``find_edge_contacts`` over every edge of the world (no broad phase; reference)."""
+    e = wp.tid()
+    world = edge_world[e]
+    xa = q[edges[2 * e]]
+    xb = q[edges[2 * e + 1]]
+    best = int(-1)
+    best_d = float(1.0e30)
+    best_ut = wp.vec2()
+    best_normal = wp.vec3()
+    best_s = float(0.0)
+    for f in range(world_edge_start[world], world_edge_start[world + 1]):
+        if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
+            continue
+        d, ut, n, s = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        if d >= 0.0 and nearer(d, f, best_d, best):
+            best_d = d
+            best = f
+            best_ut = ut
+            best_normal = n
+            best_s = s
+    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, best_s, thickness, edges,
+                        contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                        particle_contacts_io, contact_total_io)
+
+
+# ------------------------------------------------------------------------------ response
 @wp.func
-def contact_scale(p: int, i: int, j: int, k: int, counts: wp.array(dtype=int)) -> float:
+def contact_scale(particles: wp.vec4i, counts: wp.array(dtype=int)) -> float:
     """1 / the largest contact count among the four particles of a contact."""
-    m = wp.max(wp.max(counts[p], counts[i]), wp.max(counts[j], counts[k]))
+    m = wp.max(wp.max(counts[particles[0]], counts[particles[1]]), wp.max(counts[particles[2]], counts[particles[3]]))
     return 1.0 / float(wp.max(m, 1))
 
 
 @wp.func
-def scatter_contact(
-    p: int, i: int, j: int, k: int, bary: wp.vec3, inv_mass: wp.array(dtype=float), delta: wp.vec3,
-    out: wp.array(dtype=wp.vec3),
-):
-    """out[p] += w_p delta; out[k-th triangle vertex] -= b_k w_k delta (equal and opposite)."""
-    wp.atomic_add(out, p, inv_mass[p] * delta)
-    wp.atomic_sub(out, i, (bary[0] * inv_mass[i]) * delta)
-    wp.atomic_sub(out, j, (bary[1] * inv_mass[j]) * delta)
-    wp.atomic_sub(out, k, (bary[2] * inv_mass[k]) * delta)
+def effective_inv_mass(particles: wp.vec4i, weights: wp.vec4, inv_mass: wp.array(dtype=float)) -> float:
+    W = float(0.0)
+    for k in range(4):
+        W += weights[k] * weights[k] * inv_mass[particles[k]]
+    return W
 
 
 @wp.func
-def effective_inv_mass(p: int, i: int, j: int, k: int, bary: wp.vec3, inv_mass: wp.array(dtype=float)) -> float:
-    return (inv_mass[p] + bary[0] * bary[0] * inv_mass[i] + bary[1] * bary[1] * inv_mass[j]
-            + bary[2] * bary[2] * inv_mass[k])
+def to_fixed(x: float) -> wp.int64:
+    return wp.int64(wp.float64(x) * wp.float64(FIXED_SCALE))
+
+
+@wp.func
+def scatter_contact(
+    particles: wp.vec4i, weights: wp.vec4, inv_mass: wp.array(dtype=float), delta: wp.vec3,
+    out: wp.array2d(dtype=wp.int64),
+):
+    """out[particle k] += a_k w_k delta in fixed point (integer atomics: order independent)."""
+    for k in range(4):
+        p = particles[k]
+        dk = (weights[k] * inv_mass[p]) * delta
+        for c in range(3):
+            wp.atomic_add(out, p, c, to_fixed(dk[c]))
 
 
 @wp.kernel
-def push_soft_contacts(
+def push_contacts(
     inv_mass: wp.array(dtype=float),
-    tri: wp.array(dtype=int),
-    vertex_particle: wp.array(dtype=int),
-    contact_tri: wp.array(dtype=int),
-    contact_bary: wp.array(dtype=wp.vec3),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
     contact_normal: wp.array(dtype=wp.vec3),
     contact_depth: wp.array(dtype=float),
     particle_contacts: wp.array(dtype=int),
     fraction: float,
-    dx_io: wp.array(dtype=wp.vec3),
+    dx_io: wp.array2d(dtype=wp.int64),
 ):
     """Position push removing ``fraction`` of each contact's depth along its normal (mass-weighted:
     the centre of mass does not move)."""
-    v = wp.tid()
-    t = contact_tri[v]
-    if t < 0:
+    c = wp.tid()
+    particles = contact_particles[c]
+    if particles[0] < 0:
         return
-    p, i, j, k = contact_particles(v, t, tri, vertex_particle)
-    bary = contact_bary[v]
-    W = effective_inv_mass(p, i, j, k, bary, inv_mass)
+    weights = contact_weights[c]
+    W = effective_inv_mass(particles, weights, inv_mass)
     if W <= 0.0:
         return
-    push = (fraction * contact_scale(p, i, j, k, particle_contacts) * contact_depth[v] / W) * contact_normal[v]
-    scatter_contact(p, i, j, k, bary, inv_mass, push, dx_io)
+    push = (fraction * contact_scale(particles, particle_contacts) * contact_depth[c] / W) * contact_normal[c]
+    scatter_contact(particles, weights, inv_mass, push, dx_io)
 
 
 @wp.kernel
-def impulse_soft_contacts(
+def impulse_contacts(
     qd: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
-    tri: wp.array(dtype=int),
-    vertex_particle: wp.array(dtype=int),
-    contact_tri: wp.array(dtype=int),
-    contact_bary: wp.array(dtype=wp.vec3),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
     contact_normal: wp.array(dtype=wp.vec3),
     particle_contacts: wp.array(dtype=int),
     restitution: float,
     friction: float,
-    dv_io: wp.array(dtype=wp.vec3),
+    dv_io: wp.array2d(dtype=wp.int64),
 ):
     """Normal impulse with restitution and Coulomb friction per contact (module docstring)."""
-    v = wp.tid()
-    t = contact_tri[v]
-    if t < 0:
+    c = wp.tid()
+    particles = contact_particles[c]
+    if particles[0] < 0:
         return
-    p, i, j, k = contact_particles(v, t, tri, vertex_particle)
-    bary = contact_bary[v]
-    n = contact_normal[v]
-    W = effective_inv_mass(p, i, j, k, bary, inv_mass)
+    weights = contact_weights[c]
+    n = contact_normal[c]
+    W = effective_inv_mass(particles, weights, inv_mass)
     if W <= 0.0:
         return
-    rel = qd[p] - (bary[0] * qd[i] + bary[1] * qd[j] + bary[2] * qd[k])
+    rel = wp.vec3()
+    for k in range(4):
+        rel += weights[k] * qd[particles[k]]
     un = wp.dot(rel, n)
     if un >= 0.0:
         return
@@ -269,19 +624,24 @@ def impulse_soft_contacts(
     if vt_len > 0.0 and friction > 0.0:
         jt = wp.min(friction * jn, vt_len / W)
         impulse = impulse - (jt / vt_len) * vt
-    scatter_contact(p, i, j, k, bary, inv_mass, contact_scale(p, i, j, k, particle_contacts) * impulse, dv_io)
+    scatter_contact(particles, weights, inv_mass, contact_scale(particles, particle_contacts) * impulse, dv_io)
 
 
 @wp.kernel
-def apply_soft_contact_deltas(
-    dx_io: wp.array(dtype=wp.vec3),
-    dv_io: wp.array(dtype=wp.vec3),
+def apply_contact_deltas(
+    dx_io: wp.array2d(dtype=wp.int64),
+    dv_io: wp.array2d(dtype=wp.int64),
     q_io: wp.array(dtype=wp.vec3),
     qd_io: wp.array(dtype=wp.vec3),
 ):
-    """q += dx, qd += dv, then clear both buffers."""
+    """q += dx, qd += dv (from fixed point), then clear both buffers."""
     i = wp.tid()
-    q_io[i] = q_io[i] + dx_io[i]
-    qd_io[i] = qd_io[i] + dv_io[i]
-    dx_io[i] = wp.vec3()
-    dv_io[i] = wp.vec3()
+    dx = wp.vec3()
+    dv = wp.vec3()
+    for c in range(3):
+        dx[c] = float(wp.float64(dx_io[i, c]) * wp.float64(FIXED_INV_SCALE))
+        dv[c] = float(wp.float64(dv_io[i, c]) * wp.float64(FIXED_INV_SCALE))
+        dx_io[i, c] = wp.int64(0)
+        dv_io[i, c] = wp.int64(0)
+    q_io[i] = q_io[i] + dx
+    qd_io[i] = qd_io[i] + dv

@@ -25,7 +25,6 @@ wp.set_module_options({"enable_backward": False})
 KERNEL_CUBIC = wp.constant(0)
 KERNEL_WENDLAND = wp.constant(1)
 PI = wp.constant(3.14159265358979)
-STAT_SLOTS = wp.constant(64)  # compression sums and maxima are spread over this many slots (fewer atomic collisions)
 
 
 @wp.struct
@@ -318,13 +317,13 @@ def store_density_constraint(
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
     boundary_grad_out: wp.array(dtype=wp.vec3),
-    stats_out: wp.array(dtype=float),
+    compression_out: wp.array(dtype=float),
 ):
     """Add the boundaries to particle i's density sums and store rho_i, its PBF multiplier
     lambda_i = -C_i / (sum_k |grad_k C_i|^2 + eps) of C_i = max(rho_i / rho0 - 1, 0), and the
-    boundary gradient. with_stats != 0 accumulates C into stats_out[i % STAT_SLOTS] and its
-    maximum into stats_out[STAT_SLOTS + i % STAT_SLOTS] (the slots spread the atomics;
-    :func:`iteration_control` reduces them)."""
+    boundary gradient. with_stats != 0 also stores C in compression_out[i] (summed and maximised
+    in a fixed order by ``warpsim.core.reduction`` for :func:`iteration_control`: no float
+    atomics, so the iteration count is the same run to run)."""
     bd = boundary_density(b, xi, p.h)
     rho = rho_fluid + p.rest_density * bd[3]
     gb = wp.vec3(bd[0], bd[1], bd[2])
@@ -335,9 +334,7 @@ def store_density_constraint(
     lambda_out[i] = lam
     boundary_grad_out[i] = gb
     if with_stats != 0:
-        wp.atomic_add(stats_out, i % STAT_SLOTS, c)
-        if c > 0.0:
-            wp.atomic_max(stats_out, STAT_SLOTS + i % STAT_SLOTS, c)
+        compression_out[i] = c
 
 
 @wp.kernel
@@ -353,7 +350,7 @@ def find_neighbors_density(
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
     boundary_grad_out: wp.array(dtype=wp.vec3),
-    stats_out: wp.array(dtype=float),
+    compression_out: wp.array(dtype=float),
 ):
     """Neighbour list of each particle (hash-grid candidates kept when |x_i - x_j| < h, j != i).
     With with_density != 0 it is fused with the first density evaluation
@@ -394,7 +391,7 @@ def find_neighbors_density(
     nb_out.count[i] = count
     if with_density != 0:
         store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, with_stats, density_out, lambda_out,
-                                 boundary_grad_out, stats_out)
+                                 boundary_grad_out, compression_out)
 
 
 @wp.kernel
@@ -423,7 +420,7 @@ def solve_density_lambda(
     density_out: wp.array(dtype=float),
     lambda_out: wp.array(dtype=float),
     boundary_grad_out: wp.array(dtype=wp.vec3),
-    stats_out: wp.array(dtype=float),
+    compression_out: wp.array(dtype=float),
 ):
     """PBF (Macklin and Mueller 2013): density rho_i = sum_j m W_ij + rho0 phi_boundary over the
     neighbour list at the current positions and the multiplier lambda_i
@@ -449,7 +446,7 @@ def solve_density_lambda(
             nb.grad_factor[e] = wf[1]
         e += nb.stride_k
     store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, with_stats, density_out, lambda_out,
-                             boundary_grad_out, stats_out)
+                             boundary_grad_out, compression_out)
 
 
 @wp.kernel
@@ -501,9 +498,10 @@ def iteration_control(
 ):
     """One thread: counts ``advance`` more corrections (counter_io[0] this step, total_io[0]
     overall) and sets go_out[0] = 1 while another one is due: fewer than ``max_iterations`` so far
-    and the mean compression sum(stats[:STAT_SLOTS]) / n at least ``tolerance`` (tolerance 0:
-    always), or the largest compression max(stats[STAT_SLOTS:]) at least ``peak_tolerance``, or,
-    for the step's first correction, that largest compression at least ``tolerance``. Both keep
+    and the mean compression stats[0] / n (stats[0]: the sum of the particles' C) at least
+    ``tolerance`` (tolerance 0: always), or the largest compression stats[1] at least
+    ``peak_tolerance``, or, for the step's first correction, that largest compression at least
+    ``tolerance``. Both keep
     a local compression from building up over steps that stop early (or skip the solve) because
     the mean (over a fluid mostly at or below rest density) is small: the compression a step leaves becomes velocity,
     ~ C spacing / dt, so an unchecked C would kick harder the smaller the steps (and CFL
@@ -512,11 +510,8 @@ def iteration_control(
     it = counter_io[0] + advance
     counter_io[0] = it
     total_io[0] = total_io[0] + advance
-    total = float(0.0)
-    peak = float(0.0)
-    for k in range(STAT_SLOTS):
-        total += stats[k]
-        peak = wp.max(peak, stats[STAT_SLOTS + k])
+    total = stats[0]
+    peak = stats[1]
     go = int(0)
     if it < max_iterations and (total >= tolerance * float(n) or peak >= peak_tolerance or (it == 0 and peak >= tolerance)):
         go = 1
@@ -664,12 +659,10 @@ def reduce_speed(v: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), out: wp
 
 
 @wp.kernel
-def density_error_stats(density: wp.array(dtype=float), rest_density: float, out: wp.array(dtype=float)):
-    """out[0] += max(rho/rho0 - 1, 0) (sum of compressions), out[1] = max compression."""
+def compression(density: wp.array(dtype=float), rest_density: float, c_out: wp.array(dtype=float)):
+    """c = max(rho/rho0 - 1, 0) per particle (reduced in a fixed order by the host)."""
     i = wp.tid()
-    c = wp.max(density[i] / rest_density - 1.0, 0.0)
-    wp.atomic_add(out, 0, c)
-    wp.atomic_max(out, 1, c)
+    c_out[i] = wp.max(density[i] / rest_density - 1.0, 0.0)
 
 
 # ------------------------------------------------------------------------- emitters and sinks

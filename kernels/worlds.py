@@ -91,7 +91,8 @@ def tile_int(base: wp.array(dtype=int), out: wp.array(dtype=int)):
 
 @wp.kernel
 def tile_spring_indices(base: wp.array(dtype=int), particle_count: int, out: wp.array(dtype=int)):
-    """Spring end indices of world w = one world's indices + w P (base has 2 S entries)."""
+    """Spring end indices of world w = one world's indices + w P (base has 2 S entries); also any
+    index array repeated per world with a per-world offset (CSR adjacency rows and springs)."""
     t = wp.tid()
     n = base.shape[0]
     out[t] = base[t % n] + (t / n) * particle_count

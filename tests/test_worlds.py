@@ -142,7 +142,7 @@ def test_switching_the_world_variant_gives_that_worlds_samples(tmp_path):
 
 def test_a_world_that_blows_up_is_frozen_and_its_neighbours_run_on(tmp_path):
     cls = get_scene("springs")
-    fixed = {"count": 5}
+    fixed = {"count": 5, "dt": 1.0 / 480.0}  # dt fixed by hand: no automatic sub-steps to keep world 1 stable
     params = [{**fixed, "stiffness": 400.0}, {**fixed, "stiffness": 4.0e7}, {**fixed, "stiffness": 800.0}]
     frames = 10
     rows = run_batch("springs", params, frames=frames, device="cpu", layer_path=tmp_path / "b.usdc")

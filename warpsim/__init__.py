@@ -26,6 +26,8 @@ if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and 
     )
     from .bodies import SoftContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
+    from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
     from .cloth import (
         Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
         cloth_energy,
@@ -54,6 +56,7 @@ def _load_all():
     )
     from .bodies import SoftContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
+    from .core import StabilityLimit, StabilityWarning
     from .cloth import (
         Cloth, ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator, add_cloth_grid, add_cloth_mesh,
         cloth_energy,
@@ -68,6 +71,7 @@ def _load_all():
     )
     from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
     from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
+    from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
     globals().update({k: v for k, v in locals().items() if not k.startswith("_")})
 
 
@@ -85,6 +89,8 @@ __all__ = [
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
     "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
+    "StabilityLimit", "StabilityWarning",
+    "Strands", "add_strands", "StrandForce", "StrandRoots", "strand_stable_dt", "sag_free", "SagFreeReport",
 ]
 
 

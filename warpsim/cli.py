@@ -4,6 +4,7 @@
     warpsim run SCENE [--frames N] [--fps F] [--substeps S] [--integrator NAME] [--device D]
                       [--out PATH] [--set KEY=VALUE ...] [--chunk K] [--flatten]
                       [--checkpoint-every N] [--resume]
+    warpsim run SCENE --from-sweep ROOT --world N   world N of a sweep, alone, bit for bit
     warpsim info CACHE                             prims, frame range, counts, bounds
 
 Exit status: 0 on success, 2 for usage mistakes (unknown scene or parameter, malformed value,
@@ -30,6 +31,8 @@ COMMANDS = {
     "render": "warpsim.render.command",
     "plot": "warpsim.render.plot",
     "sweep": "warpsim.worlds.command",
+    "query": "warpsim.worlds.query_command",
+    "pick": "warpsim.worlds.pick",
     "export": "warpsim.render.export_command",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
@@ -63,9 +66,14 @@ def _parser(argv=None):
     sub.add_parser("list", help="list the scenes and their parameters")
     r = sub.add_parser("run", help="simulate a scene and write a USD cache")
     r.add_argument("scene", help="scene name (see 'warpsim list')")
-    r.add_argument("--frames", type=int, default=120, help="frames to simulate after frame 0 (default 120)")
+    r.add_argument("--frames", type=int, default=None,
+                   help="frames to simulate after frame 0 (default 120; with --from-sweep: the sweep's)")
     r.add_argument("--fps", type=float, default=None, help="frames per second of the cache (default: the scene's)")
-    r.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    r.add_argument("--substeps", type=substeps_arg, default=None,
+                   help="simulation steps per frame, or 'auto': as many as the stability limit needs (default: "
+                        "the scene's)")
+    r.add_argument("--strict", action="store_true",
+                   help="exit 2 before running when the time step is above the stability limit (default: warn)")
     r.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc; default usd_out/SCENE.usda)")
@@ -78,6 +86,9 @@ def _parser(argv=None):
                    help="save the simulation state beside the cache every N frames")
     r.add_argument("--resume", action="store_true", help="continue from the last checkpoint, appending frames")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--from-sweep", default=None, metavar="ROOT",
+                   help="re-run one world of the sweep whose root is ROOT exactly (with --world N)")
+    r.add_argument("--world", type=int, default=None, metavar="N", help="the world of --from-sweep to re-run")
     r.add_argument("--preview", default=None, metavar="FILE.gif",
                    help="also render the cache to a .gif/.mp4/.png beside it (at most 300 frames; see 'warpsim render')")
     i = sub.add_parser("info", help="summarise a USD cache")
@@ -100,6 +111,36 @@ def _parser(argv=None):
 
 
 _BROKEN = {}  # command name -> why its module failed to load
+
+
+def substeps_arg(text):
+    """``--substeps`` value: an int, or "auto" (sub-step inside the stability limit)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number or 'auto'") from None
+
+
+def auto_substeps(cls, substeps, given) -> bool:
+    """Whether frames sub-step automatically: ``--substeps auto``, or the scene's default when
+    neither ``--substeps N`` nor ``--set dt=...`` fixed the step by hand."""
+    if substeps == "auto":
+        return True
+    return substeps is None and bool(getattr(cls, "substeps_auto", False)) and "dt" not in given
+
+
+def stability_check(scene, frame_dt, substeps, strict, err) -> None:
+    """Before the first step: one ``warpsim: warning:`` line on ``err`` when the scene's step is
+    above its stability limit (naming the limiter and the remedies), or with ``strict`` a
+    :class:`UsageError` (exit 2)."""
+    line = scene.stability_warning(frame_dt, substeps)
+    if line is None:
+        return
+    if strict:
+        raise UsageError(f"--strict: {line}")
+    print(f"warpsim: warning: {line}", file=err)
 
 
 def _one_line(exc):
@@ -198,9 +239,9 @@ def _parse_sets(cls, sets, integrator):
 
 def _timing(cls, params, given, fps, substeps):
     """(fps, substeps, params) from the flags and the scene's defaults; see warpsim.scenes."""
-    if substeps is not None and substeps < 1:
+    if substeps is not None and substeps != "auto" and substeps < 1:
         raise UsageError(f"--substeps {substeps}: it must be >= 1")
-    substeps = substeps or cls.substeps
+    substeps = cls.substeps if substeps in (None, "auto") else substeps
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise UsageError(f"--fps {fps}: it must be > 0")
     if "dt" in cls.params:
@@ -234,6 +275,12 @@ def _cmd_run(args, out, err):
         cls = get_scene(args.scene)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if args.from_sweep is not None or args.world is not None:  # one world of a sweep, exactly
+        from .worlds.rerun import run_command
+
+        return run_command(args, out, err)
+    if args.frames is None:
+        args.frames = 120
     if args.frames < 0:
         raise UsageError(f"--frames {args.frames}: it must be >= 0")
     if args.chunk < 1:
@@ -275,11 +322,14 @@ def _cmd_run(args, out, err):
         ckpt = (arrays, meta)
         start = int(meta["frame"]) + 1
         fps, substeps = float(meta["fps"]), int(meta["substeps"])
-        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (None, substeps):
+        auto = bool(meta.get("auto_substeps", False))
+        if args.fps is not None and not math.isclose(args.fps, fps) or args.substeps not in (
+                None, substeps, "auto" if auto else None):
             raise UsageError(f"--resume: the checkpoint was made at {fps:g} fps with {substeps} substeps")
         params = cls.resolve_params(given)
     else:
         params = cls.resolve_params(given)
+        auto = auto_substeps(cls, args.substeps, given)
         fps, substeps, params = _timing(cls, params, given, args.fps, args.substeps)
     device = _device(args.device)
     try:
@@ -294,8 +344,11 @@ def _cmd_run(args, out, err):
                              f"{_one_line(exc)}); run again without --resume") from None
     if start > args.frames + 1:
         raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
-    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps)
+    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps);
+    # with auto sub-steps at most that, and within the stability limit
     frame_dt = params["dt"] * substeps if "dt" in params else 1.0 / fps
+    scene.auto_substeps = auto
+    stability_check(scene, frame_dt, substeps, args.strict, err)
     try:
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
                                 resume_frame=start if args.resume else None)
@@ -309,7 +362,7 @@ def _cmd_run(args, out, err):
     def save(frame):
         writer.flush()  # the cache holds every frame up to the checkpoint before it exists
         save_checkpoint(ckpt_file, scene.checkpoint(), {
-            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps,
+            "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps, "auto_substeps": auto,
             "params": {k: list(v) if isinstance(v, tuple) else v for k, v in params.items()}})
 
     progress = None
@@ -320,6 +373,11 @@ def _cmd_run(args, out, err):
                         dynamic_ncols=True)
     frame = start
     t0 = time.perf_counter()
+    import warnings
+
+    from .core.stability import StabilityWarning
+
+    warnings.simplefilter("ignore", StabilityWarning)  # said once above, as one line
     try:
         with writer:
             try:
@@ -365,25 +423,29 @@ def _cmd_run(args, out, err):
     return 0
 
 
-def _check_out(path):
-    """Create the folder of ``--out`` and make sure a file can be written there, so an
-    unusable path is one line and exit 2 before the scene is built."""
+def _check_out(path, flag="--out"):
+    """Create the folder of ``--out`` (or another output option ``flag``) and make sure a file
+    can be written there, so an unusable path is one line and exit 2 before the scene is built."""
     import tempfile
 
     if os.path.isdir(path):
-        raise UsageError(f"--out {path!r} is a folder; name a file in it, e.g. {os.path.join(path, 'scene.usda')!r}")
+        raise UsageError(f"{flag} {path!r} is a folder; name a file in it, e.g. "
+                         f"{os.path.join(path, 'scene' + (os.path.splitext(path)[1] or '.usda'))!r}")
     folder = os.path.dirname(os.path.abspath(path))
     probe = folder
     while not os.path.lexists(probe):
         probe = os.path.dirname(probe)
     if not os.path.isdir(probe):
-        raise UsageError(f"--out {path!r}: {probe!r} is a file, not a folder; choose another --out")
+        raise UsageError(f"{flag} {path!r}: {probe!r} is a file, not a folder; choose another {flag}")
     try:
         os.makedirs(folder, exist_ok=True)
         tempfile.TemporaryFile(dir=folder).close()
     except OSError as exc:
-        raise UsageError(f"--out {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
+        raise UsageError(f"{flag} {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
                          "writable folder") from None
+    if os.path.lexists(path) and not os.access(path, os.W_OK):
+        raise UsageError(f"{flag} {path!r} exists and is not writable; choose another {flag} or change its "
+                         "permissions")
 
 
 def _silence_stdout(out):

@@ -4,7 +4,7 @@ the ``--device`` check."""
 
 from __future__ import annotations
 
-__all__ = ["UsageError", "device_arg"]
+__all__ = ["UsageError", "device_arg", "one_line"]
 
 
 class UsageError(Exception):
@@ -23,3 +23,8 @@ def device_arg(name) -> str:
     except Exception as exc:  # noqa: BLE001  (Warp raises plain Exception/RuntimeError/ValueError)
         choices = [str(d) for d in wp.get_devices()]
         raise UsageError(f"--device {name!r} is not available ({exc}); available: {', '.join(choices)}") from None
+
+
+def one_line(exc) -> str:
+    """An exception's text on one line (its type name when it has none)."""
+    return " ".join(str(exc).split("\n")).strip() or type(exc).__name__

@@ -88,6 +88,14 @@ class Flock(_Agents):
         self._food = _food_struct(food, d)
         self.food_amounts = self._food.amounts
         """Bites left at each food source, shape (food count,)."""
+        # bites are granted in agent order (requests sorted by source with a stable sort), not by
+        # atomics racing on the amounts: the same agents eat on every run and device
+        food_total = self.food_amounts.shape[0]
+        self._bite_request = wp.zeros(n, dtype=int, device=d)
+        self._bite_keys = wp.zeros(2 * n, dtype=int, device=d)
+        self._bite_ids = wp.zeros(2 * n, dtype=int, device=d)
+        self._requests = wp.zeros(food_total, dtype=int, device=d)
+        self._first_request = wp.zeros(food_total, dtype=int, device=d)
 
     def step(self, dt: float) -> None:
         """Advance the flock by ``dt`` [s]."""
@@ -98,9 +106,26 @@ class Flock(_Agents):
                           self.separation, self.alignment, self.cohesion, self.draft, self.benefit, self.push,
                           self.goals, dt, self.agent_world],
                   outputs=[self.positions, self.velocities, self.state, self.energy, self.timer, self.bite_timer,
-                           self.bites, self.heading], device=self.device)
+                           self.bites, self.heading, self._bite_request], device=self.device)
+        if self._food.count > 0:
+            self._grant_bites()
         self.time += dt
         self.step_count += 1
+
+
+    def _grant_bites(self) -> None:
+        d, n = self.device, self.agent_count
+        self._requests.zero_()
+        wp.launch(K.key_bite_requests, n, inputs=[self._bite_request, self._requests.shape[0]],
+                  outputs=[self._requests, self._bite_keys, self._bite_ids], device=d)
+        wp.utils.radix_sort_pairs(self._bite_keys, self._bite_ids, n)
+        wp.utils.array_scan(self._requests, self._first_request, inclusive=False)
+        wp.launch(K.grant_bites, n,
+                  inputs=[self.flight, self.kinds, self._bite_keys, self._bite_ids, self._bite_request,
+                          self._first_request, self.food_amounts],
+                  outputs=[self.energy, self.bite_timer, self.bites, self.state], device=d)
+        wp.launch(K.consume_food, self._requests.shape[0], inputs=[self._requests], outputs=[self.food_amounts],
+                  device=d)
 
 
 # --------------------------------------------------------------------------------------

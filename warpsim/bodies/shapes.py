@@ -6,6 +6,9 @@ import numpy as np
 
 from . import meshtools
 
+MAX_TORUS_RING = 4096
+"""Most segments (or sides) a torus takes: 4096 x 4096 is 16.7 million vertices."""
+
 
 def torus_mesh(major_radius: float = 0.1, minor_radius: float = 0.04, segments: int = 24,
                sides: int = 12) -> tuple[np.ndarray, np.ndarray]:
@@ -14,12 +17,14 @@ def torus_mesh(major_radius: float = 0.1, minor_radius: float = 0.04, segments: 
     ``major_radius`` [m]: centre of the tube to the axis; ``minor_radius`` [m]: tube radius;
     ``segments`` around the axis, ``sides`` around the tube (segments x sides vertices, twice as
     many triangles, wound outward). Returns (points (V, 3) float64, faces (F, 3) int64)."""
-    major_radius, minor_radius = float(major_radius), float(minor_radius)
-    if not (np.isfinite(major_radius) and np.isfinite(minor_radius) and 0.0 < minor_radius < major_radius):
+    from ..core import checks
+
+    major_radius = checks.positive(major_radius, "torus_mesh major_radius", unit="m", fix="e.g. 0.1")
+    minor_radius = checks.positive(minor_radius, "torus_mesh minor_radius", unit="m", fix="e.g. 0.04")
+    if not minor_radius < major_radius:
         raise ValueError(f"torus radii major={major_radius}, minor={minor_radius}: need 0 < minor < major [m]")
-    segments, sides = int(segments), int(sides)
-    if segments < 3 or sides < 3:
-        raise ValueError(f"torus segments={segments}, sides={sides}: each must be >= 3")
+    segments = checks.integer(segments, "torus_mesh segments", lo=3, hi=MAX_TORUS_RING, fix="e.g. 24")
+    sides = checks.integer(sides, "torus_mesh sides", lo=3, hi=MAX_TORUS_RING, fix="e.g. 12")
     u = 2.0 * np.pi * np.arange(segments) / segments
     v = 2.0 * np.pi * np.arange(sides) / sides
     uu, vv = np.meshgrid(u, v, indexing="ij")

@@ -1,13 +1,16 @@
-"""Soft body against soft body: vertices of one body against the triangles of another.
+"""Soft body against soft body: vertices against triangles and edges against edges of other bodies.
 
 :class:`SoftContact` is a collider (it runs after integration, so it works with every
-integrator, semi-implicit and implicit Euler included). Each step it refits one ``wp.Mesh``
-BVH per body over its surface triangles (``mesh.refit()`` on a copy of the current positions),
-finds for every surface vertex the nearest triangle of another body (optionally of its own
-body: ``self_contact``) closer than ``thickness`` [m], pushes the pair apart and applies
-an inelastic impulse with restitution and Coulomb friction. Impulses act on the vertex and,
-weighted by barycentrics, on the triangle's three vertices, equal and opposite: momentum is
-conserved exactly. Kernels: ``warpsim.kernels.soft_contact`` (the method is described there).
+integrator, semi-implicit and implicit Euler included). Each step it refits one ``wp.Mesh`` BVH
+over the contact triangles of all bodies (one per world in a batch) and one ``wp.Bvh`` over
+their surface edges; every surface vertex queries the triangle BVH once and keeps the nearest
+triangle of another body (optionally of its own body: ``self_contact``) closer than
+``thickness`` [m], every surface edge queries the edge BVH once and keeps the nearest edge of
+another body. Each pair is pushed apart and given an inelastic impulse with restitution and
+Coulomb friction, equal and opposite (weighted by barycentrics or edge parameters): momentum is
+conserved. The step is deterministic (fixed-point integer sums), allocates nothing and makes no
+host read-back, so it records in a CUDA graph. Kernels: ``warpsim.kernels.soft_contact`` (the
+method is described there).
 
 Example::
 
@@ -19,12 +22,14 @@ Example::
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
 import warp as wp
 
 from ..core.collider import Collider
+from . import meshtools
 from ..kernels import soft_contact as K
 
 
@@ -41,13 +46,13 @@ def _body_faces(body, k: int) -> np.ndarray:
 
 
 class SoftContact(Collider):
-    """Vertex-triangle contact between soft bodies (see module docstring).
+    """Vertex-triangle and edge-edge contact between soft bodies (see module docstring).
 
     Args:
         bodies: SoftBody objects (``ws.add_soft_body``) or (F, 3) triangle arrays in particle
             indices; each is one body. Their surface vertices are the contact vertices.
         thickness: contact distance [m]: a vertex is kept at least this far in front of every
-            other body's triangles.
+            other body's triangles, an edge this far from every other body's edges.
         restitution: normal restitution e in [0, 1] (0: the approach stops).
         friction: Coulomb friction coefficient mu >= 0.
         self_contact: also test a body's vertices against its own triangles (except triangles
@@ -58,26 +63,33 @@ class SoftContact(Collider):
         push: fraction of a contact's depth removed by moving positions each step (default 0.5;
             1 removes it at once but makes resting contacts jitter: measured on a 4-torus heap,
             kinetic energy at rest 0.02-0.05 J with 1, 0.002 J with 0.5, of a 13 J peak).
+        edge_contact: also keep surface edges apart (edge-edge contact; without it long edges
+            can cross where no vertex is near).
+        broad_phase: "bvh" (one BVH over all bodies' triangles, one over their edges) or
+            "all_pairs" (every vertex against every triangle of its world: the O(n^2) reference).
 
-    After a step, ``contact_count`` (one read-back) is the number of vertex contacts found.
+    After a step, ``contact_count`` and ``edge_contact_count`` (one read-back each) are the
+    numbers of vertex-triangle and edge-edge contacts found.
     """
 
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
-                 self_rest_distance: float | None = None, push: float = 0.5):
+                 self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
+                 broad_phase: str = "bvh"):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
         self.faces = [_body_faces(b, k) for k, b in enumerate(bodies)]
-        for name, value, positive in (("thickness", thickness, True), ("friction", friction, False)):
-            v = float(value)
-            if not math.isfinite(v) or v < 0.0 or (positive and v == 0.0):
-                raise ValueError(f"SoftContact {name} is {value}; it must be finite and {'> 0' if positive else '>= 0'}")
-        restitution = float(restitution)
-        if not (math.isfinite(restitution) and 0.0 <= restitution <= 1.0):
-            raise ValueError(f"SoftContact restitution is {restitution}; it must be in [0, 1]")
-        if int(iterations) < 1:
-            raise ValueError(f"SoftContact iterations is {iterations}; it must be >= 1")
+        from ..core import checks
+
+        thickness = checks.positive(thickness, "SoftContact thickness", unit="m", fix="e.g. 0.005")
+        friction = checks.nonnegative(friction, "SoftContact friction", fix="e.g. 0.5")
+        restitution = checks.in_range(restitution, "SoftContact restitution", 0.0, 1.0, fix="e.g. 0.0")
+        iterations = checks.integer(iterations, "SoftContact iterations", lo=1, hi=1000, fix="e.g. 4")
+        for name, value in (("search", search), ("self_rest_distance", self_rest_distance)):
+            if value is not None:
+                checks.nonnegative(value, f"SoftContact {name}", unit="m", fix="or None for the default")
+        push = checks.in_range(push, "SoftContact push", 0.0, 1.0, fix="a fraction of the depth removed per step")
         self.thickness = float(thickness)
         self.friction = float(friction)
         self.restitution = restitution
@@ -94,14 +106,36 @@ class SoftContact(Collider):
         self.push = float(push)
         if not (math.isfinite(self.push) and 0.0 <= self.push <= 1.0):
             raise ValueError(f"SoftContact push is {push}; it must be in [0, 1] (fraction of the depth removed per step)")
-        self._meshes = []
+        if broad_phase not in ("bvh", "all_pairs"):
+            raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh' or 'all_pairs'")
+        self.broad_phase = broad_phase
+        self.edge_contact = bool(edge_contact)
+        self.body_world = None
+        self._meshes, self._bvhs = [], []
+
+    def tile(self, world_count: int, world_particle_count: int) -> "SoftContact":
+        """The same contact for ``world_count`` copies of the model laid end to end (world w owns
+        particles ``w P .. (w + 1) P - 1``, P = ``world_particle_count``): every world gets its own
+        bodies and its own BVHs, and contacts stay within a world (``warpsim.worlds.batch``)."""
+        tiled = copy.copy(self)
+        n, P = int(world_count), int(world_particle_count)
+        tiled.faces = [faces + w * P for w in range(n) for faces in self.faces]
+        tiled.body_world = np.repeat(np.arange(n), len(self.faces))
+        tiled._meshes, tiled._bvhs = [], []
+        return tiled
 
     def bind(self, model) -> None:
         super().bind(model)
         n = model.particle_count
-        tri, vert, vert_body = [], [], []
+        body_world = self.body_world
+        if body_world is None:
+            body_world = np.zeros(len(self.faces), dtype=np.int64)
+        order = np.argsort(body_world, kind="stable")  # bodies world by world
+        tri, tri_body, vert, vert_body, edges, edge_tris, edge_body = [], [], [], [], [], [], []
         seen = np.full(n, -1, dtype=np.int64)
-        for k, faces in enumerate(self.faces):
+        tri_count = 0
+        for k in order:
+            faces = self.faces[k]
             if faces.min() < 0 or faces.max() >= n:
                 raise ValueError(f"SoftContact bodies[{k}]: triangle index {int(faces.max())} is out of range "
                                  f"[0, {n}); build the bodies into this model")
@@ -111,65 +145,134 @@ class SoftContact(Collider):
                 raise ValueError(f"SoftContact bodies[{k}]: particle {int(shared[0])} also belongs to bodies"
                                  f"[{int(seen[shared[0]])}]; every body needs its own particles")
             seen[verts] = k
+            body_edges, _, edge_of = meshtools.edge_topology(faces)
+            beside = np.full((len(body_edges), 2), -1, dtype=np.int64)  # the (up to) two faces beside an edge
+            face_of = tri_count + np.arange(len(edge_of)) % len(faces)
+            for r in np.argsort(edge_of, kind="stable"):
+                slot = 0 if beside[edge_of[r], 0] < 0 else 1
+                beside[edge_of[r], slot] = face_of[r]
             tri.append(faces)
+            tri_body.append(np.full(len(faces), k))
             vert.append(verts)
             vert_body.append(np.full(len(verts), k))
+            edges.append(body_edges)
+            edge_tris.append(beside)
+            edge_body.append(np.full(len(body_edges), k))
+            tri_count += len(faces)
+        worlds = int(body_world.max()) + 1
+        sorted_world = body_world[order]
+        counts = {"tri": [len(f) for f in tri], "vert": [len(v) for v in vert], "edge": [len(e) for e in edges]}
+
+        def starts(kind):
+            per_world = np.zeros(worlds + 1, dtype=np.int64)
+            np.add.at(per_world, sorted_world + 1, counts[kind])
+            return np.cumsum(per_world)
+
+        world_tri_start, world_edge_start = starts("tri"), starts("edge")
         d = model.device
-        i32 = np.int32
-        self._tri = wp.array(np.concatenate(tri).reshape(-1).astype(i32), dtype=int, device=d)
-        self._tri_start = wp.array(np.concatenate([[0], np.cumsum([len(f) for f in tri])]).astype(i32), dtype=int,
-                                   device=d)
-        self._vertex = wp.array(np.concatenate(vert).astype(i32), dtype=int, device=d)
-        self._vertex_body = wp.array(np.concatenate(vert_body).astype(i32), dtype=int, device=d)
+
+        def ints(a):
+            return wp.array(np.ascontiguousarray(np.concatenate(a) if isinstance(a, list) else a).reshape(-1)
+                            .astype(np.int32), dtype=int, device=d)
+
+        tri_all = np.concatenate(tri)
+        self._tri = ints(tri)
+        self._tri_body = ints(tri_body)
+        self._vertex = ints(vert)
+        self._vertex_body = ints(vert_body)
+        self._vertex_world = ints(np.repeat(sorted_world, counts["vert"]))
+        self._world_tri_start = ints(world_tri_start)
         self.vertex_count = int(self._vertex.shape[0])
-        self.triangle_count = sum(len(f) for f in tri)
-        v = self.vertex_count
+        self.triangle_count = int(len(tri_all))
+        self.world_count = worlds
         self._points = wp.clone(model.particle_q)
-        self._meshes = [wp.Mesh(points=self._points, indices=wp.array(f.reshape(-1).astype(i32), dtype=int, device=d))
-                        for f in tri]
+        self._meshes = [wp.Mesh(points=self._points, indices=ints(tri_all[world_tri_start[w]:world_tri_start[w + 1]]))
+                        for w in range(worlds)]
         self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=d)
-        self._contact_tri = wp.zeros(v, dtype=int, device=d)
-        self._contact_bary = wp.zeros(v, dtype=wp.vec3, device=d)
-        self._contact_normal = wp.zeros(v, dtype=wp.vec3, device=d)
-        self._contact_depth = wp.zeros(v, dtype=float, device=d)
+        self.edge_count = int(world_edge_start[-1]) if self.edge_contact else 0
+        if self.edge_contact:
+            self._edges = ints(edges)
+            self._edge_body = ints(edge_body)
+            self._edge_tris = ints(edge_tris)
+            self._edge_world = ints(np.repeat(sorted_world, counts["edge"]))
+            self._world_edge_start = ints(world_edge_start)
+            self._edge_lower = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
+            self._edge_upper = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
+            self._launch_edge_bounds(model.particle_q)
+            self._bvhs = [wp.Bvh(self._edge_lower[int(world_edge_start[w]):int(world_edge_start[w + 1])],
+                                 self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])])
+                          for w in range(worlds)]
+            self._bvh_ids = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=d)
+        slots = self.vertex_count + self.edge_count
+        self._contact_particles = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=d)
+        self._contact_weights = wp.zeros(slots, dtype=wp.vec4, device=d)
+        self._contact_normal = wp.zeros(slots, dtype=wp.vec3, device=d)
+        self._contact_depth = wp.zeros(slots, dtype=float, device=d)
         self._particle_contacts = wp.zeros(n, dtype=int, device=d)
-        self._total = wp.zeros(1, dtype=int, device=d)
-        self._dx = wp.zeros(n, dtype=wp.vec3, device=d)
-        self._dv = wp.zeros(n, dtype=wp.vec3, device=d)
+        self._total = wp.zeros(2, dtype=int, device=d)
+        self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
+        self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
+
+    def _launch_edge_bounds(self, q) -> None:
+        wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, 0.0, self._edge_lower, self._edge_upper],
+                  device=self.model.device)
 
     @property
     def meshes(self) -> list:
-        """One BVH ``wp.Mesh`` per body (points: positions at the last step)."""
+        """The triangle BVHs, one ``wp.Mesh`` over all bodies of each world (points: positions at
+        the last step)."""
         return self._meshes
 
     @property
     def contact_count(self) -> int:
-        """Vertex-triangle contacts found in the last step (reads one int back)."""
+        """Vertex-triangle contacts found in the last step (reads the counts back)."""
         return int(self._total.numpy()[0])
 
+    @property
+    def edge_contact_count(self) -> int:
+        """Edge-edge contacts found in the last step (reads the counts back)."""
+        return int(self._total.numpy()[1])
+
     def apply(self, model, state, q_prev, dt) -> None:
-        d, n, v = model.device, model.particle_count, self.vertex_count
+        d, n, v, e = model.device, model.particle_count, self.vertex_count, self.edge_count
         if d.is_cpu and d.is_capturing:
             # wp.Mesh.refit on the CPU is a host call that a captured graph would not replay
             raise ValueError("SoftContact cannot run inside a graph captured on the CPU (the BVH refit would not "
                              "be replayed); use ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
-        wp.copy(self._points, state.positions)
-        for mesh in self._meshes:
-            mesh.refit()
+        all_pairs = self.broad_phase == "all_pairs"
         self._particle_contacts.zero_()
         self._total.zero_()
-        wp.launch(K.find_soft_contacts, v,
-                  inputs=[self._mesh_ids, self._tri_start, state.positions, model.particle_q, model.particle_inv_mass,
-                          self._tri, self._vertex, self._vertex_body, self.thickness, self.search,
-                          int(self.self_contact), self.self_rest_distance, self._contact_tri, self._contact_bary,
-                          self._contact_normal, self._contact_depth, self._particle_contacts, self._total], device=d)
-        contact = [self._contact_tri, self._contact_bary, self._contact_normal]
-        wp.launch(K.push_soft_contacts, v,
-                  inputs=[model.particle_inv_mass, self._tri, self._vertex, *contact, self._contact_depth,
-                          self._particle_contacts, self.push, self._dx], device=d)
+        contact = [self._contact_particles, self._contact_weights, self._contact_normal, self._contact_depth,
+                   self._particle_contacts, self._total]
+        common = [model.particle_q, model.particle_inv_mass, self.thickness, self.search, int(self.self_contact),
+                  self.self_rest_distance]
+        vertex = [self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, state.positions]
+        if all_pairs:
+            wp.launch(K.find_vertex_contacts_all_pairs, v, inputs=[self._world_tri_start, *vertex, *common, *contact],
+                      device=d)
+        else:
+            wp.copy(self._points, state.positions)
+            for mesh in self._meshes:
+                mesh.refit()
+            wp.launch(K.find_vertex_contacts, v, inputs=[self._mesh_ids, self._world_tri_start, *vertex, *common,
+                                                         *contact], device=d)
+        if e:
+            edge = [self._edge_world, self._edges, self._edge_body, self._edge_tris, self._tri, state.positions]
+            if all_pairs:
+                wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, *edge, *common, v,
+                                                                     *contact], device=d)
+            else:
+                self._launch_edge_bounds(state.positions)
+                for bvh in self._bvhs:
+                    bvh.refit()
+                wp.launch(K.find_edge_contacts, e, inputs=[self._bvh_ids, self._world_edge_start, *edge, *common, v,
+                                                           *contact], device=d)
+        slots = [self._contact_particles, self._contact_weights, self._contact_normal]
+        wp.launch(K.push_contacts, v + e, inputs=[model.particle_inv_mass, *slots, self._contact_depth,
+                                                  self._particle_contacts, self.push, self._dx], device=d)
         for _ in range(self.iterations):
-            wp.launch(K.impulse_soft_contacts, v,
-                      inputs=[state.velocities, model.particle_inv_mass, self._tri, self._vertex, *contact,
-                              self._particle_contacts, self.restitution, self.friction, self._dv], device=d)
-            wp.launch(K.apply_soft_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
+            wp.launch(K.impulse_contacts, v + e,
+                      inputs=[state.velocities, model.particle_inv_mass, *slots, self._particle_contacts,
+                              self.restitution, self.friction, self._dv], device=d)
+            wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)

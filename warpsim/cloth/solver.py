@@ -8,8 +8,10 @@ Euler, and a Simulator that replays each frame's sub-steps as a captured graph.
   default; or ``warp.optim.linear.cg``, preallocated); pinned rows and columns are filtered.
   Per step it reports CG iterations, final residual and tolerance.
 - :class:`ClothSemiImplicitEuler`: v += h (f/m + g), x += h v with springs, gravity and the
-  update fused ("scatter": spring kernel + particle kernel, or "gather": one particle-centric
-  kernel, no atomics).
+  update fused ("scatter": spring-force kernel + particle kernel, or "gather": one
+  particle-centric kernel). Both sum each particle's springs in a fixed order without float
+  atomics, as does the implicit solver's assembly and its CG dot products, so runs are
+  bit-reproducible on every device.
 - :class:`ClothSimulator`: a ``ws.Simulator`` whose ``frame()`` / ``run()`` capture a frame's
   sub-steps (forces, solve, colliders) in a graph (CUDA and CPU) and replay it; no allocation
   and no host read-back inside a frame.
@@ -29,6 +31,7 @@ import warp.sparse as wps
 from .block_cg import BlockCG
 from ..core.forces import Force, Gravity, Springs
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
+from ..core.model import ensure_spring_adjacency
 from ..kernels import cloth as KC
 from ..kernels import forces as KF
 from ..kernels import integrate as KI
@@ -59,18 +62,25 @@ def _overrides_jacobian(force) -> bool:
 
 class ClothSemiImplicitEuler(Integrator):
     """Semi-implicit (symplectic) Euler for cloth with the spring, gravity and update kernels
-    fused. ``mode``: "scatter" (spring kernel with atomics + particle kernel), "gather" (one
-    particle-centric kernel per step, no atomics; ClothSimulator ping-pongs its output arrays) or
-    None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2 particles, see
-    benchmarks/bench_cloth.py), scatter on the CPU (where atomics cost nothing)."""
+    fused. ``mode``: "scatter" (a spring-force kernel, per particle over the model's CSR
+    adjacency in spring order, + a particle kernel; handles breakable springs), "gather" (one
+    particle-centric kernel per step over packed adjacency lists; ClothSimulator ping-pongs its
+    output arrays) or None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2
+    particles, see benchmarks/bench_cloth.py), scatter on the CPU. Neither uses float atomics:
+    both are bit-reproducible (they sum in different orders, so they agree to float rounding).
+    ``deterministic=False`` (scatter mode only): the former per-spring kernel with float atomics,
+    whose summation order varies run to run on GPUs (an opt-out for speed comparisons)."""
 
     name = "cloth_semi_implicit_euler"
 
-    def __init__(self, mode: str | None = None):
+    def __init__(self, mode: str | None = None, deterministic: bool = True):
         super().__init__()
         if mode not in (None, "scatter", "gather"):
             raise ValueError(f"mode = {mode!r}; use 'scatter', 'gather' or None (automatic)")
+        if not isinstance(deterministic, (bool, np.bool_)):
+            raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.requested_mode = mode
+        self.deterministic = bool(deterministic)
 
     def _allocate(self, system):
         model, d = system.model, system.device
@@ -145,10 +155,16 @@ class ClothSemiImplicitEuler(Integrator):
         model = system.model
         f = self.f  # zero on entry: the particle kernel clears it
         self._external(system, q, qd, time, f)
-        if model.spring_count:
+        if model.spring_count and not self.deterministic:  # the opt-out: per-spring float atomics
             wp.launch(KF.eval_springs, model.spring_count,
                       inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
                               model.spring_damping, model.spring_broken, f], device=system.device)
+        elif model.spring_count:  # gathered per particle in a fixed order (breakable springs included)
+            ensure_spring_adjacency(model)
+            wp.launch(KF.eval_springs_gather, system.count,
+                      inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
+                              model.spring_damping, model.spring_broken, model.particle_spring_offsets,
+                              model.particle_springs, f], device=system.device)
         if f_out is not None:
             wp.copy(f_out, f)
             wp.launch(KF.eval_gravity, system.count, inputs=[system.mass, self.gravity, f_out], device=system.device)
@@ -177,6 +193,10 @@ class ClothImplicitEuler(Integrator):
             the CPU, 10 on CUDA.
         record_history: keep (newton iterations, CG iterations, residual, tolerance) of every
             step in ``history`` (host-checked steps only).
+        deterministic: True (default): the system is assembled per particle over the model's CSR
+            spring adjacency in a fixed order (no float atomics; BlockCG's dot products are
+            fixed-order too), so runs are bit-reproducible on every device. False: the former
+            per-spring assembly with float atomics (order varies run to run on GPUs).
 
     After each step: ``last_newton_iterations``, ``last_cg_iterations`` (summed over Newton
     iterations), ``last_cg_residual`` (final |b - A dv| of the last solve, CG's recursive
@@ -187,8 +207,12 @@ class ClothImplicitEuler(Integrator):
 
     def __init__(self, newton_iterations: int = 1, newton_tol: float = 1.0e-5, cg_tol: float = 1.0e-5,
                  cg_atol: float = 1.0e-12, cg_max_iterations: int = 200, geometric: str = "clamped",
-                 linear_solver: str = "block_cg", check_every: int | None = None, record_history: bool = False):
+                 linear_solver: str = "block_cg", check_every: int | None = None, record_history: bool = False,
+                 deterministic: bool = True):
         super().__init__()
+        if not isinstance(deterministic, (bool, np.bool_)):
+            raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
+        self.deterministic = bool(deterministic)
         if int(newton_iterations) < 1:
             raise ValueError(f"newton_iterations = {newton_iterations}; it must be >= 1")
         if not (cg_tol > 0.0 and cg_atol >= 0.0):
@@ -302,10 +326,18 @@ class ClothImplicitEuler(Integrator):
             self.position_diag.zero_()
             for f in self._position_jacobian_forces:
                 f.eval_jacobian(q, qd, time, time_offset, 1.0, 0.0, self.position_diag, None, None, None)
-        if model.spring_count:
+        if model.spring_count and not self.deterministic:  # the opt-out: per-spring float atomics
             wp.launch(KC.assemble_cloth_springs, model.spring_count,
                       inputs=[q, qd, w, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
                               model.spring_damping, model.spring_broken, self.spring_slots, system.inv_mass,
+                              float(ck), float(cd), float(cf), float(cw), GEOMETRIC_MODES[self.geometric], self.rhs,
+                              self.diag, self.values], device=d)
+        elif model.spring_count:  # per particle over its springs in a fixed order (no float atomics)
+            ensure_spring_adjacency(model)
+            wp.launch(KC.assemble_cloth_springs_gather, n,
+                      inputs=[q, qd, w, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
+                              model.spring_damping, model.spring_broken, self.spring_slots,
+                              model.particle_spring_offsets, model.particle_springs, system.inv_mass,
                               float(ck), float(cd),
                               float(cf), float(cw), GEOMETRIC_MODES[self.geometric], self.rhs, self.diag,
                               self.values], device=d)
@@ -495,6 +527,8 @@ class ClothSimulator(Simulator):
         if int(substeps) < 1:
             raise ValueError(f"substeps = {substeps}; it must be >= 1")
         substeps = int(substeps)
+        if self.warn_unstable and frame_dt / substeps != self._checked_dt:
+            self._warn_if_unstable(frame_dt / substeps)  # once per step size, before the first step
         if self.rollout is not None:  # differentiable: eager steps, one recorded state per sub-step
             for _ in range(substeps):
                 Simulator.step(self, frame_dt / substeps)

@@ -16,11 +16,12 @@ from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, In
 from .model import Model, State
 from .pendulum import Pendulum, exact_period
 from .simulator import Simulator
+from .stability import StabilityLimit, StabilityWarning
 from .system import DynamicSystem, ParticleSystem, PendulumSystem
 
 __all__ = [
     "ModelBuilder", "Model", "State", "Simulator", "SimulationError", "Force", "Gravity", "ConstantForce", "Wind",
     "Magnets", "Drag", "Springs", "ForceField", "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler",
     "RK2", "RK4", "INTEGRATORS", "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
-    "SpringFracture", "BreakReport", "spring_segments",
+    "SpringFracture", "BreakReport", "spring_segments", "StabilityLimit", "StabilityWarning",
 ]

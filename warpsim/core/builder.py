@@ -9,7 +9,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
-from .model import Model
+from .model import Model, spring_adjacency
 
 
 def _vec3(value, what: str) -> tuple:
@@ -135,6 +135,40 @@ class ModelBuilder:
         self.spring_damping.append(float(damping))
         return index
 
+    def add_springs(self, indices, stiffness, damping=0.0, rest_length=None) -> np.ndarray:
+        """Add many unbreakable springs at once: ``indices`` (M, 2) particle pairs; ``stiffness`` [N/m],
+        ``damping`` [N s/m] and ``rest_length`` [m] scalars or shape (M,) (rest length default:
+        the current distances). Checked as ``add_spring`` checks one. Returns the indices (M,)."""
+        first = self.spring_count
+        ij = np.asarray(indices)
+        if ij.ndim != 2 or ij.shape[1] != 2 or not np.issubdtype(ij.dtype, np.integer):
+            raise ValueError(f"add_springs indices have shape {ij.shape} and dtype {ij.dtype}; give (M, 2) integer "
+                             "particle pairs")
+        m, n = len(ij), self.particle_count
+        bad = np.flatnonzero((ij < 0).any(1) | (ij >= n).any(1))
+        if len(bad):
+            raise ValueError(f"spring {first + int(bad[0])}: particles {ij[bad[0]].tolist()} are out of range [0, {n}); "
+                             "add the particles first")
+        bad = np.flatnonzero(ij[:, 0] == ij[:, 1])
+        if len(bad):
+            raise ValueError(f"spring {first + int(bad[0])} joins particle {int(ij[bad[0], 0])} to itself; join two "
+                             "different particles")
+        q = np.asarray(self.particle_q, dtype=np.float64).reshape(-1, 3)
+        values = {}
+        for name, value in (("stiffness", stiffness), ("damping", damping),
+                            ("rest length", np.linalg.norm(q[ij[:, 0]] - q[ij[:, 1]], axis=1)
+                             if rest_length is None else rest_length)):
+            v = np.broadcast_to(np.asarray(value, dtype=np.float64), (m,))
+            bad = np.flatnonzero(~np.isfinite(v) | (v < 0.0))
+            if len(bad):
+                raise ValueError(f"spring {first + int(bad[0])} has {name} {v[bad[0]]}; it must be finite and >= 0")
+            values[name] = v
+        self.spring_indices.extend(map(tuple, ij.tolist()))
+        self.spring_rest_length.extend(values["rest length"].tolist())
+        self.spring_stiffness.extend(values["stiffness"].tolist())
+        self.spring_damping.extend(values["damping"].tolist())
+        return np.arange(first, first + m)
+
     def _check_coincident_springs(self):
         """ValueError for a spring with rest length > 0 whose particles sit at one position (it
         would push along no direction: no force at all), e.g. after particle_q was edited."""
@@ -193,6 +227,9 @@ class ModelBuilder:
         model.spring_break_force = wp.array(force, dtype=float, device=d)
         model.spring_broken = wp.zeros(m, dtype=int, device=d)
         model.breakable_spring_count = int(np.count_nonzero(np.isfinite(strain) | np.isfinite(force)))
+        offsets, springs = spring_adjacency(np.array(self.spring_indices, dtype=np.int64).reshape(2 * m), n)
+        model.particle_spring_offsets = wp.array(offsets, dtype=int, device=d)
+        model.particle_springs = wp.array(springs, dtype=int, device=d)
         return model
 
 

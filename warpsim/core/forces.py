@@ -15,6 +15,7 @@ from warp._src import context as _warp_context
 
 from . import checks
 from .builder import _vec3, check_indices
+from .model import ensure_spring_adjacency
 from ..kernels import forces as K
 
 
@@ -234,21 +235,52 @@ class Springs(Force):
 
     The Simulator adds this force automatically when the model has springs. Broken springs
     (``model.spring_broken``, see ``warpsim.core.fracture``) exert nothing and have no Jacobian. ``exact_jacobian``
-    selects the true Jacobian (tests) instead of the solver's symmetric, clamped form."""
+    selects the true Jacobian (tests) instead of the solver's symmetric, clamped form.
 
-    def __init__(self, exact_jacobian: bool = False):
+    ``deterministic`` (default True): forces and Jacobian blocks are gathered per particle over
+    the model's CSR adjacency (``model.particle_springs``) in a fixed order, so two runs give the
+    same bits on any device. False: the former per-spring scatter with float atomics, whose
+    summation order (and so the last bits, which chaotic scenes amplify) varies run to run on
+    GPUs; an opt-out for speed measurements. Under a recording ``wp.Tape`` the gather computes
+    the forces and the tape records the scatter kernel for the backward pass (the adjoint of
+    the same sum)."""
+
+    def __init__(self, exact_jacobian: bool = False, deterministic: bool = True):
+        if not isinstance(deterministic, (bool, np.bool_)):
+            raise TypeError(f"Springs deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.exact_jacobian = exact_jacobian
+        self.deterministic = bool(deterministic)
         self._launches = {}
+
+    def bind(self, model) -> None:
+        super().bind(model)
+        ensure_spring_adjacency(model)
+
+    def _gathers(self) -> bool:
+        return self.__dict__.get("deterministic", True)
 
     def eval(self, q, qd, time, time_offset, f_out) -> None:
         m = self.model
         if m.spring_count == 0:
             return
-        inputs = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_broken,
-                  f_out)
-        # the same launch every step: replayed recorded (a subclass that skipped __init__ has no cache)
-        cached_launch(K.eval_springs, m.spring_count, inputs, m.device, self.__dict__.setdefault("_launches", {}),
-                      key=(m.spring_count, *map(id, inputs)))
+        launches = self.__dict__.setdefault("_launches", {})  # a subclass that skipped __init__ has none
+        scatter = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
+                   m.spring_broken, f_out)
+        if not self._gathers():  # the same launch every step: replayed recorded
+            cached_launch(K.eval_springs, m.spring_count, scatter, m.device, launches,
+                          key=(m.spring_count, *map(id, scatter)))
+            return
+        ensure_spring_adjacency(m)
+        inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
+        tape = _warp_context.runtime.tape
+        if tape is None:
+            cached_launch(K.eval_springs_gather, m.particle_count, inputs, m.device, launches,
+                          key=("gather", m.particle_count, *map(id, inputs)))
+            return
+        # recording: the gather computes the forward result, the tape differentiates the same sum
+        # through the scatter kernel's adjoint (a loop-carried gather has none in Warp)
+        wp.launch(K.eval_springs_gather, m.particle_count, inputs=list(inputs), device=m.device, record_tape=False)
+        tape.record_launch(K.eval_springs, m.spring_count, 0, list(scatter), [], m.device)
 
     def jacobian_triplet_count(self) -> int:
         return 2 * self.model.spring_count
@@ -257,10 +289,14 @@ class Springs(Force):
         m = self.model
         if m.spring_count == 0:
             return
-        wp.launch(K.eval_springs_jacobian, m.spring_count,
-                  inputs=[q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
-                          m.spring_broken, float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values],
-                  device=m.device)
+        common = [q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_broken]
+        tail = [float(ck), float(cd), int(self.exact_jacobian), diag, rows, cols, values]
+        if self._gathers():
+            ensure_spring_adjacency(m)
+            wp.launch(K.eval_springs_jacobian_gather, m.particle_count,
+                      inputs=[*common, m.particle_spring_offsets, m.particle_springs, *tail], device=m.device)
+        else:
+            wp.launch(K.eval_springs_jacobian, m.spring_count, inputs=[*common, *tail], device=m.device)
 
 
 class ForceField(Force):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 
@@ -39,6 +40,10 @@ class Model:
       spring_break_strain [1], spring_break_force [N]: float, (spring_count,); inf = never breaks
       spring_broken: int, (spring_count,), 1 once the spring has broken (warpsim.core.fracture)
       breakable_spring_count: host int, springs with a finite threshold
+      particle_spring_offsets: int, (particle_count + 1,), CSR row starts into particle_springs
+      particle_springs: int, (2 * spring_count,), the springs touching each particle, ascending
+        (each spring appears twice, once per end): spring forces and Jacobians are gathered per
+        particle in this fixed order, so every run sums them alike (bit-reproducible)
     """
 
     particle_q: wp.array
@@ -67,3 +72,27 @@ class Model:
             wp.clone(self.particle_qd),
             wp.zeros(self.particle_count, dtype=wp.vec3, device=self.device),
         )
+
+
+def spring_adjacency(spring_indices, particle_count: int) -> tuple:
+    """CSR adjacency (offsets (particle_count + 1,), springs (2 * spring_count,)), both int32, of
+    the springs touching each particle in ascending spring order; ``spring_indices`` holds the
+    ends i, j of spring s at 2s, 2s + 1 (host array)."""
+    pairs = np.asarray(spring_indices, dtype=np.int64).reshape(-1, 2)
+    ends = pairs.reshape(-1)  # end e belongs to spring e // 2
+    springs = np.arange(len(ends), dtype=np.int64) // 2
+    order = np.lexsort((springs, ends))  # by particle, then spring
+    counts = np.bincount(ends, minlength=particle_count) if len(ends) else np.zeros(particle_count, np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    return offsets, springs[order].astype(np.int32)
+
+
+def ensure_spring_adjacency(model) -> None:
+    """Give ``model`` its ``particle_spring_offsets`` / ``particle_springs`` (built once; models
+    made by ``ModelBuilder.finalize`` already have them)."""
+    if getattr(model, "particle_springs", None) is not None:
+        return
+    offsets, springs = spring_adjacency(model.spring_indices.numpy() if model.spring_count else np.zeros(0),
+                                        model.particle_count)
+    model.particle_spring_offsets = wp.array(offsets, dtype=int, device=model.device)
+    model.particle_springs = wp.array(springs, dtype=int, device=model.device)

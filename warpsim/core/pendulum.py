@@ -77,6 +77,18 @@ class Pendulum:
         self.time = 0.0
         self.count = n
 
+    def stability(self):
+        """The largest stable step (``ws.StabilityLimit``) of the stiffest pendulum, linearised
+        about the bottom: omega = sqrt(g / l), undamped, in this integrator's stability region."""
+        from .stability import pendulum_limit
+
+        return pendulum_limit(self.system.g_over_l.numpy(), self.integrator)
+
+    def stable_dt(self) -> float:
+        """Largest stable step [s] (2 / omega for semi-implicit Euler, 2.83 / omega for RK4, 0.0
+        for explicit Euler and RK2, inf for implicit Euler; omega = sqrt(g / l))."""
+        return self.stability().dt
+
     def step(self, dt: float) -> None:
         dt = check_dt(dt)
         self.integrator.step(self.system, self.angle, self.angular_velocity, self._time, dt)

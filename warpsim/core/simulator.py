@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels import integrate as K
+from ..kernels import stability as KS
 from .collider import Collider
 from . import checks
 from .errors import SimulationError
@@ -16,6 +17,7 @@ from .forces import Force, Gravity, cached_launch
 from .fracture import SpringFracture
 from .model import Model
 from .integrators import make_integrator
+from . import stability as stab
 from .system import ParticleSystem
 
 REMEDY = "use a smaller dt, more sub-steps (or adaptive=True), or integrator='implicit_euler'"
@@ -50,6 +52,9 @@ class Simulator:
         max_speed: speed [m/s] beyond which the run counts as blown up.
         check_every: test for blow-up every this many steps (0: never; the test reads one int
             back from the device).
+        warn_unstable: before the first step of each new step size, compare it with
+            ``stable_dt()`` and issue one ``ws.StabilityWarning`` naming the limiting spring when
+            it is above (not while a graph is being captured, nor in adaptive runs).
         differentiable: step out of place, one State per step, recorded on a ``wp.Tape``
             (``sim.rollout``, a ``warpsim.diff.Rollout``: gradients of a loss with respect to
             spring stiffness/damping, masses, the initial state and force coefficients; the
@@ -58,9 +63,14 @@ class Simulator:
     """
 
     def __init__(self, model, integrator="semi_implicit_euler", forces=None, colliders=(), *, adaptive=False,
-                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False):
+                 max_displacement=None, max_substeps=64, max_speed=1.0e4, check_every=1, differentiable=False,
+                 warn_unstable=True):
         if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
             raise ValueError(f"Simulator model must be a ws.Model (builder.finalize()), got {checks.show(model)}")
+        for flag, value in (("differentiable", differentiable), ("adaptive", adaptive)):
+            if not isinstance(value, (bool, np.bool_)):  # 'no' is truthy: never turn a mode on by accident
+                raise TypeError(f"Simulator {flag} must be True or False, got {checks.show(value)}; e.g. "
+                                f"{flag}=True")
         self.model = model
         self.device = model.device
         self.integrator = make_integrator(integrator)
@@ -91,6 +101,13 @@ class Simulator:
         self.max_substeps = max_substeps
         self.max_speed = max_speed
         self.check_every = check_every
+        self.warn_unstable = bool(warn_unstable)
+        self._stability = None  # the last StabilityLimit (auto sub-steps reuse it until invalidated)
+        self.stability_model = None
+        """None, or a callable returning the model the stability estimate reads in place of
+        ``model`` (a batch of worlds whose springs are stored once and stepped outside this
+        simulator hands a stand-in holding every world's springs)."""
+        self._checked_dt = None  # the step size last compared with the limit
 
         self.state = model.state()
         self._check_finite_host()
@@ -99,6 +116,10 @@ class Simulator:
         self._time = wp.zeros(1, dtype=float, device=d)
         self._scratch_float = wp.zeros(1, dtype=float, device=d)
         self._first_bad = wp.full(1, self.system.count, dtype=int, device=d)  # kept at count: nothing bad
+        self._frame_q = wp.clone(self.state.positions)  # positions at the start of the frame (check_frame)
+        self._frame_maxima = wp.zeros(2, dtype=float, device=d)
+        self._one_world = wp.zeros(self.system.count, dtype=int, device=d)
+        self._incoherent_frames = 0
         self._check_launches = {}
         self._check_due = False  # the current sub-step ends a step whose blow-up test is due
         self._device_checked = False  # that test already ran inside the integrator's pass
@@ -170,12 +191,57 @@ class Simulator:
         self.forces = self.system.forces
         self.integrator._system = None  # prepare() is idempotent per system: force a re-allocation
         self.integrator.prepare(self.system)
+        self.invalidate_stability()
+
+    # ------------------------------------------------------------------ stability
+    def stability(self, positions=None, iterations: int = stab.POWER_ITERATIONS) -> "stab.StabilityLimit":
+        """The largest stable step and what sets it (``ws.StabilityLimit``: limiting spring or
+        collider, its k and m, per-spring and per-particle limits), from the model's springs,
+        masses, damping, linear drag and penalty colliders linearised about ``positions`` (None:
+        the current state) with this integrator's stability region; see
+        ``warpsim.core.stability`` for the bound's assumptions."""
+        q = self.state.positions if positions is None else positions
+        model = self.model if self.stability_model is None else self.stability_model()
+        self._stability = stab.particle_limits(model, q, self.integrator, self.forces,
+                                               self.colliders, iterations=iterations)[0]
+        return self._stability
+
+    def stable_dt(self) -> float:
+        """Largest stable step [s] of this model with its integrator (inf: unrestricted, e.g.
+        implicit Euler; 0.0: no step is stable, e.g. undamped springs with explicit Euler)."""
+        return self.stability().dt
+
+    def invalidate_stability(self) -> None:
+        """Forget the cached limit (after changing stiffness, masses or colliders in place)."""
+        self._stability = None
+        self._checked_dt = None
+
+    def auto_substeps(self, frame_dt: float, safety: float = stab.AUTO_SAFETY, minimum: int = 1) -> int:
+        """Sub-steps for a frame of ``frame_dt`` [s] keeping every step <= ``safety`` x the
+        stability limit, at least ``minimum``. The limit is computed once about the model's initial
+        positions (so a resumed or re-run simulation picks the same count) and cached until
+        ``invalidate_stability``."""
+        if self._stability is None:
+            self.stability(positions=self.model.particle_q)
+        return self._stability.substeps_for(frame_dt, safety, minimum)
+
+    def _warn_if_unstable(self, h: float) -> None:
+        self._checked_dt = h
+        if self.adaptive or wp.get_device(self.device).is_capturing:
+            return
+        limit = self._stability if self._stability is not None else self.stability()
+        if limit.exceeded_by(h):
+            import warnings
+
+            warnings.warn(limit.warning(h), stab.StabilityWarning, stacklevel=3)
 
     def step(self, dt: float) -> int:
         """Advance by ``dt`` [s]; returns the number of sub-steps taken."""
         dt = check_dt(dt)
         n = self._substeps_for(dt)
         h = dt / n
+        if self.warn_unstable and h != self._checked_dt:
+            self._warn_if_unstable(h)
         due = bool(self.check_every) and (self.step_count + n) % self.check_every < n
         for k in range(n):
             self._check_due = due and k == n - 1
@@ -211,14 +277,50 @@ class Simulator:
                 step=self.step_count, time=self.time, particle=bad,
             )
 
-    def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps: int = 1, callback=None, writer=None):
-        """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps.
+    def check_frame(self, frame_dt: float) -> None:
+        """End-of-frame test for instabilities that NaN and ``max_speed`` miss (call once per frame
+        of ``frame_dt`` [s]; ``run`` and the scenes do; skipped when ``check_every`` is 0): raise
+        SimulationError when the fastest particle is ``INCOHERENT_RATIO`` x faster than any particle
+        moved over the frame for ``INCOHERENT_FRAMES`` frames running (the stiffest mode flipping
+        sign every step: velocities grow while positions stay; see ``warpsim.core.stability``).
+        Reads back two floats."""
+        if not self.check_every or self.rollout is not None or wp.get_device(self.device).is_capturing:
+            return
+        st, n = self.state, self.system.count
+        self._frame_maxima.zero_()
+        wp.launch(KS.frame_motion, n, inputs=[st.positions, self._frame_q, st.velocities, self.system.inv_mass,
+                                              self._one_world, 1.0 / float(frame_dt), self._frame_maxima[0:1],
+                                              self._frame_maxima[1:2]], device=self.device)
+        wp.copy(self._frame_q, st.positions)
+        speed, motion = (float(x) for x in self._frame_maxima.numpy())
+        if speed > stab.INCOHERENT_RATIO * motion and speed > stab.INCOHERENT_SPEED:
+            self._incoherent_frames += 1
+        else:
+            self._incoherent_frames = 0
+        if self._incoherent_frames < stab.INCOHERENT_FRAMES:
+            return
+        v = st.velocities.numpy()
+        bad = int(np.argmax(np.where(self.system.inv_mass.numpy() > 0, np.linalg.norm(v, axis=1), -1.0)))
+        limit = self._stability if self._stability is not None else self.stability()
+        h = self._checked_dt or frame_dt
+        raise SimulationError(
+            f"unstable at step {self.step_count} (t = {self.time:.6g} s): particle {bad} moves at "
+            f"{float(np.linalg.norm(v[bad])):.4g} m/s while no particle moved faster than {motion:.4g} m/s over the "
+            f"frame, {self._incoherent_frames} frames running (velocities that no motion explains: a step of "
+            f"{h:.4g} s against a stability limit of {limit.dt:.4g} s set by {limit.who()}). Remedy: {REMEDY} "
+            "(--substeps auto).", step=self.step_count, time=self.time, particle=bad)
+
+    def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps=1, callback=None, writer=None):
+        """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps
+        (``"auto"``: as many as keep each step within half the stability limit, see ``auto_substeps``).
 
         Frame 0 is the initial state. After each frame ``callback(frame, sim)`` is called and
         ``writer.write(frame, state)`` streams it. A blow-up raises SimulationError with ``frame``
         set; frames already handed to the writer stay written."""
         frame_dt = check_dt(frame_dt)
-        substeps = checks.count(substeps, "run substeps", fix="give steps per frame, e.g. 1")
+        if substeps == "auto":
+            substeps = self.auto_substeps(frame_dt)
+        substeps = checks.count(substeps, "run substeps", fix="give steps per frame, e.g. 1, or 'auto'")
         frames = checks.count(frames, "run frames", minimum=0, fix="give the number of frames, e.g. 120")
         if writer is not None:
             writer.write(0, self.state)
@@ -226,6 +328,7 @@ class Simulator:
             try:
                 for _ in range(int(substeps)):
                     self.step(frame_dt / substeps)
+                self.check_frame(frame_dt)
             except SimulationError as err:
                 err.frame = frame
                 err.args = (f"frame {frame}: {err.args[0]}",)

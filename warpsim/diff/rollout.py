@@ -246,15 +246,44 @@ class Rollout:
         """Record loss = weight sum_k sum_i |q_k,i - target_k,i|^2 [m^2] over the states
         ``steps`` (default: the last one) against ``targets`` (one (n,) vec3 array per step);
         returns the (1,) loss array (zeroed first; allocated when ``loss`` is None)."""
+        from ..core import checks
+
         given = steps is not None
         steps = [self.step_count] if steps is None else list(steps)
+        if isinstance(targets, wp.array) or (isinstance(targets, np.ndarray) and targets.ndim == 2):
+            raise TypeError("trajectory_loss targets is one array; give a list with one (n, 3) target per step, "
+                            "e.g. [target]")
+        targets = list(targets)
         if len(targets) != len(steps):
             which = f"steps={steps}" if given else f"steps=None means the last step only ({self.step_count})"
             raise ValueError(f"trajectory_loss: {len(targets)} targets for {len(steps)} step(s) ({which}); give one "
                              "target per step and name the step of each with steps=[k1, k2, ...] (step k is "
                              "rollout.states[k])")
+        steps = [checks.integer(k, "trajectory_loss step", lo=0, hi=self.step_count,
+                                fix=f"steps recorded so far: 0..{self.step_count}") for k in steps]
+        weight = checks.finite(weight, "trajectory_loss weight")
+        n = self.model.particle_count
+        for j, target in enumerate(targets):
+            if isinstance(target, wp.array):
+                if target.dtype != wp.vec3 or target.shape != (n,) or target.device != self.device:
+                    raise ValueError(f"trajectory_loss target {j} is a {target.dtype.__name__} array of shape "
+                                     f"{target.shape} on {target.device}; give a vec3 array of shape ({n},) on "
+                                     f"{self.device} (one position [m] per particle)")
+                continue
+            try:
+                values = np.asarray(target, dtype=np.float32)
+            except (TypeError, ValueError):
+                raise TypeError(f"trajectory_loss target {j} is {checks.show(target)}; give an ({n}, 3) array of "
+                                "positions [m]") from None
+            if values.shape != (n, 3) or not np.isfinite(values).all():
+                raise ValueError(f"trajectory_loss target {j} has shape {values.shape}"
+                                 f"{'' if np.isfinite(values).all() else ' and non-finite values'}; give ({n}, 3) "
+                                 "finite positions [m], one per particle")
+            targets[j] = wp.array(values, dtype=wp.vec3, device=self.device)
         if loss is None:
             loss = wp.zeros(1, dtype=float, device=self.device, requires_grad=True)
+        elif not isinstance(loss, wp.array) or loss.dtype != wp.float32 or loss.shape != (1,):
+            raise ValueError(f"trajectory_loss loss must be a (1,) float32 wp.array or None, got {checks.show(loss)}")
         loss.zero_()
         with self.tape:
             for k, target in zip(steps, targets):

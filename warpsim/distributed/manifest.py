@@ -78,15 +78,37 @@ class SweepManifest:
             except json.JSONDecodeError as exc:
                 raise ValueError(f"--resume: manifest {path} is not valid JSON ({exc}); "
                                  "remove it to start the sweep again") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"--resume: manifest {path} holds a JSON {type(data).__name__}, not a warpsim sweep "
+                             "manifest; remove it to start the sweep again without --resume")
         if data.get("version") != VERSION:
             raise ValueError(f"--resume: manifest {path} has version {data.get('version')!r}, "
                              f"this warpsim writes {VERSION}; start the sweep again without --resume")
-        return cls(path, data["sweep"], {int(k): v for k, v in data["batches"].items()})
+        fix = "remove it to start the sweep again without --resume"
+        if not isinstance(data, dict) or not isinstance(data.get("sweep"), dict):
+            raise ValueError(f"--resume: manifest {path} lacks its \"sweep\" settings (not a warpsim sweep "
+                             f"manifest, or edited); {fix}")
+        batches = data.get("batches")
+        if not isinstance(batches, dict):
+            raise ValueError(f"--resume: manifest {path} has no \"batches\" table (found "
+                             f"{type(batches).__name__}); {fix}")
+        out = {}
+        for key, rec in batches.items():
+            if not str(key).isdigit() or not isinstance(rec, dict) or not {"dir", "sha256"} <= set(rec) \
+                    or not all(isinstance(rec[k], str) for k in ("dir", "sha256")):
+                raise ValueError(f"--resume: manifest {path}: batch entry {key!r} is not a batch record (a batch "
+                                 f"index with \"dir\" and \"sha256\"); {fix}")
+            rec.setdefault("error", None)
+            out[int(key)] = rec
+        return cls(path, data["sweep"], out)
 
     def mismatch(self, sweep):
         """A sentence naming the first setting where ``sweep`` differs from the recorded one, or None."""
         given = _plain(sweep)
         for key in sorted(set(given) | set(self.sweep)):
+            if given.get(key) != self.sweep.get(key) and key == "worlds_sha256":
+                return ("the sampled worlds differ from the ones the sweep started with (--vary, --set, --worlds, "
+                        "--sample or --seed changed); give the options it started with, or run without --resume")
             if given.get(key) != self.sweep.get(key):
                 return (f"{key}={given.get(key)!r} differs from the manifest's {key}={self.sweep.get(key)!r}; "
                         "a resumed sweep keeps the settings it started with")

@@ -154,6 +154,8 @@ def _connect(address, num_cpus):
         raise ValueError("--ray needs Ray: pip install 'warpsim[ray]'") from None
     if ray.is_initialized():
         return ray, False
+    if remote:
+        _probe_address(address)
     quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
     if not remote:
         ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
@@ -166,6 +168,38 @@ def _connect(address, num_cpus):
                              "prints; with token authentication set RAY_AUTH_MODE=token and the cluster's token "
                              "(ray get-auth-token) in ~/.ray/auth_token") from None
     return ray, True
+
+
+CONNECT_TIMEOUT_S = 10.0
+"""How long the driver waits for a cluster address to accept a TCP connection [s] (Ray itself
+retries an address that does not answer for minutes)."""
+
+
+def _probe_address(address, timeout=CONNECT_TIMEOUT_S):
+    """ValueError naming ``address`` when nothing accepts a connection there within ``timeout``
+    seconds (``auto`` is left to Ray: it reads the address of the cluster on this machine)."""
+    from ..worlds.preflight import check_ray_address
+
+    target = check_ray_address(address)
+    if target is None:
+        return
+    host, port = target
+    deadline = time.monotonic() + timeout
+    last = None
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=max(0.1, min(2.0, deadline - time.monotonic()))).close()
+            return
+        except socket.gaierror as exc:
+            raise ValueError(f"--ray {address}: host {host!r} is unknown ({exc.strerror}); give the head node's "
+                             "address as 'ray start --head' prints it") from None
+        except OSError as exc:
+            last = exc.strerror or str(exc) or type(exc).__name__
+        if time.monotonic() >= deadline:
+            raise ValueError(f"--ray {address}: nothing answers at {host}:{port} ({last}; gave up after {timeout:g} s); "
+                             "start a cluster with 'ray start --head' and pass the address it prints, or use --ray "
+                             "alone for a local cluster")
+        time.sleep(0.25)
 
 
 def _token_available():

@@ -43,6 +43,10 @@ class FlipLiquid:
             shrinks the liquid, and keeps their spacing even, so reseeding adds few particles.
         density_tol: relative CG tolerance of the correction solve.
         max_density_target: cap on s per step (limits the displacement after a violent impact).
+        deterministic: True (default): particle-to-grid sums are gathers over the cell-sorted particle
+            list in a fixed order, so two runs give the same bits on every device. False: the sums
+            scatter with float atomics (faster; on a GPU the summation order, and so the result's last
+            bits, vary run to run). Reseeding appends particles in cell order either way.
         seed: random seed for particle placement.
         extrapolation_layers: faces filled beyond the liquid each step.
 
@@ -56,8 +60,11 @@ class FlipLiquid:
     def __init__(self, grid, gravity=(0.0, -9.81, 0.0), flip_ratio=0.95, particles_per_cell=None,
                  min_per_cell=None, max_per_cell=None, reseed_every=1, capacity=None, tol=1.0e-5,
                  preconditioner="mg", seed=3, extrapolation_layers=3, density_correction=1.0,
-                 density_tol=1.0e-2, max_density_target=0.5):
+                 density_tol=1.0e-2, max_density_target=0.5, deterministic=True):
         self.grid, self.device = grid, grid.device
+        if not isinstance(deterministic, bool):
+            raise TypeError(f"deterministic must be True or False, got {deterministic!r}")
+        self.deterministic = deterministic
         self.gravity = gravity_vector(gravity, grid.dim)
         r = check_finite(flip_ratio, "flip_ratio")
         if not 0.0 <= r <= 1.0:
@@ -101,8 +108,9 @@ class FlipLiquid:
             # a loose, single-pass solve: what it leaves is corrected in the next steps
             self.correction = PressureSolver(twin, tol=density_tol, preconditioner=preconditioner, refine=False)
         d, shape = self.device, grid.shape
-        self._sums = [wp.zeros(f.shape, dtype=float, device=d) for f in grid.faces]
-        self._weights = [wp.zeros(f.shape, dtype=float, device=d) for f in grid.faces]
+        scatter = [] if deterministic else grid.faces  # sums and weights of the float-atomic P2G only
+        self._sums = [wp.zeros(f.shape, dtype=float, device=d) for f in scatter]
+        self._weights = [wp.zeros(f.shape, dtype=float, device=d) for f in scatter]
         self._old = [wp.zeros(f.shape, dtype=float, device=d) for f in grid.faces]
         self.cell_count = wp.zeros(shape, dtype=int, device=d)
         self.phi = wp.zeros(shape, dtype=float, device=d)
@@ -175,16 +183,22 @@ class FlipLiquid:
     # ------------------------------------------------------------------ stepping
     def _transfer_to_grid(self):
         g, d, P = self.grid, self.device, self.particles
-        for s, w in zip(self._sums, self._weights):
-            s.zero_()
-            w.zero_()
-        wp.launch(K.particles_to_grid, P.capacity,
-                  inputs=[P.count, P["x"], P["v"], P["alive"], g._wp_origin, g.dx],
-                  outputs=[self._sums[0], self._weights[0], self._sums[1], self._weights[1], self._sums[2],
-                           self._weights[2]], device=d)
-        for f, s, w in zip(g.faces, self._sums, self._weights):
-            wp.launch(K.normalize_faces, f.shape, inputs=[s, w], outputs=[f], device=d)
         P.count_cells(g, self.cell_count)
+        if self.deterministic:
+            for axis, f in enumerate(g.faces):
+                wp.launch(K.gather_face_velocity, f.shape,
+                          inputs=[self.cell_count, P.octant_start, P.octant_count, P.sorted_ids, P["x"], P["v"], axis,
+                                  g._wp_origin, g.dx], outputs=[f], device=d)
+        else:
+            for s, w in zip(self._sums, self._weights):
+                s.zero_()
+                w.zero_()
+            wp.launch(K.particles_to_grid, P.capacity,
+                      inputs=[P.count, P["x"], P["v"], P["alive"], g._wp_origin, g.dx],
+                      outputs=[self._sums[0], self._weights[0], self._sums[1], self._weights[1], self._sums[2],
+                               self._weights[2]], device=d)
+            for f, s, w in zip(g.faces, self._sums, self._weights):
+                wp.launch(K.normalize_faces, f.shape, inputs=[s, w], outputs=[f], device=d)
         wp.launch(K.label_from_counts, g.shape, inputs=[self.cell_count, g.solid_phi], outputs=[g.labels], device=d)
         g.extrapolate_velocity(self.extrapolation_layers)
 
@@ -228,10 +242,17 @@ class FlipLiquid:
         return self._splat_density()
 
     def _splat_density(self):
+        """Hat-weighted particles per cell into ``density`` (call ``count_cells`` at the current
+        positions and indices first: the gather reads its cell-sorted list)."""
         g, P = self.grid, self.particles
-        self.density.zero_()
-        wp.launch(K.particle_density, P.capacity, inputs=[P.count, P["x"], P["alive"], g._wp_origin, g.dx],
-                  outputs=[self.density], device=self.device)
+        if self.deterministic:
+            wp.launch(K.gather_particle_density, g.shape,
+                      inputs=[P.octant_start, P.octant_count, P.sorted_ids, P["x"], g._wp_origin, g.dx],
+                      outputs=[self.density], device=self.device)
+        else:
+            self.density.zero_()
+            wp.launch(K.particle_density, P.capacity, inputs=[P.count, P["x"], P["alive"], g._wp_origin, g.dx],
+                      outputs=[self.density], device=self.device)
         return self.density
 
     def correct_density(self) -> None:
@@ -267,13 +288,23 @@ class FlipLiquid:
         # min_per_cell as well as the count) are reseeded, so few particles (and little mass) are added
         min_density = 1.0e30
         if self.correction is not None:
+            if self.deterministic:
+                # the compaction renumbered the particles: sort them again for the density gather (the
+                # counts become min(count, max_per_cell), which changes no label and no reseeding decision)
+                P.count_cells(g, self.cell_count)
             self._splat_density()
             min_density = float(self.min_per_cell)
-        wp.launch(K.reseed_interior, g.shape,
-                  inputs=[self.cell_count, g.labels, g.open_mask, self.min_per_cell, self.density, min_density,
-                          self.seed + 104729 * self.steps,
-                          g.dim, *g.faces, g._wp_origin, g.dx, P.count, self.next_id],
-                  outputs=[P["x"], P["v"], P["alive"], P["id"]], device=d)
+        # new particles are appended in cell order (count, prefix sum, write): the same slots and ids
+        # on every run and device
+        emitted, offsets = P.begin_append(g.cell_count)
+        inputs = [self.cell_count, g.labels, g.open_mask, self.min_per_cell, self.density, min_density,
+                  self.seed + 104729 * self.steps, g.dim, *g.faces, g._wp_origin, g.dx, P.count, self.next_id]
+        for write in (0, 1):
+            wp.launch(K.reseed_interior, g.shape, inputs=[*inputs, write, emitted, offsets],
+                      outputs=[P["x"], P["v"], P["alive"], P["id"]], device=d)
+            if write == 0:
+                P.scan_append()
+        P.finish_append(self.next_id)
 
     # ------------------------------------------------------------------ output
     def surface(self, radius=None):

@@ -10,6 +10,7 @@ import numpy as np
 import warp as wp
 
 from .advection import Advector
+from ..core.reduction import FixedOrderReduction
 from .particles import GridParticles
 from ..kernels import advect as KA
 from ..kernels import levelset as K
@@ -72,7 +73,7 @@ class LevelSet:
         self._phi_tmp = wp.zeros(shape, dtype=float, device=d)
         self._phi_minus = wp.zeros(shape, dtype=float, device=d)
         self._fixed = wp.zeros(shape, dtype=int, device=d)
-        self._volume = wp.zeros(1, dtype=float, device=d)
+        self._volume = FixedOrderReduction(1, device=d)  # the liquid volume, summed in a fixed order
         self.r_min, self.r_max = 0.1 * grid.dx, 0.5 * grid.dx
         self.redistance()
         if capacity is None:
@@ -115,10 +116,16 @@ class LevelSet:
         P.count_cells(g, self._cell_count)
         P.cull(2 * self.particles_per_cell)
         P.compact()
-        wp.launch(K.pls_seed, g.shape,
-                  inputs=[self.phi, g._wp_origin, g.dx, g.dim, self.band * g.dx, self.particles_per_cell,
-                          self.seed + 7919 * self._steps, self.r_min, self.r_max, self._cell_count, P.count],
-                  outputs=[self.particle_q, self.particle_radius, self.particle_sign], device=self.device)
+        # append in cell order (count, prefix sum, write): the same slots on every run and device
+        emitted, offsets = P.begin_append(g.cell_count)
+        inputs = [self.phi, g._wp_origin, g.dx, g.dim, self.band * g.dx, self.particles_per_cell,
+                  self.seed + 7919 * self._steps, self.r_min, self.r_max, self._cell_count, P.count]
+        for write in (0, 1):
+            wp.launch(K.pls_seed, g.shape, inputs=[*inputs, write, emitted, offsets],
+                      outputs=[self.particle_q, self.particle_radius, self.particle_sign], device=self.device)
+            if write == 0:
+                P.scan_append()
+        P.finish_append()
 
     def correct(self) -> None:
         """Rebuild phi near escaped particles (phi+ / phi- merge of Enright et al. 2002)."""
@@ -171,10 +178,9 @@ class LevelSet:
     def volume(self) -> float:
         """Liquid volume [m^3] (2D: area [m^2] = volume / dx), smoothed-Heaviside estimate over non-solid cells."""
         g = self.grid
-        self._volume.zero_()
-        wp.launch(K.liquid_volume, g.shape, inputs=[self.phi, g.solid_phi, 1.5 * g.dx, g.dx ** 3],
-                  outputs=[self._volume], device=self.device)
-        v = float(self._volume.numpy()[0])
+        wp.launch(K.liquid_volume, self._volume.slots, inputs=[self.phi, g.solid_phi, 1.5 * g.dx, g.dx ** 3],
+                  outputs=[self._volume.partials], device=self.device)
+        v = float(self._volume.finish().numpy()[0])
         return v / g.dx if g.dim == 2 else v
 
     def live_particle_count(self) -> int:

@@ -35,6 +35,13 @@ class GridParticles:
         self._spare_float = wp.zeros(n, dtype=float, device=d)
         self.count = wp.zeros(1, dtype=int, device=d)
         self.rank = wp.zeros(n, dtype=int, device=d)
+        # (cell, particle) pairs; the stable radix sort needs room for 2n of each
+        self._keys = wp.zeros(2 * n, dtype=int, device=d)
+        self._ids = wp.zeros(2 * n, dtype=int, device=d)
+        self.sorted_ids = self._ids[:n]  # particle indices by cell octant, then index (``count_cells``)
+        self.octant_start = self.octant_count = None  # per octant: first entry in sorted_ids, length
+        self._emitted = self._emit_offsets = None  # per-cell counts of an append and their prefix sums
+        self._no_ids = wp.zeros(1, dtype=int, device=d)
         self._flags = wp.zeros(n, dtype=int, device=d)
         self._scan = wp.zeros(n, dtype=int, device=d)
 
@@ -50,11 +57,43 @@ class GridParticles:
         self.alive.zero_()
 
     def count_cells(self, grid, cell_count, position="x"):
-        """cell_count (int, grid shape) = live particles per cell; ``rank`` = order within the cell."""
+        """cell_count (int, grid shape) = live particles per cell; ``sorted_ids`` = the live particles
+        ordered by cell octant (flat cell index * 8 + x + 2 y + 4 z of the cell halves they lie in),
+        then by index; ``octant_start`` / ``octant_count`` (cells * 8) = where each octant's run
+        begins and its length; ``rank`` = a particle's order by index among its cell's live
+        particles (-1 when dead). A stable sort, not an atomic counter, orders them, so the lists
+        are the same on every run and device."""
+        d, n = self.device, self.capacity
+        octants = 8 * cell_count.size
+        if self.octant_start is None or self.octant_start.shape[0] != octants:
+            self.octant_start = wp.zeros(octants, dtype=int, device=d)
+            self.octant_count = wp.zeros(octants, dtype=int, device=d)
         cell_count.zero_()
-        wp.launch(K.count_per_cell, self.capacity,
-                  inputs=[self.count, self.fields[position], self.alive, grid._wp_origin, grid.dx],
-                  outputs=[cell_count, self.rank], device=self.device)
+        self.octant_count.zero_()
+        wp.launch(K.count_per_cell, n, inputs=[self.count, self.fields[position], self.alive, grid._wp_origin, grid.dx],
+                  outputs=[cell_count, self.octant_count, self._keys, self._ids], device=d)
+        wp.utils.radix_sort_pairs(self._keys, self._ids, n)
+        wp.utils.array_scan(self.octant_count, self.octant_start, inclusive=False)
+        wp.launch(K.rank_in_cell, n, inputs=[self._keys, self._ids, self.octant_start, self.octant_count],
+                  outputs=[self.rank], device=d)
+
+    def begin_append(self, cells: int):
+        """Zeroed per-cell counts (int, (cells,)) for the counting pass of an append in cell order,
+        and the array that receives their exclusive prefix sums (``scan_append``)."""
+        if self._emitted is None or self._emitted.shape[0] != cells:
+            self._emitted = wp.zeros(cells, dtype=int, device=self.device)
+            self._emit_offsets = wp.zeros(cells, dtype=int, device=self.device)
+        self._emitted.zero_()
+        return self._emitted, self._emit_offsets
+
+    def scan_append(self):
+        """Offsets of each cell's new particles: exclusive prefix sum of the counting pass."""
+        wp.utils.array_scan(self._emitted, self._emit_offsets, inclusive=False)
+
+    def finish_append(self, next_id=None):
+        """count += the appended particles; ``next_id`` (device int[1]) += those that fitted."""
+        wp.launch(K.advance_count, 1, inputs=[self._emitted, self._emit_offsets, self.capacity],
+                  outputs=[self.count, next_id if next_id is not None else self._no_ids], device=self.device)
 
     def cull(self, max_per_cell):
         """Delete particles ranked >= max_per_cell in their cell (call ``count_cells`` first)."""

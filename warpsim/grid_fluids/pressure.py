@@ -14,6 +14,7 @@ import warp as wp
 from warp.optim.linear import LinearOperator, cg
 
 from .multigrid import Multigrid
+from ..core.reduction import FixedOrderReduction
 from ..kernels import grid as K
 from ..kernels import multigrid as KM
 from .mac_grid import check_positive
@@ -68,8 +69,9 @@ class PressureSolver:
         self.div = wp.zeros(shape, dtype=float, device=d)
         self.rhs = wp.zeros(n, dtype=float, device=d)
         self.q = wp.zeros(n, dtype=float, device=d)
-        self._sums = wp.zeros(3, dtype=float, device=d)
-        self._slot_sums = wp.zeros((256, 3), dtype=float, device=d)  # fluid_sums partials (see the kernel)
+        # (sum of rhs, FLUID cells, FLUID faces on AIR), summed in a fixed order (the same bits every run)
+        self._domain_reduction = FixedOrderReduction(3, device=d)
+        self._sums = self._domain_reduction.result
         self._first_iterations = wp.zeros(1, dtype=int, device=d)  # check_every=0: first CG pass's count
         self._z = wp.zeros(n, dtype=float, device=d)
         self._diag_flat = self.diag.reshape((n,))
@@ -83,9 +85,8 @@ class PressureSolver:
         if preconditioner == "mg":
             self.multigrid = Multigrid(grid, self.diag, self.plus, smoothing=mg_smoothing)
             self._mg_in = wp.zeros(n, dtype=float, device=d)
-            self._mean = wp.zeros(1, dtype=float, device=d)
-            self._partial = wp.zeros(256, dtype=float, device=d)
-            self._partial_2d = self._partial.reshape((256, 1))
+            self._mean_reduction = FixedOrderReduction(1, device=d)  # FLUID sum of x, fixed order
+            self._mean = self._mean_reduction.result
             self._M = LinearOperator((n, n), float, d, self._mg, batch_offsets=batch)
         elif preconditioner == "jacobi":
             self._M = LinearOperator((n, n), float, d, self._jacobi, batch_offsets=batch)
@@ -115,9 +116,10 @@ class PressureSolver:
     def _project_closed(self, x, out):
         """out = x minus its FLUID mean when the domain is closed (all-Neumann: A's null space)."""
         g, d = self.grid, self.device
-        self._partial.zero_()
-        wp.launch(KM.sum_fluid_closed, g.shape, inputs=[g.labels, self._sums, x], outputs=[self._partial], device=d)
-        wp.launch(K.sum_slots, 1, inputs=[self._partial_2d], outputs=[self._mean], device=d)
+        reduction = self._mean_reduction
+        wp.launch(KM.sum_fluid_closed, reduction.slots, inputs=[g.labels, self._sums, x],
+                  outputs=[reduction.partials], device=d)
+        reduction.finish()
         wp.launch(KM.remove_fluid_mean_closed, g.shape, inputs=[g.labels, self._sums, self._mean, x], outputs=[out],
                   device=d)
 
@@ -172,9 +174,10 @@ class PressureSolver:
                   device=d)
         wp.launch(K.pressure_rhs, g.shape, inputs=[self.div, g.labels, target if use else g._no_phi, int(use), g.dx],
                   outputs=[self.rhs], device=d)
-        self._slot_sums.zero_()
-        wp.launch(K.fluid_sums, g.shape, inputs=[g.labels, g.open_mask, self.rhs], outputs=[self._slot_sums], device=d)
-        wp.launch(K.sum_slots, 3, inputs=[self._slot_sums], outputs=[self._sums], device=d)
+        reduction = self._domain_reduction
+        wp.launch(K.fluid_sums, reduction.slots, inputs=[g.labels, g.open_mask, self.rhs],
+                  outputs=[reduction.partials], device=d)
+        reduction.finish()
         wp.launch(K.remove_rhs_mean, g.shape, inputs=[g.labels, self._sums], outputs=[self.rhs], device=d)
         # CG's recursively updated residual drifts from the true one in float32; a second, warm-started
         # pass restarts from the true residual b - A q (and stops at once when that already meets tol).

@@ -54,6 +54,7 @@ import warp as wp
 
 from ..core.builder import _vec3
 from ..core.errors import SimulationError
+from ..core.reduction import FixedOrderReduction
 from ..core.simulator import check_dt
 from ..kernels import sph as K
 from .boundaries import _collider_geometry, _positive
@@ -358,7 +359,10 @@ class ParticleFluid:
         self._neighbors = nb
         self._overflow = wp.zeros(1, dtype=int, device=d)
         self._reduce = wp.zeros(2, dtype=float, device=d)
-        self._stats = wp.zeros(2 * int(K.STAT_SLOTS), dtype=float, device=d)  # compression sums, maxima
+        self._compression = wp.zeros(cap, dtype=float, device=d)  # C_i = max(rho_i / rho0 - 1, 0)
+        # sum and max of C in a fixed order (no float atomics: the iteration count is the same every run)
+        self._stat_reduction = FixedOrderReduction(2, first_max_column=1, device=d)
+        self._stats = self._stat_reduction.result  # (sum of C, max C)
         self._counter = wp.zeros(1, dtype=int, device=d)  # corrections in the current / last step
         self._total_iterations = wp.zeros(1, dtype=int, device=d)
         self._go = wp.zeros(1, dtype=int, device=d)  # loop condition of wp.capture_while
@@ -485,10 +489,10 @@ class ParticleFluid:
         x, v = self._x[:n], self._v[:n]
         xp, xq = self._xp[:n], self._xq[:n]
         wp.launch(K.predict_positions, n, inputs=[p, b, x, v, dt, xp], device=d)
-        self._stats.zero_()
         self._lambda_sum.zero_()
         self._counter.zero_()
         self._build_neighbors(xp, n, with_stats=1)
+        self._stat_reduction.sum_max(self._compression, n)
         # Jacobi corrections while the mean compression is above density_tolerance, at most
         # `iterations`: the decision is taken on the device (iteration_control), so the loop reads
         # nothing back inside a CUDA graph (wp.capture_while makes it a conditional node there)
@@ -501,10 +505,11 @@ class ParticleFluid:
             wp.launch(K.solve_density_correct, n, inputs=[p, b, xp, nb, self._lambda, self._bgrad],
                       outputs=[self._lambda_sum, xq], device=d)
             wp.copy(xp, xq, count=n)
-            self._stats.zero_()
-            # skipped on the device after the last allowed correction (counter + 1 >= iterations)
+            # skipped on the device after the last allowed correction (counter + 1 >= iterations; the
+            # stale sums then read are not used: iteration_control stops at the iteration cap)
             wp.launch(K.solve_density_lambda, n, inputs=[p, b, xp, nb, 1, self._counter, self.iterations - 1],
-                      outputs=[self._density, self._lambda, self._bgrad, self._stats], device=d)
+                      outputs=[self._density, self._lambda, self._bgrad, self._compression], device=d)
+            self._stat_reduction.sum_max(self._compression, n)
             wp.launch(K.iteration_control, 1, inputs=[*control, 1], outputs=outputs, device=d)
 
         wp.capture_while(self._go, body)
@@ -530,10 +535,11 @@ class ParticleFluid:
         d, p, b, nb = self.device, self._params, self._boundaries, self._neighbors
         self._grid.build(x, self.h)
         wp.launch(K.find_neighbors_density, n, inputs=[self._grid.id, p, b, x, int(self._fused_density), with_stats],
-                  outputs=[nb, self._overflow, self._density, self._lambda, self._bgrad, self._stats], device=d)
+                  outputs=[nb, self._overflow, self._density, self._lambda, self._bgrad, self._compression],
+                  device=d)
         if not self._fused_density:
             wp.launch(K.solve_density_lambda, n, inputs=[p, b, x, nb, with_stats, self._zero, 1],
-                      outputs=[self._density, self._lambda, self._bgrad, self._stats], device=d)
+                      outputs=[self._density, self._lambda, self._bgrad, self._compression], device=d)
 
     def cfl_dt(self, horizon: float = 0.0) -> float:
         """Largest step [s] allowed by the CFL condition for the speed the fluid may reach within
@@ -681,10 +687,9 @@ class ParticleFluid:
         if n == 0:
             return 0.0, 0.0
         self.measure_density()
-        self._reduce.zero_()
-        wp.launch(K.density_error_stats, n, inputs=[self._density, self.rest_density], outputs=[self._reduce],
+        wp.launch(K.compression, n, inputs=[self._density, self.rest_density], outputs=[self._compression],
                   device=self.device)
-        total, peak = self._reduce.numpy()
+        total, peak = self._stat_reduction.sum_max(self._compression, n).numpy()
         return float(total) / n, float(peak)
 
     def volume(self) -> float:

@@ -51,6 +51,8 @@ class CacheScene:
     def __init__(self, path, guides=False, only=None):
         from pxr import Usd, UsdGeom
 
+        if only is not None and (isinstance(only, (str, bytes)) or not all(isinstance(n, str) for n in only)):
+            raise TypeError(f"only must be a list of prim names or paths, got {only!r}; e.g. only=['particles']")
         self.stage = open_stage(path)
         self.path = str(path)
         self.frames = frame_codes(self.stage)
@@ -69,6 +71,14 @@ class CacheScene:
             wanted = only is None or prim.GetName() in only or str(prim.GetPath()) in only
             if wanted and (prim.IsA(UsdGeom.Gprim) or prim.IsA(UsdGeom.PointInstancer)):
                 self.prims.append(prim)
+        if only is not None:
+            found = {p.GetName() for p in self.prims} | {str(p.GetPath()) for p in self.prims}
+            missing = [n for n in only if n not in found]
+            if missing or not only:
+                names = sorted({p.GetName() for p in self.stage.Traverse()
+                                if p.IsA(UsdGeom.Gprim) or p.IsA(UsdGeom.PointInstancer)})
+                raise ValueError(f"only={list(only)!r}: {'no prim named ' + repr(missing[0]) if missing else 'no names'}"
+                                 f" in {self.path}; drawn prims: {', '.join(names) or 'none'}")
 
     # ------------------------------------------------------------------ framing
     def time(self, frame):

@@ -148,6 +148,9 @@ class Scene:
     params: ClassVar[dict] = {}
     fps: ClassVar[float] = 60.0
     substeps: ClassVar[int] = 1
+    substeps_auto: ClassVar[bool] = False
+    """True for scenes whose frames sub-step automatically inside the stability limit by default
+    (``auto_substeps``; the command line turns it off when dt or --substeps N is given by hand)."""
     smoke_params: ClassVar[dict] = {}  # small parameter values for the test suite's smoke run
 
     def __init__(self, params=None, device=None):
@@ -156,7 +159,47 @@ class Scene:
         self.device = wp.get_device(device)
         self.params = self.resolve_params(params or {})
         self.frame = 0
+        self.auto_substeps = bool(type(self).substeps_auto)
+        """Sub-step each frame at least ``substeps`` times and as often as half the stability limit
+        needs (see :meth:`steps_for`)."""
         self.build(self.params)
+
+    def stability(self):
+        """The ``ws.StabilityLimit`` of the scene's simulator (``self.sim``, linearised about its
+        initial positions) or None for scenes without one."""
+        sim = getattr(self, "sim", None)
+        if not hasattr(sim, "stability"):
+            return None
+        return sim.stability(positions=sim.model.particle_q)
+
+    def frame_steps(self, frame_dt, substeps) -> int:
+        """Steps :meth:`advance` takes in a frame (``steps_for`` unless a scene steps otherwise)."""
+        return self.steps_for(frame_dt, substeps)
+
+    def stability_warning(self, frame_dt, substeps):
+        """One line when the step this scene takes (frame_dt / steps) is above its stability
+        limit, naming the limiter and the remedies; None when it is inside or unknown."""
+        limit = self.stability()
+        if limit is None:
+            return None
+        h = frame_dt / self.frame_steps(frame_dt, substeps)
+        return limit.warning(h) if limit.exceeded_by(h) else None
+
+    def steps_for(self, frame_dt, substeps) -> int:
+        """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with ``auto_substeps`` (or
+        ``substeps="auto"``) at least that many and enough to keep each step within
+        ``warpsim.core.stability.AUTO_SAFETY`` x the limit of ``self.sim`` (computed once about the
+        initial positions, again after a parameter change). ``self.frame_steps_fixed`` (an int, set
+        by a re-run of one world of a sweep) overrides both: the count the whole batch took."""
+        fixed = getattr(self, "frame_steps_fixed", None)
+        if fixed is not None:
+            return int(fixed)
+        auto = substeps == "auto" or self.auto_substeps
+        base = 1 if substeps == "auto" else int(substeps)
+        sim = getattr(self, "sim", None)
+        if not auto or not hasattr(sim, "auto_substeps"):
+            return base
+        return sim.auto_substeps(frame_dt, minimum=base)
 
     @classmethod
     def resolve_params(cls, given):
@@ -201,6 +244,9 @@ class Scene:
             return False
         self.apply_param(key, value)
         self.params[key] = value
+        sim = getattr(self, "sim", None)
+        if hasattr(sim, "invalidate_stability"):  # stiffness, masses, contacts: the limit moves
+            sim.invalidate_stability()
         return True
 
     def apply_param(self, key, value) -> None:
@@ -234,9 +280,11 @@ class SimulatorScene(Scene):
     _state_prims = None
 
     def advance(self, frame_dt, substeps):
-        h = frame_dt / substeps
-        for _ in range(substeps):
+        n = self.frame_steps(frame_dt, substeps)
+        h = frame_dt / n
+        for _ in range(n):
             self.sim.step(h)
+        self.sim.check_frame(frame_dt)  # velocities no motion explains: an instability the speed bound misses
 
     def frame_data(self):
         state = self.sim.state

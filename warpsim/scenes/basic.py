@@ -84,7 +84,12 @@ class PendulumScene(Scene):
         writer.add_curves("rod", curve_vertex_counts=[2], width=0.01, color=(0.3, 0.3, 0.3))
         writer.add_sphere("pivot", tuple(self.pivot), 0.02)
 
+    def stability(self):
+        return self.pendulum.stability()
+
     def advance(self, frame_dt, substeps):
+        if substeps == "auto" or self.auto_substeps:
+            substeps = self.pendulum.stability().substeps_for(frame_dt, minimum=1 if substeps == "auto" else substeps)
         for _ in range(substeps):
             self.pendulum.step(frame_dt / substeps)
         q = self.pendulum.angle.numpy()
@@ -133,6 +138,8 @@ class PendulumScene(Scene):
 class Springs(SimulatorScene):
     """A horizontal chain pinned at one end (or a horizontal sheet pinned at two corners) released
     under gravity; masses are Points, springs a linear BasisCurves."""
+
+    substeps_auto = True  # stiffness and mass sliders reach past dt's limit: sub-step inside it
 
     def build(self, p):
         n, s = p["count"], p["spacing"]

@@ -39,6 +39,7 @@ class ClothScene(SimulatorScene):
 
     smoke_params: ClassVar[dict] = {"resolution": 4}
     sphere_center = (0.0, 0.0, 0.0)
+    substeps_auto = True  # semi_implicit_euler: sub-step inside the springs' limit
 
     def make_cloth(self, builder, p):
         raise NotImplementedError
@@ -102,7 +103,12 @@ class ClothScene(SimulatorScene):
         return {"cloth": {"points": st.positions, "velocities": st.velocities}}
 
     def advance(self, frame_dt, substeps):
-        self.sim.frame(frame_dt, substeps * self.steps_per_substep)
+        self.sim.frame(frame_dt, self.frame_steps(frame_dt, substeps))
+        self.sim.check_frame(frame_dt)
+
+    def frame_steps(self, frame_dt, substeps):
+        steps = "auto" if substeps == "auto" else substeps * self.steps_per_substep
+        return self.steps_for(frame_dt, steps)
 
 
 @register_scene("cloth", "a sheet pinned at two corners swings down onto a sphere (--set integrator=...)",

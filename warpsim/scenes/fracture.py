@@ -18,13 +18,16 @@ an interior lattice) dropped in layers into a box; ``ws.SoftContact`` keeps them
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
 from typing import ClassVar
 
 import numpy as np
 
 import warpsim as ws
 
+from ..bodies.colliders import quat_rotate
 from ..bodies.shapes import torus_mesh
 from ..bodies.soft_contact import SoftContact
 from ..bodies.softbody import add_soft_body
@@ -202,6 +205,7 @@ class WallScene(FractureScene):
     particle indices."""
 
     smoke_params: ClassVar[dict] = {"bricks": (2.0, 2.0), "ball_speed": 20.0}
+    substeps_auto = True  # sub-step inside the stiff brick springs' stability limit
 
     def build(self, p):
         _positive(p, "ball_mass", "ball_radius", "mortar_strength", "spacing", "density", "bricks", "brick_size",
@@ -242,9 +246,92 @@ class WallScene(FractureScene):
                 "springs": self.springs_frame(x)}
 
 
+def _largest_spring_eigenvalue(q, mass, springs, coefficient, iterations: int = 300) -> float:
+    """Largest eigenvalue of M^-1 A for the spring matrix A = sum_s a_s (e_i - e_j)(e_i - e_j)^T
+    (x) n_s n_s^T at positions q (n_s the spring direction; at rest the stiffness matrix when
+    a = k, the damping matrix when a = c), by power iteration on M^-1/2 A M^-1/2 [1/s^2 or 1/s]."""
+    i, j = springs[:, 0], springs[:, 1]
+    n = q[i] - q[j]
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    scale = 1.0 / np.sqrt(mass)[:, None]
+    x = np.random.default_rng(0).normal(size=q.shape)
+    value = 0.0
+    for _ in range(iterations):
+        norm = np.linalg.norm(x)
+        if norm == 0.0:  # A x = 0: every coefficient is 0
+            return 0.0
+        x /= norm
+        y = x * scale
+        f = (coefficient * ((y[i] - y[j]) * n).sum(1))[:, None] * n
+        out = np.stack([np.bincount(i, f[:, c], len(q)) - np.bincount(j, f[:, c], len(q)) for c in range(3)], 1)
+        out *= scale
+        value = float((out * x).sum())
+        x = out
+    return value
+
+
+def stable_inner_steps(q, mass, springs, stiffness, damping, integrator: str, dt: float, safety: float = 0.8) -> int:
+    """Integration steps per scene step ``dt`` [s] that keep semi-implicit Euler inside its
+    stability limit for one torus's springs (q, mass, springs (S, 2), stiffness, damping: its
+    rest positions [m], masses [kg], springs and coefficients; every torus is a rotated copy, so
+    one limit holds for all). 1 for every other integrator: implicit Euler is unconditionally
+    stable, the explicit ones are the user's choice to study.
+
+    Stand-in until ``Simulator(substeps="auto")`` lands (engineer ``stab``). With omega^2 and
+    gamma the largest eigenvalues of M^-1 K and M^-1 C, semi-implicit Euler on
+    x'' = -omega^2 x - gamma x' is stable for h^2 omega^2 + 2 h gamma <= 4, so
+    h <= (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2, taken with a ``safety`` factor (the
+    springs stretch, the contact adds its pushes). The soft contact sets no limit of its own: it
+    moves positions by a fraction of the depth and applies impulses (no contact stiffness)."""
+    if integrator != "semi_implicit_euler" or len(springs) == 0:
+        return 1
+    omega2 = _largest_spring_eigenvalue(q, mass, springs, stiffness)
+    gamma = _largest_spring_eigenvalue(q, mass, springs, damping)
+    h_max = safety * (math.sqrt(gamma * gamma + 4.0 * omega2) - gamma) / omega2
+    return max(1, math.ceil(dt / h_max))
+
+
+def check_donut_memory(count: int, torus, device) -> None:
+    """ValueError (with the figures) when ``count`` copies of ``torus`` (a SoftBody) would not fit
+    in the device's free memory, or the host's for the build. Per torus: about 300 B per particle
+    (state, model, integrator and contact buffers), 120 B per spring (model, adjacency), 260 B per
+    surface triangle (BVHs, edges, contact slots); the Python build holds about 250 B per spring
+    and 200 B per particle on the host."""
+    faces = len(torus.faces)
+    device_bytes = count * (300 * torus.particle_count + 120 * torus.spring_count + 260 * faces)
+    host_bytes = count * (200 * torus.particle_count + 250 * torus.spring_count)
+    need = [("host", host_bytes, _host_free_bytes())]
+    if device.is_cuda:
+        need.append((str(device), device_bytes, int(device.free_memory)))
+    else:
+        need[0] = ("host", host_bytes + device_bytes, need[0][2])
+    for where, needed, free in need:
+        if free and needed > 0.8 * free:
+            per = needed / count
+            raise ValueError(f"count={count} tori of {torus.particle_count} particles and {torus.spring_count} springs "
+                             f"need about {needed / 2**30:.1f} GiB on the {where} ({per / 2**20:.2f} MiB a torus) but "
+                             f"{free / 2**30:.1f} GiB are free; lower count to {max(1, int(0.8 * free / per))} or "
+                             "fewer, or use fewer segments/sides/lattice_cells")
+
+
+def _host_free_bytes() -> int:
+    """Available host memory [bytes] (0 when unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
 @register_scene("donuts", "a dozen soft tori dropped into a heap that comes to rest (soft body against soft body)",
                 params={
-    "count": (12, "number of tori"),
+    "count": (12, "number of tori (up to what fits in memory; 1,000 x 2,000 vertices takes about 6 GB)"),
     "segments": (24, "torus segments around its axis"),
     "sides": (12, "torus segments around its tube"),
     "major_radius": (0.1, "torus radius [m]"),
@@ -256,55 +343,86 @@ class WallScene(FractureScene):
     "thickness": (0.006, "contact thickness between tori [m]"),
     "friction": (0.5, "Coulomb friction between tori, on the floor and walls"),
     "restitution": (0.0, "restitution between tori, on the floor and walls"),
-    "box": (0.35, "half width of the box the tori fall into [m]"),
+    "box": (0.0, "half width of the box the tori fall into [m]; 0: sized to the count (0.35 m for 12 tori)"),
     "self_contact": (False, "also collide each torus with itself"),
+    "edge_contact": (True, "edge-edge contact beside vertex-triangle contact"),
     "seed": (1, "random orientations"),
     "gravity": (9.81, "gravitational acceleration [m/s^2]"),
-    "dt": (1.0 / 1200.0, "time step [s]"),
+    "dt": (1.0 / 1200.0, "time step [s] (split further where the springs' stability limit needs it)"),
     "integrator": ("semi_implicit_euler", "time integrator", INTEGRATORS),
 }, substeps=20)
 class DonutsScene(SimulatorScene):
     """See the module docstring; ``self.bodies`` are the tori's SoftBody records, ``self.contact``
-    the SoftContact."""
+    the SoftContact, ``self.inner_steps`` the integration steps per scene step ``dt`` (from the
+    springs' stability limit, :func:`stable_inner_steps`: 1 at the default 288 vertices a torus,
+    2 at 2,000)."""
 
     smoke_params: ClassVar[dict] = {"count": 2, "segments": 10, "sides": 6, "lattice_cells": 5}
+    substeps_auto = True  # sub-step inside the tori's spring limit
 
     def build(self, p):
         _positive(p, "count", "segments", "sides", "major_radius", "minor_radius", "mass", "stiffness",
-                  "lattice_cells", "thickness", "box", "gravity")
+                  "lattice_cells", "thickness", "gravity")
+        if not (math.isfinite(p["box"]) and p["box"] >= 0.0):
+            raise ValueError(f"box={p['box']}: give a half width > 0 [m], or 0 to size the box to the count")
         points, faces = torus_mesh(p["major_radius"], p["minor_radius"], p["segments"], p["sides"])
+        # one torus at the origin, copied (rotated, moved) count times: the lattice and springs are
+        # built once, so 1,000 tori build in seconds
+        template_builder = ws.ModelBuilder()
+        template = add_soft_body(template_builder, points, faces, total_mass=p["mass"], mass_distribution="uniform",
+                                 stiffness=p["stiffness"], damping=p["damping"], lattice_cells=p["lattice_cells"],
+                                 name="torus")
+        check_donut_memory(p["count"], template, self.device)
         reach = p["major_radius"] + p["minor_radius"]
-        per_side = max(1, int((2.0 * p["box"]) // (2.0 * reach + 0.02)))
+        box = p["box"] or 0.35 * p["major_radius"] / 0.1 * (p["count"] / 12.0) ** (1.0 / 3.0)
+        per_side = max(1, int((2.0 * box) // (2.0 * reach + 0.02)))
         per_layer = per_side * per_side
-        pitch = 2.0 * p["box"] / per_side
+        pitch = 2.0 * box / per_side
         rng = np.random.default_rng(p["seed"])
+        local = np.asarray(template_builder.particle_q, dtype=np.float64)
+        masses = np.asarray(template_builder.particle_mass, dtype=np.float64)
+        springs = np.asarray(template_builder.spring_indices, dtype=np.int64)
+        rest = np.asarray(template_builder.spring_rest_length, dtype=np.float64)
+        stiffness = np.asarray(template_builder.spring_stiffness, dtype=np.float64)
+        damping = np.asarray(template_builder.spring_damping, dtype=np.float64)
         b = ws.ModelBuilder()
         self.bodies = []
         for k in range(p["count"]):
             layer, slot = divmod(k, per_layer)
             ix, iz = divmod(slot, per_side)
-            x = -p["box"] + (ix + 0.5) * pitch
-            z = -p["box"] + (iz + 0.5) * pitch
+            x = -box + (ix + 0.5) * pitch
+            z = -box + (iz + 0.5) * pitch
             y = reach + 0.05 + layer * (2.0 * reach + 0.05)
             axis = rng.normal(size=3)
             axis /= np.linalg.norm(axis)
             angle = rng.uniform(0.0, 0.5 * math.pi)
             rotation = (*(math.sin(angle / 2) * axis), math.cos(angle / 2))
-            self.bodies.append(add_soft_body(
-                b, points, faces, position=(x, y, z), rotation=rotation, total_mass=p["mass"],
-                mass_distribution="uniform", stiffness=p["stiffness"], damping=p["damping"],
-                lattice_cells=p["lattice_cells"], name=f"torus {k}"))
+            start, spring_start = b.particle_count, b.spring_count
+            b.add_particles(np.array((x, y, z)) + quat_rotate(rotation, local), masses=masses)
+            b.add_springs(springs + start, stiffness, damping, rest)
+            self.bodies.append(dataclasses.replace(template, particle_start=start, faces=template.faces + start,
+                                                   spring_start=spring_start))
         model = b.finalize(self.device)
         kw = {"restitution": p["restitution"], "friction": p["friction"]}
-        top = max(2.0 * p["box"], float(model.particle_q.numpy()[:, 1].max()) + reach)
-        self.lower, self.upper = (-p["box"], 0.0, -p["box"]), (p["box"], top, p["box"])
-        self.contact = SoftContact(self.bodies, thickness=p["thickness"], self_contact=p["self_contact"], **kw)
+        top = max(2.0 * box, float(model.particle_q.numpy()[:, 1].max()) + reach)
+        self.lower, self.upper = (-box, 0.0, -box), (box, top, box)
+        self.contact = None  # one torus without self contact touches nothing but the box
+        if len(self.bodies) > 1 or p["self_contact"]:
+            self.contact = SoftContact(self.bodies, thickness=p["thickness"], self_contact=p["self_contact"],
+                                       edge_contact=p["edge_contact"], **kw)
+        colliders = [ws.Box(self.lower, self.upper, **kw)] + ([self.contact] if self.contact else [])
         self.sim = ws.Simulator(model, integrator=p["integrator"], forces=[ws.Gravity((0.0, -p["gravity"], 0.0))],
-                                colliders=[ws.Box(self.lower, self.upper, **kw), self.contact], max_speed=100.0)
+                                colliders=colliders, max_speed=100.0)
+        self.inner_steps = stable_inner_steps(local, masses, springs, stiffness, damping, p["integrator"], p["dt"])
         self.surface = np.concatenate([body.surface_indices for body in self.bodies])
         where = np.full(model.particle_count, -1, dtype=np.int64)
         where[self.surface] = np.arange(len(self.surface))
         self.faces = np.concatenate([where[body.faces] for body in self.bodies])
+
+    def advance(self, frame_dt, substeps):
+        h = frame_dt / (substeps * self.inner_steps)
+        for _ in range(substeps * self.inner_steps):
+            self.sim.step(h)
 
     def kinetic_energy(self) -> float:
         """Kinetic energy of every particle [J] (reads the state back)."""

@@ -71,6 +71,7 @@ class TeapotScene(SimulatorScene):
     frame) and ``drag`` (a two-point curve from the dragged vertex to its target)."""
 
     smoke_params: ClassVar[dict] = {"resolution": "3", "drag": "spout:0.3,0.6,0@0-0.05", "obstacle": "paddle"}
+    substeps_auto = True  # dt = 1/600 s sits at the limit (stiffness 40 N/m); stiffer or lighter blows up
 
     def build(self, p):
         for key in ("mass", "size", "box", "gravity"):

@@ -99,7 +99,17 @@ class Controls:
             self.record_status.content = f"recorded `{last}`" if last else "not recording"
         elif st["recording"] is not None:
             self.record_status.content = f"recording into `{st['recording']}` ({st['recorded_frames']} frames)"
-        if st["error"]:
+        handles = getattr(self.viewer, "param_handles", None)
+        if handles:
+            from .params import refresh_dt_limit
+
+            refresh_dt_limit(handles, self.viewer.session)
+        if st.get("exploding"):
+            text = "**Simulation error**: blowing up (shown for a moment, then paused)"
+            if self.error.content != text:
+                self.error.content = text
+                self.error.visible = True
+        elif st["error"]:
             text = "**Simulation error** (paused; press Reset):  \n" + st["error"]
             if self.error.content != text:
                 self.error.content = text

@@ -141,6 +141,10 @@ class PlaybackViewer(Serving):
     """Serves a cache: timeline slider, play / pause, loop; frames read when shown."""
 
     def __init__(self, path, *, host="127.0.0.1", port=8080, max_points=200_000):
+        from .server import check_serving_args
+
+        _, port, max_points = check_serving_args(port=port, max_points=max_points, host=host,
+                                                 what="PlaybackViewer")
         self.reader = CacheReader(path, max_points=max_points)
         self.host, self.port = host, int(port)
         self.index = 0

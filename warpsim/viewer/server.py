@@ -183,6 +183,21 @@ class _Nothing:
         pass
 
 
+def check_serving_args(*, port, max_points, host, draw_fps=None, what="ws.Viewer"):
+    """``(draw_fps, port, max_points)`` checked before anything is built or served: ValueError /
+    TypeError naming the argument, the value and a fix."""
+    from ..core import checks
+
+    if not isinstance(host, str) or not host.strip():
+        raise TypeError(f"{what} host must be a host name or address as text, got {checks.show(host)}; e.g. "
+                        "host='127.0.0.1'")
+    port = checks.integer(port, f"{what} port", lo=0, hi=65535, fix="e.g. 8080 (0: any free port)")
+    max_points = checks.integer(max_points, f"{what} max_points", lo=1, fix="points drawn per prim, e.g. 200000")
+    if draw_fps is not None:
+        draw_fps = checks.positive(draw_fps, f"{what} draw_fps", unit="frames/s", fix="e.g. 45")
+    return draw_fps, port, max_points
+
+
 class Viewer(Serving):
     """A live browser view of a scene (``warpsim view``; ``ws.Viewer`` in scripts and notebooks).
 
@@ -212,6 +227,8 @@ class Viewer(Serving):
                  verbose=False):
         from ..scenes import Scene, get_scene
 
+        draw_fps, port, max_points = check_serving_args(port=port, max_points=max_points, host=host,
+                                                        draw_fps=draw_fps, what="ws.Viewer")
         if device is None:
             import warp as wp
 

@@ -4,7 +4,9 @@ A :class:`Session` owns one running scene: it steps it frame by frame, draws it 
 :class:`~warpsim.viewer.sink.ViewerSink`, paces it (real time when the machine keeps up, else as
 fast as it can), applies parameter changes (live where the scene allows, else by rebuilding),
 drags particles with a ``ws.DragSpring`` toward the pointer, records into a USD cache and turns
-a ``SimulationError`` into a paused session with the message kept for the page. Every public
+a ``SimulationError`` into a short explosion (drawn with positions clamped, then paused with the
+message and the stability limit kept for the page; Reset restarts from the last parameters that
+ran stable). Every public
 method takes the session's lock, so GUI callbacks (viser runs them on a thread pool) and the
 stepping loop can call it concurrently.
 """
@@ -23,12 +25,21 @@ from .picking import camera_plane_target, pick_mesh_vertex, pick_point
 from .record import Recorder, default_recording_path
 from .sink import ViewerSink
 
-__all__ = ["Session", "frame_timing"]
+__all__ = ["EXPLOSION_FRAMES", "STABLE_FRAMES", "Session", "frame_timing"]
+
+EXPLOSION_FRAMES = 45
+"""Frames stepped and drawn past a blow-up (checks off, positions clamped for drawing) before the
+session pauses with the explanation: the lecture's explosion, for a bounded moment."""
+
+STABLE_FRAMES = 60
+"""Frames a parameter set must run without a failure to count as the last stable one (Reset
+after a blow-up returns to it)."""
 
 
 def frame_timing(cls, params, fps=None, substeps=None):
-    """(frame_dt [s], substeps, fps) of a scene class with resolved ``params`` (as ``warpsim run``)."""
-    substeps = int(substeps or cls.substeps)
+    """(frame_dt [s], substeps, fps) of a scene class with resolved ``params`` (as ``warpsim run``;
+    ``substeps="auto"`` counts as the scene's own number, the minimum of the automatic ones)."""
+    substeps = int(cls.substeps if substeps in (None, "auto") else substeps)
     if "dt" in params:
         frame_dt = float(params["dt"]) * substeps
     else:
@@ -69,6 +80,12 @@ class Session:
         self.sim_rate = 0.0  # simulated seconds per wall second, measured
         self.drag_stiffness = None  # None: chosen per scene (see _default_drag)
         self.version = 0  # bumped on every rebuild: the front end redraws static prims
+        self.dt_by_hand = "dt" in (params or {})  # a dt given by hand switches auto sub-steps off
+        self.stable_params = None  # the last parameters that ran STABLE_FRAMES frames without failing
+        self.limit = None  # the scene's ws.StabilityLimit (None: no simulator with one)
+        self.step_dt = None  # the step the scene takes [s]
+        self.exploding = None  # {"error", "frame", "left"} while a blow-up is being shown
+        self._frames_since_change = 0
         self._build(scene)
 
     # ------------------------------------------------------------------ building
@@ -78,6 +95,15 @@ class Session:
             scene = self.cls(dict(self.params), device=self.device)
         self.scene = scene
         self.frame_dt, self.substeps, self.fps = frame_timing(self.cls, self.params, self.fps_arg, self.substeps_arg)
+        if self.substeps_arg == "auto":
+            scene.auto_substeps = True
+        elif self.dt_by_hand or self.substeps_arg is not None:
+            scene.auto_substeps = False
+        self.exploding = None
+        self._frames_since_change = 0
+        if self.stable_params is None:
+            self.stable_params = dict(self.params)
+        self._update_limit()
         self.sink = ViewerSink(self.max_points)
         scene.declare(self.sink)
         self.static = self.sink.static_items()
@@ -88,51 +114,152 @@ class Session:
         self.time = 0.0
         self.error = None
         self._items = self.sink.draw(scene.frame_data(), 0)
+        pts = [it.points.reshape(-1, 3) for it in self._items.values() if it.points is not None and it.points.size]
+        pts = np.concatenate(pts) if pts else np.zeros((1, 3))
+        self._bounds = (pts.min(0), pts.max(0))
         self._stale = False
         self.version += 1
 
+    def _update_limit(self):
+        """Recompute the stability limit and the step taken (after a build or a live change)."""
+        try:
+            self.limit = self.scene.stability() if hasattr(self.scene, "stability") else None
+            steps = self.scene.frame_steps(self.frame_dt, self.substeps) if hasattr(self.scene, "frame_steps") \
+                else self.substeps
+        except (ValueError, AttributeError, TypeError):  # a scene whose model the estimate does not cover
+            self.limit, steps = None, self.substeps
+        self.step_dt = self.frame_dt / steps
+
+    def stability(self):
+        """The time step and its limit for the page: {"dt" (the scene's dt parameter or frame step)
+        [s], "step" (the step taken) [s], "limit" [s] (None: unknown), "auto" (sub-steps chosen from
+        the limit), "exceeded" (dt past the limit), "who" (the limiter), "reason"}."""
+        with self.lock:
+            dt = float(self.params["dt"]) if "dt" in self.params else self.frame_dt / self.substeps
+            limit = self.limit
+            auto = bool(getattr(self.scene, "auto_substeps", False))
+            known = limit is not None and math.isfinite(limit.dt)
+            return {"dt": dt, "step": self.step_dt, "limit": limit.dt if limit is not None else None, "auto": auto,
+                    "exceeded": bool(known and limit.exceeded_by(self.step_dt)),
+                    "dt_exceeded": bool(known and limit.exceeded_by(dt)),
+                    "who": limit.who() if limit is not None else "", "reason": limit.reason if limit else ""}
+
     def reset(self):
-        """Rebuild the scene from its current parameters (frame 0)."""
+        """Rebuild the scene (frame 0): from its current parameters, or after a blow-up from the
+        last parameters that ran stable."""
         with self.lock:
             if self.cls.__name__ == "SimulatorAdapter":
                 raise ValueError("a simulator stepped by the caller cannot be reset from the viewer")
+            failed = self.error is not None or self.exploding is not None
+            restored = {k: v for k, v in (self.stable_params or {}).items() if self.params.get(k) != v} \
+                if failed else {}
+            if restored:
+                self.params.update(restored)
+                if "dt" in restored:
+                    self.dt_by_hand = False
             self._build()
-            self._say("info", "reset to frame 0")
+            if restored:
+                self._say("info", "reset to the last stable parameters: " +
+                          ", ".join(f"{k} = {v}" for k, v in restored.items()))
+            else:
+                self._say("info", "reset to frame 0")
 
     # ------------------------------------------------------------------ stepping
     @property
     def items(self):
         """{name: DrawItem} of the current frame, made when first asked for after a step (the
-        display asks at its own rate, so frames it never shows cost no drawing)."""
+        display asks at its own rate, so frames it never shows cost no drawing); while a blow-up
+        is shown the positions are clamped to a box around the scene (no NaN is drawn)."""
         with self.lock:
             if self._stale:
                 try:
-                    self._items = self.sink.draw(self.scene.frame_data(), self.frame)
+                    data = self.scene.frame_data()
+                    if self.exploding is not None:
+                        data = self._clamped(data)
+                    self._items = self.sink.draw(data, self.frame)
                 except ValueError as exc:  # e.g. NaN positions the simulator's check has not caught
                     self._fail(exc, self.frame)
                 self._stale = False
             return self._items
 
+    def _clamped(self, data):
+        """Frame data with every point array made finite and clamped to the box of the frame-0
+        drawing widened by 4 sizes each way (an exploding state drawn, never NaN)."""
+        lo, hi = self._bounds
+        pad = 4.0 * np.maximum(hi - lo, 0.1)
+        lo, hi = lo - pad, hi + pad
+        out = {}
+        for name, prim in data.items():
+            prim = dict(prim)
+            for key in ("points", "velocities"):
+                value = prim.get(key)
+                if value is None:
+                    continue
+                arr = np.asarray(value.numpy() if hasattr(value, "numpy") else value, dtype=np.float32)
+                if key == "points" and arr.ndim == 2 and arr.shape[-1] == 3:
+                    arr = np.clip(np.nan_to_num(arr, nan=0.5 * (lo[0] + hi[0])), lo, hi).astype(np.float32)
+                else:
+                    arr = np.clip(np.nan_to_num(arr), -1.0e3, 1.0e3).astype(np.float32)
+                prim[key] = arr
+            out[name] = prim
+        return out
+
     def _fail(self, exc, frame):
         self.playing = False
+        self.exploding = None
         self.error = f"frame {frame}: {exc}" if not str(exc).startswith("frame") else str(exc)
+        limit = self.limit
+        if limit is not None and math.isfinite(limit.dt):
+            self.error += (f"  \nStability limit: a step <= {1e3 * limit.dt:.4g} ms ({limit.who()}); this run stepped "
+                           f"{1e3 * self.step_dt:.4g} ms. Reset restarts from the last stable parameters.")
         self._say("error", self.error)
         self._close_recording("the simulation failed")
 
+    def _explode(self, exc, frame):
+        """Start showing a blow-up: keep stepping with the checks off for EXPLOSION_FRAMES frames."""
+        sim = getattr(self.scene, "sim", None)
+        if EXPLOSION_FRAMES < 1 or not isinstance(exc, SimulationError) or not hasattr(sim, "check_every"):
+            self._fail(exc, frame)
+            return
+        sim.check_every = 0  # the build after Reset makes a fresh simulator
+        self.exploding = {"error": exc, "frame": frame, "left": EXPLOSION_FRAMES}
+        self._say("error", f"frame {frame}: the simulation blew up; showing it for {EXPLOSION_FRAMES} frames")
+
+    def _advance_exploding(self):
+        ex = self.exploding
+        try:
+            self.scene.advance(self.frame_dt, self.substeps)
+        except Exception:  # noqa: BLE001  (whatever a NaN state raises, the explosion ends here)
+            ex["left"] = 0
+        self.frame += 1
+        self.time += self.frame_dt
+        self._stale = True
+        ex["left"] -= 1
+        if ex["left"] <= 0:
+            self._fail(ex["error"], ex["frame"])
+        return True
+
     def advance(self):
-        """Simulate one frame (recorded when recording); on a SimulationError pause and keep the
-        message (returns False). Returns True when a frame was made."""
+        """Simulate one frame (recorded when recording); on a SimulationError show the explosion
+        for EXPLOSION_FRAMES frames, then pause and keep the message (returns False when nothing
+        was made). Returns True when a frame was made."""
         with self.lock:
             if self.error is not None:
                 return False
+            if self.exploding is not None:
+                return self._advance_exploding()
             t0 = time.perf_counter()
             try:
                 self.scene.advance(self.frame_dt, self.substeps)
                 if self.recorder is not None:
                     self.recorder.write(self.scene.frame_data())
             except (SimulationError, ValueError, FloatingPointError) as exc:
-                self._fail(exc, self.frame + 1)
-                return False
+                self._close_recording("the simulation failed")
+                self._explode(exc, self.frame + 1)
+                return self.exploding is not None
+            self._frames_since_change += 1
+            if self._frames_since_change == STABLE_FRAMES:
+                self.stable_params = dict(self.params)
             self.frame += 1
             self.time += self.frame_dt
             self._stale = True
@@ -193,8 +320,12 @@ class Session:
                 raise ValueError(f"{key}={value!r} is not one of {', '.join(map(str, param.choices))}")
             if self.params.get(key) == value:
                 return "unchanged"
-            if self.error is None and self.scene.set_param(key, value):
+            if key == "dt":
+                self.dt_by_hand = True  # the step fixed by hand: no automatic sub-steps
+            if self.error is None and self.exploding is None and self.scene.set_param(key, value):
                 self.params[key] = value
+                self._frames_since_change = 0
+                self._update_limit()
                 self._say("info", f"{key} = {value}: applied live")
                 return "live"
             old = self.params[key]
@@ -267,6 +398,8 @@ class Session:
             self.drag.stiffness, self.drag.damping = k, c
             x = self.scene.sim.state.positions.numpy()[particle].astype(np.float64)
             self.drag.grab(particle, x)
+            if hasattr(self.scene.sim, "invalidate_stability"):
+                self.scene.sim.invalidate_stability()  # the drag spring is an oscillator of its own
             self.grabbed = {"prim": prim, "vertex": int(vertex), "particle": particle, "start": x.copy(),
                             "target": x.copy(), "plane_point": x.copy(), "client": client}
             return particle
@@ -350,6 +483,7 @@ class Session:
             return {"scene": self.cls.name, "frame": self.frame, "time": self.time, "wall_ms": self.wall_ms,
                     "draw_ms": self.draw_ms,
                     "sim_rate": self.sim_rate, "playing": self.playing, "speed": self.speed, "error": self.error,
+                    "exploding": self.exploding is not None,
                     "recording": None if self.recorder is None else self.recorder.path,
                     "recorded_frames": 0 if self.recorder is None else self.recorder.frames,
                     "grabbed": None if self.grabbed is None else dict(self.grabbed)}

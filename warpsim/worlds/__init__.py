@@ -16,8 +16,14 @@ Modules:
   metrics   per-world metrics on the device (centre of mass, peak speed, kinetic energy, tracked
             particles, user ``@wp.func`` metrics), ``--rank`` / ``--where`` picking
   usd       batch layers (``/Worlds/world_GGGGGG``) and the root: a ``world`` variant set or a grid
+  occupancy per-world occupancy records made on the device during a sweep (``kernels/occupancy.py``:
+            grid cells per frame as bits, bit-packed over time; exact positions of few particles)
+  query     IN / NOT IN a box during a window over a record (``--inside`` / ``--outside``)
+  roots     reading a sweep root back: its worlds, batch layers, table and record
   sweep     :func:`sample_worlds`, :func:`run_batch`, :func:`write_table`
   command   ``warpsim sweep``
+  query_command  ``warpsim query``: ask a finished sweep's record
+  pick      ``warpsim pick``: one world as a file any USD tool opens
   gallery   ``warpsim view SWEEP.usda``: the worlds side by side in the browser, click one to
             isolate it (imports the viewer; not imported by this package)
 
@@ -28,8 +34,12 @@ Ray sweep and a single-process sweep give the same table and samples): :func:`sa
 """
 from .batch import WorldBatch
 from .metrics import UserMetric, WorldMetrics
+from .occupancy import OccupancyRecord, OccupancyRecorder
+from .pick import pick_world
+from .query import Region, answer_region, parse_region
 from .sweep import run_batch, sample_worlds, write_table
 from .usd import write_sweep_root
 
-__all__ = ["UserMetric", "WorldBatch", "WorldMetrics", "run_batch", "sample_worlds", "write_sweep_root",
+__all__ = ["OccupancyRecord", "OccupancyRecorder", "Region", "UserMetric", "WorldBatch", "WorldMetrics",
+           "answer_region", "parse_region", "pick_world", "run_batch", "sample_worlds", "write_sweep_root",
            "write_table"]

@@ -23,12 +23,16 @@ import warp as wp
 from ..bodies.colliders import Planes
 from ..cloth.solver import ClothImplicitEuler
 from ..core.integrators import ImplicitEuler
-from ..core.model import Model
+from ..core.forces import Springs
+from ..core.model import Model, ensure_spring_adjacency
 from ..kernels import worlds as KW
 from .forces import WorldGravity, WorldPlanes
 from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, make_plan
+from .shared import SPRING_PARAMS, SharedStepper, eligibility, world_walls
 
 __all__ = ["WorldBatch"]
+
+ADJACENCY_ARRAYS = ("particle_spring_offsets", "particle_springs")
 
 
 class WorldBatch:
@@ -43,16 +47,31 @@ class WorldBatch:
     data), ``sim`` (the batched simulator), ``model`` (the tiled model: ``world_count``,
     ``world_particle_count``, ``world_spring_count``, ``particle_world``), ``params`` (typed
     parameters per world), ``varied`` (keys that differ), ``world_bad`` (1 = blown up, frozen)
-    and ``world_blown_frame`` (first bad frame, -1 none), both of shape (world_count,)."""
+    and ``world_blown_frame`` (first bad frame, -1 none), both of shape (world_count,).
 
-    def __init__(self, cls, world_params, device=None, *, fused=False):
+    ``shared`` (None: wherever eligible, the default; see :mod:`warpsim.worlds.shared`): the
+    springs, their adjacency and base parameters are stored once for all worlds and one fused
+    kernel per sub-step sums each particle's springs, integrates and resolves the walls,
+    bit-identical to the tiled path (``shared=False``: every array tiled per world, one launch
+    per stage) and to the scene's own Simulator, with a quarter of the memory per world.
+
+    ``reference_params``: the parameter list of the sweep these worlds belong to (None: the
+    worlds themselves). Its first world is the tiling base and its values shape the plan, so a
+    world gets the same arrays, and with the fixed-order gathers the same bits every step,
+    whichever batch it runs in: a world of a sweep re-runs alone exactly
+    (:func:`warpsim.worlds.rerun.rerun_world`)."""
+
+    def __init__(self, cls, world_params, device=None, *, fused=False, reference_params=None, shared=None):
         if len(world_params) < 1:
             raise ValueError("a batch needs at least one world")
         self.cls = cls
         self.device = wp.get_device(device)
         self.params = [cls.resolve_params(p) for p in world_params]
-        base = self.params[0]
-        self.varied = [k for k in cls.params if any(p[k] != base[k] for p in self.params)]
+        reference = self.params if reference_params is None else [cls.resolve_params(p) for p in reference_params]
+        if not reference:
+            raise ValueError("reference_params is empty; give the sweep's parameter list (or None)")
+        base = reference[0]
+        self.varied = [k for k in cls.params if any(p[k] != base[k] for p in reference + self.params)]
         self.scene = cls(base, device=self.device)
         sim0 = getattr(self.scene, "sim", None)
         if sim0 is None or not hasattr(sim0, "model"):
@@ -72,10 +91,27 @@ class WorldBatch:
                 bad = {k: p[k] for k in self.varied if p[k] != base[k]}
                 raise ValueError(f"a world with {', '.join(f'{k}={v}' for k, v in bad.items())}: {exc}") from None
 
-        self.plan = make_plan(cls, self.scene, base, self.params, self.varied, probe)
-        self.model = self._tile(sim0.model)
+        self.plan = make_plan(cls, self.scene, base, reference if reference_params is None else
+                              reference + self.params, self.varied, probe)
         self.fused = bool(fused)
+        why = eligibility(sim0)
+        if shared and (why or self.fused):
+            raise StructuralError(f"shared=True needs a mass-spring scene the fused world step serves; scene "
+                                  f"{cls.name!r} has {'fused=True' if self.fused else why}")
+        self.shared = why is None and not self.fused if shared is None else bool(shared)
+        self._scales = {}
+        self.model = self._tile(sim0.model)
         self.sim = self._simulator(sim0)
+        self.stepper = None
+        if self.shared:  # the simulator was built without springs; the model counts every world's
+            self.model.spring_count = self.world_count * self.model.world_spring_count
+            gravity = next((f.g for f in self.sim.forces if isinstance(f, WorldGravity)), None)
+            if gravity is None:
+                gravity = np.tile(np.asarray(sim0.forces[0].g, dtype=np.float64), (self.world_count, 1))
+            self.stepper = SharedStepper(self, sim0.model, self._scales, self._world_values,
+                                         self._key_count, gravity, world_walls(self.sim.colliders,
+                                                                               self.world_count, self.device))
+            self.sim.stability_model = self._springs_model
         self.batch_scene = copy.copy(self.scene)
         self.batch_scene.sim = self.sim
         if hasattr(self.batch_scene, "model"):
@@ -131,6 +167,7 @@ class WorldBatch:
         keys = [k for k, e in self.plan.items() if e.scale]
         values = np.array([[p[k] for k in keys] for p in self.params], dtype=np.float32).reshape(-1)
         world_values = wp.array(values if len(values) else np.zeros(1, np.float32), dtype=float, device=d)
+        self._world_values, self._key_count = world_values, max(len(keys), 1)
         for name in FLOAT_ARRAYS:
             base = getattr(m0, name)
             count = base.shape[0]
@@ -145,6 +182,10 @@ class WorldBatch:
                     raise StructuralError(f"{kname} and another varied key both scale {name}; vary one of them")
                 key[changed] = k
                 coefficient[changed] = c[changed]
+            if self.shared and name in SPRING_PARAMS:  # stored once; the fused step scales per world
+                self._scales[name] = (base.numpy(), wp.array(key, dtype=int, device=d),
+                                      wp.array(coefficient, dtype=float, device=d))
+                continue
             out = wp.empty(n * count, dtype=float, device=d)
             if count:
                 wp.launch(KW.tile_float, n * count, inputs=[base, wp.array(key, dtype=int, device=d),
@@ -152,7 +193,10 @@ class WorldBatch:
                                                             world_values, max(len(keys), 1), out], device=d)
             setattr(mb, name, out)
         for name, base in vars(m0).items():  # further per-element arrays (e.g. breakable springs)
-            if not isinstance(base, wp.array) or hasattr(mb, name) or name in ("particle_inv_mass", "spring_indices"):
+            if not isinstance(base, wp.array) or hasattr(mb, name) or name in ("particle_inv_mass", "spring_indices",
+                                                                              *ADJACENCY_ARRAYS):
+                continue
+            if self.shared and name.startswith("spring_"):
                 continue
             count = P if name.startswith("particle_") else S if name.startswith("spring_") else None
             if count is None or base.shape[0] != count:
@@ -178,10 +222,27 @@ class WorldBatch:
             raise ValueError(f"world {bad // P} has particle {bad % P} with negative mass {mass[bad]}; give masses >= 0")
         mb.particle_inv_mass = wp.empty(n * P, dtype=float, device=d)
         wp.launch(KW.inverse_masses, n * P, inputs=[mb.particle_mass, mb.particle_inv_mass], device=d)
+        if self.shared:  # the springs stay world 0's (SharedStepper); the batch's own simulator has none
+            mb.spring_count = 0  # (set to n S once the simulator exists)
+            return mb
         mb.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
         if S:
             wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, mb.spring_indices], device=d)
+        self._tile_adjacency(m0, mb)
         return mb
+
+    def _tile_adjacency(self, m0, mb):
+        """World w's CSR spring adjacency = world 0's with springs + w S and offsets + 2 w S: each
+        particle sums its springs in the same order as in a run of its world alone."""
+        n, P, S, d = self.world_count, m0.particle_count, m0.spring_count, self.device
+        ensure_spring_adjacency(m0)
+        mb.particle_spring_offsets = wp.full(n * P + 1, 2 * n * S, dtype=int, device=d)
+        mb.particle_springs = wp.empty(2 * n * S, dtype=int, device=d)
+        if P:
+            wp.launch(KW.tile_spring_indices, n * P, inputs=[m0.particle_spring_offsets[:P], 2 * S,
+                                                            mb.particle_spring_offsets[: n * P]], device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.particle_springs, S, mb.particle_springs], device=d)
 
     def _scaled(self):
         return {name for e in self.plan.values() for name in e.scale}
@@ -201,6 +262,8 @@ class WorldBatch:
             effects = [(e, e.gravity[j]) for e in self.plan.values() if j in e.gravity]
             if effects:
                 forces.append(WorldGravity(self._affine(f.g, None, effects)))
+            elif self.shared and isinstance(f, Springs):
+                continue  # the fused world step sums the shared springs
             elif getattr(f, "particles", None) is not None or hasattr(f, "particle"):
                 raise StructuralError(f"force {type(f).__name__} acts on chosen particles of one world; batched "
                                       "worlds do not tile it (remove it, e.g. --set drag=)")
@@ -214,6 +277,8 @@ class WorldBatch:
                 r = self._affine([c.restitution], None, coeff["restitution"])[:, 0]
                 mu = self._affine([c.friction], None, coeff["friction"])[:, 0]
                 colliders.append(WorldPlanes(c, r, mu))
+            elif hasattr(c, "tile"):  # per-world contact between bodies (ws.SoftContact): each world's own
+                colliders.append(c.tile(self.world_count, self.model.world_particle_count))
             else:  # shared shapes (each world meets its own copy); particle pairs keyed by world
                 colliders.append(copy.copy(c))
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
@@ -246,11 +311,60 @@ class WorldBatch:
     def advance(self, frame_dt, substeps) -> None:
         """One frame for every world (the scene's own stepping on the batched simulator; with
         ``fused`` the ClothSimulator's captured frame)."""
-        if self.fused and not hasattr(self.scene.sim, "use_graph"):
-            self.sim.frame(frame_dt, substeps)
+        if self.stepper is not None:
+            self.stepper.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))  # auto sub-steps too
+        elif self.fused and not hasattr(self.scene.sim, "use_graph"):
+            self.sim.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))
         else:
             self.batch_scene.advance(frame_dt, substeps)
         self.end_frame()
+
+    def stable_dt(self) -> np.ndarray:
+        """Largest stable step [s] of each world, shape (world_count,) (``Simulator.stability``
+        per world: power iteration normalised per world)."""
+        return np.array([limit.dt for limit in self.stability()])
+
+    def stability(self) -> list:
+        """One ``ws.StabilityLimit`` per world, linearised about the initial positions."""
+        from ..core.stability import particle_limits
+
+        sim = self.sim
+        return particle_limits(self._springs_model(), self.model.particle_q, sim.integrator, sim.forces, sim.colliders,
+                               particle_world=self.model.particle_world.numpy(), world_count=self.world_count)
+
+    def _springs_model(self):
+        """The model whose springs the stability estimate reads: the batch's own, or on the shared
+        path (springs stored once) a stand-in with every world's springs tiled, built for the
+        estimate and dropped after it (the tiled path's arrays, the same values)."""
+        if not self.shared:
+            return self.model
+        import types
+
+        m0, n, d = self.scene.sim.model, self.world_count, self.device
+        P, S = m0.particle_count, m0.spring_count
+        stand_in = types.SimpleNamespace(**{k: v for k, v in vars(self.model).items()})
+        stand_in.spring_count = n * S
+        stand_in.spring_indices = wp.empty(2 * n * S, dtype=int, device=d)
+        if S:
+            wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, stand_in.spring_indices],
+                      device=d)
+        for name in SPRING_PARAMS:
+            base, key, coefficient = self._scales[name]
+            out = wp.empty(n * S, dtype=float, device=d)
+            if S:
+                wp.launch(KW.tile_float, n * S, inputs=[wp.array(base, dtype=float, device=d), key, coefficient,
+                                                        self._world_values, self._key_count, out], device=d)
+            setattr(stand_in, name, out)
+        for name in ("spring_broken", "_stability_adjacency"):
+            vars(stand_in).pop(name, None)
+        return stand_in
+
+    def stability_warning(self, frame_dt, substeps):
+        """One line naming the worlds whose step is above their limit (None when none is)."""
+        from ..core.stability import worlds_warning
+
+        labels = [", ".join(f"{k}={p[k]}" for k in self.varied) for p in self.params]
+        return worlds_warning(self.stability(), frame_dt / self.batch_scene.frame_steps(frame_dt, substeps), labels)
 
     def world_slices(self):
         """Host copies (N, P, 3) of the positions and velocities."""

@@ -3,23 +3,30 @@
     warpsim sweep SCENE --worlds N --vary KEY=LO:HI[:log] --vary KEY=A,B,C [--sample grid|random|lhs]
                   [--seed S] [--frames N] [--fps F] [--substeps S] [--device D] [--out PATH]
                   [--set KEY=VALUE ...] [--layout variants|grid] [--table CSV] [--track NAME=INDEX ...]
-                  [--rank METRIC [--top K]] [--where METRIC<VALUE ...]
+                  [--rank METRIC [--top K]] [--where METRIC<VALUE ...] [--rerun N]
+                  [--inside BOX@T0:T1 ...] [--outside BOX@T0:T1 ...] [--occupancy-res R]
 
 Writes ``PATH`` (default ``usd_out/SCENE_sweep.usda``): a root whose ``/World`` carries a variant
 set ``world`` (or, with ``--layout grid``, every world side by side), the batch layer beside it
 (``<stem>.batch_0000.usdc``) and the table ``<stem>.csv`` (one row per world: parameters and
-metrics). ``--rank``/``--where`` print the picked worlds and write ``<stem>.picked.usda`` holding
-only those. Exit status 2 for usage mistakes (one line), 1 when the run fails.
+metrics) and the occupancy record ``<stem>.occupancy.npz`` (:mod:`warpsim.worlds.occupancy`;
+``warpsim query`` asks it later). ``--rank``/``--where``/``--inside``/``--outside`` print the
+picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage
+mistakes (one line), 1 when the run fails.
 """
 from __future__ import annotations
 
 import os
 import sys
 
+from . import preflight
+
 LAYER_EXT = ".usdc"
 
 
 def add_parser(sub):
+    from .. import cli
+
     s = sub.add_parser("sweep", help="many worlds of a scene in one batched run: USD variants, a table, picking")
     s.add_argument("scene", help="scene name (see 'warpsim list')")
     s.add_argument("--worlds", type=int, default=None, help="number of worlds (grid: default the listed values)")
@@ -29,7 +36,10 @@ def add_parser(sub):
     s.add_argument("--seed", type=int, default=0, help="seed of random / lhs sampling (default 0)")
     s.add_argument("--frames", type=int, default=120, help="frames after frame 0 (default 120)")
     s.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
-    s.add_argument("--substeps", type=int, default=None, help="steps per frame (default: the scene's)")
+    s.add_argument("--substeps", type=cli.substeps_arg, default=None,
+                   help="steps per frame, or 'auto': inside the stiffest world's stability limit (default: the scene's)")
+    s.add_argument("--strict", action="store_true",
+                   help="exit 2 before running when a world's step is above its stability limit (default: warn)")
     s.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     s.add_argument("--out", default=None, help="root USD to write (default usd_out/SCENE_sweep.usda)")
     s.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
@@ -44,10 +54,25 @@ def add_parser(sub):
     s.add_argument("--top", type=int, default=None, metavar="K", help="keep the first K worlds of --rank")
     s.add_argument("--where", action="append", default=[], metavar="METRIC<VALUE",
                    help="keep worlds whose metric passes (< <= > >= == !=; repeatable)")
+    s.add_argument("--inside", action="append", default=[], metavar="X0,Y0,Z0,X1,Y1,Z1@T0:T1",
+                   help="keep worlds with a (tracked) particle inside the box [m] at some frame of the window [s] "
+                        "(repeatable; adds insideK_time, insideK_entry, insideK_share to rank by)")
+    s.add_argument("--outside", action="append", default=[], metavar="X0,Y0,Z0,X1,Y1,Z1@T0:T1",
+                   help="keep worlds with no (tracked) particle inside the box during the window (repeatable)")
+    s.add_argument("--occupancy-res", type=int, default=None, metavar="R",
+                   help="cells along the longest side of the occupancy record's grid (default 16)")
+    s.add_argument("--occupancy-bounds", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                   help="box [m] the occupancy grid covers (default: frame 0's extent, padded)")
+    from .query import accept_negative_boxes
+
+    accept_negative_boxes(s)
     s.add_argument("--fused", action="store_true",
                    help="step mass-spring scenes through the fused semi-implicit kernel (faster on GPUs; agrees "
                         "to float32 rounding)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.add_argument("--rerun", type=int, default=None, metavar="N",
+                   help="run only world N of this sweep, alone, exactly as in the whole sweep (writes "
+                        "<stem>.world_NNNNNN.usda)")
     try:
         from ..distributed.ray_sweep import add_ray_arguments
     except ImportError:  # pragma: no cover - the distributed package is optional
@@ -55,6 +80,15 @@ def add_parser(sub):
     else:
         add_ray_arguments(s)
     return s
+
+
+def _stability_warning(line, strict, err):
+    """Before the first frame: one warning line on ``err`` (``--strict``: a usage error, exit 2)."""
+    from .. import cli
+
+    if strict:
+        raise cli.UsageError(f"--strict: {line}")
+    print(f"warpsim: warning: {line}", file=err)
 
 
 def resolve_track(cls, params, items, device):
@@ -99,6 +133,7 @@ def run(args, out, err):
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
     from ..scenes import get_scene
     from .metrics import BUILTIN, parse_rank, parse_where, select
+    from .query import apply_regions, region_columns
     from .sweep import run_batch, sample_worlds, write_table
     from .usd import LAYOUTS, write_sweep_root
 
@@ -126,6 +161,17 @@ def run(args, out, err):
     if ext not in (".usd", ".usda", ".usdc"):
         raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
     table = args.table or stem + ".csv"
+    try:  # seed, world count, --ray address: before anything is sampled
+        preflight.check_seed(args.seed)
+        if args.worlds is not None:
+            preflight.check_worlds(args.worlds)
+        preflight.check_ray_address(getattr(args, "ray", None))
+    except ValueError as exc:
+        raise usage(str(exc)) from None
+    cli._check_out(path, "--out")
+    if os.path.splitext(table)[1].lower() != ".csv":
+        raise usage(f"--table {table!r} must end in .csv")
+    cli._check_out(table, "--table")
     fixed = cli._parse_sets(cls, args.sets, None)
     worlds = args.worlds
     try:
@@ -139,7 +185,7 @@ def run(args, out, err):
                 worlds *= len(parse_vary(v, cls.params).values)
         world_params = sample_worlds(cls.name, fixed, args.vary, worlds, args.sample, args.seed)
         base = cls.resolve_params(world_params[0])
-        fps, _, _ = _timing(cls, base, args.fps, args.substeps)
+        fps, _, _ = _timing(cls, base, args.fps, None if args.substeps == "auto" else args.substeps)
         track = resolve_track(cls, base, args.track, "cpu") if args.track else None
     except ValueError as exc:
         raise usage(str(exc)) from None
@@ -147,11 +193,35 @@ def run(args, out, err):
     for name in track or {}:
         names += [f"{name}_x", f"{name}_y", f"{name}_z", f"{name}_peak_y"]
     try:  # picking is checked before anything runs
+        regions, occupancy = _regions(args, fps)
+        names += region_columns(regions)
         rank = parse_rank(args.rank, names) if args.rank else None
         where = [parse_where(w, names) for w in args.where]
+        numeric = preflight.numeric_columns(world_params)
+        for flag, metric in ([("--rank", rank[0])] if rank else []) + [("--where", w[0]) for w in where]:
+            if metric in world_params[0] and metric not in numeric:
+                value = world_params[0][metric]
+                kind = "a vector" if isinstance(value, (tuple, list)) else f"a {type(value).__name__}"
+                raise ValueError(f"{flag} {metric}: parameter {metric} is {kind} ({_format(value)}), not one number; "
+                                 f"{flag} compares numbers: a metric ({', '.join(BUILTIN[:3])}, ...) or a numeric "
+                                 f"parameter ({', '.join(sorted(numeric)) or 'none here'})")
     except ValueError as exc:
         raise usage(str(exc)) from None
     device = cli._device(args.device)
+    if args.rerun is not None:
+        from .rerun import rerun_in_sweep
+
+        return rerun_in_sweep(args, cls, world_params, path, device, out, err)
+    import warnings
+
+    from ..core.stability import StabilityWarning
+
+    warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
+    if getattr(args, "ray", None) is None:
+        try:
+            _check_memory(cls, base, len(world_params), device)
+        except ValueError as exc:
+            raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
     progress = None
     try:
@@ -174,15 +244,23 @@ def run(args, out, err):
 
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
+            run_timing = {}
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                              device=device, layer_path=layer, first_world=0, track=track,
-                             progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused)
+                             progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
+                             occupancy={**occupancy, "path": _record_path(path)},
+                             warn=lambda line: _stability_warning(line, args.strict, err), timing=run_timing)
             if progress:
                 progress.close()
                 progress = None
             write_table(table, rows)
             layers = [layer]
             root = write_sweep_root(path, layers, len(world_params), layout=args.layout)
+        from .rerun import write_manifest  # what re-running one world exactly needs
+
+        write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
+                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused,
+                       frame_steps=run_timing.get("frame_steps"))
     except (SimulationError, ValueError, RaySweepError) as exc:
         if progress:
             progress.close()
@@ -191,12 +269,30 @@ def run(args, out, err):
         print(f"warpsim: sweep failed: {str(exc).splitlines()[0]}", file=err)
         return 1
     blown = sum(1 for r in rows if r.get("blown_up"))
+    unstable = sum(1 for r in rows if r.get("unstable"))
+    note = f"{blown - unstable} blew up and were frozen" if blown > unstable else ""
+    if unstable:
+        note += f"{', ' if note else ''}{unstable} went unstable (column unstable)"
     print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {fps:g} fps on {device}"
-          f"{f' ({blown} blew up and were frozen)' if blown else ''}", file=out)
+          f"{f' ({note})' if note else ''}", file=out)
     print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
-    if args.rank or args.where:
-        picked = select(rows, rank=rank, top=args.top, where=where)
+    candidates = rows
+    if getattr(args, "ray", None) is None:
+        from .occupancy import OccupancyRecord
+
+        from .query import answer_region, answers_note, cached_positions
+
+        record = OccupancyRecord.load(_record_path(path))
+        print(record.describe(), file=out)
+        positions = cached_positions(root, record) if regions else None
+        answers = [answer_region(record, r, positions) for r in regions]
+        candidates = apply_regions(rows, record, regions, answers=answers)
+        if regions:
+            print(answers_note(record, regions, answers), file=out)
+    if args.rank or args.where or regions:
+        picked = select(candidates, rank=rank, top=args.top, where=where)
         shown = [k for k in world_params[0]] + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where]
+                                                 + region_columns(regions)
                                                  if m not in world_params[0]]
         shown = list(dict.fromkeys(shown))
         print(f"picked {len(picked)} of {len(rows)} worlds:", file=out)
@@ -208,6 +304,39 @@ def run(args, out, err):
                                          worlds=[r["world"] for r in picked])
             print(f"picked worlds: {os.path.relpath(pick_path)}", file=out)
     return 0
+
+
+def _record_path(root):
+    from .occupancy import occupancy_path
+
+    return occupancy_path(root)
+
+
+def _regions(args, fps):
+    """(regions, occupancy options) from --inside/--outside/--occupancy-*; windows checked
+    against the run's frames. ValueError (one line) for a bad box, window or resolution."""
+    from .occupancy import DEFAULT_RESOLUTION, parse_bounds
+    from .query import check_window, parse_region
+
+    regions = [parse_region(t, True) for t in args.inside] + [parse_region(t, False) for t in args.outside]
+    for r in regions:
+        check_window(r, fps, args.frames + 1)
+    if regions and getattr(args, "ray", None) is not None:
+        raise ValueError("--inside/--outside need the occupancy record of a single-process sweep; drop --ray")
+    res = DEFAULT_RESOLUTION if args.occupancy_res is None else args.occupancy_res
+    if not 1 <= res <= 256:
+        raise ValueError(f"--occupancy-res {res}: give 1..256 cells along the grid's longest side")
+    bounds = parse_bounds(args.occupancy_bounds) if args.occupancy_bounds else None
+    return regions, {"resolution": res, "bounds": bounds}
+
+
+def _check_memory(cls, base, worlds, device):
+    """Refuse a sweep whose memory estimate (from world 0 built on the CPU) does not fit."""
+    scene = cls(base, device="cpu")
+    model = getattr(getattr(scene, "sim", None), "model", None)
+    if model is None:
+        return
+    preflight.check_sweep_memory(cls.name, int(model.particle_count), int(model.spring_count), worlds, device)
 
 
 def _timing(cls, params, fps, substeps):

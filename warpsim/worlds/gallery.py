@@ -16,37 +16,12 @@ import tempfile
 import numpy as np
 
 from ..viewer.playback import _DYNAMIC, CacheReader, PlaybackViewer
+from .roots import root_worlds as _root_worlds
 from .usd import write_sweep_root
 
 __all__ = ["GalleryReader", "GalleryViewer", "is_sweep_root"]
 
 ALL = "all worlds"
-
-
-def _root_worlds(path):
-    """(layout, [(world index, batch layer path)]) of a sweep root, or None if it is not one."""
-    from pxr import Sdf
-
-    layer = Sdf.Layer.FindOrOpen(os.fspath(path))
-    spec = layer.GetPrimAtPath("/World") if layer is not None else None
-    if spec is None:
-        return None
-    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    found = []
-
-    def add(prim_spec, name):
-        refs = prim_spec.referenceList.prependedItems
-        if name.startswith("world_") and len(refs) == 1:
-            found.append((int(name[6:]), os.path.normpath(os.path.join(folder, refs[0].assetPath))))
-
-    vset = spec.variantSets.get("world")
-    if vset is not None:
-        for name, variant in vset.variants.items():
-            add(variant.primSpec, name)
-        return ("variants", sorted(found)) if found else None
-    for name, child in spec.nameChildren.items():
-        add(child, name)
-    return ("grid", sorted(found)) if found else None
 
 
 def is_sweep_root(path) -> bool:
@@ -92,11 +67,14 @@ class GalleryReader(CacheReader):
         self.max_points = max_points
         self.worlds = [f"world_{w:06d}" for w, _ in worlds]
         self.dynamic, self.static = [], {}
+        self.offsets = {}
+        """Each world's place on the gallery's grid [m] (its frame's origin in the page)."""
         code0 = float(self.frames[0]) if self.frames else 0.0
         for world in self.worlds:
             top = self.stage.GetPrimAtPath(f"/World/{world}")
             offset = np.asarray(UsdGeom.Xformable(top).ComputeLocalToWorldTransform(code0).ExtractTranslation(),
                                 np.float32)
+            self.offsets[world] = offset
             for prim in Usd.PrimRange(top):
                 t = prim.GetTypeName()
                 if prim == top or "Prototypes" in str(prim.GetPath()) or t not in _DYNAMIC:
@@ -132,8 +110,13 @@ class GalleryReader(CacheReader):
 class GalleryViewer(PlaybackViewer):
     """The playback viewer over a :class:`GalleryReader`, with world isolation (click or menu)."""
 
-    def __init__(self, path, *, host="127.0.0.1", port=8080, max_points=200_000):
+    def __init__(self, path, *, host="127.0.0.1", port=8080, max_points=200_000, thumbnails=True):
         self.reader = GalleryReader(path, max_points=max_points)
+        self.root = os.fspath(path)
+        self.thumbnails = bool(thumbnails)
+        self.query = None
+        """The spacetime query panel (:class:`warpsim.worlds.browse.QueryPanel`) when the sweep
+        has an occupancy record, else None."""
         self.host, self.port = host, int(port)
         self.index = 0
         self.playing = True
@@ -156,6 +139,12 @@ class GalleryViewer(PlaybackViewer):
         def _(_):
             self.isolate(None if self.menu.value == ALL else self.menu.value)
 
+        from .occupancy import occupancy_path
+
+        if os.path.exists(occupancy_path(self.root)):
+            from .browse import QueryPanel
+
+            self.query = QueryPanel(self, thumbnails=self.thumbnails)
         self._refresh()
         return self
 
@@ -166,6 +155,8 @@ class GalleryViewer(PlaybackViewer):
         self.isolated = world
         if self.menu.value != (world or ALL):
             self.menu.value = world or ALL
+        if self.query is not None:
+            self.query.follow(world)
         self._refresh()
 
     def show(self, index):
@@ -184,8 +175,9 @@ class GalleryViewer(PlaybackViewer):
         """Visibility per the isolated world; click handlers on new meshes."""
         if self.server is None or getattr(self, "menu", None) is None:
             return
+        hidden = self.query.hidden if self.query is not None and self.isolated is None else ()
         for world, h in self._handles():
-            visible = self.isolated is None or world == self.isolated
+            visible = (self.isolated is None or world == self.isolated) and world not in hidden
             if getattr(h, "visible", visible) != visible:
                 h.visible = visible
             if id(h) not in self._hooked and hasattr(h, "on_click"):

@@ -5,7 +5,12 @@ Built-in metrics (one value per world):
   peak_center_y                  highest centre-of-mass height over the frames [m]
   peak_speed                     highest particle speed over the frames [m/s]
   kinetic_energy                 kinetic energy at the last frame [J]
-  blown_up, blown_frame          1 if the world blew up (then frozen at its last good frame), the frame
+  blown_up, blown_frame          1 if the world blew up (then frozen at its last good frame) or is unstable,
+                                 the frame
+  unstable                       1 if its velocities stopped matching its motion (``frame_dt`` given): the
+                                 fastest particle INCOHERENT_RATIO x faster than any particle moved over a
+                                 frame, INCOHERENT_FRAMES frames running (see warpsim.core.stability): a
+                                 step above the stability limit that NaN and the speed bound miss
 Tracked particles (``track={"spout": 12}``, indices within one world): NAME_x, NAME_y, NAME_z (final
 position [m]) and NAME_peak_y. A user metric :class:`UserMetric` sums a ``@wp.func`` of
 (x [m], v [m/s], m [kg]) -> float over a world's particles: NAME (last frame) and NAME_peak.
@@ -22,10 +27,12 @@ import re
 import numpy as np
 import warp as wp
 
+from ..core import stability as stab
+from ..kernels import stability as KS
 from ..kernels import worlds as KW
 
 BUILTIN = ("center_x", "center_y", "center_z", "peak_center_y", "peak_speed", "kinetic_energy", "blown_up",
-           "blown_frame")
+           "blown_frame", "unstable")
 
 __all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "parse_where", "select"]
 
@@ -38,6 +45,10 @@ class UserMetric:
     def __init__(self, name, func):
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
             raise ValueError(f"metric name {name!r} must be an identifier (letters, digits, '_')")
+        taken = [n for n in (str(name), f"{name}_peak") if n in BUILTIN]
+        if taken:
+            raise ValueError(f"metric name {name!r} would replace the built-in column {taken[0]!r}; choose another "
+                             f"name (built-in: {', '.join(BUILTIN)})")
         if not isinstance(func, wp.Function):
             raise ValueError(  # noqa: TRY004 (bad input is a ValueError throughout warpsim)
 f"metric {name!r} needs a @wp.func of (wp.vec3, wp.vec3, float) -> float")
@@ -47,9 +58,10 @@ f"metric {name!r} needs a @wp.func of (wp.vec3, wp.vec3, float) -> float")
 
 class WorldMetrics:
     """Device accumulators for one :class:`warpsim.worlds.batch.WorldBatch` (allocated once;
-    ``update`` launches kernels only, so it can sit in a captured graph)."""
+    ``update`` launches kernels only, so it can sit in a captured graph). ``frame_dt`` [s]: the
+    frame length, for the ``unstable`` test (None: not tested, the column stays 0)."""
 
-    def __init__(self, batch, track=None, user=()):
+    def __init__(self, batch, track=None, user=(), frame_dt=None):
         self.batch = batch
         n, d = batch.world_count, batch.device
         P = batch.model.world_particle_count
@@ -60,6 +72,16 @@ class WorldMetrics:
             if not 0 <= int(index) < P:
                 raise ValueError(f"tracked particle {name}={index} is out of range [0, {P}) for one world")
         self.user = list(user)
+        columns = list(BUILTIN) + [f"{n}{s}" for n in self.track for s in ("_x", "_y", "_z", "_peak_y")]
+        for metric in self.user:
+            if not isinstance(metric, UserMetric):
+                raise TypeError(f"metrics must be UserMetric objects, got {metric!r}; e.g. "
+                                "UserMetric('height', my_func)")
+            for column in (metric.name, f"{metric.name}_peak"):
+                if column in columns:
+                    raise ValueError(f"metric {metric.name!r} gives column {column!r}, which another metric or "
+                                     "tracked particle already fills; give each metric its own name")
+                columns.append(column)
         inf = float("inf")
         self.moment = wp.zeros(n, dtype=wp.vec3, device=d)
         self.mass = wp.zeros(n, dtype=float, device=d)
@@ -75,6 +97,12 @@ class WorldMetrics:
         self.user_value = [wp.zeros(n, dtype=float, device=d) for _ in self.user]
         self.user_final = [wp.zeros(n, dtype=float, device=d) for _ in self.user]
         self.user_peak = [wp.full(n, -inf, dtype=float, device=d) for _ in self.user]
+        self.frame_dt = None if frame_dt is None else float(frame_dt)
+        self.frame_start = wp.clone(batch.sim.state.positions)
+        self.frame_speed = wp.zeros(n, dtype=float, device=d)
+        self.frame_motion = wp.zeros(n, dtype=float, device=d)
+        self.incoherent_streak = wp.zeros(n, dtype=int, device=d)
+        self.unstable_frame = wp.full(n, -1, dtype=int, device=d)
 
     def update(self):
         """Fold the current state into the metrics (call after every frame, and for frame 0)."""
@@ -98,6 +126,17 @@ class WorldMetrics:
                       inputs=[st.positions, st.velocities, m.particle_mass, m.particle_world, b.world_bad, value],
                       device=d)
             wp.launch(KW.keep_metric, n, inputs=[b.world_bad, value, final, peak], device=d)
+        if self.frame_dt is not None:
+            self.frame_speed.zero_()
+            self.frame_motion.zero_()
+            wp.launch(KS.frame_motion, m.particle_count,
+                      inputs=[st.positions, self.frame_start, st.velocities, m.particle_inv_mass, m.particle_world,
+                              1.0 / self.frame_dt, self.frame_speed, self.frame_motion], device=d)
+            wp.launch(KS.flag_incoherent_worlds, n,
+                      inputs=[self.frame_speed, self.frame_motion, stab.INCOHERENT_RATIO, stab.INCOHERENT_SPEED,
+                              stab.INCOHERENT_FRAMES, b.frame_counter, self.incoherent_streak, self.unstable_frame],
+                      device=d)
+            wp.copy(self.frame_start, st.positions)
 
     def names(self):
         out = list(BUILTIN)
@@ -117,6 +156,7 @@ class WorldMetrics:
         ke = self.final_kinetic.numpy()
         bad = b.world_bad.numpy()
         blown = b.world_blown_frame.numpy()
+        unstable = self.unstable_frame.numpy()
         rows = []
         t = len(self.track)
         tf = self.tracked_final.numpy().reshape(n, -1, 3)
@@ -125,7 +165,8 @@ class WorldMetrics:
         for w in range(n):
             row = {"center_x": float(center[w, 0]), "center_y": float(center[w, 1]), "center_z": float(center[w, 2]),
                    "peak_center_y": float(peak[w, 1]), "peak_speed": float(speed[w]),
-                   "kinetic_energy": float(ke[w]), "blown_up": int(bad[w]), "blown_frame": int(blown[w])}
+                   "kinetic_energy": float(ke[w]), "blown_up": int(bad[w] or unstable[w] >= 0),
+                   "blown_frame": int(blown[w] if blown[w] >= 0 else unstable[w]), "unstable": int(unstable[w] >= 0)}
             for k, name in enumerate(self.track):
                 if k < t:
                     row.update({f"{name}_x": float(tf[w, k, 0]), f"{name}_y": float(tf[w, k, 1]),

@@ -83,7 +83,8 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
-              track=None, metrics=(), use_graph=None, progress=None, fused=False) -> list:
+              track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
+              warn=None, timing=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -93,7 +94,15 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     world} for position metrics; ``metrics``: :class:`warpsim.worlds.metrics.UserMetric` list;
     ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
     ``fused``: step through the fused semi-implicit kernel (:class:`WorldBatch`);
-    ``progress(frame)``: called after each frame."""
+    ``progress(frame)``: called after each frame; ``occupancy``: None, or {"path": record file,
+    "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
+    occupancy record of these worlds (:mod:`warpsim.worlds.occupancy`; the tracked particles
+    when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
+    default to it, unless ``dt`` is given): every frame sub-steps inside the stiffest world's
+    stability limit; ``warn(line)``: called once before the first frame when a world's step is
+    above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
+    ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
+    a world re-run alone needs it to take the same steps)."""
     from ..scenes import get_scene
 
     cls = get_scene(scene_name)
@@ -104,12 +113,25 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     if not world_params:
         raise ValueError("run_batch needs at least one world")
     fps_given = fps
+    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
+                                  and "dt" not in world_params[0])
+    substeps = None if substeps == "auto" else substeps
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    stats = WorldMetrics(batch, track=track, user=metrics)
+    batch.batch_scene.auto_substeps = auto
+    if timing is not None:
+        timing["frame_steps"] = int(batch.batch_scene.frame_steps(frame_dt, substeps))
+    if warn is not None:
+        line = batch.stability_warning(frame_dt, substeps)
+        if line is not None:
+            warn(line)
+    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt)
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
+    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
+    for i, p in enumerate(getattr(batch, "params", given)):
+        writer.set_world_params(i, p)
 
     def write(frame):
         x, v = batch.world_slices()
@@ -119,11 +141,16 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     def body():
         batch.advance(frame_dt, substeps)
         stats.update()
+        if recorder is not None:
+            recorder.update()
 
     graph = None
     if use_graph is None:
         use_graph = batch.device.is_cuda and batch.can_capture()
     stats.update()
+    if recorder is not None:
+        recorder.update()
+        recorder.after_frame()
     write(0)
     for frame in range(1, int(frames) + 1):
         if use_graph and graph is None and frame > 1:  # frame 1 ran eagerly: every module is loaded
@@ -135,11 +162,33 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
             wp.capture_launch(graph)
         else:
             body()
+        if recorder is not None:
+            recorder.after_frame()
         write(frame)
         if progress is not None:
             progress(frame)
     writer.close(scene_name)
+    if recorder is not None:
+        recorder.finish().save(occupancy["path"])
     return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
+
+
+def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer):
+    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record);
+    its default grid also covers the static geometry the writer has seen (floor, walls)."""
+    if not occupancy:
+        return None
+    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder, find_source_prim
+
+    static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
+    recorder = OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
+                                 track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
+                                 resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
+                                 first_world=first_world, scene=scene_name, include=static)
+    x0 = batch.sim.state.positions.numpy()[: batch.model.world_particle_count]  # world 0
+    v0 = batch.sim.state.velocities.numpy()[: batch.model.world_particle_count]
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    return recorder
 
 
 def _cell(value):

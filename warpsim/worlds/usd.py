@@ -73,6 +73,14 @@ class BatchLayerWriter:
         self._save_bytes = save_bytes
         self._last = {}
 
+    def set_world_params(self, local, params):
+        """Author world ``local``'s parameters on its prim: ``customData["warpsim"]`` holds
+        ``world`` (the global index) and ``params`` {name: value}, so a root or a picked file that
+        references the prim carries them (not only the CSV)."""
+        spec = self.layer.GetPrimAtPath(f"/Worlds/{world_prim_name(self.first_world + local)}")
+        spec.customData = {"warpsim": {"world": self.first_world + int(local),
+                                       "params": {str(k): _custom_value(v) for k, v in params.items()}}}
+
     def write_world(self, local, frame, data):
         """Samples of one world (``local`` in 0..world_count-1) at ``frame`` from the scene's frame data."""
         from ..usd.writer import to_vt
@@ -120,6 +128,17 @@ class BatchLayerWriter:
         return self.path
 
 
+def _custom_value(value):
+    """A parameter value as USD customData holds it (vectors as double arrays)."""
+    from pxr import Vt
+
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return Vt.DoubleArray([float(v) for v in value])
+    return str(value)
+
+
 def _layer_info(path):
     from pxr import Sdf
 
@@ -150,6 +169,10 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
     out_path = os.path.abspath(os.fspath(out_path))
     if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
         raise ValueError(f"root {out_path!r} must end in .usd, .usda or .usdc")
+    layer_paths = [os.path.abspath(os.fspath(p)) for p in layer_paths]
+    if out_path in layer_paths:
+        raise ValueError(f"root {out_path!r} is also one of the batch layers it would reference; writing it would "
+                         "overwrite that layer's worlds: give the root another name")
     owner, fps, start, end, span = {}, None, None, None, 0.0
     for p in layer_paths:
         layer, info = _layer_info(p)

@@ -1,0 +1,245 @@
+"""Sag-free initialization kernels (float64): the linear map from rest-state changes to particle
+forces, its transpose, and the deterministic reductions and vector updates of the least-squares
+solve in ``warpsim.strands.sag_free``.
+
+Unknowns ``u`` (float64, one vector) are rest-state changes scaled so that ``u^T u`` is twice the
+elastic energy of the change (minimum complementary energy): a length spring of stiffness k
+[N/m] has tension t = sqrt(k) u [N] (rest length L = l - u / sqrt(k)); a strand bending vertex has
+three entries, force pattern g = sqrt(k_b) u [N] (+g, -2 g, +g on the triple; rest bending vector
+w = b + u / sqrt(k_b)). Forces live in a flat float64 array of 3 entries per particle; pinned
+particles (inverse mass 0) always get 0.
+
+Sums run in a fixed order (per-particle gathers through a CSR adjacency, one thread per strand,
+dot products over fixed chunks then summed by one thread), so a solve is bit-reproducible.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def load3(a: wp.array(dtype=wp.float64), i: int) -> wp.vec3d:
+    return wp.vec3d(a[3 * i], a[3 * i + 1], a[3 * i + 2])
+
+
+@wp.func
+def load3_at(a: wp.array(dtype=wp.float64), start: int) -> wp.vec3d:
+    return wp.vec3d(a[start], a[start + 1], a[start + 2])
+
+
+@wp.func
+def add3(a: wp.array(dtype=wp.float64), i: int, v: wp.vec3d):
+    a[3 * i] = a[3 * i] + v[0]
+    a[3 * i + 1] = a[3 * i + 1] + v[1]
+    a[3 * i + 2] = a[3 * i + 2] + v[2]
+
+
+@wp.func
+def unit_d(a: wp.vec3, b: wp.vec3) -> wp.vec3d:
+    """(a - b) / |a - b| in float64 (zero for coincident points)."""
+    u = wp.vec3d(wp.float64(a[0]) - wp.float64(b[0]), wp.float64(a[1]) - wp.float64(b[1]),
+                 wp.float64(a[2]) - wp.float64(b[2]))
+    l = wp.length(u)
+    if l > wp.float64(1.0e-15):
+        return u / l
+    return wp.vec3d()
+
+
+@wp.kernel
+def springs_apply(
+    q: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    sqrt_k: wp.array(dtype=wp.float64),
+    adjacency_offsets: wp.array(dtype=int),
+    adjacency_springs: wp.array(dtype=int),
+    inv_mass: wp.array(dtype=float),
+    u: wp.array(dtype=wp.float64),
+    u_offset: int,
+    f_out: wp.array(dtype=wp.float64),
+):
+    """f_out[i] = sum over springs s at particle i of -t_s d_hat (d = x_i - x_other), t_s =
+    sqrt_k[s] u[u_offset + s]; overwrites f_out (0 at pinned particles)."""
+    i = wp.tid()
+    f = wp.vec3d()
+    if inv_mass[i] > 0.0:
+        for a in range(adjacency_offsets[i], adjacency_offsets[i + 1]):
+            s = adjacency_springs[a]
+            j = spring_indices[2 * s]
+            if j == i:
+                j = spring_indices[2 * s + 1]
+            f = f - (sqrt_k[s] * u[u_offset + s]) * unit_d(q[i], q[j])
+    f_out[3 * i] = f[0]
+    f_out[3 * i + 1] = f[1]
+    f_out[3 * i + 2] = f[2]
+
+
+@wp.kernel
+def springs_apply_transpose(
+    q: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    sqrt_k: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    u_offset: int,
+    u_out: wp.array(dtype=wp.float64),
+):
+    """u_out[u_offset + s] = sqrt_k[s] d_hat . (r_j - r_i), d = x_i - x_j."""
+    s = wp.tid()
+    i = spring_indices[2 * s]
+    j = spring_indices[2 * s + 1]
+    u_out[u_offset + s] = sqrt_k[s] * wp.dot(unit_d(q[i], q[j]), load3(r, j) - load3(r, i))
+
+
+@wp.kernel
+def strands_apply(
+    q: wp.array(dtype=wp.vec3),
+    first: int,
+    stride: int,
+    sqrt_stretch: wp.array(dtype=wp.float64),
+    sqrt_bend: wp.array(dtype=wp.float64),
+    inv_mass: wp.array(dtype=float),
+    u: wp.array(dtype=wp.float64),
+    stretch_offset: int,
+    bend_offset: int,
+    f_out: wp.array(dtype=wp.float64),
+):
+    """Adds the forces of strand ``s``'s unknowns to its free particles: stretch tension
+    t = sqrt_stretch u pulls vertex v toward v + 1 and back; bending g = sqrt_bend u (3 entries)
+    gives +g, -2 g, +g on (v - 1, v, v + 1)."""
+    s = wp.tid()
+    base = first + s * stride
+    slot = s * stride
+    cs = sqrt_stretch[s]
+    cb = sqrt_bend[s]
+    for v in range(1, stride - 1):
+        i = base + v
+        k = slot + v
+        g = cb * load3_at(u, bend_offset + 3 * k)
+        t = (cs * u[stretch_offset + k]) * unit_d(q[i + 1], q[i])
+        if inv_mass[i - 1] > 0.0:
+            add3(f_out, i - 1, g)
+        if inv_mass[i] > 0.0:
+            add3(f_out, i, t - wp.float64(2.0) * g)
+        if inv_mass[i + 1] > 0.0:
+            add3(f_out, i + 1, g - t)
+
+
+@wp.kernel
+def strands_apply_transpose(
+    q: wp.array(dtype=wp.vec3),
+    first: int,
+    stride: int,
+    sqrt_stretch: wp.array(dtype=wp.float64),
+    sqrt_bend: wp.array(dtype=wp.float64),
+    r: wp.array(dtype=wp.float64),
+    stretch_offset: int,
+    bend_offset: int,
+    u_out: wp.array(dtype=wp.float64),
+):
+    """The transpose of ``strands_apply`` (slots 0 and stride - 1 of each strand are unused: 0)."""
+    s = wp.tid()
+    base = first + s * stride
+    slot = s * stride
+    cs = sqrt_stretch[s]
+    cb = sqrt_bend[s]
+    zero = wp.float64(0.0)
+    u_out[stretch_offset + slot] = zero
+    u_out[stretch_offset + slot + stride - 1] = zero
+    for c in range(3):
+        u_out[bend_offset + 3 * slot + c] = zero
+        u_out[bend_offset + 3 * (slot + stride - 1) + c] = zero
+    for v in range(1, stride - 1):
+        i = base + v
+        k = slot + v
+        d = unit_d(q[i + 1], q[i])
+        u_out[stretch_offset + k] = cs * wp.dot(d, load3(r, i) - load3(r, i + 1))
+        b = cb * (load3(r, i - 1) - wp.float64(2.0) * load3(r, i) + load3(r, i + 1))
+        u_out[bend_offset + 3 * k] = b[0]
+        u_out[bend_offset + 3 * k + 1] = b[1]
+        u_out[bend_offset + 3 * k + 2] = b[2]
+
+
+@wp.kernel
+def external_rhs(
+    f: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), b_out: wp.array(dtype=wp.float64)
+):
+    """b_out = -f at free particles (the force the rest-state change must supply), 0 at pinned."""
+    i = wp.tid()
+    for c in range(3):
+        b_out[3 * i + c] = wp.float64(0.0)
+        if inv_mass[i] > 0.0:
+            b_out[3 * i + c] = -wp.float64(f[i][c])
+
+
+# --------------------------------------------------------------------------------------
+# Deterministic reductions and vector updates (CGLS)
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def dot_partial(
+    a: wp.array(dtype=wp.float64), b: wp.array(dtype=wp.float64), chunk: int,
+    partial_out: wp.array(dtype=wp.float64),
+):
+    """partial_out[t] = sum of a[i] b[i] over i in [t chunk, (t + 1) chunk), in order."""
+    t = wp.tid()
+    n = a.shape[0]
+    acc = wp.float64(0.0)
+    for i in range(t * chunk, wp.min(n, (t + 1) * chunk)):
+        acc = acc + a[i] * b[i]
+    partial_out[t] = acc
+
+
+@wp.kernel
+def sum_partials(partial: wp.array(dtype=wp.float64), scalars: wp.array(dtype=wp.float64), slot: int):
+    """scalars[slot] = sum of partial (one thread, in order)."""
+    acc = wp.float64(0.0)
+    for t in range(partial.shape[0]):
+        acc = acc + partial[t]
+    scalars[slot] = acc
+
+
+@wp.kernel
+def axpy_ratio(
+    y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), scalars: wp.array(dtype=wp.float64),
+    num: int, den: int, sign: wp.float64,
+):
+    """y += sign (scalars[num] / scalars[den]) x (nothing when the denominator is 0)."""
+    i = wp.tid()
+    d = scalars[den]
+    if d != wp.float64(0.0):
+        y[i] = y[i] + sign * (scalars[num] / d) * x[i]
+
+
+@wp.kernel
+def cg_direction(
+    p: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64), scalars: wp.array(dtype=wp.float64),
+    num: int, den: int,
+):
+    """p = s + (scalars[num] / scalars[den]) p."""
+    i = wp.tid()
+    d = scalars[den]
+    beta = wp.float64(0.0)
+    if d != wp.float64(0.0):
+        beta = scalars[num] / d
+    p[i] = s[i] + beta * p[i]
+
+
+@wp.kernel
+def copy_scalar(scalars: wp.array(dtype=wp.float64), src: int, dst: int):
+    scalars[dst] = scalars[src]
+
+
+@wp.kernel
+def subtract_masked(
+    b: wp.array(dtype=wp.float64), a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)
+):
+    """out = b - a."""
+    i = wp.tid()
+    out[i] = b[i] - a[i]
+
+
+@wp.kernel
+def zero_masked(x: wp.array(dtype=wp.float64), mask: wp.array(dtype=int)):
+    """x[j] = 0 where mask[j] != 0 (unknowns held at a bound or unused)."""
+    j = wp.tid()
+    if mask[j] != 0:
+        x[j] = wp.float64(0.0)

@@ -1,0 +1,267 @@
+"""Soft contact that scales (ws.SoftContact with one broad phase for all bodies, edge-edge contact):
+donut heaps of 4 and 24 tori keep every vertex within the thickness of other tori and no edge
+through another torus's triangle (semi-implicit and implicit Euler); the BVH broad phase gives
+the all-pairs search's result; two runs are bit-identical; two soft rods crossed at right angles
+stay apart only with the edge-edge test; batched worlds each get their own soft contact;
+bad ``donuts`` input exits 2 with one line."""
+import csv
+import io
+
+import numpy as np
+import pytest
+import warp as wp
+from test_soft_contact import penetration, two_tori
+
+import warpsim as ws
+from warpsim.bodies import meshtools
+from warpsim.scenes import get_scene
+
+DEVICE = "cpu"
+SMALL = {"segments": 10, "sides": 6, "lattice_cells": 5}
+
+
+def segments_cross_triangles(p0, p1, tri):
+    """Whether any segment p0-p1 (E, 3) passes through any triangle tri (F, 3, 3) (Moeller-Trumbore,
+    NumPy oracle); returns a bool per segment."""
+    d = p1 - p0
+    hit = np.zeros(len(p0), dtype=bool)
+    for A, B, C in tri:
+        e1, e2 = B - A, C - A
+        h = np.cross(d, e2)
+        a = h @ e1
+        ok = np.abs(a) > 1e-14
+        f = np.where(ok, 1.0 / np.where(ok, a, 1.0), 0.0)
+        s = p0 - A
+        u = f * (s * h).sum(1)
+        q = np.cross(s, e1)
+        v = f * (d * q).sum(1)
+        t = f * (q @ e2)
+        hit |= ok & (u > 0) & (v > 0) & (u + v < 1) & (t > 0) & (t < 1)
+    return hit
+
+
+def edges_through_other_bodies(x, bodies):
+    """(body a, body b, count) of a's surface edges passing through b's triangles."""
+    out = []
+    lo = [x[b.surface_indices].min(0) for b in bodies]
+    hi = [x[b.surface_indices].max(0) for b in bodies]
+    for ia, a in enumerate(bodies):
+        edges, _, _ = meshtools.edge_topology(a.faces)
+        for ib, b in enumerate(bodies):
+            if ia == ib or (lo[ia] > hi[ib]).any() or (lo[ib] > hi[ia]).any():
+                continue
+            n = int(segments_cross_triangles(x[edges[:, 0]].astype(np.float64), x[edges[:, 1]].astype(np.float64),
+                                             x[b.faces].astype(np.float64)).sum())
+            if n:
+                out.append((ia, ib, n))
+    return out
+
+
+def test_segment_triangle_oracle():
+    tri = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
+    p0 = np.array([[0.2, 0.2, -1.0], [0.2, 0.2, 0.5], [2.0, 2.0, -1.0]])
+    p1 = np.array([[0.2, 0.2, 1.0], [0.2, 0.2, 1.0], [2.0, 2.0, 1.0]])
+    assert segments_cross_triangles(p0, p1, tri).tolist() == [True, False, False]
+
+
+@pytest.mark.parametrize("count, integrator, frames", [(4, "semi_implicit_euler", 30), (24, "semi_implicit_euler", 24),
+                                                       (4, "implicit_euler", 24), (24, "implicit_euler", 20)])
+def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, frames):
+    cls = get_scene("donuts")
+    # wide enough for 2 layers of 12 / 2 x 2: the second layer lands on the first within the frames
+    params = cls.resolve_params({"count": count, **SMALL, "integrator": integrator, "box": 0.16 if count == 4 else 0.5,
+                                 **({"dt": 1.0 / 600.0} if integrator == "implicit_euler" else {})})
+    scene = cls(params, device=DEVICE)
+    substeps = round(1.0 / 60.0 / params["dt"])
+    thickness = params["thickness"]
+    most, worst = 0, 0.0
+    for _ in range(frames):
+        scene.advance(1.0 / 60.0, substeps)
+        x = scene.sim.state.positions.numpy()
+        most = max(most, scene.contact.contact_count)
+        worst = max(worst, max(penetration(x, a, b) for a in scene.bodies for b in scene.bodies if a is not b))
+        assert edges_through_other_bodies(x, scene.bodies) == []
+    assert most >= count  # tori touched (the floor alone makes no soft contact) ...
+    assert worst <= thickness, worst  # ... and no vertex went deeper than the thickness into another torus
+    heights = [x[b.surface_indices, 1].mean() for b in scene.bodies]
+    assert max(heights) > 0.1  # tori lie on tori
+
+
+def pressed_tori(broad_phase):
+    """Two tori (16 x 8) pressed together from 4 mm apart; returns (sim, contact)."""
+    b, (lower, upper) = two_tori(gap=0.004)
+    press = [ws.ConstantForce((0.0, 0.03, 0.0), lower.surface_indices),
+             ws.ConstantForce((0.0, -0.03, 0.0), upper.surface_indices)]
+    contact = ws.SoftContact([lower, upper], thickness=0.006, friction=0.5, broad_phase=broad_phase)
+    return ws.Simulator(b.finalize(DEVICE), forces=press, colliders=[contact]), contact
+
+
+def test_bvh_broad_phase_equals_all_pairs_search():
+    runs = {}
+    for broad_phase in ("bvh", "all_pairs"):
+        sim, contact = pressed_tori(broad_phase)
+        positions, counts = [], []
+        for _ in range(100):
+            sim.step(1.0 / 1200.0)
+            positions.append(sim.state.positions.numpy().copy())
+            counts.append((contact.contact_count, contact.edge_contact_count))
+        runs[broad_phase] = np.array(positions), counts
+    (x, counts), (x_ref, counts_ref) = runs["bvh"], runs["all_pairs"]
+    assert counts == counts_ref
+    assert min(c[0] for c in counts) > 5 and max(c[1] for c in counts) > 0  # vertex and edge contacts
+    assert np.abs(x - x_ref).max() <= 1e-6  # over 100 steps in contact
+
+
+def test_two_runs_are_bit_identical():
+    finals = []
+    for _ in range(2):
+        sim, contact = pressed_tori("bvh")
+        for _ in range(200):
+            sim.step(1.0 / 1200.0)
+        assert contact.contact_count > 5
+        finals.append((sim.state.positions.numpy(), sim.state.velocities.numpy()))
+    assert np.array_equal(finals[0][0], finals[1][0]) and np.array_equal(finals[0][1], finals[1][1])
+
+
+def box_mesh(size):
+    """A closed box (8 corners, 12 outward triangles) of ``size`` (3,) [m] centred at the origin."""
+    corners = (np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) - 0.5) * np.asarray(size)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    if meshtools.signed_volume(corners, faces) < 0:
+        faces = faces[:, ::-1]
+    return corners, faces
+
+
+@pytest.mark.parametrize("integrator, dt", [("semi_implicit_euler", 1.0 / 2400.0), ("implicit_euler", 1.0 / 600.0)])
+def test_crossed_rods_stay_apart_only_with_edge_contact(integrator, dt):
+    """Two rods 0.3 m long, 0.02 m thick, one along x, one along z above it, pressed together:
+    only their long edges meet (every vertex is at a rod end, far from the other rod)."""
+    thickness = 0.005
+    centre_gaps = {}
+    for edge_contact in (True, False):
+        b = ws.ModelBuilder()
+        rods = []
+        for k, size in enumerate(((0.3, 0.02, 0.02), (0.02, 0.02, 0.3))):
+            points, faces = box_mesh(size)
+            rods.append(ws.add_soft_body(b, points, faces, position=(0.0, k * (0.02 + 2.0 * thickness), 0.0),
+                                         total_mass=0.1, stiffness=2000.0, damping=0.5, interior="none",
+                                         name=f"rod {k}"))
+        model = b.finalize(DEVICE)
+        press = [ws.ConstantForce((0.0, 0.25, 0.0), rods[0].surface_indices),  # 2 N on each rod
+                 ws.ConstantForce((0.0, -0.25, 0.0), rods[1].surface_indices)]
+        contact = ws.SoftContact(rods, thickness=thickness, edge_contact=edge_contact)
+        sim = ws.Simulator(model, integrator=integrator, forces=press, colliders=[contact])
+        crossings, edge_contacts = 0, 0
+        for _ in range(round(0.15 / dt)):
+            sim.step(dt)
+            edge_contacts = max(edge_contacts, contact.edge_contact_count)
+        x = sim.state.positions.numpy()
+        crossings = len(edges_through_other_bodies(x, rods))
+        centre_gaps[edge_contact] = x[rods[1].surface_indices, 1].mean() - x[rods[0].surface_indices, 1].mean()
+        if edge_contact:
+            assert edge_contacts > 0 and crossings == 0
+        assert contact.contact_count == 0  # no vertex ever meets the other rod
+    assert centre_gaps[True] >= 0.02 + 0.5 * thickness  # resting on each other, the thickness between
+    assert centre_gaps[False] < 0.0  # without the edge test they pass through
+
+
+def test_batched_worlds_each_collide_their_own_tori(tmp_path):
+    from warpsim.cli import main
+    from warpsim.worlds.batch import WorldBatch
+
+    cls = get_scene("donuts")
+    params = {"count": 2, **SMALL}
+    batch = WorldBatch(cls, [params, params], device=DEVICE)
+    alone = cls(cls.resolve_params(params), device=DEVICE)
+    contact = next(c for c in batch.sim.colliders if isinstance(c, ws.SoftContact))
+    touched = 0
+    for _ in range(30):
+        batch.advance(1.0 / 60.0, cls.substeps)
+        alone.advance(1.0 / 60.0, cls.substeps)
+        assert contact.contact_count == 2 * alone.contact.contact_count  # each world has the contacts of a run alone
+        touched = max(touched, alone.contact.contact_count)
+    assert contact.world_count == 2 and touched > 10
+    x, v = batch.world_slices()
+    assert np.array_equal(x[0], x[1]) and np.array_equal(v[0], v[1])
+    assert np.array_equal(x[0], alone.sim.state.positions.numpy())
+
+    rows = {}
+    for worlds in (2, 1):
+        out, err = io.StringIO(), io.StringIO()
+        code = main(["sweep", "donuts", "--worlds", str(worlds), *sum((["--set", f"{k}={v}"] for k, v in params.items()),
+                                                                        []),
+                     "--frames", "30", "--no-progress", "--out", str(tmp_path / f"d{worlds}.usda")], out=out, err=err)
+        assert code == 0, err.getvalue()
+        with open(tmp_path / f"d{worlds}.csv") as f:
+            rows[worlds] = [{k: r[k] for k in r if k != "world"} for r in csv.DictReader(f)]
+    assert rows[2][0] == rows[2][1] == rows[1][0]
+
+
+@pytest.mark.parametrize("setting, words", [("count=0", ["count=0", "> 0"]), ("count=-3", ["count=-3"]),
+                                            ("thickness=0", ["thickness=0"]), ("thickness=-0.01", ["thickness"]),
+                                            ("count=100000000", ["count=100000000", "GiB", "free", "lower count"])])
+def test_bad_donuts_input_exits_2_with_one_line(tmp_path, setting, words):
+    from warpsim.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    code = main(["run", "donuts", "--set", setting, "--frames", "1", "--out", str(tmp_path / "d.usda")], out=out,
+                err=err)
+    assert code == 2, (out.getvalue(), err.getvalue())
+    lines = err.getvalue().strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("warpsim: error:"), lines
+    for word in words:
+        assert word in lines[0]
+
+
+@pytest.mark.parametrize("damping", [0.0, 3.0])
+def test_spring_stability_limit_is_where_semi_implicit_euler_blows_up(damping):
+    """Two 1 kg particles on a spring k: omega^2 = 2k/m and gamma = 2c/m exactly; semi-implicit
+    Euler stays bounded just below h_max = (sqrt(gamma^2 + 4 omega^2) - gamma) / omega^2 and grows
+    just above it."""
+    from warpsim.scenes.fracture import _largest_spring_eigenvalue, stable_inner_steps
+
+    k = 50.0
+    q = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    omega2 = _largest_spring_eigenvalue(q, np.ones(2), np.array([[0, 1]]), np.array([k]))
+    assert omega2 == pytest.approx(2.0 * k, rel=1e-9)
+    gamma = 2.0 * damping
+    h_max = (np.sqrt(gamma**2 + 4.0 * omega2) - gamma) / omega2
+    assert stable_inner_steps(q, np.ones(2), np.array([[0, 1]]), np.array([k]), np.array([damping]),
+                              "semi_implicit_euler", 2.0 * h_max) == 3  # 2 h_max at 0.8 h_max a step
+    amplitude = {}
+    for factor in (0.98, 1.02):
+        b = ws.ModelBuilder()
+        b.add_particle((0.0, 0.0, 0.0))
+        b.add_particle((1.01, 0.0, 0.0))
+        b.add_spring(0, 1, k, damping, rest_length=1.0)
+        sim = ws.Simulator(b.finalize(DEVICE), forces=[], max_speed=1e30)
+        try:
+            for _ in range(400):
+                sim.step(factor * h_max)
+            x = sim.state.positions.numpy()
+            amplitude[factor] = abs(x[1, 0] - x[0, 0] - 1.0)
+        except ws.SimulationError:  # overflowed: grew without bound
+            amplitude[factor] = np.inf
+    # bounded below the limit (undamped: by 0.01 / sqrt(1 - 0.98^2) = 0.05 m), unbounded above it
+    assert amplitude[0.98] < 0.051 and amplitude[1.02] > 0.1  # grew 10x from 0.01 m
+
+
+def test_donuts_scene_sub_steps_keep_a_stiff_torus_stable():
+    """A torus 130x stiffer than the default at the scene's step: the chosen inner steps keep it
+    at rest on the floor; one step per scene step blows up."""
+    cls = get_scene("donuts")
+    params = cls.resolve_params({"count": 1, **SMALL, "stiffness": 20000.0})
+    outcome = {}
+    for forced in (None, 1):
+        scene = cls(params, device=DEVICE)
+        if forced:
+            assert scene.inner_steps >= 3
+            scene.inner_steps = forced
+        try:
+            for _ in range(20):
+                scene.advance(1.0 / 60.0, cls.substeps)
+            outcome[forced] = scene.kinetic_energy()
+        except ws.SimulationError:
+            outcome[forced] = "blew up"
+    assert outcome[1] == "blew up" and outcome[None] < 1.0

@@ -1,0 +1,14 @@
+"""Hair: strands of stretch and bending springs on a head (``builder``: ``add_strands``), their
+forces and kinematic roots (``forces``), and sag-free initialization (``sag_free``: rest states
+solved so the groomed shape is a static equilibrium; it also serves cloth and soft bodies).
+
+Drives ``warpsim.kernels.strands`` and ``warpsim.kernels.sag_free``.
+Entry names: add_strands, Strands, StrandForce, StrandRoots, sag_free, SagFreeReport.
+"""
+
+from .builder import Strands, add_strands, head_signed_distance
+from .forces import StrandForce, StrandRoots, strand_stable_dt
+from .sag_free import SagFreeReport, sag_free
+
+__all__ = ["SagFreeReport", "StrandForce", "StrandRoots", "Strands", "add_strands", "head_signed_distance",
+           "sag_free", "strand_stable_dt"]

@@ -1,0 +1,284 @@
+"""Browsing a sweep's worlds by where things go, in the gallery (``warpsim view SWEEP.usda``).
+
+:class:`QueryPanel` adds to a :class:`warpsim.worlds.gallery.GalleryViewer` whose sweep has an
+occupancy record (:mod:`warpsim.worlds.occupancy`):
+
+- a translucent box in the page with a gizmo on each of two opposite corners: drag a gizmo's
+  arrows or planes with the mouse to place and resize the box (or type its corners in
+  "box min" / "box max"); the box is drawn in the frame of the isolated world (world 0's when
+  none is), so its corners are the record's coordinates [m];
+- the time window [s] (a two-handled slider), IN / NOT IN, the ranking (first entry, time
+  inside, share of particles inside, world) and "show matches only" (hides the other worlds,
+  except the first, in whose frame the box is drawn);
+- the matching worlds, ranked, each a button (click: that world alone, playing from frame 0) and
+  a small picture (warpsim's renderer, one per world made on first show after the sweep and
+  kept in ``<stem>.thumbs/world_GGGGGG.png``).
+
+A query is asked when a gizmo is released or a setting changes (not while dragging), from the
+record (:func:`warpsim.worlds.query.answer_region`): milliseconds for 10,000 worlds; exact when
+the record keeps positions or at most :data:`REFINE_BUDGET` world-frames in doubt are read back
+from the cache, else conservative to one cell (the summary says which).
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+
+from .occupancy import OccupancyRecord, occupancy_path
+from .query import Region, answer_region, cached_positions
+
+__all__ = ["RANKS", "QueryPanel", "thumbnail"]
+
+RANKS = ("first entry", "time inside", "share inside", "world")
+REFINE_BUDGET = 2_000
+"""World-frames the gallery reads back from the cache to make an answer exact (more: cells only,
+so an answer stays well under a second)."""
+MODES = ("IN", "NOT IN")
+THUMB_SIZE = (128, 96)
+
+
+def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None) -> str:
+    """Path of a small picture of world ``world`` of the sweep ``root`` (rendered by
+    :func:`warpsim.render.cache.render_cache` from the picked world, kept in
+    ``<stem>.thumbs/world_GGGGGG.png``; rendered once)."""
+    import tempfile
+
+    from ..render.cache import render_cache
+    from .pick import pick_world
+    from .usd import world_prim_name
+
+    folder = os.path.splitext(os.path.abspath(os.fspath(root)))[0] + ".thumbs"
+    path = os.path.join(folder, world_prim_name(world) + ".png")
+    if os.path.exists(path):
+        return path
+    os.makedirs(folder, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="warpsim_thumb_") as tmp:
+        picked = pick_world(root, world, os.path.join(tmp, "world.usda"))
+        render_cache(picked, path + ".tmp.png", frame=frame, size=size, camera=camera, device=device)
+    os.replace(path + ".tmp.png", path)
+    return path
+
+
+class QueryPanel:
+    """The spacetime query of a gallery (see the module docstring). ``viewer``: a started
+    :class:`warpsim.worlds.gallery.GalleryViewer`; ``record``: its occupancy record (default:
+    read from beside ``viewer.root``); ``top``: worlds listed; ``thumbnails``: draw a picture per
+    listed world (in a background thread)."""
+
+    def __init__(self, viewer, *, record=None, top=12, thumbnails=True):
+        self.viewer = viewer
+        self.record = record if record is not None else OccupancyRecord.load(occupancy_path(viewer.root))
+        self.top = int(top)
+        self.positions = cached_positions(viewer.root, self.record) if viewer.root else None
+        self.thumbnails = bool(thumbnails)
+        self.hidden = set()
+        """Worlds (``world_GGGGGG``) hidden because they do not match (with "show matches only")."""
+        self.matches = []
+        """The ranked matching worlds (global indices) of the last answer."""
+        self.answer_seconds = None
+        """How long the last answer took [s] (the record's query, the list and the visibility)."""
+        self._syncing = False
+        self._lock = threading.Lock()
+        self._items = []
+        self._pictures = {}
+        self._thumb_thread = None
+        self._wanted = []
+        self._lock_thumbs = threading.Lock()
+        rec, server = self.record, viewer.server
+        self.origin = self._origin(None)
+        inner_lo, inner_hi = rec.grid.lo, rec.grid.hi
+        center, size = 0.5 * (inner_lo + inner_hi), 0.25 * (inner_hi - inner_lo)
+        self.lo, self.hi = center - 0.5 * size, center + 0.5 * size
+        gui = server.gui
+        with gui.add_folder("where things go"):
+            gui.add_markdown(f"{rec.describe()}")
+            self.box_lo = gui.add_vector3("box min [m]", tuple(self.lo), step=1e-3)
+            self.box_hi = gui.add_vector3("box max [m]", tuple(self.hi), step=1e-3)
+            self.window = gui.add_multi_slider("window [s]", 0.0, max(rec.duration, 1e-6), 1.0 / rec.fps,
+                                               (0.0, max(rec.duration, 1e-6)))
+            self.mode = gui.add_dropdown("mode", MODES, initial_value="IN")
+            self.rank = gui.add_dropdown("rank by", RANKS, initial_value=RANKS[0])
+            self.matches_only = gui.add_checkbox("show matches only", True)
+            self.summary = gui.add_markdown("")
+            self.listing = gui.add_folder("matches")
+        scale = float(np.max(inner_hi - inner_lo)) * 0.15
+        self.box = server.scene.add_box("/query/box", color=(60, 140, 255), dimensions=tuple(self.hi - self.lo),
+                                        position=tuple(self.origin + center), opacity=0.3, cast_shadow=False,
+                                        receive_shadow=False)
+        self.gizmo_lo = server.scene.add_transform_controls("/query/min", scale=scale, disable_rotations=True,
+                                                            position=tuple(self.origin + self.lo))
+        self.gizmo_hi = server.scene.add_transform_controls("/query/max", scale=scale, disable_rotations=True,
+                                                            position=tuple(self.origin + self.hi))
+        for gizmo in (self.gizmo_lo, self.gizmo_hi):
+            gizmo.on_update(self._gizmo_moved)
+        for handle in (self.box_lo, self.box_hi):
+            handle.on_update(lambda _e: self._typed())
+        for handle in (self.window, self.mode, self.rank, self.matches_only):
+            handle.on_update(lambda _e: self.ask())
+        self.ask()
+
+    # ------------------------------------------------------------------ the box
+    def _origin(self, world):
+        offsets = self.viewer.reader.offsets
+        name = world or (self.viewer.reader.worlds[0] if self.viewer.reader.worlds else None)
+        return np.asarray(offsets.get(name, np.zeros(3)), np.float64)
+
+    def follow(self, world):
+        """Draw the box in the frame of ``world`` (None: the first world's)."""
+        self.origin = self._origin(world)
+        self._draw_box()
+
+    def _draw_box(self):
+        self._syncing = True
+        try:
+            self.box.position = tuple(self.origin + 0.5 * (self.lo + self.hi))
+            self.box.dimensions = tuple(np.maximum(self.hi - self.lo, 1e-6))
+            self.gizmo_lo.position = tuple(self.origin + self.lo)
+            self.gizmo_hi.position = tuple(self.origin + self.hi)
+            self.box_lo.value = tuple(float(v) for v in self.lo)
+            self.box_hi.value = tuple(float(v) for v in self.hi)
+        finally:
+            self._syncing = False
+
+    def _corners_from_gizmos(self):
+        a = np.asarray(self.gizmo_lo.position, np.float64) - self.origin
+        b = np.asarray(self.gizmo_hi.position, np.float64) - self.origin
+        return np.minimum(a, b), np.maximum(a, b)
+
+    def _gizmo_moved(self, event):
+        """A gizmo's update: the end of a drag (its release) asks, the moves before only redraw."""
+        if getattr(event, "phase", "end") == "end":
+            self._released()
+        else:
+            self._dragging()
+
+    def _dragging(self):
+        """While a gizmo moves: the box follows (no query until it is released)."""
+        if self._syncing:
+            return
+        lo, hi = self._corners_from_gizmos()
+        self.box.position = tuple(self.origin + 0.5 * (lo + hi))
+        self.box.dimensions = tuple(np.maximum(hi - lo, 1e-6))
+
+    def _released(self):
+        if self._syncing:
+            return
+        self.lo, self.hi = self._corners_from_gizmos()
+        self._draw_box()
+        self.ask()
+
+    def _typed(self):
+        if self._syncing:
+            return
+        a, b = np.asarray(self.box_lo.value, np.float64), np.asarray(self.box_hi.value, np.float64)
+        self.lo, self.hi = np.minimum(a, b), np.maximum(a, b)
+        self._draw_box()
+        self.ask()
+
+    def set_box(self, lo, hi):
+        """Place the box at lo..hi [m] (the record's coordinates) and ask."""
+        a, b = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        self.lo, self.hi = np.minimum(a, b), np.maximum(a, b)
+        self._draw_box()
+        self.ask()
+
+    # ------------------------------------------------------------------ the answer
+    def region(self) -> Region:
+        t0, t1 = (float(v) for v in self.window.value)
+        return Region(self.mode.value == "IN", tuple(self.lo), tuple(self.hi), t0, t1,
+                      f"{','.join(f'{v:.4g}' for v in (*self.lo, *self.hi))}@{t0:.4g}:{t1:.4g}")
+
+    def ask(self):
+        """Answer the current box, window and mode; list the matches; hide the others."""
+        with self._lock:
+            start = time.perf_counter()
+            region = self.region()
+            try:
+                answer = answer_region(self.record, region, self.positions, budget=REFINE_BUDGET)
+            except ValueError as exc:
+                self.summary.content = f"**{exc}**"
+                return
+            matched = np.flatnonzero(answer.match)
+            key = {"first entry": answer.entry, "time inside": -answer.time, "share inside": -answer.share}
+            by = key.get(self.rank.value)
+            if by is not None and region.inside:
+                values = np.nan_to_num(by[matched], nan=np.inf)
+                matched = matched[np.lexsort((matched, values))]
+            first = self.record.first_world
+            self.matches = [int(first + w) for w in matched]
+            self._list(answer, matched)
+            names = {f"world_{g:06d}" for g in self.matches}
+            anchor = {self.viewer.reader.worlds[0]} if self.viewer.reader.worlds else set()
+            # the world the box is drawn in stays shown, as the box's reference
+            self.hidden = set(self.viewer.reader.worlds) - names - anchor if self.matches_only.value else set()
+            with self.viewer._lock:
+                self.viewer._refresh()
+            self.answer_seconds = time.perf_counter() - start
+            self.summary.content = (f"**{len(self.matches)} of {self.record.world_count} worlds** "
+                                    f"{'IN' if region.inside else 'NOT IN'} the box during "
+                                    f"{self.window.value[0]:.3g}..{self.window.value[1]:.3g} s "
+                                    f"({'exact' if answer.exact else f'to one cell of {self.record.grid.cell_size:.3g} m'}"
+                                    f", {1e3 * self.answer_seconds:.1f} ms)")
+
+    def _list(self, answer, matched):
+        for h in self._items:
+            h.remove()
+        self._items = []
+        gui = self.viewer.server.gui
+        shown = matched[: self.top]
+        with self.listing:
+            for k, w in enumerate(shown):
+                g = int(self.record.first_world + w)
+                label = f"#{k + 1} world {g}"
+                if answer.match[w] and self.mode.value == "IN":
+                    label += f": in at {answer.entry[w]:.3g} s for {answer.time[w]:.3g} s"
+                    if np.isfinite(answer.share[w]):
+                        label += f", {100 * answer.share[w]:.0f}%"
+                button = gui.add_button(label, order=2 * k + 1)
+                button.on_click(lambda _e, g=g: self.play(g))
+                self._items.append(button)
+                picture = self._pictures.get(g)
+                if picture is not None:
+                    self._items.append(gui.add_image(picture, label=None, order=2 * k))
+            if len(matched) > len(shown):
+                self._items.append(gui.add_markdown(f"... and {len(matched) - len(shown)} more", order=2 * len(shown)))
+        if self.thumbnails:
+            with self._lock_thumbs:
+                for w in shown:
+                    g = int(self.record.first_world + w)
+                    if g not in self._pictures and g not in self._wanted:
+                        self._wanted.append(g)
+                if self._wanted and (self._thumb_thread is None or not self._thumb_thread.is_alive()):
+                    self._thumb_thread = threading.Thread(target=self._make_thumbnails, daemon=True)
+                    self._thumb_thread.start()
+
+    def _make_thumbnails(self):
+        """Render the wanted pictures one by one (a background thread), then list again."""
+        from PIL import Image
+
+        from ..render.camera import frame_bounds
+
+        g = self.record.grid
+        camera = frame_bounds(np.array([g.lo, g.hi]), *THUMB_SIZE)
+        while self.viewer.server is not None:
+            with self._lock_thumbs:
+                if not self._wanted:
+                    self._thumb_thread = None
+                    break
+                world = self._wanted.pop(0)
+            try:
+                with Image.open(thumbnail(self.viewer.root, world, camera=camera)) as image:
+                    self._pictures[world] = np.asarray(image.convert("RGB"))
+            except Exception:  # noqa: BLE001  (a picture that fails leaves its button without one)
+                self._pictures[world] = None
+        if self.viewer.server is not None:
+            self.ask()  # the list again, now with the pictures
+
+    def play(self, world):
+        """Show ``world`` (global index) alone and play it from frame 0."""
+        self.viewer.isolate(f"world_{int(world):06d}")
+        self.viewer.index = 0
+        self.viewer.playing = True

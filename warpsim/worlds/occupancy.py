@@ -1,0 +1,361 @@
+"""Occupancy records: where each world's particles go, kept during a sweep and asked later.
+
+After Goel & James, *Unified Many-Worlds Browsing of Arbitrary Physics-Based Animations*
+(SIGGRAPH 2022): simulate once, keep per world a compact record of which space it occupies over
+time, then answer "inside this box during this window" (IN) and "never inside" (NOT IN) for
+any box drawn later without simulating again (:mod:`warpsim.worlds.query`).
+
+The record (``OccupancyRecorder``, made on the device while the sweep runs; kernels in
+``kernels/occupancy.py``):
+
+- a grid of cubic cells of side ``h`` [m] over the scene's bounds (``bounds``, default: the
+  worlds' frame-0 extent and the scene's static geometry (floor, walls), padded by a quarter of
+  its largest side on every side), ``resolution`` cells
+  along its longest side, plus one outside layer per side that catches everything beyond;
+- per world and occupied cell, the frames it is occupied, bit-packed over time (32 frames a
+  word): the pairs (world, cell) are sorted by world then cell (a CSR by world), so a record
+  costs 4 + 4 ceil(F / 32) bytes per occupied cell and world;
+- when each world records at most ``exact_max`` particles (``--track``, or a small scene), their
+  exact positions per frame too (float32), so answers are exact, not only to a cell.
+
+Written as ``<stem>.occupancy.npz`` beside the sweep's table (NumPy's zip of arrays, no
+pickles): ``format`` ("warpsim-occupancy 1"), ``version`` (warpsim), ``scene``, ``lo`` [m],
+``cell_size`` [m], ``dims`` (cells per axis with the outside layers), ``fps``, ``first_frame``,
+``frame_count``, ``first_world``, ``world_count``, ``world_particle_count``, ``particles``
+(recorded indices within a world), ``track_names``, ``world_start`` (W + 1), ``pair_cell``,
+``pair_bits`` (pairs x words, uint32; bit f % 32 of word f // 32 = frame first_frame + f) and,
+when exact, ``samples`` (W, F, K, 3) float32 [m]. Everything is integer OR or a copy: two runs of
+the same sweep write the same record.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import warp as wp
+
+from ..kernels import occupancy as KO
+
+__all__ = ["DEFAULT_RESOLUTION", "OccupancyGrid", "OccupancyRecord", "OccupancyRecorder", "occupancy_path",
+           "parse_bounds"]
+
+FORMAT = "warpsim-occupancy 1"
+DEFAULT_RESOLUTION = 16
+EXACT_MAX = 8
+"""Recorded particles per world up to which exact positions are kept."""
+SAMPLE_BYTES_MAX = 1 << 30
+BLOCK_BYTES_MAX = 1 << 30
+"""Device bytes of a batch's 32-frame block (world_count x cells x 4) above which the recorder
+halves the resolution until it fits (the record then states the coarser cells)."""
+
+
+def occupancy_path(root_or_table) -> str:
+    """The record kept beside a sweep root or its table: ``<stem>.occupancy.npz``."""
+    return os.path.splitext(os.path.abspath(os.fspath(root_or_table)))[0] + ".occupancy.npz"
+
+
+def parse_bounds(text, what="--occupancy-bounds"):
+    """(lo, hi) float64 (3,) each from ``"x0,y0,z0,x1,y1,z1"`` [m]; ValueError naming the problem."""
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) != 6:
+        raise ValueError(f"{what} {text!r}: give six numbers x0,y0,z0,x1,y1,z1 [m] (two corners of a box)")
+    try:
+        v = np.array([float(p) for p in parts])
+    except ValueError:
+        raise ValueError(f"{what} {text!r}: {next(p for p in parts if not _is_float(p))!r} is not a number") \
+            from None
+    if not np.isfinite(v).all():
+        raise ValueError(f"{what} {text!r}: the corners must be finite numbers")
+    lo, hi = v[:3], v[3:]
+    for a, name in enumerate("xyz"):
+        if hi[a] < lo[a]:
+            raise ValueError(f"{what} {text!r}: {name}1 = {hi[a]:g} < {name}0 = {lo[a]:g}; give the lower corner "
+                             "first (x0,y0,z0 <= x1,y1,z1)")
+    return lo, hi
+
+
+def _is_float(s):
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def find_source_prim(frame_data, positions, particles) -> str:
+    """The name of a prim in one world's ``frame_data`` ({prim: {"points": ...}}) whose points hold
+    ``positions[particles]`` (one world's particle positions (P, 3)) at the same indices, bit for
+    bit; ``""`` when none does (then answers cannot be refined from the cache)."""
+    local = np.asarray(particles, np.int64)
+    want = np.asarray(positions, np.float32)[local]
+    for name in sorted(frame_data):
+        points = (frame_data[name] or {}).get("points")
+        if points is None:
+            continue
+        points = np.asarray(points.numpy() if hasattr(points, "numpy") else points, np.float32)
+        if points.ndim == 2 and points.shape[1] == 3 and len(points) > int(local.max(initial=-1)) and \
+                np.array_equal(points[local], want):
+            return str(name)
+    return ""
+
+
+class OccupancyGrid:
+    """Cubic cells of side ``cell_size`` [m] from ``lo`` [m]; ``dims`` cells per axis including
+    one outside layer on each side (inner cells: ``dims - 2``)."""
+
+    def __init__(self, lo, cell_size, dims):
+        self.lo = np.asarray(lo, dtype=np.float64).reshape(3)
+        self.cell_size = float(cell_size)
+        self.dims = np.asarray(dims, dtype=np.int64).reshape(3)
+        if not (self.cell_size > 0 and math.isfinite(self.cell_size)) or (self.dims < 3).any():
+            raise ValueError(f"occupancy grid: cell size {cell_size} must be > 0 and dims {dims} >= 3")
+
+    @classmethod
+    def over(cls, lo, hi, resolution=DEFAULT_RESOLUTION):
+        """A grid over the box lo..hi [m] with ``resolution`` cells along its longest side."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        resolution = int(resolution)
+        if resolution < 1:
+            raise ValueError(f"occupancy resolution {resolution}: it must be >= 1 (cells along the longest side)")
+        if resolution > 256:
+            raise ValueError(f"occupancy resolution {resolution}: at most 256 cells a side (the record grows as its "
+                             "cube)")
+        extent = float(np.max(hi - lo))
+        h = extent / resolution if extent > 0 else 1.0
+        inner = np.maximum(1, np.ceil((hi - lo) / h - 1e-9)).astype(np.int64)
+        return cls(lo, h, inner + 2)
+
+    @property
+    def hi(self):
+        return self.lo + self.cell_size * (self.dims - 2)
+
+    @property
+    def cell_count(self) -> int:
+        return int(np.prod(self.dims))
+
+    def cells_of(self, points):
+        """Cell index of each point (N, 3) [m] (NumPy reference of ``kernels/occupancy.grid_cell``)."""
+        p = np.asarray(points, np.float32).reshape(-1, 3)
+        s = np.floor((p - self.lo.astype(np.float32)) * np.float32(1.0 / self.cell_size)) + 1
+        c = np.clip(s, 0, (self.dims - 1)).astype(np.int64)
+        return (c[:, 0] * self.dims[1] + c[:, 1]) * self.dims[2] + c[:, 2]
+
+    def box_cells(self, lo, hi):
+        """Boolean (cell_count,): the cells a box lo..hi [m] may touch, widened by float32
+        rounding so a point inside the box is never binned outside the range."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        eps = 4 * float(np.finfo(np.float32).eps) * (np.abs(np.concatenate([lo, hi])).max() + np.abs(self.lo).max()
+                                                     + self.cell_size)
+        i0 = np.clip(np.floor((lo - eps - self.lo) / self.cell_size) + 1, 0, self.dims - 1).astype(np.int64)
+        i1 = np.clip(np.floor((hi + eps - self.lo) / self.cell_size) + 1, 0, self.dims - 1).astype(np.int64)
+        mask = np.zeros(tuple(self.dims), dtype=bool)
+        mask[i0[0]:i1[0] + 1, i0[1]:i1[1] + 1, i0[2]:i1[2] + 1] = True
+        return mask.reshape(-1)
+
+
+def default_bounds(points):
+    """The worlds' extent (points (N, 3) [m], finite) padded by a quarter of its largest side (at
+    least 5 cm) on every side."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.isfinite(p).all(1)]
+    if not len(p):
+        return np.full(3, -1.0), np.full(3, 1.0)
+    lo, hi = p.min(0), p.max(0)
+    pad = max(0.25 * float(np.max(hi - lo)), 0.05)
+    return lo - pad, hi + pad
+
+
+class OccupancyRecord:
+    """A loaded or finished record (see the module docstring for the fields)."""
+
+    def __init__(self, *, grid, fps, first_frame, frame_count, first_world, world_count, world_particle_count,
+                 particles, track_names, world_start, pair_cell, pair_bits, samples=None, scene="", version="",
+                 source_prim=""):
+        self.grid = grid
+        self.fps = float(fps)
+        self.first_frame, self.frame_count = int(first_frame), int(frame_count)
+        self.first_world, self.world_count = int(first_world), int(world_count)
+        self.world_particle_count = int(world_particle_count)
+        self.particles = np.asarray(particles, np.int64)
+        self.track_names = [str(n) for n in track_names]
+        self.world_start = np.asarray(world_start, np.int64)
+        self.pair_cell = np.asarray(pair_cell, np.uint32)
+        self.pair_bits = np.asarray(pair_bits, np.uint32).reshape(len(self.pair_cell), -1)
+        self.pair_world = np.repeat(np.arange(self.world_count, dtype=np.int64), np.diff(self.world_start))
+        self.samples = None if samples is None else np.asarray(samples, np.float32)
+        self.scene, self.version = str(scene), str(version)
+        self.source_prim = str(source_prim)
+        """The animated prim of each world whose cached points hold the recorded particles at
+        their indices (``""``: none found), so answers can be refined from the cache."""
+
+    @property
+    def exact(self) -> bool:
+        """Whether exact positions are kept (answers exact rather than to one cell)."""
+        return self.samples is not None
+
+    @property
+    def duration(self) -> float:
+        """Time [s] of the last recorded frame (frame f at f / fps)."""
+        return (self.first_frame + self.frame_count - 1) / self.fps
+
+    def nbytes(self) -> int:
+        """Bytes of the record's arrays (what a query reads)."""
+        return int(self.pair_cell.nbytes + self.pair_bits.nbytes + self.world_start.nbytes
+                   + (self.samples.nbytes if self.samples is not None else 0))
+
+    def save(self, path) -> str:
+        path = os.path.abspath(os.fspath(path))
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        from .._version import __version__
+
+        arrays = dict(format=np.array(FORMAT), version=np.array(__version__), scene=np.array(self.scene),
+                      lo=self.grid.lo, cell_size=np.array(self.grid.cell_size), dims=self.grid.dims,
+                      fps=np.array(self.fps), first_frame=np.array(self.first_frame),
+                      frame_count=np.array(self.frame_count), first_world=np.array(self.first_world),
+                      world_count=np.array(self.world_count),
+                      world_particle_count=np.array(self.world_particle_count), particles=self.particles,
+                      track_names=np.array(self.track_names, dtype=str).reshape(-1),
+                      world_start=self.world_start, pair_cell=self.pair_cell, pair_bits=self.pair_bits,
+                      source_prim=np.array(self.source_prim))
+        if self.samples is not None:
+            arrays["samples"] = self.samples
+        tmp = path + ".tmp.npz"
+        try:
+            np.savez(tmp, **arrays)
+        except OSError as exc:
+            raise PermissionError(f"could not write the occupancy record {path}: {exc.strerror or exc}; choose a "
+                                  "writable --out") from None
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path):
+        """Read a record; FileNotFoundError / ValueError (one line) for a missing or foreign file."""
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"no occupancy record {path}; run the sweep again with this warpsim (sweeps "
+                                    "write <stem>.occupancy.npz beside their table)")
+        try:
+            z = np.load(path, allow_pickle=False)
+            if str(z["format"]) != FORMAT:
+                raise ValueError(f"format {str(z['format'])!r}")
+            grid = OccupancyGrid(z["lo"], float(z["cell_size"]), z["dims"])
+            return cls(grid=grid, fps=float(z["fps"]), first_frame=int(z["first_frame"]),
+                       frame_count=int(z["frame_count"]), first_world=int(z["first_world"]),
+                       world_count=int(z["world_count"]), world_particle_count=int(z["world_particle_count"]),
+                       particles=z["particles"], track_names=list(z["track_names"]), world_start=z["world_start"],
+                       pair_cell=z["pair_cell"], pair_bits=z["pair_bits"],
+                       samples=z["samples"] if "samples" in z.files else None, scene=str(z["scene"]),
+                       version=str(z["version"]),
+                       source_prim=str(z["source_prim"]) if "source_prim" in z.files else "")
+        except (OSError, KeyError, ValueError) as exc:
+            raise ValueError(f"{path} is not a warpsim occupancy record ({type(exc).__name__}: {exc}); run the "
+                             "sweep again") from None
+
+    def describe(self) -> str:
+        inner = "x".join(str(int(d) - 2) for d in self.grid.dims)
+        what = (f"tracked particles {', '.join(self.track_names)}" if self.track_names else
+                f"{len(self.particles)} particle(s) per world")
+        return (f"occupancy record: {self.world_count} worlds x {self.frame_count} frames at {self.fps:g} fps, "
+                f"{inner} cells of {self.grid.cell_size:.4g} m over [{', '.join(f'{v:.4g}' for v in self.grid.lo)}]"
+                f"..[{', '.join(f'{v:.4g}' for v in self.grid.hi)}] m, {what}, "
+                f"{'exact positions kept' if self.exact else 'answers conservative to one cell'}"
+                f"{f', refined from the cached {self.source_prim} points where cheap' if self.source_prim and not self.exact else ''}")
+
+
+class OccupancyRecorder:
+    """Records a batch's occupancy on its device, frame by frame.
+
+    ``batch``: a :class:`warpsim.worlds.batch.WorldBatch` (``sim.state.positions``,
+    ``model.world_particle_count``, ``world_count``, ``device``); ``frames``: frames after frame 0;
+    ``particles``: indices within a world to record (None: all); ``bounds``: (lo, hi) [m] (None:
+    :func:`default_bounds` of frame 0 and of the corners ``include`` (lo, hi) [m], e.g. the
+    scene's static geometry: floor, walls); ``resolution``: cells along the longest side;
+    ``exact_max``: keep exact positions when at most this many particles per world are recorded.
+    :meth:`update` launches kernels only (capture-safe); call it for frame 0 and after every
+    frame, then :meth:`after_frame` on the host, then :meth:`finish`."""
+
+    def __init__(self, batch, frames, *, particles=None, track_names=(), bounds=None,
+                 resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene="",
+                 include=None):
+        self.device = batch.device
+        n, P = batch.world_count, batch.model.world_particle_count
+        self.batch = batch
+        local = np.arange(P) if particles is None else np.asarray(particles, np.int64).reshape(-1)
+        if len(local) and (local.min() < 0 or local.max() >= P):
+            raise ValueError(f"recorded particle {int(local.max())} is out of range [0, {P}) for one world")
+        if bounds is None:
+            x = batch.sim.state.positions.numpy().reshape(n, P, 3)[:, local].reshape(-1, 3)
+            if include is not None:
+                x = np.concatenate([x, np.asarray(include, np.float64).reshape(-1, 3)])
+            bounds = default_bounds(x)
+        resolution = int(resolution)
+        self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
+        while n * self.grid.cell_count * 4 > BLOCK_BYTES_MAX and resolution > 2:
+            resolution //= 2
+            self.grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
+        self.resolution = resolution
+        self.frame_count = int(frames) + 1
+        self.world_count, self.world_particle_count = n, P
+        self.local = wp.array(local.astype(np.int32), dtype=int, device=self.device)
+        self.block = wp.zeros(n * self.grid.cell_count, dtype=wp.uint32, device=self.device)
+        self.frame = wp.zeros(1, dtype=int, device=self.device)
+        exact = len(local) <= int(exact_max) and n * self.frame_count * len(local) * 12 <= SAMPLE_BYTES_MAX
+        self.samples = wp.zeros(n * self.frame_count * len(local) if exact else 0, dtype=wp.vec3, device=self.device)
+        self.fps, self.first_world, self.scene = float(fps), int(first_world), str(scene)
+        self.particles, self.track_names = local, list(track_names)
+        self.source_prim = ""
+        """Set by the sweep (:func:`find_source_prim`): the prim whose cached points hold the
+        recorded particles."""
+        self._blocks = []  # (block index, nonzero flat indices, words)
+        self._seen = 0
+        g = self.grid
+        self._args = (wp.vec3(*g.lo.astype(np.float32)), float(np.float32(1.0 / g.cell_size)),
+                      wp.vec3i(*(int(d) for d in g.dims)))
+
+    def update(self):
+        """Mark the current frame's cells (kernels only)."""
+        lo, inv_h, dims = self._args
+        K = int(self.local.shape[0])
+        if K:
+            wp.launch(KO.record_cells, (self.world_count, K),
+                      inputs=[self.batch.sim.state.positions, self.world_particle_count, self.local, lo, inv_h, dims,
+                              self.frame, self.frame_count, self.block, self.samples], device=self.device)
+        wp.launch(KO.next_record_frame, 1, inputs=[self.frame], device=self.device)
+
+    def after_frame(self):
+        """Host side after each :meth:`update`: every 32 frames the block's bits move to the host."""
+        self._seen += 1
+        if self._seen % 32 == 0:
+            self._flush()
+
+    def _flush(self):
+        words = self.block.numpy()
+        nz = np.flatnonzero(words)
+        self._blocks.append(((self._seen - 1) // 32, nz, words[nz].copy()))
+        self.block.zero_()
+
+    def finish(self) -> OccupancyRecord:
+        if self._seen % 32:
+            self._flush()
+        frame_count = self._seen
+        nwords = max(1, (frame_count + 31) // 32)
+        keys = np.unique(np.concatenate([nz for _, nz, _ in self._blocks])) if self._blocks else \
+            np.zeros(0, np.int64)
+        bits = np.zeros((len(keys), nwords), dtype=np.uint32)
+        for b, nz, w in self._blocks:
+            bits[np.searchsorted(keys, nz), b] = w
+        cells = self.grid.cell_count
+        world = keys // cells
+        start = np.searchsorted(world, np.arange(self.world_count + 1)).astype(np.int64)
+        samples = None
+        K = len(self.particles)
+        if self.samples.shape[0]:
+            samples = self.samples.numpy().reshape(self.world_count, self.frame_count, K, 3)[:, :frame_count]
+        return OccupancyRecord(grid=self.grid, fps=self.fps, first_frame=0, frame_count=frame_count,
+                               first_world=self.first_world, world_count=self.world_count,
+                               world_particle_count=self.world_particle_count, particles=self.particles,
+                               track_names=self.track_names, world_start=start,
+                               pair_cell=(keys % cells).astype(np.uint32), pair_bits=bits, samples=samples,
+                               scene=self.scene, source_prim=self.source_prim)

@@ -1,0 +1,384 @@
+"""Re-running one world of a sweep exactly: ``warpsim run SCENE --from-sweep ROOT --world N``,
+``warpsim sweep ... --rerun N`` and :func:`rerun_world`.
+
+A sweep writes a manifest beside its root (``<stem>.sweep.json``): the warpsim version, the
+scene and its defaults (parameter defaults, fps, substeps), frames, the ``--fps`` / ``--substeps``
+given, the device, ``fused``, and every world's parameters as the batch received them. A re-run
+builds a batch of world N alone whose tiling base and plan come from the whole sweep
+(``WorldBatch(reference_params=...)``), so world N gets the same arrays as in the sweep; springs
+and cloth sum per particle in a fixed order and every other stage acts per particle or per world,
+so its steps give the same bits, and its cache (a plain ``warpsim run`` cache) holds the same
+samples as ``/Worlds/world_N`` of the sweep, bit for bit, on the same device. Another device,
+``--fps`` or ``--substeps`` runs but warns that the result will differ.
+
+Bad input raises ValueError with one line (the command line exits 2): a root without a
+manifest, a manifest of another warpsim version or of changed scene defaults, a world out of
+range.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+
+__all__ = ["manifest_path", "read_manifest", "rerun_world", "run_world", "write_manifest"]
+
+FORMAT = "warpsim-sweep"
+MANIFEST_VERSION = 1
+
+
+def manifest_path(root) -> str:
+    """The manifest kept beside a sweep root: ``<stem>.sweep.json``."""
+    return os.path.splitext(os.path.abspath(os.fspath(root)))[0] + ".sweep.json"
+
+
+def world_cache_path(root, world: int) -> str:
+    """Default cache of a re-run world, beside the root: ``<stem>.world_NNNNNN.usda``."""
+    return os.path.splitext(os.fspath(root))[0] + f".world_{int(world):06d}.usda"
+
+
+def _json_value(value):
+    if isinstance(value, (tuple, list)):
+        return [_json_value(v) for v in value]
+    if hasattr(value, "item"):  # NumPy scalars
+        return value.item()
+    return value
+
+
+def scene_defaults(cls) -> dict:
+    """What a scene gives a run when nothing is set: parameter defaults, fps and substeps."""
+    return {"fps": float(cls.fps), "substeps": int(cls.substeps),
+            "params": {k: _json_value(p.default) for k, p in cls.params.items()}}
+
+
+def _typed(cls, params: dict) -> dict:
+    """JSON lists back to tuples where the scene's default is a tuple or list."""
+    out = {}
+    for k, v in params.items():
+        default = cls.params[k].default if k in cls.params else None
+        out[k] = tuple(v) if isinstance(v, list) and isinstance(default, (tuple, list)) else v
+    return out
+
+
+def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps=None, device=None,
+                   fused=False, frame_steps=None) -> str:
+    """Write the manifest of the sweep whose root is ``root``; ``world_params`` as given to
+    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
+    ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
+    resolved over all worlds, so a world alone must be told). Returns its path."""
+    from .. import __version__
+    from ..scenes import get_scene
+
+    from .sweep import frame_timing
+
+    cls = get_scene(scene_name)
+    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps, substeps)
+    data = {"format": FORMAT, "version": MANIFEST_VERSION, "warpsim": __version__, "scene": cls.name,
+            "defaults": scene_defaults(cls), "frames": int(frames),
+            "fps": None if fps is None else float(fps), "substeps": None if substeps is None else int(substeps),
+            "run_fps": run_fps, "run_substeps": run_substeps,
+            "device": None if device is None else str(device), "fused": bool(fused),
+            "frame_steps": None if frame_steps is None else int(frame_steps),
+            "worlds": [{k: _json_value(v) for k, v in p.items()} for p in world_params]}
+    path = manifest_path(root)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)
+    return path
+
+
+def read_manifest(root, scene=None) -> dict:
+    """The manifest of the sweep at ``root``, checked against this warpsim and the scene's current
+    defaults (and against ``scene``, a scene name, when given). ValueError (one line) otherwise."""
+    from .. import __version__
+    from ..scenes import get_scene
+
+    root = os.fspath(root)
+    path = manifest_path(root)
+    if not os.path.exists(path):
+        what = "does not exist" if not os.path.exists(root) else "is not a warpsim sweep root"
+        raise ValueError(f"{root} {what} (no manifest {os.path.basename(path)} beside it); give the root a "
+                         "'warpsim sweep' wrote (sweeps made before re-runs existed must be run again)")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+        if data.get("format") != FORMAT:
+            raise ValueError("not a sweep manifest")
+        worlds = data["worlds"]
+        if not isinstance(worlds, list) or not worlds:
+            raise ValueError("no worlds")
+        data["run_fps"], data["run_substeps"] = float(data["run_fps"]), int(data["run_substeps"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path} is not a readable warpsim sweep manifest ({exc}); run the sweep again") from None
+    if data.get("warpsim") != __version__:
+        raise ValueError(f"the sweep {root} was made by warpsim {data.get('warpsim')}, this is {__version__}: "
+                         "its worlds would not re-run exactly; run the sweep again with this version")
+    if scene is not None and scene != data.get("scene"):
+        raise ValueError(f"the sweep {root} is of scene {data.get('scene')!r}, not {scene!r}; give "
+                         f"'warpsim run {data.get('scene')} --from-sweep ...'")
+    try:
+        cls = get_scene(data["scene"])
+    except ValueError as exc:
+        raise ValueError(f"the sweep {root}: {exc}") from None
+    now, then = scene_defaults(cls), data.get("defaults", {})
+    if now != then:
+        keys = [k for k in sorted(set(now["params"]) | set(then.get("params", {})))
+                if now["params"].get(k) != then.get("params", {}).get(k)]
+        keys += [k for k in ("fps", "substeps") if now[k] != then.get(k)]
+        first = keys[0] if keys else "?"
+        old = then.get(first, then.get("params", {}).get(first))
+        new = now.get(first, now["params"].get(first))
+        raise ValueError(f"scene {cls.name!r} changed since the sweep {root} was made (default {first}: {old!r} then, "
+                         f"{new!r} now); its worlds would not re-run exactly: run the sweep again")
+    data["cls"] = cls
+    data["worlds"] = [_typed(cls, p) for p in worlds]
+    return data
+
+
+def _check_world(world, count, root) -> int:
+    if isinstance(world, bool) or not isinstance(world, int) and not (hasattr(world, "__index__")):
+        raise ValueError(f"world {world!r} is not an integer index; give 0 .. {count - 1}")
+    world = int(world)
+    if not 0 <= world < count:
+        raise ValueError(f"world {world} is out of range: the sweep {root} has worlds 0 .. {count - 1}")
+    return world
+
+
+def _differences(manifest, fps, substeps, device) -> list:
+    """Why a re-run at these settings will not equal the sweep's samples (empty: it will)."""
+    out = []
+    if fps is not None and not math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12):
+        out.append(f"--fps {fps:g} (the sweep: {manifest['run_fps']:g})")
+    if substeps is not None and int(substeps) != manifest["run_substeps"]:
+        out.append(f"--substeps {substeps} (the sweep: {manifest['run_substeps']})")
+    if device is not None and manifest["device"] is not None and str(device) != manifest["device"]:
+        out.append(f"device {device} (the sweep ran on {manifest['device']})")
+    return out
+
+
+def _settings(manifest, fps, substeps) -> tuple:
+    """(fps, substeps) to run with: the sweep's own (as it was given them: None = the scene's)
+    unless another value is asked for."""
+    same_fps = fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)
+    same_substeps = substeps is None or int(substeps) == manifest["run_substeps"]
+    return (manifest["fps"] if same_fps else fps), (manifest["substeps"] if same_substeps else substeps)
+
+
+def _frame_steps(manifest, fps, substeps):
+    """The steps per frame the sweep's batch took (auto sub-steps resolve over all its worlds, so
+    a world alone is told the count), or None when other settings were asked for."""
+    same = (fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)) and substeps is None
+    return manifest.get("frame_steps") if same else None
+
+
+def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
+              progress=None, frame_steps=None) -> str:
+    """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
+    :func:`warpsim.worlds.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
+    and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
+    the cache path. ``progress(frame)`` is called after each frame; ``frame_steps``: the steps per
+    frame the whole batch took (its manifest's ``frame_steps``), None to let the world decide."""
+    from ..scenes import get_scene
+    from ..usd.writer import UsdCacheWriter
+    from .agents import is_agent_scene
+    from .batch import WorldBatch
+    from .sweep import frame_timing
+
+    cls = get_scene(scene_name)
+    world_params = [_typed(cls, p) for p in world_params]
+    world = _check_world(world, len(world_params), "given")
+    if is_agent_scene(cls):
+        raise ValueError(f"scene {cls.name!r} is a flock: re-running one of its worlds alone is not supported")
+    fps_given = fps
+    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
+    if "dt" in cls.params and fps_given is not None:  # as run_batch does
+        world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
+    batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
+    batch.batch_scene.frame_steps_fixed = frame_steps
+    writer = UsdCacheWriter(out, fps=fps)
+    batch.scene.declare(writer)
+    writer.begin()
+
+    def write(frame):
+        x, v = batch.world_slices()
+        writer.write_frame(frame, batch.world_frame_data(x[0], v[0], 0))
+
+    with writer:
+        write(0)
+        for frame in range(1, int(frames) + 1):
+            batch.advance(frame_dt, substeps)
+            write(frame)
+            if progress is not None:
+                progress(frame)
+    return writer.output_path
+
+
+def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, device=None, warn=None,
+                progress=None) -> str:
+    """Re-run world ``world`` of the sweep at ``root`` alone, with its parameters, on the sweep's
+    device (``device``: another one), and write it to the cache ``out`` (default beside the root,
+    ``<stem>.world_NNNNNN.usda``); ``frames`` defaults to the sweep's. On the same device, fps
+    and substeps its samples equal the sweep's ``/Worlds/world_NNNNNN`` bit for bit; other
+    settings call ``warn(message)`` (default: a Python warning) first. Returns the cache path.
+    ValueError (one line) for a root that is not a sweep, another warpsim version or changed
+    scene defaults, a world out of range."""
+    manifest = read_manifest(root)
+    world = _check_world(world, len(manifest["worlds"]), root)
+    if frames is None:
+        frames = manifest["frames"]
+    if int(frames) < 0:
+        raise ValueError(f"frames {frames}: it must be >= 0")
+    diffs = _differences(manifest, fps, substeps, device)
+    if diffs:
+        message = (f"world {world} re-runs with {', '.join(diffs)}: the result will differ from its samples in the "
+                   "sweep")
+        if warn is None:
+            import warnings
+
+            warnings.warn(message, stacklevel=2)
+        else:
+            warn(message)
+    run_fps, run_substeps = _settings(manifest, fps, substeps)
+    run_device = device if device is not None else manifest["device"]
+    return run_world(manifest["scene"], manifest["worlds"], world, out=out or world_cache_path(root, world),
+                     frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
+                     fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps))
+
+
+# ----------------------------------------------------------------------------------------------
+# Command line: warpsim run SCENE --from-sweep ROOT --world N
+# ----------------------------------------------------------------------------------------------
+def run_command(args, out, err) -> int:
+    """``warpsim run SCENE --from-sweep ROOT --world N [--frames F] [--fps F] [--substeps S]
+    [--device D] [--out PATH]``; UsageError (exit 2) for bad input found before the run."""
+    from .. import cli_common as cli
+    from ..core.errors import SimulationError
+
+    usage = cli.UsageError
+    if args.world is None or args.from_sweep is None:
+        raise usage("--from-sweep ROOT and --world N go together (re-run world N of the sweep at ROOT)")
+    for flag, given in (("--set", args.sets), ("--integrator", args.integrator), ("--resume", args.resume),
+                        ("--checkpoint-every", args.checkpoint_every), ("--preview", args.preview)):
+        if given:
+            raise usage(f"{flag} cannot be used with --from-sweep: world {args.world} re-runs with the sweep's "
+                        "parameters")
+    try:
+        manifest = read_manifest(args.from_sweep, scene=args.scene)
+        world = _check_world(args.world, len(manifest["worlds"]), args.from_sweep)
+    except ValueError as exc:
+        raise usage(cli.one_line(exc)) from None
+    frames = manifest["frames"] if args.frames is None else args.frames
+    if frames < 0:
+        raise usage(f"--frames {frames}: it must be >= 0")
+    path = args.out or world_cache_path(args.from_sweep, world)
+    if os.path.splitext(path)[1] not in (".usd", ".usda", ".usdc"):
+        raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
+    device = cli.device_arg(args.device) if args.device is not None else None
+    if device is None and manifest["device"] is not None:
+        device = cli.device_arg(manifest["device"])  # the sweep's device must be here
+    return _run_and_report(manifest, world, path, frames, args.fps, args.substeps, device,
+                           not args.no_progress, out, err, SimulationError)
+
+
+def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_progress, out, err,
+                    SimulationError) -> int:
+    from .. import cli_common as cli
+
+    for line in _differences(manifest, fps, substeps, device):
+        print(f"warpsim: warning: {line}: world {world} will differ from its samples in the sweep", file=err)
+    run_fps, run_substeps = _settings(manifest, fps, substeps)
+    progress = None
+    if show_progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=frames, unit="frame", desc=f"{manifest['scene']} world {world}", file=err,
+                        dynamic_ncols=True)
+    try:
+        result = run_world(manifest["scene"], manifest["worlds"], world, out=path, frames=frames, fps=run_fps,
+                           substeps=run_substeps, device=device, fused=manifest["fused"],
+                           progress=(lambda f: progress.update(1)) if progress else None,
+                           frame_steps=_frame_steps(manifest, fps, substeps))
+    except SimulationError as exc:
+        print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
+        return 1
+    except ValueError as exc:
+        raise cli.UsageError(cli.one_line(exc)) from None
+    finally:
+        if progress:
+            progress.close()
+    print(f"re-ran world {world} of scene {manifest['scene']!r} ({frames} frames) on "
+          f"{device or manifest['device'] or 'the default device'}", file=out)
+    print(f"open: {os.path.relpath(result)}", file=out)
+    return 0
+
+
+def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
+    """``warpsim sweep ... --rerun N``: world N of the sweep these arguments describe, alone, into
+    ``<stem>.world_NNNNNN.usda`` beside ``path`` (the sweep's root)."""
+    from .. import cli_common as cli
+    from ..core.errors import SimulationError
+
+    try:
+        world = _check_world(args.rerun, len(world_params), f"described ({len(world_params)} worlds)")
+    except ValueError as exc:
+        raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
+    manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
+                "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
+    from .sweep import frame_timing
+
+    try:
+        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(cls, cls.resolve_params(world_params[0]),
+                                                                        args.fps, args.substeps)
+    except ValueError as exc:
+        raise cli.UsageError(cli.one_line(exc)) from None
+    return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,
+                           not args.no_progress, out, err, SimulationError)
+
+
+# ----------------------------------------------------------------------------------------------
+# Checking a re-run against the sweep
+# ----------------------------------------------------------------------------------------------
+def _samples(stage, root_path) -> dict:
+    """{(prim path relative to root_path, attribute): [(time, numpy array), ...]} of every
+    time-sampled attribute below ``root_path``."""
+    import numpy as np
+    from pxr import Usd
+
+    out = {}
+    root = stage.GetPrimAtPath(root_path)
+    for prim in Usd.PrimRange(root):
+        rel = str(prim.GetPath())[len(root_path):]
+        for attr in prim.GetAttributes():
+            times = attr.GetTimeSamples()
+            if times:
+                out[(rel, attr.GetName())] = [(t, np.asarray(attr.Get(t))) for t in times]
+    return out
+
+
+def first_difference(root, world, cache):
+    """None when the cache ``cache`` holds exactly (bit for bit, same attributes and time samples)
+    the samples of world ``world`` in the sweep at ``root``; otherwise a line naming the first
+    difference."""
+    from pxr import Usd
+
+    sweep = Usd.Stage.Open(os.fspath(root))
+    prim = sweep.GetPrimAtPath("/World")
+    variants = prim.GetVariantSets().GetVariantSet("world")
+    name = f"world_{int(world):06d}"
+    if not variants or name not in variants.GetVariantNames():
+        return f"{root} has no variant {name} (a sweep root with --layout variants is needed)"
+    variants.SetVariantSelection(name)
+    expected = _samples(sweep, "/World")
+    run = Usd.Stage.Open(os.fspath(cache))
+    got = _samples(run, str(run.GetDefaultPrim().GetPath()))
+    for key in sorted(set(expected) | set(got)):
+        if key not in got or key not in expected:
+            return f"{key[0]}.{key[1]} is only in the {'sweep' if key in expected else 're-run'}"
+        a, b = expected[key], got[key]
+        if [t for t, _ in a] != [t for t, _ in b]:
+            return f"{key[0]}.{key[1]}: time samples {len(a)} in the sweep, {len(b)} in the re-run"
+        for (t, x), (_, y) in zip(a, b):
+            if x.dtype != y.dtype or x.shape != y.shape or x.tobytes() != y.tobytes():
+                return f"{key[0]}.{key[1]} differs at time {t:g}"
+    return None
