@@ -33,8 +33,8 @@ nitpicky = False
 # ---------------------------------------------------------------------------------------------
 # warpsim's docstrings are plain text for people reading the source: |v| means a norm, a * b a
 # product, and lists continue with hanging indents. After Napoleon has turned the Google-style
-# sections into fields, make the rest safe reStructuredText: escape | and lone * outside
-# ``literals``, and pull hanging continuation lines back to their paragraph's indentation.
+# sections into fields, make the rest safe reStructuredText: escape |, lone * and trailing _
+# outside ``literals``, and pull hanging continuation lines back to their paragraph's indentation.
 import re  # noqa: E402
 
 _LITERAL = re.compile(r"(``.*?``|`[^`]*`)")
@@ -46,6 +46,7 @@ def _escape(text):
     for k in range(0, len(parts), 2):  # even parts are outside literals
         p = parts[k].replace("|", r"\|")
         p = re.sub(r"(?<![*\\])\*(?!\*)", r"\\*", p)  # a lone * (not **bold**, not already escaped)
+        p = re.sub(r"(?<=\w)_(?!\w)", r"\\_", p)  # tile_ or key_: not a hyperlink reference
         parts[k] = p
     return "".join(parts)
 

@@ -69,6 +69,8 @@ RETURN_PENDING = {
     "keyframe_motion", "FlipLiquid.add_box", "FlipLiquid.add_sdf", "FlipLiquid.add_cells", "FlipLiquid.measure_density",
     "FlipLiquid.surface", "MacGrid.add_collider", "PressureSolver.precondition", "PressureSolver.apply",
     "PressureSolver.project", "Advector.advect", "Viscosity.apply", "Metaballs.mesh", "FluidSurface.mesh",
+    "Pendulum.stability", "StrandForce.bind", "StrandForce.eval", "StrandRoots.apply", "StrandRoots.bind",
+    "Strands.bind", "Strands.strand_of",
 }
 
 

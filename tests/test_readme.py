@@ -77,6 +77,20 @@ COMMANDS = {
     "warpsim sweep flock --vary seed=0,1,2,3":
         ("warpsim sweep flock --vary seed=0,1 --frames 3 --set birds=20 --set geese=4", "flock_sweep"),
     "warpsim view usd_out/teapot_sweep.usda": skip("serves until stopped"),
+    'warpsim sweep bounce --worlds 15 --vary height=0.2:1.6 --set restitution=0 --fps 50 --frames 40 '
+    '--inside "-0.5,0.4,-0.5,0.5,0.6,0.5@0.2:0.5" --rank inside1_entry':
+        ('warpsim sweep bounce --worlds 8 --vary height=0.2:1.6 --set restitution=0 --fps 50 --frames 40 '
+         '--inside "-0.5,0.4,-0.5,0.5,0.6,0.5@0.2:0.5" --rank inside1_entry', "inside1_entry"),
+    'warpsim query usd_out/bounce_sweep.usda --inside "-0.5,0.4,-0.5,0.5,0.6,0.5@0.2:0.5" --rank inside1_entry':
+        ('warpsim query usd_out/bounce_sweep.usda --inside "-0.5,0.4,-0.5,0.5,0.6,0.5@0.2:0.5" --rank inside1_entry',
+         "inside1_entry"),
+    'warpsim query usd_out/teapot_sweep.usda --outside "0.3,0,-1,1,1,1@0.5:" --where "peak_speed<3"':
+        ('warpsim query usd_out/teapot_sweep.usda --outside "0.3,0,-1,1,1,1@0.02:" --where "peak_speed<3"',
+         "world"),
+    "warpsim pick usd_out/bounce_sweep.usda --world 7 --out world7.usdc --flatten":
+        ("warpsim pick usd_out/bounce_sweep.usda --world 7 --out world7.usdc --flatten", "world7.usdc"),
+    "warpsim view usd_out/bounce_sweep.usda": skip("serves until stopped"),
+    "python benchmarks/check_determinism.py --device cuda:0 --frames 30": skip("a GPU check (benchmarks/)"),
     "warpsim sweep teapot --worlds 1024 --vary stiffness=20:80 --vary restitution=0.2:0.8 --sample lhs "
     "--ray --batch-size 256 --out usd_out/teapots.usda": skip("starts a Ray cluster (tests/test_ray_sweep.py)"),
     "ray start --head --port=6379": skip("a multi-machine Ray cluster"),

@@ -53,7 +53,7 @@ class _Gui:
     def add_vector3(self, label, value, hint=None):
         return self._add(label, value)
 
-    def add_slider(self, label, lo, hi, step, value, hint=None):
+    def add_slider(self, label, lo, hi, step, value, hint=None, marks=None):
         h = self._add(label, value)
         h.range = (lo, hi)
         return h
@@ -70,6 +70,10 @@ class _Session:
         self.cls = cls
         self.params = {k: p.default for k, p in cls.params.items()}
         self.set = []
+
+    def stability(self):  # the time-step slider's limit (Session.stability): none estimated here
+        return {"limit": None, "reason": "", "who": "", "auto": False, "step": 0.0, "exceeded": False,
+                "dt_exceeded": False}
 
     def set_param(self, key, value):
         self.set.append((key, value))

@@ -110,7 +110,7 @@ class SoftContact(Collider):
             raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh' or 'all_pairs'")
         self.broad_phase = broad_phase
         self.edge_contact = bool(edge_contact)
-        self.body_world = None
+        self.body_world: np.ndarray | None = None  # (faces,) world of each body's faces, batches only
         self._meshes, self._bvhs = [], []
 
     def tile(self, world_count: int, world_particle_count: int) -> "SoftContact":

@@ -272,7 +272,8 @@ class Springs(Force):
             return
         ensure_spring_adjacency(m)
         inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
-        tape = _warp_context.runtime.tape
+        runtime: Any = _warp_context.runtime  # never None once Warp is initialised
+        tape = runtime.tape
         if tape is None:
             cached_launch(K.eval_springs_gather, m.particle_count, inputs, m.device, launches,
                           key=("gather", m.particle_count, *map(id, inputs)))

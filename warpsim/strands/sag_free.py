@@ -101,6 +101,11 @@ def _system_of(target, forces):
 class _Group:
     """One StrandForce's strands and their slice of the unknowns."""
 
+    length: np.ndarray  # per-slot rest geometry, filled by sag_free
+    bend_geo: np.ndarray
+    sqrt_stretch: wp.array
+    sqrt_bend: wp.array
+
     def __init__(self, force, offset):
         st = force.strands
         self.force, self.strands, self.data = force, st, force.data
@@ -213,9 +218,9 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
         unused[:, 0] = unused[:, -1] = True
         mask_host[g.stretch_offset: g.bend_offset] = unused.reshape(-1)
         mask_host[g.bend_offset: g.end] = np.repeat(unused.reshape(-1), 3)
-        ks = np.repeat(st.stretch_stiffness, st.stride).reshape(st.strand_count, st.stride)
+        ks: np.ndarray = np.repeat(st.stretch_stiffness, st.stride).reshape(st.strand_count, st.stride)
         bound[g.stretch_offset: g.bend_offset] = (max_strain * g.length * np.sqrt(ks)).reshape(-1)
-        kb = np.repeat(st.bend_stiffness, st.stride).reshape(st.strand_count, st.stride)
+        kb: np.ndarray = np.repeat(st.bend_stiffness, st.stride).reshape(st.strand_count, st.stride)
         bound[g.bend_offset: g.end] = np.repeat((max_strain * g.length * np.sqrt(kb)).reshape(-1), 3)
         zero_k = np.repeat(st.stretch_stiffness == 0.0, st.stride)
         mask_host[g.stretch_offset: g.bend_offset] |= zero_k

@@ -33,7 +33,8 @@ def eligibility(sim0) -> str | None:
         return f"the integrator is {sim0.integrator.name}, not semi_implicit_euler"
     if getattr(sim0, "adaptive", False):
         return "adaptive sub-stepping"
-    if getattr(sim0, "fracture", None) is not None or getattr(sim0.model, "breakable_spring_count", 0):
+    breakable = int(getattr(sim0.model, "breakable_spring_count", 0))
+    if getattr(sim0, "fracture", None) is not None or breakable:
         return "breakable springs"
     if getattr(sim0, "rollout", None) is not None:
         return "a differentiable run"
