@@ -34,4 +34,7 @@ case "${1:-core}" in
     cmp /tmp/sweep1/teapots.csv /tmp/sweep2/teapots.csv && echo "tables identical"
     python3 -c "import sys; from warpsim.usd.validate import validate_cache as v; print('validation errors:', [v(p) for p in sys.argv[1:]])" /tmp/sweep1/teapots.usda /tmp/sweep2/teapots.usda
     ;;
+  occupancy)  # issue 29: record cost, bytes and query time at 10,000 teapots x 120 frames
+    T=590 run python3 bench_occupancy.py --device "$D" --worlds 10000 --frames 120 --sweep-frames ${SWEEP_FRAMES:-4} --repeat 1
+    ;;
 esac

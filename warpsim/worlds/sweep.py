@@ -120,12 +120,12 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    scene = getattr(batch, "batch_scene", None)  # agent batches (flocks) step without one: fixed sub-steps
+    scene = getattr(batch, "batch_scene", None)  # None: a batch of flocks (no springs, no sub-step limit)
     if scene is not None:
         scene.auto_substeps = auto
-    if timing is not None:
-        timing["frame_steps"] = int(scene.frame_steps(frame_dt, substeps) if scene is not None else substeps)
-    if warn is not None and hasattr(batch, "stability_warning"):
+    if timing is not None and scene is not None:
+        timing["frame_steps"] = int(scene.frame_steps(frame_dt, substeps))
+    if warn is not None and scene is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
@@ -187,9 +187,8 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
                                  track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
                                  resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
                                  first_world=first_world, scene=scene_name, include=static)
-    xs, vs = batch.world_slices()  # (agent batches also snapshot their per-agent state here)
-    x0, v0 = xs[0], vs[0]  # world 0
-    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    x, v = batch.world_slices()  # world 0's frame data names the prim holding the recorded particles
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x[0], v[0], 0), x[0], recorder.particles)
     return recorder
 
 
