@@ -157,3 +157,16 @@ def test_examples_write_under_usd_out():
             if line.startswith("    python examples/") and "--out " in line and "--out usd_out/" not in line:
                 bad.append(f"{path.name}: {line.strip()}")
     assert not bad, f"examples writing outside usd_out/: {bad}"
+
+
+@pytest.mark.parametrize("name, blocked, args, says", [
+    ("pendulum_integrators.py", "matplotlib", ["--steps", "5", "--rows", "1"], 'pip install "warpsim[plot]"'),
+    ("fit_launch.py", "scipy", ["--quick"], "pip install scipy"),
+])
+def test_examples_name_a_missing_optional_module(tmp_path, name, blocked, args, says):
+    """An example needing an optional module says which install brings it, before any work."""
+    code = (f"import sys, runpy; sys.modules[{blocked!r}] = None; sys.argv = [{name!r}, *{args!r}]; "
+            f"runpy.run_path({str(ROOT / 'examples' / name)!r}, run_name='__main__')")
+    result = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode in (1, 2) and says in result.stderr, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr and not list(tmp_path.iterdir())
