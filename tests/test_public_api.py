@@ -42,9 +42,7 @@ def test_static_names_mirror_the_lazy_loader_and_all():
 def test_every_public_name_resolves_with_a_docstring():
     static, _ = _sections()
     missing = []
-    # the integrators' docstrings (with their stability regions) land with issue 26's branch
-    pending = {"Integrator", "ExplicitEuler", "RK4"}
-    for name in sorted(static - {"Viewer"} - pending):
+    for name in sorted(static - {"Viewer"}):
         obj = getattr(warpsim, name)
         if isinstance(obj, dict):  # INTEGRATORS: name -> class table
             continue
