@@ -9,6 +9,8 @@ bending spring per vertex whose rest state is the groomed shape (see ``warpsim.k
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import warp as wp
 
@@ -78,6 +80,23 @@ class Strands:
       ghost_local, root_local, normal_local (strand_count, 3): ghost, root and root-frame normal in
       the head's frame at build time.
     """
+
+    strand_count: int
+    segments: int
+    stride: int
+    first: int
+    rest_length: np.ndarray
+    stretch_stiffness: np.ndarray
+    bend_stiffness: np.ndarray
+    stretch_damping: np.ndarray
+    bend_damping: np.ndarray
+    mass: np.ndarray
+    radius: np.ndarray
+    ghost_local: np.ndarray
+    root_local: np.ndarray
+    normal_local: np.ndarray
+    normal_world: np.ndarray
+    head: Any
 
     def __init__(self):
         self._device_data = {}
