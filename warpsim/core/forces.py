@@ -301,7 +301,7 @@ class Springs(Force):
             self._spring_f = buf
         return buf
 
-    def jacobian_triplet_count(self):
+    def jacobian_triplet_count(self) -> int:
         return 2 * self.model.spring_count
 
     def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values) -> None:
