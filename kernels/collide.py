@@ -610,11 +610,25 @@ def collide_particle_pairs(
     xi = q[i]
     ri = radius[i]
     world_i = particle_world[i]
+    key = xi + world_key(world_i, world_stride, world_side)
     dv = wp.vec3(0.0)
     dx = wp.vec3(0.0)
-    for j in wp.hash_grid_query(grid, xi + world_key(world_i, world_stride, world_side), ri + max_radius):
-        if j == i or particle_world[j] != world_i:
+    # Contacts are summed in ascending partner index, not in the grid's cell order: a world's cell
+    # order depends on where its copy of space sits (world_key), so the same contacts of two
+    # identical worlds would otherwise be added in different orders (different float rounding).
+    # One grid pass per contact (plus one): contacts per particle are few.
+    last = int(-1)
+    searching = int(1)
+    while searching == 1:
+        j = int(2147483647)
+        for k in wp.hash_grid_query(grid, key, ri + max_radius):
+            if k > last and k < j and k != i and particle_world[k] == world_i:
+                if wp.length(q[k] - xi) < ri + radius[k] and (inv_mass[i] > 0.0 or inv_mass[k] > 0.0):
+                    j = k
+        if j == 2147483647:
+            searching = 0
             continue
+        last = j
         a = wp.min(i, j)
         b = wp.max(i, j)
         wa = inv_mass[a]

@@ -44,6 +44,9 @@ CASES = [
      ["--worlds 1000000000", "need about", "TiB", "free"]),
     ("worlds-2**63", ["--worlds", str(2**63), "--vary", "height=0.02:0.05", "--sample", "random"],
      [f"--worlds {2**63}", "need about"]),
+    ("log-bounds-underflow", ["--worlds", "2", "--vary", "mass=1e-320:1e-310:log"],
+     ["--vary mass=1e-320:1e-310:log", "float32 range"]),
+    ("range-overflow", ["--worlds", "2", "--vary", "mass=1:1e39"], ["hi 1e+39", "float32 range"]),
     ("seed-negative", [*TWO, "--seed", "-1"], ["--seed -1", "[0, 2^63)"]),
     ("seed-huge", [*TWO, "--seed", str(2**70)], [f"--seed {2**70}"]),
     # non-numeric parameters cannot be ranked or compared: refused before the run

@@ -172,6 +172,8 @@ def _cmd_info(path, out, err=None, verify=False):
 
     if os.path.isdir(path):
         raise UsageError(f"{path!r} is a folder; give the cache file in it (.usd, .usda or .usdc)")
+    if os.path.exists(path) and not os.path.isfile(path):  # reading a FIFO would wait for a writer for ever
+        raise UsageError(f"{path!r} is not a regular file (a pipe, socket or device); give the cache file itself")
     try:
         info = cache_info(path, verify=True if verify else None)
     except FileNotFoundError as exc:  # checks.MissingFileError (not imported here: it would load Warp)

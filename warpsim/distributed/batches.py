@@ -40,14 +40,19 @@ def split_batches(world_count, batch_size):
     return [(first, min(batch_size, world_count - first)) for first in range(0, world_count, batch_size)]
 
 
-def batches_root(out_path):
-    """Folder holding the batch folders of the sweep whose root is ``out_path``."""
+def batches_root(out_path, name=None):
+    """Folder holding the batch folders of the sweep whose root is ``out_path``: ``<stem>.batches``,
+    or the folder ``name`` beside the root (a sweep re-run over a finished one writes to
+    ``<stem>.batches-<token>`` until it is complete; its manifest names the folder)."""
+    if name:
+        return os.path.join(os.path.dirname(os.path.abspath(out_path)), os.path.basename(name))
     return os.path.splitext(os.path.abspath(out_path))[0] + ".batches"
 
 
-def batch_dir(out_path, index):
-    """Final folder of batch ``index`` of the sweep whose root is ``out_path``."""
-    return os.path.join(batches_root(out_path), f"batch_{index:04d}")
+def batch_dir(out_path, index, root=None):
+    """Final folder of batch ``index`` of the sweep whose root is ``out_path`` (in ``root``, a
+    folder name from :func:`batches_root`, when given)."""
+    return os.path.join(batches_root(out_path, root), f"batch_{index:04d}")
 
 
 def temp_batch_dir(final_dir):
@@ -108,9 +113,9 @@ def load_rows(final_dir):
         return pickle.load(fh)
 
 
-def remove_stale(out_path):
+def remove_stale(out_path, name=None):
     """Delete temporary and moved-aside batch folders (left by killed workers); returns their count."""
-    root = batches_root(out_path)
+    root = batches_root(out_path, name)
     if not os.path.isdir(root):
         return 0
     count = 0

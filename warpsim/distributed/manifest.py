@@ -58,10 +58,12 @@ class SweepManifest:
         batches: ``{batch index: record}`` of the finished batches.
     """
 
-    def __init__(self, path, sweep, batches=None):
+    def __init__(self, path, sweep, batches=None, batches_root=None):
         self.path = os.path.abspath(path)
         self.sweep = _plain(sweep)
         self.batches = dict(batches or {})
+        self.batches_root = batches_root
+        """Name of the folder beside the root holding the batches (None: ``<stem>.batches``)."""
 
     @classmethod
     def new(cls, path, sweep):
@@ -100,7 +102,8 @@ class SweepManifest:
                                  f"index with \"dir\" and \"sha256\"); {fix}")
             rec.setdefault("error", None)
             out[int(key)] = rec
-        return cls(path, data["sweep"], out)
+        root = data.get("batches_root")
+        return cls(path, data["sweep"], out, os.path.basename(root) if isinstance(root, str) and root else None)
 
     def mismatch(self, sweep):
         """A sentence naming the first setting where ``sweep`` differs from the recorded one, or None."""
@@ -122,6 +125,8 @@ class SweepManifest:
     def save(self):
         data = {"version": VERSION, "sweep": self.sweep,
                 "batches": {str(k): self.batches[k] for k in sorted(self.batches)}}
+        if self.batches_root:
+            data["batches_root"] = self.batches_root
         tmp = f"{self.path}.tmp-{os.getpid()}"
         with open(tmp, "w") as fh:
             json.dump(data, fh, indent=1, allow_nan=True)

@@ -67,15 +67,15 @@ def add_ray_arguments(parser):
     g.add_argument("--ray-cpus", type=int, default=None, metavar="N",
                    help="CPUs of a local cluster started by --ray (default: all)")
     g.add_argument("--resume", action="store_true",
-                   help="with --ray: run only the batches the sweep's manifest does not list as finished")
+                   help="continue an interrupted sweep: with --ray run only the batches its manifest does not list "
+                        "as finished; without, keep the completed chunks of the batch layer and write on")
     return g
 
 
 def ray_usage_error(args):
     """A one-line complaint about the Ray options of parsed ``args``, or None when they are fine."""
     if getattr(args, "ray", None) is None:
-        given = [flag for flag, value in (("--resume", getattr(args, "resume", False)),
-                                          ("--batch-size", getattr(args, "batch_size", None)),
+        given = [flag for flag, value in (("--batch-size", getattr(args, "batch_size", None)),
                                           ("--ray-cpus", getattr(args, "ray_cpus", None))) if value]
         if given:
             return f"{', '.join(given)} go{'es' if len(given) == 1 else ''} with --ray (a sweep on a Ray cluster)"
@@ -159,6 +159,7 @@ def _connect(address, num_cpus):
     quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
     if not remote:
         ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
+        _watch_local_cluster(ray)
     else:
         try:
             ray.init(address=address, **quiet)
@@ -168,6 +169,19 @@ def _connect(address, num_cpus):
                              "prints; with token authentication set RAY_AUTH_MODE=token and the cluster's token "
                              "(ray get-auth-token) in ~/.ray/auth_token") from None
     return ray, True
+
+
+def _watch_local_cluster(ray):
+    """A killed driver must not leave the cluster it started running: see ``watchdog``."""
+    from .watchdog import start_watchdog
+
+    session = None
+    try:  # ray has no public accessor for the session folder
+        session = ray._private.worker.global_worker.node.get_session_dir_path()
+    except Exception:  # noqa: BLE001
+        latest = os.path.join("/tmp", "ray", "session_latest")
+        session = os.path.realpath(latest) if os.path.exists(latest) else None
+    start_watchdog(session)
 
 
 CONNECT_TIMEOUT_S = 10.0
@@ -295,12 +309,20 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         options, task_device = _task_resources(ray, device)  # refuses a device before touching any file
         os.makedirs(os.path.dirname(out_path), exist_ok=True)
         if manifest is None:
-            shutil.rmtree(batches_root(out_path), ignore_errors=True)  # the previous sweep of this name
-            if os.path.exists(out_path):
-                os.remove(out_path)  # its root referenced those batches
+            broot = None
+            if os.path.exists(out_path) and os.path.isdir(batches_root(out_path)):
+                # a finished sweep of this name stays whole (its root references these batches) until
+                # this one is complete: write beside it, remove it at the end
+                import secrets
+
+                broot = os.path.basename(batches_root(out_path)) + "-" + secrets.token_hex(4)
+            else:
+                shutil.rmtree(batches_root(out_path), ignore_errors=True)  # an interrupted sweep of this name
             manifest = SweepManifest.new(mpath, sweep)
+            manifest.batches_root = broot
             manifest.save()
-        os.makedirs(batches_root(out_path), exist_ok=True)
+        broot = manifest.batches_root
+        os.makedirs(batches_root(out_path, broot), exist_ok=True)
         # a resume runs again what is not listed, what changed on disk and what raised (maybe out of memory)
         skipped = [i for i in range(len(batches)) if resume and manifest.finished(i) and not manifest.batches[i]["error"]]
         todo = [i for i in range(len(batches)) if i not in skipped]
@@ -310,7 +332,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             first, count = batches[i]
             spec = {"scene": scene_name, "worlds": world_params[first:first + count], "first_world": first,
                     "index": i, "frames": frames, "fps": fps, "substeps": substeps, "device": task_device,
-                    "final_dir": batch_dir(out_path, i), "layer_name": _layer_name(out_path, i),
+                    "final_dir": batch_dir(out_path, i, broot), "layer_name": _layer_name(out_path, i),
                     "runner": runner, "options": batch_options, "kill_once": _kill_once}
             pending[task.remote(spec)] = i
         fresh = {}
@@ -338,13 +360,13 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
 
     rows = []
     for i in range(len(batches)):
-        rows.extend(fresh[i] if i in fresh else load_rows(batch_dir(out_path, i)))
+        rows.extend(fresh[i] if i in fresh else load_rows(batch_dir(out_path, i, broot)))
     rows.sort(key=lambda r: r["world"])
     from ..worlds import write_sweep_root, write_table
 
     write_table(table_path, rows)
     ok = [i for i in range(len(batches)) if not manifest.batches[i]["error"]]
-    layers = [os.path.join(batch_dir(out_path, i), _layer_name(out_path, i)) for i in ok]
+    layers = [os.path.join(batch_dir(out_path, i, broot), _layer_name(out_path, i)) for i in ok]
     worlds = None  # every world; only the worlds of batches with a layer when a batch failed
     if len(ok) < len(batches):
         worlds = [w for i in ok for w in range(batches[i][0], sum(batches[i]))]
@@ -352,8 +374,15 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         raise RaySweepError(f"every batch failed, e.g. batch 0: {manifest.batches[0]['error']}; the table "
                             f"{table_path} lists the errors")
     root = write_sweep_root(out_path, layers, len(world_params), layout=layout, worlds=worlds)
-    remove_stale(out_path)
-    return {"rows": rows, "root": root, "table": table_path, "ran": sorted(fresh), "skipped": skipped,
+    remove_stale(out_path, broot)
+    import glob
+
+    current = batches_root(out_path, broot)
+    for folder in glob.glob(glob.escape(batches_root(out_path)) + "*"):  # the replaced sweep's batches
+        if os.path.isdir(folder) and os.path.abspath(folder) != current:
+            shutil.rmtree(folder, ignore_errors=True)
+    return {"rows": rows, "root": root, "table": table_path, "layers": layers, "ran": sorted(fresh),
+            "skipped": skipped,
             "batches": {i: manifest.batches[i] for i in range(len(batches))},
             "seconds": time.perf_counter() - t_start}
 
@@ -370,7 +399,7 @@ def _record(manifest, out_path, batches, i, result):
     """Check batch ``i``'s published folder as the driver sees it, then list it in the manifest."""
     from .batches import tree_checksum
 
-    folder = batch_dir(out_path, i)
+    folder = batch_dir(out_path, i, manifest.batches_root)
     if not os.path.isdir(folder) or tree_checksum(folder) != result["sha256"]:
         raise RaySweepError(f"batch {i} was written on host {result['host']} to {folder}, which this driver "
                            "does not see (or sees changed): --out must be on a filesystem every Ray node shares")

@@ -15,6 +15,7 @@ import numpy as np
 from .camera import Camera, frame_bounds, parse_camera
 from .output import FORMATS, check_out, open_sink
 from .renderer import Renderer, check_size
+from ..usd.validate import DamagedCacheError, check_damage, describe_ranges
 from .usd_scene import CacheScene
 
 
@@ -62,13 +63,18 @@ def select_frames(available, frame=None, frames=None):
 
 
 def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=None, fps=None, device=None,
-                 guides=False, only=None, progress=None, gif_colors=255, max_frames=None):
+                 guides=False, only=None, progress=None, gif_colors=255, max_frames=None, allow_damaged=False,
+                 on_skip=None):
     """Render ``cache`` into ``out`` (.png: one frame, the last unless ``frame`` is given; .gif
     or .mp4: ``frames``, every frame by default). ``camera``: None (frame the scene's bounds
     over the drawn frames), a :class:`Camera` or ``"ex,ey,ez,tx,ty,tz"``. ``fps``: playback
     rate (default the cache's). ``only``: names of the prims to draw (default all). ``max_frames``:
     when no frames are named, draw every k-th frame so that at most this many are drawn (and play
     them at fps / k, in real time). ``progress``: called with (frames done, frames in all) after each frame.
+    Damaged caches (chunk files missing, truncated or changed since written, checked against the
+    chunk index as ``warpsim info`` does; every batch layer of a sweep root) raise
+    :class:`warpsim.usd.validate.DamagedCacheError`; with ``allow_damaged`` their frames are left
+    out and ``on_skip(line)`` is told which.
     Returns ``{"path", "frames", "seconds", "camera"}``."""
     width, height = parse_size(size) if isinstance(size, str) else check_size(*size)
     ext = check_out(out)
@@ -76,10 +82,24 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
         camera = parse_camera(camera)
     elif camera is not None and not isinstance(camera, Camera):
         raise ValueError(f"camera must be a Camera or 'ex,ey,ez,tx,ty,tz', got {camera!r}")
+    bad = check_damage(cache, allow_damaged)  # before USD reads a damaged chunk (pxr errors, NaN or empty frames)
     scene = CacheScene(cache, guides=guides, only=only)
+    if bad:
+        scene.frames = [f for f in scene.frames if f not in bad]
+        if not scene.frames:
+            raise DamagedCacheError(f"cache {str(cache)!r}: every frame lies in a damaged chunk file; nothing to draw",
+                                    {"damaged": [], "readable": []})
+        if on_skip is not None:
+            on_skip(f"skipping {len(bad)} frame(s) of damaged chunk files: {describe_ranges(_ranges(bad))}")
     if FORMATS[ext] == "image" and frame is None and frames is None:
         frame = scene.frames[-1] if scene.frames else None
     chosen = select_frames(scene.frames, frame, frames)
+    if bad:
+        chosen = [f for f in chosen if f not in bad]
+        if not chosen:
+            raise DamagedCacheError(f"cache {str(cache)!r}: the frames asked for lie in damaged chunk files; "
+                                    f"readable frames: {describe_ranges(_ranges(scene.frames))}",
+                                    {"damaged": [], "readable": []})
     if FORMATS[ext] == "image" and len(chosen) != 1:
         raise ValueError(f"--out {out!r}: a .png holds one frame but {len(chosen)} were asked; give --frame N "
                          "or write a .gif/.mp4")
@@ -90,8 +110,10 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     fps = scene.fps / step if fps is None else float(fps)
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"--fps {fps}: it must be > 0")
-    if camera is None:  # frame what the scene holds: guides (container walls) drawn but not framed
-        bounds = (CacheScene(cache, only=only) if guides else scene).bounds(None if chosen == [None] else chosen)
+    if camera is None:  # frame the subject (what moves, robustly); else what the scene holds, guides not framed
+        bounds = scene.subject_bounds(None if chosen == [None] else chosen)
+        if bounds is None:
+            bounds = (CacheScene(cache, only=only) if guides else scene).bounds(None if chosen == [None] else chosen)
         if bounds is None:
             bounds = np.array([[-1.0, 0.0, -1.0], [1.0, 1.0, 1.0]])
         camera = frame_bounds(bounds, width, height)
@@ -105,6 +127,17 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
             progress(k + 1, len(chosen))
     path = sink.close()
     return {"path": path, "frames": len(chosen), "seconds": time.perf_counter() - t0, "camera": camera}
+
+
+def _ranges(frames):
+    """Merged (first, last) runs of a set of integer frames."""
+    out = []
+    for f in sorted(frames):
+        if out and f == out[-1][1] + 1:
+            out[-1] = (out[-1][0], f)
+        else:
+            out.append((f, f))
+    return out
 
 
 def _ground(scene, chosen):

@@ -19,14 +19,17 @@ def add_parser(sub):
     p.add_argument("--device", default=None, help="Warp device (default: CUDA when present)")
     p.add_argument("--guides", action="store_true", help="also draw guide prims (container walls), translucent")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--allow-damaged", action="store_true",
+                   help="draw a cache with damaged chunk files anyway, skipping their frames (said on stderr)")
 
 
 def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camera=None, fps=None, device=None,
-              guides=False, progress=True, max_frames=None):
+              guides=False, progress=True, max_frames=None, allow_damaged=False):
     """Shared by ``render`` and ``run --preview``: render and return the result dict; usage
     mistakes raise ``cli.UsageError``."""
     from ..cli_common import UsageError
     from ..cli_common import device_arg as _device
+    from ..usd.validate import DamagedCacheError
     from ..extras import render_modules, require_extra
 
     require_extra("render", f"writing {os.path.basename(str(out))}", render_modules(out))
@@ -49,7 +52,10 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
 
     try:
         return render_cache(cache, out, frame=frame, frames=frames, size=size, camera=camera, fps=fps, device=device,
-                            guides=guides, progress=advance if progress else None, max_frames=max_frames)
+                            guides=guides, progress=advance if progress else None, max_frames=max_frames,
+                            allow_damaged=allow_damaged, on_skip=lambda line: print(f"warpsim: {line}", file=err))
+    except DamagedCacheError:
+        raise  # exit 1, not a usage mistake
     except (ValueError, OSError) as exc:  # FileNotFoundError/PermissionError are OSErrors
         raise UsageError(str(exc)) from None
     finally:
@@ -57,10 +63,16 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
             bar.close()
 
 def run(args, out, err):
+    from ..usd.validate import DamagedCacheError
+
     target = args.out or os.path.splitext(args.cache)[0] + ".gif"
-    result = render_to(args.cache, target, err, frame=args.frame, frames=args.frames, size=args.size,
-                       camera=args.camera, fps=args.fps, device=args.device, guides=args.guides,
-                       progress=not args.no_progress)
+    try:
+        result = render_to(args.cache, target, err, frame=args.frame, frames=args.frames, size=args.size,
+                           camera=args.camera, fps=args.fps, device=args.device, guides=args.guides,
+                           progress=not args.no_progress, allow_damaged=args.allow_damaged)
+    except DamagedCacheError as exc:
+        print(f"warpsim: error: {exc}", file=err)
+        return 1
     n = result["frames"]
     print(f"wrote {result['path']} ({n} frame{'s' if n != 1 else ''}, {result['seconds']:.2f} s, "
           f"{result['camera']})", file=out)

@@ -30,14 +30,22 @@ def _state_names():
         return {}
 
 
-def cache_series(path):
+def cache_series(path, allow_damaged=False, on_skip=None):
     """Panels of a cache's per-frame data: a list of ``{"title", "ylabel", "lines": {label: values}}``
     plus the time axis: returns ``(times [s] (frames,), panels)``. ValueError when the cache does
-    not open."""
+    not open; :class:`warpsim.usd.validate.DamagedCacheError` when chunk files are damaged
+    (``allow_damaged``: their frames are left out and ``on_skip(line)`` says which)."""
     from pxr import UsdGeom
 
+    from ..usd.validate import check_damage
+
+    bad = check_damage(path, allow_damaged, what="plot")
     stage = open_stage(path)
     frames = frame_codes(stage)
+    if bad:
+        frames = [f for f in frames if f not in bad]
+        if on_skip is not None:
+            on_skip(f"skipping {len(bad)} frame(s) of damaged chunk files (readable: {len(frames)} frames)")
     fps = stage.GetTimeCodesPerSecond()
     times = np.asarray(frames, np.float64) / fps
     panels = []
@@ -77,10 +85,10 @@ def cache_series(path):
     return times, panels
 
 
-def plot_cache(path, out=None, size=(8.0, 2.6)):
+def plot_cache(path, out=None, size=(8.0, 2.6), allow_damaged=False, on_skip=None):
     """Draw :func:`cache_series` into ``out`` (default ``<cache stem>.plot.png``); returns
     ``(out, panel count)``. ValueError when there is nothing per-frame to plot."""
-    times, panels = cache_series(path)
+    times, panels = cache_series(path, allow_damaged, on_skip)
     if not panels or len(times) < 2:
         raise ValueError(f"cache {path!r} carries no per-frame scalar data to plot (no time-sampled scalar "
                          "attributes, changing counts or agent states over at least two frames)")
@@ -125,6 +133,8 @@ def add_parser(sub):
     p = sub.add_parser("plot", help="plot the per-frame data of a USD cache (energies, errors, counts, states)")
     p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
     p.add_argument("--out", default=None, help="figure to write (.png/.pdf/.svg; default CACHE.plot.png)")
+    p.add_argument("--allow-damaged", action="store_true",
+                   help="plot a cache with damaged chunk files anyway, leaving their frames out (said on stderr)")
 
 
 def run(args, out, err):
@@ -135,8 +145,14 @@ def run(args, out, err):
 
     if not os.path.exists(args.cache):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
+    from ..usd.validate import DamagedCacheError
+
     try:
-        path, n = plot_cache(args.cache, args.out)
+        path, n = plot_cache(args.cache, args.out, allow_damaged=args.allow_damaged,
+                             on_skip=lambda line: print(f"warpsim: {line}", file=err))
+    except DamagedCacheError as exc:
+        print(f"warpsim: error: {exc}", file=err)
+        return 1
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     print(f"wrote {path} ({n} panel{'s' if n != 1 else ''})", file=out)

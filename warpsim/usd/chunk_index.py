@@ -160,7 +160,9 @@ def chunk_problem(dirname, fname, rec, verify=True):
         try:
             layer = Sdf.Layer.OpenAsAnonymous(path)
         except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
-            return f"damaged (does not open in USD: {str(exc).strip().splitlines()[-1][:120]})"
+            from .pxr_errors import pxr_reason
+
+            return f"damaged (does not open in USD: {pxr_reason(exc, 120)})"
         return None if layer is not None else "damaged (does not open in USD)"
     if size != rec["bytes"]:
         return f"damaged ({size} bytes, written as {rec['bytes']})"

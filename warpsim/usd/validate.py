@@ -14,9 +14,12 @@ from __future__ import annotations
 import math
 import os
 
+from .pxr_errors import pxr_reason
+
 import numpy as np
 
-__all__ = ["cache_info", "chunk_health", "open_stage", "validate_cache"]
+__all__ = ["DamagedCacheError", "cache_info", "check_damage", "chunk_health", "damage_report", "open_stage",
+           "sweep_layers", "validate_cache"]
 
 _POINT_ATTR = {"Points": "points", "Mesh": "points", "BasisCurves": "points", "PointInstancer": "positions"}
 
@@ -26,9 +29,23 @@ def open_path(path):
     path = os.fspath(path)
     if os.path.isfile(path) and os.access(path, os.R_OK):
         return path  # the common case without importing warpsim.core (and Warp): 'warpsim info' stays fast
+    if os.path.exists(path) and not os.path.isdir(path):  # a FIFO, socket or device would block or never end
+        raise ValueError(f"USD cache {path!r} is not a regular file (a pipe, socket or device); give the cache "
+                         "file itself (.usd, .usda or .usdc)")
     from ..core.checks import existing_file
 
     return existing_file(path, "USD cache")
+
+
+def _not_usd(path, exc):
+    """ValueError for a file that does not open as USD: warpsim's words, pxr's reason trailing."""
+    path = os.fspath(path)
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        size = None
+    what = "is empty (0 bytes)" if size == 0 else "is not a readable USD file (truncated, damaged or another format)"
+    return ValueError(f"USD cache {path!r} {what}; write it again with 'warpsim run' (USD says: {pxr_reason(exc)})")
 
 
 def open_stage(path_or_stage):
@@ -41,7 +58,7 @@ def open_stage(path_or_stage):
     try:
         stage = Usd.Stage.Open(path)
     except Exception as exc:  # noqa: BLE001  (pxr raises Tf.ErrorException)
-        raise ValueError(f"USD cache {path!r} does not open: {str(exc).strip().splitlines()[-1][:200]}") from None
+        raise _not_usd(path, exc) from None
     if stage is None:
         raise ValueError(f"USD cache {path!r} does not open")
     return stage
@@ -114,7 +131,7 @@ def _check_prim(prim, frames):
             widths = prim.GetAttribute("widths").Get(code)
             if widths is not None and len(widths) == 1:
                 pad = 0.5 * float(widths[0])
-            elif widths is not None and len(widths) == n and type_name == "Points":
+            elif widths is not None and len(widths) == n:  # per point (curves: per vertex, e.g. hair)
                 pad = 0.5 * np.asarray(widths, np.float64)[:, None]
             elif widths is not None and len(widths):
                 out.append(f"{where} at {t}: {len(widths)} widths for {n} points")
@@ -169,6 +186,8 @@ def _root_chunks(layer, root_prim=None):
     """[[start, end, file], ...] listed by a warpsim root layer, or None if it lists none."""
     data = dict(layer.customLayerData.get("warpsim", {}))
     world = layer.GetPrimAtPath("/" + (root_prim or layer.defaultPrim or "World"))
+    if world and not world.HasInfo("clips"):  # a sweep's batch layer: the same clips on every world prim
+        world = next((c for c in world.nameChildren if c.HasInfo("clips")), world)
     clips = dict(world.GetInfo("clips")).get("default") if world and world.HasInfo("clips") else None
     if not clips or "chunkEnds" not in data:
         return None
@@ -192,14 +211,17 @@ def chunk_health(path, verify=None):
     try:
         layer = Sdf.Layer.OpenAsAnonymous(path)
     except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
-        raise ValueError(f"USD cache {path!r} does not open: {str(exc).strip().splitlines()[-1][:160]}") from None
+        raise _not_usd(path, exc) from None
     if layer is None:
         raise ValueError(f"USD cache {path!r} does not open")
     chunks = _root_chunks(layer)
     if chunks is None:
         return None
     dirname, base = os.path.split(path)
-    records = chunk_index.read_index(chunk_index.index_path(dirname, os.path.splitext(base)[0]))
+    named = dict(layer.customLayerData.get("warpsim", {})).get("chunkIndex")
+    index_file = os.path.join(dirname, os.path.basename(str(named))) if named else \
+        chunk_index.index_path(dirname, os.path.splitext(base)[0])
+    records = chunk_index.read_index(index_file)
     if records is not None and verify is None:
         verify = sum(r.get("bytes", 0) for r in records.values()) <= 256 << 20
     damaged = []
@@ -215,6 +237,134 @@ def chunk_health(path, verify=None):
             "readable": chunk_index.readable_ranges(chunks, {d[0] for d in damaged})}
 
 
+class DamagedCacheError(ValueError):
+    """A cache with damaged chunk files, read without ``allow_damaged`` (exit status 1 on the
+    command line). ``report`` holds ``damaged`` [(file, start, end, why)] and ``readable``."""
+
+    def __init__(self, message, report):
+        super().__init__(message)
+        self.report = report
+
+
+def sweep_layers(path):
+    """Absolute paths of the layers a sweep root references (its batch layers); [] for a cache
+    that references none. ValueError when the root itself does not open."""
+    from pxr import Sdf
+
+    path = os.path.abspath(os.fspath(path))
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(path)
+    except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
+        raise _not_usd(path, exc) from None
+    if layer is None:
+        raise ValueError(f"USD cache {path!r} does not open")
+    folder = os.path.dirname(path)
+    out = []
+    for asset in layer.GetCompositionAssetDependencies():
+        target = os.path.normpath(os.path.join(folder, str(asset)))
+        if target not in out and os.path.splitext(target)[1] in (".usd", ".usda", ".usdc"):
+            out.append(target)
+    return out
+
+
+def damage_report(path, verify=None):
+    """``{"damaged", "readable", "checked", "start", "end"}`` of a chunked cache or of a sweep
+    root (every batch layer it references, each checked like :func:`chunk_health`; a missing or
+    unopenable layer damages every frame); None for a cache with neither (nothing to check)."""
+    from pxr import Sdf
+
+    path = os.path.abspath(os.fspath(path))
+    health = chunk_health(path, verify)
+    if health is not None:
+        chunks = health["chunks"]
+        return {"damaged": health["damaged"], "readable": health["readable"], "checked": health["checked"],
+                "start": chunks[0][0] if chunks else None, "end": chunks[-1][1] if chunks else None}
+    layers = sweep_layers(path)
+    if not layers:
+        return None
+    root = Sdf.Layer.OpenAsAnonymous(path)
+    start = int(root.startTimeCode) if root.HasStartTimeCode() else None
+    end = int(root.endTimeCode) if root.HasEndTimeCode() else None
+    damaged, checked = [], set()
+    for layer_path in layers:
+        name = os.path.basename(layer_path)
+        if not os.path.isfile(layer_path):
+            damaged.append((name, start, end, "missing (a batch layer of this sweep)"))
+            continue
+        try:
+            sub = chunk_health(layer_path, verify)
+        except ValueError as exc:
+            why = str(exc).rsplit("(USD says: ", 1)[-1].rstrip(")") if "USD says" in str(exc) else str(exc)
+            damaged.append((name, start, end, f"damaged (does not open in USD: {why[:100]})"))
+            continue
+        if sub is None:  # one self-contained layer: it must open
+            checked.add("opened in USD")
+            continue
+        checked.add(sub["checked"])
+        damaged += [(f"{name}: {f}", a, b, why) for f, a, b, why in sub["damaged"]]
+        if sub["chunks"]:
+            start = sub["chunks"][0][0] if start is None else min(start, sub["chunks"][0][0])
+            end = sub["chunks"][-1][1] if end is None else max(end, sub["chunks"][-1][1])
+    return {"damaged": damaged, "readable": _readable(start, end, damaged),
+            "checked": ", ".join(sorted(checked)) or "layers exist", "start": start, "end": end}
+
+
+def _readable(start, end, damaged):
+    """Frame ranges of start..end outside every damaged (file, a, b, why) range."""
+    if start is None or end is None:
+        return []
+    bad = sorted((a if a is not None else start, b if b is not None else end) for _, a, b, _ in damaged)
+    out, t = [], start
+    for a, b in bad:
+        if a > t:
+            out.append((t, min(a - 1, end)))
+        t = max(t, b + 1)
+    if t <= end:
+        out.append((t, end))
+    return out
+
+
+def bad_frames(report) -> set:
+    """Frames of a :func:`damage_report` that lie in a damaged chunk or layer."""
+    if not report or not report["damaged"]:
+        return set()
+    start, end = report["start"], report["end"]
+    out = set()
+    for _, a, b, _ in report["damaged"]:
+        a = start if a is None else a
+        b = end if b is None else b
+        if a is not None and b is not None:
+            out.update(range(int(a), int(b) + 1))
+    return out
+
+
+def describe_ranges(ranges) -> str:
+    return ", ".join(f"{a}..{b}" if a != b else f"{a}" for a, b in ranges) or "none"
+
+
+def check_damage(path, allow_damaged=False, what="draw"):
+    """Frames to leave out of ``path`` (a set; empty for an intact cache) after checking its
+    chunk index like ``warpsim info``. Without ``allow_damaged`` a damaged cache raises
+    :class:`DamagedCacheError` naming the first damaged chunk and the readable frames."""
+    if isinstance(path, str) or isinstance(path, os.PathLike):
+        report = damage_report(path)
+    else:
+        return set()
+    if not report or not report["damaged"]:
+        return set()
+    first = report["damaged"][0]
+    readable = describe_ranges(report["readable"])
+    span = f"frames {first[1]}..{first[2]}" if first[1] is not None else "every frame"
+    if not allow_damaged or not report["readable"]:
+        if not report["readable"]:
+            raise DamagedCacheError(f"cache {os.fspath(path)!r} is damaged: {first[0]} ({span}) is {first[3]} and no "
+                                    f"frame is readable; nothing to {what}: restore the file or run again", report)
+        raise DamagedCacheError(f"cache {os.fspath(path)!r} is damaged: {len(report['damaged'])} chunk file(s), "
+                                f"first {first[0]} ({span}) is {first[3]}; readable frames: {readable}; {what} only "
+                                "those with --allow-damaged (allow_damaged=True), or restore the file", report)
+    return bad_frames(report)
+
+
 def cache_info(path_or_stage, verify=None):
     """Summary dict: ``fps``, ``start``, ``end``, ``frames`` and ``prims`` (path, type, min/max
     element count, union of extents over all frames as ``bounds`` [[lo], [hi]] in metres).
@@ -228,6 +378,18 @@ def cache_info(path_or_stage, verify=None):
     health = None if isinstance(path_or_stage, Usd.Stage) else chunk_health(open_path(path_or_stage), verify)
     if health is not None and (health["records"] is not None or health["damaged"]):
         return _indexed_info(path_or_stage, health)
+    sweep = None if isinstance(path_or_stage, Usd.Stage) or health is not None else \
+        damage_report(open_path(path_or_stage), verify)
+    if sweep is not None and sweep["damaged"]:  # a sweep root with a damaged batch layer: read nothing of them
+        from pxr import Sdf
+
+        root = Sdf.Layer.OpenAsAnonymous(os.path.abspath(os.fspath(path_or_stage)))
+        frames = sum(b - a + 1 for a, b in _readable(sweep["start"], sweep["end"], []))
+        return {"path": os.path.abspath(os.fspath(path_or_stage)), "fps": root.timeCodesPerSecond, "start": sweep["start"], "end": sweep["end"],
+                "frames": frames, "prims": [], "damaged": sweep["damaged"], "readable": sweep["readable"],
+                "checked": sweep["checked"]}
+    if sweep is not None:
+        health = {"checked": sweep["checked"]}
     stage = open_stage(path_or_stage)
     frames = frame_codes(stage)
     prims = []
@@ -279,7 +441,8 @@ def _indexed_info(path, health):
         if not prim.IsA(UsdGeom.Boundable):
             continue
         entry = {"path": str(prim.GetPath()), "type": str(prim.GetTypeName())}
-        name = prim.GetName() if world and prim.GetParent() == world else None
+        parent = prim.GetParent()
+        name = prim.GetName() if world and (parent == world or parent.GetParent() == world) else None
         animated = any(name in r["prims"] for r in records.values()) if name else False
         if animated:
             stats = [r["prims"][name] for r in good if name in r["prims"]]

@@ -402,6 +402,7 @@ class UsdCacheWriter(PrimSink):
         layer.pseudoRoot.SetInfo("upAxis", "Y")
         layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
         layer.customLayerData = {"warpsim": {"chunkSize": self.chunk_size,
+                                             "chunkIndex": os.path.basename(self._index_file),
                                              "chunkEnds": Vt.IntArray([c[1] for c in self.chunks])}}
         if self.chunks:
             layer.startTimeCode = float(self.chunks[0][0])
@@ -414,6 +415,10 @@ class UsdCacheWriter(PrimSink):
                 "primPath": "/" + self.root_prim,
             }})
         return layer
+
+    def _clip_prim(self, layer):
+        """The prim spec of ``layer`` whose ``clips`` list the chunks (the root prim here)."""
+        return layer.GetPrimAtPath("/" + self.root_prim)
 
     def _write_root(self):
         self._export_atomic(self._build_layer(manifest=False), self.path)
@@ -428,7 +433,7 @@ class UsdCacheWriter(PrimSink):
             raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} does not exist")
         old = Sdf.Layer.OpenAsAnonymous(self.path)
         data = dict(old.customLayerData.get("warpsim", {}))
-        world = old.GetPrimAtPath("/" + self.root_prim)
+        world = self._clip_prim(old)
         clips = dict(world.GetInfo("clips")).get("default") if world and world.HasInfo("clips") else None
         if not clips or "chunkEnds" not in data:
             raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} holds no chunked warpsim "

@@ -7,6 +7,7 @@ exit 2 with one line, as ``warpsim run`` does. Imports nothing heavy until it ru
 from __future__ import annotations
 
 import os
+import sys
 
 __all__ = ["add_parser", "run"]
 
@@ -24,6 +25,8 @@ def add_parser(sub):
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     v.add_argument("--max-points", type=int, default=200_000,
                    help="points drawn per particle prim; larger sets are shown as an even subset")
+    v.add_argument("--allow-damaged", action="store_true",
+                         help="play a cache with damaged chunk files anyway, leaving their frames out")
     v.add_argument("--paused", action="store_true", help="start paused")
     v.add_argument("--environment", action="store_true",
                    help="image-based lighting (prettier; slow where the browser has no GPU)")
@@ -58,11 +61,21 @@ def build(args):
         from ..worlds.gallery import GalleryViewer, is_sweep_root
         from .playback import PlaybackViewer
 
+        from ..usd.validate import DamagedCacheError, check_damage
+
         player = GalleryViewer if is_sweep_root(args.scene) else PlaybackViewer  # a sweep: its worlds side by side
         try:
-            return player(args.scene, host=args.host, port=args.port, max_points=args.max_points)
+            bad = check_damage(args.scene, getattr(args, "allow_damaged", False), what="play")
+            viewer = player(args.scene, host=args.host, port=args.port, max_points=args.max_points)
+        except DamagedCacheError:
+            raise  # exit 1: the cache, not the command line, is at fault
         except ValueError as exc:
             raise cli.UsageError(str(exc)) from None
+        reader = getattr(viewer, "reader", None)
+        if bad and reader is not None and hasattr(reader, "frames"):
+            reader.frames = [f for f in reader.frames if f not in bad]
+            print(f"warpsim: leaving out {len(bad)} frame(s) of damaged chunk files", file=sys.stderr)
+        return viewer
     from ..scenes import get_scene
     from .server import Viewer
 
@@ -96,7 +109,13 @@ def run(args, out, err):
 
     _viser_or_usage()  # before any work
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
-    viewer = build(args)
+    from ..usd.validate import DamagedCacheError
+
+    try:
+        viewer = build(args)
+    except DamagedCacheError as exc:
+        print(f"warpsim: error: {exc}", file=err)
+        return 1
     try:
         viewer.start()
     except PortInUseError as exc:  # taken between the check and the start

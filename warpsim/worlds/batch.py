@@ -374,21 +374,42 @@ class WorldBatch:
         """Host copies (N, P, 3) of the positions and velocities."""
         n, P = self.world_count, self.model.world_particle_count
         st = self.sim.state
+        broken = getattr(self.model, "spring_broken", None)  # breakable springs: each world's own mask
+        self._frame_broken = None if broken is None else broken.numpy().reshape(n, -1)
         return st.positions.numpy().reshape(n, P, 3), st.velocities.numpy().reshape(n, P, 3)
 
     def world_frame_data(self, x, v, world=None):
         """The scene's frame data for one world whose positions / velocities are ``x``, ``v`` (P, 3)
-        (``world``: its index in the batch, unused here: the slices say everything)."""
+        (``world``: its index in the batch, needed when springs can break: the frame data then
+        draws that world's own broken springs, read by the last :meth:`world_slices`)."""
         sim0 = self.scene.sim
-        saved = sim0.state
+        saved, saved_model = sim0.state, sim0.model
         view = copy.copy(saved)
         view.positions = wp.array(np.ascontiguousarray(x), dtype=wp.vec3, device="cpu")
         view.velocities = wp.array(np.ascontiguousarray(v), dtype=wp.vec3, device="cpu")
         sim0.state = view
+        broken = getattr(self, "_frame_broken", None)
+        had_report = "last_report" in vars(self.scene)
+        saved_report = getattr(self.scene, "last_report", None)
+        if broken is not None and world is not None:
+            from types import SimpleNamespace
+
+            mask = broken[int(world)]
+            model = copy.copy(saved_model)
+            model.spring_broken = wp.array(mask, dtype=saved_model.spring_broken.dtype, device="cpu")
+            sim0.model = model
+            seen = self.__dict__.setdefault("_broken_seen", {})
+            before = seen.get(int(world), np.zeros_like(mask))
+            self.scene.last_report = SimpleNamespace(springs=np.flatnonzero((mask != 0) & (before == 0)))
+            seen[int(world)] = mask.copy()
         try:
             return self.scene.frame_data()
         finally:
-            sim0.state = saved
+            sim0.state, sim0.model = saved, saved_model
+            if had_report:
+                self.scene.last_report = saved_report
+            elif "last_report" in vars(self.scene):
+                del self.scene.last_report
 
 
 def end_frame(batch) -> None:

@@ -69,6 +69,8 @@ def add_parser(sub):
     s.add_argument("--fused", action="store_true",
                    help="step mass-spring scenes through the fused semi-implicit kernel (faster on GPUs; agrees "
                         "to float32 rounding)")
+    s.add_argument("--chunk", type=int, default=24, metavar="K",
+                   help="frames per chunk file of the batch layer (default 24; completed chunks survive a kill)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.add_argument("--rerun", type=int, default=None, metavar="N",
                    help="run only world N of this sweep, alone, exactly as in the whole sweep (writes "
@@ -148,6 +150,8 @@ def run(args, out, err):
         raise usage(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
     if ray_usage_error(args):
         raise usage(ray_usage_error(args))
+    if args.chunk < 1:
+        raise usage(f"--chunk {args.chunk}: it must be >= 1 (frames per chunk file)")
     if getattr(args, "ray", None) is not None:
         from ..extras import require_extra
 
@@ -223,8 +227,8 @@ def run(args, out, err):
         except ValueError as exc:
             raise usage(str(exc)) from None
     layer = f"{stem}.batch_0000{LAYER_EXT}"
-    run_timing = {}  # the steps per frame the run took (a Ray sweep's batches do not say)
     progress = None
+    run_timing = {}  # steps per frame the single-process batch took (a Ray sweep: the driver's count)
     try:
         if getattr(args, "ray", None) is not None:
             from ..distributed.ray_sweep import DEFAULT_BATCH_SIZE, run_ray_sweep
@@ -244,26 +248,38 @@ def run(args, out, err):
                                                   **({"frame_steps": steps} if steps is not None else {})} or None,
                                    log=err)
             rows, root = result["rows"], result["root"]
-            import glob
-
-            layers = sorted(glob.glob(os.path.join(glob.escape(stem) + ".batches", "batch_*", "*" + LAYER_EXT)))
+            layers = result["layers"]
         else:
+            from .staging import SweepStaging, settings_digest
+
+            staging = SweepStaging(path, {"scene": cls.name, "frames": args.frames, "fps": args.fps,
+                                          "substeps": args.substeps, "chunk": args.chunk, "fused": bool(args.fused),
+                                          "track": track or {}, "worlds": settings_digest(world_params)},
+                                   resume=bool(getattr(args, "resume", False)))
+            first = staging.resume_frame()
+            if first:
+                print(f"resuming: frames 0..{first - 1} are in {os.path.relpath(staging.layer)}; re-simulating them "
+                      "without writing, then writing on", file=err)
             if not args.no_progress:
                 from tqdm import tqdm
 
                 progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                                 dynamic_ncols=True)
+            record = _record_path(path)
             rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                             device=device, layer_path=layer, first_world=0, track=track,
+                             device=device, layer_path=staging.layer, first_world=0, track=track,
                              progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
-                             occupancy={**occupancy, "path": _record_path(path)},
-                             warn=lambda line: _stability_warning(line, args.strict, err), timing=run_timing)
+                             occupancy={**occupancy, "path": staging.partial(record)},
+                             warn=lambda line: _stability_warning(line, args.strict, err), chunk_size=args.chunk,
+                             resume_frame=first, timing=run_timing)
             if progress:
                 progress.close()
                 progress = None
+            layer = staging.publish([(staging.partial(record), record)])  # the old sweep stays whole until here
             write_table(table, rows)
             layers = [layer]
             root = write_sweep_root(path, layers, len(world_params), layout=args.layout)
+            staging.finish()
         from .rerun import write_manifest  # what re-running one world exactly needs
 
         write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
@@ -313,6 +329,15 @@ def run(args, out, err):
     return 0
 
 
+def _check_memory(cls, base, worlds, device):
+    """Refuse a sweep whose memory estimate (from world 0 built on the CPU) does not fit."""
+    scene = cls(base, device="cpu")
+    model = getattr(getattr(scene, "sim", None), "model", None)
+    if model is None:
+        return
+    preflight.check_sweep_memory(cls.name, int(model.particle_count), int(model.spring_count), worlds, device)
+
+
 def _record_path(root):
     from .occupancy import occupancy_path
 
@@ -335,15 +360,6 @@ def _regions(args, fps):
         raise ValueError(f"--occupancy-res {res}: give 1..256 cells along the grid's longest side")
     bounds = parse_bounds(args.occupancy_bounds) if args.occupancy_bounds else None
     return regions, {"resolution": res, "bounds": bounds}
-
-
-def _check_memory(cls, base, worlds, device):
-    """Refuse a sweep whose memory estimate (from world 0 built on the CPU) does not fit."""
-    scene = cls(base, device="cpu")
-    model = getattr(getattr(scene, "sim", None), "model", None)
-    if model is None:
-        return
-    preflight.check_sweep_memory(cls.name, int(model.particle_count), int(model.spring_count), worlds, device)
 
 
 def _timing(cls, params, fps, substeps):

@@ -219,7 +219,7 @@ def answer_region(record, region, positions=None, budget=REFINE_BUDGET) -> Regio
         s = np.stack([positions(w, f0, f1) for w in doubt]) if len(doubt) else \
             np.zeros((0, f1 - f0 + 1, len(record.particles), 3), np.float32)
     exact = s is not None
-    if exact:
+    if s is not None:
         s = s.astype(np.float64)
         inside = ((s >= np.asarray(region.lo)) & (s <= np.asarray(region.hi))).all(axis=-1)
         frames = np.zeros_like(frames)

@@ -66,7 +66,7 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
     :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
     ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
     resolved over all worlds, so a world alone must be told). Returns its path."""
-    from .. import __version__
+    from .._version import __version__
     from ..scenes import get_scene
 
     from .sweep import frame_timing
@@ -93,7 +93,7 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
 def read_manifest(root, scene=None) -> dict:
     """The manifest of the sweep at ``root``, checked against this warpsim and the scene's current
     defaults (and against ``scene``, a scene name, when given). ValueError (one line) otherwise."""
-    from .. import __version__
+    from .._version import __version__
     from ..scenes import get_scene
 
     root = os.fspath(root)

@@ -83,6 +83,13 @@ def parse_vary(text, params) -> VarySpec:
             if log and not (lo > 0 and hi > 0):
                 raise ValueError(f"--vary {key}={spec}: a log range needs bounds > 0 (got {lo:g}:{hi:g}); "
                                  "drop ':log' or use positive bounds")
+            if isinstance(lo, float):  # the worlds hold float32: bounds that round away are not what was asked
+                tiny, huge = float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max)
+                for name, bound in (("lo", lo), ("hi", hi)):
+                    if bound != 0.0 and not tiny <= abs(bound) <= huge:
+                        raise ValueError(f"--vary {key}={spec}: {name} {bound:g} is outside the float32 range the "
+                                         f"simulation holds ({tiny:.3g} .. {huge:.3g} in magnitude, or 0); give "
+                                         "bounds inside it")
         return VarySpec(key, lo=lo, hi=hi, log=log)
     items = spec.split(";") if vector else spec.split(",")
     items = [s for s in (i.strip() for i in items) if s]

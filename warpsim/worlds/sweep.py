@@ -84,7 +84,7 @@ def make_batch(cls, world_params, device=None, fused=False):
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
-              warn=None, timing=None, frame_steps=None) -> list:
+              warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -94,6 +94,10 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     world} for position metrics; ``metrics``: :class:`warpsim.worlds.metrics.UserMetric` list;
     ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
     ``fused``: step through the fused semi-implicit kernel (:class:`WorldBatch`);
+    ``chunk_size``: frames per chunk file of the layer (completed chunks survive a kill);
+    ``resume_frame``: keep the layer's completed chunks before this frame, re-simulate the frames
+    before it without writing them (the run is bit-reproducible, so they come out the same) and
+    write on from there;
     ``progress(frame)``: called after each frame; ``occupancy``: None, or {"path": record file,
     "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
     occupancy record of these worlds (:mod:`warpsim.worlds.occupancy`; the tracked particles
@@ -121,27 +125,36 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = make_batch(cls, world_params, device=device, fused=fused)
-    scene = getattr(batch, "batch_scene", None)  # None: a batch of flocks (no springs, no sub-step limit)
-    if scene is not None:
-        scene.auto_substeps = auto
-        if frame_steps is not None:
-            scene.frame_steps_fixed = int(frame_steps)
-    if timing is not None and scene is not None:
-        timing["frame_steps"] = int(scene.frame_steps(frame_dt, substeps))
-    if warn is not None and scene is not None:
+    stepped = getattr(batch, "batch_scene", None)  # flocks (AgentWorldBatch) step their own way
+    if stepped is not None:
+        stepped.auto_substeps = auto
+        if frame_steps is not None:  # a Ray batch: the count resolved over the whole sweep
+            stepped.frame_steps_fixed = int(frame_steps)
+    if timing is not None:
+        timing["frame_steps"] = int(stepped.frame_steps(frame_dt, substeps) if stepped is not None else substeps)
+    if warn is not None and stepped is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
     stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt)
-    writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps)
+    if resume_frame is not None and not 0 <= int(resume_frame) <= int(frames) + 1:
+        raise ValueError(f"resume_frame {resume_frame}: the run has frames 0..{frames}")
+    writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps, chunk_size=chunk_size,
+                              resume_frame=resume_frame)
+    writer.scene_name = scene_name
     recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
     for i, p in enumerate(getattr(batch, "params", given)):
         writer.set_world_params(i, p)
+    writer.begin()  # adopts the kept chunks of a resumed layer (ValueError when one is damaged)
+    first_written = int(resume_frame or 0)
 
     def write(frame):
         x, v = batch.world_slices()
-        for w in range(batch.world_count):
-            writer.write_world(w, frame, batch.world_frame_data(x[w], v[w], w))
+        datas = [batch.world_frame_data(x[w], v[w], w) for w in range(batch.world_count)]
+        if frame < first_written:
+            writer.observe(datas)
+        else:
+            writer.write_worlds(frame, datas)
 
     def body():
         batch.advance(frame_dt, substeps)

@@ -14,9 +14,12 @@ selected), or (``layout="grid"``) holds every world side by side on a grid in th
 from __future__ import annotations
 
 import math
+import operator
 import os
 
 import numpy as np
+
+from ..usd.writer import UsdCacheWriter
 
 __all__ = ["BatchLayerWriter", "world_prim_name", "write_sweep_root"]
 
@@ -27,104 +30,162 @@ def world_prim_name(world: int) -> str:
     return f"world_{int(world):06d}"
 
 
-class BatchLayerWriter:
-    """Streams the frames of ``world_count`` worlds (global indices ``first_world ..``) into one layer."""
+class BatchLayerWriter(UsdCacheWriter):
+    """Streams the frames of ``world_count`` worlds (global indices ``first_world ..``) into one
+    crash-safe chunked layer (:class:`warpsim.usd.writer.UsdCacheWriter` with root prim
+    ``/Worlds``): frames go to chunk files of ``chunk_size`` frames beside ``path``, each world
+    prim lists them as value clips (clips do not reach through a reference to a prim below the
+    one that carries them), and a process killed at any moment leaves a layer holding every
+    completed chunk. ``resume_frame``: keep the completed chunks before that frame and go on."""
 
-    def __init__(self, path, scene, first_world, world_count, fps, save_bytes=64 << 20):
-        from pxr import Sdf
-
-        from ..usd.writer import UsdCacheWriter
-
+    def __init__(self, path, scene, first_world, world_count, fps, save_bytes=64 << 20, *, chunk_size=24,
+                 resume_frame=None, durable=True):
         path = os.path.abspath(os.fspath(path))
         if os.path.splitext(path)[1] not in (".usd", ".usdc", ".usda"):
             raise ValueError(f"batch layer {path!r} must end in .usd, .usdc or .usda")
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        self.decls = UsdCacheWriter(path, fps=fps)  # collects the scene's declarations; writes nothing
-        scene.declare(self.decls)
-        self.path, self.first_world, self.world_count, self.fps = path, int(first_world), int(world_count), fps
-        self.layer = Sdf.Layer.Find(path)  # open in this process already (a rerun): start it afresh
-        if self.layer is not None:
-            self.layer.Clear()
-        else:
-            if os.path.exists(path):
-                os.remove(path)
-            self.layer = Sdf.Layer.CreateNew(path)
-        if self.layer is None:
-            raise PermissionError(f"could not create the batch layer {path}; check the folder is writable")
-        root = Sdf.CreatePrimInLayer(self.layer, "/Worlds")
-        root.specifier = Sdf.SpecifierDef
-        root.typeName = "Scope"
-        self.dynamic = {name: d for name, d in self.decls.prims.items() if d.is_dynamic}
-        for k in range(self.world_count):
-            spec = Sdf.CreatePrimInLayer(self.layer, f"/Worlds/{world_prim_name(self.first_world + k)}")
-            spec.specifier = Sdf.SpecifierDef
-            spec.typeName = "Xform"
-            for name, decl in self.decls.prims.items():
-                self.decls._declare_prim(self.layer, spec.path.AppendChild(name), decl, False)
+        super().__init__(path, fps=fps, chunk_size=chunk_size, resume_frame=resume_frame, root_prim="Worlds",
+                         durable=durable, save_bytes=save_bytes)
+        scene.declare(self)
+        self.first_world, self.world_count = int(first_world), int(world_count)
+        self.scene_name = ""
+        self.world_params = {}
+        self.dynamic = {name: d for name, d in self.prims.items() if d.is_dynamic}
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
-        for decl in self.decls.prims.values():  # static geometry counts in a world's extent
+        for decl in self.prims.values():  # static geometry counts in a world's extent
             pts = getattr(decl.attrs.get("points"), "value", None)
             if pts is not None and not decl.is_dynamic:
                 pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
                 self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
-        self.first_frame = self.last_frame = None
-        self._pending = 0
-        self._save_bytes = save_bytes
-        self._last = {}
 
     def set_world_params(self, local, params):
         """Author world ``local``'s parameters on its prim: ``customData["warpsim"]`` holds
         ``world`` (the global index) and ``params`` {name: value}, so a root or a picked file that
         references the prim carries them (not only the CSV)."""
-        spec = self.layer.GetPrimAtPath(f"/Worlds/{world_prim_name(self.first_world + local)}")
-        spec.customData = {"warpsim": {"world": self.first_world + int(local),
-                                       "params": {str(k): _custom_value(v) for k, v in params.items()}}}
+        self.world_params[int(local)] = dict(params)
 
-    def write_world(self, local, frame, data):
-        """Samples of one world (``local`` in 0..world_count-1) at ``frame`` from the scene's frame data."""
+    def _world_path(self, local):
+        return f"/Worlds/{world_prim_name(self.first_world + local)}"
+
+    def observe(self, datas):
+        """Widen the worlds' extent by one frame's data without writing it (frames a resumed
+        run re-simulates before its first new chunk)."""
+        for data in datas:
+            for name in self.dynamic:
+                value = (data.get(name) or {}).get("points")
+                if value is None:
+                    continue
+                pts = np.asarray(getattr(value, "numpy", lambda: value)(), dtype=np.float64).reshape(-1, 3)
+                if len(pts) and np.isfinite(pts).all():
+                    self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
+
+    def write_worlds(self, frame, datas):
+        """One frame of every world: ``datas[local]`` is world ``local``'s frame data
+        (``{prim name: {key: array}}``, as ``scene.frame_data()`` gives it)."""
+        if self._closed:
+            raise ValueError("the writer is closed")
+        frame = operator.index(frame)
+        if len(datas) != self.world_count:
+            raise ValueError(f"frame {frame}: data for {len(datas)} worlds, the layer holds {self.world_count}")
+        if not self._sealed:
+            self._seal()
+        if self.last_frame is not None and frame <= self.last_frame:
+            raise ValueError(f"frames must increase: got frame {frame} after {self.last_frame}")
+        samples = [{name: decl.frame_samples(data.get(name), frame) for name, decl in self.dynamic.items()}
+                   for data in datas]
+        if self._chunk is not None and frame // self.chunk_size != self._chunk.start // self.chunk_size:
+            self._finish_chunk()
+        if self._chunk is None:
+            self._open_chunk(frame)
+        self._write_samples(frame, samples)
+        self.last_frame = frame
+
+    def _write_samples(self, frame, samples):
         from ..usd.writer import to_vt
 
-        base = f"/Worlds/{world_prim_name(self.first_world + local)}"
-        for name, decl in self.dynamic.items():
-            for attr_name, value in decl.frame_samples(data.get(name), frame).items():
-                attr = decl.attrs[attr_name]
-                path = f"{base}/{name}.{attr_name}"
-                if attr.on_change:
-                    prev = self._last.get(path)
-                    if prev is not None and np.array_equal(prev, value):
-                        continue
-                    self._last[path] = np.array(value, copy=True)
-                if attr_name == "points":
-                    pts = np.asarray(value, dtype=np.float64).reshape(-1, 3)
-                    if len(pts) and np.isfinite(pts).all():
-                        self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
-                self.layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
-                self._pending += getattr(value, "nbytes", 8)
-        self.first_frame = frame if self.first_frame is None else min(self.first_frame, frame)
-        self.last_frame = frame if self.last_frame is None else max(self.last_frame, frame)
-        if self._pending >= self._save_bytes:
-            self.layer.Save()
-            self._pending = 0
+        chunk = self._chunk
+        layer = chunk.layer
+        for local, world in enumerate(samples):
+            base = self._world_path(local)
+            for name, values in world.items():
+                decl = self.prims[name]
+                for attr_name, value in values.items():
+                    attr = decl.attrs[attr_name]
+                    path = f"{base}/{name}.{attr_name}"
+                    if attr.on_change:
+                        prev = chunk.last.get(path)
+                        if prev is not None and np.array_equal(prev, value):
+                            continue
+                        chunk.last[path] = np.array(value, copy=True)
+                    if attr_name == "points":
+                        pts = np.asarray(value, dtype=np.float64).reshape(-1, 3)
+                        if len(pts) and np.isfinite(pts).all():
+                            self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
+                    layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
+                    chunk.pending_bytes += getattr(value, "nbytes", 8)
+            chunk.stats.add_frame(world)
+        chunk.end = frame
+        if chunk.pending_bytes >= self.save_bytes:
+            layer.Save()
+            chunk.pending_bytes = 0
 
-    def close(self, scene_name=""):
+    def _dynamic_paths(self):
+        return [f"{self._world_path(k)}/{name}.{a.name}" for k in range(self.world_count)
+                for name, d in self.dynamic.items() for a in d.dynamic_attrs()]
+
+    def _clip_prim(self, layer):
+        return layer.GetPrimAtPath(self._world_path(0))
+
+    def _declare_specs(self, layer, manifest):
+        from pxr import Sdf
+
+        root = Sdf.CreatePrimInLayer(layer, "/Worlds")
+        root.specifier = Sdf.SpecifierDef
+        root.typeName = "Scope"
+        for k in range(self.world_count):
+            spec = Sdf.CreatePrimInLayer(layer, self._world_path(k))
+            spec.specifier = Sdf.SpecifierDef
+            spec.typeName = "Xform"
+            if not manifest and k in self.world_params:
+                spec.customData = {"warpsim": {"world": self.first_world + k, "params": {
+                    str(key): _custom_value(v) for key, v in self.world_params[k].items()}}}
+            for name, decl in self.prims.items():
+                if manifest and not decl.is_dynamic:
+                    continue
+                self._declare_prim(layer, spec.path.AppendChild(name), decl, manifest)
+        return root
+
+    def _build_layer(self, manifest):
         from pxr import Vt
 
-        layer = self.layer
-        layer.defaultPrim = "Worlds"
-        layer.timeCodesPerSecond = self.fps
-        layer.framesPerSecond = self.fps
-        layer.pseudoRoot.SetInfo("upAxis", "Y")
-        layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
-        if self.first_frame is not None:
-            layer.startTimeCode, layer.endTimeCode = float(self.first_frame), float(self.last_frame)
-        span = float(np.max(self.hi - self.lo)) if np.isfinite(self.hi - self.lo).all() else 1.0
-        layer.customLayerData = {"warpsim": {"firstWorld": self.first_world, "worldCount": self.world_count,
-                                             "scene": scene_name, "span": span,
-                                             "center": Vt.DoubleArray(list(0.5 * (self.lo + self.hi)) if
-                                                                      math.isfinite(span) else [0.0, 0.0, 0.0])}}
-        if not layer.Save():
-            raise OSError(f"could not save {self.path}")
+        layer = super()._build_layer(manifest)
+        if manifest:
+            return layer
+        root = layer.GetPrimAtPath("/Worlds")
+        if root.HasInfo("clips"):  # on every world prim instead, each with its own primPath
+            clips = dict(dict(root.GetInfo("clips"))["default"])
+            root.ClearInfo("clips")
+            for k in range(self.world_count):
+                path = self._world_path(k)
+                layer.GetPrimAtPath(path).SetInfo("clips", {"default": {**clips, "primPath": path}})
+        finite = np.isfinite(self.hi - self.lo).all()
+        span = float(np.max(self.hi - self.lo)) if finite else 1.0
+        data = dict(layer.customLayerData.get("warpsim", {}))
+        data.update(firstWorld=self.first_world, worldCount=self.world_count, scene=self.scene_name, span=span,
+                    center=Vt.DoubleArray(list(0.5 * (self.lo + self.hi)) if finite else [0.0, 0.0, 0.0]))
+        layer.customLayerData = {"warpsim": data}
+        return layer
+
+    def close(self, scene_name=""):
+        """Complete the last chunk and rewrite the layer; returns its path."""
+        self.scene_name = scene_name or self.scene_name
+        if self._closed:
+            return self.path
+        if not self._sealed:
+            self._seal()
+        self.flush()
+        self._write_root()  # the final extent (span) even when the last chunk came before it
+        self._closed = True
         return self.path
 
 

@@ -1,0 +1,154 @@
+"""Where a single-process ``warpsim sweep`` writes while it runs, and the swap that publishes it.
+
+A sweep of root ``s.usda`` streams its batch layer as ``s.batch_0000.run<T>.usdc`` (``T``: a
+token of this run) with chunk files ``s.batch_0000.run<T>.chunkNNNNNN.usdc`` beside it, so a
+finished sweep's files in the same folder (``s.batch_0000.usdc``, its own ``run<T'>`` chunks, the
+table, the occupancy record, the root) stay untouched and readable until the new run is complete.
+``s.sweep-partial.json`` names the run in progress and the settings it was started with.
+
+When every frame is written, :meth:`SweepStaging.publish` renames the batch layer onto
+``s.batch_0000.usdc`` (one ``os.replace``: the switch from the old result to the new one), moves
+the occupancy record into place, and then removes the old run's chunk files and the progress
+file; the caller writes the table and the root (each atomically) in between.
+
+A run killed at any moment (SIGKILL included) leaves its completed chunks readable
+(``warpsim info s.batch_0000.run<T>.usdc``); ``--resume`` finds the run from the progress file,
+keeps the completed chunks, re-simulates up to them without writing (batched runs are
+bit-reproducible) and writes on, so the result equals an uninterrupted run sample for sample.
+"""
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import os
+import secrets
+
+__all__ = ["SweepStaging", "settings_digest"]
+
+VERSION = 1
+
+
+def settings_digest(world_params) -> str:
+    """SHA-256 of the worlds' parameters (their JSON form)."""
+    text = json.dumps(list(world_params), sort_keys=True, default=lambda v: list(v) if hasattr(v, "__iter__")
+                      else str(v))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _atomic_json(path, data):
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class SweepStaging:
+    """The staged files of one single-process sweep of root ``root_path``.
+
+    ``settings``: JSON-able description that ``--resume`` must match (scene, frames, timing,
+    worlds digest, ...). ``resume``: continue the run named by the progress file (ValueError
+    with one line when there is none, it is damaged, or the settings differ)."""
+
+    def __init__(self, root_path, settings, resume=False):
+        self.root = os.path.abspath(os.fspath(root_path))
+        self.stem = os.path.splitext(self.root)[0]
+        self.progress_path = self.stem + ".sweep-partial.json"
+        self.settings = json.loads(json.dumps(settings, sort_keys=True, default=str))
+        if resume:
+            self.token = self._load_progress()
+        else:
+            self.token = secrets.token_hex(4)
+            self._remove_interrupted()
+            os.makedirs(os.path.dirname(self.root), exist_ok=True)
+            _atomic_json(self.progress_path, {"version": VERSION, "token": self.token, "settings": self.settings})
+        self.layer = f"{self.stem}.batch_0000.run{self.token}.usdc"
+        self.final_layer = f"{self.stem}.batch_0000.usdc"
+
+    def _load_progress(self):
+        fix = "run the sweep without --resume to start it again"
+        if not os.path.exists(self.progress_path):
+            raise ValueError(f"--resume: no interrupted sweep at {self.root} ({os.path.basename(self.progress_path)} "
+                             f"is missing: the last sweep there finished, or none ran); {fix}")
+        try:
+            with open(self.progress_path) as f:
+                data = json.load(f)
+            token, saved = str(data["token"]), data["settings"]
+            if data.get("version") != VERSION or not token.isalnum() or not isinstance(saved, dict):
+                raise ValueError
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            raise ValueError(f"--resume: {self.progress_path} is damaged or not a warpsim sweep progress file; "
+                             f"{fix}") from None
+        for key in sorted(set(saved) | set(self.settings)):
+            if saved.get(key) != self.settings.get(key):
+                if key == "worlds":
+                    raise ValueError("--resume: the sampled worlds differ from the ones the interrupted sweep started "
+                                     "with (--vary, --set, --worlds, --sample or --seed changed); give its options, "
+                                     f"or {fix}")
+                raise ValueError(f"--resume: {key}={self.settings.get(key)!r} differs from the interrupted sweep's "
+                                 f"{key}={saved.get(key)!r}; a resumed sweep keeps the settings it started with, or "
+                                 f"{fix}")
+        return token
+
+    def _remove_interrupted(self):
+        """Files of earlier interrupted runs (a run whose batch layer was never published)."""
+        published = self._published_token()
+        for f in glob.glob(glob.escape(self.stem) + ".batch_0000.run*"):
+            if published is None or not os.path.basename(f).startswith(
+                    os.path.basename(self.stem) + f".batch_0000.run{published}."):
+                os.remove(f)
+
+    def _published_token(self):
+        """Token of the finished sweep's chunks (None when there is none or it predates tokens)."""
+        if not os.path.exists(self.stem + ".batch_0000.usdc"):
+            return None
+        from pxr import Sdf
+
+        try:
+            layer = Sdf.Layer.OpenAsAnonymous(self.stem + ".batch_0000.usdc")
+            named = str(dict(layer.customLayerData.get("warpsim", {})).get("chunkIndex", ""))
+        except Exception:  # noqa: BLE001  (a damaged finished layer: keep nothing of it but the file itself)
+            return None
+        prefix = os.path.basename(self.stem) + ".batch_0000.run"
+        return named[len(prefix):].split(".", 1)[0] if named.startswith(prefix) else None
+
+    def resume_frame(self):
+        """First frame to write: after the last completed chunk of the staged layer (0: none)."""
+        if not os.path.exists(self.layer):
+            return 0
+        from pxr import Sdf
+
+        from ..usd.validate import _root_chunks, pxr_reason
+
+        try:
+            chunks = _root_chunks(Sdf.Layer.OpenAsAnonymous(self.layer))
+        except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
+            raise ValueError(f"--resume: the interrupted sweep's layer {self.layer} does not open ("
+                             f"{pxr_reason(exc, 120)}); run the sweep without --resume") from None
+        return chunks[-1][1] + 1 if chunks else 0
+
+    def partial(self, path):
+        """A staging name for a file published whole at the end (e.g. the occupancy record)."""
+        stem, ext = os.path.splitext(os.path.abspath(os.fspath(path)))
+        return f"{stem}.run{self.token}{ext}"
+
+    def publish(self, moves=()):
+        """Switch to the new result: the batch layer onto its final name, then ``moves``
+        [(staged path, final path)]; returns the final layer path. Call :meth:`finish` after
+        writing the table and root."""
+        os.replace(self.layer, self.final_layer)
+        for src, dst in moves:
+            if os.path.exists(src):
+                os.replace(src, dst)
+        return self.final_layer
+
+    def finish(self):
+        """Remove the old run's chunk files and the progress file."""
+        mine = os.path.basename(self.stem) + f".batch_0000.run{self.token}."
+        for f in glob.glob(glob.escape(self.stem) + ".batch_0000.run*"):
+            if not os.path.basename(f).startswith(mine):
+                os.remove(f)
+        if os.path.exists(self.progress_path):
+            os.remove(self.progress_path)
