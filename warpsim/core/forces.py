@@ -273,7 +273,7 @@ class Springs(Force):
             return
         ensure_spring_adjacency(m)
         inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
-        tape = _warp_context.runtime.tape
+        tape = getattr(_warp_context.runtime, "tape", None)
         if tape is None and m.device.is_cpu:  # each spring once, then the same fixed-order sums
             spring_f = self._spring_forces(m)
             first = (*scatter[:7], spring_f)
