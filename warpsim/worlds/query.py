@@ -175,20 +175,17 @@ class CachedPositions:
         self._layers = {}
 
     def __call__(self, world, f0, f1):
-        from pxr import Sdf
+        from pxr import Sdf, Usd
 
         g = self.record.first_world + int(world)
         path = self.owner[g]
-        layer = self._layers.get(path)
-        if layer is None:
-            layer = self._layers[path] = Sdf.Layer.FindOrOpen(path)
-        attr = Sdf.Path(f"/Worlds/world_{g:06d}/{self.record.source_prim}.points")
+        stage = self._layers.get(path)
+        if stage is None:  # composed: a sweep's batch layer keeps its frames in chunk files
+            stage = self._layers[path] = Usd.Stage.Open(path)
+        attr = stage.GetAttributeAtPath(Sdf.Path(f"/Worlds/world_{g:06d}/{self.record.source_prim}.points"))
         out = []
         for f in range(self.record.first_frame + f0, self.record.first_frame + f1 + 1):
-            value = layer.QueryTimeSample(attr, float(f))
-            if value is None:  # no sample at this frame: the one held from before
-                ok, below, _ = layer.GetBracketingTimeSamplesForPath(attr, float(f))
-                value = layer.QueryTimeSample(attr, below) if ok else None
+            value = attr.Get(float(f)) if attr and attr.HasValue() else None  # held from before between samples
             if value is None:
                 raise ValueError(f"world {g} has no cached {self.record.source_prim} points at frame {f}")
             out.append(np.asarray(value, np.float32)[self.record.particles])
