@@ -175,20 +175,19 @@ class CachedPositions:
         self._layers = {}
 
     def __call__(self, world, f0, f1):
-        from pxr import Sdf
+        from pxr import Usd
 
         g = self.record.first_world + int(world)
         path = self.owner[g]
-        layer = self._layers.get(path)
-        if layer is None:
-            layer = self._layers[path] = Sdf.Layer.FindOrOpen(path)
-        attr = Sdf.Path(f"/Worlds/world_{g:06d}/{self.record.source_prim}.points")
+        stage = self._layers.get(path)
+        if stage is None:  # a stage, not the layer: batch layers keep their samples in chunk files (clips)
+            stage = self._layers[path] = Usd.Stage.Open(path)
+            stage.SetInterpolationType(Usd.InterpolationTypeHeld)  # no sample at a frame: the one from before
+        prim = stage.GetPrimAtPath(f"/Worlds/world_{g:06d}/{self.record.source_prim}")
+        attr = prim.GetAttribute("points") if prim else None
         out = []
         for f in range(self.record.first_frame + f0, self.record.first_frame + f1 + 1):
-            value = layer.QueryTimeSample(attr, float(f))
-            if value is None:  # no sample at this frame: the one held from before
-                ok, below, _ = layer.GetBracketingTimeSamplesForPath(attr, float(f))
-                value = layer.QueryTimeSample(attr, below) if ok else None
+            value = attr.Get(float(f)) if attr else None
             if value is None:
                 raise ValueError(f"world {g} has no cached {self.record.source_prim} points at frame {f}")
             out.append(np.asarray(value, np.float32)[self.record.particles])
