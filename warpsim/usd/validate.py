@@ -16,6 +16,8 @@ import os
 
 import numpy as np
 
+from .chunk_index import pxr_reason
+
 __all__ = ["DamagedCacheError", "cache_info", "check_damage", "chunk_health", "damage_report", "open_stage",
            "sweep_layers", "validate_cache"]
 
@@ -33,18 +35,6 @@ def open_path(path):
     from ..core.checks import existing_file
 
     return existing_file(path, "USD cache")
-
-
-def pxr_reason(exc, limit=160) -> str:
-    """What a ``pxr`` error says, without its internal prefix ("Error in 'pxrInternal_...' at line
-    N in file ... : 'text'" -> "text"); the last message when there are several."""
-    import re
-
-    text = str(exc).strip()
-    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)", text, re.S)
-    reason = (found[-1] if found else text.splitlines()[-1] if text else type(exc).__name__).strip()
-    reason = " ".join(reason.split())
-    return reason if len(reason) <= limit else reason[: limit - 3] + "..."
 
 
 def _not_usd(path, exc):
