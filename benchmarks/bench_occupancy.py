@@ -51,39 +51,55 @@ def sweep_seconds(args, worlds, folder, tag, occupancy, frames):
 
 def stepping_record(args, worlds, folder):
     """(stepping seconds, recorder seconds, record path): F frames of a batch, the recorder's work
-    timed apart (synchronised), its record saved."""
+    timed apart (synchronised), its record saved. On CUDA both run as captured graphs, as in a
+    sweep (``run_batch`` captures a frame's stepping, metrics and recording together)."""
     from warpsim.scenes import get_scene
     from warpsim.worlds.metrics import WorldMetrics
     from warpsim.worlds.sweep import _recorder, frame_timing, make_batch
     from warpsim.worlds.usd import BatchLayerWriter
 
     cls = get_scene(args.scene)
-    _, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
     batch = make_batch(cls, worlds, device=args.device)
     stats = WorldMetrics(batch)
     # the recorder a sweep makes (its grid also covers the static geometry the USD writer declares)
-    writer = BatchLayerWriter(os.path.join(folder, "stepping.usdc"), batch.scene, 0, batch.world_count, 60.0)
-    rec = _recorder(batch, {"resolution": args.resolution}, args.frames, args.track_map or None, 60.0, 0,
+    writer = BatchLayerWriter(os.path.join(folder, "stepping.usdc"), batch.scene, 0, batch.world_count, fps)
+    rec = _recorder(batch, {"resolution": args.resolution}, args.frames, args.track_map or None, fps, 0,
                     args.scene, writer)
-    batch.advance(frame_dt, substeps)  # loads every module (this frame is not timed)
-    stats.update()
+
+    def step():
+        batch.advance(frame_dt, substeps)
+        stats.update()
+
+    step()  # loads every module (this frame is not timed)
+    use_graph = batch.device.is_cuda and batch.can_capture()
+    if use_graph:
+        with wp.ScopedCapture(device=batch.device) as capture:
+            step()
+        step_graph = capture.graph
+        step = lambda: wp.capture_launch(step_graph)  # noqa: E731
+    record_frame = rec.update
     wp.synchronize_device(args.device)
-    step = record = 0.0
+    t_step = t_record = 0.0
     for frame in range(args.frames + 1):
         t0 = time.perf_counter()
         if frame:
-            batch.advance(frame_dt, substeps)
-            stats.update()
+            step()
         wp.synchronize_device(args.device)
         t1 = time.perf_counter()
-        rec.update()
+        record_frame()
         rec.after_frame()
         wp.synchronize_device(args.device)
-        step, record = step + t1 - t0, record + time.perf_counter() - t1
+        t_step, t_record = t_step + t1 - t0, t_record + time.perf_counter() - t1
+        if frame == 0 and use_graph:  # frame 0 ran eagerly (module loaded): replay the rest
+            with wp.ScopedCapture(device=batch.device) as capture:
+                rec.update()
+            record_graph = capture.graph
+            record_frame = lambda: wp.capture_launch(record_graph)  # noqa: E731
     path = os.path.join(folder, "stepping.npz")
     t0 = time.perf_counter()
     rec.finish().save(path)
-    return step, record + time.perf_counter() - t0, path
+    return t_step, t_record + time.perf_counter() - t0, path
 
 
 def panel_seconds(record, count, seed=1):

@@ -12,7 +12,8 @@ case "${1:-core}" in
     run python3 roofline.py --device "$D"
     run python3 roofline.py --device "$D" --only smoke --smoke-graph
     run python3 bench_worlds.py --device "$D" --worlds 1024
-    T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --no-fused --sequential 4 --builder-worlds 2
+    T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --paths shared,block,tiled --sequential 4 --builder-worlds 2
+    T=500 run python3 bench_worlds.py --device "$D" --worlds 100000 --paths shared,block --sequential 4 --builder-worlds 0
     run python3 bench_donuts.py --device "$D" --settle 3000 --steps 500
     run python3 bench_differentiable.py --device "$D" --dims 64 128 256 --steps 1000
     ;;
@@ -33,5 +34,8 @@ case "${1:-core}" in
     done
     cmp /tmp/sweep1/teapots.csv /tmp/sweep2/teapots.csv && echo "tables identical"
     python3 -c "import sys; from warpsim.usd.validate import validate_cache as v; print('validation errors:', [v(p) for p in sys.argv[1:]])" /tmp/sweep1/teapots.usda /tmp/sweep2/teapots.usda
+    ;;
+  occupancy)  # issue 29: record cost, bytes and query time at 10,000 teapots x 120 frames
+    T=590 run python3 bench_occupancy.py --device "$D" --worlds 10000 --frames 120 --sweep-frames ${SWEEP_FRAMES:-4} --repeat 1
     ;;
 esac

@@ -16,7 +16,6 @@ The total kinetic + potential energy printed per second never increases for c_R 
 import argparse
 
 import numpy as np
-import warp as wp
 
 import warpsim as ws
 from warpsim.bodies.colliders import Capsule, ParticleCollisions, Sphere

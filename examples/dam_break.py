@@ -77,6 +77,13 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    if args.figure:  # matplotlib is the optional "plot" extra: say so before simulating
+        from warpsim.extras import MissingExtraError, require_extra
+
+        try:
+            require_extra("plot", "--figure")
+        except MissingExtraError as exc:
+            parser.error(f"{exc} (or --figure '' for no figure)")
     example = Example(args.a, args.spacing, args.depth, args.iterations, not args.no_surface, args.device)
     scale = math.sqrt(2.0 * G / args.a)
     print(f"{example.fluid.active_count} particles; Martin & Moyce (1952) n^2 = 2")

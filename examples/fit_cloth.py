@@ -18,7 +18,11 @@ import argparse
 
 import numpy as np
 import warp as wp
-from scipy.optimize import minimize
+
+try:
+    from scipy.optimize import minimize
+except ImportError:  # SciPy is no dependency of warpsim itself
+    raise SystemExit("fit_cloth.py needs SciPy (L-BFGS-B): pip install scipy") from None
 
 import warpsim as ws
 from warpsim.usd.validate import open_stage

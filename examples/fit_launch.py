@@ -57,7 +57,11 @@ import argparse
 
 import numpy as np
 import warp as wp
-from scipy.optimize import minimize
+
+try:
+    from scipy.optimize import minimize
+except ImportError:  # SciPy is no dependency of warpsim itself
+    raise SystemExit("fit_launch.py needs SciPy (L-BFGS-B): pip install scipy") from None
 
 import warpsim as ws
 from warpsim.scenes import get_scene

@@ -28,6 +28,13 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    if args.figure:  # matplotlib is the optional "plot" extra: say so before simulating
+        from warpsim.extras import MissingExtraError, require_extra
+
+        try:
+            require_extra("plot", "--figure")
+        except MissingExtraError as exc:
+            parser.error(f"{exc} (or --figure '' for no figure)")
     names = list(ws.INTEGRATORS)
     runs = {n: ws.Pendulum(args.angle, integrator=n, device=args.device).run(args.steps, args.dt) for n in names}
     e0 = runs[names[0]]["total"][0, 0]

@@ -350,8 +350,8 @@ def cg_dots(
     into partial_out[blocks + block]. Launched with dim (blocks, DOT_BLOCK) and block_dim
     DOT_BLOCK: each thread strides over the arrays by ``stride`` = blocks * DOT_BLOCK, then a
     block-wide tile sum (a fixed tree) gives the block's value, added once onto the zero slot
-    (exact); ``cg_sum_partials`` adds the blocks in order and clears the slots (no atomics: the same bits every run; no allocation, so it can sit inside a
-    conditional graph node)."""
+    (exact); ``cg_sum_partials`` adds the blocks in a fixed order and clears the slots (the same
+    bits every run; no allocation, so it can sit inside a conditional graph node)."""
     block, lane = wp.tid()
     i = block * DOT_BLOCK + lane
     n = a.shape[0]
@@ -371,19 +371,25 @@ def cg_dots(
 @wp.kernel
 def cg_sum_partials(partials: wp.array(dtype=float), blocks: int, slot_ab: int, slot_cd: int,
                     scalars_io: wp.array(dtype=float)):
-    """scalars[slot_ab] += the ``blocks`` partial sums of ``cg_dots`` in block order (and
-    scalars[slot_cd] += the second set when slot_cd >= 0) and clears them; one thread."""
+    """scalars[slot_ab] += the ``blocks`` partial sums of ``cg_dots`` (and scalars[slot_cd] += the
+    second set when slot_cd >= 0), clearing them. One block of DOT_BLOCK threads (dim (1,
+    DOT_BLOCK)): lane l adds partials l, l + DOT_BLOCK, ... in order, a tile sum (a fixed tree)
+    adds the lanes, and one add lands on the slot, which the caller cleared: the same bits every
+    run."""
+    block, lane = wp.tid()
     ab = float(0.0)  # noqa: UP018
     cd = float(0.0)  # noqa: UP018
-    for k in range(blocks):
+    k = lane
+    while k < blocks:
         ab += partials[k]
         partials[k] = 0.0
         if slot_cd >= 0:
             cd += partials[blocks + k]
             partials[blocks + k] = 0.0
-    scalars_io[slot_ab] = scalars_io[slot_ab] + ab
+        k += DOT_BLOCK
+    wp.tile_atomic_add(scalars_io, wp.tile_sum(wp.tile(ab)), offset=slot_ab)
     if slot_cd >= 0:
-        scalars_io[slot_cd] = scalars_io[slot_cd] + cd
+        wp.tile_atomic_add(scalars_io, wp.tile_sum(wp.tile(cd)), offset=slot_cd)
 
 
 @wp.kernel

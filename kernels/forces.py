@@ -376,6 +376,52 @@ def eval_springs_jacobian_gather(
     diag_out[i] = diag_out[i] + D
 
 
+@wp.kernel
+def eval_spring_forces(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    spring_indices: wp.array(dtype=int),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_broken: wp.array(dtype=int),
+    spring_f_out: wp.array(dtype=wp.vec3),
+):
+    """Per spring s: the force [N] on its end 2s (zero when broken), for ``gather_spring_forces``."""
+    s = wp.tid()
+    f = wp.vec3()
+    if spring_broken[s] == 0:
+        i = spring_indices[2 * s]
+        j = spring_indices[2 * s + 1]
+        f = damped_spring_force(q[i], q[j], qd[i], qd[j], spring_rest_length[s], spring_stiffness[s],
+                                spring_damping[s])
+    spring_f_out[s] = f
+
+
+@wp.kernel
+def gather_spring_forces(
+    spring_indices: wp.array(dtype=int),
+    spring_broken: wp.array(dtype=int),
+    particle_spring_offsets: wp.array(dtype=int),
+    particle_springs: wp.array(dtype=int),
+    spring_f: wp.array(dtype=wp.vec3),
+    f_out: wp.array(dtype=wp.vec3),
+):
+    """Per particle i: f_out[i] += +-spring_f of its intact springs in CSR order: the same sums,
+    bit for bit, as ``eval_springs_gather``, with each spring evaluated once
+    (``eval_spring_forces``) instead of at both ends (faster on the CPU)."""
+    i = wp.tid()
+    f = wp.vec3()
+    for a in range(particle_spring_offsets[i], particle_spring_offsets[i + 1]):
+        s = particle_springs[a]
+        if spring_broken[s] == 0:
+            if spring_indices[2 * s] == i:
+                f = f + spring_f[s]
+            else:
+                f = f - spring_f[s]
+    f_out[i] = f_out[i] + f
+
+
 # --------------------------------------------------------------------------------------
 # User force fields: f = field(x, v, t), a @wp.func of (wp.vec3, wp.vec3, float) -> wp.vec3
 # --------------------------------------------------------------------------------------

@@ -5,7 +5,8 @@ solve in ``warpsim.strands.sag_free``.
 Unknowns ``u`` (float64, one vector) are rest-state changes scaled so that ``u^T u`` is twice the
 elastic energy of the change (minimum complementary energy): a length spring of stiffness k
 [N/m] has tension t = sqrt(k) u [N] (rest length L = l - u / sqrt(k)); a strand bending vertex has
-three entries, force pattern g = sqrt(k_b) u [N] (+g, -2 g, +g on the triple; rest bending vector
+three entries, force pattern g = sqrt(k_b) u [N] (+g, -2 g, +g on the triple, and -J^T g through
+the bending frames' gradient J, linearised at the current rest state; rest bending vector
 w = b + u / sqrt(k_b)). Forces live in a flat float64 array of 3 entries per particle; pinned
 particles (inverse mass 0) always get 0.
 
@@ -90,6 +91,40 @@ def springs_apply_transpose(
     u_out[u_offset + s] = sqrt_k[s] * wp.dot(unit_d(q[i], q[j]), load3(r, j) - load3(r, i))
 
 
+@wp.func
+def to_d(a: wp.vec3) -> wp.vec3d:
+    return wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
+
+
+@wp.func
+def project_normal(n: wp.vec3d, t: wp.vec3d) -> wp.vec3d:
+    """Projection transport of the strand frames (as ``kernels.strands.transport_normal``)."""
+    m = n - wp.dot(n, t) * t
+    length = wp.length(m)
+    if length > wp.float64(1.0e-6):
+        return m / length
+    h = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
+    if wp.abs(t[0]) > wp.float64(0.9):
+        h = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+    return wp.normalize(wp.cross(t, h))
+
+
+@wp.func
+def strand_frames(
+    q: wp.array(dtype=wp.vec3), base: int, slot: int, stride: int, root_normal: wp.vec3,
+    frame_t: wp.array(dtype=wp.vec3d), frame_n: wp.array(dtype=wp.vec3d),
+):
+    """The vertex frames (t_v, n_v) of one strand in float64 into frame_t / frame_n[slot + v]."""
+    t = unit_d(q[base + 1], q[base])
+    n = project_normal(to_d(root_normal), t)
+    for v in range(1, stride - 1):
+        if v >= 2:
+            t = unit_d(q[base + v], q[base + v - 1])
+            n = project_normal(n, t)
+        frame_t[slot + v] = t
+        frame_n[slot + v] = n
+
+
 @wp.kernel
 def strands_apply(
     q: wp.array(dtype=wp.vec3),
@@ -97,20 +132,27 @@ def strands_apply(
     stride: int,
     sqrt_stretch: wp.array(dtype=wp.float64),
     sqrt_bend: wp.array(dtype=wp.float64),
+    root_normal: wp.array(dtype=wp.vec3),
+    bend_rest: wp.array(dtype=wp.vec3),
+    frame_t: wp.array(dtype=wp.vec3d),
+    frame_n: wp.array(dtype=wp.vec3d),
     inv_mass: wp.array(dtype=float),
     u: wp.array(dtype=wp.float64),
     stretch_offset: int,
     bend_offset: int,
     f_out: wp.array(dtype=wp.float64),
 ):
-    """Adds the forces of strand ``s``'s unknowns to its free particles: stretch tension
-    t = sqrt_stretch u pulls vertex v toward v + 1 and back; bending g = sqrt_bend u (3 entries)
-    gives +g, -2 g, +g on (v - 1, v, v + 1)."""
+    """Adds the forces of strand ``s``'s unknowns to its free particles, linearised at the current
+    bending rest state: stretch tension t = sqrt_stretch u pulls vertex v toward v + 1 and back;
+    bending g = sqrt_bend u (3 entries) gives +g, -2 g, +g on (v - 1, v, v + 1) and -J_v^T g,
+    J_v = d(F_v c_v)/dx the frames' gradient (the reverse sweep of ``eval_strand_forces``)."""
     s = wp.tid()
     base = first + s * stride
     slot = s * stride
     cs = sqrt_stretch[s]
     cb = sqrt_bend[s]
+    strand_frames(q, base, slot, stride, root_normal[s], frame_t, frame_n)
+    two = wp.float64(2.0)
     for v in range(1, stride - 1):
         i = base + v
         k = slot + v
@@ -119,9 +161,34 @@ def strands_apply(
         if inv_mass[i - 1] > 0.0:
             add3(f_out, i - 1, g)
         if inv_mass[i] > 0.0:
-            add3(f_out, i, t - wp.float64(2.0) * g)
+            add3(f_out, i, t - two * g)
         if inv_mass[i + 1] > 0.0:
             add3(f_out, i + 1, g - t)
+    carry = wp.vec3d()
+    for r in range(stride - 2):
+        v = stride - 2 - r
+        if v < 2:
+            break
+        i = base + v
+        k = slot + v
+        t = frame_t[k]
+        n = frame_n[k]
+        c = to_d(bend_rest[k])
+        wbar = cb * load3_at(u, bend_offset + 3 * k)
+        tbar = c[0] * wbar + c[2] * wp.cross(n, wbar)
+        nbar = carry + c[1] * wbar + c[2] * wp.cross(wbar, t)
+        n_prev = frame_n[k - 1]
+        proj = wp.dot(n_prev, t)
+        mlen = wp.sqrt(wp.max(wp.float64(1.0) - proj * proj, wp.float64(1.0e-12)))
+        mbar = (nbar - wp.dot(nbar, n) * n) / mlen
+        carry = mbar - wp.dot(mbar, t) * t
+        tbar = tbar - proj * mbar - wp.dot(t, mbar) * n_prev
+        l = wp.length(to_d(q[i]) - to_d(q[i - 1]))
+        ubar = (tbar - wp.dot(tbar, t) * t) / l
+        if inv_mass[i] > 0.0:
+            add3(f_out, i, -ubar)
+        if inv_mass[i - 1] > 0.0:
+            add3(f_out, i - 1, ubar)
 
 
 @wp.kernel
@@ -131,12 +198,17 @@ def strands_apply_transpose(
     stride: int,
     sqrt_stretch: wp.array(dtype=wp.float64),
     sqrt_bend: wp.array(dtype=wp.float64),
+    root_normal: wp.array(dtype=wp.vec3),
+    bend_rest: wp.array(dtype=wp.vec3),
+    frame_t: wp.array(dtype=wp.vec3d),
+    frame_n: wp.array(dtype=wp.vec3d),
     r: wp.array(dtype=wp.float64),
     stretch_offset: int,
     bend_offset: int,
     u_out: wp.array(dtype=wp.float64),
 ):
-    """The transpose of ``strands_apply`` (slots 0 and stride - 1 of each strand are unused: 0)."""
+    """The transpose of ``strands_apply``: the frames' part is a tangent sweep from the root
+    (dw_v = J_v r); slots 0 and stride - 1 of each strand are unused: 0."""
     s = wp.tid()
     base = first + s * stride
     slot = s * stride
@@ -145,15 +217,31 @@ def strands_apply_transpose(
     zero = wp.float64(0.0)
     u_out[stretch_offset + slot] = zero
     u_out[stretch_offset + slot + stride - 1] = zero
-    for c in range(3):
-        u_out[bend_offset + 3 * slot + c] = zero
-        u_out[bend_offset + 3 * (slot + stride - 1) + c] = zero
+    for j in range(3):
+        u_out[bend_offset + 3 * slot + j] = zero
+        u_out[bend_offset + 3 * (slot + stride - 1) + j] = zero
+    strand_frames(q, base, slot, stride, root_normal[s], frame_t, frame_n)
+    dn = wp.vec3d()  # the root frame is kinematic
     for v in range(1, stride - 1):
         i = base + v
         k = slot + v
+        t = frame_t[k]
+        n = frame_n[k]
+        dt = wp.vec3d()
+        if v >= 2:
+            l = wp.length(to_d(q[i]) - to_d(q[i - 1]))
+            dx = load3(r, i) - load3(r, i - 1)
+            dt = (dx - wp.dot(dx, t) * t) / l
+            n_prev = frame_n[k - 1]
+            proj = wp.dot(n_prev, t)
+            mlen = wp.sqrt(wp.max(wp.float64(1.0) - proj * proj, wp.float64(1.0e-12)))
+            dm = dn - (wp.dot(dn, t) + wp.dot(n_prev, dt)) * t - proj * dt
+            dn = (dm - wp.dot(dm, n) * n) / mlen
+        c = to_d(bend_rest[k])
+        dw = c[0] * dt + c[1] * dn + c[2] * (wp.cross(dt, n) + wp.cross(t, dn))
         d = unit_d(q[i + 1], q[i])
         u_out[stretch_offset + k] = cs * wp.dot(d, load3(r, i) - load3(r, i + 1))
-        b = cb * (load3(r, i - 1) - wp.float64(2.0) * load3(r, i) + load3(r, i + 1))
+        b = cb * (load3(r, i - 1) - wp.float64(2.0) * load3(r, i) + load3(r, i + 1) - dw)
         u_out[bend_offset + 3 * k] = b[0]
         u_out[bend_offset + 3 * k + 1] = b[1]
         u_out[bend_offset + 3 * k + 2] = b[2]

@@ -4,14 +4,14 @@ them after integration.
 
 Broad phase (one structure for all bodies of a world, refitted every step):
 
-* ``find_vertex_contacts``: every contact vertex queries one ``wp.Mesh`` BVH over the contact
-  triangles of *all* bodies of its world once, with a box of half width
+* ``find_vertex_contacts``: every contact vertex queries one ``wp.Bvh`` over the bounds of the
+  contact triangles of *all* bodies of its world (``triangle_bounds``) once, with a box of half width
   ``max(thickness, search)``; triangles of its own body are skipped unless self contact is on
   (then triangles touching the vertex, or within ``self_rest_distance`` of it in the rest pose,
   are skipped). The cost per vertex depends on the local density only, so a step is linear in
   the number of bodies (the former search visited every other body's BVH from every vertex).
 * ``find_edge_contacts``: every surface edge queries one ``wp.Bvh`` over the bounds of all
-  surface edges of its world (``edge_bounds`` writes them, the BVH is refitted).
+  surface edges of its world (``edge_bounds``). Both BVHs are rebuilt (or refitted) every step.
 * ``find_*_all_pairs``: the same narrow phase over every triangle / edge of the world, no
   broad phase (the reference the tests compare with; O(vertices x triangles)).
 
@@ -21,17 +21,21 @@ c lies inside the triangle); a contact has -search < s < thickness, normal n = (
 in front, n_f behind. Edge pq against edge rs (closest points c1 = p + u (q - p), c2 = r + t (s - r),
 Ericson 5.1.9), only with both closest points inside their edges (0 < u, t < 1) and edges at
 least ``EDGE_MIN_SINE`` from parallel (otherwise a vertex is nearest and the vertex-triangle test
-covers it), and only in front of rs ((c1 - c2) . n_e > 0, n_e the summed outward normals of the
-faces beside rs): s = |c1 - c2| < thickness, normal (c1 - c2)/|c1 - c2|. Behind rs is no edge
-contact: there the surface may just curve away (the saddle inside a torus), and a body whose
-edges crossed is pushed out by its vertices. Every vertex (edge) keeps its nearest contact,
+covers it): a contact when |c1 - c2| < thickness, normal (c1 - c2)/|c1 - c2|, or when the same
+points at the start of the step (``q_prev``) lay on the other side ((c1 - c2) . (c1' - c2') < 0:
+the edges passed through each other during the step) and |c1 - c2| < search, normal
+(c1' - c2')/|c1' - c2'| (back to the side they came from). The edge BVH holds each edge's bounds
+over the step (start and end).
+Every vertex (edge) keeps its nearest contact,
 ties broken by the lower triangle (edge) index, so the result does not depend on the order in
-which the BVH returns candidates. Depth = thickness - s.
+which the BVH returns candidates.
 
 A contact joins four particles k with weights a_k (vertex-triangle: 1, -b_0, -b_1, -b_2; edge-edge:
 1 - u, u, -(1 - t), -t): the relative velocity is sum a_k v_k, the effective inverse mass
-W = sum a_k^2 w_k. ``push_contacts`` removes ``fraction`` of the depth along n, ``impulse_contacts``
-applies J = -(1 + e) u_n / W when u_n < 0 and Coulomb friction up to mu J; particle k receives
+W = sum a_k^2 w_k. Each of ``iterations`` passes (Jacobi: deltas from the same state, then
+applied) lets ``push_contacts`` remove ``fraction`` of the depth thickness - (sum a_k x_k) . n at
+the current positions (at detection, thickness - s) and ``impulse_contacts`` apply
+J = -(1 + e) u_n / W when u_n < 0 and Coulomb friction up to mu J; particle k receives
 a_k w_k (impulse): sum m dv = J sum a_k = 0, momentum is conserved (pinned particles, w = 0, never
 move). Each contact is scaled by 1 / (largest contact count among its particles): a particle in
 several contacts receives a convex combination (Jacobi averaging).
@@ -134,17 +138,6 @@ def rest_distance(p: int, t: int, tri: wp.array(dtype=int), rest: wp.array(dtype
     return wp.length(x - (w[0] * a + w[1] * b + w[2] * c))
 
 
-@wp.func
-def face_normal(t: int, tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3)) -> wp.vec3:
-    """Unit outward normal of triangle t (zero for a degenerate triangle)."""
-    a = q[tri[3 * t]]
-    n = wp.cross(q[tri[3 * t + 1]] - a, q[tri[3 * t + 2]] - a)
-    length = wp.length(n)
-    if length < 1.0e-20:
-        return wp.vec3()
-    return n / length
-
-
 # ------------------------------------------------------------------------------ narrow phase
 @wp.func
 def vertex_triangle_candidate(
@@ -168,28 +161,28 @@ def vertex_triangle_candidate(
 
 @wp.func
 def vertex_triangle_test(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, thickness: float, search: float):
-    """(distance [m], barycentrics, normal, signed distance s) of vertex x against triangle abc;
-    distance -1 when they are no contact (module docstring)."""
+    """(distance [m], barycentrics, normal) of vertex x against triangle abc; distance -1 when
+    they are no contact (module docstring)."""
     bary = triangle_barycentric(x, a, b, c)
     delta = x - (bary[0] * a + bary[1] * b + bary[2] * c)
     d = wp.length(delta)
     nf = wp.cross(b - a, c - a)
     area2 = wp.length(nf)
     if area2 < 1.0e-20:
-        return -1.0, bary, nf, 0.0
+        return -1.0, bary, nf
     nf = nf / area2
     s = d
     n = nf
     if wp.dot(delta, nf) < 0.0:
         # behind the face: a contact only when x lies right behind it (closest point inside)
         if bary[0] <= 0.0 or bary[1] <= 0.0 or bary[2] <= 0.0:
-            return -1.0, bary, n, 0.0
+            return -1.0, bary, n
         s = -d
     elif d > 1.0e-9:
         n = delta / d
     if s >= thickness or s <= -search:
-        return -1.0, bary, n, 0.0
-    return d, bary, n, s
+        return -1.0, bary, n
+    return d, bary, n
 
 
 @wp.func
@@ -219,34 +212,34 @@ def edge_edge_candidate(
 
 @wp.func
 def edge_edge_test(
-    f: int, xa: wp.vec3, xb: wp.vec3, edges: wp.array(dtype=int), edge_tris: wp.array(dtype=int),
-    tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), thickness: float,
+    f: int, xa: wp.vec3, xb: wp.vec3, pa: wp.vec3, pb: wp.vec3, edges: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3), thickness: float, search: float,
 ):
-    """(distance [m], (u, t), normal, signed distance s) of edge xa-xb against edge f; distance -1
-    when they are no contact (module docstring)."""
-    xc = q[edges[2 * f]]
-    xd = q[edges[2 * f + 1]]
+    """(distance [m], (u, t), normal) of edge xa-xb (at the step's start pa-pb) against edge f;
+    distance -1 when they are no contact (module docstring)."""
+    c = edges[2 * f]
+    dd = edges[2 * f + 1]
+    xc = q[c]
+    xd = q[dd]
     ut = segment_closest_params(xa, xb, xc, xd)
     # closest points inside both edges, edges not near parallel: otherwise a vertex is nearest
     # and the vertex-triangle contact handles it
     if ut[0] <= 0.0 or ut[0] >= 1.0 or ut[1] <= 0.0 or ut[1] >= 1.0:
-        return -1.0, ut, wp.vec3(), 0.0
+        return -1.0, ut, wp.vec3()
     if wp.length(wp.cross(xb - xa, xd - xc)) < EDGE_MIN_SINE * wp.length(xb - xa) * wp.length(xd - xc):
-        return -1.0, ut, wp.vec3(), 0.0
+        return -1.0, ut, wp.vec3()
     delta = (xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))
     d = wp.length(delta)
-    side = wp.vec3()
-    for k in range(2):
-        t = edge_tris[2 * f + k]
-        if t >= 0:
-            side = side + face_normal(t, tri, q)
-    # in front of the faces beside f only: behind them (the edges have crossed) the surface
-    # may just curve away (saddles of a torus), and the vertex-triangle contacts push out
-    if d <= 1.0e-9 or d >= thickness or wp.dot(delta, side) < 0.0:
-        return -1.0, ut, wp.vec3(), 0.0
-    n = delta / d
-    s = d
-    return d, ut, n, s
+    # the same points at the start of the step: which side e was on
+    before = (pa + ut[0] * (pb - pa)) - (q_prev[c] + ut[1] * (q_prev[dd] - q_prev[c]))
+    if wp.dot(delta, before) < 0.0:
+        # e passed through f during the step: push it back to the side it came from
+        if d >= search or wp.length(before) < 1.0e-12:
+            return -1.0, ut, wp.vec3()
+        return d, ut, wp.normalize(before)
+    if d <= 1.0e-9 or d >= thickness:
+        return -1.0, ut, wp.vec3()
+    return d, ut, delta / d
 
 
 @wp.func
@@ -257,15 +250,13 @@ def nearer(d: float, index: int, best_d: float, best: int) -> bool:
 
 @wp.func
 def store_contact(
-    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, depth: float,
+    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3,
     contact_particles_out: wp.array(dtype=wp.vec4i), contact_weights_out: wp.array(dtype=wp.vec4),
-    contact_normal_out: wp.array(dtype=wp.vec3), contact_depth_out: wp.array(dtype=float),
-    particle_contacts_io: wp.array(dtype=int), contact_total_io: wp.array(dtype=int), kind: int,
+    contact_normal_out: wp.array(dtype=wp.vec3), particle_contacts_io: wp.array(dtype=int), contact_total_io: wp.array(dtype=int), kind: int,
 ):
     contact_particles_out[slot] = particles
     contact_weights_out[slot] = weights
     contact_normal_out[slot] = normal
-    contact_depth_out[slot] = depth
     for k in range(4):
         wp.atomic_add(particle_contacts_io, particles[k], 1)
     wp.atomic_add(contact_total_io, kind, 1)
@@ -279,24 +270,24 @@ def clear_contact(slot: int, contact_particles_out: wp.array(dtype=wp.vec4i)):
 # ------------------------------------------------------------------------------ vertex-triangle
 @wp.func
 def finish_vertex_contact(
-    v: int, p: int, best: int, best_bary: wp.vec3, best_normal: wp.vec3, best_s: float, thickness: float,
+    v: int, p: int, best: int, best_bary: wp.vec3, best_normal: wp.vec3,
     tri: wp.array(dtype=int), contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4), contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float), particle_contacts_io: wp.array(dtype=int),
+    particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
     if best < 0:
         clear_contact(v, contact_particles_out)
         return
     store_contact(v, wp.vec4i(p, tri[3 * best], tri[3 * best + 1], tri[3 * best + 2]),
-                  wp.vec4(1.0, -best_bary[0], -best_bary[1], -best_bary[2]), best_normal, thickness - best_s,
-                  contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                  wp.vec4(1.0, -best_bary[0], -best_bary[1], -best_bary[2]), best_normal,
+                  contact_particles_out, contact_weights_out, contact_normal_out,
                   particle_contacts_io, contact_total_io, 0)
 
 
 @wp.kernel
 def find_vertex_contacts(
-    meshes: wp.array(dtype=wp.uint64),
+    tri_bvhs: wp.array(dtype=wp.uint64),
     world_tri_start: wp.array(dtype=int),
     vertex_world: wp.array(dtype=int),
     vertex_particle: wp.array(dtype=int),
@@ -313,7 +304,6 @@ def find_vertex_contacts(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -328,23 +318,21 @@ def find_vertex_contacts(
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    best_s = float(0.0)
-    query = wp.mesh_query_aabb(meshes[world], x - wp.vec3(reach), x + wp.vec3(reach))
+    query = wp.bvh_query_aabb(tri_bvhs[world], x - wp.vec3(reach), x + wp.vec3(reach))
     local = int(0)
-    while wp.mesh_query_aabb_next(query, local):
+    while wp.bvh_query_next(query, local):
         t = world_tri_start[world] + local
         if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, bary, n, s = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
                                              search)
         if d >= 0.0 and nearer(d, t, best_d, best):
             best_d = d
             best = t
             best_bary = bary
             best_normal = n
-            best_s = s
-    finish_vertex_contact(v, p, best, best_bary, best_normal, best_s, thickness, tri, contact_particles_out,
-                          contact_weights_out, contact_normal_out, contact_depth_out, particle_contacts_io,
+    finish_vertex_contact(v, p, best, best_bary, best_normal, tri, contact_particles_out,
+                          contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
 
 
@@ -366,7 +354,6 @@ def find_vertex_contacts_all_pairs(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -380,43 +367,55 @@ def find_vertex_contacts_all_pairs(
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    best_s = float(0.0)
     for t in range(world_tri_start[world], world_tri_start[world + 1]):
         if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, bary, n, s = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
                                              search)
         if d >= 0.0 and nearer(d, t, best_d, best):
             best_d = d
             best = t
             best_bary = bary
             best_normal = n
-            best_s = s
-    finish_vertex_contact(v, p, best, best_bary, best_normal, best_s, thickness, tri, contact_particles_out,
-                          contact_weights_out, contact_normal_out, contact_depth_out, particle_contacts_io,
+    finish_vertex_contact(v, p, best, best_bary, best_normal, tri, contact_particles_out,
+                          contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
 
 
 # ------------------------------------------------------------------------------ edge-edge
 @wp.kernel
-def edge_bounds(
-    edges: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), margin: float,
+def triangle_bounds(
+    tri: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
     lowers_out: wp.array(dtype=wp.vec3), uppers_out: wp.array(dtype=wp.vec3),
 ):
-    """Bounds of edge e grown by ``margin`` [m] (for the edge BVH)."""
+    """Bounds of triangle t at the current positions, for the triangle BVH."""
+    t = wp.tid()
+    a = q[tri[3 * t]]
+    b = q[tri[3 * t + 1]]
+    c = q[tri[3 * t + 2]]
+    lowers_out[t] = wp.min(wp.min(a, b), c)
+    uppers_out[t] = wp.max(wp.max(a, b), c)
+
+
+@wp.kernel
+def edge_bounds(
+    edges: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3),
+    lowers_out: wp.array(dtype=wp.vec3), uppers_out: wp.array(dtype=wp.vec3),
+):
+    """Bounds of edge e over the step (its positions at the start and now), for the edge BVH."""
     e = wp.tid()
-    a = q[edges[2 * e]]
-    b = q[edges[2 * e + 1]]
-    lowers_out[e] = wp.min(a, b) - wp.vec3(margin)
-    uppers_out[e] = wp.max(a, b) + wp.vec3(margin)
+    a = edges[2 * e]
+    b = edges[2 * e + 1]
+    lowers_out[e] = wp.min(wp.min(q[a], q[b]), wp.min(q_prev[a], q_prev[b]))
+    uppers_out[e] = wp.max(wp.max(q[a], q[b]), wp.max(q_prev[a], q_prev[b]))
 
 
 @wp.func
 def finish_edge_contact(
-    slot: int, e: int, best: int, best_ut: wp.vec2, best_normal: wp.vec3, best_s: float, thickness: float,
+    slot: int, e: int, best: int, best_ut: wp.vec2, best_normal: wp.vec3,
     edges: wp.array(dtype=int), contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4), contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float), particle_contacts_io: wp.array(dtype=int),
+    particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
     if best < 0:
@@ -425,8 +424,8 @@ def finish_edge_contact(
     u = best_ut[0]
     t = best_ut[1]
     store_contact(slot, wp.vec4i(edges[2 * e], edges[2 * e + 1], edges[2 * best], edges[2 * best + 1]),
-                  wp.vec4(1.0 - u, u, t - 1.0, -t), best_normal, thickness - best_s,
-                  contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+                  wp.vec4(1.0 - u, u, t - 1.0, -t), best_normal,
+                  contact_particles_out, contact_weights_out, contact_normal_out,
                   particle_contacts_io, contact_total_io, 1)
 
 
@@ -437,9 +436,8 @@ def find_edge_contacts(
     edge_world: wp.array(dtype=int),
     edges: wp.array(dtype=int),
     edge_body: wp.array(dtype=int),
-    edge_tris: wp.array(dtype=int),
-    tri: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
+    q_prev: wp.array(dtype=wp.vec3),
     rest: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     thickness: float,
@@ -450,7 +448,6 @@ def find_edge_contacts(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -459,26 +456,28 @@ def find_edge_contacts(
     world = edge_world[e]
     xa = q[edges[2 * e]]
     xb = q[edges[2 * e + 1]]
+    pa = q_prev[edges[2 * e]]
+    pb = q_prev[edges[2 * e + 1]]
     best = int(-1)
     best_d = float(1.0e30)
     best_ut = wp.vec2()
     best_normal = wp.vec3()
-    best_s = float(0.0)
-    query = wp.bvh_query_aabb(bvhs[world], wp.min(xa, xb) - wp.vec3(thickness), wp.max(xa, xb) + wp.vec3(thickness))
+    lower = wp.min(wp.min(xa, xb), wp.min(pa, pb)) - wp.vec3(thickness)
+    upper = wp.max(wp.max(xa, xb), wp.max(pa, pb)) + wp.vec3(thickness)
+    query = wp.bvh_query_aabb(bvhs[world], lower, upper)
     local = int(0)
     while wp.bvh_query_next(query, local):
         f = world_edge_start[world] + local
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, ut, n, s = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f
             best_ut = ut
             best_normal = n
-            best_s = s
-    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, best_s, thickness, edges,
-                        contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, edges,
+                        contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
 
 
@@ -488,9 +487,8 @@ def find_edge_contacts_all_pairs(
     edge_world: wp.array(dtype=int),
     edges: wp.array(dtype=int),
     edge_body: wp.array(dtype=int),
-    edge_tris: wp.array(dtype=int),
-    tri: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
+    q_prev: wp.array(dtype=wp.vec3),
     rest: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     thickness: float,
@@ -501,7 +499,6 @@ def find_edge_contacts_all_pairs(
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_depth_out: wp.array(dtype=float),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
 ):
@@ -510,23 +507,23 @@ def find_edge_contacts_all_pairs(
     world = edge_world[e]
     xa = q[edges[2 * e]]
     xb = q[edges[2 * e + 1]]
+    pa = q_prev[edges[2 * e]]
+    pb = q_prev[edges[2 * e + 1]]
     best = int(-1)
     best_d = float(1.0e30)
     best_ut = wp.vec2()
     best_normal = wp.vec3()
-    best_s = float(0.0)
     for f in range(world_edge_start[world], world_edge_start[world + 1]):
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
-        d, ut, n, s = edge_edge_test(f, xa, xb, edges, edge_tris, tri, q, thickness)
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f
             best_ut = ut
             best_normal = n
-            best_s = s
-    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, best_s, thickness, edges,
-                        contact_particles_out, contact_weights_out, contact_normal_out, contact_depth_out,
+    finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, edges,
+                        contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
 
 
@@ -566,17 +563,19 @@ def scatter_contact(
 
 @wp.kernel
 def push_contacts(
+    q: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     contact_particles: wp.array(dtype=wp.vec4i),
     contact_weights: wp.array(dtype=wp.vec4),
     contact_normal: wp.array(dtype=wp.vec3),
-    contact_depth: wp.array(dtype=float),
     particle_contacts: wp.array(dtype=int),
+    thickness: float,
     fraction: float,
     dx_io: wp.array2d(dtype=wp.int64),
 ):
-    """Position push removing ``fraction`` of each contact's depth along its normal (mass-weighted:
-    the centre of mass does not move)."""
+    """Position push removing ``fraction`` of each contact's depth thickness - (sum a_k x_k) . n
+    at the current positions (mass-weighted: the centre of mass does not move; no pull when the
+    pair is already apart)."""
     c = wp.tid()
     particles = contact_particles[c]
     if particles[0] < 0:
@@ -585,7 +584,14 @@ def push_contacts(
     W = effective_inv_mass(particles, weights, inv_mass)
     if W <= 0.0:
         return
-    push = (fraction * contact_scale(particles, particle_contacts) * contact_depth[c] / W) * contact_normal[c]
+    gap = wp.vec3()
+    for k in range(4):
+        gap += weights[k] * q[particles[k]]
+    n = contact_normal[c]
+    depth = thickness - wp.dot(gap, n)
+    if depth <= 0.0:
+        return
+    push = (fraction * contact_scale(particles, particle_contacts) * depth / W) * n
     scatter_contact(particles, weights, inv_mass, push, dx_io)
 
 

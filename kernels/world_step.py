@@ -2,9 +2,9 @@
 
 World w owns particles ``w P .. (w + 1) P - 1`` (state, masses, radii per world); the springs,
 their CSR adjacency and the base values of their parameters are stored ONCE (world 0's, local
-particle indices), and a parameter that differs between worlds is ``coefficient[e] *
-world_values[w K + key[e]]`` (the tiling rule of ``kernels/worlds.py: tile_float``, evaluated on
-the fly). Per particle, one thread does what the generic Simulator does in its passes, with the
+particle indices, one 16-byte entry + one int per spring end), and a parameter that differs
+between worlds is ``coefficient[e] * world_values[w K + key[e]]`` (the tiling rule of
+``kernels/worlds.py: tile_float``, evaluated on the fly). Per particle, one thread does what the generic Simulator does in its passes, with the
 same arithmetic in the same order, so the results are bit-identical to it:
 
   f = 0 + m g_w                               (``seed_forces`` / ``eval_gravity_worlds``)
@@ -25,34 +25,25 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
-def world_value(base: wp.array(dtype=float), key: wp.array(dtype=int), coefficient: wp.array(dtype=float),
-                world_values: wp.array(dtype=float), key_count: int, e: int, w: int) -> float:
-    """Element e's value in world w: base[e], or coefficient[e] * world_values[w K + key[e]] when
-    it scales with a varied parameter (bit-identical to ``tile_float``)."""
-    k = key[e]
-    if k < 0:
-        return base[e]
-    return coefficient[e] * world_values[w * key_count + k]
+def world_value(value: float, key: int, world_values: wp.array(dtype=float), key_count: int, w: int) -> float:
+    """A spring parameter in world w: ``value`` itself (key < 0), or value (the coefficient) times
+    world w's varied parameter ``key`` (bit-identical to ``tile_float``: the product commutes)."""
+    if key < 0:
+        return value
+    return value * world_values[w * key_count + key]
 
 
 @wp.struct
 class SharedSprings:
-    """One world's springs, shared by every world: CSR adjacency (offsets (P + 1,), springs
-    (2 S,)), ends (2 S,) as local particle indices, and (base, key, coefficient) (S,) of the rest
-    length [m], stiffness [N/m] and damping [N s/m] (see ``world_value``)."""
+    """One world's springs, shared by every world, as a CSR adjacency over local particle indices:
+    row p = entries ``offsets[p] .. offsets[p + 1]`` (ascending spring index), each entry a vec4
+    (rest length [m], stiffness [N/m], damping [N s/m]: base values or coefficients; the other
+    end as a float, 2 o + 1 when p is the spring's second end) and ``keys`` (int: the varied
+    parameter of each of the three values + 1 in bits 0-9, 10-19, 20-29; 0 = not varied)."""
 
     offsets: wp.array(dtype=int)
-    springs: wp.array(dtype=int)
-    ends: wp.array(dtype=int)
-    rest_base: wp.array(dtype=float)
-    rest_key: wp.array(dtype=int)
-    rest_coefficient: wp.array(dtype=float)
-    stiffness_base: wp.array(dtype=float)
-    stiffness_key: wp.array(dtype=int)
-    stiffness_coefficient: wp.array(dtype=float)
-    damping_base: wp.array(dtype=float)
-    damping_key: wp.array(dtype=int)
-    damping_coefficient: wp.array(dtype=float)
+    entries: wp.array(dtype=wp.vec4)
+    keys: wp.array(dtype=int)
     world_values: wp.array(dtype=float)
     key_count: int
 
@@ -75,6 +66,55 @@ class WorldWalls:
     collider_count: int
 
 
+@wp.func
+def step_shared_particle(
+    t: int,
+    w: int,
+    p: int,
+    first: int,
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    world_gravity: wp.array(dtype=wp.vec3),
+    springs: SharedSprings,
+    walls: WorldWalls,
+    h: float,
+):
+    """The stepped (x, v) of particle t = first + p of world w (module docstring)."""
+    f = wp.vec3() + mass[t] * world_gravity[w]
+    x = q[t]
+    v = qd[t]
+    fs = wp.vec3()
+    for a in range(springs.offsets[p], springs.offsets[p + 1]):
+        e = springs.entries[a]
+        packed = springs.keys[a]
+        code = int(e[3])
+        other = first + code / 2
+        rest = world_value(e[0], (packed & 1023) - 1, springs.world_values, springs.key_count, w)
+        k = world_value(e[1], ((packed >> 10) & 1023) - 1, springs.world_values, springs.key_count, w)
+        kd = world_value(e[2], ((packed >> 20) & 1023) - 1, springs.world_values, springs.key_count, w)
+        # spring s evaluated from its first end, as eval_springs_gather does
+        if code % 2 == 0:
+            fs = fs + damped_spring_force(x, q[other], v, qd[other], rest, k, kd)
+        else:
+            fs = fs - damped_spring_force(q[other], x, qd[other], v, rest, k, kd)
+    f = f + fs
+    im = inv_mass[t]
+    v = v + (h * im) * f
+    x = x + h * v
+    if im != 0.0:
+        d = radius[t]
+        for g in range(walls.normals.shape[0]):
+            c = walls.collider[g]
+            wc = w * walls.collider_count + c
+            x, v = resolve_plane(x, v, walls.normals[g], walls.offsets[g], d + walls.thickness[c], walls.mode[c],
+                                 walls.restitution[wc], walls.friction[wc], walls.stiffness[c],
+                                 walls.damping_ratio[wc], im, h)
+    return x, v
+
+
 @wp.kernel
 def step_shared_worlds(
     q: wp.array(dtype=wp.vec3),
@@ -94,36 +134,66 @@ def step_shared_worlds(
     t = wp.tid()
     w = t / particle_count
     p = t - w * particle_count
-    first = w * particle_count
-    f = wp.vec3() + mass[t] * world_gravity[w]
-    fs = wp.vec3()
-    for a in range(springs.offsets[p], springs.offsets[p + 1]):
-        s = springs.springs[a]
-        si = springs.ends[2 * s]
-        sj = springs.ends[2 * s + 1]
-        rest = world_value(springs.rest_base, springs.rest_key, springs.rest_coefficient, springs.world_values,
-                           springs.key_count, s, w)
-        k = world_value(springs.stiffness_base, springs.stiffness_key, springs.stiffness_coefficient,
-                        springs.world_values, springs.key_count, s, w)
-        kd = world_value(springs.damping_base, springs.damping_key, springs.damping_coefficient,
-                         springs.world_values, springs.key_count, s, w)
-        fij = damped_spring_force(q[first + si], q[first + sj], qd[first + si], qd[first + sj], rest, k, kd)
-        if si == p:
-            fs = fs + fij
-        else:
-            fs = fs - fij
-    f = f + fs
-    x = q[t]
-    im = inv_mass[t]
-    v = qd[t] + (h * im) * f
-    x = x + h * v
-    if im != 0.0:
-        d = radius[t]
-        for g in range(walls.normals.shape[0]):
-            c = walls.collider[g]
-            wc = w * walls.collider_count + c
-            x, v = resolve_plane(x, v, walls.normals[g], walls.offsets[g], d + walls.thickness[c], walls.mode[c],
-                                 walls.restitution[wc], walls.friction[wc], walls.stiffness[c],
-                                 walls.damping_ratio[wc], im, h)
+    x, v = step_shared_particle(t, w, p, w * particle_count, q, qd, mass, inv_mass, radius, world_gravity, springs,
+                                walls, h)
     q_out[t] = x
     qd_out[t] = v
+
+
+@wp.func_native("WP_TILE_SYNC();")
+def sync_block():
+    """Barrier of the thread block (``__syncthreads`` on CUDA; a no-op for CPU launches, whose
+    blocks are one thread)."""
+    ...
+
+
+@wp.kernel
+def frame_shared_worlds(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    q_spare: wp.array(dtype=wp.vec3),
+    qd_spare: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    world_gravity: wp.array(dtype=wp.vec3),
+    particle_count: int,
+    lanes: int,
+    springs: SharedSprings,
+    walls: WorldWalls,
+    h: float,
+    substeps: int,
+):
+    """A whole frame of ``substeps`` steps of h [s] in one launch, one thread block per world:
+    launched with dim = world_count x ``lanes`` and block_dim = ``lanes`` (1 on the CPU: one
+    thread steps a whole world). Lane l steps particles l, l + lanes, ... of its world from one
+    buffer pair into the other (q, qd -> spares on even steps, back on odd ones), then the block
+    waits for every lane (``sync_block``) before the next step reads its neighbours; after an odd
+    count each lane copies its own particles home. The same arithmetic as
+    ``step_shared_worlds``, sub-step by sub-step: the same bits."""
+    tid = wp.tid()
+    w = tid / lanes
+    lane = tid - w * lanes
+    first = w * particle_count
+    for k in range(substeps):
+        p = lane
+        while p < particle_count:
+            t = first + p
+            if k % 2 == 0:
+                x, v = step_shared_particle(t, w, p, first, q, qd, mass, inv_mass, radius, world_gravity, springs,
+                                            walls, h)
+                q_spare[t] = x
+                qd_spare[t] = v
+            else:
+                x, v = step_shared_particle(t, w, p, first, q_spare, qd_spare, mass, inv_mass, radius,
+                                            world_gravity, springs, walls, h)
+                q[t] = x
+                qd[t] = v
+            p += lanes
+        sync_block()
+    if substeps % 2 == 1:
+        p = lane
+        while p < particle_count:
+            q[first + p] = q_spare[first + p]
+            qd[first + p] = qd_spare[first + p]
+            p += lanes

@@ -181,6 +181,12 @@ def freeze_blown_worlds(
 # --------------------------------------------------------------------------------------
 # Metrics, accumulated on the device once per frame
 # --------------------------------------------------------------------------------------
+@wp.func
+def first_of_world(i: int, particle_world: wp.array(dtype=int)) -> bool:
+    """Whether particle i is the first of its world (worlds own contiguous ranges)."""
+    return i == 0 or particle_world[i - 1] != particle_world[i]
+
+
 @wp.kernel
 def accumulate_world_sums(
     q: wp.array(dtype=wp.vec3),
@@ -194,17 +200,32 @@ def accumulate_world_sums(
     peak_speed_io: wp.array(dtype=float),
 ):
     """Per world: sum m x [kg m], sum m [kg], kinetic energy sum m |v|^2 / 2 [J] of this frame and
-    the peak particle speed [m/s] so far (frozen worlds are skipped)."""
+    the peak particle speed [m/s] so far (frozen worlds are skipped). Launched over particles; the
+    first particle's thread of each world sums its world's particles in index order (no float
+    atomics: the same bits every run), the others return."""
     i = wp.tid()
+    if not first_of_world(i, particle_world):
+        return
     w = particle_world[i]
     if world_bad[w] == 1:
         return
-    m = mass[i]
-    v = qd[i]
-    wp.atomic_add(moment_out, w, m * q[i])
-    wp.atomic_add(mass_out, w, m)
-    wp.atomic_add(kinetic_out, w, 0.5 * m * wp.dot(v, v))
-    wp.atomic_max(peak_speed_io, w, wp.length(v))
+    moment = wp.vec3()
+    total = float(0.0)  # noqa: UP018 (mutable loop variables in Warp)
+    kinetic = float(0.0)  # noqa: UP018
+    peak = peak_speed_io[w]
+    j = i
+    while j < q.shape[0] and particle_world[j] == w:
+        m = mass[j]
+        v = qd[j]
+        moment += m * q[j]
+        total += m
+        kinetic += 0.5 * m * wp.dot(v, v)
+        peak = wp.max(peak, wp.length(v))
+        j += 1
+    moment_out[w] = moment_out[w] + moment
+    mass_out[w] = mass_out[w] + total
+    kinetic_out[w] = kinetic_out[w] + kinetic
+    peak_speed_io[w] = peak
 
 
 @wp.kernel
@@ -255,8 +276,9 @@ _metric_kernels = {}
 
 def user_metric_kernel(func):
     """A kernel that adds ``func(x, v, m)`` (a ``@wp.func`` of (wp.vec3 [m], wp.vec3 [m/s],
-    float [kg]) -> float) of every particle into ``out[world]`` (atomic add, frozen worlds
-    skipped); built once per function."""
+    float [kg]) -> float) of every particle into ``out[world]`` (summed per world in particle
+    order by the world's first thread: no float atomics; frozen worlds skipped); built once per
+    function."""
     if func in _metric_kernels:
         return _metric_kernels[func]
 
@@ -269,10 +291,17 @@ def user_metric_kernel(func):
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
+        if not first_of_world(i, particle_world):
+            return
         w = particle_world[i]
         if world_bad[w] == 1:
             return
-        wp.atomic_add(out, w, func(q[i], qd[i], mass[i]))
+        total = float(0.0)  # noqa: UP018
+        j = i
+        while j < q.shape[0] and particle_world[j] == w:
+            total += func(q[j], qd[j], mass[j])
+            j += 1
+        out[w] = out[w] + total
 
     kernel = wp.kernel(eval_user_metric, enable_backward=False, module="unique")
     _metric_kernels[func] = kernel

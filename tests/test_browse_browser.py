@@ -2,7 +2,9 @@
 Playwright; WebGL through SwiftShader): ``warpsim view`` on a sweep root with an occupancy record
 shows the query box; dragging the box's corner gizmo with the mouse moves the box, and on release
 the listed worlds change to those the record says are inside it (the same as
-:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone."""
+:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone.
+Without a browser: the panel ranks by first entry or time inside, NOT IN gives the complement,
+and "show matches only" hides the rest."""
 from __future__ import annotations
 
 import argparse
@@ -64,7 +66,7 @@ def test_dragging_the_box_changes_the_list(root):
                 close.first.click()
             page.wait_for_timeout(1500)
             # the gizmo's y arrow: press on it, drag upward, release
-            scale = 0.15 * float(np.max(query.record.grid.hi - query.record.grid.lo))
+            scale = query.gizmo_scale
             x0, y0 = _project(client.camera, corner + np.array([0.0, 0.7 * scale, 0.0]))
             x1, y1 = _project(client.camera, corner + np.array([0.0, 0.7 * scale + 0.5, 0.0]))
             assert 0 < x0 < WIDTH and 0 < y1 < y0 < HEIGHT
@@ -84,5 +86,28 @@ def test_dragging_the_box_changes_the_list(root):
             page.get_by_role("button", name=f"#1 world {after[0]}", exact=False).first.click()
             _wait(lambda: viewer.isolated == f"world_{after[0]:06d}", timeout=30, what="the click to play a world")
             browser.close()
+    finally:
+        viewer.stop()
+
+
+def test_panel_ranks_negates_and_hides(root):
+    viewer = GalleryViewer(str(root), port=_free_port(), thumbnails=False).start()
+    try:
+        query = viewer.query
+        query.window.value = (0.1, 0.5)
+        query.set_box((-0.1, 0.3, -0.1), (0.1, 0.6, 0.1))
+        answer = answer_region(query.record, query.region())
+        inside = [int(w) for w in np.flatnonzero(answer.match)]
+        assert 0 < len(inside) < 9
+        assert query.matches == sorted(inside, key=lambda w: (answer.entry[w], w))  # first entry first
+        query.rank.value = "time inside"
+        assert query.matches == sorted(inside, key=lambda w: (-answer.time[w], w))
+        assert query.hidden == {f"world_{w:06d}" for w in range(1, 9) if w not in inside}  # world 0 holds the box
+        query.mode.value = "NOT IN"
+        assert sorted(query.matches) == [w for w in range(9) if w not in inside]
+        query.matches_only.value = False
+        assert query.hidden == set()
+        query.play(query.matches[0])
+        assert viewer.isolated == f"world_{query.matches[0]:06d}" and viewer.playing and viewer.index == 0
     finally:
         viewer.stop()

@@ -154,3 +154,31 @@ def test_deterministic_must_be_a_bool():
         ClothSemiImplicitEuler(deterministic=1)
     with pytest.raises(TypeError, match="Springs deterministic"):
         ws.Springs(deterministic=None)
+
+
+def test_the_cpus_two_pass_gather_gives_the_one_pass_gathers_bits():
+    """On the CPU ``ws.Springs`` evaluates each spring once, then sums per particle; on GPUs one
+    kernel evaluates springs at both ends. Both sum in the same CSR order: the same bits (broken
+    springs skipped in both)."""
+    from warpsim.kernels import forces as K
+
+    b, model = _springy_cloth("cpu", extra_springs=15)
+    broken = np.zeros(model.spring_count, dtype=np.int32)
+    broken[::7] = 1
+    model.spring_broken.assign(broken)
+    rng = np.random.default_rng(3)
+    q = wp.array((np.asarray(b.particle_q) + rng.normal(0, 0.02, (model.particle_count, 3))).astype(np.float32),
+                 dtype=wp.vec3, device="cpu")
+    qd = wp.array(rng.normal(0, 0.3, (model.particle_count, 3)).astype(np.float32), dtype=wp.vec3, device="cpu")
+    seed = wp.array(rng.normal(0, 1.0, (model.particle_count, 3)).astype(np.float32), dtype=wp.vec3, device="cpu")
+    two = wp.clone(seed)
+    force = ws.Springs()
+    force.bind(model)
+    force.eval(q, qd, None, 0.0, two)
+    one = wp.clone(seed)
+    wp.launch(K.eval_springs_gather, model.particle_count,
+              inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
+                      model.spring_damping, model.spring_broken, model.particle_spring_offsets, model.particle_springs,
+                      one], device="cpu")
+    assert two.numpy().tobytes() == one.numpy().tobytes()
+    assert not np.array_equal(two.numpy(), seed.numpy())

@@ -199,6 +199,10 @@ def test_tracked_record_equals_the_cached_samples_and_their_cells(tmp_path):
         got = {(int(c), int(f)) for c, row in zip(record.pair_cell[rows], bits) for f in np.flatnonzero(row)}
         assert got == want
         assert len({c for c, _ in want}) > 1  # the mass moves through several cells
+    lo, hi = record.occupied_bounds()  # every recorded position lies in the occupied cells' bounds
+    inner = record.samples.reshape(-1, 3)
+    inner = inner[((inner >= record.grid.lo) & (inner < record.grid.hi)).all(1)]
+    assert len(inner) and (inner >= lo - 1e-6).all() and (inner <= hi + 1e-6).all()
 
 
 @pytest.mark.parametrize("args, words", [
@@ -246,3 +250,23 @@ def test_answers_refined_from_the_cached_positions(tmp_path):
     cells = answer_region(record, region, cached_positions(root, record), budget=0)
     assert refined.exact and not cells.exact
     assert list(refined.match) == brute and (cells.match >= refined.match).all()
+
+
+def test_flock_sweeps_keep_a_record(tmp_path):
+    """Agent batches (flocks) record their agents too: the cells world w marks at frame 0 are
+    exactly those of its cached agents."""
+    root = tmp_path / "f.usda"
+    code, out, err = run("sweep", "flock", "--vary", "seed=0,1", "--frames", 2, "--no-progress", "--device", "cpu",
+                         "--out", root)
+    assert code == 0, err
+    record = OccupancyRecord.load(occupancy_path(root))
+    assert record.world_count == 2 and record.frame_count == 3 and not record.exact
+    from pxr import Usd, UsdGeom
+
+    layer = Usd.Stage.Open(str(tmp_path / "f.batch_0000.usdc"))
+    for w in range(2):
+        rows = slice(record.world_start[w], record.world_start[w + 1])
+        at0 = {int(c) for c, b in zip(record.pair_cell[rows], record.pair_bits[rows, 0]) if b & 1}
+        agents = UsdGeom.PointInstancer(layer.GetPrimAtPath(f"/Worlds/world_{w:06d}/agents"))
+        pts = np.array(agents.GetPositionsAttr().Get(0))
+        assert len(pts) == record.world_particle_count and set(record.grid.cells_of(pts)) == at0

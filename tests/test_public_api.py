@@ -42,9 +42,7 @@ def test_static_names_mirror_the_lazy_loader_and_all():
 def test_every_public_name_resolves_with_a_docstring():
     static, _ = _sections()
     missing = []
-    # the integrators' docstrings (with their stability regions) land with issue 26's branch
-    pending = {"Integrator", "ExplicitEuler", "RK4"}
-    for name in sorted(static - {"Viewer"} - pending):
+    for name in sorted(static - {"Viewer"}):
         obj = getattr(warpsim, name)
         if isinstance(obj, dict):  # INTEGRATORS: name -> class table
             continue
@@ -57,3 +55,36 @@ def test_py_typed_ships_with_the_package():
     assert (INIT.parent / "py.typed").is_file()
     text = (INIT.parents[1] / "pyproject.toml").read_text()
     assert 'warpsim = ["py.typed"]' in text
+
+
+# public functions still without a return annotation (files other branches own this turn);
+# the set may only shrink: a new public function without one fails below
+RETURN_PENDING = {
+    "ClothImplicitEuler.assemble", "ClothImplicitEuler.step", "ClothSemiImplicitEuler.step", "ClothSimulator.run",
+    "ExplicitEuler.step", "SemiImplicitEuler.step", "SemiImplicitEuler.fused_step", "ImplicitEuler.assemble",
+    "ImplicitEuler.step", "RK2.step", "RK4.step", "Simulator.run",
+    "BoidParams.validate", "WalkerParams.validate", "Obstacles.bind", "Terrain.bind", "Terrain.bounds",
+    "keyframe_motion", "FlipLiquid.add_box", "FlipLiquid.add_sdf", "FlipLiquid.add_cells", "FlipLiquid.measure_density",
+    "FlipLiquid.surface", "MacGrid.add_collider", "PressureSolver.precondition", "PressureSolver.apply",
+    "PressureSolver.project", "Advector.advect", "Viscosity.apply", "Metaballs.mesh", "FluidSurface.mesh",
+    "Pendulum.stability", "StrandForce.bind", "StrandForce.eval", "StrandRoots.apply", "StrandRoots.bind",
+    "Strands.bind", "Strands.strand_of",
+}
+
+
+def test_public_functions_annotate_their_return():
+    import inspect
+
+    missing = set()
+    for name in warpsim.__all__:
+        if name in ("__version__", "Viewer", "INTEGRATORS"):
+            continue
+        obj = getattr(warpsim, name)
+        if inspect.isclass(obj):
+            funcs = [(f"{name}.{k}", v) for k, v in vars(obj).items()
+                     if not k.startswith("_") and inspect.isfunction(v)]
+        else:
+            funcs = [(name, obj)] if inspect.isfunction(obj) else []
+        missing.update(q for q, f in funcs if inspect.signature(f).return_annotation is inspect.Signature.empty)
+    new = missing - RETURN_PENDING
+    assert not new, f"public functions without a return annotation: {sorted(new)}"

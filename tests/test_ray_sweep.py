@@ -28,6 +28,7 @@ SCENE = "springs"
 VARY = ["stiffness=100,400,1000,1e9", "damping=0.01,0.5"]  # grid of 8; the last two worlds blow up
 WORLDS = 8
 FRAMES = 40
+FIXED_STEPS = ["--substeps", "1"]  # one step per frame: the stiff worlds blow up (auto sub-steps would keep them stable)
 
 
 # --- no cluster needed ---------------------------------------------------------------------------
@@ -125,7 +126,7 @@ def reference(tmp_path_factory):
     folder = tmp_path_factory.mktemp("single")
     err = io.StringIO()
     assert main(["sweep", SCENE, "--worlds", str(WORLDS), "--frames", str(FRAMES), "--device", "cpu",
-                 "--out", str(folder / "s.usda"), "--no-progress", *[f"--vary={v}" for v in VARY]],
+                 "--out", str(folder / "s.usda"), "--no-progress", *FIXED_STEPS, *[f"--vary={v}" for v in VARY]],
                 out=io.StringIO(), err=err) == 0, err.getvalue()
     worlds = sample_worlds(SCENE, {}, VARY, WORLDS)
     samples = _samples(folder / "s.usda", WORLDS)
@@ -178,7 +179,7 @@ def test_ray_without_an_address_starts_a_local_cluster_and_matches_the_single_pr
     out = tmp_path / "s.usda"
     r = subprocess.run([sys.executable, "-m", "warpsim", "sweep", SCENE, "--worlds", str(WORLDS), "--frames",
                         str(FRAMES), "--device", "cpu", "--out", str(out), "--no-progress", "--ray", "--ray-cpus", "2",
-                        "--batch-size", "4", *[f"--vary={v}" for v in VARY]],
+                        "--batch-size", "4", *FIXED_STEPS, *[f"--vary={v}" for v in VARY]],
                        capture_output=True, text=True, timeout=300, check=False)
     assert r.returncode == 0, r.stderr
     assert re.findall(r"^batch (\d)/2 ", r.stderr, re.MULTILINE) in (["1", "2"], ["2", "1"])
@@ -192,7 +193,7 @@ def test_ray_sweep_equals_single_process_and_survives_a_killed_worker(cluster, r
     worlds = reference[0]
     marker = str(tmp_path / "killed.marker")
     out = str(tmp_path / "ray" / "s.usda")
-    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, out_path=out, table_path=str(tmp_path / "ray" / "s.csv"),
+    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=out, table_path=str(tmp_path / "ray" / "s.csv"),
                            device="cpu", batch_size=3, _kill_once=marker)
     # one worker was SIGKILLed after writing its layer, before publishing it; Ray ran the batch again
     killed_batch, killed_pid = map(int, _read(marker).split())
@@ -216,7 +217,7 @@ def test_resume_after_the_driver_is_killed_runs_only_the_remaining_batches(clust
 
     out = tmp_path / "s.usda"
     argv = ["sweep", SCENE, "--worlds", str(WORLDS), "--frames", str(FRAMES), "--device", "cpu", "--out", str(out),
-            "--batch-size", "2", "--no-progress"] + [f"--vary={v}" for v in VARY]
+            "--batch-size", "2", "--no-progress", *FIXED_STEPS] + [f"--vary={v}" for v in VARY]
     # a fresh shell's environment: the driver finds the cluster's authentication token by itself
     env = {k: v for k, v in os.environ.items() if k != "RAY_AUTH_MODE"}
     driver = subprocess.Popen([sys.executable, "-m", "warpsim", *argv, "--ray", cluster], cwd=tmp_path, env=env,
@@ -261,7 +262,7 @@ def test_a_batch_that_raises_is_flagged_and_the_root_spans_the_other_batches(clu
         return run_batch(scene, worlds, first_world=first_world, **kw)
 
     worlds = reference[0][:6]
-    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, out_path=str(tmp_path / "s.usda"),
+    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=str(tmp_path / "s.usda"),
                            table_path=str(tmp_path / "s.csv"), device="cpu", batch_size=2, runner=runner)
     rows = result["rows"]
     assert [r["world"] for r in rows] == list(range(6))
@@ -277,7 +278,7 @@ def test_a_batch_that_raises_is_flagged_and_the_root_spans_the_other_batches(clu
     with open(result["table"]) as fh:
         assert fh.read().count("RuntimeError: out of device memory") == 2
     # --resume runs the failed batch again (the memory may be there now) and nothing else
-    again = run_ray_sweep(SCENE, worlds, frames=FRAMES, out_path=str(tmp_path / "s.usda"),
+    again = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=str(tmp_path / "s.usda"),
                           table_path=str(tmp_path / "s.csv"), device="cpu", batch_size=2, resume=True)
     assert again["ran"] == [1] and again["skipped"] == [0, 2]
     with open(again["table"]) as fh:

@@ -27,6 +27,13 @@ def _worlds(name, n=4):
     return get_scene(name), sample_worlds(name, fixed, vary, n, sample="lhs", seed=1)
 
 
+def _fixed_steps(*scenes_or_batches):
+    """Sub-step counts fixed at the scene's default: auto sub-stepping follows the stiffest world
+    of a batch, a scene alone its own limit (another step count, another result)."""
+    for x in scenes_or_batches:
+        (getattr(x, "batch_scene", None) or x).auto_substeps = False
+
+
 def _frames(batch, frame_dt, substeps, frames):
     for _ in range(frames):
         batch.advance(frame_dt, substeps)
@@ -40,6 +47,7 @@ def test_shared_path_is_bit_identical_to_the_tiled_path_and_to_each_world_alone(
     shared = WorldBatch(cls, worlds, device="cpu")
     tiled = WorldBatch(cls, worlds, device="cpu", shared=False)
     assert shared.shared and not tiled.shared
+    _fixed_steps(shared, tiled)
     frames = 8
     xs, vs = _frames(shared, frame_dt, substeps, frames)
     xt, vt = _frames(tiled, frame_dt, substeps, frames)
@@ -48,7 +56,7 @@ def test_shared_path_is_bit_identical_to_the_tiled_path_and_to_each_world_alone(
     # world 0 (the tiling base) equals its scene run alone bit for bit; every world within rounding
     for w in range(len(worlds)):
         scene = cls(cls.resolve_params(worlds[w]), device="cpu")
-        scene.frame_steps_fixed = shared.batch_scene.frame_steps(frame_dt, substeps)  # auto: the batch's count
+        _fixed_steps(scene)
         for _ in range(frames):
             scene.advance(frame_dt, substeps)
         alone = scene.sim.state.positions.numpy()
@@ -67,8 +75,7 @@ def test_shared_topology_is_stored_once():
     per_world = [name for name, a in vars(m).items() if isinstance(a, wp.array) and a.shape[0] >= len(worlds) * S]
     assert per_world == []  # no array per spring per world
     springs = batch.stepper.springs
-    assert springs.ends.shape[0] == 2 * S and springs.springs.shape[0] == 2 * S
-    assert springs.stiffness_base.shape[0] == S
+    assert springs.entries.shape[0] == 2 * S and springs.keys.shape[0] == 2 * S  # once, not per world
 
 
 def test_shared_world_gathers_follow_the_atomics_path_within_a_micrometre_over_240_steps():
@@ -95,3 +102,17 @@ def test_shared_true_names_what_the_scene_lacks():
     with pytest.raises(StructuralError, match="ClothSimulator"):
         WorldBatch(cls, worlds, device="cpu", shared=True)
     assert not WorldBatch(cls, worlds, device="cpu").shared  # cloth keeps its own simulator
+
+
+@pytest.mark.parametrize("substeps", [3, 4])  # odd: the frame ends in the spare buffers and copies home
+def test_one_launch_per_frame_gives_the_per_step_paths_bits(substeps):
+    cls, worlds = _worlds("teapot")
+    _, _, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    steps = WorldBatch(cls, worlds, device="cpu")
+    blocks = WorldBatch(cls, worlds, device="cpu", block_per_world=True)
+    _fixed_steps(steps, blocks)
+    xs, vs = _frames(steps, frame_dt / 10 * substeps, substeps, 6)
+    xb, vb = _frames(blocks, frame_dt / 10 * substeps, substeps, 6)
+    assert blocks.stepper.block_per_world and blocks.sim.state.positions is blocks.stepper._home[0]
+    assert xs.tobytes() == xb.tobytes() and vs.tobytes() == vb.tobytes()
+    assert np.abs(xs - blocks.scene.sim.model.particle_q.numpy()[None]).max() > 1e-3

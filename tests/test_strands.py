@@ -18,57 +18,63 @@ def _normalize(u):
     return u / n if n > 1e-12 else np.array([1.0, 0.0, 0.0])
 
 
-def _transport(n, t0, t1):
-    c = float(np.dot(t0, t1))
-    a = np.cross(t0, t1)
-    r = n * c + np.cross(a, n) + a * (np.dot(a, n) / (1.0 + c)) if c > -0.9999 else n
-    r = r - np.dot(r, t1) * t1
-    return r / np.linalg.norm(r)
+def _transport(n, t):
+    m = n - np.dot(n, t) * t
+    return m / np.linalg.norm(m)
 
 
 def strand_frames_np(x, root_normal):
-    """Frames (stride, 3, 3) of one strand's bending vertices 1 .. stride - 2 (columns t, n, t x n)."""
+    """Frames (stride, 3, 3) of one strand's bending vertices 1 .. stride - 2 (columns t, n, t x n):
+    t the incoming edge, n carried from the root normal by projection transport."""
     frames = np.zeros((len(x), 3, 3))
-    t_prev = _normalize(x[1] - x[0])
-    n = root_normal
+    t = _normalize(x[1] - x[0])
+    n = _transport(root_normal, t)
     for v in range(1, len(x) - 1):
         if v >= 2:
             t = _normalize(x[v] - x[v - 1])
-            n = _transport(n, t_prev, t)
-            t_prev = t
-        else:
-            n = _transport(n, t_prev, t_prev)
-        frames[v] = np.column_stack([t_prev, n, np.cross(t_prev, n)])
+            n = _transport(n, t)
+        frames[v] = np.column_stack([t, n, np.cross(t, n)])
     return frames
 
 
-def strand_forces_np(x, vel, rest, bend_rest, ks, kb, ds, db, root_normal):
-    """The forces of warpsim.kernels.strands.eval_strand_forces on one strand, in float64."""
-    f = np.zeros_like(x)
-    frames = strand_frames_np(x, root_normal)
-    for v in range(1, len(x) - 1):
-        e = kb * (x[v - 1] - 2 * x[v] + x[v + 1] - frames[v] @ bend_rest[v]) + db * (
-            vel[v - 1] - 2 * vel[v] + vel[v + 1])
-        f[v - 1] -= e
-        f[v] += 2 * e
-        f[v + 1] -= e
-        u = x[v + 1] - x[v]
-        l = np.linalg.norm(u)
-        d = u / l
-        ft = ks * (l - rest[v]) + ds * np.dot(vel[v + 1] - vel[v], d)
-        f[v] += ft * d
-        f[v + 1] -= ft * d
-    return f
-
-
 def strand_energy_np(x, rest, bend_rest, ks, kb, root_normal):
-    """Spring energy [J] of one strand (conservative when bend_rest = 0)."""
+    """Spring energy [J] of one strand: stretch plus kb / 2 |b - F c|^2 per bending vertex."""
     frames = strand_frames_np(x, root_normal)
     e = 0.0
     for v in range(1, len(x) - 1):
         b = x[v - 1] - 2 * x[v] + x[v + 1] - frames[v] @ bend_rest[v]
         e += 0.5 * kb * b @ b + 0.5 * ks * (np.linalg.norm(x[v + 1] - x[v]) - rest[v]) ** 2
     return e
+
+
+def strand_forces_np(x, vel, rest, bend_rest, ks, kb, ds, db, root_normal, eps=1e-7):
+    """Float64 reference of warpsim.kernels.strands.eval_strand_forces on one strand: minus the
+    gradient of strand_energy_np (central differences; analytic when bend_rest = 0) plus the
+    stretch and bending dampers."""
+    f = np.zeros_like(x)
+    if np.any(bend_rest):
+        for i in range(len(x)):
+            for c in range(3):
+                xp, xm = x.copy(), x.copy()
+                xp[i, c] += eps
+                xm[i, c] -= eps
+                f[i, c] = -(strand_energy_np(xp, rest, bend_rest, ks, kb, root_normal)
+                            - strand_energy_np(xm, rest, bend_rest, ks, kb, root_normal)) / (2 * eps)
+    for v in range(1, len(x) - 1):
+        e = db * (vel[v - 1] - 2 * vel[v] + vel[v + 1])
+        if not np.any(bend_rest):
+            e = e + kb * (x[v - 1] - 2 * x[v] + x[v + 1])
+        f[v - 1] -= e
+        f[v] += 2 * e
+        f[v + 1] -= e
+        u = x[v + 1] - x[v]
+        d = u / np.linalg.norm(u)
+        ft = ds * np.dot(vel[v + 1] - vel[v], d)
+        if not np.any(bend_rest):
+            ft += ks * (np.linalg.norm(u) - rest[v])
+        f[v] += ft * d
+        f[v + 1] -= ft * d
+    return f
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -113,9 +119,8 @@ def test_strand_forces_match_numpy_reference():
         want = strand_forces_np(x[idx].astype(np.float64), v[idx].astype(np.float64), rest[s], bend[s],
                                 hair.stretch_stiffness[s], hair.bend_stiffness[s], hair.stretch_damping[s],
                                 hair.bend_damping[s], normal[s].astype(np.float64))
-        np.testing.assert_allclose(got[idx], want, rtol=2e-3, atol=2e-4 * np.abs(want).max())
-    # internal forces: no net force on the strand
-    np.testing.assert_allclose(got.sum(axis=0), 0.0, atol=1e-5 * np.abs(got).max())
+        # the free vertices (ghost and root are pinned: the kernel leaves out the frame gradient there)
+        np.testing.assert_allclose(got[idx[2:]], want[2:], rtol=2e-3, atol=2e-4 * np.abs(want).max())
 
 
 def test_sag_free_matches_numpy_least_squares_and_holds_a_horizontal_strand():
@@ -157,10 +162,16 @@ def test_sag_free_matches_numpy_least_squares_and_holds_a_horizontal_strand():
     from warpsim.kernels import strands as KS
     wp.launch(KS.bend_world_from_rest, 1, inputs=[sim.state.positions, hair.first, hair.stride, data["root_normal"],
                                                    data["bend_rest"], world], device=DEVICE)
-    np.testing.assert_allclose(world.numpy()[1:-1], bend_ref, atol=1e-6 * seg.mean())
-    # residual: float64 solve, then the simulator's float32 kernels; rest lengths positive
-    assert report.residual_relative < 1e-8
-    assert report.simulator_residual_relative < 1e-2
+    # the global step is this least-squares solution; later rounds add the frames' gradient (small)
+    np.testing.assert_allclose(world.numpy()[1:-1], bend_ref, atol=0.02 * np.abs(bend_ref).max())
+    # equilibrium by the NumPy force model (minus the energy gradient, frames included, and gravity)
+    normal = data["root_normal"].numpy()[0].astype(np.float64)
+    f = strand_forces_np(xs, np.zeros_like(xs), data["rest_length"].numpy().astype(np.float64),
+                         data["bend_rest"].numpy().astype(np.float64), ks, kb, 0.0, 0.0, normal)
+    f[:, 1] -= mass * G
+    assert np.abs(f[2:]).max() < 1e-2 * mass * G
+    # residual in the simulator's kernels below 1 % of the load; rest lengths positive and bounded
+    assert report.residual_relative < 1e-2
     assert rest.min() > 0.0 and 1 - report.max_strain <= report.rest_ratio_min <= report.rest_ratio_max <= 1.2
     # equilibrium held for 2 s; the same strand without sag-free sags by centimetres
     held = max_displacement(sim)
@@ -184,7 +195,7 @@ def test_sag_free_pinned_cloth_holds_its_shape():
     rest = sim.model.spring_rest_length.numpy()
     assert rest.min() > 0.0
     assert np.all(np.abs(rest / geometric - 1.0) <= report.max_strain + 1e-6)
-    assert report.residual_relative < 1e-8 and report.simulator_residual_relative < 1e-2
+    assert report.residual_relative < 1e-2
     held = max_displacement(sim, dt=1e-3, every=10)
     sag = max_displacement(curtain(), dt=1e-3, every=10)
     assert sag > 0.01, sag
@@ -256,3 +267,63 @@ def test_bad_strand_input_names_the_strand():
     hair, sim = horizontal_strand(segments=4)
     with pytest.raises(ValueError, match=r"max_strain=0.0001 cannot be met: strand 0"):
         ws.sag_free(sim, max_strain=1e-4)
+
+
+# ---------------------------------------------------------------------------------- the hair scene
+def _hair_scene(**params):
+    from warpsim.scenes import get_scene
+
+    base = {"strands": 24, "segments": 8}
+    base.update(params)
+    return get_scene("hair")(base, device=DEVICE)
+
+
+def _tip_drift(scene, seconds=2.0):
+    tips = scene.hair.tip_particles()
+    x0 = scene.sim.state.positions.numpy()[tips].copy()
+    worst = 0.0
+    for _ in range(int(round(60 * seconds))):
+        scene.advance(1.0 / 60.0, 1)
+        worst = max(worst, float(np.linalg.norm(scene.sim.state.positions.numpy()[tips] - x0, axis=1).max()))
+    return worst
+
+
+@pytest.mark.parametrize("style", ["straight", "wavy"])
+def test_groomed_hair_keeps_its_shape_with_sag_free(style):
+    held = _tip_drift(_hair_scene(motion="still", style=style))
+    assert held < 2e-3, held
+    if style == "straight":
+        sagged = _tip_drift(_hair_scene(motion="still", sag_free=False))
+        assert sagged > 1e-2, sagged
+
+
+def test_moving_head_keeps_strands_out_of_it_and_the_curves_taper(tmp_path):
+    from warpsim.strands import head_signed_distance
+    from warpsim.usd.writer import UsdCacheWriter
+
+    scene = _hair_scene(motion="turn_nod", still=0.2, strands=16)
+    hair = scene.hair
+    free = hair.free_particles()
+    path = tmp_path / "hair.usda"
+    writer = UsdCacheWriter(str(path))
+    scene.declare(writer)
+    writer.write_frame(0, scene.frame_data())
+    moved = 0.0
+    p0 = scene.head.world_pose()[1]
+    for frame in range(1, 91):
+        scene.advance(1.0 / 60.0, 1)
+        depth = head_signed_distance(scene.head, scene.sim.state.positions.numpy()[free])
+        assert depth.min() >= -hair.radius.max(), (frame, depth.min())
+        moved = max(moved, float(np.abs(scene.head.world_pose()[1] - p0).max()))
+        if frame % 30 == 0:
+            writer.write_frame(frame, scene.frame_data())
+    writer.close()
+    assert moved > 0.1  # the head did turn
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/hair"))
+    widths = np.array(curves.GetWidthsAttr().Get())
+    assert curves.GetWidthsInterpolation() == UsdGeom.Tokens.vertex
+    per_curve = widths.reshape(hair.strand_count, hair.segments + 1)
+    assert np.all(np.diff(per_curve, axis=1) < 0) and per_curve[0, 0] == pytest.approx(2 * hair.radius[0])

@@ -155,7 +155,7 @@ class Terrain:
         self._cache[key] = (t, keep)
         return t
 
-    def sample(self, points, device=None):
+    def sample(self, points, device=None) -> np.ndarray:
         """(h, dh/dx, dh/dz) at points (n, 3) or (n, 2) (x, z) as a NumPy (n, 3) array."""
         device = wp.get_device(device)
         p = np.asarray(points, dtype=np.float64)
@@ -167,7 +167,7 @@ class Terrain:
                                                                                  device=device), out], device=device)
         return out.numpy().astype(np.float64)
 
-    def height(self, points, device=None):
+    def height(self, points, device=None) -> np.ndarray:
         """Ground height h [m] at points (n, 3) or (n, 2)."""
         return self.sample(points, device)[:, 0]
 
@@ -180,7 +180,7 @@ class Terrain:
             return self.points[:, [0, 2]].min(axis=0), self.points[:, [0, 2]].max(axis=0)
         return None
 
-    def mesh(self, size=50.0):
+    def mesh(self, size=50.0) -> tuple[np.ndarray, np.ndarray]:
         """(points (v, 3), triangles (m, 3)) for drawing; a flat plane is a square of side ``size``."""
         if self.kind == 2:
             return self.points, self.faces
@@ -267,7 +267,7 @@ class Obstacles:
         self._cache[key] = (o, keep)
         return o
 
-    def distance(self, points, max_dist=1.0e6, device=None):
+    def distance(self, points, max_dist=1.0e6, device=None) -> np.ndarray:
         """Smallest signed distance [m] from each point (n, 3) to the obstacles (NumPy (n,))."""
         device = wp.get_device(device)
         p = _points(points, "obstacle distance points")

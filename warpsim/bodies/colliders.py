@@ -104,12 +104,12 @@ class Planes(_Contact):
         self.name = name
         self._set_contact(name, restitution, friction, mode, thickness, stiffness)
 
-    def bind(self, model):
+    def bind(self, model) -> None:
         super().bind(model)
         self._normals = wp.array(self.normals.astype(np.float32), dtype=wp.vec3, device=model.device)
         self._offsets = wp.array(self.offsets.astype(np.float32), dtype=float, device=model.device)
 
-    def apply(self, model, state, q_prev, dt):
+    def apply(self, model, state, q_prev, dt) -> None:
         wp.launch(
             K.collide_planes, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, self._normals, self._offsets,
@@ -360,7 +360,7 @@ class Capsule(_Kinematic):
         p, q = self.world_pose()
         return p + quat_rotate(q, self.b_local)
 
-    def apply(self, model, state, q_prev, dt):
+    def apply(self, model, state, q_prev, dt) -> None:
         prev, now = self._advance(dt)
         if not self.continuous:
             q_prev = state.positions  # a path of length 0 (static shape): the end point alone
@@ -435,7 +435,7 @@ class Quad(_Kinematic):
         local = [(-1, -1), (-1, 1), (1, 1), (1, -1)]
         return np.array([p + quat_rotate(q, [s * self.half_x, 0.0, t * self.half_z]) for s, t in local])
 
-    def apply(self, model, state, q_prev, dt):
+    def apply(self, model, state, q_prev, dt) -> None:
         prev, now = self._advance(dt)
         wp.launch(
             K.collide_quad, model.particle_count,
@@ -517,7 +517,7 @@ class TriangleMesh(_Kinematic):
         v = self.points
         return p + v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
-    def bind(self, model):
+    def bind(self, model) -> None:
         super().bind(model)
         if self._mesh is None or self._mesh.device != model.device:
             d = model.device
@@ -530,7 +530,7 @@ class TriangleMesh(_Kinematic):
         """The wp.Mesh (local frame), available after bind."""
         return self._mesh
 
-    def apply(self, model, state, q_prev, dt):
+    def apply(self, model, state, q_prev, dt) -> None:
         prev, now = self._advance(dt)
         wp.launch(
             K.collide_mesh, model.particle_count,
@@ -557,7 +557,7 @@ class ParticleCollisions(Collider):
         self.separate = int(bool(separate))
         self.grid_dim = checks.count(grid_dim, "ParticleCollisions grid_dim", fix="hash grid cells per axis, e.g. 128")
 
-    def bind(self, model):
+    def bind(self, model) -> None:
         super().bind(model)
         radius = model.particle_radius.numpy()
         bad = np.flatnonzero(radius <= 0.0)
@@ -582,7 +582,7 @@ class ParticleCollisions(Collider):
         self._side = max(1, int(np.ceil(worlds ** (1.0 / 3.0) - 1e-9)))
         self._keyed = wp.zeros(n, dtype=wp.vec3, device=d) if worlds > 1 else None
 
-    def apply(self, model, state, q_prev, dt):
+    def apply(self, model, state, q_prev, dt) -> None:
         n = model.particle_count
         if n == 0:
             return

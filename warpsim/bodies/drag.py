@@ -88,7 +88,7 @@ class DragSpring(Force):
             self._pending = None
 
     # ------------------------------------------------------------------ setup
-    def bind(self, model):
+    def bind(self, model) -> None:
         super().bind(model)
         d = model.device
         self._grab = wp.array([-1], dtype=int, device=d)
@@ -204,13 +204,13 @@ class DragSpring(Force):
         return points[k] + s * (points[k + 1] - points[k])
 
     # ------------------------------------------------------------------ Force interface
-    def eval(self, q, qd, time, time_offset, f_out):
+    def eval(self, q, qd, time, time_offset, f_out) -> None:
         wp.launch(K.eval_drag_spring, 1,
                   inputs=[q, qd, self._grab, self._window_wp, self._key_times, self._key_points, time,
                           float(time_offset), self.stiffness, self.damping, f_out],
                   device=self.model.device)
 
-    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values) -> None:
         wp.launch(K.eval_drag_spring_jacobian, 1,
                   inputs=[self._grab, self._window_wp, time, float(time_offset), self.stiffness, self.damping,
                           float(ck), float(cd), diag],

@@ -16,7 +16,7 @@ MESH_EXTENSIONS = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
 
-def load_mesh(path, *, weld_tolerance: float = 1.0e-7):
+def load_mesh(path, *, weld_tolerance: float = 1.0e-7) -> tuple[np.ndarray, np.ndarray]:
     """Read a triangle mesh: OBJ, STL, PLY, GLB/GLTF, OFF (trimesh; scenes are concatenated) or
     USD (first Mesh prim, see load_usd_mesh). Polygons are triangulated and vertices welded by
     position. Returns (points (V, 3) float64 [file units], faces (F, 3) int64)."""

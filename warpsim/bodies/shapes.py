@@ -10,7 +10,8 @@ MAX_TORUS_RING = 4096
 """Most segments (or sides) a torus takes: 4096 x 4096 is 16.7 million vertices."""
 
 
-def torus_mesh(major_radius: float = 0.1, minor_radius: float = 0.04, segments: int = 24, sides: int = 12):
+def torus_mesh(major_radius: float = 0.1, minor_radius: float = 0.04, segments: int = 24,
+               sides: int = 12) -> tuple[np.ndarray, np.ndarray]:
     """A closed torus lying in the XZ plane (axis +Y), centred at the origin.
 
     ``major_radius`` [m]: centre of the tube to the axis; ``minor_radius`` [m]: tube radius;

@@ -1,12 +1,11 @@
 """Soft body against soft body: vertices against triangles and edges against edges of other bodies.
 
 :class:`SoftContact` is a collider (it runs after integration, so it works with every
-integrator, semi-implicit and implicit Euler included). Each step it refits one ``wp.Mesh`` BVH
-over the contact triangles of all bodies (one per world in a batch) and one ``wp.Bvh`` over
-their surface edges; every surface vertex queries the triangle BVH once and keeps the nearest
-triangle of another body (optionally of its own body: ``self_contact``) closer than
-``thickness`` [m], every surface edge queries the edge BVH once and keeps the nearest edge of
-another body. Each pair is pushed apart and given an inelastic impulse with restitution and
+integrator, semi-implicit and implicit Euler included). Each step it rebuilds one ``wp.Bvh`` over
+the contact triangles of all bodies (one per world in a batch) and one over their surface edges;
+every surface vertex queries the triangle BVH once and keeps the nearest triangle of another body
+(optionally of its own body: ``self_contact``) closer than ``thickness`` [m], every surface edge
+queries the edge BVH once and keeps the nearest edge of another body. Each pair is pushed apart and given an inelastic impulse with restitution and
 Coulomb friction, equal and opposite (weighted by barycentrics or edge parameters): momentum is
 conserved. The step is deterministic (fixed-point integer sums), allocates nothing and makes no
 host read-back, so it records in a CUDA graph. Kernels: ``warpsim.kernels.soft_contact`` (the
@@ -57,16 +56,21 @@ class SoftContact(Collider):
         friction: Coulomb friction coefficient mu >= 0.
         self_contact: also test a body's vertices against its own triangles (except triangles
             within ``self_rest_distance`` [m] of the vertex in the rest pose; default 2 x thickness).
-        iterations: impulse passes per step (Jacobi; more resolve a crowded contact better).
+        iterations: passes per step, each a position push and an impulse per contact (Jacobi;
+            more resolve a crowded contact better).
         search: how far behind a triangle [m] a vertex still counts as penetrating and is pushed
             back out (default 3 x thickness).
-        push: fraction of a contact's depth removed by moving positions each step (default 0.5;
+        push: fraction of a contact's depth removed by moving positions each pass (default 0.5;
             1 removes it at once but makes resting contacts jitter: measured on a 4-torus heap,
             kinetic energy at rest 0.02-0.05 J with 1, 0.002 J with 0.5, of a 13 J peak).
         edge_contact: also keep surface edges apart (edge-edge contact; without it long edges
             can cross where no vertex is near).
         broad_phase: "bvh" (one BVH over all bodies' triangles, one over their edges) or
             "all_pairs" (every vertex against every triangle of its world: the O(n^2) reference).
+        rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
+            only). A refit keeps the tree of the first layout, whose boxes swell as bodies travel
+            (a falling heap: measured 8.5x the step time at 48 tori against 12 with refits only);
+            a CUDA graph records the step it captured, so keep 1 there.
 
     After a step, ``contact_count`` and ``edge_contact_count`` (one read-back each) are the
     numbers of vertex-triangle and edge-edge contacts found.
@@ -75,7 +79,7 @@ class SoftContact(Collider):
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
-                 broad_phase: str = "bvh"):
+                 broad_phase: str = "bvh", rebuild_every: int = 1):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -109,9 +113,13 @@ class SoftContact(Collider):
         if broad_phase not in ("bvh", "all_pairs"):
             raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh' or 'all_pairs'")
         self.broad_phase = broad_phase
+        if isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int) or rebuild_every < 0:
+            raise ValueError(f"SoftContact rebuild_every is {rebuild_every!r}; give an integer >= 0 (steps between BVH "
+                             "rebuilds; 0: refit only)")
+        self.rebuild_every = rebuild_every
         self.edge_contact = bool(edge_contact)
         self.body_world = None
-        self._meshes, self._bvhs = [], []
+        self._tri_bvhs, self._bvhs = [], []
 
     def tile(self, world_count: int, world_particle_count: int) -> "SoftContact":
         """The same contact for ``world_count`` copies of the model laid end to end (world w owns
@@ -121,7 +129,7 @@ class SoftContact(Collider):
         n, P = int(world_count), int(world_particle_count)
         tiled.faces = [faces + w * P for w in range(n) for faces in self.faces]
         tiled.body_world = np.repeat(np.arange(n), len(self.faces))
-        tiled._meshes, tiled._bvhs = [], []
+        tiled._tri_bvhs, tiled._bvhs = [], []
         return tiled
 
     def bind(self, model) -> None:
@@ -131,9 +139,8 @@ class SoftContact(Collider):
         if body_world is None:
             body_world = np.zeros(len(self.faces), dtype=np.int64)
         order = np.argsort(body_world, kind="stable")  # bodies world by world
-        tri, tri_body, vert, vert_body, edges, edge_tris, edge_body = [], [], [], [], [], [], []
+        tri, tri_body, vert, vert_body, edges, edge_body = [], [], [], [], [], []
         seen = np.full(n, -1, dtype=np.int64)
-        tri_count = 0
         for k in order:
             faces = self.faces[k]
             if faces.min() < 0 or faces.max() >= n:
@@ -145,20 +152,13 @@ class SoftContact(Collider):
                 raise ValueError(f"SoftContact bodies[{k}]: particle {int(shared[0])} also belongs to bodies"
                                  f"[{int(seen[shared[0]])}]; every body needs its own particles")
             seen[verts] = k
-            body_edges, _, edge_of = meshtools.edge_topology(faces)
-            beside = np.full((len(body_edges), 2), -1, dtype=np.int64)  # the (up to) two faces beside an edge
-            face_of = tri_count + np.arange(len(edge_of)) % len(faces)
-            for r in np.argsort(edge_of, kind="stable"):
-                slot = 0 if beside[edge_of[r], 0] < 0 else 1
-                beside[edge_of[r], slot] = face_of[r]
+            body_edges, _, _ = meshtools.edge_topology(faces)
             tri.append(faces)
             tri_body.append(np.full(len(faces), k))
             vert.append(verts)
             vert_body.append(np.full(len(verts), k))
             edges.append(body_edges)
-            edge_tris.append(beside)
             edge_body.append(np.full(len(body_edges), k))
-            tri_count += len(faces)
         worlds = int(body_world.max()) + 1
         sorted_world = body_world[order]
         counts = {"tri": [len(f) for f in tri], "vert": [len(v) for v in vert], "edge": [len(e) for e in edges]}
@@ -185,20 +185,24 @@ class SoftContact(Collider):
         self.vertex_count = int(self._vertex.shape[0])
         self.triangle_count = int(len(tri_all))
         self.world_count = worlds
-        self._points = wp.clone(model.particle_q)
-        self._meshes = [wp.Mesh(points=self._points, indices=ints(tri_all[world_tri_start[w]:world_tri_start[w + 1]]))
-                        for w in range(worlds)]
-        self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=d)
+        self._tri_lower = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
+        self._tri_upper = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
+        wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, model.particle_q, self._tri_lower,
+                                                                  self._tri_upper], device=d)
+        self._tri_bvhs = [wp.Bvh(self._tri_lower[int(world_tri_start[w]):int(world_tri_start[w + 1])],
+                                 self._tri_upper[int(world_tri_start[w]):int(world_tri_start[w + 1])])
+                          for w in range(worlds)]
+        self._tri_bvh_ids = wp.array([b.id for b in self._tri_bvhs], dtype=wp.uint64, device=d)
+        self._steps = 0
         self.edge_count = int(world_edge_start[-1]) if self.edge_contact else 0
         if self.edge_contact:
             self._edges = ints(edges)
             self._edge_body = ints(edge_body)
-            self._edge_tris = ints(edge_tris)
             self._edge_world = ints(np.repeat(sorted_world, counts["edge"]))
             self._world_edge_start = ints(world_edge_start)
             self._edge_lower = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
             self._edge_upper = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
-            self._launch_edge_bounds(model.particle_q)
+            self._launch_edge_bounds(model.particle_q, model.particle_q)
             self._bvhs = [wp.Bvh(self._edge_lower[int(world_edge_start[w]):int(world_edge_start[w + 1])],
                                  self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])])
                           for w in range(worlds)]
@@ -207,21 +211,26 @@ class SoftContact(Collider):
         self._contact_particles = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=d)
         self._contact_weights = wp.zeros(slots, dtype=wp.vec4, device=d)
         self._contact_normal = wp.zeros(slots, dtype=wp.vec3, device=d)
-        self._contact_depth = wp.zeros(slots, dtype=float, device=d)
         self._particle_contacts = wp.zeros(n, dtype=int, device=d)
         self._total = wp.zeros(2, dtype=int, device=d)
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
 
-    def _launch_edge_bounds(self, q) -> None:
-        wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, 0.0, self._edge_lower, self._edge_upper],
+    def _launch_edge_bounds(self, q, q_prev) -> None:
+        wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, q_prev, self._edge_lower, self._edge_upper],
                   device=self.model.device)
 
     @property
-    def meshes(self) -> list:
-        """The triangle BVHs, one ``wp.Mesh`` over all bodies of each world (points: positions at
-        the last step)."""
-        return self._meshes
+    def bvhs(self) -> list:
+        """The BVHs, per world: one over the triangle bounds, then (with edge contact) one over the
+        edge bounds, at the last step."""
+        return self._tri_bvhs + self._bvhs
+
+    def _update(self, bvh) -> None:
+        if self.rebuild_every and (self._steps - 1) % self.rebuild_every == 0:
+            bvh.rebuild()
+        else:
+            bvh.refit()
 
     @property
     def contact_count(self) -> int:
@@ -236,14 +245,14 @@ class SoftContact(Collider):
     def apply(self, model, state, q_prev, dt) -> None:
         d, n, v, e = model.device, model.particle_count, self.vertex_count, self.edge_count
         if d.is_cpu and d.is_capturing:
-            # wp.Mesh.refit on the CPU is a host call that a captured graph would not replay
-            raise ValueError("SoftContact cannot run inside a graph captured on the CPU (the BVH refit would not "
-                             "be replayed); use ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
+            raise ValueError("SoftContact does not run inside a graph captured on the CPU; use "
+                             "ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
         all_pairs = self.broad_phase == "all_pairs"
+        self._steps += 1
         self._particle_contacts.zero_()
         self._total.zero_()
-        contact = [self._contact_particles, self._contact_weights, self._contact_normal, self._contact_depth,
-                   self._particle_contacts, self._total]
+        contact = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts,
+                   self._total]
         common = [model.particle_q, model.particle_inv_mass, self.thickness, self.search, int(self.self_contact),
                   self.self_rest_distance]
         vertex = [self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, state.positions]
@@ -251,28 +260,28 @@ class SoftContact(Collider):
             wp.launch(K.find_vertex_contacts_all_pairs, v, inputs=[self._world_tri_start, *vertex, *common, *contact],
                       device=d)
         else:
-            wp.copy(self._points, state.positions)
-            for mesh in self._meshes:
-                mesh.refit()
-            wp.launch(K.find_vertex_contacts, v, inputs=[self._mesh_ids, self._world_tri_start, *vertex, *common,
+            wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, state.positions, self._tri_lower,
+                                                                      self._tri_upper], device=d)
+            for bvh in self._tri_bvhs:
+                self._update(bvh)
+            wp.launch(K.find_vertex_contacts, v, inputs=[self._tri_bvh_ids, self._world_tri_start, *vertex, *common,
                                                          *contact], device=d)
         if e:
-            edge = [self._edge_world, self._edges, self._edge_body, self._edge_tris, self._tri, state.positions]
+            edge = [self._edge_world, self._edges, self._edge_body, state.positions, q_prev]
             if all_pairs:
                 wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, *edge, *common, v,
                                                                      *contact], device=d)
             else:
-                self._launch_edge_bounds(state.positions)
+                self._launch_edge_bounds(state.positions, q_prev)
                 for bvh in self._bvhs:
-                    bvh.refit()
+                    self._update(bvh)
                 wp.launch(K.find_edge_contacts, e, inputs=[self._bvh_ids, self._world_edge_start, *edge, *common, v,
                                                            *contact], device=d)
-        slots = [self._contact_particles, self._contact_weights, self._contact_normal]
-        wp.launch(K.push_contacts, v + e, inputs=[model.particle_inv_mass, *slots, self._contact_depth,
-                                                  self._particle_contacts, self.push, self._dx], device=d)
+        slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         for _ in range(self.iterations):
-            wp.launch(K.impulse_contacts, v + e,
-                      inputs=[state.velocities, model.particle_inv_mass, *slots, self._particle_contacts,
-                              self.restitution, self.friction, self._dv], device=d)
+            wp.launch(K.push_contacts, v + e, inputs=[state.positions, model.particle_inv_mass, *slots, self.thickness,
+                                                      self.push, self._dx], device=d)
+            wp.launch(K.impulse_contacts, v + e, inputs=[state.velocities, model.particle_inv_mass, *slots,
+                                                         self.restitution, self.friction, self._dv], device=d)
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)

@@ -4,8 +4,9 @@ systems, with every scalar kept on the device so a solve can be captured in a gr
 The loop runs under ``wp.capture_while`` on a device-side condition (r.r > tol^2 and
 iterations < max), so the same code runs eagerly, inside a CPU graph capture or inside a CUDA
 graph (conditional nodes). Dot products are one grid-stride kernel with a block-wide tile sum
-per block, then one thread adding the blocks in order (``kernels.cloth.cg_dots``,
-``cg_sum_partials``: no float atomics, so the iteration count and result are bit-reproducible; ``wp.utils.array_inner`` allocates on CUDA, which a conditional
+per block, then one block adding the blocks in a fixed order (``kernels.cloth.cg_dots``,
+``cg_sum_partials``: every add whose order could vary lands on a zero, so the iteration count and
+result are bit-reproducible; ``wp.utils.array_inner`` allocates on CUDA, which a conditional
 graph body may not), the product is ``warp.sparse.bsr_mv``; nothing is allocated per solve.
 ClothImplicitEuler uses it by default: ``warp.optim.linear.cg``'s tile-based dot products
 take ~10 ms each on the CPU, and without host checks (check_every=0) it runs to the cap there.
@@ -53,13 +54,15 @@ class BlockCG:
 
     def _dots(self, a, b, slot_ab, c=None, d=None, slot_cd=-1):
         """scalars[slot_ab] += a . b (and scalars[slot_cd] += c . d); the slots were cleared by the
-        kernel before. Block partial sums, then one thread adds them in order: no float atomics."""
+        kernel before. Block partial sums, then one block adds them in a fixed order (each slot gets
+        one add, onto 0): bit-reproducible."""
         wp.launch(K.cg_dots, (self._blocks, K.DOT_BLOCK), inputs=[a, b, a if c is None else c, b if d is None else d,
                                                                   self._blocks * K.DOT_BLOCK, slot_cd,
                                                                   self._partials],
                   block_dim=K.DOT_BLOCK, device=self.device)
-        wp.launch(K.cg_sum_partials, 1, inputs=[self._partials, self._blocks, slot_ab, slot_cd, self.scalars],
-                  device=self.device)
+        wp.launch(K.cg_sum_partials, (1, K.DOT_BLOCK), inputs=[self._partials, self._blocks, slot_ab, slot_cd,
+                                                               self.scalars],
+                  block_dim=K.DOT_BLOCK, device=self.device)
 
     def _iteration(self):
         n, d = self.n, self.device

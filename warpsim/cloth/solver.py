@@ -160,11 +160,11 @@ class ClothSemiImplicitEuler(Integrator):
                       inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
                               model.spring_damping, model.spring_broken, f], device=system.device)
         elif model.spring_count:  # gathered per particle in a fixed order (breakable springs included)
-            ensure_spring_adjacency(model)
-            wp.launch(KF.eval_springs_gather, system.count,
-                      inputs=[q, qd, model.spring_indices, model.spring_rest_length, model.spring_stiffness,
-                              model.spring_damping, model.spring_broken, model.particle_spring_offsets,
-                              model.particle_springs, f], device=system.device)
+            springs = self.springs if self.springs is not None else Springs()
+            if springs is not self.springs:
+                springs.bind(model)
+                self.springs = springs
+            springs.eval(q, qd, time, 0.0, f)
         if f_out is not None:
             wp.copy(f_out, f)
             wp.launch(KF.eval_gravity, system.count, inputs=[system.mass, self.gravity, f_out], device=system.device)

@@ -24,6 +24,13 @@ from ..kernels import integrate as K
 
 
 class Integrator:
+    """Base of the time integrators: ``step(system, q, qd, time, dt)`` advances a system's
+    coordinates ``q`` and velocities ``qd`` (``wp.array`` of ``system.dtype``, shape
+    (system.count,)) by ``dt`` [s] in place, reading forces through ``system.eval_forces`` (and,
+    for implicit Euler, ``system.eval_jacobians``), so one integrator drives particles, springs,
+    cloth and the angle-form pendulum alike. ``name`` is its key in ``ws.INTEGRATORS``; its
+    stability region (``warpsim.core.stability``) gives ``Simulator.stable_dt()``."""
+
     name = ""
 
     def __init__(self):
@@ -57,6 +64,10 @@ def _launch(kernel, system, inputs):
 
 
 class ExplicitEuler(Integrator):
+    """Explicit (forward) Euler: x1 = x0 + h v0, v1 = v0 + h a(x0, v0). Stability region
+    |1 + h lambda| <= 1: an undamped spring (lambda = +-i omega) gains energy at every step size,
+    a damped one is stable for h <= 2 zeta / omega (zeta its damping ratio)."""
+
     name = "explicit_euler"
 
     def step(self, system, q, qd, time, dt, f_out=None):
@@ -149,6 +160,10 @@ class RK2(Integrator):
 
 
 class RK4(Integrator):
+    """Classical fourth-order Runge-Kutta (four force evaluations per step). Stability region
+    |1 + z + z^2/2 + z^3/6 + z^4/24| <= 1 with z = h lambda: an undamped spring is stable for
+    h omega <= 2 sqrt(2) (2.83), a purely damped mode for h |lambda| <= 2.785."""
+
     name = "rk4"
 
     def _allocate(self, system):

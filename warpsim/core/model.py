@@ -58,6 +58,8 @@ class Model:
     spring_break_strain: wp.array
     spring_break_force: wp.array
     spring_broken: wp.array
+    particle_spring_offsets: wp.array  # CSR adjacency (warpsim.core.builder.ensure_spring_adjacency)
+    particle_springs: wp.array
 
     def __init__(self, device):
         self.device = wp.get_device(device)

@@ -95,7 +95,7 @@ class Pendulum:
         wp.launch(KI.advance_time, 1, inputs=[self._time, dt], device=self.device)
         self.time += dt
 
-    def energy(self):
+    def energy(self) -> tuple[np.ndarray, np.ndarray]:
         """(kinetic, potential) energy [J] per pendulum as NumPy arrays of shape (N,);
         potential is zero at the bottom."""
         wp.launch(KF.eval_pendulum_energy, self.count,
@@ -103,7 +103,7 @@ class Pendulum:
                           self._potential], device=self.device)
         return self._kinetic.numpy().astype(np.float64), self._potential.numpy().astype(np.float64)
 
-    def run(self, steps: int, dt: float):
+    def run(self, steps: int, dt: float) -> dict:
         """Take ``steps`` steps of ``dt``; returns a dict of NumPy arrays with one row per frame
         (initial state included): time (S+1,), angle, angular_velocity, kinetic, potential,
         total (S+1, N)."""

@@ -60,7 +60,7 @@ class ParticleSystem(DynamicSystem):
         counts = [f.jacobian_triplet_count() for f in forces]
         self._offsets = np.concatenate([[0], np.cumsum(counts)]).astype(int)
 
-    def eval_forces(self, q, qd, time, time_offset, f_out):
+    def eval_forces(self, q, qd, time, time_offset, f_out) -> None:
         f_out.zero_()
         for f in self.forces:
             f.eval(q, qd, time, time_offset, f_out)
@@ -74,10 +74,10 @@ class ParticleSystem(DynamicSystem):
         self.forces.append(force)
         self._offsets = np.append(self._offsets, self._offsets[-1] + force.jacobian_triplet_count())
 
-    def jacobian_triplet_count(self):
+    def jacobian_triplet_count(self) -> int:
         return int(self._offsets[-1])
 
-    def eval_jacobians(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+    def eval_jacobians(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values) -> None:
         diag.zero_()
         for k, f in enumerate(self.forces):
             a, b = self._offsets[k], self._offsets[k + 1]
@@ -101,10 +101,10 @@ class PendulumSystem(DynamicSystem):
         self.mass = wp.ones(self.count, dtype=float, device=self.device)
         self.inv_mass = wp.ones(self.count, dtype=float, device=self.device)
 
-    def eval_forces(self, q, qd, time, time_offset, f_out):
+    def eval_forces(self, q, qd, time, time_offset, f_out) -> None:
         f_out.zero_()
         wp.launch(K.eval_pendulum, self.count, inputs=[q, self.g_over_l, f_out], device=self.device)
 
-    def eval_jacobians(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values):
+    def eval_jacobians(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values) -> None:
         diag.zero_()
         wp.launch(K.eval_pendulum_jacobian, self.count, inputs=[q, self.g_over_l, float(ck), diag], device=self.device)

@@ -70,7 +70,7 @@ class Advector:
                   outputs=[f_out], device=self.device)
         return f_out
 
-    def advect_velocity(self, dt):
+    def advect_velocity(self, dt) -> None:
         """Self-advect the grid's face velocity over ``dt`` [s] (the old field carries all three)."""
         g = self.grid
         for f, out, where in zip(g.faces, self._velocity_out, "uvw"):

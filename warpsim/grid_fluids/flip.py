@@ -202,7 +202,7 @@ class FlipLiquid:
         wp.launch(K.label_from_counts, g.shape, inputs=[self.cell_count, g.solid_phi], outputs=[g.labels], device=d)
         g.extrapolate_velocity(self.extrapolation_layers)
 
-    def step(self, dt):
+    def step(self, dt) -> None:
         """Advance by ``dt`` [s]: P2G, gravity, projection, G2P (FLIP/PIC blend), RK2 particle
         advection through the grid velocity, solid push-out, reseeding when due."""
         dt = check_positive(dt, "dt")
@@ -255,7 +255,7 @@ class FlipLiquid:
                       outputs=[self.density], device=self.device)
         return self.density
 
-    def correct_density(self):
+    def correct_density(self) -> None:
         """Move the particles along the displacement field that restores the rest density (see the
         class docstring); velocities are left alone."""
         g, d, P = self.grid, self.device, self.particles
@@ -275,7 +275,7 @@ class FlipLiquid:
             wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g._wp_origin, g.dx],
                       outputs=[P["x"]], device=d)
 
-    def reseed(self):
+    def reseed(self) -> None:
         """Cull particles beyond max_per_cell per cell, compact, and top interior fluid cells up to
         min_per_cell (new particles take the grid velocity); with the density correction on, only
         cells whose density is below min_per_cell too."""
@@ -322,7 +322,7 @@ class FlipLiquid:
         return {**self.grid.checkpoint(), **self.particles.checkpoint("particle_"), "next_id": self.next_id.numpy(),
                 "time": self.time, "steps": self.steps}
 
-    def restore(self, data):
+    def restore(self, data) -> None:
         """Inverse of :meth:`checkpoint` (same grid and settings; particles added first)."""
         if self.particles is None:
             raise ValueError("restore: add the liquid (add_box / add_sdf / add_cells) before restoring")

@@ -94,7 +94,7 @@ class LevelSet:
             self.reseed()
 
     # ------------------------------------------------------------------ re-distancing
-    def redistance(self, iterations=None):
+    def redistance(self, iterations=None) -> None:
         """Make phi a signed distance (|grad phi| = 1) without moving its zero level set."""
         g, d = self.grid, self.device
         n = self.redistance_iterations if iterations is None else int(iterations)
@@ -108,7 +108,7 @@ class LevelSet:
             wp.copy(self.phi, src)
 
     # ------------------------------------------------------------------ particles
-    def reseed(self):
+    def reseed(self) -> None:
         """Keep the band populated (Enright et al. 2002): cells holding more than 2 x particles_per_cell
         lose the excess, band cells holding fewer than particles_per_cell are topped up, and deleted
         entries are compacted away."""
@@ -127,7 +127,7 @@ class LevelSet:
                 P.scan_append()
         P.finish_append()
 
-    def correct(self):
+    def correct(self) -> None:
         """Rebuild phi near escaped particles (phi+ / phi- merge of Enright et al. 2002)."""
         g, d = self.grid, self.device
         wp.copy(self._phi_tmp, self.phi)
@@ -137,7 +137,7 @@ class LevelSet:
                           self.particle_sign, self.max_escape], outputs=[self._phi_tmp, self._phi_minus], device=d)
         wp.launch(K.pls_merge, g.shape, inputs=[self._phi_tmp, self._phi_minus], outputs=[self.phi], device=d)
 
-    def adjust_radii(self):
+    def adjust_radii(self) -> None:
         g = self.grid
         wp.launch(K.pls_adjust_radii, self.capacity,
                   inputs=[self.phi, g._wp_origin, g.dx, self.r_min, self.r_max, 1.5 * self.band * g.dx,
@@ -145,7 +145,7 @@ class LevelSet:
                   outputs=[self.particle_q, self.particle_radius, self.particle_sign], device=self.device)
 
     # ------------------------------------------------------------------ stepping
-    def advect(self, dt):
+    def advect(self, dt) -> None:
         """Carry phi (and the particles) through the grid velocity over ``dt`` [s], then correct with
         the particles, re-distance, correct again, adjust radii and reseed when due."""
         g, d = self.grid, self.device
@@ -169,7 +169,7 @@ class LevelSet:
         """phi, the marker particles and the step counter (host copies)."""
         return {"phi": self.phi.numpy(), "levelset_steps": self._steps, **self.particles.checkpoint("marker_")}
 
-    def restore(self, data):
+    def restore(self, data) -> None:
         """Inverse of :meth:`checkpoint`."""
         self.phi.assign(np.asarray(data["phi"]))
         self._steps = int(data["levelset_steps"])

@@ -62,7 +62,7 @@ class LevelSetLiquid:
     def phi(self):
         return self.levelset.phi
 
-    def step(self, dt):
+    def step(self, dt) -> None:
         """Advance by ``dt`` [s]: advect phi and velocity, add gravity, project with the ghost-fluid
         surface, extrapolate the velocity into the air."""
         dt = check_positive(dt, "dt")
@@ -82,7 +82,7 @@ class LevelSetLiquid:
         """Everything needed to continue bit for bit (host copies)."""
         return {**self.grid.checkpoint(), **self.levelset.checkpoint(), "time": self.time, "steps": self.steps}
 
-    def restore(self, data):
+    def restore(self, data) -> None:
         """Inverse of :meth:`checkpoint` (same grid and settings)."""
         self.grid.restore(data)
         self.levelset.restore(data)

@@ -145,7 +145,7 @@ class MacGrid:
         return c
 
     # ------------------------------------------------------------------ solids
-    def add_sphere(self, center, radius):
+    def add_sphere(self, center, radius) -> None:
         """A static solid sphere (2D: a disk) of ``radius`` [m] at ``center`` [m]."""
         n = len(self.solids)
         c = self._point(center, f"solid {n} (sphere) center")
@@ -153,7 +153,7 @@ class MacGrid:
         self.solids.append(("sphere", c, r))
         self._voxelize()
 
-    def add_box(self, lower, upper):
+    def add_box(self, lower, upper) -> None:
         """A static solid axis-aligned box [lower, upper] [m] (2D: a rectangle)."""
         n = len(self.solids)
         lo, hi = self._point(lower, f"solid {n} (box) lower"), self._point(upper, f"solid {n} (box) upper")
@@ -164,7 +164,7 @@ class MacGrid:
         self.solids.append(("box", lo, hi))
         self._voxelize()
 
-    def add_mesh(self, points, indices):
+    def add_mesh(self, points, indices) -> None:
         """A static closed triangle mesh (3D only): ``points`` (V, 3) [m], ``indices`` (F, 3) or flat,
         voxelised by signed distance (wp.Mesh sign queries)."""
         n = len(self.solids)
@@ -220,20 +220,20 @@ class MacGrid:
         self.label()
 
     # ------------------------------------------------------------------ labels and boundaries
-    def label(self, phi=None):
+    def label(self, phi=None) -> None:
         """Relabel cells: SOLID inside solids, else FLUID where ``phi`` < 0 (every non-solid cell
         when ``phi`` is None, as for smoke), else AIR."""
         use = phi is not None
         wp.launch(K.label_cells, self.shape, inputs=[self.solid_phi, phi if use else self._no_phi, int(use)],
                   outputs=[self.labels], device=self.device)
 
-    def enforce_boundaries(self):
+    def enforce_boundaries(self) -> None:
         """Free-slip static solids and walls: zero normal velocity on faces touching SOLID."""
         for axis, f in enumerate(self.faces):
             wp.launch(K.enforce_solid_faces, f.shape, inputs=[self.labels, self.open_mask, axis, f],
                       device=self.device)
 
-    def extrapolate_velocity(self, layers: int = 4):
+    def extrapolate_velocity(self, layers: int = 4) -> None:
         """Fill face velocities that touch no FLUID cell from their neighbours, ``layers`` faces deep
         (each layer: the mean of the valid neighbours); faces beyond are set to 0. Then re-apply the
         solid boundary condition."""
@@ -252,7 +252,7 @@ class MacGrid:
                 wp.copy(f, src_f)
         self.enforce_boundaries()
 
-    def divergence(self, out=None):
+    def divergence(self, out=None) -> wp.array:
         """div(u) [1/s] at FLUID cells (0 elsewhere), shape (nx, ny, nz)."""
         out = wp.zeros(self.shape, dtype=float, device=self.device) if out is None else out
         wp.launch(K.compute_divergence, self.shape, inputs=[self.u, self.v, self.w, self.labels, self.dx],
@@ -263,7 +263,7 @@ class MacGrid:
         """Host copies of the face velocities and labels."""
         return {"u": self.u.numpy(), "v": self.v.numpy(), "w": self.w.numpy(), "labels": self.labels.numpy()}
 
-    def restore(self, data):
+    def restore(self, data) -> None:
         """Inverse of :meth:`checkpoint` (same grid)."""
         for key, f in (("u", self.u), ("v", self.v), ("w", self.w), ("labels", self.labels)):
             values = np.asarray(data[key])
@@ -271,7 +271,7 @@ class MacGrid:
                 raise ValueError(f"checkpoint {key!r} has shape {values.shape}; the grid's is {tuple(f.shape)}")
             f.assign(values)
 
-    def set_velocity(self, fn):
+    def set_velocity(self, fn) -> None:
         """Set face velocities from ``fn(points (..., 3)) -> (..., 3)`` [m/s] (host helper for setup
         and tests), then apply the solid boundary condition."""
         for axis, (f, where) in enumerate(zip(self.faces, "uvw")):

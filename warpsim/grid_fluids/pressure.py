@@ -140,7 +140,7 @@ class PressureSolver:
             self._M.matvec(x, x, out, 1.0, 0.0)
         return out
 
-    def assemble(self, phi=None):
+    def assemble(self, phi=None) -> None:
         """Fill the operator's coefficients from the grid labels (and the ghost-fluid weights of
         ``phi``, the liquid's signed distance at cell centres [m], when given)."""
         g = self.grid

@@ -57,7 +57,7 @@ class Smoke:
         self.steps = 0
         grid.label(None)
 
-    def add_source(self, lower, upper, density=1.0, temperature=1.0):
+    def add_source(self, lower, upper, density=1.0, temperature=1.0) -> None:
         """Emit smoke in the box [lower, upper] [m]: every step the cells inside are raised to at
         least ``density`` and ``temperature`` [K]."""
         n = len(self.sources)
@@ -78,7 +78,7 @@ class Smoke:
         wp.copy(f, self._tmp)
         wp.launch(KF.zero_in_solid, self.grid.shape, inputs=[self.grid.solid_phi], outputs=[f], device=self.device)
 
-    def step(self, dt):
+    def step(self, dt) -> None:
         """Advance by ``dt`` [s]: sources, advection of density, temperature and velocity, buoyancy
         and vorticity confinement, projection (replayed as a CUDA graph with ``graph=True``)."""
         dt = check_positive(dt, "dt")
@@ -122,7 +122,7 @@ class Smoke:
         return {**self.grid.checkpoint(), "density": self.density.numpy(), "temperature": self.temperature.numpy(),
                 "time": self.time, "steps": self.steps}
 
-    def restore(self, data):
+    def restore(self, data) -> None:
         """Inverse of :meth:`checkpoint` (same grid and settings)."""
         self.grid.restore(data)
         self.density.assign(np.asarray(data["density"]))

@@ -75,7 +75,7 @@ class MarchingCubesResult:
             data["normals"] = self.normals
         return data
 
-    def numpy(self):
+    def numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vertices (V, 3) float32, faces (F, 3) int32, normals (V, 3) float32) as NumPy copies."""
         v = self.vertices.numpy().reshape(-1, 3).copy()
         f = self.faces.numpy().reshape(-1, 3).copy()

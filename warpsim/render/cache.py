@@ -110,8 +110,10 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     fps = scene.fps / step if fps is None else float(fps)
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"--fps {fps}: it must be > 0")
-    if camera is None:  # frame what the scene holds: guides (container walls) drawn but not framed
-        bounds = (CacheScene(cache, only=only) if guides else scene).bounds(None if chosen == [None] else chosen)
+    if camera is None:  # frame the subject (what moves, robustly); else what the scene holds, guides not framed
+        bounds = scene.subject_bounds(None if chosen == [None] else chosen)
+        if bounds is None:
+            bounds = (CacheScene(cache, only=only) if guides else scene).bounds(None if chosen == [None] else chosen)
         if bounds is None:
             bounds = np.array([[-1.0, 0.0, -1.0], [1.0, 1.0, 1.0]])
         camera = frame_bounds(bounds, width, height)

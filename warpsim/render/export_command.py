@@ -28,7 +28,8 @@ def run(args, out, err):
 
     suffix = os.path.splitext(args.out)[1].lower()
     if suffix not in FORMATS:
-        raise UsageError(f"--out {args.out!r}: unknown suffix {suffix or '(none)'!r}; write one of {', '.join(FORMATS)}")
+        raise UsageError(f"--out {args.out!r}: unknown suffix {suffix or '(none)'!r}; write one of "
+                         f"{', '.join(FORMATS)}")
     if not os.path.exists(args.cache):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
     if args.spacing is not None and not args.spacing > 0.0:

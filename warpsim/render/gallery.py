@@ -31,6 +31,8 @@ CLIPS = {
     "school": (90, [], True),
     "zombies": (240, ["zombies=60"], True),
     "crowd": (120, ["people=60"], True),
+    "wall": (24, ["ball_speed=6"], True),  # the impact and the first pieces (later they fly metres away)
+    "donuts": (90, ["count=6", "segments=16", "sides=8", "lattice_cells=5"], True),
 }
 SIZE = (200, 150)
 MAX_FRAMES = 30
@@ -64,15 +66,15 @@ def _text(v):
 
 
 def main(argv=None):
-    import warp as wp
-
     from ..scenes import scenes
+    from ..verbosity import set_warp_verbosity
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="docs", help="folder of the GIFs (default docs)")
     parser.add_argument("--scenes", nargs="*", default=None, help="scenes to make (default: all registered)")
+    parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    set_warp_verbosity(args.verbose)
     names = args.scenes or list(scenes())
     os.makedirs(args.out, exist_ok=True)
     total, failed = 0, []

@@ -107,6 +107,46 @@ class CacheScene:
                 hi = np.maximum(hi, np.asarray(box.GetMax()))
         return np.array([lo, hi]) if np.isfinite(lo).all() else None
 
+    def subject_bounds(self, frames=None, samples=7, quantile=0.01):
+        """Robust world bounds [[lo], [hi]] [m] of the scene's subject: the time-varying prims
+        (points, meshes, curves, instancers; not colliders, containers or floors) over up to
+        ``samples`` of ``frames``, cut at the ``quantile`` and ``1 - quantile`` of their points
+        per axis (a few outliers, such as debris flung far away, do not shrink the subject to a
+        speck), widened by point radii and 5 % of the extent. None when nothing moves."""
+        from pxr import UsdGeom
+
+        frames = list(self.frames if frames is None else frames)
+        if not frames or frames == [None]:
+            return None
+        picks = sorted({frames[round(k)] for k in np.linspace(0, len(frames) - 1, min(samples, len(frames)))})
+        moving = []
+        for prim in self.prims:
+            attr = prim.GetAttribute("positions" if prim.IsA(UsdGeom.PointInstancer) else "points")
+            if attr and attr.ValueMightBeTimeVarying():
+                moving.append((prim, attr))
+        if not moving:
+            return None
+        clouds, pad = [], 0.0
+        for f in picks:
+            t = self.time(f)
+            xf = UsdGeom.XformCache(t)
+            for prim, attr in moving:
+                if not self._drawn(prim, f):
+                    continue
+                pts = _np(attr.Get(t)).reshape(-1, 3)
+                if len(pts) == 0:
+                    continue
+                clouds.append(self._apply(np.asarray(xf.GetLocalToWorldTransform(prim), np.float64), pts))
+                widths = prim.GetAttribute("widths")
+                w = _np(widths.Get(t)) if widths else np.zeros(0)
+                pad = max(pad, 0.5 * float(np.max(w)) if len(w) else 0.0)
+        if not clouds:
+            return None
+        pts = np.concatenate(clouds)
+        lo, hi = np.quantile(pts, quantile, axis=0), np.quantile(pts, 1.0 - quantile, axis=0)
+        grow = 0.05 * (hi - lo) + pad
+        return np.array([lo - grow, hi + grow])
+
     def _drawn(self, prim, frame):
         from pxr import UsdGeom
 

@@ -167,7 +167,7 @@ class Scene:
     def stability(self):
         """The ``ws.StabilityLimit`` of the scene's simulator (``self.sim``, linearised about its
         initial positions) or None for scenes without one."""
-        sim = getattr(self, "sim", None)
+        sim: Any = getattr(self, "sim", None)
         if not hasattr(sim, "stability"):
             return None
         return sim.stability(positions=sim.model.particle_q)
@@ -196,7 +196,7 @@ class Scene:
             return int(fixed)
         auto = substeps == "auto" or self.auto_substeps
         base = 1 if substeps == "auto" else int(substeps)
-        sim = getattr(self, "sim", None)
+        sim: Any = getattr(self, "sim", None)
         if not auto or not hasattr(sim, "auto_substeps"):
             return base
         return sim.auto_substeps(frame_dt, minimum=base)
@@ -244,7 +244,7 @@ class Scene:
             return False
         self.apply_param(key, value)
         self.params[key] = value
-        sim = getattr(self, "sim", None)
+        sim: Any = getattr(self, "sim", None)
         if hasattr(sim, "invalidate_stability"):  # stiffness, masses, contacts: the limit moves
             sim.invalidate_stability()
         return True

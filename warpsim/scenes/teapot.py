@@ -43,7 +43,7 @@ def anchor_vertex(points, who: str) -> int:
 @register_scene("teapot", "the jiggly Utah teapot: a mass-spring soft body bouncing in a box of walls", params={
     "resolution": ("low", ("teapot tessellation: low (4 segments per patch edge), high (12; needs dt <= 1e-4 "
                            "with semi-implicit Euler) or an integer >= 2")),
-    "size": (0.1, "metres per teapot data unit (0.1: 0.65 m long, 0.315 m tall)"),
+    "size": (0.1, "teapot scale [m per data unit] (0.1: 0.65 m long, 0.315 m tall)"),
     "mass": (1.0, "total mass [kg], equal on every surface vertex (a quarter on the interior lattice)"),
     "stiffness": (40.0, "spring stiffness [N/m] (edges, bending, interior)"),
     "damping": (0.05, "spring damping [N s/m]"),

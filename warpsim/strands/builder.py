@@ -9,6 +9,8 @@ bending spring per vertex whose rest state is the groomed shape (see ``warpsim.k
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import warp as wp
 
@@ -79,6 +81,23 @@ class Strands:
       the head's frame at build time.
     """
 
+    strand_count: int
+    segments: int
+    stride: int
+    first: int
+    rest_length: np.ndarray
+    stretch_stiffness: np.ndarray
+    bend_stiffness: np.ndarray
+    stretch_damping: np.ndarray
+    bend_damping: np.ndarray
+    mass: np.ndarray
+    radius: np.ndarray
+    ghost_local: np.ndarray
+    root_local: np.ndarray
+    normal_local: np.ndarray
+    normal_world: np.ndarray
+    head: Any
+
     def __init__(self):
         self._device_data = {}
 
@@ -137,6 +156,8 @@ class Strands:
             data[name] = wp.array(getattr(self, name).astype(f32), dtype=wp.vec3, device=d)
         data["root_normal"] = wp.array(self.normal_world.astype(f32), dtype=wp.vec3, device=d)
         data["bend_rest"] = wp.zeros(self.strand_count * self.stride, dtype=wp.vec3, device=d)
+        data["frame_t"] = wp.zeros(self.strand_count * self.stride, dtype=wp.vec3, device=d)  # force scratch
+        data["frame_n"] = wp.zeros(self.strand_count * self.stride, dtype=wp.vec3, device=d)
         # the groomed shape is the bending rest state
         wp.launch(K.bend_rest_from_world, self.strand_count,
                   inputs=[model.particle_q, self.first, self.stride, data["root_normal"], data["bend_rest"], 1,

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import zlib
 
 import numpy as np
@@ -30,7 +29,6 @@ __all__ = [
     "chunk_problem",
     "file_digest",
     "index_path",
-    "pxr_reason",
     "read_index",
     "readable_ranges",
     "write_index",
@@ -162,6 +160,8 @@ def chunk_problem(dirname, fname, rec, verify=True):
         try:
             layer = Sdf.Layer.OpenAsAnonymous(path)
         except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
+            from .pxr_errors import pxr_reason
+
             return f"damaged (does not open in USD: {pxr_reason(exc, 120)})"
         return None if layer is not None else "damaged (does not open in USD)"
     if size != rec["bytes"]:
@@ -174,16 +174,6 @@ def chunk_problem(dirname, fname, rec, verify=True):
         if crc != rec["crc32"]:
             return "damaged (its contents changed since it was written: CRC-32 mismatch)"
     return None
-
-
-def pxr_reason(exc, limit=160) -> str:
-    """What a ``pxr`` error says, without its internal prefix ("Error in 'pxrInternal_...' at line
-    N in file ... : 'text'" -> "text"); the last message when there are several."""
-    text = str(exc).strip()
-    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)", text, re.S)
-    reason = (found[-1] if found else text.splitlines()[-1] if text else type(exc).__name__).strip()
-    reason = " ".join(reason.split())
-    return reason if len(reason) <= limit else reason[: limit - 3] + "..."
 
 
 def readable_ranges(chunks, bad):

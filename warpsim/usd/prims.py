@@ -352,7 +352,8 @@ def check_topology(counts, indices, point_count, where):
 
 class CurvesDecl(PrimDecl):
     """Linear ``UsdGeom.BasisCurves``; with ``indices`` (pairs of particle indices, e.g. springs) each
-    frame's ``points`` are particle positions and the writer gathers the segment end points."""
+    frame's ``points`` are particle positions and the writer gathers the segment end points.
+    ``width`` [m]: one diameter for every curve, or one per curve vertex (vertex interpolation)."""
 
     type_name = "BasisCurves"
 
@@ -378,10 +379,17 @@ class CurvesDecl(PrimDecl):
                 raise ValueError(f"curves {name!r}: every curve needs >= 2 vertices")
         self.static("curveVertexCounts", "int[]", counts)
         self.vertex_count = int(counts.sum())
-        if not np.isfinite(width) or width < 0:
+        w = np.asarray(as_numpy(width), np.float64)
+        if not np.isfinite(w).all() or (w < 0).any():
             raise ValueError(f"curves {name!r}: width must be finite and >= 0, got {width!r}")
-        self.static("widths", "float[]", [float(width)], metadata={"interpolation": "constant"})
-        self.pad = 0.5 * float(width)
+        if w.ndim == 0:
+            self.static("widths", "float[]", [float(w)], metadata={"interpolation": "constant"})
+        else:  # one width per curve vertex (e.g. hair tapering to the tip)
+            if w.shape != (self.vertex_count,):
+                raise ValueError(f"curves {name!r}: width has shape {w.shape}; give one number or one per curve "
+                                 f"vertex ({self.vertex_count},)")
+            self.static("widths", "float[]", w.astype(np.float32), metadata={"interpolation": "vertex"})
+        self.pad = 0.5 * float(w) if w.ndim == 0 else (0.5 * w).astype(np.float32)
         self.dynamic("points", "point3f[]")
         if self.has_velocities:
             self.dynamic("velocities", "vector3f[]")

@@ -99,7 +99,8 @@ class PrimSink:
         """Declare linear ``UsdGeom.BasisCurves``. With ``indices`` (pairs of particle indices, e.g.
         ``model.spring_indices``) each frame's ``points`` are the particle positions (n, 3) and one
         two-vertex segment is drawn per pair; otherwise ``points`` are the curve vertices for
-        ``curve_vertex_counts``. ``width`` [m] is the constant curve diameter."""
+        ``curve_vertex_counts``. ``width`` [m] is the curve diameter: one number, or one per curve
+        vertex (e.g. hair tapering from root to tip)."""
         return self._declare(CurvesDecl(name, indices, curve_vertex_counts=curve_vertex_counts, width=width,
                                         color=color, velocities=velocities))
 

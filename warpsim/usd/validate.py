@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 import os
 
-import numpy as np
+from .pxr_errors import pxr_reason
 
-from .chunk_index import pxr_reason
+import numpy as np
 
 __all__ = ["DamagedCacheError", "cache_info", "check_damage", "chunk_health", "damage_report", "open_stage",
            "sweep_layers", "validate_cache"]
@@ -131,7 +131,7 @@ def _check_prim(prim, frames):
             widths = prim.GetAttribute("widths").Get(code)
             if widths is not None and len(widths) == 1:
                 pad = 0.5 * float(widths[0])
-            elif widths is not None and len(widths) == n and type_name == "Points":
+            elif widths is not None and len(widths) == n:  # per point (curves: per vertex, e.g. hair)
                 pad = 0.5 * np.asarray(widths, np.float64)[:, None]
             elif widths is not None and len(widths):
                 out.append(f"{where} at {t}: {len(widths)} widths for {n} points")

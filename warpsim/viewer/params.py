@@ -3,9 +3,11 @@
 :func:`widget_spec` (pure) chooses the input for a parameter: a dropdown for choices, a
 checkbox for a bool, three numbers for a 3-vector, a slider with a sensible range for a number
 (restitution-like coefficients in [0, 1], else [0, 4 x default], or symmetric for a negative
-default), a slider in milliseconds for the time step ``dt`` (with the stability limit marked on it
-and shown beside it, values past it flagged), a number box for zero defaults, a text box for free
-text. Labels carry the unit the parameter's help names (``stiffness [N/m]``).
+default), a logarithmic slider for mass-like numbers (masses, stiffnesses, densities: the slider
+moves the power of ten, from 1/1000 of the default's decade to 1000 times it, so 0.001 kg is
+reachable from 1 kg), a slider in milliseconds for the time step ``dt`` (with the stability limit
+marked on it and shown beside it, values past it flagged), a number box for zero defaults, a text
+box for free text. Labels carry the unit the parameter's help names (``stiffness [N/m]``).
 :func:`build_param_panel` adds the inputs; a change goes to ``Session.set_param`` and the panel
 says whether it applied live or rebuilt the scene.
 """
@@ -17,6 +19,8 @@ import re
 __all__ = ["build_param_panel", "dt_limit_text", "label_for", "refresh_dt_limit", "widget_spec"]
 
 UNIT_KEYS = ("restitution", "friction", "tilt_fraction", "opacity")
+LOG_KEYS = ("mass", "stiffness", "density")
+"""Parameters (by substring) that span decades: a log10 slider."""
 _UNIT = re.compile(r"\[([^\]]+)\]")
 
 
@@ -25,8 +29,8 @@ def label_for(key, param, live=False):
     slider), and ``(live)`` for parameters applied to the running simulation."""
     unit = "ms" if key == "dt" else None
     if unit is None and isinstance(param.default, (int, float, tuple, list)) and not isinstance(param.default, bool):
-        match = _UNIT.search(param.help or "")
-        unit = match.group(1) if match else None
+        units = [u for u in _UNIT.findall(param.help or "") if "," not in u]  # "[0, 1]" is a range
+        unit = units[0] if units else None
     return key + (f" [{unit}]" if unit else "") + (" (live)" if live else "")
 
 
@@ -79,6 +83,12 @@ def widget_spec(key, param):
             return "number", {"initial": d, "step": _nice_step(abs(d)) if d else 0.01}
         if any(k in key for k in UNIT_KEYS) and 0.0 <= d <= 1.0:
             return "slider", {"min": 0.0, "max": 1.0, "step": 0.01, "initial": d}
+        if any(k in key for k in LOG_KEYS) and d > 0.0:
+            import math
+
+            decade = math.floor(math.log10(d))
+            return "log_slider", {"min": float(decade - 3), "max": float(decade + 3), "step": 0.01,
+                                  "initial": math.log10(d)}
         lo, hi = (0.0, 4.0 * d) if d > 0 else (4.0 * d, -4.0 * d)
         return "slider", {"min": lo, "max": hi, "step": _nice_step(hi - lo), "initial": d}
     return "text", {"initial": str(d)}
@@ -114,6 +124,12 @@ def build_param_panel(gui, session, on_result):
             lo, hi = o["min"], o["max"]
             v = min(max(value, lo), hi) if isinstance(value, (int, float)) else o["initial"]
             h = gui.add_slider(label, lo, hi, o["step"], v, hint=hint)
+        elif kind == "log_slider":  # the slider holds log10(value); the label shows the value
+            import math
+
+            exp = math.log10(value) if isinstance(value, (int, float)) and value > 0 else o["initial"]
+            h = gui.add_slider(f"{label} = {10.0 ** exp:.3g}", o["min"], o["max"], o["step"],
+                               min(max(exp, o["min"]), o["max"]), hint=(hint or key) + " (logarithmic slider)")
         elif kind == "number":
             h = gui.add_number(label, value, step=o["step"], hint=hint)
         else:
@@ -121,9 +137,14 @@ def build_param_panel(gui, session, on_result):
                              hint=hint)
         handles[key] = h
 
-        def changed(event, key=key, h=h, scale=1e-3 if kind == "dt_slider" else None):
+        def changed(event, key=key, h=h, scale=1e-3 if kind == "dt_slider" else None, log=kind == "log_slider",
+                    label=label):
+            value = h.value * scale if scale else h.value
+            if log:
+                value = float(f"{10.0 ** float(value):.6g}")  # 10^-3 is 0.001, not 0.0010000000000000002
+                h.label = f"{label} = {value:.3g}"
             try:
-                outcome = session.set_param(key, h.value * scale if scale else h.value)
+                outcome = session.set_param(key, value)
             except ValueError as exc:
                 on_result(key, str(exc), False)
                 return

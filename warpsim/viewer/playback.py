@@ -169,6 +169,12 @@ class PlaybackViewer(Serving):
         self.server.scene.configure_default_lights(True, cast_shadow=False)
         self.server.scene.configure_environment_map(None)
         self.drawer = Drawer(self.server)
+        from .framing import camera_pose, playback_bounds
+
+        position, look_at = camera_pose(playback_bounds(self.reader))  # the subject over the whole cache
+        self.server.initial_camera.look_at = tuple(float(v) for v in look_at)
+        self.server.initial_camera.position = tuple(float(v) for v in position)
+        self.server.initial_camera.up = (0.0, 1.0, 0.0)
         gui = self.server.gui
         n = max(len(self.reader), 1)
         gui.add_markdown(f"**{self.reader.path}**  \n{len(self.reader)} frames at {self.reader.fps:g} fps")

@@ -294,16 +294,13 @@ class Viewer(Serving):
         return self
 
     def _frame_camera(self):
-        """Point new clients' cameras at the scene's bounds."""
+        """Point new clients' cameras at the subject over where it can go (see viewer.framing)."""
+        from .framing import camera_pose, live_bounds
+
         s = self.session
-        pts = [it.points.reshape(-1, 3) for it in list(s.items.values()) + list(s.static.values()) if len(it.points)]
-        dyn = [it.points.reshape(-1, 3) for it in s.items.values() if len(it.points)]
-        allp = np.concatenate(dyn or pts) if (dyn or pts) else np.zeros((1, 3))
-        lo, hi = allp.min(0), allp.max(0)
-        center = 0.5 * (lo + hi)
-        size = max(float(np.linalg.norm(hi - lo)), 0.2)
-        self.server.initial_camera.look_at = tuple(center)
-        self.server.initial_camera.position = tuple(center + np.array([0.0, 0.35, 1.0]) * 1.6 * size)
+        position, look_at = camera_pose(live_bounds(s.items, s.static))
+        self.server.initial_camera.look_at = tuple(float(v) for v in look_at)
+        self.server.initial_camera.position = tuple(float(v) for v in position)
         self.server.initial_camera.up = (0.0, 1.0, 0.0)
 
     def stop(self):

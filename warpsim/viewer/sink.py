@@ -136,7 +136,8 @@ class ViewerSink(PrimSink):
             return DrawItem(name, "mesh", s["points"], decl_color(decl, "mesh"), triangles=tris, topology=version)
         if isinstance(decl, CurvesDecl):
             segs = curve_segments(s["points"], _static(decl, "curveVertexCounts"))
-            return DrawItem(name, "segments", segs, decl_color(decl, "segments"), radius=decl.pad)
+            return DrawItem(name, "segments", segs, decl_color(decl, "segments"),
+                            radius=float(np.mean(decl.pad)))  # per-vertex widths (hair): their mean
         if isinstance(decl, InstancerDecl):
             protos = [unit_mesh(child.type_name, {k: a.value for k, a in child.attrs.items()})
                       for _, child in decl.children]

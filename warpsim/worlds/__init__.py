@@ -21,6 +21,10 @@ Modules:
   query     IN / NOT IN a box during a window over a record (``--inside`` / ``--outside``)
   roots     reading a sweep root back: its worlds, batch layers, table and record
   sweep     :func:`sample_worlds`, :func:`run_batch`, :func:`write_table`
+  shared    the shared-topology path of a batch (the default for mass-spring scenes): springs stored
+            once, one fused kernel per sub-step (``kernels/world_step.py``)
+  rerun     one world of a sweep re-run alone, bit for bit (``--from-sweep``, ``--rerun``,
+            :func:`rerun_world`); the sweep's manifest ``<stem>.sweep.json``
   command   ``warpsim sweep``
   query_command  ``warpsim query``: ask a finished sweep's record
   pick      ``warpsim pick``: one world as a file any USD tool opens
@@ -37,9 +41,10 @@ from .metrics import UserMetric, WorldMetrics
 from .occupancy import OccupancyRecord, OccupancyRecorder
 from .pick import pick_world
 from .query import Region, answer_region, parse_region
+from .rerun import rerun_world
 from .sweep import run_batch, sample_worlds, write_table
 from .usd import write_sweep_root
 
 __all__ = ["OccupancyRecord", "OccupancyRecorder", "Region", "UserMetric", "WorldBatch", "WorldMetrics",
-           "answer_region", "parse_region", "pick_world", "run_batch", "sample_worlds", "write_sweep_root",
-           "write_table"]
+           "answer_region", "parse_region", "pick_world", "rerun_world", "run_batch", "sample_worlds",
+           "write_sweep_root", "write_table"]

@@ -54,6 +54,8 @@ class WorldBatch:
     kernel per sub-step sums each particle's springs, integrates and resolves the walls,
     bit-identical to the tiled path (``shared=False``: every array tiled per world, one launch
     per stage) and to the scene's own Simulator, with a quarter of the memory per world.
+    ``block_per_world`` (shared path): a frame's sub-steps in one launch, one thread block per
+    world (``kernels/world_step.py: frame_shared_worlds``), the same bits.
 
     ``reference_params``: the parameter list of the sweep these worlds belong to (None: the
     worlds themselves). Its first world is the tiling base and its values shape the plan, so a
@@ -61,7 +63,8 @@ class WorldBatch:
     whichever batch it runs in: a world of a sweep re-runs alone exactly
     (:func:`warpsim.worlds.rerun.rerun_world`)."""
 
-    def __init__(self, cls, world_params, device=None, *, fused=False, reference_params=None, shared=None):
+    def __init__(self, cls, world_params, device=None, *, fused=False, reference_params=None, shared=None,
+                 block_per_world=False):
         if len(world_params) < 1:
             raise ValueError("a batch needs at least one world")
         self.cls = cls
@@ -110,7 +113,8 @@ class WorldBatch:
                 gravity = np.tile(np.asarray(sim0.forces[0].g, dtype=np.float64), (self.world_count, 1))
             self.stepper = SharedStepper(self, sim0.model, self._scales, self._world_values,
                                          self._key_count, gravity, world_walls(self.sim.colliders,
-                                                                               self.world_count, self.device))
+                                                                               self.world_count, self.device),
+                                         block_per_world=block_per_world)
             self.sim.stability_model = self._springs_model
         self.batch_scene = copy.copy(self.scene)
         self.batch_scene.sim = self.sim

@@ -89,7 +89,7 @@ class QueryPanel:
         self._lock_thumbs = threading.Lock()
         rec, server = self.record, viewer.server
         self.origin = self._origin(None)
-        inner_lo, inner_hi = rec.grid.lo, rec.grid.hi
+        inner_lo, inner_hi = rec.occupied_bounds()  # where things go: the box starts in its middle
         center, size = 0.5 * (inner_lo + inner_hi), 0.25 * (inner_hi - inner_lo)
         self.lo, self.hi = center - 0.5 * size, center + 0.5 * size
         gui = server.gui
@@ -104,7 +104,8 @@ class QueryPanel:
             self.matches_only = gui.add_checkbox("show matches only", True)
             self.summary = gui.add_markdown("")
             self.listing = gui.add_folder("matches")
-        scale = float(np.max(inner_hi - inner_lo)) * 0.15
+        self.gizmo_scale = scale = float(np.max(inner_hi - inner_lo)) * 0.15
+        """Length [m] of the corner gizmos' arrows."""
         self.box = server.scene.add_box("/query/box", color=(60, 140, 255), dimensions=tuple(self.hi - self.lo),
                                         position=tuple(self.origin + center), opacity=0.3, cast_shadow=False,
                                         receive_shadow=False)
@@ -261,8 +262,7 @@ class QueryPanel:
 
         from ..render.camera import frame_bounds
 
-        g = self.record.grid
-        camera = frame_bounds(np.array([g.lo, g.hi]), *THUMB_SIZE)
+        camera = frame_bounds(np.array(self.record.occupied_bounds()), *THUMB_SIZE)  # one camera for all
         while self.viewer.server is not None:
             with self._lock_thumbs:
                 if not self._wanted:

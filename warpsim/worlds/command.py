@@ -295,7 +295,6 @@ def run(args, out, err):
     candidates = rows
     if getattr(args, "ray", None) is None:
         from .occupancy import OccupancyRecord
-
         from .query import answer_region, answers_note, cached_positions
 
         record = OccupancyRecord.load(_record_path(path))

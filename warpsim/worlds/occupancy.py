@@ -199,6 +199,16 @@ class OccupancyRecord:
         """Time [s] of the last recorded frame (frame f at f / fps)."""
         return (self.first_frame + self.frame_count - 1) / self.fps
 
+    def occupied_bounds(self):
+        """(lo, hi) [m] of the grid's inner cells that some world occupies at some frame (the
+        grid's own bounds when none is): where things go, for framing pictures and boxes."""
+        dims = self.grid.dims
+        c = np.stack(np.unravel_index(np.unique(self.pair_cell).astype(np.int64), tuple(dims)), axis=1)
+        c = c[((c >= 1) & (c <= dims - 2)).all(axis=1)]
+        if not len(c):
+            return self.grid.lo.copy(), self.grid.hi.copy()
+        return self.grid.lo + (c.min(0) - 1) * self.grid.cell_size, self.grid.lo + c.max(0) * self.grid.cell_size
+
     def nbytes(self) -> int:
         """Bytes of the record's arrays (what a query reads)."""
         return int(self.pair_cell.nbytes + self.pair_bits.nbytes + self.world_start.nbytes

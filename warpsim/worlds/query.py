@@ -9,7 +9,7 @@ f / fps; ``@t0:`` runs to the end, ``@:t1`` from the start, no ``@`` the whole r
   insideK_time    time inside during the window [s] (frames with a particle inside / fps)
   insideK_entry   first time inside during the window [s] (nan: never)
   insideK_share   largest share of the world's recorded particles inside at one frame of the
-                  window, in [0, 1] (exact records only; nan otherwise)
+                  window, in [0, 1] (exact answers only; nan otherwise)
 
 Answers come from the cells of :class:`warpsim.worlds.occupancy.OccupancyRecord`: conservative to
 one cell (a world whose particles come within one cell of the box may be kept by IN and dropped
@@ -218,7 +218,7 @@ def answer_region(record, region, positions=None, budget=REFINE_BUDGET) -> Regio
         s = np.stack([positions(w, f0, f1) for w in doubt]) if len(doubt) else \
             np.zeros((0, f1 - f0 + 1, len(record.particles), 3), np.float32)
     exact = s is not None
-    if exact:
+    if s is not None:
         s = s.astype(np.float64)
         inside = ((s >= np.asarray(region.lo)) & (s <= np.asarray(region.hi))).all(axis=-1)
         frames = np.zeros_like(frames)

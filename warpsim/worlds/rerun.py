@@ -66,16 +66,18 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
     :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
     ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
     resolved over all worlds, so a world alone must be told). Returns its path."""
-    from .. import __version__
+    from .._version import __version__
     from ..scenes import get_scene
 
     from .sweep import frame_timing
 
     cls = get_scene(scene_name)
-    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps, substeps)
+    base = None if substeps == "auto" else substeps
+    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps, base)
     data = {"format": FORMAT, "version": MANIFEST_VERSION, "warpsim": __version__, "scene": cls.name,
             "defaults": scene_defaults(cls), "frames": int(frames),
-            "fps": None if fps is None else float(fps), "substeps": None if substeps is None else int(substeps),
+            "fps": None if fps is None else float(fps),
+            "substeps": None if substeps is None else ("auto" if substeps == "auto" else int(substeps)),
             "run_fps": run_fps, "run_substeps": run_substeps,
             "device": None if device is None else str(device), "fused": bool(fused),
             "frame_steps": None if frame_steps is None else int(frame_steps),
@@ -91,7 +93,7 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
 def read_manifest(root, scene=None) -> dict:
     """The manifest of the sweep at ``root``, checked against this warpsim and the scene's current
     defaults (and against ``scene``, a scene name, when given). ValueError (one line) otherwise."""
-    from .. import __version__
+    from .._version import __version__
     from ..scenes import get_scene
 
     root = os.fspath(root)
@@ -150,26 +152,60 @@ def _differences(manifest, fps, substeps, device) -> list:
     out = []
     if fps is not None and not math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12):
         out.append(f"--fps {fps:g} (the sweep: {manifest['run_fps']:g})")
-    if substeps is not None and int(substeps) != manifest["run_substeps"]:
+    if not _same_substeps(manifest, substeps):
         out.append(f"--substeps {substeps} (the sweep: {manifest['run_substeps']})")
     if device is not None and manifest["device"] is not None and str(device) != manifest["device"]:
         out.append(f"device {device} (the sweep ran on {manifest['device']})")
     return out
 
 
+def _same_substeps(manifest, substeps) -> bool:
+    """Whether ``--substeps`` (None, an int or "auto") asks for what the sweep was run with."""
+    given = manifest["substeps"]
+    if substeps is None or str(substeps) == str(given):
+        return True
+    if "auto" in (str(substeps), str(given)):
+        return False
+    return int(substeps) == manifest["run_substeps"]
+
+
 def _settings(manifest, fps, substeps) -> tuple:
     """(fps, substeps) to run with: the sweep's own (as it was given them: None = the scene's)
     unless another value is asked for."""
     same_fps = fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)
-    same_substeps = substeps is None or int(substeps) == manifest["run_substeps"]
+    same_substeps = _same_substeps(manifest, substeps)
     return (manifest["fps"] if same_fps else fps), (manifest["substeps"] if same_substeps else substeps)
 
 
 def _frame_steps(manifest, fps, substeps):
     """The steps per frame the sweep's batch took (auto sub-steps resolve over all its worlds, so
     a world alone is told the count), or None when other settings were asked for."""
-    same = (fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)) and substeps is None
+    same = (fps is None or math.isclose(float(fps), manifest["run_fps"], rel_tol=1e-12)) and _same_substeps(manifest,
+                                                                                                       substeps)
     return manifest.get("frame_steps") if same else None
+
+
+def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False) -> int:
+    """The steps per frame :func:`warpsim.worlds.sweep.run_batch` takes for these worlds (as given
+    to it): with automatic sub-steps the stiffest world's limit decides, so the sweep's batch is
+    built (not run) to find them."""
+    from ..scenes import get_scene
+    from .sweep import frame_timing, make_batch
+
+    cls = get_scene(scene_name)
+    world_params = [_typed(cls, p) for p in world_params]
+    fps_given = fps
+    fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
+                                        None if substeps == "auto" else substeps)
+    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
+                                  and "dt" not in world_params[0])  # run_batch's rule
+    if not auto:
+        return count
+    if "dt" in cls.params and fps_given is not None:
+        world_params = [{**p, "dt": frame_dt / count} for p in world_params]
+    batch = make_batch(cls, world_params, device=device, fused=fused)
+    batch.batch_scene.auto_substeps = True
+    return int(batch.batch_scene.frame_steps(frame_dt, count))
 
 
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
@@ -191,11 +227,14 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     if is_agent_scene(cls):
         raise ValueError(f"scene {cls.name!r} is a flock: re-running one of its worlds alone is not supported")
     fps_given = fps
-    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
+    auto = substeps == "auto"
+    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, None if auto else substeps)
     if "dt" in cls.params and fps_given is not None:  # as run_batch does
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
     batch.batch_scene.frame_steps_fixed = frame_steps
+    if auto:
+        batch.batch_scene.auto_substeps = True
     writer = UsdCacheWriter(out, fps=fps)
     batch.scene.declare(writer)
     writer.begin()
@@ -328,8 +367,11 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     from .sweep import frame_timing
 
     try:
-        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(cls, cls.resolve_params(world_params[0]),
-                                                                        args.fps, args.substeps)
+        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(
+            cls, cls.resolve_params(world_params[0]), args.fps, None if args.substeps == "auto" else args.substeps)
+        # automatic sub-steps follow the sweep's stiffest world: found as the sweep finds them
+        manifest["frame_steps"] = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps,
+                                                    device=device, fused=bool(args.fused))
     except ValueError as exc:
         raise cli.UsageError(cli.one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,

@@ -12,6 +12,8 @@ pair and writes the other), masses, inverse masses, radii and the per-world valu
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import warp as wp
 
@@ -33,7 +35,8 @@ def eligibility(sim0) -> str | None:
         return f"the integrator is {sim0.integrator.name}, not semi_implicit_euler"
     if getattr(sim0, "adaptive", False):
         return "adaptive sub-stepping"
-    if getattr(sim0, "fracture", None) is not None or getattr(sim0.model, "breakable_spring_count", 0):
+    breakable = int(getattr(sim0.model, "breakable_spring_count", 0) or 0)
+    if getattr(sim0, "fracture", None) is not None or breakable > 0:
         return "breakable springs"
     if getattr(sim0, "rollout", None) is not None:
         return "a differentiable run"
@@ -51,24 +54,19 @@ def eligibility(sim0) -> str | None:
 
 class SharedStepper:
     """Steps the worlds of ``batch`` (a WorldBatch on the shared path) in place of its simulator:
-    ``frame(frame_dt, substeps)`` runs the sub-steps, one launch each, and leaves the state in
-    ``batch.sim.state`` (no allocation: a frame captures as a CUDA graph).
+    ``frame(frame_dt, substeps)`` runs the sub-steps, one launch each (``block_per_world``: the
+    whole frame in one launch, one thread block of ``lanes`` threads per world, the same bits),
+    and leaves the state in ``batch.sim.state`` (no allocation: a frame captures as a CUDA graph).
 
     ``scales``: {spring array name: (base (S,) host, key (S,) device int, coefficient (S,) device
     float)} and ``world_values`` (device, world_count K) as the tiling computed them."""
 
-    def __init__(self, batch, m0, scales, world_values, key_count, gravity, walls):
+    def __init__(self, batch, m0, scales, world_values, key_count, gravity, walls, block_per_world=False,
+                 lanes=128):
         d = batch.device
-        ensure_spring_adjacency(m0)
-        s = K.SharedSprings()
-        s.offsets, s.springs, s.ends = m0.particle_spring_offsets, m0.particle_springs, m0.spring_indices
-        for name, field in zip(SPRING_PARAMS, ("rest", "stiffness", "damping")):
-            base, key, coefficient = scales[name]
-            setattr(s, f"{field}_base", wp.array(np.asarray(base, dtype=np.float32), dtype=float, device=d))
-            setattr(s, f"{field}_key", key)
-            setattr(s, f"{field}_coefficient", coefficient)
-        s.world_values, s.key_count = world_values, int(key_count)
-        self.springs = s
+        self.block_per_world = bool(block_per_world)
+        self.lanes = 1 if d.is_cpu else int(lanes)  # CPU launches run blocks of one thread
+        self.springs = shared_springs(m0, scales, world_values, key_count, d)
         self.world_gravity = wp.array(np.asarray(gravity, dtype=np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
         self.walls = walls
         self.batch = batch
@@ -90,7 +88,9 @@ class SharedStepper:
 
     def frame(self, frame_dt: float, substeps: int) -> None:
         h = frame_dt / substeps
-        for _ in range(int(substeps)):
+        if self.block_per_world:
+            self._frame_blocks(h, int(substeps))
+        for _ in range(0 if self.block_per_world else int(substeps)):
             self.step(h)
         st = self.batch.sim.state
         if st.positions is not self._home[0]:  # the frame ends in the state's own arrays
@@ -101,14 +101,55 @@ class SharedStepper:
         sim.time += frame_dt
         sim.step_count += int(substeps)
 
+    def _frame_blocks(self, h: float, substeps: int) -> None:
+        """The whole frame in one launch, one thread block of ``lanes`` threads per world."""
+        b, st = self.batch, self.batch.sim.state
+        m = b.model
+        wp.launch(K.frame_shared_worlds, b.world_count * self.lanes,
+                  inputs=[st.positions, st.velocities, self._spare[0], self._spare[1], m.particle_mass,
+                          m.particle_inv_mass, m.particle_radius, self.world_gravity, m.world_particle_count,
+                          self.lanes, self.springs, self.walls, float(h), int(substeps)],
+                  block_dim=self.lanes, device=b.device)
+
     def device_bytes(self) -> int:
         """Bytes of the shared arrays (stored once for all worlds) and the spare state pair."""
-        arrays = [getattr(self.springs, name) for name in ("offsets", "springs", "ends", "rest_base", "rest_key",
-                                                            "rest_coefficient", "stiffness_base", "stiffness_key",
-                                                            "stiffness_coefficient", "damping_base", "damping_key",
-                                                            "damping_coefficient", "world_values")]
-        arrays += [*self._spare, self.world_gravity]
+        s = self.springs
+        arrays = [s.offsets, s.entries, s.keys, s.world_values, *self._spare, self.world_gravity]
         return sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
+
+
+def shared_springs(m0, scales, world_values, key_count, device) -> K.SharedSprings:
+    """The SharedSprings of world 0's model ``m0``: its CSR adjacency (ascending spring order) with
+    each end's entry (value or coefficient of rest length, stiffness, damping; other end, which
+    end) and packed keys; ``scales`` {name: (base (S,) host, key (S,) device, coefficient (S,)
+    device)} as the tiling found them."""
+    ensure_spring_adjacency(m0)
+    P, S = m0.particle_count, m0.spring_count
+    if P >= 1 << 23:
+        raise ValueError(f"a world of {P} particles is too large for the shared path (< 2^23); use shared=False")
+    if int(key_count) >= 1023:
+        raise ValueError(f"{key_count} varied parameters: the shared path packs at most 1022; use shared=False")
+    offsets = m0.particle_spring_offsets.numpy()
+    springs = m0.particle_springs.numpy().astype(np.int64)
+    ends = m0.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+    row = np.repeat(np.arange(P), np.diff(offsets))  # the particle of each entry
+    values, keys = [], np.zeros(len(springs), dtype=np.int64)
+    for slot, name in enumerate(SPRING_PARAMS):
+        base, key, coefficient = scales[name]
+        key, coefficient = key.numpy(), coefficient.numpy()
+        value = np.where(key >= 0, coefficient, np.asarray(base, dtype=np.float32)).astype(np.float32)
+        values.append(value[springs])
+        keys |= (key[springs].astype(np.int64) + 1) << (10 * slot)
+    second = (ends[springs, 1] == row) & (ends[springs, 0] != row)
+    other = np.where(second, ends[springs, 0], ends[springs, 1])
+    code = (2 * other + second).astype(np.float32)  # exact below 2^24
+    s = K.SharedSprings()
+    s.offsets = wp.array(offsets, dtype=int, device=device)
+    s.entries = wp.array(np.stack([*values, code], axis=1).reshape(-1, 4) if S else np.zeros((0, 4), np.float32),
+                         dtype=wp.vec4, device=device)
+    s.keys = wp.array(keys.astype(np.int32), dtype=int, device=device)
+    s.world_values, s.key_count = world_values, int(key_count)
+    return s
 
 
 def world_walls(colliders, world_count, device) -> K.WorldWalls:

@@ -145,7 +145,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         stepped.auto_substeps = auto
     if timing is not None:
         timing["frame_steps"] = int(stepped.frame_steps(frame_dt, substeps) if stepped is not None else substeps)
-    if warn is not None:
+    if warn is not None and stepped is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
@@ -216,9 +216,8 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
                                  track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
                                  resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
                                  first_world=first_world, scene=scene_name, include=static)
-    x0 = batch.sim.state.positions.numpy()[: batch.model.world_particle_count]  # world 0
-    v0 = batch.sim.state.velocities.numpy()[: batch.model.world_particle_count]
-    recorder.source_prim = find_source_prim(batch.world_frame_data(x0, v0, 0), x0, recorder.particles)
+    x, v = batch.world_slices()  # world 0's frame data names the prim holding the recorded particles
+    recorder.source_prim = find_source_prim(batch.world_frame_data(x[0], v[0], 0), x[0], recorder.particles)
     return recorder
 
 

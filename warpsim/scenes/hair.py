@@ -1,0 +1,227 @@
+"""The ``hair`` scene: a head with a groom of strands that keeps its shape from frame 0
+(sag-free initialization), is still for a while, then turns and nods; the strands swing, collide
+with the head and the floor, and can be grabbed in the viewer.
+
+Prims: ``hair`` (BasisCurves, root to tip, widths tapering to the tip), ``head`` (a Mesh moving
+with the head), ``floor``, and ``hair_vertices`` (Points of the free strand vertices, purpose
+``guide``: what the viewer's mouse grabs).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+import warpsim as ws
+
+from ..bodies.colliders import ParticleCollisions, Sphere, quat_multiply, quat_rotate
+from ..usd.sink import display_hints
+from ..strands import StrandForce, StrandRoots, add_strands, sag_free, strand_stable_dt
+from . import SimulatorScene, register_scene
+from .live import set_contact
+
+MOTIONS = ("still", "turn", "nod", "turn_nod")
+STYLES = ("straight", "wavy")
+
+HEAD_CENTER = (0.0, 0.55, 0.0)
+HEAD_RADIUS = 0.1
+
+
+def _axis_quat(axis, angle):
+    a = np.asarray(axis, np.float64)
+    return np.concatenate([a * math.sin(0.5 * angle), [math.cos(0.5 * angle)]])
+
+
+def head_motion(kind, still, center, radius):
+    """``motion`` callable for the head collider: identity until ``still`` [s], then a smooth start
+    into turning (yaw 0.6 rad at 0.4 Hz) and/or nodding (pitch 0.3 rad at 0.6 Hz) about the neck,
+    a pivot ``radius`` below ``center``."""
+    pivot = np.asarray(center, np.float64) - np.array([0.0, radius, 0.0])
+
+    def motion(t):
+        tau = t - still
+        if kind == "still" or tau <= 0.0:
+            return np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
+        ramp = min(tau / 0.5, 1.0)
+        ramp = ramp * ramp * (3.0 - 2.0 * ramp)
+        q = np.array([0.0, 0.0, 0.0, 1.0])
+        if kind in ("turn", "turn_nod"):
+            q = quat_multiply(q, _axis_quat((0.0, 1.0, 0.0), ramp * 0.6 * math.sin(2.0 * math.pi * 0.4 * tau)))
+        if kind in ("nod", "turn_nod"):
+            q = quat_multiply(q, _axis_quat((1.0, 0.0, 0.0), ramp * 0.3 * math.sin(2.0 * math.pi * 0.6 * tau)))
+        return pivot - quat_rotate(q, pivot), q
+
+    return motion
+
+
+def scalp_roots(count, center, radius):
+    """``count`` root positions on the scalp (a Fibonacci lattice of the sphere above 0.2 radius
+    over the centre, the face (front, below 0.7 radius) left bare) and their outward normals."""
+    lattice = max(64, 8 * count)
+    k = np.arange(lattice) + 0.5
+    y = 1.0 - 2.0 * k / lattice
+    r = np.sqrt(1.0 - y * y)
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    n = np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
+    keep = (n[:, 1] > 0.2) & ~((n[:, 2] > 0.3) & (n[:, 1] < 0.7))
+    n = n[keep]
+    if len(n) < count:
+        raise ValueError(f"strands={count}: the scalp lattice has only {len(n)} roots")
+    n = n[np.linspace(0, len(n) - 1, count).round().astype(int)]
+    return np.asarray(center) + radius * n, n
+
+
+def groom(roots, normals, center, radius, length, style, lift, wavelength=0.05, samples=160):
+    """Polylines (S, samples, 3) [m]: from each root along the meridian over the head at ``lift``
+    above the scalp down to its equator, then straight down; ``wavy`` adds a sideways wave
+    (amplitude 8 mm, wavelength ``wavelength`` [m]) growing in over the first 3 cm."""
+    c = np.asarray(center, np.float64)
+    s = np.linspace(0.0, 1.0, samples)[None, :] * np.asarray(length, np.float64).reshape(-1, 1)  # (S, K)
+    horizontal = normals * np.array([1.0, 0.0, 1.0])
+    hn = np.linalg.norm(horizontal, axis=1, keepdims=True)
+    horizontal = np.where(hn > 1e-6, horizontal / np.maximum(hn, 1e-12), np.array([[0.0, 0.0, -1.0]]))
+    theta0 = np.arccos(np.clip(normals[:, 1], -1.0, 1.0))[:, None]  # from +y
+    rho = radius + lift * np.clip(s / 0.02, 0.0, 1.0)  # leaves the scalp over 2 cm
+    over = np.maximum(0.5 * math.pi - theta0, 0.0) * (radius + lift)  # arc length over the head
+    theta = theta0 + np.minimum(s, over) / (radius + lift)
+    up = np.array([0.0, 1.0, 0.0])
+    pts = c + rho[..., None] * (np.sin(theta)[..., None] * horizontal[:, None, :] + np.cos(theta)[..., None] * up)
+    below = np.maximum(s - over, 0.0)
+    pts = pts - below[..., None] * up
+    if style == "wavy":
+        side = np.cross(up, horizontal)
+        wave = 0.008 * np.clip(s / 0.03, 0.0, 1.0) * np.sin(2.0 * math.pi * s / wavelength)
+        pts = pts + wave[..., None] * side[:, None, :]
+    return pts
+
+
+PARAMS = {
+    "strands": (2000, "number of strands"),
+    "segments": (16, "segments per strand"),
+    "length": (0.25, "strand length [m]"),
+    "style": ("straight", "groom: straight, or wavy (a sideways wave of 8 mm, >= 8 segments long)", STYLES),
+    "motion": ("turn_nod", "head motion after the still time: still, turn, nod or turn_nod", MOTIONS),
+    "still": (1.0, "seconds the head stays still before it moves [s]"),
+    "sag_free": (True, "solve the rest state so the groom is an equilibrium at frame 0"),
+    "mass": (1.0e-3, "mass of a strand [kg] (a guide strand standing for many hairs)"),
+    "stretch_rigidity": (5.0, "stretch rigidity EA of a strand [N]"),
+    "bend_rigidity": (5.0e-4, "bending rigidity EI of a strand [N m^2]"),
+    "damping": (0.02, "stretch damping [N s/m] (bending damping is a twentieth)"),
+    "air_drag": (2.0e-4, "linear air drag on every strand vertex [kg/s]"),
+    "friction": (0.3, "Coulomb friction of hair on the head and the floor"),
+    "strand_friction": (0.0, "> 0: strand-strand collisions with this friction (ParticleCollisions)"),
+    "radius": (0.002, "collision radius of a strand vertex [m]"),
+}
+
+
+@register_scene("hair", "a head with a groom of strands that holds its shape (sag-free), then turns and nods",
+                params=PARAMS, fps=60.0, substeps=1)
+class Hair(SimulatorScene):
+    """Hair on a spherical head of radius 0.1 m at 0.55 m over the floor. The strands' step is the
+    frame sub-step split into steps of at most ``safety`` times the strands' stable semi-implicit
+    Euler step, measured on the groom at frame 0 (``strand_stable_dt(hair, model)``)."""
+
+    smoke_params: ClassVar[dict] = {"strands": 12, "segments": 4}
+    safety = 0.5
+
+    def build(self, p):
+        for key in ("strands", "segments"):
+            if p[key] < 1:
+                raise ValueError(f"{key}={p[key]}: it must be >= 1")
+        for key in ("length", "mass", "stretch_rigidity", "bend_rigidity", "radius"):
+            if not p[key] > 0.0:
+                raise ValueError(f"{key}={p[key]}: it must be > 0")
+        for key in ("damping", "air_drag", "friction", "strand_friction", "still"):
+            if not p[key] >= 0.0:
+                raise ValueError(f"{key}={p[key]}: it must be >= 0")
+        self.head = Sphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
+                           motion=head_motion(p["motion"], p["still"], HEAD_CENTER, HEAD_RADIUS))
+        roots, normals = scalp_roots(p["strands"], HEAD_CENTER, HEAD_RADIUS)
+        # a wave of at least 8 segments: sharper zig-zags make the bending frames very stiff
+        wavelength = max(0.05, 8.0 * p["length"] / p["segments"])
+        lines = groom(roots, normals, HEAD_CENTER, HEAD_RADIUS, p["length"], p["style"], lift=2.0 * p["radius"] + 1e-3,
+                      wavelength=wavelength)
+        b = ws.ModelBuilder()
+        self.hair = add_strands(b, segments=p["segments"], polylines=lines, mass=p["mass"],
+                                stretch_rigidity=p["stretch_rigidity"], bend_rigidity=p["bend_rigidity"],
+                                stretch_damping=p["damping"], bend_damping=p["damping"] / 20.0, radius=p["radius"],
+                                head=self.head)
+        self.model = b.finalize(self.device)
+        self.floor = ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=0.0, friction=p["friction"], mode="project")
+        self.roots = StrandRoots(self.hair, self.head)
+        colliders = [self.head, self.roots, self.floor]
+        if p["strand_friction"] > 0.0:
+            colliders.append(ParticleCollisions(restitution=0.0, friction=p["strand_friction"]))
+        forces = [ws.Gravity(), StrandForce(self.hair)]
+        if p["air_drag"] > 0.0:
+            forces.append(ws.Drag(linear=p["air_drag"]))
+        self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0)
+        self.stable_dt = strand_stable_dt(self.hair, self.model)
+        self.sag_report = sag_free(self.sim) if p["sag_free"] else None
+        self._curve_particles = self.hair.curve_particles().reshape(-1)
+        self._free_particles = self.hair.free_particles()
+        from ..viewer.geometry import icosphere
+
+        verts, tris = icosphere(3)
+        self._head_local = verts.astype(np.float64) * HEAD_RADIUS
+        self._head_tris = tris
+
+    def steps_for(self, h):
+        """Strand steps per sub-step of ``h`` [s]."""
+        return max(1, math.ceil(h / (self.safety * self.stable_dt) - 1e-9))
+
+    def advance(self, frame_dt, substeps):
+        h = frame_dt / substeps
+        n = self.steps_for(h)
+        for _ in range(substeps * n):
+            self.sim.step(h / n)
+
+    # ------------------------------------------------------------------ live parameters, dragging
+    live_params = ("friction",)
+
+    def apply_param(self, key, value):
+        if not value >= 0.0:
+            raise ValueError(f"{key}={value}: it must be >= 0")
+        set_contact([self.head, self.floor], friction=value)
+
+    def drag_map(self):
+        return {"hair_vertices": self._free_particles}
+
+    # ------------------------------------------------------------------ output
+    def declare(self, writer):
+        h = self.hair
+        writer.add_curves("hair", curve_vertex_counts=np.full(h.strand_count, h.segments + 1),
+                          width=h.curve_widths(), color=(0.35, 0.22, 0.12))
+        writer.add_mesh("head", np.full(len(self._head_tris), 3), self._head_tris.reshape(-1), velocities=False,
+                        color=(0.85, 0.7, 0.6))
+        writer.add_plane("floor", size=1.5)
+        # the free strand vertices, what the viewer's mouse grabs: a guide (hidden by USD tools and
+        # ``warpsim render`` unless asked for)
+        decl = writer.add_points("hair_vertices", radius=float(h.radius.max()), color=(0.35, 0.22, 0.12),
+                                 velocities=False)
+        display_hints(decl, purpose="guide")
+
+    def head_points(self):
+        p, q = self.head.world_pose()
+        u, w = q[:3], q[3]
+        v = self._head_local
+        return p + v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+    def frame_data(self):
+        x = self.sim.state.positions.numpy()
+        return {"hair": {"points": x[self._curve_particles]}, "head": {"points": self.head_points()},
+                "hair_vertices": {"points": x[self._free_particles]}}
+
+    def checkpoint(self):
+        data = super().checkpoint()
+        data["head_clock"] = np.float64(self.head._clock)
+        return data
+
+    def restore(self, data):
+        super().restore(data)
+        self.head._clock = float(data["head_clock"])
+        self.head._motion_pose = self.head._eval_motion(self.head._clock)
+        self.head._world = self.head._world_prev = self.head._compose(self.head._motion_pose)
+        self.roots.reset_pose()
