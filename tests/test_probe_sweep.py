@@ -88,13 +88,18 @@ def test_bad_sweep_is_one_line_exit_2_before_any_world_runs(where, case_id, argv
     assert time.perf_counter() - t0 < 60
 
 
-def test_ray_address_that_does_not_answer_gives_up_within_30_s(where):
+def test_ray_address_that_does_not_answer_gives_up_within_30_s(where, monkeypatch):
     pytest.importorskip("ray")
+    from warpsim.distributed import ray_sweep
+
+    assert ray_sweep.CONNECT_TIMEOUT_S <= 30
+    monkeypatch.setattr(ray_sweep, "CONNECT_TIMEOUT_S", 2.0)  # the same loop, shorter (test time)
     t0 = time.perf_counter()
     code, out, err = run(*SWEEP, *TWO, "--out", str(where / "ray1" / "s.usda"), "--ray", "127.0.0.1:1")
     assert time.perf_counter() - t0 < 30
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "--ray 127.0.0.1:1: nothing answers" in lines[0], err
+    assert "gave up after 2 s" in lines[0]
 
 
 @pytest.mark.parametrize("mutate, words", [
