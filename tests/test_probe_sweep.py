@@ -88,13 +88,18 @@ def test_bad_sweep_is_one_line_exit_2_before_any_world_runs(where, case_id, argv
     assert time.perf_counter() - t0 < 60
 
 
-def test_ray_address_that_does_not_answer_gives_up_within_30_s(where):
+def test_ray_address_that_does_not_answer_gives_up_within_30_s(where, monkeypatch):
     pytest.importorskip("ray")
+    from warpsim.distributed import ray_sweep
+
+    assert ray_sweep.CONNECT_TIMEOUT_S <= 30
+    monkeypatch.setattr(ray_sweep, "CONNECT_TIMEOUT_S", 2.0)  # the same loop, shorter (test time)
     t0 = time.perf_counter()
     code, out, err = run(*SWEEP, *TWO, "--out", str(where / "ray1" / "s.usda"), "--ray", "127.0.0.1:1")
     assert time.perf_counter() - t0 < 30
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "--ray 127.0.0.1:1: nothing answers" in lines[0], err
+    assert "gave up after 2 s" in lines[0]
 
 
 @pytest.mark.parametrize("mutate, words", [
@@ -157,6 +162,26 @@ API = [
      ["blown_up", "built-in"]),
     ("sweep-root-onto-layer", lambda t: worlds.write_sweep_root(str(t / "b.usdc"), [str(t / "b.usdc")], 4), ValueError,
      ["also one of the batch layers", "another name"]),
+    ("sample-n-float", lambda t: worlds.sample_worlds("bounce", {}, ["height=0.01:0.05"], 2.5, "random"),
+     ValueError, ["sample_worlds n", "2.5"]),
+    ("sample-n-huge", lambda t: worlds.sample_worlds("bounce", {}, ["height=0.01:0.05"], 2**63, "random"),
+     ValueError, ["need about", "free"]),
+    ("sample-seed-neg", lambda t: worlds.sample_worlds("bounce", {}, ["height=0.01:0.05"], 4, "random", -1),
+     ValueError, ["sample_worlds seed", "-1"]),
+    ("sample-vary-str", lambda t: worlds.sample_worlds("bounce", {}, "height=0.01:0.05", 4), TypeError,
+     ["vary", "list"]),
+    ("sample-fixed-list", lambda t: worlds.sample_worlds("bounce", ["height=1"], [], 2), TypeError,
+     ["fixed", "dict"]),
+    ("run-frames-float", lambda t: worlds.run_batch("bounce", [{}], frames=2.5, layer_path=t / "a.usdc",
+                                                     device="cpu"), ValueError, ["run_batch frames", "2.5"]),
+    ("run-params-int", lambda t: worlds.run_batch("bounce", [1], frames=2, layer_path=t / "a.usdc", device="cpu"),
+     TypeError, ["world_params[0]", "dict"]),
+    ("run-first-world-neg", lambda t: worlds.run_batch("bounce", [{}], frames=2, layer_path=t / "a.usdc",
+                                                        device="cpu", first_world=-1), ValueError,
+     ["run_batch first_world", "-1"]),
+    ("root-world-count-text", lambda t: worlds.write_sweep_root(t / "r.usda", [], "3"), ValueError,
+     ["write_sweep_root world_count"]),
+    ("table-rows-none", lambda t: worlds.write_table(t / "t.csv", None), TypeError, ["write_table rows"]),
     # soft contact and torus meshes
     ("torus-text", lambda t: ws.torus_mesh(major_radius="big"), ValueError, ["torus_mesh major_radius", "'big'"]),
     ("torus-segments-inf", lambda t: ws.torus_mesh(segments=float("inf")), ValueError, ["torus_mesh segments"]),

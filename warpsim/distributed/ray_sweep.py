@@ -189,11 +189,12 @@ CONNECT_TIMEOUT_S = 10.0
 retries an address that does not answer for minutes)."""
 
 
-def _probe_address(address, timeout=CONNECT_TIMEOUT_S):
+def _probe_address(address, timeout=None):
     """ValueError naming ``address`` when nothing accepts a connection there within ``timeout``
     seconds (``auto`` is left to Ray: it reads the address of the cluster on this machine)."""
     from ..worlds.preflight import check_ray_address
 
+    timeout = CONNECT_TIMEOUT_S if timeout is None else float(timeout)
     target = check_ray_address(address)
     if target is None:
         return

@@ -175,17 +175,19 @@ class CachedPositions:
         self._layers = {}
 
     def __call__(self, world, f0, f1):
-        from pxr import Sdf, Usd
+        from pxr import Usd
 
         g = self.record.first_world + int(world)
         path = self.owner[g]
         stage = self._layers.get(path)
-        if stage is None:  # composed: a sweep's batch layer keeps its frames in chunk files
+        if stage is None:  # a stage, not the layer: batch layers keep their samples in chunk files (clips)
             stage = self._layers[path] = Usd.Stage.Open(path)
-        attr = stage.GetAttributeAtPath(Sdf.Path(f"/Worlds/world_{g:06d}/{self.record.source_prim}.points"))
+            stage.SetInterpolationType(Usd.InterpolationTypeHeld)  # no sample at a frame: the one from before
+        prim = stage.GetPrimAtPath(f"/Worlds/world_{g:06d}/{self.record.source_prim}")
+        attr = prim.GetAttribute("points") if prim else None
         out = []
         for f in range(self.record.first_frame + f0, self.record.first_frame + f1 + 1):
-            value = attr.Get(float(f)) if attr and attr.HasValue() else None  # held from before between samples
+            value = attr.Get(float(f)) if attr else None
             if value is None:
                 raise ValueError(f"world {g} has no cached {self.record.source_prim} points at frame {f}")
             out.append(np.asarray(value, np.float32)[self.record.particles])

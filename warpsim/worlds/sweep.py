@@ -30,9 +30,17 @@ def sample_worlds(scene_name, fixed, vary, n, sample="grid", seed=0) -> list:
     plus each world's sampled values of the ``vary`` specs (``"key=lo:hi[:log]"``,
     ``"key=a,b,c"``), ``n`` worlds by ``sample`` ("grid", "random", "lhs") from ``seed``.
     ValueError (one line) for an unknown key, lo > hi, a log range with a bound <= 0, n < 1."""
+    from ..core import checks
     from ..scenes import get_scene
+    from .preflight import check_worlds
 
     cls = get_scene(scene_name)
+    if isinstance(vary, (str, bytes)) or not hasattr(vary, "__iter__"):
+        raise TypeError(f"sample_worlds vary must be a list of specs, got {vary!r}; e.g. ['height=0.01:0.05']")
+    if fixed is not None and not isinstance(fixed, dict):
+        raise TypeError(f"sample_worlds fixed must be a dict {{key: value}} or None, got {checks.show(fixed)}")
+    n = check_worlds(checks.integer(n, "sample_worlds n (worlds)", lo=1, fix="e.g. 64"))
+    seed = checks.integer(seed, "sample_worlds seed", lo=0, hi=2**63 - 1, fix="e.g. 0")
     specs = [parse_vary(v, cls.params) for v in vary]
     fixed = _typed_fixed(cls, fixed)
     for s in specs:
@@ -110,9 +118,17 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     every frame instead (a Ray sweep's batches take the count resolved over the whole sweep)."""
     from ..scenes import get_scene
 
+    from ..core import checks
+
     cls = get_scene(scene_name)
-    if int(frames) < 0:
-        raise ValueError(f"frames {frames}: it must be >= 0")
+    frames = checks.integer(frames, "run_batch frames", lo=0, fix="frames after frame 0, e.g. 120")
+    first_world = checks.integer(first_world, "run_batch first_world", lo=0, hi=999_999,
+                                 fix="the global index of the batch's first world")
+    world_params = list(world_params)
+    for w, p in enumerate(world_params):
+        if not isinstance(p, dict):
+            raise TypeError(f"run_batch world_params[{w}] is {checks.show(p)}; give one dict of parameters per "
+                            "world (sample_worlds makes them)")
     world_params = [_normalise(cls, p) for p in world_params]
     given = [dict(p) for p in world_params]
     if not world_params:
@@ -219,6 +235,10 @@ def _cell(value):
 def write_table(csv_path, rows) -> str:
     """A CSV table with one row per world (columns in first-seen order: world, parameters,
     metrics); vector values are written ``x,y,z`` in one quoted cell. Returns the path."""
+    rows = list(rows) if rows is not None and not isinstance(rows, (str, bytes, dict)) else rows
+    if rows is None or isinstance(rows, (str, bytes, dict)) or not all(isinstance(r, dict) for r in rows):
+        raise TypeError(f"write_table rows must be a list of dicts (one per world, as run_batch returns), got "
+                        f"{type(rows).__name__}")
     csv_path = os.path.abspath(os.fspath(csv_path))
     os.makedirs(os.path.dirname(csv_path), exist_ok=True)
     columns = []

@@ -225,8 +225,11 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
     world extent). ``worlds``: only these global indices (a picked subset), in this order."""
     from pxr import Gf, Sdf
 
+    from ..core import checks
+
     if layout not in LAYOUTS:
         raise ValueError(f"layout {layout!r} is unknown; use one of {', '.join(LAYOUTS)}")
+    world_count = checks.integer(world_count, "write_sweep_root world_count", lo=1, fix="worlds in the sweep")
     out_path = os.path.abspath(os.fspath(out_path))
     if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
         raise ValueError(f"root {out_path!r} must end in .usd, .usda or .usdc")
