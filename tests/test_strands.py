@@ -327,3 +327,29 @@ def test_moving_head_keeps_strands_out_of_it_and_the_curves_taper(tmp_path):
     assert curves.GetWidthsInterpolation() == UsdGeom.Tokens.vertex
     per_curve = widths.reshape(hair.strand_count, hair.segments + 1)
     assert np.all(np.diff(per_curve, axis=1) < 0) and per_curve[0, 0] == pytest.approx(2 * hair.radius[0])
+
+
+def test_viewer_drags_a_strand():
+    from warpsim.scenes import get_scene
+    from warpsim.viewer.session import Session
+
+    params = {"strands": 8, "segments": 6, "motion": "still"}
+    s = Session(get_scene("hair"), params, device=DEVICE)
+    item = s.items["hair_vertices"]
+    particles, ok = s._grabbable("hair_vertices")
+    tip = int(np.flatnonzero(np.isin(particles, s.scene.hair.tip_particles()))[0])
+    eye = item.points[tip] + np.array([0.0, 0.0, 2.0])
+    picked = s.pick("hair_vertices", eye, (0.0, 0.0, -1.0))
+    assert picked == tip
+    particle = s.grab("hair_vertices", picked, client=1)
+    assert particle == s.scene.hair.tip_particles()[0]
+    x0 = s.grabbed_position()
+    target = s.drag_ray(eye, (x0 + [0.1, 0.0, 0.0]) - eye, (0.0, 0.0, -1.0))
+    free = Session(get_scene("hair"), params, device=DEVICE)
+    for _ in range(30):
+        assert s.advance(), s.error
+        free.advance()
+    x1 = s.grabbed_position()
+    x_free = free.scene.sim.state.positions.numpy()[particle]
+    assert (x1 - x_free) @ (target - x0) / np.linalg.norm(target - x0) > 0.02  # pulled toward the pointer
+    assert s.release(client=1)
