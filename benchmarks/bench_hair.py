@@ -24,8 +24,9 @@ import warp as wp
 wp.config.quiet = True
 wp.config.log_level = getattr(wp, "LOG_WARNING", wp.config.log_level)
 
-import warpsim as ws  # noqa: E402
-from timing import time_per_call  # noqa: E402
+from timing import time_per_call
+
+import warpsim as ws
 
 
 def reference_simulator(scene, device):

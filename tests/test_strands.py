@@ -89,7 +89,7 @@ def horizontal_strand(segments=8, **kw):
 def max_displacement(sim, seconds=2.0, dt=2.5e-4, every=20):
     x0 = sim.state.positions.numpy().copy()
     worst = 0.0
-    for k in range(int(round(seconds / dt))):
+    for k in range(round(seconds / dt)):
         sim.step(dt)
         if k % every == every - 1:
             worst = max(worst, float(np.linalg.norm(sim.state.positions.numpy() - x0, axis=1).max()))
@@ -264,7 +264,7 @@ def test_bad_strand_input_names_the_strand():
     with pytest.raises(ValueError, match="strand 0 vertex .* inside the head"):
         ws.add_strands(b, [(0.0, 1.1, 0.0)], [(0, -1, 0)], 4, head=head)
     assert b.particle_count == 0  # nothing was added by a failed call
-    hair, sim = horizontal_strand(segments=4)
+    _, sim = horizontal_strand(segments=4)
     with pytest.raises(ValueError, match=r"max_strain=0.0001 cannot be met: strand 0"):
         ws.sag_free(sim, max_strain=1e-4)
 
@@ -282,7 +282,7 @@ def _tip_drift(scene, seconds=2.0):
     tips = scene.hair.tip_particles()
     x0 = scene.sim.state.positions.numpy()[tips].copy()
     worst = 0.0
-    for _ in range(int(round(60 * seconds))):
+    for _ in range(round(60 * seconds)):
         scene.advance(1.0 / 60.0, 1)
         worst = max(worst, float(np.linalg.norm(scene.sim.state.positions.numpy()[tips] - x0, axis=1).max()))
     return worst
@@ -336,7 +336,7 @@ def test_viewer_drags_a_strand():
     params = {"strands": 8, "segments": 6, "motion": "still"}
     s = Session(get_scene("hair"), params, device=DEVICE)
     item = s.items["hair_vertices"]
-    particles, ok = s._grabbable("hair_vertices")
+    particles, _ = s._grabbable("hair_vertices")
     tip = int(np.flatnonzero(np.isin(particles, s.scene.hair.tip_particles()))[0])
     eye = item.points[tip] + np.array([0.0, 0.0, 2.0])
     picked = s.pick("hair_vertices", eye, (0.0, 0.0, -1.0))

@@ -17,8 +17,8 @@ import numpy as np
 import warpsim as ws
 
 from ..bodies.colliders import ParticleCollisions, Sphere, quat_multiply, quat_rotate
-from ..usd.sink import display_hints
 from ..strands import StrandForce, StrandRoots, add_strands, sag_free, strand_stable_dt
+from ..usd.sink import display_hints
 from . import SimulatorScene, register_scene
 from .live import set_contact
 

@@ -213,13 +213,11 @@ class _Solver:
         wp.launch(K.zero_masked, self.unknowns, inputs=[u_out, self.mask], device=d)
 
     def dot(self, a, c, slot):
-        size = a.shape[0]
-        threads = min(256, size)
-        chunk = -(-size // threads)
+        threads = max(1, min(1024, a.shape[0]))  # the same split on every device
         buf = self.partial.get(threads)
         if buf is None:
             buf = self.partial[threads] = wp.zeros(threads, dtype=wp.float64, device=self.device)
-        wp.launch(K.dot_partial, threads, inputs=[a, c, chunk, buf], device=self.device)
+        wp.launch(K.dot_partial, threads, inputs=[a, c, threads, buf], device=self.device)
         wp.launch(K.sum_partials, 1, inputs=[buf, self.scalars, slot], device=self.device)
 
     def solve(self, fixed, lo, hi, rtol, max_iterations):
