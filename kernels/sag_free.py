@@ -332,3 +332,32 @@ def zero_masked(x: wp.array(dtype=wp.float64), mask: wp.array(dtype=int)):
     j = wp.tid()
     if mask[j] != 0:
         x[j] = wp.float64(0.0)
+
+
+@wp.kernel
+def contacts_apply(
+    contact_particle: wp.array(dtype=int),
+    contact_normal: wp.array(dtype=wp.vec3d),
+    scale: wp.float64,
+    u: wp.array(dtype=wp.float64),
+    u_offset: int,
+    f_out: wp.array(dtype=wp.float64),
+):
+    """Adds the support force scale u[u_offset + c] n_c of contact c (a particle resting on a
+    plane: one contact per particle) to its particle."""
+    c = wp.tid()
+    add3(f_out, contact_particle[c], (scale * u[u_offset + c]) * contact_normal[c])
+
+
+@wp.kernel
+def contacts_apply_transpose(
+    contact_particle: wp.array(dtype=int),
+    contact_normal: wp.array(dtype=wp.vec3d),
+    scale: wp.float64,
+    r: wp.array(dtype=wp.float64),
+    u_offset: int,
+    u_out: wp.array(dtype=wp.float64),
+):
+    """u_out[u_offset + c] = scale n_c . r[particle of c]."""
+    c = wp.tid()
+    u_out[u_offset + c] = scale * wp.dot(contact_normal[c], load3(r, contact_particle[c]))

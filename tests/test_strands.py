@@ -202,6 +202,33 @@ def test_sag_free_pinned_cloth_holds_its_shape():
     assert held < 1e-3 and held < 0.01 * sag, (held, sag)
 
 
+def test_sag_free_soft_block_resting_on_a_floor():
+    """A spring lattice on a plane: the floor's support forces (unknowns >= 0) carry the weight."""
+    import itertools
+
+    def block():
+        b = ws.ModelBuilder()
+        h, idx = 0.05, {}
+        for i, j, k in itertools.product(range(4), range(3), range(4)):
+            idx[i, j, k] = b.add_particle((i * h, 0.01 + j * h, k * h), mass=0.01, radius=0.01)
+        for (a, pa), (c, pc) in itertools.combinations(idx.items(), 2):
+            if np.linalg.norm(np.subtract(a, c)) < 1.8:  # edges and face and body diagonals
+                b.add_spring(pa, pc, 20.0, 0.02)
+        return ws.Simulator(b.finalize(DEVICE), forces=[ws.Gravity()],
+                            colliders=[ws.Plane(restitution=0.0, friction=0.5, mode="project")])
+
+    sim = block()
+    report = ws.sag_free(sim)
+    assert len(report.support_particles) == 16  # the bottom layer
+    assert min(report.support_forces) >= 0.0
+    assert sum(report.support_forces) == pytest.approx(48 * 0.01 * G, rel=1e-3)  # the floor takes the weight
+    assert report.residual_relative < 1e-2
+    held = max_displacement(sim, dt=1e-3, every=20)
+    sag = max_displacement(block(), dt=1e-3, every=20)
+    assert sag > 0.01, sag
+    assert held < 1e-3 and held < 0.01 * sag, (held, sag)
+
+
 def test_released_strand_falls_as_a_chain():
     """Roots let go: the chain falls freely. Its centre of mass follows y0 - g t^2 / 2 (internal
     forces cancel) and its energy and shape follow a NumPy semi-implicit Euler of the same springs."""
