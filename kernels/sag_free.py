@@ -11,7 +11,7 @@ w = b + u / sqrt(k_b)). Forces live in a flat float64 array of 3 entries per par
 particles (inverse mass 0) always get 0.
 
 Sums run in a fixed order (per-particle gathers through a CSR adjacency, one thread per strand,
-dot products over fixed chunks then summed by one thread), so a solve is bit-reproducible.
+dot products over fixed strided partial sums then summed by one thread), so a solve is bit-reproducible.
 """
 
 import warp as wp
@@ -264,14 +264,15 @@ def external_rhs(
 # --------------------------------------------------------------------------------------
 @wp.kernel
 def dot_partial(
-    a: wp.array(dtype=wp.float64), b: wp.array(dtype=wp.float64), chunk: int,
+    a: wp.array(dtype=wp.float64), b: wp.array(dtype=wp.float64), stride: int,
     partial_out: wp.array(dtype=wp.float64),
 ):
-    """partial_out[t] = sum of a[i] b[i] over i in [t chunk, (t + 1) chunk), in order."""
+    """partial_out[t] = sum of a[i] b[i] over i = t, t + stride, t + 2 stride, ... in order
+    (neighbouring threads read neighbouring entries)."""
     t = wp.tid()
     n = a.shape[0]
     acc = wp.float64(0.0)
-    for i in range(t * chunk, wp.min(n, (t + 1) * chunk)):
+    for i in range(t, n, stride):
         acc = acc + a[i] * b[i]
     partial_out[t] = acc
 
@@ -331,3 +332,32 @@ def zero_masked(x: wp.array(dtype=wp.float64), mask: wp.array(dtype=int)):
     j = wp.tid()
     if mask[j] != 0:
         x[j] = wp.float64(0.0)
+
+
+@wp.kernel
+def contacts_apply(
+    contact_particle: wp.array(dtype=int),
+    contact_normal: wp.array(dtype=wp.vec3d),
+    scale: wp.float64,
+    u: wp.array(dtype=wp.float64),
+    u_offset: int,
+    f_out: wp.array(dtype=wp.float64),
+):
+    """Adds the support force scale u[u_offset + c] n_c of contact c (a particle resting on a
+    plane: one contact per particle) to its particle."""
+    c = wp.tid()
+    add3(f_out, contact_particle[c], (scale * u[u_offset + c]) * contact_normal[c])
+
+
+@wp.kernel
+def contacts_apply_transpose(
+    contact_particle: wp.array(dtype=int),
+    contact_normal: wp.array(dtype=wp.vec3d),
+    scale: wp.float64,
+    r: wp.array(dtype=wp.float64),
+    u_offset: int,
+    u_out: wp.array(dtype=wp.float64),
+):
+    """u_out[u_offset + c] = scale n_c . r[particle of c]."""
+    c = wp.tid()
+    u_out[u_offset + c] = scale * wp.dot(contact_normal[c], load3(r, contact_particle[c]))

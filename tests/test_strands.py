@@ -89,7 +89,7 @@ def horizontal_strand(segments=8, **kw):
 def max_displacement(sim, seconds=2.0, dt=2.5e-4, every=20):
     x0 = sim.state.positions.numpy().copy()
     worst = 0.0
-    for k in range(int(round(seconds / dt))):
+    for k in range(round(seconds / dt)):
         sim.step(dt)
         if k % every == every - 1:
             worst = max(worst, float(np.linalg.norm(sim.state.positions.numpy() - x0, axis=1).max()))
@@ -202,6 +202,33 @@ def test_sag_free_pinned_cloth_holds_its_shape():
     assert held < 1e-3 and held < 0.01 * sag, (held, sag)
 
 
+def test_sag_free_soft_block_resting_on_a_floor():
+    """A spring lattice on a plane: the floor's support forces (unknowns >= 0) carry the weight."""
+    import itertools
+
+    def block():
+        b = ws.ModelBuilder()
+        h, idx = 0.05, {}
+        for i, j, k in itertools.product(range(4), range(3), range(4)):
+            idx[i, j, k] = b.add_particle((i * h, 0.01 + j * h, k * h), mass=0.01, radius=0.01)
+        for (a, pa), (c, pc) in itertools.combinations(idx.items(), 2):
+            if np.linalg.norm(np.subtract(a, c)) < 1.8:  # edges and face and body diagonals
+                b.add_spring(pa, pc, 20.0, 0.02)
+        return ws.Simulator(b.finalize(DEVICE), forces=[ws.Gravity()],
+                            colliders=[ws.Plane(restitution=0.0, friction=0.5, mode="project")])
+
+    sim = block()
+    report = ws.sag_free(sim)
+    assert len(report.support_particles) == 16  # the bottom layer
+    assert min(report.support_forces) >= 0.0
+    assert sum(report.support_forces) == pytest.approx(48 * 0.01 * G, rel=1e-3)  # the floor takes the weight
+    assert report.residual_relative < 1e-2
+    held = max_displacement(sim, dt=1e-3, every=20)
+    sag = max_displacement(block(), dt=1e-3, every=20)
+    assert sag > 0.01, sag
+    assert held < 1e-3 and held < 0.01 * sag, (held, sag)
+
+
 def test_released_strand_falls_as_a_chain():
     """Roots let go: the chain falls freely. Its centre of mass follows y0 - g t^2 / 2 (internal
     forces cancel) and its energy and shape follow a NumPy semi-implicit Euler of the same springs."""
@@ -264,7 +291,7 @@ def test_bad_strand_input_names_the_strand():
     with pytest.raises(ValueError, match="strand 0 vertex .* inside the head"):
         ws.add_strands(b, [(0.0, 1.1, 0.0)], [(0, -1, 0)], 4, head=head)
     assert b.particle_count == 0  # nothing was added by a failed call
-    hair, sim = horizontal_strand(segments=4)
+    _, sim = horizontal_strand(segments=4)
     with pytest.raises(ValueError, match=r"max_strain=0.0001 cannot be met: strand 0"):
         ws.sag_free(sim, max_strain=1e-4)
 
@@ -282,7 +309,7 @@ def _tip_drift(scene, seconds=2.0):
     tips = scene.hair.tip_particles()
     x0 = scene.sim.state.positions.numpy()[tips].copy()
     worst = 0.0
-    for _ in range(int(round(60 * seconds))):
+    for _ in range(round(60 * seconds)):
         scene.advance(1.0 / 60.0, 1)
         worst = max(worst, float(np.linalg.norm(scene.sim.state.positions.numpy()[tips] - x0, axis=1).max()))
     return worst
@@ -327,3 +354,29 @@ def test_moving_head_keeps_strands_out_of_it_and_the_curves_taper(tmp_path):
     assert curves.GetWidthsInterpolation() == UsdGeom.Tokens.vertex
     per_curve = widths.reshape(hair.strand_count, hair.segments + 1)
     assert np.all(np.diff(per_curve, axis=1) < 0) and per_curve[0, 0] == pytest.approx(2 * hair.radius[0])
+
+
+def test_viewer_drags_a_strand():
+    from warpsim.scenes import get_scene
+    from warpsim.viewer.session import Session
+
+    params = {"strands": 8, "segments": 6, "motion": "still"}
+    s = Session(get_scene("hair"), params, device=DEVICE)
+    item = s.items["hair_vertices"]
+    particles, _ = s._grabbable("hair_vertices")
+    tip = int(np.flatnonzero(np.isin(particles, s.scene.hair.tip_particles()))[0])
+    eye = item.points[tip] + np.array([0.0, 0.0, 2.0])
+    picked = s.pick("hair_vertices", eye, (0.0, 0.0, -1.0))
+    assert picked == tip
+    particle = s.grab("hair_vertices", picked, client=1)
+    assert particle == s.scene.hair.tip_particles()[0]
+    x0 = s.grabbed_position()
+    target = s.drag_ray(eye, (x0 + [0.1, 0.0, 0.0]) - eye, (0.0, 0.0, -1.0))
+    free = Session(get_scene("hair"), params, device=DEVICE)
+    for _ in range(30):
+        assert s.advance(), s.error
+        free.advance()
+    x1 = s.grabbed_position()
+    x_free = free.scene.sim.state.positions.numpy()[particle]
+    assert (x1 - x_free) @ (target - x0) / np.linalg.norm(target - x0) > 0.02  # pulled toward the pointer
+    assert s.release(client=1)

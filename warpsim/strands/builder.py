@@ -40,10 +40,16 @@ def _resample(polyline, segments, s):
     return np.stack([np.interp(target, arc, polyline[:, c]) for c in range(3)], axis=1)
 
 
+def _rotate(q, v):
+    """Vectors v (N, 3) rotated by the unit quaternion q (x, y, z, w)."""
+    u, w = np.asarray(q[:3], np.float64), float(q[3])
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
 def head_signed_distance(head, points) -> np.ndarray:
     """Signed distance [m] of ``points`` (N, 3) to the surface of ``head`` (a ``ws.Sphere`` /
     ``ws.Capsule`` or a solid ``ws.TriangleMesh`` at its current pose): negative inside."""
-    from ..bodies.colliders import Capsule, TriangleMesh, quat_rotate
+    from ..bodies.colliders import Capsule, TriangleMesh
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if isinstance(head, Capsule):
@@ -55,7 +61,7 @@ def head_signed_distance(head, points) -> np.ndarray:
     if isinstance(head, TriangleMesh):
         p, q = head.world_pose()
         inv = np.array([-q[0], -q[1], -q[2], q[3]])
-        local = np.array([quat_rotate(inv, x - p) for x in points])
+        local = _rotate(inv, points - p)
         mesh = wp.Mesh(points=wp.array(head.points.astype(np.float32), dtype=wp.vec3, device="cpu"),
                        indices=wp.array(head.faces.astype(np.int32).reshape(-1), dtype=int, device="cpu"))
         out = wp.zeros(len(points), dtype=float, device="cpu")
@@ -267,12 +273,10 @@ def add_strands(builder, roots=None, directions=None, segments: int = 16, *, pol
         p, q = head.world_pose()
     else:
         p, q = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
-    from ..bodies.colliders import quat_rotate
-
     inv = np.array([-q[0], -q[1], -q[2], q[3]])
-    strands.ghost_local = np.array([quat_rotate(inv, g - p) for g in ghosts])
-    strands.root_local = np.array([quat_rotate(inv, r - p) for r in verts[:, 0]])
-    strands.normal_local = np.array([quat_rotate(inv, n) for n in normal])
+    strands.ghost_local = _rotate(inv, ghosts - p)
+    strands.root_local = _rotate(inv, verts[:, 0] - p)
+    strands.normal_local = _rotate(inv, normal)
     strands.normal_world = normal
     strands.head = head
 

@@ -15,7 +15,7 @@ __all__ = ["StrandForce", "StrandRoots", "strand_stable_dt"]
 
 def _check_strands(strands, owner):
     if not isinstance(strands, Strands):
-        raise ValueError(f"{owner} needs the Strands handle ws.add_strands returned, got {type(strands).__name__}")
+        raise TypeError(f"{owner} needs the Strands handle ws.add_strands returned, got {type(strands).__name__}")
     return strands
 
 

@@ -32,6 +32,7 @@ bounds a ValueError names the particle (and strand) left with the largest residu
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,7 +58,9 @@ class SagFreeReport:
     iterations in all; springs_at_bound: model spring indices held at |L / l - 1| = max_strain;
     strand_segments_at_bound: (strand, segment) pairs likewise; strand_vertices_at_bound: (strand,
     vertex) pairs whose bending rest change reached max_strain h; rest_ratio_min / _max: extreme
-    L / l over every length spring; bend_change_max: largest change of a bending rest vector [m]."""
+    L / l over every length spring; bend_change_max: largest change of a bending rest vector [m];
+    support_particles / support_forces: particles resting on a plane collider and the normal force
+    [N] the plane takes there."""
 
     residual_max: float
     load_max: float
@@ -71,6 +74,8 @@ class SagFreeReport:
     rest_ratio_min: float = 1.0
     rest_ratio_max: float = 1.0
     bend_change_max: float = 0.0
+    support_particles: list = field(default_factory=list)
+    support_forces: list = field(default_factory=list)
 
     def __str__(self):
         bound = len(self.springs_at_bound) + len(self.strand_segments_at_bound) + len(self.strand_vertices_at_bound)
@@ -95,6 +100,33 @@ def _system_of(target, forces):
         system = ParticleSystem(target, [Gravity()] if forces is None else list(forces))
         return target, system, target.particle_q
     raise ValueError(f"sag_free needs a ws.Simulator or a ws.Model, got {checks.show(target)}")
+
+
+def _plane_contacts(target, model, x, inv_mass, offset, m, k_eff, tol=1.0e-4):
+    """(unknown offset, particles (C,), normals (C, 3), scale) of the free particles resting on a
+    plane collider of a Simulator (within ``tol`` [m] of touching), one plane per particle; None
+    when there are none. A support force is scale u along the normal, u >= 0; scale = sqrt(k) of
+    the median spring makes its weight in the least-energy objective comparable to a spring's."""
+    from ..bodies.colliders import Planes
+
+    colliders = getattr(target, "colliders", None) or []
+    particles, normals = [], []
+    taken = np.zeros(len(x), bool)
+    radius = model.particle_radius.numpy().astype(np.float64)
+    for c in colliders:
+        if not isinstance(c, Planes):
+            continue
+        for nrm, off in zip(c.normals, c.offsets):
+            gap = x @ nrm - off - radius - c.thickness
+            hit = np.flatnonzero((gap <= tol) & (inv_mass > 0.0) & ~taken)
+            taken[hit] = True
+            particles.append(hit)
+            normals.append(np.repeat(np.asarray(nrm, np.float64)[None], len(hit), axis=0))
+    if not particles or not sum(len(p) for p in particles):
+        return None
+    k = k_eff[k_eff > 0.0] if m else np.zeros(0)
+    scale = float(np.sqrt(np.median(k))) if len(k) else 1.0
+    return offset, np.concatenate(particles), np.concatenate(normals), scale
 
 
 class _Group:
@@ -156,7 +188,7 @@ class _Group:
 class _Solver:
     """CGLS for A u = b over the unknowns not masked, with an active set for bounds lo <= u <= hi."""
 
-    def __init__(self, model, q, springs, groups, unknowns, device_check_every):
+    def __init__(self, model, q, springs, groups, contacts, unknowns, device_check_every):
         d = self.device = model.device
         n = self.n = model.particle_count
         self.model, self.q, self.groups, self.unknowns = model, q, groups, unknowns
@@ -176,6 +208,10 @@ class _Solver:
             self.adjacency = wp.zeros(0, dtype=int, device=d)
             self.offsets = wp.zeros(n + 1, dtype=int, device=d)
             self.spring_indices = wp.zeros(0, dtype=int, device=d)
+        self.contacts = contacts  # (offset, particles (C,), normals (C, 3), scale) or None
+        if contacts is not None:
+            self.contact_particle = wp.array(contacts[1].astype(np.int32), dtype=int, device=d)
+            self.contact_normal = wp.array(contacts[2], dtype=wp.vec3d, device=d)
         self.u = wp.zeros(unknowns, dtype=wp.float64, device=d)
         self.mask = wp.zeros(unknowns, dtype=int, device=d)
         self.p = wp.zeros_like(self.u)
@@ -197,6 +233,10 @@ class _Solver:
                       inputs=[q, st.first, st.stride, g.sqrt_stretch, g.sqrt_bend, g.data["root_normal"],
                               g.data["bend_rest"], g.frame_t, g.frame_n, inv_mass, u_in, g.stretch_offset,
                               g.bend_offset, f_out], device=d)
+        if self.contacts is not None:
+            wp.launch(K.contacts_apply, len(self.contacts[1]),
+                      inputs=[self.contact_particle, self.contact_normal, wp.float64(self.contacts[3]), u_in,
+                              self.contacts[0], f_out], device=d)
 
     def apply_transpose(self, r_in, u_out):
         """u_out = A^T r_in, masked unknowns 0."""
@@ -210,16 +250,18 @@ class _Solver:
                       inputs=[q, st.first, st.stride, g.sqrt_stretch, g.sqrt_bend, g.data["root_normal"],
                               g.data["bend_rest"], g.frame_t, g.frame_n, r_in, g.stretch_offset, g.bend_offset, u_out],
                       device=d)
+        if self.contacts is not None:
+            wp.launch(K.contacts_apply_transpose, len(self.contacts[1]),
+                      inputs=[self.contact_particle, self.contact_normal, wp.float64(self.contacts[3]), r_in,
+                              self.contacts[0], u_out], device=d)
         wp.launch(K.zero_masked, self.unknowns, inputs=[u_out, self.mask], device=d)
 
     def dot(self, a, c, slot):
-        size = a.shape[0]
-        threads = min(256, size)
-        chunk = -(-size // threads)
+        threads = max(1, min(1024, a.shape[0]))  # the same split on every device
         buf = self.partial.get(threads)
         if buf is None:
             buf = self.partial[threads] = wp.zeros(threads, dtype=wp.float64, device=self.device)
-        wp.launch(K.dot_partial, threads, inputs=[a, c, chunk, buf], device=self.device)
+        wp.launch(K.dot_partial, threads, inputs=[a, c, threads, buf], device=self.device)
         wp.launch(K.sum_partials, 1, inputs=[buf, self.scalars, slot], device=self.device)
 
     def solve(self, fixed, lo, hi, rtol, max_iterations):
@@ -276,7 +318,8 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
 
     max_strain: bound on |L / l - 1| (0 < max_strain < 1) and on the bending rest change per
     segment length. tol: the largest residual force accepted, relative to the largest load
-    (ValueError naming the particle and strand when the bounds leave more). rounds: global-local
+    (ValueError naming the particle and strand when the bounds leave more; a warning when more is
+    left with no bound hit). rounds: global-local
     rounds at most (they stop when the residual stops falling). rtol: a CGLS solve stops when
     |residual| <= rtol |load|; max_iterations: CGLS iterations per round."""
     max_strain = checks.in_range(max_strain, "sag_free max_strain", 0.0, 1.0, lo_open=True, hi_open=True,
@@ -307,9 +350,13 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
         if isinstance(f, StrandForce):
             groups.append(_Group(f, offset, x, d))
             offset = groups[-1].end
+    contacts = _plane_contacts(target, model, x, inv_mass, offset, m, k_eff)
+    if contacts is not None:
+        offset += len(contacts[1])
     unknowns = offset
     fixed = np.zeros(unknowns, bool)
     bound = np.full(unknowns, np.inf)
+    lower = np.full(unknowns, -np.inf)  # the supports push only: lower bound 0 on their unknowns
     if m:
         fixed[:m] = k_eff == 0.0
         bound[:m] = max_strain * spring_l * np.sqrt(k_eff)
@@ -319,6 +366,9 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
         fixed[g.stretch_offset: g.bend_offset] = unused | np.repeat(st.stretch_stiffness == 0.0, st.stride)
         fixed[g.bend_offset: g.end] = np.repeat(unused | np.repeat(st.bend_stiffness == 0.0, st.stride), 3)
         bound[g.stretch_offset: g.bend_offset], bound[g.bend_offset: g.end] = g.bounds(max_strain)
+    lower = np.maximum(lower, -bound)
+    if contacts is not None:
+        lower[contacts[0]:] = 0.0
 
     def write(u):
         ratios, bend_change = [], 0.0
@@ -341,23 +391,32 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
     force = wp.zeros(n, dtype=wp.vec3, device=d)
 
     def residual():
+        """|force| per particle (0 at pinned ones): the simulator's forces plus the supports; the
+        total is left in ``force`` for the next global step."""
         system.eval_forces(q, zeros_v, time, 0.0, force)
+        if contacts is not None and u.any():
+            total = force.numpy()
+            c0, particles, normals, scale = contacts
+            total[particles] += (scale * u[c0: c0 + len(particles)])[:, None] * normals
+            force.assign(total)
         f = np.linalg.norm(force.numpy(), axis=1)
         f[inv_mass <= 0.0] = 0.0
         return f
 
     f = residual()  # the load: external forces alone at the geometric rest state
     load_max = float(f.max()) if len(f) else 0.0
-    iterations, done_rounds = 0, 0
+    iterations, done_rounds, limited = 0, 0, False
     if unknowns and load_max > 0.0:
-        solver = _Solver(model, q, (m, ij, k_eff), groups, unknowns, device_check_every)
+        solver = _Solver(model, q, (m, ij, k_eff), groups, contacts, unknowns, device_check_every)
         best = (float(f.max()), u.copy())
         for done_rounds in range(1, rounds + 1):
             # global step: the least-energy correction that cancels the measured residual force
             wp.launch(K.external_rhs, n, inputs=[force, model.particle_inv_mass, solver.b], device=d)
-            du, its = solver.solve(fixed, -bound - u, bound - u, rtol, max_iterations)
+            du, its = solver.solve(fixed, lower - u, bound - u, rtol, max_iterations)
             iterations += its
             u = u + du
+            at = np.isfinite(bound) & (bound > 0.0) & (np.abs(np.abs(u) - bound) <= 1.0e-9 * bound)
+            limited |= bool(at.any())
             write(u)
             f = residual()  # local step: every particle's force balance at the new rest state
             if f.max() < best[0]:
@@ -388,6 +447,10 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
         if len(allr):
             report.rest_ratio_min, report.rest_ratio_max = float(allr.min()), float(allr.max())
     report.bend_change_max = bend_change
+    if contacts is not None:
+        c0, particles, _, scale = contacts
+        report.support_particles = particles.tolist()
+        report.support_forces = (scale * u[c0: c0 + len(particles)]).tolist()
     if load_max > 0.0 and residual_max > tol * load_max:
         where = f"particle {worst}"
         for g in groups:
@@ -396,9 +459,14 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
                 where = f"strand {found[0]} (vertex {found[1] - 1} from the root, particle {worst})"
         bound_count = (len(report.springs_at_bound) + len(report.strand_segments_at_bound)
                        + len(report.strand_vertices_at_bound))
-        raise ValueError(
-            f"sag_free: the bound max_strain={max_strain:g} cannot be met: {where} keeps a residual force of "
-            f"{residual_max:.3g} N ({100 * report.residual_relative:.3g} % of the largest load {load_max:.3g} N, "
-            f"tolerance {100 * tol:.3g} %) with {bound_count} rest-state unknowns held at the bound; raise max_strain, "
-            "stiffen the springs or lighten the model")
+        left = (f"{where} keeps a residual force of {residual_max:.3g} N ({100 * report.residual_relative:.3g} % of "
+                f"the largest load {load_max:.3g} N, tolerance {100 * tol:.3g} %)")
+        if bound_count or limited:
+            raise ValueError(
+                f"sag_free: the bound max_strain={max_strain:g} cannot be met: {left}; rest states within the bound "
+                f"cannot carry the load (the solve hit the bound; {bound_count} unknowns end at it); raise max_strain, "
+                "stiffen the springs or lighten the model")
+        # nothing at a bound: float32 rounding of very stiff springs (about k * 1e-8 m) or too few
+        # iterations, not an impossible load
+        warnings.warn(f"sag_free: {left} with no bound hit; raise max_iterations or tol", stacklevel=2)
     return report
