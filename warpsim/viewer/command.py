@@ -12,6 +12,8 @@ __all__ = ["add_parser", "run"]
 
 
 def add_parser(sub):
+    from .. import cli
+
     v = sub.add_parser("view", help="watch a scene live in the browser (or play a USD cache)")
     v.add_argument("scene", help="scene name (see 'warpsim list') or a warpsim cache .usd/.usda/.usdc to play")
     v.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
@@ -19,7 +21,10 @@ def add_parser(sub):
     v.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     v.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     v.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
-    v.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    v.add_argument("--substeps", type=cli.substeps_arg, default=None,
+                   help="simulation steps per frame, or 'auto' (default: the scene's)")
+    v.add_argument("--strict", action="store_true",
+                   help="exit 2 before serving when the time step is above the stability limit (default: warn)")
     v.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     v.add_argument("--max-points", type=int, default=200_000,
@@ -102,6 +107,14 @@ def run(args, out, err):
         wp.config.log_level = wp.LOG_WARNING
     _viser_or_usage()
     viewer = build(args)
+    session = getattr(viewer, "session", None)
+    if session is not None and hasattr(session.scene, "stability_warning"):
+        import warnings
+
+        from ..core.stability import StabilityWarning
+
+        warnings.simplefilter("ignore", StabilityWarning)  # said once here; the page shows the limit
+        cli.stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
     try:
         viewer.start()
     except PortInUseError as exc:  # taken between the check and the start

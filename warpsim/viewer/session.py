@@ -81,7 +81,8 @@ class Session:
         self.sim_rate = 0.0  # simulated seconds per wall second, measured
         self.drag_stiffness = None  # None: chosen per scene (see _default_drag)
         self.version = 0  # bumped on every rebuild: the front end redraws static prims
-        self.dt_by_hand = "dt" in (params or {})  # a dt given by hand switches auto sub-steps off
+        default_dt = scene_cls.params["dt"].default if "dt" in scene_cls.params else None
+        self.dt_by_hand = "dt" in self.params and self.params["dt"] != default_dt  # then no auto sub-steps
         self.stable_params = None  # the last parameters that ran STABLE_FRAMES frames without failing
         self.limit = None  # the scene's ws.StabilityLimit (None: no simulator with one)
         self.step_dt = None  # the step the scene takes [s]
