@@ -7,7 +7,6 @@ import warnings
 
 import numpy as np
 import pytest
-import warp as wp
 
 import warpsim as ws
 from warpsim.core.stability import stable_step
@@ -214,3 +213,18 @@ def test_teapot_limit_matches_bisection(stiffness):
     assert limit.omega_bound >= limit.omega_max
     empirical = _bisect_limit(make, limit.dt, steps=1500)
     assert limit.dt == pytest.approx(empirical, rel=0.2)
+
+
+def test_batched_worlds_have_one_limit_each():
+    from warpsim.scenes import get_scene
+    from warpsim.worlds.batch import WorldBatch
+
+    cls = get_scene("springs")
+    worlds = [{"count": 4, "stiffness": k} for k in (100.0, 400.0, 1600.0)]
+    batch = WorldBatch(cls, worlds, device="cpu")
+    per_world = batch.stable_dt()
+    alone = [cls(w, device="cpu").stability().dt for w in worlds]
+    np.testing.assert_allclose(per_world, alone, rtol=1e-3)
+    assert per_world[0] == pytest.approx(2.0 * per_world[1], rel=0.05)  # omega ~ sqrt(k)
+    batch.batch_scene.auto_substeps = False  # the step as given
+    assert batch.stability_warning(1.5 * per_world[1], 1).startswith("2 of 3 worlds step above their stability limit")

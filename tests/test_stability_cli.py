@@ -23,7 +23,7 @@ UNSTABLE = ["run", "springs", "--set", "stiffness=4000", "--set", "dt=0.01", "--
 
 def test_step_above_the_limit_warns_once_and_runs(tmp_path):
     out = str(tmp_path / "s.usda")
-    status, _, err = run([*UNSTABLE, "--out", out])
+    _status, _, err = run([*UNSTABLE, "--out", out])
     warnings = [line for line in err.splitlines() if line.startswith("warpsim: warning:")]
     assert len(warnings) == 1, err
     line = warnings[0]
@@ -72,7 +72,7 @@ def test_sweep_teapot_flags_every_fast_world_and_auto_flags_none(tmp_path):
     free_fall = math.sqrt(1.0 + 0.36 + 2.0 * 9.81 * (0.6 + 0.315))
     base = ["sweep", "teapot", "--worlds", "8", "--vary", "stiffness=20:80", "--frames", "60", "--no-progress",
             "--device", "cpu"]
-    status, out, err = run([*base, "--substeps", "10", "--out", str(tmp_path / "fixed" / "t.usda")])
+    status, _out, err = run([*base, "--substeps", "10", "--out", str(tmp_path / "fixed" / "t.usda")])
     assert status == 0, err
     assert "worlds step above their stability limit" in err
     rows = _table(tmp_path / "fixed" / "t.csv")
@@ -82,7 +82,7 @@ def test_sweep_teapot_flags_every_fast_world_and_auto_flags_none(tmp_path):
         if float(r["peak_speed"]) > 3.0 * free_fall:
             assert r["blown_up"] == "1", r
     assert len(flagged) >= 3  # stiffness 54-80 N/m are above dt's limit
-    status, out, err = run([*base, "--substeps", "auto", "--out", str(tmp_path / "auto" / "t.usda")])
+    status, _out, err = run([*base, "--substeps", "auto", "--out", str(tmp_path / "auto" / "t.usda")])
     assert status == 0, err
     assert "warning" not in err
     rows = _table(tmp_path / "auto" / "t.csv")

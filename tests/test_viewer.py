@@ -144,12 +144,11 @@ def test_drag_pulls_the_picked_vertex_toward_the_pointer(name, prim):
 
 def test_implicit_euler_keeps_a_stiff_drag_stable():
     """A stiff drag spring (omega h = 2.9 on a teapot vertex) diverges with semi-implicit Euler
-    and stays bounded with implicit Euler; both move the target 5 mm per frame. (dt given by hand:
-    the scene's automatic sub-steps would otherwise step inside the drag spring's limit too.)"""
+    and stays bounded with implicit Euler; both move the target 5 mm per frame. (Sub-steps given by
+    hand: the scene's automatic ones would otherwise step inside the drag spring's limit too.)"""
     outcome = {}
     for integrator in ("semi_implicit_euler", "implicit_euler"):
-        s = Session(get_scene("teapot"), dict(RESTING_TEAPOT, integrator=integrator, dt=repr(1.0 / 600.0)),
-                    device="cpu")
+        s = Session(get_scene("teapot"), dict(RESTING_TEAPOT, integrator=integrator), device="cpu", substeps=10)
         s.drag_stiffness = 1.0e4
         x = s.items["teapot"].points
         s.grab("teapot", int(np.argmax(x[:, 1])))

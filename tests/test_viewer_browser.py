@@ -3,11 +3,12 @@ Playwright; WebGL through SwiftShader). The page loads and draws the teapot (a s
 the teapot's colour where the camera projects it; written to docs/viewer_teapot.png for the
 README when WARPSIM_WRITE_DOCS=1), a parameter slider dragged with the mouse changes the running scene's parameter, a mouse
 drag on the teapot pulls the grabbed vertex toward the pointer, Record writes a cache that
-opens and validates, a blow-up shows the SimulationError in the page while the server keeps
-serving, and closing the page mid-drag lets go and completes a running recording."""
+opens and validates, the dt slider shows its stability limit, a step past it explodes (drawn,
+then paused with the explanation) and Reset recovers while the server keeps serving, and closing the page mid-drag lets go and completes a running recording."""
 from __future__ import annotations
 
 import io
+import math
 import os
 import socket
 import time
@@ -167,13 +168,39 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     assert info["frames"] >= 21 and info["fps"] == pytest.approx(60.0)
     assert {p["path"] for p in info["prims"]} >= {"/World/teapot", "/World/walls"}
 
-    # 5. a blow-up pauses and shows the SimulationError in the page; the server keeps serving
-    s.set_param("stiffness", 4.0e6)  # live, far beyond what the explicit step can hold
-    _wait(lambda: s.status()["error"], what="the blow-up")
-    page.get_by_text("Simulation error").wait_for(timeout=15_000)
-    assert "blew up" in page.content()
-    s.set_param("stiffness", 40.0)  # after a failure nothing applies live: this rebuilds, clearing it
+    # 5. the time step is a slider in ms with the stability limit marked and said beside it; a step
+    # past it (fixed by hand: no automatic sub-steps) blows up: the explosion is drawn for a moment
+    # (clamped, finite), then the session pauses with the explanation; Reset restores the last
+    # stable parameters and the server keeps serving
+    info = s.stability()
+    assert 0.0 < info["limit"] < math.inf and not info["exceeded"]
+    page.get_by_text("dt [ms]").wait_for(timeout=15_000)
+    page.get_by_text("stable up to").wait_for(timeout=15_000)
+    dt_row = page.get_by_text("dt [ms]").locator("xpath=ancestor::*[.//input][1]")
+    assert "limit" in dt_row.inner_text()  # the slider's mark at the limit
+    stable_dt = s.params["dt"]
+    s.set_param("dt", 4.0 * info["limit"])  # what dragging the dt slider past its mark does (a rebuild)
+    assert s.stability()["dt_exceeded"]
+    with s.lock:
+        size = np.ptp(s.items["teapot"].points, axis=0).max()  # the teapot before it blows up
+    page.get_by_text("past the limit").wait_for(timeout=15_000)
+    _wait(lambda: s.status()["exploding"] or s.status()["error"], what="the blow-up")
+    blown = s.exploding["frame"] if s.exploding else None
+    drawn = []
+    while s.exploding is not None:  # one step per drawn frame of dt x substeps (72 ms at real time)
+        with s.lock:
+            drawn.append(s.items["teapot"].points.copy())
+        time.sleep(0.02)
+    assert blown is not None and s.frame > blown  # frames went on past the blow-up: the explosion was drawn
+    assert all(np.isfinite(p).all() for p in drawn)  # clamped for drawing: no NaN sent
+    assert max(np.ptp(p, axis=0).max() for p in drawn) > 1.25 * size  # and it did fly apart
+    _wait(lambda: s.status()["error"], what="the pause after the explosion")
+    assert not s.playing
+    page.get_by_text("Stability limit", exact=False).wait_for(timeout=15_000)  # the explanation, paused
+    assert "Simulation error" in page.content() and "blew up" in page.content()
     page.get_by_role("button", name="Reset").click()
+    _wait(lambda: s.status()["error"] is None, what="the reset")
+    assert s.params["dt"] == pytest.approx(stable_dt)  # the last parameters that ran stable
     page.get_by_role("button", name="Play").click()
     _wait(lambda: s.status()["error"] is None and s.frame > 10, what="serving after the failure")
     # 6. closing the page mid-drag releases the grab and completes the recording

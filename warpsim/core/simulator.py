@@ -194,7 +194,7 @@ class Simulator:
         self.invalidate_stability()
 
     # ------------------------------------------------------------------ stability
-    def stability(self, positions=None, iterations: int = stab.POWER_ITERATIONS) -> "stab.StabilityLimit":
+    def stability(self, positions=None, iterations: int = stab.POWER_ITERATIONS) -> stab.StabilityLimit:
         """The largest stable step and what sets it (``ws.StabilityLimit``: limiting spring or
         collider, its k and m, per-spring and per-particle limits), from the model's springs,
         masses, damping, linear drag and penalty colliders linearised about ``positions`` (None:

@@ -13,6 +13,8 @@ __all__ = ["add_parser", "run"]
 
 
 def add_parser(sub):
+    from .. import cli
+
     v = sub.add_parser("view", help="watch a scene live in the browser (or play a USD cache)")
     v.add_argument("scene", help="scene name (see 'warpsim list') or a warpsim cache .usd/.usda/.usdc to play")
     v.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
@@ -20,7 +22,10 @@ def add_parser(sub):
     v.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     v.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     v.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
-    v.add_argument("--substeps", type=int, default=None, help="simulation steps per frame (default: the scene's)")
+    v.add_argument("--substeps", type=cli.substeps_arg, default=None,
+                   help="simulation steps per frame, or 'auto' (default: the scene's)")
+    v.add_argument("--strict", action="store_true",
+                   help="exit 2 before serving when the time step is above the stability limit (default: warn)")
     v.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     v.add_argument("--max-points", type=int, default=200_000,
@@ -58,10 +63,9 @@ def build(args):
     if os.path.splitext(args.scene)[1] in (".usd", ".usda", ".usdc"):
         if args.sets or args.integrator:
             raise cli.UsageError("--set and --integrator apply to scenes, not to a cache being played")
+        from ..usd.validate import DamagedCacheError, check_damage
         from ..worlds.gallery import GalleryViewer, is_sweep_root
         from .playback import PlaybackViewer
-
-        from ..usd.validate import DamagedCacheError, check_damage
 
         player = GalleryViewer if is_sweep_root(args.scene) else PlaybackViewer  # a sweep: its worlds side by side
         try:
@@ -102,9 +106,8 @@ def threading_is_main():
 
 
 def run(args, out, err):
-    from ..verbosity import set_warp_verbosity
-
     from .. import cli
+    from ..verbosity import set_warp_verbosity
     from .server import PortInUseError
 
     _viser_or_usage()  # before any work
@@ -116,6 +119,14 @@ def run(args, out, err):
     except DamagedCacheError as exc:
         print(f"warpsim: error: {exc}", file=err)
         return 1
+    session = getattr(viewer, "session", None)
+    if session is not None and hasattr(session.scene, "stability_warning"):
+        import warnings
+
+        from ..core.stability import StabilityWarning
+
+        warnings.simplefilter("ignore", StabilityWarning)  # said once here; the page shows the limit
+        cli.stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
     try:
         viewer.start()
     except PortInUseError as exc:  # taken between the check and the start

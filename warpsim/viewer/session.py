@@ -28,8 +28,9 @@ from .sink import ViewerSink
 __all__ = ["EXPLOSION_FRAMES", "STABLE_FRAMES", "Session", "frame_timing"]
 
 EXPLOSION_FRAMES = 45
-"""Frames stepped and drawn past a blow-up (checks off, positions clamped for drawing) before the
-session pauses with the explanation: the lecture's explosion, for a bounded moment."""
+"""Frames drawn past a blow-up, one simulation step each (slow motion; checks off, positions
+clamped for drawing) before the session pauses with the explanation: the lecture's explosion, for
+a bounded moment."""
 
 STABLE_FRAMES = 60
 """Frames a parameter set must run without a failure to count as the last stable one (Reset
@@ -80,7 +81,8 @@ class Session:
         self.sim_rate = 0.0  # simulated seconds per wall second, measured
         self.drag_stiffness = None  # None: chosen per scene (see _default_drag)
         self.version = 0  # bumped on every rebuild: the front end redraws static prims
-        self.dt_by_hand = "dt" in (params or {})  # a dt given by hand switches auto sub-steps off
+        default_dt = scene_cls.params["dt"].default if "dt" in scene_cls.params else None
+        self.dt_by_hand = "dt" in self.params and self.params["dt"] != default_dt  # then no auto sub-steps
         self.stable_params = None  # the last parameters that ran STABLE_FRAMES frames without failing
         self.limit = None  # the scene's ws.StabilityLimit (None: no simulator with one)
         self.step_dt = None  # the step the scene takes [s]
@@ -100,6 +102,7 @@ class Session:
         elif self.dt_by_hand or self.substeps_arg is not None:
             scene.auto_substeps = False
         self.exploding = None
+        self._clamping = False
         self._frames_since_change = 0
         if self.stable_params is None:
             self.stable_params = dict(self.params)
@@ -174,7 +177,7 @@ class Session:
             if self._stale:
                 try:
                     data = self.scene.frame_data()
-                    if self.exploding is not None:
+                    if self._clamping:  # a blow-up shown, and its last picture while paused
                         data = self._clamped(data)
                     self._items = self.sink.draw(data, self.frame)
                 except ValueError as exc:  # e.g. NaN positions the simulator's check has not caught
@@ -183,11 +186,12 @@ class Session:
             return self._items
 
     def _clamped(self, data):
-        """Frame data with every point array made finite and clamped to the box of the frame-0
-        drawing widened by 4 sizes each way (an exploding state drawn, never NaN)."""
+        """Frame data with every point array made finite and pulled radially into a sphere around
+        the frame-0 drawing (radius 4 x its size: an exploding state is drawn flying outwards,
+        never as NaN; a point gone NaN stays where it was last drawn)."""
         lo, hi = self._bounds
-        pad = 4.0 * np.maximum(hi - lo, 0.1)
-        lo, hi = lo - pad, hi + pad
+        center = 0.5 * (lo + hi)
+        radius = 4.0 * max(float(np.linalg.norm(hi - lo)), 0.1)
         out = {}
         for name, prim in data.items():
             prim = dict(prim)
@@ -195,12 +199,20 @@ class Session:
                 value = prim.get(key)
                 if value is None:
                     continue
-                arr = np.asarray(value.numpy() if hasattr(value, "numpy") else value, dtype=np.float32)
+                arr = np.asarray(value.numpy() if hasattr(value, "numpy") else value, dtype=np.float64)
                 if key == "points" and arr.ndim == 2 and arr.shape[-1] == 3:
-                    arr = np.clip(np.nan_to_num(arr, nan=0.5 * (lo[0] + hi[0])), lo, hi).astype(np.float32)
+                    d = arr - center
+                    with np.errstate(invalid="ignore", over="ignore"):
+                        r = np.linalg.norm(d, axis=1)
+                        d = d * np.minimum(1.0, radius / np.maximum(r, 1e-30))[:, None]
+                    arr = center + d
+                    bad = ~np.isfinite(arr).all(axis=1)
+                    last = self._last_drawn.get(name)
+                    arr[bad] = last[bad] if last is not None and last.shape == arr.shape else center
+                    self._last_drawn[name] = arr.copy()
                 else:
-                    arr = np.clip(np.nan_to_num(arr), -1.0e3, 1.0e3).astype(np.float32)
-                prim[key] = arr
+                    arr = np.clip(np.nan_to_num(arr), -1.0e3, 1.0e3)
+                prim[key] = arr.astype(np.float32)
             out[name] = prim
         return out
 
@@ -223,12 +235,19 @@ class Session:
             return
         sim.check_every = 0  # the build after Reset makes a fresh simulator
         self.exploding = {"error": exc, "frame": frame, "left": EXPLOSION_FRAMES}
+        self._last_drawn = {name: it.points.reshape(-1, 3).astype(np.float64) for name, it in self._items.items()
+                            if it.kind in ("points", "mesh") and it.shown is None}  # the last good picture
+        self._clamping = True
         self._say("error", f"frame {frame}: the simulation blew up; showing it for {EXPLOSION_FRAMES} frames")
 
     def _advance_exploding(self):
         ex = self.exploding
-        try:
-            self.scene.advance(self.frame_dt, self.substeps)
+        try:  # in slow motion: one step per drawn frame, so the growth is seen before it overflows
+            sim = getattr(self.scene, "sim", None)
+            if hasattr(sim, "step"):
+                sim.step(self.step_dt or self.frame_dt / self.substeps)
+            else:
+                self.scene.advance(self.frame_dt, self.substeps)
         except Exception:  # noqa: BLE001  (whatever a NaN state raises, the explosion ends here)
             ex["left"] = 0
         self.frame += 1

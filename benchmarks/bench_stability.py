@@ -1,0 +1,70 @@
+"""Cost of the stability estimate (``Simulator.stability()``: power iteration over the springs)
+against one simulated frame of the same model, and the sub-steps ``substeps="auto"`` picks.
+
+    python benchmarks/bench_stability.py --device cuda:0 [--cloth 256] [--frames 5]
+
+Prints, for a grid cloth of N x N cells (semi-implicit Euler) and the teapot: particles,
+springs, the limit [s], the sub-steps auto picks for a 1/60 s frame, the wall time of one
+estimate and of one frame at those sub-steps, and their ratio (the estimate runs once per
+parameter change, frames every 1/60 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import warp as wp
+
+
+def _time(fn, repeat):
+    fn()  # warm-up: kernels loaded
+    wp.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        fn()
+    wp.synchronize()
+    return (time.perf_counter() - t0) / repeat
+
+
+def report(name, sim, frame_dt, frames):
+    limit = sim.stability()
+    n = sim.auto_substeps(frame_dt)
+    estimate = _time(sim.stability, 3)
+
+    def frame():
+        for _ in range(n):
+            sim.step(frame_dt / n)
+
+    per_frame = _time(frame, frames)
+    print(f"{name:<14} particles {sim.model.particle_count:>8} springs {sim.model.spring_count:>8}  "
+          f"limit {limit.dt:.4g} s ({limit.limiting} {limit.index})  auto sub-steps {n:>4}  "
+          f"estimate {1e3 * estimate:8.2f} ms  frame {1e3 * per_frame:8.2f} ms  ratio {estimate / per_frame:6.2f}")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default=None)
+    p.add_argument("--cloth", type=int, default=256, help="cells per side of the grid cloth")
+    p.add_argument("--frames", type=int, default=5)
+    args = p.parse_args()
+    wp.config.quiet = True
+    import warnings
+
+    import warpsim as ws
+    from warpsim.scenes import get_scene
+
+    warnings.simplefilter("ignore", ws.StabilityWarning)
+    device = wp.get_device(args.device)
+    b = ws.ModelBuilder()
+    ws.add_cloth_grid(b, resolution=(args.cloth, args.cloth), size=(1.0, 1.0), origin=(0.0, 1.0, 0.0), pin=[0, args.cloth])
+    sim = ws.Simulator(b.finalize(device), integrator="semi_implicit_euler", check_every=0)
+    report(f"cloth {args.cloth}^2", sim, 1.0 / 60.0, args.frames)
+    scene = get_scene("teapot")({}, device=device)
+    scene.sim.check_every = 0
+    report("teapot", scene.sim, 1.0 / 60.0, args.frames)
+    print(f"device: {device}")
+
+
+if __name__ == "__main__":
+    main()
