@@ -38,7 +38,7 @@ nitpicky = False
 import re  # noqa: E402
 
 _LITERAL = re.compile(r"(``.*?``|`[^`]*`)")
-_STRUCTURE = re.compile(r"^(:[^:]+:|\.\. |[-*+] |\d+\. |>>> )")
+_STRUCTURE = re.compile(r"^(:[^:`]+:(\s|$)|\.\. |[-*+] |\d+\. |>>> )")  # a field, not a :role:`x`
 
 
 def _escape(text):

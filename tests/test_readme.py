@@ -71,8 +71,8 @@ COMMANDS = {
     "warpsim sweep teapot --worlds 256 --vary height=0.3:0.6 --track spout --rank spout_peak_y:desc --top 5":
         ("warpsim sweep teapot --worlds 6 --frames 3 --vary height=0.3:0.6 --track spout --rank spout_peak_y:desc "
          "--top 5 --set resolution=3", "picked"),
-    'warpsim sweep cloth --worlds 16 --vary bend=1:100:log --where "peak_speed<3" --set integrator=semi_implicit_euler':
-        ('warpsim sweep cloth --worlds 2 --frames 3 --vary bend=1:100:log --where "peak_speed<3" '
+    'warpsim sweep cloth --worlds 16 --vary bend=1:100:log --where "peak_speed<12" --set integrator=semi_implicit_euler':
+        ('warpsim sweep cloth --worlds 2 --frames 3 --vary bend=1:100:log --where "peak_speed<12" '
          "--set integrator=semi_implicit_euler --set resolution=6", "cloth_sweep"),
     "warpsim sweep flock --vary seed=0,1,2,3":
         ("warpsim sweep flock --vary seed=0,1 --frames 3 --set birds=20 --set geese=4", "flock_sweep"),
@@ -91,6 +91,15 @@ COMMANDS = {
         ("warpsim pick usd_out/bounce_sweep.usda --world 7 --out world7.usdc --flatten", "world7.usdc"),
     "warpsim view usd_out/bounce_sweep.usda": skip("serves until stopped"),
     "python benchmarks/check_determinism.py --device cuda:0 --frames 30": skip("a GPU check (benchmarks/)"),
+    "warpsim sweep teapot --worlds 512 --vary stiffness=20:60 --vary restitution=0.2:0.8 --sample lhs "
+    "--out usd_out/t.usda":
+        ("warpsim sweep teapot --worlds 40 --frames 3 --vary stiffness=20:60 --vary restitution=0.2:0.8 --sample lhs "
+         "--out usd_out/t.usda --set resolution=3", "usd_out/t.usda"),
+    "warpsim run teapot --from-sweep usd_out/t.usda --world 39":
+        ("warpsim run teapot --from-sweep usd_out/t.usda --world 39", "t.world_000039"),
+    "warpsim sweep teapot --worlds 512 --vary stiffness=20:60 --vary restitution=0.2:0.8 --sample lhs --rerun 39":
+        ("warpsim sweep teapot --worlds 40 --frames 3 --vary stiffness=20:60 --vary restitution=0.2:0.8 --sample lhs "
+         "--set resolution=3 --rerun 39", "39"),
     "warpsim sweep teapot --worlds 1024 --vary stiffness=20:80 --vary restitution=0.2:0.8 --sample lhs "
     "--ray --batch-size 256 --out usd_out/teapots.usda": skip("starts a Ray cluster (tests/test_ray_sweep.py)"),
     "ray start --head --port=6379": skip("a multi-machine Ray cluster"),

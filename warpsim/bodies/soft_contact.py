@@ -118,7 +118,7 @@ class SoftContact(Collider):
                              "rebuilds; 0: refit only)")
         self.rebuild_every = rebuild_every
         self.edge_contact = bool(edge_contact)
-        self.body_world = None
+        self.body_world: np.ndarray | None = None  # (faces,) world of each body's faces, batches only
         self._tri_bvhs, self._bvhs = [], []
 
     def tile(self, world_count: int, world_particle_count: int) -> "SoftContact":

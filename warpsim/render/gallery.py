@@ -33,6 +33,7 @@ CLIPS = {
     "crowd": (120, ["people=60"], True),
     "wall": (24, ["ball_speed=6"], True),  # the impact and the first pieces (later they fly metres away)
     "donuts": (90, ["count=6", "segments=16", "sides=8", "lattice_cells=5"], True),
+    "hair": (90, ["strands=300", "segments=10", "still=0.2"], True),  # the head turns and nods from 0.2 s
 }
 SIZE = (200, 150)
 MAX_FRAMES = 30

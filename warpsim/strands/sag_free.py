@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -338,7 +339,9 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
 
     # ---- unknowns, the geometric rest state (no internal force at the current positions), bounds --
     m = model.spring_count if has_springs else 0
-    ij = k_eff = spring_l = None
+    ij: Any = None  # set with the springs below (m > 0)
+    k_eff: Any = None
+    spring_l: Any = None
     if m:
         ij = model.spring_indices.numpy().reshape(-1, 2)
         spring_l = np.linalg.norm(x[ij[:, 0]] - x[ij[:, 1]], axis=1)
