@@ -160,7 +160,7 @@ class Hair(SimulatorScene):
         self.stable_dt = strand_stable_dt(self.hair, self.model)
         # the blow-up test (a device read-back) once per frame, not once per strand step
         self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0,
-                                check_every=self.steps_for(1.0 / self.fps))
+                                check_every=self.strand_steps(1.0 / self.fps))
         self.sag_report = sag_free(self.sim) if p["sag_free"] else None
         self._curve_particles = self.hair.curve_particles().reshape(-1)
         self._free_particles = self.hair.free_particles()
@@ -170,15 +170,19 @@ class Hair(SimulatorScene):
         self._head_local = verts.astype(np.float64) * HEAD_RADIUS
         self._head_tris = tris
 
-    def steps_for(self, h):
-        """Strand steps per sub-step of ``h`` [s]."""
+    def strand_steps(self, h):
+        """Strand steps per sub-step of ``h`` [s] (inside the strands' measured stable step)."""
         return max(1, math.ceil(h / (self.safety * self.stable_dt) - 1e-9))
 
+    def frame_steps(self, frame_dt, substeps):
+        """Steps a frame takes: ``substeps`` sub-steps, each split into strand steps."""
+        substeps = 1 if substeps == "auto" else int(substeps)
+        return substeps * self.strand_steps(frame_dt / substeps)
+
     def advance(self, frame_dt, substeps):
-        h = frame_dt / substeps
-        n = self.steps_for(h)
-        for _ in range(substeps * n):
-            self.sim.step(h / n)
+        n = self.frame_steps(frame_dt, substeps)
+        for _ in range(n):
+            self.sim.step(frame_dt / n)
 
     # ------------------------------------------------------------------ live parameters, dragging
     live_params = ("friction",)
