@@ -14,6 +14,7 @@ case "${1:-core}" in
     run python3 bench_worlds.py --device "$D" --worlds 1024
     T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --no-fused --sequential 4 --builder-worlds 2
     run python3 bench_donuts.py --device "$D" --settle 3000 --steps 500
+    T=600 run python3 bench_donuts.py --device "$D" --count 1000 --settle 3000 --steps 200
     run python3 bench_differentiable.py --device "$D" --dims 64 128 256 --steps 1000
     ;;
   usd)

@@ -74,7 +74,7 @@ def test_segment_triangle_oracle():
 
 
 @pytest.mark.parametrize("count, integrator, frames", [(4, "semi_implicit_euler", 30), (4, "implicit_euler", 24),
-                                                       (24, "semi_implicit_euler", 22), (24, "implicit_euler", 22)])
+                                                       (24, "semi_implicit_euler", 18), (24, "implicit_euler", 17)])
 def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, frames):
     cls = get_scene("donuts")
     # 4 tori stacked one above the other; 24 in two layers of 16 + 8 (the second lands on the first);
