@@ -9,7 +9,6 @@ import io
 
 import numpy as np
 import pytest
-import warp as wp
 from test_soft_contact import penetration, two_tori
 
 import warpsim as ws
@@ -199,9 +198,9 @@ def test_batched_worlds_each_collide_their_own_tori(tmp_path):
     rows = {}
     for worlds in (2, 1):
         out, err = io.StringIO(), io.StringIO()
-        code = main(["sweep", "donuts", "--worlds", str(worlds), *sum((["--set", f"{k}={v}"] for k, v in params.items()),
-                                                                        []),
-                     "--frames", "30", "--no-progress", "--out", str(tmp_path / f"d{worlds}.usda")], out=out, err=err)
+        settings = [word for k, v in params.items() for word in ("--set", f"{k}={v}")]
+        code = main(["sweep", "donuts", "--worlds", str(worlds), *settings, "--frames", "30", "--no-progress",
+                     "--out", str(tmp_path / f"d{worlds}.usda")], out=out, err=err)
         assert code == 0, err.getvalue()
         with open(tmp_path / f"d{worlds}.csv") as f:
             rows[worlds] = [{k: r[k] for k in r if k != "world"} for r in csv.DictReader(f)]

@@ -28,8 +28,8 @@ import numpy as np
 import warp as wp
 
 from ..core.collider import Collider
-from . import meshtools
 from ..kernels import soft_contact as K
+from . import meshtools
 
 
 def _body_faces(body, k: int) -> np.ndarray:
@@ -124,7 +124,7 @@ class SoftContact(Collider):
         self.body_world = None
         self._tri_bvhs, self._bvhs = [], []
 
-    def tile(self, world_count: int, world_particle_count: int) -> "SoftContact":
+    def tile(self, world_count: int, world_particle_count: int) -> SoftContact:
         """The same contact for ``world_count`` copies of the model laid end to end (world w owns
         particles ``w P .. (w + 1) P - 1``, P = ``world_particle_count``): every world gets its own
         bodies and its own BVHs, and contacts stay within a world (``warpsim.worlds.batch``)."""
@@ -186,7 +186,7 @@ class SoftContact(Collider):
         self._vertex_world = ints(np.repeat(sorted_world, counts["vert"]))
         self._world_tri_start = ints(world_tri_start)
         self.vertex_count = int(self._vertex.shape[0])
-        self.triangle_count = int(len(tri_all))
+        self.triangle_count = len(tri_all)
         self.world_count = worlds
         self._tri_lower = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
         self._tri_upper = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
