@@ -332,8 +332,8 @@ def _host_free_bytes() -> int:
 
 @register_scene("donuts", "a dozen soft tori dropped into a heap that comes to rest (soft body against soft body)",
                 params={
-    "count": (12, "number of tori (up to what fits in memory: 1,000 x 2,000 vertices are estimated at 5.6 GB of "
-                  "host memory to build, 4.2 GB on the device)"),
+    "count": (12, ("number of tori (up to what fits in memory: 1,000 x 2,000 vertices are estimated at 5.6 GB of "
+                   "host memory to build, 4.2 GB on the device)")),
     "segments": (24, "torus segments around its axis"),
     "sides": (12, "torus segments around its tube"),
     "major_radius": (0.1, "torus radius [m]"),
