@@ -284,9 +284,8 @@ class SoftContact(Collider):
                                                            *contact], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         for _ in range(self.iterations):
-            wp.launch(K.push_contacts, v + e, inputs=[state.positions, model.particle_inv_mass, *slots, self.thickness,
-                                                      self.push, self._dx], device=d)
-            wp.launch(K.impulse_contacts, v + e, inputs=[state.velocities, model.particle_inv_mass, *slots,
-                                                         self.restitution, self.friction, self._dv], device=d)
+            wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
+                                                         *slots, self.thickness, self.push, self.restitution,
+                                                         self.friction, self._dx, self._dv], device=d)
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)
