@@ -192,8 +192,11 @@ class SoftContact(Collider):
         self._tri_upper = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
         wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, model.particle_q, self._tri_lower,
                                                                   self._tri_upper], device=d)
+        # LBVH on CUDA: its in-place rebuild is capture safe (a CUDA graph replays the step)
+        self._constructor = "lbvh" if d.is_cuda else "sah"
         self._tri_bvhs = [wp.Bvh(self._tri_lower[int(world_tri_start[w]):int(world_tri_start[w + 1])],
-                                 self._tri_upper[int(world_tri_start[w]):int(world_tri_start[w + 1])])
+                                 self._tri_upper[int(world_tri_start[w]):int(world_tri_start[w + 1])],
+                                 constructor=self._constructor)
                           for w in range(worlds)]
         self._tri_bvh_ids = wp.array([b.id for b in self._tri_bvhs], dtype=wp.uint64, device=d)
         self._steps = 0
@@ -209,7 +212,8 @@ class SoftContact(Collider):
             self._edge_upper = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
             self._launch_edge_bounds(model.particle_q, model.particle_q)
             self._bvhs = [wp.Bvh(self._edge_lower[int(world_edge_start[w]):int(world_edge_start[w + 1])],
-                                 self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])])
+                                 self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])],
+                                 constructor=self._constructor)
                           for w in range(worlds)]
             self._bvh_ids = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=d)
         slots = self.vertex_count + self.edge_count
@@ -233,7 +237,7 @@ class SoftContact(Collider):
 
     def _update(self, bvh) -> None:
         if self._rebuild and (self._steps - 1) % self._rebuild == 0:
-            bvh.rebuild()
+            bvh.rebuild(self._constructor)
         else:
             bvh.refit()
 
