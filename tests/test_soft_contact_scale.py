@@ -3,7 +3,8 @@ donut heaps of 4 and 24 tori keep every vertex within the thickness of other tor
 through another torus's triangle (semi-implicit and implicit Euler); the BVH broad phase gives
 the all-pairs search's result; two runs are bit-identical; two soft rods crossed at right angles
 stay apart only with the edge-edge test; batched worlds each get their own soft contact;
-bad ``donuts`` input exits 2 with one line."""
+bad ``donuts`` input exits 2 with one line; the donuts' inner steps follow the springs' stability limit;
+ModelBuilder.add_springs equals add_spring."""
 import csv
 import io
 
@@ -274,3 +275,25 @@ def test_donuts_scene_sub_steps_keep_a_stiff_torus_stable():
         except ws.SimulationError:
             outcome[forced] = "blew up"
     assert outcome[1] == "blew up" and outcome[None] < 1.0
+
+
+def test_add_springs_equals_add_spring_and_checks_its_input():
+    """ModelBuilder.add_springs (the donuts' bulk copy) gives the arrays add_spring gives one by one."""
+    rng = np.random.default_rng(2)
+    points = rng.normal(size=(6, 3))
+    pairs = np.array([[0, 1], [1, 2], [2, 5], [4, 3]])
+    one, bulk = ws.ModelBuilder(), ws.ModelBuilder()
+    for b in (one, bulk):
+        b.add_particles(points)
+    for i, j in pairs:
+        one.add_spring(int(i), int(j), 30.0, 0.5)
+    assert bulk.add_springs(pairs, 30.0, 0.5).tolist() == [0, 1, 2, 3]
+    m1, m2 = one.finalize(DEVICE), bulk.finalize(DEVICE)
+    for name in ("spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping", "spring_break_strain"):
+        assert np.array_equal(getattr(m1, name).numpy(), getattr(m2, name).numpy()), name
+    for bad, words in (([[0, 6]], "out of range"), ([[2, 2]], "to itself"), (np.zeros((2, 3), int), "(M, 2)")):
+        with pytest.raises(ValueError, match="spring|indices") as err:
+            bulk.add_springs(bad, 1.0)
+        assert words in str(err.value)
+    with pytest.raises(ValueError, match="stiffness -1"):
+        bulk.add_springs(pairs, -1.0)
