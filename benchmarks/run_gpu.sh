@@ -15,6 +15,7 @@ case "${1:-core}" in
     T=400 run python3 bench_worlds.py --device "$D" --worlds 10000 --paths shared,block,tiled --sequential 4 --builder-worlds 2
     T=500 run python3 bench_worlds.py --device "$D" --worlds 100000 --paths shared,block --sequential 4 --builder-worlds 0
     run python3 bench_donuts.py --device "$D" --settle 3000 --steps 500
+    T=600 run python3 bench_donuts.py --device "$D" --count 1000 --settle 3000 --steps 200
     run python3 bench_differentiable.py --device "$D" --dims 64 128 256 --steps 1000
     ;;
   usd)

@@ -33,9 +33,9 @@ which the BVH returns candidates.
 A contact joins four particles k with weights a_k (vertex-triangle: 1, -b_0, -b_1, -b_2; edge-edge:
 1 - u, u, -(1 - t), -t): the relative velocity is sum a_k v_k, the effective inverse mass
 W = sum a_k^2 w_k. Each of ``iterations`` passes (Jacobi: deltas from the same state, then
-applied) lets ``push_contacts`` remove ``fraction`` of the depth thickness - (sum a_k x_k) . n at
-the current positions (at detection, thickness - s) and ``impulse_contacts`` apply
-J = -(1 + e) u_n / W when u_n < 0 and Coulomb friction up to mu J; particle k receives
+applied) lets ``resolve_contacts`` remove ``fraction`` of the depth thickness - (sum a_k x_k) . n
+at the current positions (at detection, thickness - s) and apply J = -(1 + e) u_n / W when
+u_n < 0 and Coulomb friction up to mu J; particle k receives
 a_k w_k (impulse): sum m dv = J sum a_k = 0, momentum is conserved (pinned particles, w = 0, never
 move). Each contact is scaled by 1 / (largest contact count among its particles): a particle in
 several contacts receives a convex combination (Jacobi averaging).
@@ -562,8 +562,9 @@ def scatter_contact(
 
 
 @wp.kernel
-def push_contacts(
+def resolve_contacts(
     q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     contact_particles: wp.array(dtype=wp.vec4i),
     contact_weights: wp.array(dtype=wp.vec4),
@@ -571,55 +572,33 @@ def push_contacts(
     particle_contacts: wp.array(dtype=int),
     thickness: float,
     fraction: float,
-    dx_io: wp.array2d(dtype=wp.int64),
-):
-    """Position push removing ``fraction`` of each contact's depth thickness - (sum a_k x_k) . n
-    at the current positions (mass-weighted: the centre of mass does not move; no pull when the
-    pair is already apart)."""
-    c = wp.tid()
-    particles = contact_particles[c]
-    if particles[0] < 0:
-        return
-    weights = contact_weights[c]
-    W = effective_inv_mass(particles, weights, inv_mass)
-    if W <= 0.0:
-        return
-    gap = wp.vec3()
-    for k in range(4):
-        gap += weights[k] * q[particles[k]]
-    n = contact_normal[c]
-    depth = thickness - wp.dot(gap, n)
-    if depth <= 0.0:
-        return
-    push = (fraction * contact_scale(particles, particle_contacts) * depth / W) * n
-    scatter_contact(particles, weights, inv_mass, push, dx_io)
-
-
-@wp.kernel
-def impulse_contacts(
-    qd: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    contact_particles: wp.array(dtype=wp.vec4i),
-    contact_weights: wp.array(dtype=wp.vec4),
-    contact_normal: wp.array(dtype=wp.vec3),
-    particle_contacts: wp.array(dtype=int),
     restitution: float,
     friction: float,
+    dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
 ):
-    """Normal impulse with restitution and Coulomb friction per contact (module docstring)."""
+    """One pass of contact c (module docstring): the position push removing ``fraction`` of the
+    depth thickness - (sum a_k x_k) . n at the current positions (mass-weighted: the centre of mass
+    does not move; no pull when the pair is already apart) and the normal impulse with restitution
+    and Coulomb friction from the current velocities."""
     c = wp.tid()
     particles = contact_particles[c]
     if particles[0] < 0:
         return
     weights = contact_weights[c]
-    n = contact_normal[c]
     W = effective_inv_mass(particles, weights, inv_mass)
     if W <= 0.0:
         return
+    n = contact_normal[c]
+    scale = contact_scale(particles, particle_contacts)
+    gap = wp.vec3()
     rel = wp.vec3()
     for k in range(4):
+        gap += weights[k] * q[particles[k]]
         rel += weights[k] * qd[particles[k]]
+    depth = thickness - wp.dot(gap, n)
+    if depth > 0.0:
+        scatter_contact(particles, weights, inv_mass, (fraction * scale * depth / W) * n, dx_io)
     un = wp.dot(rel, n)
     if un >= 0.0:
         return
@@ -630,7 +609,7 @@ def impulse_contacts(
     if vt_len > 0.0 and friction > 0.0:
         jt = wp.min(friction * jn, vt_len / W)
         impulse = impulse - (jt / vt_len) * vt
-    scatter_contact(particles, weights, inv_mass, contact_scale(particles, particle_contacts) * impulse, dv_io)
+    scatter_contact(particles, weights, inv_mass, scale * impulse, dv_io)
 
 
 @wp.kernel

@@ -28,8 +28,8 @@ import numpy as np
 import warp as wp
 
 from ..core.collider import Collider
-from . import meshtools
 from ..kernels import soft_contact as K
+from . import meshtools
 
 
 def _body_faces(body, k: int) -> np.ndarray:
@@ -68,9 +68,11 @@ class SoftContact(Collider):
         broad_phase: "bvh" (one BVH over all bodies' triangles, one over their edges) or
             "all_pairs" (every vertex against every triangle of its world: the O(n^2) reference).
         rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
-            only). A refit keeps the tree of the first layout, whose boxes swell as bodies travel
-            (a falling heap: measured 8.5x the step time at 48 tori against 12 with refits only);
-            a CUDA graph records the step it captured, so keep 1 there.
+            only; None: every step on CUDA, where the LBVH rebuild is cheap and a captured graph
+            replays one step, every 20 steps on the CPU, where a SAH rebuild costs about 1.2 us per
+            triangle or edge, measured). A refit keeps the tree of the first layout, whose boxes
+            swell as bodies travel (a falling heap: 8.5x the step time at 48 tori against 12 with
+            refits only, measured on the CPU). Results do not depend on it (nearest contacts).
 
     After a step, ``contact_count`` and ``edge_contact_count`` (one read-back each) are the
     numbers of vertex-triangle and edge-edge contacts found.
@@ -79,7 +81,7 @@ class SoftContact(Collider):
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
-                 broad_phase: str = "bvh", rebuild_every: int = 1):
+                 broad_phase: str = "bvh", rebuild_every: int | None = None):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -113,15 +115,17 @@ class SoftContact(Collider):
         if broad_phase not in ("bvh", "all_pairs"):
             raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh' or 'all_pairs'")
         self.broad_phase = broad_phase
-        if isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int) or rebuild_every < 0:
+        if rebuild_every is not None and (isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int)
+                                          or rebuild_every < 0):
             raise ValueError(f"SoftContact rebuild_every is {rebuild_every!r}; give an integer >= 0 (steps between BVH "
                              "rebuilds; 0: refit only)")
         self.rebuild_every = rebuild_every
+        self._rebuild = rebuild_every
         self.edge_contact = bool(edge_contact)
         self.body_world: np.ndarray | None = None  # (faces,) world of each body's faces, batches only
         self._tri_bvhs, self._bvhs = [], []
 
-    def tile(self, world_count: int, world_particle_count: int) -> "SoftContact":
+    def tile(self, world_count: int, world_particle_count: int) -> SoftContact:
         """The same contact for ``world_count`` copies of the model laid end to end (world w owns
         particles ``w P .. (w + 1) P - 1``, P = ``world_particle_count``): every world gets its own
         bodies and its own BVHs, and contacts stay within a world (``warpsim.worlds.batch``)."""
@@ -183,17 +187,22 @@ class SoftContact(Collider):
         self._vertex_world = ints(np.repeat(sorted_world, counts["vert"]))
         self._world_tri_start = ints(world_tri_start)
         self.vertex_count = int(self._vertex.shape[0])
-        self.triangle_count = int(len(tri_all))
+        self.triangle_count = len(tri_all)
         self.world_count = worlds
         self._tri_lower = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
         self._tri_upper = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
         wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, model.particle_q, self._tri_lower,
                                                                   self._tri_upper], device=d)
+        # LBVH on CUDA: its in-place rebuild is capture safe (a CUDA graph replays the step)
+        self._constructor = "lbvh" if d.is_cuda else "sah"
         self._tri_bvhs = [wp.Bvh(self._tri_lower[int(world_tri_start[w]):int(world_tri_start[w + 1])],
-                                 self._tri_upper[int(world_tri_start[w]):int(world_tri_start[w + 1])])
+                                 self._tri_upper[int(world_tri_start[w]):int(world_tri_start[w + 1])],
+                                 constructor=self._constructor)
                           for w in range(worlds)]
         self._tri_bvh_ids = wp.array([b.id for b in self._tri_bvhs], dtype=wp.uint64, device=d)
         self._steps = 0
+        if self.rebuild_every is None:
+            self._rebuild = 1 if d.is_cuda else 20
         self.edge_count = int(world_edge_start[-1]) if self.edge_contact else 0
         if self.edge_contact:
             self._edges = ints(edges)
@@ -204,7 +213,8 @@ class SoftContact(Collider):
             self._edge_upper = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
             self._launch_edge_bounds(model.particle_q, model.particle_q)
             self._bvhs = [wp.Bvh(self._edge_lower[int(world_edge_start[w]):int(world_edge_start[w + 1])],
-                                 self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])])
+                                 self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])],
+                                 constructor=self._constructor)
                           for w in range(worlds)]
             self._bvh_ids = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=d)
         slots = self.vertex_count + self.edge_count
@@ -227,8 +237,8 @@ class SoftContact(Collider):
         return self._tri_bvhs + self._bvhs
 
     def _update(self, bvh) -> None:
-        if self.rebuild_every and (self._steps - 1) % self.rebuild_every == 0:
-            bvh.rebuild()
+        if self._rebuild and (self._steps - 1) % self._rebuild == 0:
+            bvh.rebuild(self._constructor)
         else:
             bvh.refit()
 
@@ -279,9 +289,8 @@ class SoftContact(Collider):
                                                            *contact], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         for _ in range(self.iterations):
-            wp.launch(K.push_contacts, v + e, inputs=[state.positions, model.particle_inv_mass, *slots, self.thickness,
-                                                      self.push, self._dx], device=d)
-            wp.launch(K.impulse_contacts, v + e, inputs=[state.velocities, model.particle_inv_mass, *slots,
-                                                         self.restitution, self.friction, self._dv], device=d)
+            wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
+                                                         *slots, self.thickness, self.push, self.restitution,
+                                                         self.friction, self._dx, self._dv], device=d)
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)

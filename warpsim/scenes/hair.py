@@ -170,20 +170,19 @@ class Hair(SimulatorScene):
         self._head_local = verts.astype(np.float64) * HEAD_RADIUS
         self._head_tris = tris
 
-    def strand_steps(self, h) -> int:
-        """Strand steps per sub-step of ``h`` [s] (not ``Scene.steps_for(frame_dt, substeps)``)."""
+    def strand_steps(self, h):
+        """Strand steps per sub-step of ``h`` [s] (inside the strands' measured stable step)."""
         return max(1, math.ceil(h / (self.safety * self.stable_dt) - 1e-9))
 
-    def frame_steps(self, frame_dt, substeps) -> int:
-        """Steps :meth:`advance` takes in a frame: each sub-step split into strand steps."""
-        sub = 1 if substeps == "auto" else max(1, int(substeps))
-        return sub * self.strand_steps(frame_dt / sub)
+    def frame_steps(self, frame_dt, substeps):
+        """Steps a frame takes: ``substeps`` sub-steps, each split into strand steps."""
+        substeps = 1 if substeps == "auto" else int(substeps)
+        return substeps * self.strand_steps(frame_dt / substeps)
 
     def advance(self, frame_dt, substeps):
-        h = frame_dt / substeps
-        n = self.strand_steps(h)
-        for _ in range(substeps * n):
-            self.sim.step(h / n)
+        n = self.frame_steps(frame_dt, substeps)
+        for _ in range(n):
+            self.sim.step(frame_dt / n)
 
     # ------------------------------------------------------------------ live parameters, dragging
     live_params = ("friction",)
