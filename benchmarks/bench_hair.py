@@ -76,10 +76,10 @@ def main():
     report = ws.sag_free(scene.sim)
     wp.synchronize_device(device)
     solve = time.perf_counter() - t0
-    h = (1.0 / 60.0) / scene.steps_for(1.0 / 60.0)
+    h = (1.0 / 60.0) / scene.strand_steps(1.0 / 60.0)
     particles = scene.model.particle_count
     print(f"hair: {args.strands} strands x {args.segments} segments = {particles} particles on {device}; "
-          f"step {h * 1e6:.1f} us ({scene.steps_for(1 / 60)} steps per 1/60 s frame, stable step "
+          f"step {h * 1e6:.1f} us ({scene.strand_steps(1 / 60)} steps per 1/60 s frame, stable step "
           f"{scene.stable_dt * 1e6:.1f} us measured)")
     print(f"  build (groom, add_strands, finalize, stable-step measurement): {build:.2f} s")
     print(f"  sag_free: {solve:.2f} s, {report.rounds} rounds, {report.iterations} CGLS iterations, "
@@ -88,7 +88,7 @@ def main():
     per_step = time_per_call(lambda: scene.sim.step(h), args.steps, device)
     print(f"  warpsim strands: {1.0 / per_step:10.1f} steps/s  ({per_step * 1e3:.3f} ms/step, "
           f"{particles / per_step / 1e6:.1f} M particle-steps/s, "
-          f"{1.0 / (per_step * scene.steps_for(1 / 60)):.2f} frames/s at 60 fps)")
+          f"{1.0 / (per_step * scene.strand_steps(1 / 60)):.2f} frames/s at 60 fps)")
     if not args.no_reference:
         ref = reference_simulator(scene, device)
         ref.step(h)
