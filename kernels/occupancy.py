@@ -7,8 +7,9 @@ a particle outside the grid still marks the outside layer it lies in. Cell index
 ``(cx * dims.y + cy) * dims.z + cz``.
 
 Bits: ``block_bits[w * cell_count + c]`` (uint32) has bit ``frame % 32`` set when a recorded
-particle of world w lies in cell c during that frame; every thread of a frame sets the same
-bit, so the result is an integer OR that does not depend on the order of the threads.
+particle of world w lies in cell c during that frame. A frame first marks cells (plain stores of
+the same value, ``record_cells``), then one thread per word sets the bit (``fold_cell_hits``): the
+result does not depend on the order of the threads.
 """
 
 import warp as wp
@@ -40,13 +41,14 @@ def record_cells(
     dims: wp.vec3i,
     frame: wp.array(dtype=int),
     frame_count: int,
-    block_bits: wp.array(dtype=wp.uint32),
+    cell_hit: wp.array(dtype=wp.uint8),
     samples_out: wp.array(dtype=wp.vec3),
 ):
-    """Launched over (world_count, K): particle ``w P + local_index[k]`` of world w sets the bit of
-    the current frame (``frame[0]``, counted from the record's first frame) in its cell's word;
-    when ``samples_out`` has entries, its position is also kept at ``samples_out[(w F + f) K + k]``
-    (F = frame_count)."""
+    """Launched over (world_count, K): particle ``w P + local_index[k]`` of world w marks its cell,
+    ``cell_hit[w * cell_count + c] = 1`` (a plain store of the same value by every thread of the
+    cell: no atomics, so a world's hundreds of particles in one cell do not serialise on one word);
+    :func:`fold_cell_hits` then sets the frame's bit. When ``samples_out`` has entries, the position
+    is also kept at ``samples_out[(w F + f) K + k]`` (F = frame_count, f = ``frame[0]``)."""
     w, k = wp.tid()
     K = local_index.shape[0]
     x = positions[w * world_particle_count + local_index[k]]
@@ -56,8 +58,18 @@ def record_cells(
     c = grid_cell(x, lo, inv_h, dims)
     if c >= 0:
         cell_count = dims[0] * dims[1] * dims[2]
-        bit = wp.uint32(1) << wp.uint32(f % 32)
-        wp.atomic_or(block_bits, w * cell_count + c, bit)
+        cell_hit[w * cell_count + c] = wp.uint8(1)
+
+
+@wp.kernel
+def fold_cell_hits(cell_hit: wp.array(dtype=wp.uint8), frame: wp.array(dtype=int),
+                   block_bits: wp.array(dtype=wp.uint32)):
+    """One thread per (world, cell): a marked cell sets bit ``frame[0] % 32`` of its word (one
+    writer per word) and the mark is cleared for the next frame."""
+    i = wp.tid()
+    if cell_hit[i] != wp.uint8(0):
+        block_bits[i] = block_bits[i] | (wp.uint32(1) << wp.uint32(frame[0] % 32))
+        cell_hit[i] = wp.uint8(0)
 
 
 @wp.kernel

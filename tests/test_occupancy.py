@@ -68,14 +68,17 @@ def test_record_kernel_matches_numpy_cells(device):
     x[1, 7] = np.nan
     n, P = x.shape[:2]
     block = wp.zeros(n * grid.cell_count, dtype=wp.uint32, device=device)
+    hit = wp.zeros(n * grid.cell_count, dtype=wp.uint8, device=device)
     samples = wp.zeros(n * 2 * P, dtype=wp.vec3, device=device)
     frame = wp.array([1], dtype=int, device=device)
     wp.launch(KO.record_cells, (n, P), inputs=[wp.array(x.reshape(-1, 3), dtype=wp.vec3, device=device), P,
                                                wp.array(np.arange(P, dtype=np.int32), dtype=int, device=device),
                                                wp.vec3(*grid.lo.astype(np.float32)),
                                                float(np.float32(1 / grid.cell_size)),
-                                               wp.vec3i(*map(int, grid.dims)), frame, 2, block, samples],
+                                               wp.vec3i(*map(int, grid.dims)), frame, 2, hit, samples],
               device=device)
+    wp.launch(KO.fold_cell_hits, hit.shape[0], inputs=[hit, frame, block], device=device)
+    assert not hit.numpy().any()  # the marks are cleared for the next frame
     got = block.numpy().reshape(n, -1)
     want = np.zeros_like(got)
     for w in range(n):

@@ -310,6 +310,7 @@ class OccupancyRecorder:
         self.world_count, self.world_particle_count = n, P
         self.local = wp.array(local.astype(np.int32), dtype=int, device=self.device)
         self.block = wp.zeros(n * self.grid.cell_count, dtype=wp.uint32, device=self.device)
+        self.cell_hit = wp.zeros(n * self.grid.cell_count, dtype=wp.uint8, device=self.device)
         self.frame = wp.zeros(1, dtype=int, device=self.device)
         exact = len(local) <= int(exact_max) and n * self.frame_count * len(local) * 12 <= SAMPLE_BYTES_MAX
         self.samples = wp.zeros(n * self.frame_count * len(local) if exact else 0, dtype=wp.vec3, device=self.device)
@@ -331,7 +332,9 @@ class OccupancyRecorder:
         if K:
             wp.launch(KO.record_cells, (self.world_count, K),
                       inputs=[self.batch.sim.state.positions, self.world_particle_count, self.local, lo, inv_h, dims,
-                              self.frame, self.frame_count, self.block, self.samples], device=self.device)
+                              self.frame, self.frame_count, self.cell_hit, self.samples], device=self.device)
+            wp.launch(KO.fold_cell_hits, self.cell_hit.shape[0], inputs=[self.cell_hit, self.frame, self.block],
+                      device=self.device)
         wp.launch(KO.next_record_frame, 1, inputs=[self.frame], device=self.device)
 
     def after_frame(self):
