@@ -307,27 +307,40 @@ class UsdCacheWriter(PrimSink):
         chunk.layer = layer
         self._chunk = chunk
 
-    def _write_samples(self, frame, samples):
+    def _set_prim_samples(self, frame, base, samples) -> None:
+        """Author one frame of ``samples`` ({prim: {attribute: value}}) under the prim path
+        ``base`` in the open chunk, skipping on-change attributes whose value did not change;
+        each authored value also goes to :meth:`_authored`."""
         chunk = self._chunk
-        layer = chunk.layer
-        root = "/" + self.root_prim
         for name, values in samples.items():
             decl = self.prims[name]
             for attr_name, value in values.items():
                 attr = decl.attrs[attr_name]
-                path = f"{root}/{name}.{attr_name}"
+                path = f"{base}/{name}.{attr_name}"
                 if attr.on_change:
                     prev = chunk.last.get(path)
                     if prev is not None and np.array_equal(prev, value):
                         continue
                     chunk.last[path] = np.array(value, copy=True)
-                layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
+                self._authored(attr_name, value)
+                chunk.layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
                 chunk.pending_bytes += getattr(value, "nbytes", 8)
-        chunk.stats.add_frame(samples)
+
+    def _authored(self, attr_name, value) -> None:
+        """Called with every value :meth:`_set_prim_samples` authors (a hook for subclasses)."""
+
+    def _end_frame_samples(self, frame) -> None:
+        """The frame's samples are authored: note its end; save the chunk once enough is pending."""
+        chunk = self._chunk
         chunk.end = frame
         if chunk.pending_bytes >= self.save_bytes:
-            layer.Save()  # crate saves append: memory holds only the unsaved samples
+            chunk.layer.Save()  # crate saves append: memory holds only the unsaved samples
             chunk.pending_bytes = 0
+
+    def _write_samples(self, frame, samples):
+        self._set_prim_samples(frame, "/" + self.root_prim, samples)
+        self._chunk.stats.add_frame(samples)
+        self._end_frame_samples(frame)
 
     def _finish_chunk(self):
         chunk = self._chunk

@@ -55,8 +55,7 @@ class BatchLayerWriter(UsdCacheWriter):
         for decl in self.prims.values():  # static geometry counts in a world's extent
             pts = getattr(decl.attrs.get("points"), "value", None)
             if pts is not None and not decl.is_dynamic:
-                pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-                self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
+                self._grow_bounds(pts)
 
     def set_world_params(self, local, params):
         """Author world ``local``'s parameters on its prim: ``customData["warpsim"]`` holds
@@ -75,9 +74,7 @@ class BatchLayerWriter(UsdCacheWriter):
                 value = (data.get(name) or {}).get("points")
                 if value is None:
                     continue
-                pts = np.asarray(getattr(value, "numpy", lambda: value)(), dtype=np.float64).reshape(-1, 3)
-                if len(pts) and np.isfinite(pts).all():
-                    self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
+                self._grow_bounds(getattr(value, "numpy", lambda: value)())
 
     def write_worlds(self, frame, datas):
         """One frame of every world: ``datas[local]`` is world ``local``'s frame data
@@ -101,33 +98,20 @@ class BatchLayerWriter(UsdCacheWriter):
         self.last_frame = frame
 
     def _write_samples(self, frame, samples):
-        from ..usd.writer import to_vt
-
-        chunk = self._chunk
-        layer = chunk.layer
         for local, world in enumerate(samples):
-            base = self._world_path(local)
-            for name, values in world.items():
-                decl = self.prims[name]
-                for attr_name, value in values.items():
-                    attr = decl.attrs[attr_name]
-                    path = f"{base}/{name}.{attr_name}"
-                    if attr.on_change:
-                        prev = chunk.last.get(path)
-                        if prev is not None and np.array_equal(prev, value):
-                            continue
-                        chunk.last[path] = np.array(value, copy=True)
-                    if attr_name == "points":
-                        pts = np.asarray(value, dtype=np.float64).reshape(-1, 3)
-                        if len(pts) and np.isfinite(pts).all():
-                            self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
-                    layer.SetTimeSample(path, float(frame), to_vt(attr.type_name, value))
-                    chunk.pending_bytes += getattr(value, "nbytes", 8)
-            chunk.stats.add_frame(world)
-        chunk.end = frame
-        if chunk.pending_bytes >= self.save_bytes:
-            layer.Save()
-            chunk.pending_bytes = 0
+            self._set_prim_samples(frame, self._world_path(local), world)
+            self._chunk.stats.add_frame(world)
+        self._end_frame_samples(frame)
+
+    def _authored(self, attr_name, value):
+        if attr_name == "points":  # the bounds of every world's points, for the root's extent
+            self._grow_bounds(value)
+
+    def _grow_bounds(self, points):
+        """Widen ``lo``/``hi`` [m] by these points (N, 3) when they are all finite."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(pts) and np.isfinite(pts).all():
+            self.lo, self.hi = np.minimum(self.lo, pts.min(0)), np.maximum(self.hi, pts.max(0))
 
     def _dynamic_paths(self):
         return [f"{self._world_path(k)}/{name}.{a.name}" for k in range(self.world_count)
