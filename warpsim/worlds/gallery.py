@@ -152,7 +152,9 @@ class GalleryViewer(PlaybackViewer):
         """Show ``world`` alone (None: every world)."""
         if world is not None and world not in self.reader.worlds:
             raise ValueError(f"world {world!r} is not in this gallery; worlds: {', '.join(self.reader.worlds)}")
-        self.isolated = world
+        with self._lock:  # the handles first, then the state that says so (a reader never sees
+            self._refresh(isolated=world)  # `isolated` ahead of the visibility it implies)
+            self.isolated = world
         if self.menu.value != (world or ALL):
             self.menu.value = world or ALL
         if self.query is not None:
@@ -171,13 +173,15 @@ class GalleryViewer(PlaybackViewer):
         for h in self.drawer.static_nodes:
             yield h.name.split("/")[2], h
 
-    def _refresh(self):
-        """Visibility per the isolated world; click handlers on new meshes."""
+    def _refresh(self, isolated=...):
+        """Visibility per the isolated world (``isolated``: that world instead of
+        ``self.isolated``); click handlers on new meshes."""
         if self.server is None or getattr(self, "menu", None) is None:
             return
-        hidden = self.query.hidden if self.query is not None and self.isolated is None else ()
+        isolated = self.isolated if isolated is ... else isolated
+        hidden = self.query.hidden if self.query is not None and isolated is None else ()
         for world, h in self._handles():
-            visible = (self.isolated is None or world == self.isolated) and world not in hidden
+            visible = (isolated is None or world == isolated) and world not in hidden
             if getattr(h, "visible", visible) != visible:
                 h.visible = visible
             if id(h) not in self._hooked and hasattr(h, "on_click"):
