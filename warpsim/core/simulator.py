@@ -202,8 +202,9 @@ class Simulator:
         ``warpsim.core.stability`` for the bound's assumptions."""
         q = self.state.positions if positions is None else positions
         model = self.model if self.stability_model is None else self.stability_model()
-        self._stability = stab.particle_limits(model, q, self.integrator, self.forces,
-                                               self.colliders, iterations=iterations)[0]
+        self._stability = stab.with_force_limits(stab.particle_limits(model, q, self.integrator, self.forces,
+                                                                      self.colliders, iterations=iterations)[0],
+                                                 self.forces, q, self.integrator)
         return self._stability
 
     def stable_dt(self) -> float:

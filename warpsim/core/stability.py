@@ -81,6 +81,7 @@ METHODS = {
     "rk4": "rk4",
     "cloth_semi_implicit_euler": "semi_implicit_euler",
     "cloth_implicit_euler": "implicit_euler",
+    "strand_implicit_euler": "implicit_euler",
 }
 """Integrator name -> the method whose stability region it has."""
 
@@ -277,6 +278,18 @@ def worlds_warning(limits, dt: float, labels=None):
     label = f" ({labels[worst]})" if labels and labels[worst] else ""
     return f"{len(bad)} of {len(limits)} worlds step above their stability limit; world {worst}{label}: " + \
         limits[worst].warning(dt)
+
+
+def with_force_limits(limit, forces, positions, integrator) -> StabilityLimit:
+    """The smaller of ``limit`` and the limits of forces that estimate their own
+    (``force.stability_limit(positions, integrator)`` -> StabilityLimit or None, e.g. hair's
+    ``StrandForce``)."""
+    for f in forces or ():
+        own = getattr(f, "stability_limit", None)
+        other = own(positions, integrator) if own is not None else None
+        if other is not None and other.dt < limit.dt:
+            limit = other
+    return limit
 
 
 def pendulum_limit(g_over_l, integrator) -> StabilityLimit:
