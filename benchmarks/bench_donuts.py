@@ -60,6 +60,70 @@ def settle(args, count, device):
     return scene, h
 
 
+class HostSyncCounter:
+    """Counts host read-backs (``wp.array.numpy``) and explicit synchronisations while active."""
+
+    def __enter__(self):
+        self.readbacks = self.syncs = 0
+        self._numpy, self._sync = wp.array.numpy, wp.synchronize_device
+        counter = self
+
+        def numpy(arr, *a, **k):
+            counter.readbacks += 1
+            return counter._numpy(arr, *a, **k)
+
+        def sync(*a, **k):
+            counter.syncs += 1
+            return counter._sync(*a, **k)
+
+        wp.array.numpy, wp.synchronize_device = numpy, sync
+        return self
+
+    def __exit__(self, *exc):
+        wp.array.numpy, wp.synchronize_device = self._numpy, self._sync
+
+
+def profile(scene, h, steps, device, top=14):
+    """Kernel table of ``steps`` integration steps (``wp.timing_begin``/``end``, all CUDA activity),
+    host read-backs and synchronisations per step, wall time minus GPU activity, and the contact
+    search's candidates per query (``SoftContact.record_candidates``, one extra step)."""
+    sim, contact = scene.sim, scene.contact
+    sim.step(h)
+    wp.synchronize_device(device)
+    results = []
+    if device.is_cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    t0 = time.perf_counter()
+    with HostSyncCounter() as hosts:
+        for _ in range(steps):
+            sim.step(h)
+    if device.is_cuda:
+        results = wp.timing_end()
+    wp.synchronize_device(device)
+    wall = (time.perf_counter() - t0) / steps
+    totals, calls = {}, {}
+    for r in results:
+        name = (r.name or "?").split("(")[0].strip()
+        totals[name] = totals.get(name, 0.0) + r.elapsed / steps
+        calls[name] = calls.get(name, 0) + 1
+    gpu = sum(totals.values())
+    print(f"profile, {steps} steps: wall {wall * 1e3:.3f} ms/step, GPU activity {gpu:.3f} ms/step, wall minus GPU "
+          f"{wall * 1e3 - gpu:.3f} ms/step; host read-backs {hosts.readbacks / steps:.2f}/step, synchronisations "
+          f"{hosts.syncs / steps:.2f}/step")
+    if totals:
+        print(f"  {'activity':44s} {'calls/step':>10s} {'ms/step':>9s} {'share':>7s}")
+        for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
+            print(f"  {name[:44]:44s} {calls[name] / steps:10.2f} {ms:9.4f} {ms / gpu:7.1%}")
+    if contact is not None:
+        contact.record_candidates(True)
+        sim.step(h)
+        for kind, st in contact.candidate_stats().items():
+            print(f"  {kind} queries {st['queries']}: candidates visited {st['per_query']:.2f} per query (max "
+                  f"{st['max_per_query']}), own body {st['own_body'] / max(st['visited'], 1):.1%} of them, contacts "
+                  f"kept {st['kept']}, visited per contact kept {st['visited_per_kept']:.1f}")
+        contact.record_candidates(False)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (cpu, cuda:0); default: Warp's preferred")
@@ -72,12 +136,16 @@ def main():
                         "steps from the springs' stability limit)")
     parser.add_argument("--settle", type=int, default=1000, help="integration steps before timing (tori touching)")
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
+    parser.add_argument("--profile", action="store_true", help="print the kernel table (wp.timing_begin/end), host "
+                        "read-backs per step and the contact search's candidates per query first")
     args = parser.parse_args()
     device = wp.get_device(args.device)
     wp.config.quiet = True
 
     scene, h = settle(args, args.count, device)
     sim, contact = scene.sim, scene.contact
+    if args.profile:
+        profile(scene, h, args.steps, device)
     model = sim.model
     full = time_per_call(lambda: sim.step(h), args.steps, device)
     st = sim.state

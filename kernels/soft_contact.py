@@ -306,8 +306,11 @@ def find_vertex_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
+    candidates_out: wp.array(dtype=wp.vec3i),
 ):
-    """Nearest triangle contact of contact vertex v through its world's triangle BVH (slot v)."""
+    """Nearest triangle contact of contact vertex v through its world's triangle BVH (slot v).
+    ``candidates_out`` (length 0: off) receives (triangles the query returned, of them the
+    vertex's own body's, contacts kept) for the diagnostics."""
     v = wp.tid()
     p = vertex_particle[v]
     body = vertex_body[v]
@@ -320,8 +323,13 @@ def find_vertex_contacts(
     best_normal = wp.vec3()
     query = wp.bvh_query_aabb(tri_bvhs[world], x - wp.vec3(reach), x + wp.vec3(reach))
     local = int(0)
+    visited = int(0)
+    own = int(0)
     while wp.bvh_query_next(query, local):
         t = world_tri_start[world] + local
+        visited += 1
+        if tri_body[t] == body:
+            own += 1
         if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
         d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
@@ -334,6 +342,8 @@ def find_vertex_contacts(
     finish_vertex_contact(v, p, best, best_bary, best_normal, tri, contact_particles_out,
                           contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
+    if candidates_out.shape[0] > 0:
+        candidates_out[v] = wp.vec3i(visited, own, wp.where(best >= 0, 1, 0))
 
 
 @wp.kernel
@@ -450,8 +460,10 @@ def find_edge_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
+    candidates_out: wp.array(dtype=wp.vec3i),
 ):
-    """Nearest edge contact of surface edge e through its world's edge BVH (slot offset + e)."""
+    """Nearest edge contact of surface edge e through its world's edge BVH (slot offset + e);
+    ``candidates_out`` as in ``find_vertex_contacts`` (slot e)."""
     e = wp.tid()
     world = edge_world[e]
     xa = q[edges[2 * e]]
@@ -466,8 +478,13 @@ def find_edge_contacts(
     upper = wp.max(wp.max(xa, xb), wp.max(pa, pb)) + wp.vec3(thickness)
     query = wp.bvh_query_aabb(bvhs[world], lower, upper)
     local = int(0)
+    visited = int(0)
+    own = int(0)
     while wp.bvh_query_next(query, local):
         f = world_edge_start[world] + local
+        visited += 1
+        if edge_body[f] == edge_body[e]:
+            own += 1
         if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
             continue
         d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
@@ -479,6 +496,8 @@ def find_edge_contacts(
     finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, edges,
                         contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
+    if candidates_out.shape[0] > 0:
+        candidates_out[e] = wp.vec3i(visited, own, wp.where(best >= 0, 1, 0))
 
 
 @wp.kernel

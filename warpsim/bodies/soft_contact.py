@@ -225,6 +225,30 @@ class SoftContact(Collider):
         self._total = wp.zeros(2, dtype=int, device=d)
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
+        self.record_candidates(False)
+
+    def record_candidates(self, on: bool = True) -> None:
+        """Diagnostics: with ``on``, every later step also writes, per vertex and per edge query,
+        (candidates the broad phase returned, of them the query's own body's, contacts kept) for
+        :meth:`candidate_stats` (allocates here, outside a step; off: zero-length buffers, no writes)."""
+        d = self.model.device
+        self._candidates_vertex = wp.zeros(self.vertex_count if on else 0, dtype=wp.vec3i, device=d)
+        self._candidates_edge = wp.zeros(self.edge_count if on else 0, dtype=wp.vec3i, device=d)
+
+    def candidate_stats(self) -> dict:
+        """Per query kind ("vertex", "edge"): queries, candidates visited (total, mean and max
+        per query), own-body candidates (total), contacts kept, visited per contact kept, from the
+        last step (reads back; :meth:`record_candidates` must be on)."""
+        out = {}
+        for kind, arr in (("vertex", self._candidates_vertex), ("edge", self._candidates_edge)):
+            c = arr.numpy().astype(np.int64).reshape(-1, 3)
+            if not len(c):
+                continue
+            visited, own, kept = (int(x) for x in c.sum(0))
+            out[kind] = {"queries": len(c), "visited": visited, "per_query": visited / len(c),
+                         "max_per_query": int(c[:, 0].max()), "own_body": own, "kept": kept,
+                         "visited_per_kept": visited / max(kept, 1)}
+        return out
 
     def _launch_edge_bounds(self, q, q_prev) -> None:
         wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, q_prev, self._edge_lower, self._edge_upper],
@@ -275,7 +299,7 @@ class SoftContact(Collider):
             for bvh in self._tri_bvhs:
                 self._update(bvh)
             wp.launch(K.find_vertex_contacts, v, inputs=[self._tri_bvh_ids, self._world_tri_start, *vertex, *common,
-                                                         *contact], device=d)
+                                                         *contact, self._candidates_vertex], device=d)
         if e:
             edge = [self._edge_world, self._edges, self._edge_body, state.positions, q_prev]
             if all_pairs:
@@ -286,7 +310,7 @@ class SoftContact(Collider):
                 for bvh in self._bvhs:
                     self._update(bvh)
                 wp.launch(K.find_edge_contacts, e, inputs=[self._bvh_ids, self._world_edge_start, *edge, *common, v,
-                                                           *contact], device=d)
+                                                           *contact, self._candidates_edge], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         for _ in range(self.iterations):
             wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
