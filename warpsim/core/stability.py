@@ -282,11 +282,11 @@ def worlds_warning(limits, dt: float, labels=None):
 
 def with_force_limits(limit, forces, positions, integrator) -> StabilityLimit:
     """The smaller of ``limit`` and the limits of forces that estimate their own
-    (``force.stability_limit(positions, integrator)`` -> StabilityLimit or None, e.g. hair's
-    ``StrandForce``)."""
+    (``force.stability_limit(positions, integrator, forces)`` -> StabilityLimit or None, e.g.
+    hair's ``StrandForce``; ``forces``: all of them, for the damping they add)."""
     for f in forces or ():
         own = getattr(f, "stability_limit", None)
-        other = own(positions, integrator) if own is not None else None
+        other = own(positions, integrator, forces) if own is not None else None
         if other is not None and other.dt < limit.dt:
             limit = other
     return limit
