@@ -41,6 +41,10 @@ def add_parser(sub):
     s.add_argument("--strict", action="store_true",
                    help="exit 2 before running when a world's step is above its stability limit (default: warn)")
     s.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
+    s.add_argument("--devices", default=None, metavar="D0,D1,...|all",
+                   help="split the worlds over several devices of this machine in one process, a contiguous block "
+                        "and a thread each (e.g. cuda:0,cuda:1, all: every GPU, cpu,cpu); the same table and samples "
+                        "as on one device")
     s.add_argument("--out", default=None, help="root USD to write (default usd_out/SCENE_sweep.usda)")
     s.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter shared by every world (repeatable)")
@@ -132,6 +136,7 @@ def run(args, out, err):
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from .. import cli
     from ..core.errors import SimulationError
+    from ..distributed.devices import DeviceSweepError
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
     from ..scenes import get_scene
     from .metrics import BUILTIN, parse_rank, parse_where, select
@@ -150,6 +155,21 @@ def run(args, out, err):
         raise usage(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
     if ray_usage_error(args):
         raise usage(ray_usage_error(args))
+    devices = None
+    if getattr(args, "devices", None) is not None:
+        from ..distributed.devices import parse_devices
+
+        if args.device is not None:
+            raise usage(f"--devices {args.devices} and --device {args.device}: give one of them")
+        if getattr(args, "ray", None) is not None:
+            raise usage("--devices splits a sweep over this machine's devices in one process; with --ray each batch "
+                        "is a Ray task with one GPU (--device cuda): drop one of them")
+        if args.rerun is not None:
+            raise usage("--rerun runs one world on one device: give --device instead of --devices")
+        try:
+            devices = parse_devices(args.devices)
+        except ValueError as exc:
+            raise usage(str(exc)) from None
     if args.chunk < 1:
         raise usage(f"--chunk {args.chunk}: it must be >= 1 (frames per chunk file)")
     if getattr(args, "ray", None) is not None:
@@ -211,7 +231,7 @@ def run(args, out, err):
                                  f"parameter ({', '.join(sorted(numeric)) or 'none here'})")
     except ValueError as exc:
         raise usage(str(exc)) from None
-    device = cli._device(args.device)
+    device = cli._device(args.device) if devices is None else ",".join(devices)
     if args.rerun is not None:
         from .rerun import rerun_in_sweep
 
@@ -221,7 +241,7 @@ def run(args, out, err):
     from ..core.stability import StabilityWarning
 
     warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
-    if getattr(args, "ray", None) is None:
+    if getattr(args, "ray", None) is None and devices is None:  # several devices: checked per block
         try:
             _check_memory(cls, base, len(world_params), device)
         except ValueError as exc:
@@ -249,6 +269,36 @@ def run(args, out, err):
                                    log=err)
             rows, root = result["rows"], result["root"]
             layers = result["layers"]
+        elif devices is not None:
+            from ..distributed.devices import run_device_sweep
+            from .staging import settings_digest
+
+            if not args.no_progress:
+                from tqdm import tqdm
+
+                progress = tqdm(total=args.frames, unit="frame", dynamic_ncols=True, file=err,
+                                desc=f"{cls.name} x{len(world_params)} on {len(devices)} devices")
+            done = [0]
+
+            def advanced(frames_done):
+                progress.update(frames_done - done[0])
+                done[0] = frames_done
+
+            result = run_device_sweep(
+                cls.name, world_params, devices=devices, frames=args.frames, out_path=path, table_path=table,
+                settings={"scene": cls.name, "frames": args.frames, "fps": args.fps, "substeps": args.substeps,
+                          "chunk": args.chunk, "fused": bool(args.fused), "track": track or {},
+                          "worlds": settings_digest(world_params)},
+                fps=args.fps, substeps=args.substeps, layout=args.layout, track=track, fused=bool(args.fused),
+                occupancy=occupancy, chunk_size=args.chunk, resume=bool(getattr(args, "resume", False)),
+                warn=lambda line: _stability_warning(line, args.strict, err), progress=advanced if progress else None,
+                log=err)
+            if progress:
+                progress.close()
+                progress = None
+            rows, root, layers = result["rows"], result["root"], result["layers"]
+            if result["frame_steps"] is not None:
+                run_timing["frame_steps"] = result["frame_steps"]
         else:
             from .staging import SweepStaging, settings_digest
 
@@ -283,9 +333,10 @@ def run(args, out, err):
         from .rerun import write_manifest  # what re-running one world exactly needs
 
         write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                       device=args.device if getattr(args, "ray", None) is not None else device, fused=args.fused,
+                       device=args.device if getattr(args, "ray", None) is not None else
+                       device if devices is None else devices[0], fused=args.fused,
                        frame_steps=run_timing.get("frame_steps"))
-    except (SimulationError, ValueError, RaySweepError) as exc:
+    except (SimulationError, ValueError, RaySweepError, DeviceSweepError) as exc:
         if progress:
             progress.close()
         if isinstance(exc, ValueError) and not isinstance(exc, SimulationError) and _is_usage(exc):

@@ -1,7 +1,8 @@
 """Where a single-process ``warpsim sweep`` writes while it runs, and the swap that publishes it.
 
 A sweep of root ``s.usda`` streams its batch layer as ``s.batch_0000.run<T>.usdc`` (``T``: a
-token of this run) with chunk files ``s.batch_0000.run<T>.chunkNNNNNN.usdc`` beside it, so a
+token of this run; a sweep over several devices one layer per block K, ``s.batch_000K.run<T>.usdc``)
+with chunk files ``s.batch_0000.run<T>.chunkNNNNNN.usdc`` beside it, so a
 finished sweep's files in the same folder (``s.batch_0000.usdc``, its own ``run<T'>`` chunks, the
 table, the occupancy record, the root) stay untouched and readable until the new run is complete.
 ``s.sweep-partial.json`` names the run in progress and the settings it was started with.
@@ -22,6 +23,7 @@ import glob
 import hashlib
 import json
 import os
+import re
 import secrets
 
 __all__ = ["SweepStaging", "settings_digest"]
@@ -50,9 +52,11 @@ class SweepStaging:
 
     ``settings``: JSON-able description that ``--resume`` must match (scene, frames, timing,
     worlds digest, ...). ``resume``: continue the run named by the progress file (ValueError
-    with one line when there is none, it is damaged, or the settings differ)."""
+    with one line when there is none, it is damaged, or the settings differ). ``blocks``: batch
+    layers of the run (one per device of a sweep over several devices: ``layers[k]``, published as
+    ``final_layers[k]``; ``layer`` / ``final_layer`` are block 0's)."""
 
-    def __init__(self, root_path, settings, resume=False):
+    def __init__(self, root_path, settings, resume=False, blocks=1):
         self.root = os.path.abspath(os.fspath(root_path))
         self.stem = os.path.splitext(self.root)[0]
         self.progress_path = self.stem + ".sweep-partial.json"
@@ -64,8 +68,17 @@ class SweepStaging:
             self._remove_interrupted()
             os.makedirs(os.path.dirname(self.root), exist_ok=True)
             _atomic_json(self.progress_path, {"version": VERSION, "token": self.token, "settings": self.settings})
-        self.layer = f"{self.stem}.batch_0000.run{self.token}.usdc"
-        self.final_layer = f"{self.stem}.batch_0000.usdc"
+        self.layers = [f"{self.stem}.batch_{k:04d}.run{self.token}.usdc" for k in range(int(blocks))]
+        self.final_layers = [f"{self.stem}.batch_{k:04d}.usdc" for k in range(int(blocks))]
+        self.layer, self.final_layer = self.layers[0], self.final_layers[0]
+
+    def _run_files(self):
+        """Chunk files, indexes and staged layers of any run of this root: ``(path, token)``."""
+        pattern = re.compile(re.escape(os.path.basename(self.stem)) + r"\.batch_\d{4}\.run([0-9A-Za-z]+)\.")
+        for f in glob.glob(glob.escape(self.stem) + ".batch_*.run*"):
+            m = pattern.match(os.path.basename(f))
+            if m:
+                yield f, m.group(1)
 
     def _load_progress(self):
         fix = "run the sweep without --resume to start it again"
@@ -95,9 +108,8 @@ class SweepStaging:
     def _remove_interrupted(self):
         """Files of earlier interrupted runs (a run whose batch layer was never published)."""
         published = self._published_token()
-        for f in glob.glob(glob.escape(self.stem) + ".batch_0000.run*"):
-            if published is None or not os.path.basename(f).startswith(
-                    os.path.basename(self.stem) + f".batch_0000.run{published}."):
+        for f, token in self._run_files():
+            if token != published:
                 os.remove(f)
 
     def _published_token(self):
@@ -114,18 +126,20 @@ class SweepStaging:
         prefix = os.path.basename(self.stem) + ".batch_0000.run"
         return named[len(prefix):].split(".", 1)[0] if named.startswith(prefix) else None
 
-    def resume_frame(self):
-        """First frame to write: after the last completed chunk of the staged layer (0: none)."""
-        if not os.path.exists(self.layer):
+    def resume_frame(self, block=0):
+        """First frame to write: after the last completed chunk of block ``block``'s staged layer
+        (0: none)."""
+        layer = self.layers[block]
+        if not os.path.exists(layer):
             return 0
         from pxr import Sdf
 
         from ..usd.validate import _root_chunks, pxr_reason
 
         try:
-            chunks = _root_chunks(Sdf.Layer.OpenAsAnonymous(self.layer))
+            chunks = _root_chunks(Sdf.Layer.OpenAsAnonymous(layer))
         except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
-            raise ValueError(f"--resume: the interrupted sweep's layer {self.layer} does not open ("
+            raise ValueError(f"--resume: the interrupted sweep's layer {layer} does not open ("
                              f"{pxr_reason(exc, 120)}); run the sweep without --resume") from None
         return chunks[-1][1] + 1 if chunks else 0
 
@@ -135,20 +149,24 @@ class SweepStaging:
         return f"{stem}.run{self.token}{ext}"
 
     def publish(self, moves=()):
-        """Switch to the new result: the batch layer onto its final name, then ``moves``
-        [(staged path, final path)]; returns the final layer path. Call :meth:`finish` after
-        writing the table and root."""
-        os.replace(self.layer, self.final_layer)
+        """Switch to the new result: the batch layer onto its final name (every block's, in
+        order), then ``moves`` [(staged path, final path)]; returns block 0's final layer path.
+        Call :meth:`finish` after writing the table and root."""
+        for staged, final in zip(self.layers, self.final_layers):
+            os.replace(staged, final)
         for src, dst in moves:
             if os.path.exists(src):
                 os.replace(src, dst)
         return self.final_layer
 
     def finish(self):
-        """Remove the old run's chunk files and the progress file."""
-        mine = os.path.basename(self.stem) + f".batch_0000.run{self.token}."
-        for f in glob.glob(glob.escape(self.stem) + ".batch_0000.run*"):
-            if not os.path.basename(f).startswith(mine):
+        """Remove the old run's chunk files, the layers of blocks an older run had beyond this
+        run's, and the progress file."""
+        for f, token in self._run_files():
+            if token != self.token:
+                os.remove(f)
+        for f in glob.glob(glob.escape(self.stem) + ".batch_[0-9][0-9][0-9][0-9].usdc"):
+            if f not in self.final_layers:
                 os.remove(f)
         if os.path.exists(self.progress_path):
             os.remove(self.progress_path)

@@ -78,21 +78,22 @@ def _normalise(cls, params):
     return out
 
 
-def make_batch(cls, world_params, device=None, fused=False):
-    """A :class:`WorldBatch` (``fused``: see there), or for flock scenes an
-    :class:`warpsim.worlds.agents.AgentWorldBatch`."""
+def make_batch(cls, world_params, device=None, fused=False, reference_params=None):
+    """A :class:`WorldBatch` (``fused``, ``reference_params``: see there), or for flock scenes an
+    :class:`warpsim.worlds.agents.AgentWorldBatch` (its worlds never depend on their batch)."""
     from .agents import is_agent_scene
 
     if is_agent_scene(cls):
         from .agents import AgentWorldBatch
 
         return AgentWorldBatch(cls, world_params, device=device)
-    return WorldBatch(cls, world_params, device=device, fused=fused)
+    return WorldBatch(cls, world_params, device=device, fused=fused, reference_params=reference_params)
 
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
-              warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None) -> list:
+              warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None,
+              reference_params=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -115,7 +116,12 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
     ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
     a world re-run alone needs it to take the same steps); ``frame_steps``: take this many steps
-    every frame instead (a Ray sweep's batches take the count resolved over the whole sweep)."""
+    every frame instead (a Ray sweep's batches take the count resolved over the whole sweep);
+    ``reference_params``: the whole sweep's parameter list when these worlds are one block of it
+    (:class:`WorldBatch`: each world then gets the arrays it gets in the whole sweep, bit for bit);
+    ``occupancy["agree"]``: ``agree(points (M, 3) [m], resolution) -> (bounds, resolution)``, called
+    with the frame-0 points the default grid would cover, so that the blocks of one sweep on
+    several devices record on one grid (:mod:`warpsim.distributed.devices`)."""
     from ..scenes import get_scene
 
     from ..core import checks
@@ -138,9 +144,13 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
                                   and "dt" not in world_params[0])
     substeps = None if substeps == "auto" else substeps
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
+    if reference_params is not None:
+        reference_params = [_normalise(cls, p) for p in reference_params]
     if "dt" in cls.params and fps_given is not None:
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
-    batch = make_batch(cls, world_params, device=device, fused=fused)
+        if reference_params is not None:
+            reference_params = [{**p, "dt": frame_dt / substeps} for p in reference_params]
+    batch = make_batch(cls, world_params, device=device, fused=fused, reference_params=reference_params)
     stepped = getattr(batch, "batch_scene", None)  # flocks (AgentWorldBatch) step their own way
     if stepped is not None:
         stepped.auto_substeps = auto
@@ -215,9 +225,15 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
     from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder, find_source_prim
 
     static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
+    bounds, resolution = occupancy.get("bounds"), occupancy.get("resolution") or DEFAULT_RESOLUTION
+    if bounds is None and occupancy.get("agree") is not None:  # one grid for every block of the sweep
+        n, P = batch.world_count, batch.model.world_particle_count
+        x = batch.sim.state.positions.numpy().reshape(n, P, 3)[:, list(track.values()) if track else slice(None)]
+        x = x.reshape(-1, 3) if static is None else np.concatenate([x.reshape(-1, 3), static])
+        bounds, resolution = occupancy["agree"](x, resolution)
     recorder = OccupancyRecorder(batch, frames, particles=list(track.values()) if track else None,
-                                 track_names=list(track) if track else (), bounds=occupancy.get("bounds"),
-                                 resolution=occupancy.get("resolution") or DEFAULT_RESOLUTION, fps=fps,
+                                 track_names=list(track) if track else (), bounds=bounds,
+                                 resolution=resolution, fps=fps,
                                  first_world=first_world, scene=scene_name, include=static)
     x, v = batch.world_slices()  # world 0's frame data names the prim holding the recorded particles
     recorder.source_prim = find_source_prim(batch.world_frame_data(x[0], v[0], 0), x[0], recorder.particles)
