@@ -2,10 +2,18 @@
 
 Measured in one process, on one device, for N worlds of a scene (default: teapots with four
 varied parameters, ``springs=false`` so a world's USD holds its surface only):
-  stepping  F frames of the batch (``advance`` + metrics, eager) with the recorder's per-frame
-            work (``update``, the 32-frame block copies to the host) timed apart with a device
-            synchronisation around each, then ``finish`` + ``save``: the record's cost as % of
-            stepping alone (a stricter base than the sweep, which also writes USD);
+  stepping  F frames of the batch (``advance`` + metrics; CUDA graphs on CUDA) three times in
+            one process: without a record, with the record marked inside the step (the default)
+            and with the separate pass over the positions (``in_step=False``); the recorder's own
+            per-frame work (``update``, the 32-frame flushes) is timed apart with a device
+            synchronisation around it, then ``finish`` + ``save``. The record's cost = (stepping
+            with marks + the recorder's work - stepping without a record) / stepping without,
+            % (a stricter base than the sweep, which also writes USD);
+  profile   (``--profile``) the same F frames launched eagerly under ``wp.timing_begin``: device
+            time per kernel and copy, the bytes the flushes move to the host, the host time of the
+            flushes and of ``finish``; for the separate pass also what the former host flush
+            (whole-block copy + ``flatnonzero``) and finish (``np.unique`` of every key) take on
+            the same blocks;
   sweep     whole ``run_batch`` sweeps (stepping, metrics, the USD batch layer) of
             ``--sweep-frames`` frames without and with a record, run alternately ``--repeat``
             times: the record's cost as the difference of the medians, % of the sweep; and the
@@ -18,6 +26,7 @@ varied parameters, ``springs=false`` so a world's USD holds its surface only):
             server: the query, the ranked list of buttons, and one visibility flag per world sent
             for N stand-in world nodes; no browser attached, no thumbnails).
 
+    python benchmarks/bench_occupancy.py --device cuda:0 --worlds 10000 --frames 120 --sweep-frames 0 --profile
     python benchmarks/bench_occupancy.py --device cuda:0 --worlds 10000 --frames 120 --sweep-frames 6
     python benchmarks/bench_occupancy.py --device cpu --worlds 1000 --frames 120 --sweep-frames 12
     python benchmarks/bench_occupancy.py --device cpu --worlds 16 --frames 8 --repeat 1   # check
@@ -49,57 +58,152 @@ def sweep_seconds(args, worlds, folder, tag, occupancy, frames):
     return time.perf_counter() - t0, layer
 
 
-def stepping_record(args, worlds, folder):
-    """(stepping seconds, recorder seconds, record path): F frames of a batch, the recorder's work
-    timed apart (synchronised), its record saved. On CUDA both run as captured graphs, as in a
-    sweep (``run_batch`` captures a frame's stepping, metrics and recording together)."""
+def make_recorder(args, batch, fps, folder, in_step):
+    """The recorder a sweep makes (its grid also covers the static geometry the USD writer declares)."""
+    from warpsim.worlds.occupancy import OccupancyRecorder
+    from warpsim.worlds.usd import BatchLayerWriter
+
+    writer = BatchLayerWriter(os.path.join(folder, "stepping.usdc"), batch.scene, 0, batch.world_count, fps)
+    static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
+    track = args.track_map or None
+    return OccupancyRecorder(batch, args.frames, particles=list(track.values()) if track else None,
+                             track_names=list(track) if track else (), resolution=args.resolution, fps=fps,
+                             scene=args.scene, include=static, in_step=in_step)
+
+
+def stepping_record(args, worlds, folder, record=True, in_step=True):
+    """(stepping seconds, recorder seconds, record path or None, recorder): F frames of a batch, the
+    recorder's work timed apart (synchronised), its record saved. On CUDA both run as captured
+    graphs, as in a sweep (``run_batch`` captures a frame's stepping, metrics and recording
+    together). ``record=False``: stepping alone."""
     from warpsim.scenes import get_scene
     from warpsim.worlds.metrics import WorldMetrics
-    from warpsim.worlds.sweep import _recorder, frame_timing, make_batch
-    from warpsim.worlds.usd import BatchLayerWriter
+    from warpsim.worlds.sweep import frame_timing, make_batch
 
     cls = get_scene(args.scene)
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
     batch = make_batch(cls, worlds, device=args.device)
     stats = WorldMetrics(batch)
-    # the recorder a sweep makes (its grid also covers the static geometry the USD writer declares)
-    writer = BatchLayerWriter(os.path.join(folder, "stepping.usdc"), batch.scene, 0, batch.world_count, fps)
-    rec = _recorder(batch, {"resolution": args.resolution}, args.frames, args.track_map or None, fps, 0,
-                    args.scene, writer)
+    rec = None
+    if record:
+        rec = make_recorder(args, batch, fps, folder, in_step)
+        rec.update()  # frame 0 (the step marks the cells from frame 1 on)
+        rec.after_frame()
 
     def step():
         batch.advance(frame_dt, substeps)
         stats.update()
 
+    record_frame = rec.update if rec is not None else (lambda: None)
     step()  # loads every module (this frame is not timed)
+    record_frame()
     use_graph = batch.device.is_cuda and batch.can_capture()
     if use_graph:
         with wp.ScopedCapture(device=batch.device) as capture:
             step()
         step_graph = capture.graph
         step = lambda: wp.capture_launch(step_graph)  # noqa: E731
-    record_frame = rec.update
-    wp.synchronize_device(args.device)
-    t_step = t_record = 0.0
-    for frame in range(args.frames + 1):
-        t0 = time.perf_counter()
-        if frame:
-            step()
-        wp.synchronize_device(args.device)
-        t1 = time.perf_counter()
-        record_frame()
-        rec.after_frame()
-        wp.synchronize_device(args.device)
-        t_step, t_record = t_step + t1 - t0, t_record + time.perf_counter() - t1
-        if frame == 0 and use_graph:  # frame 0 ran eagerly (module loaded): replay the rest
+        if rec is not None:
             with wp.ScopedCapture(device=batch.device) as capture:
                 rec.update()
             record_graph = capture.graph
             record_frame = lambda: wp.capture_launch(record_graph)  # noqa: E731
+    wp.synchronize_device(args.device)
+    t_step = t_record = 0.0
+    for _ in range(args.frames):
+        t0 = time.perf_counter()
+        step()
+        wp.synchronize_device(args.device)
+        t1 = time.perf_counter()
+        if rec is not None:
+            record_frame()
+            rec.after_frame()
+            wp.synchronize_device(args.device)
+        t_step, t_record = t_step + t1 - t0, t_record + time.perf_counter() - t1
+    if rec is None:
+        return t_step, 0.0, None, None
     path = os.path.join(folder, "stepping.npz")
     t0 = time.perf_counter()
     rec.finish().save(path)
-    return t_step, t_record + time.perf_counter() - t0, path
+    return t_step, t_record + time.perf_counter() - t0, path, rec
+
+
+def profile_record(args, worlds, folder, in_step):
+    """Eager frames under ``wp.timing_begin``: {(kind, name): [device ms, launches]}, the recorder,
+    and for the separate pass the former host flush / finish timed on the same blocks."""
+    from warpsim.scenes import get_scene
+    from warpsim.worlds.metrics import WorldMetrics
+    from warpsim.worlds.sweep import frame_timing, make_batch
+
+    cls = get_scene(args.scene)
+    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    batch = make_batch(cls, worlds, device=args.device)
+    stats = WorldMetrics(batch)
+    rec = make_recorder(args, batch, fps, folder, in_step)
+    former = {"copy": 0.0, "flatnonzero": 0.0, "gather": 0.0, "finish": 0.0}
+    kept = []
+
+    def former_flush():  # what _flush did before (whole block to the host, scanned there)
+        t0 = time.perf_counter()
+        words = rec.block.numpy()
+        t1 = time.perf_counter()
+        nz = np.flatnonzero(words)
+        t2 = time.perf_counter()
+        kept.append((nz, words[nz].copy()))
+        former["copy"] += t1 - t0
+        former["flatnonzero"] += t2 - t1
+        former["gather"] += time.perf_counter() - t2
+
+    kinds = {wp.TIMING_KERNEL: "kernel", wp.TIMING_MEMCPY: "copy", wp.TIMING_MEMSET: "memset",
+             wp.TIMING_KERNEL_BUILTIN: "builtin"}
+    table = {}
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    rec.update()
+    for frame in range(args.frames + 1):
+        if frame:
+            batch.advance(frame_dt, substeps)
+            stats.update()
+            rec.update()
+        if not in_step and (rec._seen + 1) % 32 == 0:
+            former_flush()
+        rec.after_frame()
+    if not in_step and rec._seen % 32:
+        former_flush()
+    record = rec.finish()
+    for r in wp.timing_end():
+        entry = table.setdefault((kinds.get(r.filter, str(r.filter)), r.name), [0.0, 0])
+        entry[0] += r.elapsed
+        entry[1] += 1
+    if kept:
+        t0 = time.perf_counter()
+        keys = np.unique(np.concatenate([nz for nz, _ in kept]))
+        bits = np.zeros((len(keys), len(kept)), np.uint32)
+        for b, (nz, w) in enumerate(kept):
+            bits[np.searchsorted(keys, nz), b] = w
+        former["finish"] = time.perf_counter() - t0
+        assert np.array_equal(keys % rec.grid.cell_count, record.pair_cell) and np.array_equal(bits, record.pair_bits)
+    return table, rec, record, former
+
+
+def print_profile(args, worlds, folder):
+    for in_step in (False, True):
+        table, rec, record, former = profile_record(args, worlds, folder, in_step)
+        n, cells, F = rec.world_count, rec.grid.cell_count, args.frames + 1
+        flushes = (F + 31) // 32
+        print(f"  profile, {'marks inside the step' if in_step else 'separate pass over the positions'} "
+              f"({F} frames eager, {n} worlds x {cells} cells = {n * cells * 4 / 1e6:.1f} MB block, "
+              f"{len(record.pair_cell)} occupied (world, cell) pairs):")
+        print("    | what | launches | device ms | ms per frame |")
+        print("    | --- | --- | --- | --- |")
+        for (kind, name), (ms, count) in sorted(table.items(), key=lambda kv: -kv[1][0]):
+            print(f"    | {kind} {name} | {count} | {ms:.2f} | {ms / F:.3f} |")
+        print(f"    host: flushes {1e3 * rec.host_seconds['flush']:.1f} ms ({flushes} flushes, "
+              f"{rec.flushed_bytes / 1e6:.2f} MB to the host), finish {1e3 * rec.host_seconds['finish']:.1f} ms")
+        if not in_step:
+            print(f"    former host side on the same blocks: whole-block copies {1e3 * former['copy']:.1f} ms "
+                  f"({flushes * n * cells * 4 / 1e6:.0f} MB), flatnonzero {1e3 * former['flatnonzero']:.1f} ms, "
+                  f"gather {1e3 * former['gather']:.1f} ms, finish (np.unique of every key) "
+                  f"{1e3 * former['finish']:.1f} ms")
 
 
 def panel_seconds(record, count, seed=1):
@@ -179,6 +283,7 @@ def main():
                    help="fixed scene parameters (default for teapot: springs=false)")
     p.add_argument("--repeat", type=int, default=2, help="sweeps with and without a record (alternating)")
     p.add_argument("--queries", type=int, default=20)
+    p.add_argument("--profile", action="store_true", help="device time per kernel and copy, host time per step")
     args = p.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -198,17 +303,29 @@ def main():
           f"record resolution {args.resolution}{', tracked ' + ', '.join(args.track_map) if args.track_map else ''}")
     occupancy = {"resolution": args.resolution}
     with tempfile.TemporaryDirectory(prefix="bench_occupancy_") as folder:
-        sweep_seconds(args, worlds[: min(4, len(worlds))], folder, "warm", occupancy, 2)  # compiles every module
-        t_step, t_record, rec_path = stepping_record(args, worlds, folder)
+        small = worlds[: min(4, len(worlds))]
+        if args.sweep_frames:
+            sweep_seconds(args, small, folder, "warm", occupancy, 2)  # compiles every module
+        else:  # no USD written (the GPU machine may lack pxr): compile through the stepping itself
+            stepping_record(argparse.Namespace(**{**vars(args), "frames": 2}), small, folder)
+            stepping_record(argparse.Namespace(**{**vars(args), "frames": 2}), small, folder, in_step=False)
+        if args.profile:
+            print_profile(args, worlds, folder)
+        t_plain, _, _, _ = stepping_record(args, worlds, folder, record=False)
+        t_apart, t_apart_rec, _, _ = stepping_record(args, worlds, folder, in_step=False)
+        t_step, t_record, rec_path, rec = stepping_record(args, worlds, folder)
         t0 = time.perf_counter()
         record = OccupancyRecord.load(rec_path)
         t_load = time.perf_counter() - t0
         rec_bytes = os.path.getsize(rec_path)
         print(f"  {record.describe()}")
-        print(f"  stepping {args.frames} frames      {t_step:9.3f} s")
-        print(f"  recording them          {t_record:9.3f} s   {100 * t_record / t_step:6.2f} % of stepping alone; "
-              f"record {rec_bytes / 1e6:.3f} MB ({rec_bytes / record.world_count / record.frame_count:.1f} bytes "
-              "per world and frame)")
+        print(f"  stepping {args.frames} frames without a record   {t_plain:9.3f} s")
+        print(f"  separate pass: stepping {t_apart:.3f} s + recording {t_apart_rec:.3f} s = "
+              f"{100 * (t_apart + t_apart_rec - t_plain) / t_plain:6.2f} % of stepping alone")
+        print(f"  marks in the step ({'on' if rec.in_step else 'not eligible'}): stepping {t_step:.3f} s + recording "
+              f"{t_record:.3f} s = {100 * (t_step + t_record - t_plain) / t_plain:6.2f} % of stepping alone "
+              f"(goal <= 5 %); record {rec_bytes / 1e6:.3f} MB "
+              f"({rec_bytes / record.world_count / record.frame_count:.1f} bytes per world and frame)")
         times, matches = query_times(record, args.queries)
         print(f"  query over {record.world_count} worlds: median {1e3 * np.median(times):.2f} ms, largest "
               f"{1e3 * times.max():.2f} ms over {len(times)} boxes (goal <= 100 ms); record load "

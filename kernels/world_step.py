@@ -14,12 +14,17 @@ same arithmetic in the same order, so the results are bit-identical to it:
 
 Reads (q, qd), writes (q_out, qd_out): other threads read this step's positions of the
 neighbours, so the stepper ping-pongs two buffers.
+
+Occupancy (``marks``, ``kernels/occupancy.py: CellMarks``; empty arrays: off): at a frame's last
+sub-step each thread marks the cell of the position it has just computed, and the block-per-world
+kernel folds its world's marks into the record's bits after its last barrier.
 """
 
 import warp as wp
 
 from .collide import resolve_plane
 from .forces import damped_spring_force
+from .occupancy import CellMarks, fold_world_marks, mark_cell
 
 wp.set_module_options({"enable_backward": False})
 
@@ -129,8 +134,10 @@ def step_shared_worlds(
     h: float,
     q_out: wp.array(dtype=wp.vec3),
     qd_out: wp.array(dtype=wp.vec3),
+    marks: CellMarks,
 ):
-    """One step of particle t = w P + p (module docstring); P = ``particle_count`` per world, h [s]."""
+    """One step of particle t = w P + p (module docstring); P = ``particle_count`` per world, h [s];
+    ``marks`` (on for a frame's last sub-step): the new position marks its cell."""
     t = wp.tid()
     w = t / particle_count
     p = t - w * particle_count
@@ -138,6 +145,7 @@ def step_shared_worlds(
                                 walls, h)
     q_out[t] = x
     qd_out[t] = v
+    mark_cell(marks, w, x)
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -163,6 +171,7 @@ def frame_shared_worlds(
     walls: WorldWalls,
     h: float,
     substeps: int,
+    marks: CellMarks,
 ):
     """A whole frame of ``substeps`` steps of h [s] in one launch, one thread block per world:
     launched with dim = world_count x ``lanes`` and block_dim = ``lanes`` (1 on the CPU: one
@@ -170,7 +179,8 @@ def frame_shared_worlds(
     buffer pair into the other (q, qd -> spares on even steps, back on odd ones), then the block
     waits for every lane (``sync_block``) before the next step reads its neighbours; after an odd
     count each lane copies its own particles home. The same arithmetic as
-    ``step_shared_worlds``, sub-step by sub-step: the same bits."""
+    ``step_shared_worlds``, sub-step by sub-step: the same bits. ``marks``: the last sub-step's
+    positions mark their cells, which the block folds into its world's words after the barrier."""
     tid = wp.tid()
     w = tid / lanes
     lane = tid - w * lanes
@@ -189,8 +199,11 @@ def frame_shared_worlds(
                                             world_gravity, springs, walls, h)
                 q[t] = x
                 qd[t] = v
+            if k == substeps - 1:
+                mark_cell(marks, w, x)
             p += lanes
         sync_block()
+    fold_world_marks(marks, w, lane, lanes)
     if substeps % 2 == 1:
         p = lane
         while p < particle_count:

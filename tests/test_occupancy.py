@@ -135,6 +135,60 @@ def test_outside_is_the_complement_and_cells_are_conservative(sweep):
     assert np.array_equal(not_in.match, ~cells.match)
 
 
+def _record_frames(batch, recorder, frames, frame_dt, substeps):
+    """Steps and records as ``run_batch`` does; returns the recorder's record and the positions
+    (frames + 1, N, 3) read back after each frame (after the batch froze its blown-up worlds)."""
+    seen = [batch.sim.state.positions.numpy().copy()]
+    recorder.update()
+    recorder.after_frame()
+    for _ in range(frames):
+        batch.advance(frame_dt, substeps)
+        recorder.update()
+        recorder.after_frame()
+        seen.append(batch.sim.state.positions.numpy().copy())
+    return recorder.finish(), np.stack(seen)
+
+
+@pytest.mark.parametrize("block_per_world", [False, True])
+def test_cells_marked_inside_the_step_equal_the_separate_pass_and_numpy(device, block_per_world):
+    """The shared-topology step marks the cells at each frame's last sub-step (both kernels); the
+    record equals the separate pass over the positions bit for bit, and both equal the bits NumPy
+    sets from the positions read back, over more than 32 frames (two flushes of the device's
+    compaction) and with worlds flagged as blown up at different frames (frozen after the step)."""
+    from warpsim.scenes import get_scene
+    from warpsim.worlds import WorldBatch, sample_worlds
+    from warpsim.worlds.occupancy import OccupancyRecorder
+    from warpsim.worlds.sweep import frame_timing
+
+    cls = get_scene("springs")
+    worlds = sample_worlds("springs", {"shape": "lattice", "count": 4}, ["stiffness=200:600", "gravity=3:12"], 6,
+                           sample="lhs", seed=1)
+    _, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    frames = 40
+    records = []
+    for in_step in (True, False):
+        batch = WorldBatch(cls, worlds, device=device, block_per_world=block_per_world)
+        batch.max_speed = 2.0  # the worlds falling fastest are flagged (and frozen) first
+        recorder = OccupancyRecorder(batch, frames, resolution=8, in_step=in_step)
+        assert recorder.in_step == in_step
+        record, seen = _record_frames(batch, recorder, frames, frame_dt, substeps)
+        records.append(record)
+        blown = batch.world_blown_frame.numpy()
+    assert len(set(blown[blown >= 0])) >= 3 and (blown < 0).any()  # blown at different frames, one never
+    step, apart = records
+    for key in ("world_start", "pair_cell", "pair_bits"):
+        assert getattr(step, key).tobytes() == getattr(apart, key).tobytes(), key
+    n, P = len(worlds), step.world_particle_count
+    want = np.zeros((n, step.grid.cell_count, 2), np.uint32)
+    for f, x in enumerate(seen):
+        for w in range(n):
+            want[w, step.grid.cells_of(x[w * P:(w + 1) * P]), f // 32] |= np.uint32(1 << (f % 32))
+    got = np.zeros_like(want)
+    got[step.pair_world, step.pair_cell] = step.pair_bits
+    assert np.array_equal(got, want)
+    assert len(np.unique(step.pair_bits[:, 0])) > 3  # cells change over the frames
+
+
 def test_two_runs_write_the_same_record(tmp_path):
     for name in ("a", "b"):
         code, _, err = run("sweep", "bounce", "--worlds", 3, "--vary", "height=0.1:0.3", "--frames", 40,

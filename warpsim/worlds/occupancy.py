@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 
 import numpy as np
 import warp as wp
@@ -284,11 +285,18 @@ class OccupancyRecorder:
     scene's static geometry: floor, walls); ``resolution``: cells along the longest side;
     ``exact_max``: keep exact positions when at most this many particles per world are recorded.
     :meth:`update` launches kernels only (capture-safe); call it for frame 0 and after every
-    frame, then :meth:`after_frame` on the host, then :meth:`finish`."""
+    frame, then :meth:`after_frame` on the host, then :meth:`finish`.
+
+    ``in_step`` (default): when the batch steps on the shared-topology path and every particle is
+    recorded without exact positions, the stepping kernel itself marks the cells at each frame's
+    last sub-step (``kernels/occupancy.py: CellMarks``) from frame 1 on, so :meth:`update` reads
+    no positions; the record is the same bit for bit. Every 32 frames the block's occupied words
+    are compacted on the device and only those move to the host. ``host_seconds`` sums the host
+    time of the flushes (``flush``) and of :meth:`finish` (``finish``)."""
 
     def __init__(self, batch, frames, *, particles=None, track_names=(), bounds=None,
                  resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene="",
-                 include=None):
+                 include=None, in_step=True):
         self.device = batch.device
         n, P = batch.world_count, batch.model.world_particle_count
         self.batch = batch
@@ -319,23 +327,51 @@ class OccupancyRecorder:
         self.source_prim = ""
         """Set by the sweep (:func:`find_source_prim`): the prim whose cached points hold the
         recorded particles."""
-        self._blocks = []  # (block index, nonzero flat indices, words)
+        self._blocks: list = []  # (block index, sorted keys world * cells + cell, words)
         self._seen = 0
         g = self.grid
         self._args = (wp.vec3(*g.lo.astype(np.float32)), float(np.float32(1.0 / g.cell_size)),
                       wp.vec3i(*(int(d) for d in g.dims)))
+        self.stepper = getattr(batch, "stepper", None)
+        self.in_step = bool(in_step) and self.stepper is not None and not exact and len(local) == P and \
+            np.array_equal(local, np.arange(P)) and hasattr(batch, "world_blown_frame")
+        """Whether the stepping kernel marks the cells (see the class docstring)."""
+        self._marking = False  # the stepper marks (set after frame 0's update)
+        self.marks = KO.CellMarks()
+        self.marks.lo, self.marks.inv_h, self.marks.dims = self._args
+        self.marks.cell_hit, self.marks.bits, self.marks.frame = self.cell_hit, self.block, self.frame
+        self._counts = wp.zeros(n + 1, dtype=int, device=self.device)
+        self._start = wp.zeros(n + 1, dtype=int, device=self.device)
+        self._cells_out = wp.zeros(0, dtype=wp.uint32, device=self.device)
+        self._words_out = wp.zeros(0, dtype=wp.uint32, device=self.device)
+        self.host_seconds = {"flush": 0.0, "finish": 0.0}
+        self.flushed_bytes = 0
+        """Bytes moved from the device to the host by the flushes so far."""
 
     def update(self):
-        """Mark the current frame's cells (kernels only)."""
+        """Mark the current frame's cells (kernels only). In-step (after frame 0): fold the marks
+        the step made (the block-per-world kernel folded them itself) and redo worlds frozen at
+        this frame."""
         lo, inv_h, dims = self._args
         K = int(self.local.shape[0])
-        if K:
+        if self._marking:
+            if not self.stepper.block_per_world:
+                wp.launch(KO.fold_cell_hits, self.cell_hit.shape[0], inputs=[self.cell_hit, self.frame, self.block],
+                          device=self.device)
+            b = self.batch
+            wp.launch(KO.redo_blown_worlds, self.world_count,
+                      inputs=[b.sim.state.positions, self.world_particle_count, b.world_blown_frame, b.frame_counter,
+                              lo, inv_h, dims, self.frame, self.block], device=self.device)
+        elif K:
             wp.launch(KO.record_cells, (self.world_count, K),
                       inputs=[self.batch.sim.state.positions, self.world_particle_count, self.local, lo, inv_h, dims,
                               self.frame, self.frame_count, self.cell_hit, self.samples], device=self.device)
             wp.launch(KO.fold_cell_hits, self.cell_hit.shape[0], inputs=[self.cell_hit, self.frame, self.block],
                       device=self.device)
         wp.launch(KO.next_record_frame, 1, inputs=[self.frame], device=self.device)
+        if self.in_step and not self._marking:  # from the next frame on, the step marks the cells
+            self.stepper.marks = self.marks
+            self._marking = True
 
     def after_frame(self):
         """Host side after each :meth:`update`: every 32 frames the block's bits move to the host."""
@@ -344,21 +380,40 @@ class OccupancyRecorder:
             self._flush()
 
     def _flush(self):
-        words = self.block.numpy()
-        nz = np.flatnonzero(words)
-        self._blocks.append(((self._seen - 1) // 32, nz, words[nz].copy()))
-        self.block.zero_()
+        """The block's nonzero words, compacted on the device (world by world, in cell order), move
+        to the host as sorted keys (world * cell_count + cell) and words; the block is cleared."""
+        t0 = time.perf_counter()
+        n, cells, d = self.world_count, self.grid.cell_count, self.device
+        wp.launch(KO.count_world_words, n, inputs=[self.block, cells, self._counts], device=d)
+        wp.utils.array_scan(self._counts, self._start, inclusive=True)
+        start = self._start.numpy()
+        total = int(start[n])
+        if total > self._cells_out.shape[0]:
+            size = max(total, 2 * self._cells_out.shape[0])
+            self._cells_out = wp.empty(size, dtype=wp.uint32, device=d)
+            self._words_out = wp.empty(size, dtype=wp.uint32, device=d)
+        wp.launch(KO.take_world_words, n, inputs=[self.block, cells, self._start, self._cells_out, self._words_out],
+                  device=d)
+        # copies (on the CPU device numpy() is a view of buffers the next flush overwrites)
+        cell = np.array(self._cells_out[:total].numpy()) if total else np.zeros(0, np.uint32)
+        words = np.array(self._words_out[:total].numpy()) if total else np.zeros(0, np.uint32)
+        world = np.repeat(np.arange(n, dtype=np.int64), np.diff(start))
+        self._blocks.append(((self._seen - 1) // 32, world * cells + cell, words))
+        self.flushed_bytes += start.nbytes + 8 * total
+        self.host_seconds["flush"] += time.perf_counter() - t0
 
     def finish(self) -> OccupancyRecord:
         if self._seen % 32:
             self._flush()
+        if self.stepper is not None and self.stepper.marks is self.marks:
+            self.stepper.marks = None
+        t0 = time.perf_counter()
         frame_count = self._seen
         nwords = max(1, (frame_count + 31) // 32)
-        keys = np.unique(np.concatenate([nz for _, nz, _ in self._blocks])) if self._blocks else \
-            np.zeros(0, np.int64)
+        keys = _union_sorted([k for _, k, _ in self._blocks])
         bits = np.zeros((len(keys), nwords), dtype=np.uint32)
-        for b, nz, w in self._blocks:
-            bits[np.searchsorted(keys, nz), b] = w
+        for b, k, w in self._blocks:
+            bits[np.searchsorted(keys, k), b] = w
         cells = self.grid.cell_count
         world = keys // cells
         start = np.searchsorted(world, np.arange(self.world_count + 1)).astype(np.int64)
@@ -366,9 +421,21 @@ class OccupancyRecorder:
         K = len(self.particles)
         if self.samples.shape[0]:
             samples = self.samples.numpy().reshape(self.world_count, self.frame_count, K, 3)[:, :frame_count]
-        return OccupancyRecord(grid=self.grid, fps=self.fps, first_frame=0, frame_count=frame_count,
-                               first_world=self.first_world, world_count=self.world_count,
-                               world_particle_count=self.world_particle_count, particles=self.particles,
-                               track_names=self.track_names, world_start=start,
-                               pair_cell=(keys % cells).astype(np.uint32), pair_bits=bits, samples=samples,
-                               scene=self.scene, source_prim=self.source_prim)
+        record = OccupancyRecord(grid=self.grid, fps=self.fps, first_frame=0, frame_count=frame_count,
+                                 first_world=self.first_world, world_count=self.world_count,
+                                 world_particle_count=self.world_particle_count, particles=self.particles,
+                                 track_names=self.track_names, world_start=start,
+                                 pair_cell=(keys % cells).astype(np.uint32), pair_bits=bits, samples=samples,
+                                 scene=self.scene, source_prim=self.source_prim)
+        self.host_seconds["finish"] += time.perf_counter() - t0
+        return record
+
+
+def _union_sorted(arrays):
+    """The sorted union of sorted int64 arrays (np.unique of their concatenation)."""
+    arrays = [a for a in arrays if len(a)]
+    if not arrays:
+        return np.zeros(0, np.int64)
+    if len(arrays) == 1:
+        return arrays[0]
+    return np.unique(np.concatenate(arrays))

@@ -22,6 +22,7 @@ from ..core.forces import Gravity, Springs
 from ..core.integrators import SemiImplicitEuler
 from ..core.model import ensure_spring_adjacency
 from ..core.simulator import Simulator
+from ..kernels import occupancy as KO
 from ..kernels import world_step as K
 
 SPRING_PARAMS = ("spring_rest_length", "spring_stiffness", "spring_damping")
@@ -73,9 +74,18 @@ class SharedStepper:
         st = batch.sim.state
         self._home = (st.positions, st.velocities)
         self._spare = (wp.zeros_like(st.positions), wp.zeros_like(st.velocities))
+        self.marks = None
+        """A ``kernels/occupancy.py: CellMarks`` set by an occupancy recorder: a frame's last sub-step
+        marks the cells of its positions (None: no marks)."""
+        self._no_marks = KO.CellMarks()
+        self._no_marks.dims = wp.vec3i(1, 1, 1)
+        self._no_marks.cell_hit = wp.zeros(0, dtype=wp.uint8, device=d)
+        self._no_marks.bits = wp.zeros(0, dtype=wp.uint32, device=d)
+        self._no_marks.frame = wp.zeros(1, dtype=int, device=d)
 
-    def step(self, h: float) -> None:
-        """One sub-step of ``h`` [s]: (q, qd) -> the other buffer pair, which becomes the state."""
+    def step(self, h: float, marks=None) -> None:
+        """One sub-step of ``h`` [s]: (q, qd) -> the other buffer pair, which becomes the state;
+        ``marks`` (a CellMarks): the new positions mark their cells."""
         b, st = self.batch, self.batch.sim.state
         m = b.model
         q_out = self._spare[0] if st.positions is self._home[0] else self._home[0]
@@ -83,15 +93,15 @@ class SharedStepper:
         wp.launch(K.step_shared_worlds, m.particle_count,
                   inputs=[st.positions, st.velocities, m.particle_mass, m.particle_inv_mass, m.particle_radius,
                           self.world_gravity, m.world_particle_count, self.springs, self.walls, float(h), q_out,
-                          qd_out], device=b.device)
+                          qd_out, self._no_marks if marks is None else marks], device=b.device)
         st.positions, st.velocities = q_out, qd_out
 
     def frame(self, frame_dt: float, substeps: int) -> None:
         h = frame_dt / substeps
         if self.block_per_world:
             self._frame_blocks(h, int(substeps))
-        for _ in range(0 if self.block_per_world else int(substeps)):
-            self.step(h)
+        for k in range(0 if self.block_per_world else int(substeps)):
+            self.step(h, self.marks if k == int(substeps) - 1 else None)
         st = self.batch.sim.state
         if st.positions is not self._home[0]:  # the frame ends in the state's own arrays
             wp.copy(self._home[0], st.positions)
@@ -108,7 +118,8 @@ class SharedStepper:
         wp.launch(K.frame_shared_worlds, b.world_count * self.lanes,
                   inputs=[st.positions, st.velocities, self._spare[0], self._spare[1], m.particle_mass,
                           m.particle_inv_mass, m.particle_radius, self.world_gravity, m.world_particle_count,
-                          self.lanes, self.springs, self.walls, float(h), int(substeps)],
+                          self.lanes, self.springs, self.walls, float(h), int(substeps),
+                          self._no_marks if self.marks is None else self.marks],
                   block_dim=self.lanes, device=b.device)
 
     def device_bytes(self) -> int:
