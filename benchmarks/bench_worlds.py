@@ -44,6 +44,7 @@ from warpsim.bodies.softbody import add_soft_body
 from warpsim.bodies.teapot import teapot_mesh
 from warpsim.scenes import get_scene
 from warpsim.worlds import WorldBatch, sample_worlds
+from warpsim.scenes.timing import resolve_timing
 from warpsim.worlds.sweep import frame_timing
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
@@ -94,7 +95,7 @@ def build(cls, worlds, device, **kwargs):
     used = wp.get_mempool_used_mem_current(device) if device.is_cuda else 0
     t0 = time.perf_counter()
     batch = WorldBatch(cls, worlds, device=device, **kwargs)
-    batch.batch_scene.auto_substeps = False  # the scene's fixed sub-steps, as the sequential runs take
+    batch.use_timing(resolve_timing(cls, batch.params[0], substeps=cls.substeps))  # fixed sub-steps, as sequential
     wp.synchronize_device(device)
     seconds = time.perf_counter() - t0
     if device.is_cuda:
@@ -149,7 +150,7 @@ def main():
     total = 0.0
     for w in range(ks):
         scene = cls(cls.resolve_params(worlds[w]), device=device)
-        scene.auto_substeps = False  # the scene's fixed sub-steps (its stability analysis is not timed)
+        scene.use_timing(resolve_timing(cls, scene.params, substeps=cls.substeps))  # fixed: its limit is not timed
         scene.sim.check_every = 0  # the batch checks once per frame on the device; so does this run
         one = frame_runner(lambda s=scene: s.advance(frame_dt, substeps), device, cuda)
         total += timed(lambda one=one: [one() for _ in range(args.frames)], device)

@@ -69,8 +69,10 @@ def test_every_scene_validates_and_reads_back_its_simulation(name, tmp_path):
     given = cls.resolve_params(dict(cls.smoke_params))
     given = {k: given[k] for k in cls.smoke_params}
     params = cls.resolve_params(given)
-    fps, substeps, params = _timing(cls, params, given, None, None)
+    timing, params = _timing(cls, params, given, None, None)
+    fps, substeps = timing.fps, timing.steps
     scene = cls(params, device="cpu")
+    scene.use_timing(timing)
     ref_writer = UsdCacheWriter(tmp_path / "ref" / "unused.usda")
     scene.declare(ref_writer)  # declarations only: turns frame data into attribute samples
     stage = Usd.Stage.Open(str(path))
@@ -78,7 +80,7 @@ def test_every_scene_validates_and_reads_back_its_simulation(name, tmp_path):
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, frames)
     for f in range(frames + 1):
         if f:
-            scene.advance(1.0 / fps, substeps)
+            scene.advance(timing.frame_dt, substeps)
         data = scene.frame_data()
         assert set(data) == {n for n, d in ref_writer.prims.items() if d.is_dynamic}
         for prim, values in data.items():

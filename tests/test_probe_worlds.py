@@ -63,7 +63,7 @@ def test_identical_worlds_give_identical_rows_and_each_equals_its_run_alone(tmp_
     alone = cls(params, device="cpu")
     decls = UsdCacheWriter(str(tmp_path / "alone.usda"))  # the samples a cache holds (nothing is written)
     alone.declare(decls)
-    alone.frame_steps_fixed = timing["frame_steps"]  # the steps per frame the batch took (auto sub-steps)
+    alone.use_timing(alone.timing.with_steps(timing["frame_steps"]))  # the steps per frame the batch took (auto)
     _, substeps, frame_dt = frame_timing(cls, params)
     moved = 0.0
     for frame in range(frames + 1):

@@ -9,6 +9,7 @@ import warp as wp
 from warpsim.scenes import get_scene
 from warpsim.worlds import WorldBatch, sample_worlds
 from warpsim.worlds.plan import StructuralError
+from warpsim.scenes.timing import resolve_timing
 from warpsim.worlds.sweep import frame_timing
 
 # (varying the teapot's mass scales its per-vertex masses as (mass at 1 kg) x mass in float32, which
@@ -31,7 +32,8 @@ def _fixed_steps(*scenes_or_batches):
     """Sub-step counts fixed at the scene's default: auto sub-stepping follows the stiffest world
     of a batch, a scene alone its own limit (another step count, another result)."""
     for x in scenes_or_batches:
-        (getattr(x, "batch_scene", None) or x).auto_substeps = False
+        scene = getattr(x, "batch_scene", None) or x
+        scene.use_timing(resolve_timing(type(scene), scene.params, substeps=type(scene).substeps))
 
 
 def _frames(batch, frame_dt, substeps, frames):

@@ -226,5 +226,7 @@ def test_batched_worlds_have_one_limit_each():
     alone = [cls(w, device="cpu").stability().dt for w in worlds]
     np.testing.assert_allclose(per_world, alone, rtol=1e-3)
     assert per_world[0] == pytest.approx(2.0 * per_world[1], rel=0.05)  # omega ~ sqrt(k)
-    batch.batch_scene.auto_substeps = False  # the step as given
+    from warpsim.scenes.timing import resolve_timing
+
+    batch.use_timing(resolve_timing(cls, batch.params[0], substeps=1))  # the step as given
     assert batch.stability_warning(1.5 * per_world[1], 1).startswith("2 of 3 worlds step above their stability limit")

@@ -70,10 +70,14 @@ def _parser(argv=None):
                    help="frames to simulate after frame 0 (default 120; with --from-sweep: the sweep's)")
     r.add_argument("--fps", type=float, default=None, help="frames per second of the cache (default: the scene's)")
     r.add_argument("--substeps", type=substeps_arg, default=None,
-                   help="simulation steps per frame, or 'auto': as many as the stability limit needs (default: "
-                        "the scene's)")
+                   help="simulation steps per frame at the scene's frame rate, or 'auto': at least the scene's own "
+                        "count and as many as keep each step within half the stability limit (default: the "
+                        "scene's). On a scene with a dt parameter N steps split the scene's frame (dt x its own "
+                        "steps): the step becomes frame/N, a warning says it overrides dt and --strict refuses; "
+                        "with --set dt the two must agree (give --fps too) or the run is refused")
     r.add_argument("--strict", action="store_true",
-                   help="exit 2 before running when the time step is above the stability limit (default: warn)")
+                   help="exit 2 before running when the time step is above the stability limit or --substeps "
+                        "overrides the scene's dt (default: warn)")
     r.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc; default usd_out/SCENE.usda)")
@@ -123,12 +127,14 @@ def substeps_arg(text):
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number or 'auto'") from None
 
 
-def auto_substeps(cls, substeps, given) -> bool:
-    """Whether frames sub-step automatically: ``--substeps auto``, or the scene's default when
-    neither ``--substeps N`` nor ``--set dt=...`` fixed the step by hand."""
-    if substeps == "auto":
-        return True
-    return substeps is None and bool(getattr(cls, "substeps_auto", False)) and "dt" not in given
+def timing_note(timing, strict, err) -> None:
+    """The timing's note (``--substeps N`` overriding a scene's dt) as one ``warpsim: warning:``
+    line on ``err``, or with ``strict`` a :class:`UsageError` (exit 2)."""
+    if not timing.note:
+        return
+    if strict:
+        raise UsageError(f"--strict: {timing.note}")
+    print(f"warpsim: warning: {timing.note}", file=err)
 
 
 def stability_check(scene, frame_dt, substeps, strict, err) -> None:
@@ -240,25 +246,17 @@ def _parse_sets(cls, sets, integrator):
 
 
 def _timing(cls, params, given, fps, substeps):
-    """(fps, substeps, params) from the flags and the scene's defaults; see warpsim.scenes."""
-    if substeps is not None and substeps != "auto" and substeps < 1:
-        raise UsageError(f"--substeps {substeps}: it must be >= 1")
-    substeps = cls.substeps if substeps in (None, "auto") else substeps
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise UsageError(f"--fps {fps}: it must be > 0")
-    if "dt" in cls.params:
-        if fps is not None and "dt" in given:
-            if not math.isclose(1.0 / (fps * substeps), given["dt"], rel_tol=1e-9):
-                raise UsageError(f"--fps {fps:g} with {substeps} substeps means dt = {1 / (fps * substeps):g} s, "
-                                 f"but --set dt={given['dt']:g}; give one of them")
-        elif fps is not None:
-            params["dt"] = 1.0 / (fps * substeps)
-        if not params["dt"] > 0:
-            raise UsageError(f"dt={params['dt']}: it must be > 0 [s]")
-        fps = 1.0 / (params["dt"] * substeps)
-    else:
-        fps = fps or cls.fps
-    return float(f"{fps:.12g}"), substeps, params  # 1 / (0.04 * 1) -> 25, not 25.000000000000004
+    """(timing, params) from the flags and the scene's defaults: the run's
+    :class:`~warpsim.scenes.timing.FrameTiming` (see there for the rules) and ``params`` with a
+    ``dt`` parameter set to the step taken; :class:`UsageError` (exit 2) for a bad value or flags
+    that disagree."""
+    from .scenes.timing import resolve_timing
+
+    try:
+        timing = resolve_timing(cls, params, fps=fps, substeps=substeps, given=given)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    return timing, timing.scene_params(params)
 
 
 def checkpoint_path(cache_path):
@@ -329,10 +327,17 @@ def _cmd_run(args, out, err):
                 None, substeps, "auto" if auto else None):
             raise UsageError(f"--resume: the checkpoint was made at {fps:g} fps with {substeps} substeps")
         params = cls.resolve_params(given)
+        from .scenes.timing import FrameTiming
+
+        frame_dt = float(meta["frame_dt"]) if "frame_dt" in meta else \
+            params["dt"] * substeps if "dt" in params else 1.0 / fps  # checkpoints made before frame_dt was kept
+        timing = FrameTiming(fps=fps, frame_dt=frame_dt, steps=substeps, step_dt=frame_dt / substeps,
+                             chosen="auto" if auto else "by hand", fixed=not auto)
     else:
         params = cls.resolve_params(given)
-        auto = auto_substeps(cls, args.substeps, given)
-        fps, substeps, params = _timing(cls, params, given, args.fps, args.substeps)
+        timing, params = _timing(cls, params, given, args.fps, args.substeps)
+        timing_note(timing, args.strict, err)
+        fps, substeps, auto = timing.fps, timing.steps, timing.auto
     device = _device(args.device)
     try:
         scene = cls(params, device=device)
@@ -346,10 +351,10 @@ def _cmd_run(args, out, err):
                              f"{_one_line(exc)}); run again without --resume") from None
     if start > args.frames + 1:
         raise UsageError(f"--resume: the checkpoint is at frame {start - 1}, beyond --frames {args.frames}")
-    # scenes with a dt parameter step exactly dt (frame_dt / substeps); others 1 / (fps substeps);
-    # with auto sub-steps at most that, and within the stability limit
-    frame_dt = params["dt"] * substeps if "dt" in params else 1.0 / fps
-    scene.auto_substeps = auto
+    # the one timing (warpsim.scenes.timing): frames frame_dt apart, `substeps` steps each (automatic
+    # timing: at least that many, within half the stability limit)
+    frame_dt = timing.frame_dt
+    scene.use_timing(timing)
     stability_check(scene, frame_dt, substeps, args.strict, err)
     try:
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
@@ -365,6 +370,7 @@ def _cmd_run(args, out, err):
         writer.flush()  # the cache holds every frame up to the checkpoint before it exists
         save_checkpoint(ckpt_file, scene.checkpoint(), {
             "scene": cls.name, "frame": frame, "fps": fps, "substeps": substeps, "auto_substeps": auto,
+            "frame_dt": frame_dt,
             "params": {k: list(v) if isinstance(v, tuple) else v for k, v in params.items()}})
 
     progress = None

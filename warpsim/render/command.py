@@ -37,6 +37,14 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
 
     if not os.path.exists(cache):
         raise UsageError(f"cache {cache!r} does not exist; write one with 'warpsim run SCENE'")
+    from ..usd.family import check_output
+    from ..usd.lock import hold
+
+    try:
+        check_output(out, [cache], "--out")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    hold(out, "--out")  # released when the command (or, through the API, the process) ends
     from ..verbosity import set_warp_verbosity
 
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
@@ -57,7 +65,9 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
     except DamagedCacheError:
         raise  # exit 1, not a usage mistake
     except (ValueError, OSError) as exc:  # FileNotFoundError/PermissionError are OSErrors
-        raise UsageError(str(exc)) from None
+        from ..usd.pxr_errors import error_line
+
+        raise UsageError(error_line(exc)) from None
     finally:
         for bar in bars:
             bar.close()

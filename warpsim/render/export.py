@@ -401,13 +401,34 @@ def write_parts(parts, out, merge=False) -> list:
 
 
 def export_frame(cache, out, frame=None, *, surface=False, merge=False, guides=False, spacing=None,
-                 device=None) -> dict:
+                 device=None, allow_damaged=False) -> dict:
     """Export frame ``frame`` (None: the last) of ``cache`` to ``out`` (see the module docstring).
     Returns {"frame", "paths", "parts": [(name, kind, vertex count, face or segment count)]}."""
     suffix = os.path.splitext(str(out))[1].lower()
     if suffix not in FORMATS:  # before the cache is read
         raise ValueError(f"--out {str(out)!r}: unknown suffix {suffix or '(none)'!r}; write one of "
                          f"{', '.join(FORMATS)}")
+    from ..usd.family import check_output
+    from ..usd.lock import OutputLock
+    from ..usd.validate import check_damage
+
+    check_output(out, [cache], "--out")
+    if isinstance(cache, (str, os.PathLike)) and os.path.isfile(cache):
+        bad = check_damage(cache, allow_damaged, what="export")  # like render: a lost chunk is said, not skipped
+        if bad and frame is None:
+            frame = max(f for f in _readable_frames(cache) if f not in bad)
+        elif frame is not None and int(frame) in bad:
+            raise ValueError(f"--frame {frame} lies in a damaged chunk file of {os.fspath(cache)!r}; export a readable "
+                             "frame, or restore the file")
+    with OutputLock(out, "--out"):
+        return _export(cache, out, frame, surface, merge, guides, spacing, device)
+
+
+def _readable_frames(cache):
+    return frame_codes(open_stage(cache))
+
+
+def _export(cache, out, frame, surface, merge, guides, spacing, device) -> dict:
     frame, parts = read_frame(cache, frame, guides)
     if surface:
         meshed = []

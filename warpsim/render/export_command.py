@@ -19,6 +19,9 @@ def add_parser(sub):
     p.add_argument("--merge", action="store_true", help="every prim into the one file --out")
     p.add_argument("--guides", action="store_true", help="also export guide prims (pure helpers)")
     p.add_argument("--device", default=None, help="Warp device for --surface (default: CUDA when present)")
+    p.add_argument("--allow-damaged", action="store_true",
+                   help="export from a cache with damaged chunk files anyway (a frame outside them; default: the last "
+                        "readable one)")
 
 
 def run(args, out, err):
@@ -42,9 +45,14 @@ def run(args, out, err):
         device = device_arg(args.device)
     try:
         result = export_frame(args.cache, args.out, args.frame, surface=args.surface, merge=args.merge,
-                              guides=args.guides, spacing=args.spacing, device=device)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+                              guides=args.guides, spacing=args.spacing, device=device,
+                              allow_damaged=args.allow_damaged)
+    except (ValueError, OSError) as exc:
+        if getattr(exc, "exit_status", 2) != 2:
+            raise  # damaged chunk files: exit 1 (like render), naming the first and the readable frames
+        from ..usd.pxr_errors import error_line
+
+        raise UsageError(error_line(exc)) from None
     for name, kind, verts, elems in result["parts"]:
         what = {"mesh": f"{elems} triangles", "curves": f"{elems} segments", "points": "points"}[kind]
         print(f"  {name}: {kind}, {verts} vertices" + ("" if kind == "points" else f", {what}"), file=out)

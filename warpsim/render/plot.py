@@ -88,6 +88,16 @@ def cache_series(path, allow_damaged=False, on_skip=None):
 def plot_cache(path, out=None, size=(8.0, 2.6), allow_damaged=False, on_skip=None):
     """Draw :func:`cache_series` into ``out`` (default ``<cache stem>.plot.png``); returns
     ``(out, panel count)``. ValueError when there is nothing per-frame to plot."""
+    from ..usd.family import check_output
+    from ..usd.lock import OutputLock
+
+    target = out or os.path.splitext(str(path))[0] + ".plot.png"
+    check_output(target, [path], "--out")
+    with OutputLock(target, "--out"):
+        return _plot_cache(path, out, size, allow_damaged, on_skip)
+
+
+def _plot_cache(path, out, size, allow_damaged, on_skip):
     times, panels = cache_series(path, allow_damaged, on_skip)
     if not panels or len(times) < 2:
         raise ValueError(f"cache {path!r} carries no per-frame scalar data to plot (no time-sampled scalar "
@@ -153,7 +163,9 @@ def run(args, out, err):
     except DamagedCacheError as exc:
         print(f"warpsim: error: {exc}", file=err)
         return 1
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    except (ValueError, OSError) as exc:
+        from ..usd.pxr_errors import error_line
+
+        raise UsageError(error_line(exc)) from None
     print(f"wrote {path} ({n} panel{'s' if n != 1 else ''})", file=out)
     return 0

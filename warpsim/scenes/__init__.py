@@ -32,9 +32,11 @@ is imported, or through the ``warpsim.scenes`` entry-point group)::
 A parameter is ``(default, help)`` or ``(default, help, choices)``; its type comes from the
 default (bool, int, float, str, or a tuple of floats written ``x,y,z``). A ``dt`` parameter is
 the simulation step: frames are then ``dt * substeps`` apart (``--fps`` and ``--set dt`` are
-two ways to say the same thing). Scenes implement :class:`Scene`: ``build``, ``declare``,
-``frame_data``, ``advance``, and ``checkpoint``/``restore`` (for ``--checkpoint-every`` and
-``--resume``; :class:`SimulatorScene` provides all but ``build`` and ``declare``).
+two ways to say the same thing; ``--substeps N`` keeps that frame rate and splits the frame in N
+steps: see :mod:`warpsim.scenes.timing`, whose :class:`FrameTiming` every command resolves once).
+Scenes implement :class:`Scene`: ``build``, ``declare``, ``frame_data``, ``advance``, and
+``checkpoint``/``restore`` (for ``--checkpoint-every`` and ``--resume``; :class:`SimulatorScene`
+provides all but ``build`` and ``declare``).
 
 ``tests/test_cli.py`` runs every registered scene for a few frames on the CPU, validates its
 cache and compares it with an independent run; give a heavy scene a class attribute
@@ -51,8 +53,10 @@ from typing import Any, ClassVar, Optional
 import numpy as np
 
 from ..usd.prims import close_matches
+from .timing import FrameTiming, resolve_timing
 
-__all__ = ["Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "register_scene", "scenes"]
+__all__ = ["FrameTiming", "Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "register_scene",
+           "resolve_timing", "scenes"]
 
 _REGISTRY = {}
 _LOADED = False
@@ -150,8 +154,10 @@ class Scene:
     substeps: ClassVar[int] = 1
     substeps_auto: ClassVar[bool] = False
     """True for scenes whose frames sub-step automatically inside the stability limit by default
-    (``auto_substeps``; the command line turns it off when dt or --substeps N is given by hand)."""
+    (:func:`~warpsim.scenes.timing.resolve_timing` turns it off when dt or --substeps N is given
+    by hand)."""
     smoke_params: ClassVar[dict] = {}  # small parameter values for the test suite's smoke run
+    _steps_limit: Any = None  # the limit automatic steps keep inside (None: the scene's own; see use_timing)
 
     def __init__(self, params=None, device=None):
         import warp as wp
@@ -159,10 +165,28 @@ class Scene:
         self.device = wp.get_device(device)
         self.params = self.resolve_params(params or {})
         self.frame = 0
-        self.auto_substeps = bool(type(self).substeps_auto)
-        """Sub-step each frame at least ``substeps`` times and as often as half the stability limit
-        needs (see :meth:`steps_for`)."""
+        self.timing = resolve_timing(type(self), self.params, given=tuple(params or ()))
+        """The scene's :class:`~warpsim.scenes.timing.FrameTiming` (its defaults until a command or
+        a batch gives it one with :meth:`use_timing`); with ``timing.auto`` each frame takes at
+        least ``substeps`` steps and as many as half the stability limit needs (:meth:`steps_for`)."""
+        self._steps_limit = None
         self.build(self.params)
+
+    @property
+    def auto_substeps(self) -> bool:
+        """Whether frames sub-step automatically (``self.timing.auto``; give the scene another
+        timing with :meth:`use_timing` to change it)."""
+        return self.timing.auto
+
+    def use_timing(self, timing, *, limit=None):
+        """Time the frames to come by ``timing`` (a :class:`~warpsim.scenes.timing.FrameTiming` from
+        :func:`~warpsim.scenes.timing.resolve_timing`; a fixed automatic count, e.g. the one a
+        whole sweep took, is used as it is). ``limit``: the ``ws.StabilityLimit`` automatic steps
+        keep inside (a batch of worlds gives its stiffest world's), None: the scene's own.
+        Returns the timing with the steps a frame takes now."""
+        self.timing = timing
+        self._steps_limit = limit
+        return timing if timing.fixed else timing.with_steps(self.frame_steps(timing.frame_dt, timing.steps))
 
     def stability(self):
         """The ``ws.StabilityLimit`` of the scene's simulator (``self.sim``, linearised about its
@@ -186,20 +210,31 @@ class Scene:
         return limit.warning(h) if limit.exceeded_by(h) else None
 
     def steps_for(self, frame_dt, substeps) -> int:
-        """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with ``auto_substeps`` (or
-        ``substeps="auto"``) at least that many and enough to keep each step within
-        ``warpsim.core.stability.AUTO_SAFETY`` x the limit of ``self.sim`` (computed once about the
-        initial positions, again after a parameter change). ``self.frame_steps_fixed`` (an int, set
-        by a re-run of one world of a sweep) overrides both: the count the whole batch took."""
-        fixed = getattr(self, "frame_steps_fixed", None)
-        if fixed is not None:
-            return int(fixed)
-        auto = substeps == "auto" or self.auto_substeps
-        base = 1 if substeps == "auto" else int(substeps)
+        """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with automatic timing
+        (``self.timing.auto``, or ``substeps="auto"``: at least one step) at least that many and
+        enough to keep each step within ``warpsim.core.stability.AUTO_SAFETY`` x the stability
+        limit (:meth:`auto_steps`; a fixed automatic timing, e.g. the count a whole sweep took,
+        gives its count)."""
+        timing = self.timing
+        if substeps == "auto":
+            return self.auto_steps(frame_dt, 1)
+        if not timing.auto:
+            return int(substeps)
+        if timing.fixed:
+            return timing.steps
+        return self.auto_steps(frame_dt, int(substeps))
+
+    def auto_steps(self, frame_dt, minimum) -> int:
+        """Steps (at least ``minimum``) keeping each step of a frame of ``frame_dt`` [s] within
+        ``AUTO_SAFETY`` x the limit: the one :meth:`use_timing` was given, else that of
+        ``self.sim`` (computed once about the initial positions, again after a parameter change);
+        ``minimum`` for scenes without a limit."""
+        if self._steps_limit is not None:
+            return self._steps_limit.substeps_for(frame_dt, minimum=int(minimum))
         sim: Any = getattr(self, "sim", None)
-        if not auto or not hasattr(sim, "auto_substeps"):
-            return base
-        return sim.auto_substeps(frame_dt, minimum=base)
+        if not hasattr(sim, "auto_substeps"):
+            return int(minimum)
+        return sim.auto_substeps(frame_dt, minimum=int(minimum))
 
     @classmethod
     def resolve_params(cls, given):

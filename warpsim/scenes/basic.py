@@ -87,9 +87,11 @@ class PendulumScene(Scene):
     def stability(self):
         return self.pendulum.stability()
 
+    def auto_steps(self, frame_dt, minimum):
+        return self.pendulum.stability().substeps_for(frame_dt, minimum=int(minimum))
+
     def advance(self, frame_dt, substeps):
-        if substeps == "auto" or self.auto_substeps:
-            substeps = self.pendulum.stability().substeps_for(frame_dt, minimum=1 if substeps == "auto" else substeps)
+        substeps = self.frame_steps(frame_dt, substeps)  # automatic timing: inside the pendulum's limit
         for _ in range(substeps):
             self.pendulum.step(frame_dt / substeps)
         q = self.pendulum.angle.numpy()

@@ -91,10 +91,11 @@ class ChunkStats:
         return out
 
 
-def record(path, start, end, stats):
-    """The index line of the chunk file at ``path`` holding frames ``start..end``."""
+def record(path, start, end, stats, run=None):
+    """The index line of the chunk file at ``path`` holding frames ``start..end``, written by the
+    run named ``run`` (the writer's run id, also in the root layer; None: not recorded)."""
     size, crc = file_digest(path)
-    return {
+    rec = {
         "file": os.path.basename(path),
         "start": int(start),
         "end": int(end),
@@ -102,6 +103,31 @@ def record(path, start, end, stats):
         "crc32": crc,
         "prims": stats.to_json(),
     }
+    if run is not None:
+        rec["run"] = str(run)
+    return rec
+
+
+def _whole(value, low=0):
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def record_problem(rec) -> str | None:
+    """What is wrong with the fields of one index line (None when every field is well formed)."""
+    for key in ("start", "end", "bytes", "crc32"):
+        if key not in rec:
+            return f"field {key!r} is missing"
+        if not _whole(rec[key]):
+            return f"field {key!r} is {rec[key]!r}, not a whole number >= 0"
+    if rec["end"] < rec["start"]:
+        return f"field 'end' {rec['end']} is before 'start' {rec['start']}"
+    if rec["crc32"] >= 1 << 32:
+        return f"field 'crc32' {rec['crc32']} is not a CRC-32"
+    if not isinstance(rec.get("prims", {}), dict):
+        return f"field 'prims' is {type(rec['prims']).__name__}, not an object"
+    if "run" in rec and not (isinstance(rec["run"], str) and rec["run"].isalnum()):
+        return f"field 'run' is {rec['run']!r}, not a run id"
+    return None
 
 
 def append_record(index_file, rec, durable=True):
@@ -127,7 +153,9 @@ def write_index(index_file, records, durable=True):
 
 def read_index(index_file):
     """{chunk file name: record} from an index (None if there is no index); unreadable lines
-    (a torn last line) are skipped."""
+    (a torn last line) are skipped. A line naming its file whose other fields are malformed (a
+    tampered index) is kept as ``{"file": ..., "damaged": why}``, which :func:`chunk_problem`
+    reports."""
     try:
         with open(index_file, encoding="utf-8", errors="replace") as f:
             lines = f.read().splitlines()
@@ -137,9 +165,13 @@ def read_index(index_file):
     for line in lines:
         try:
             rec = json.loads(line)
-            out[rec["file"]] = rec
+            name = rec["file"]
         except (ValueError, KeyError, TypeError):
             continue
+        if not isinstance(name, str):
+            continue
+        why = record_problem(rec)
+        out[name] = rec if why is None else {"file": name, "damaged": why}
     return out
 
 
@@ -154,6 +186,8 @@ def chunk_problem(dirname, fname, rec, verify=True):
         return "missing"
     except OSError as exc:
         return f"unreadable ({exc.strerror})"
+    if rec is not None and "damaged" in rec:
+        return f"listed by a damaged chunk index line ({rec['damaged']})"
     if rec is None:
         from pxr import Sdf
 

@@ -224,12 +224,16 @@ def chunk_health(path, verify=None):
     records = chunk_index.read_index(index_file)
     if records is not None and verify is None:
         verify = sum(r.get("bytes", 0) for r in records.values()) <= 256 << 20
+    run = dict(layer.customLayerData.get("warpsim", {})).get("run")
     damaged = []
     for start, end, fname in chunks:
         rec = None if records is None else records.get(fname)
         why = chunk_index.chunk_problem(dirname, fname, rec, verify=bool(verify))
         if why is None and records is not None and rec is None:
             why = "not in the chunk index"
+        if why is None and rec is not None and run and rec.get("run") not in (None, run):
+            why = (f"written by another run ({rec['run']}; the root layer's is {run}): two processes wrote this "
+                   "cache at once; run it again")
         if why:
             damaged.append((fname, start, end, why))
     checked = "opened in USD" if records is None else "size and CRC-32" if verify else "size"
@@ -240,6 +244,8 @@ def chunk_health(path, verify=None):
 class DamagedCacheError(ValueError):
     """A cache with damaged chunk files, read without ``allow_damaged`` (exit status 1 on the
     command line). ``report`` holds ``damaged`` [(file, start, end, why)] and ``readable``."""
+
+    exit_status = 1
 
     def __init__(self, message, report):
         super().__init__(message)

@@ -39,10 +39,12 @@ from __future__ import annotations
 import glob
 import operator
 import os
+import secrets
 
 import numpy as np
 
 from . import chunk_index
+from .lock import OutputLock
 from .prims import ARRAY_TYPES, close_matches
 from .sink import PrimSink, state_frame_data
 
@@ -157,6 +159,8 @@ class UsdCacheWriter(PrimSink):
         self._chunk = None
         self._sealed = False
         self._closed = False
+        self._lock = None  # the output's lock (warpsim.usd.lock), held from begin() to close()
+        self.run_id = secrets.token_hex(6)  # names this run in the root layer and every index line
 
     # ------------------------------------------------------------------ declarations
     # add_points, add_mesh, add_curves, add_instancer, add_static_mesh, add_plane, add_box,
@@ -225,12 +229,16 @@ class UsdCacheWriter(PrimSink):
         """Complete the last (partial) chunk, flatten if asked; returns the path to open."""
         if self._closed:
             return self.output_path
-        if not self._sealed:
-            self._seal()
-        self.flush()
-        self._closed = True
-        if self.flatten:
-            self.output_path = self._flatten()
+        try:
+            if not self._sealed:
+                self._seal()
+            self.flush()
+            self._closed = True
+            if self.flatten:
+                self.output_path = self._flatten()
+        finally:
+            if self._closed and self._lock is not None:
+                self._lock.release()
         return self.output_path
 
     def __enter__(self):
@@ -276,18 +284,25 @@ class UsdCacheWriter(PrimSink):
     def _seal(self):
         """Freeze declarations; write the manifest and the first root layer."""
         os.makedirs(self.dirname, exist_ok=True)
-        # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
-        # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
-        for tmp in glob.glob(self._abs(glob.escape(self.stem) + ".*tmp-*")):
-            os.remove(tmp)
-        self._sealed = True
-        self._export_atomic(self._build_layer(manifest=True), self._abs(self._file("manifest")))
-        if self.resume_frame is not None:
-            self._load_for_resume(self.resume_frame)
-        else:
-            chunk_index.write_index(self._index_file, [], self.durable)
-        self._write_root()
-        self._remove_unlisted_chunks()
+        if self._lock is None:  # one writer per cache: another process writing it is refused here
+            self._lock = OutputLock(self.path).acquire()
+        try:
+            # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
+            # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
+            for tmp in glob.glob(self._abs(glob.escape(self.stem) + ".*tmp-*")):
+                os.remove(tmp)
+            self._sealed = True
+            self._export_atomic(self._build_layer(manifest=True), self._abs(self._file("manifest")))
+            if self.resume_frame is not None:
+                self._load_for_resume(self.resume_frame)
+            else:
+                chunk_index.write_index(self._index_file, [], self.durable)
+            self._write_root()
+            self._remove_unlisted_chunks()
+        except BaseException:
+            self._lock.release()  # nothing of this run was written: the cache stays free for another writer
+            self._lock = None
+            raise
 
     def _remove_unlisted_chunks(self):
         keep = {c[2] for c in self.chunks}
@@ -350,7 +365,7 @@ class UsdCacheWriter(PrimSink):
         chunk.layer = None  # release the layer (and its file mapping) before renaming
         self._replace(chunk.tmp_path, chunk.final_path)
         chunk_index.append_record(self._index_file, chunk_index.record(chunk.final_path, chunk.start, chunk.end,
-                                                                        chunk.stats), self.durable)
+                                                                        chunk.stats, self.run_id), self.durable)
         self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
         self._write_root()
 
@@ -414,7 +429,7 @@ class UsdCacheWriter(PrimSink):
         layer.framesPerSecond = self.fps
         layer.pseudoRoot.SetInfo("upAxis", "Y")
         layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
-        layer.customLayerData = {"warpsim": {"chunkSize": self.chunk_size,
+        layer.customLayerData = {"warpsim": {"chunkSize": self.chunk_size, "run": self.run_id,
                                              "chunkIndex": os.path.basename(self._index_file),
                                              "chunkEnds": Vt.IntArray([c[1] for c in self.chunks])}}
         if self.chunks:
@@ -446,6 +461,8 @@ class UsdCacheWriter(PrimSink):
             raise ValueError(f"cannot resume at frame {resume_frame}: {self.path} does not exist")
         old = Sdf.Layer.OpenAsAnonymous(self.path)
         data = dict(old.customLayerData.get("warpsim", {}))
+        if isinstance(data.get("run"), str) and data["run"].isalnum():
+            self.run_id = data["run"]  # a resumed run continues the cache's run
         world = self._clip_prim(old)
         clips = dict(world.GetInfo("clips")).get("default") if world and world.HasInfo("clips") else None
         if not clips or "chunkEnds" not in data:
@@ -469,10 +486,10 @@ class UsdCacheWriter(PrimSink):
         if last >= resume_frame:  # truncate the chunk that runs past the resume point
             chunks[-1][1] = resume_frame - 1
             stats = self._copy_chunk(chunks[-1], self._abs(chunks[-1][2]), resume_frame - 1)
-            records[chunks[-1][2]] = chunk_index.record(self._abs(chunks[-1][2]), *chunks[-1][:2], stats)
+            records[chunks[-1][2]] = chunk_index.record(self._abs(chunks[-1][2]), *chunks[-1][:2], stats, self.run_id)
         for s, e, f in chunks:  # caches written before the index existed get one now
             if f not in records:
-                records[f] = chunk_index.record(self._abs(f), s, e, self._copy_chunk([s, e, f], None, e))
+                records[f] = chunk_index.record(self._abs(f), s, e, self._copy_chunk([s, e, f], None, e), self.run_id)
         chunk_index.write_index(self._index_file, [records[f] for s, e, f in chunks], self.durable)
         self.chunks = chunks
         self.last_frame = resume_frame - 1

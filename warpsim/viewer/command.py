@@ -23,9 +23,11 @@ def add_parser(sub):
     v.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     v.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
     v.add_argument("--substeps", type=cli.substeps_arg, default=None,
-                   help="simulation steps per frame, or 'auto' (default: the scene's)")
+                   help="simulation steps per frame at the scene's frame rate, or 'auto' (default: the scene's; "
+                        "as 'warpsim run --help' says)")
     v.add_argument("--strict", action="store_true",
-                   help="exit 2 before serving when the time step is above the stability limit (default: warn)")
+                   help="exit 2 before serving when the time step is above the stability limit or --substeps "
+                        "overrides the scene's dt (default: warn)")
     v.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     v.add_argument("--max-points", type=int, default=200_000,
@@ -89,7 +91,7 @@ def build(args):
         raise cli.UsageError(str(exc)) from None
     given = cli._parse_sets(cls, args.sets, args.integrator)
     params = cls.resolve_params(given)
-    _, _, params = cli._timing(cls, params, given, args.fps, args.substeps)
+    cli._timing(cls, params, given, args.fps, args.substeps)  # flags that disagree: one line, exit 2, before serving
     device = cli._device(args.device)
     try:
         return Viewer(cls, params, device, host=args.host, port=args.port, fps=args.fps, substeps=args.substeps,
@@ -126,6 +128,7 @@ def run(args, out, err):
         from ..core.stability import StabilityWarning
 
         warnings.simplefilter("ignore", StabilityWarning)  # said once here; the page shows the limit
+        cli.timing_note(session.timing, getattr(args, "strict", False), err)
         cli.stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
     try:
         viewer.start()

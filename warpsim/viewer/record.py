@@ -36,6 +36,9 @@ class Recorder:
     def __init__(self, scene, path, fps, chunk_size=24):
         if os.path.splitext(str(path))[1] not in ROOT_EXTENSIONS:
             raise ValueError(f"recording path {path!r} must end in .usd, .usda or .usdc")
+        from ..usd.family import check_output
+
+        check_output(path, (), "recording path")  # never a chunk, batch layer or table of another result
         self.writer = UsdCacheWriter(path, fps=fps, chunk_size=chunk_size)
         scene.declare(self.writer)
         self.writer.begin()

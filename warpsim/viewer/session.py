@@ -21,6 +21,7 @@ import numpy as np
 from ..bodies.drag import DragSpring
 from ..core.errors import SimulationError
 from ..scenes import parse_value
+from ..scenes.timing import resolve_timing
 from .picking import camera_plane_target, pick_mesh_vertex, pick_point
 from .record import Recorder, default_recording_path
 from .sink import ViewerSink
@@ -37,15 +38,12 @@ STABLE_FRAMES = 60
 after a blow-up returns to it)."""
 
 
-def frame_timing(cls, params, fps=None, substeps=None):
-    """(frame_dt [s], substeps, fps) of a scene class with resolved ``params`` (as ``warpsim run``;
-    ``substeps="auto"`` counts as the scene's own number, the minimum of the automatic ones)."""
-    substeps = int(cls.substeps if substeps in (None, "auto") else substeps)
-    if "dt" in params:
-        frame_dt = float(params["dt"]) * substeps
-    else:
-        frame_dt = 1.0 / float(fps or cls.fps)
-    return frame_dt, substeps, float(f"{1.0 / frame_dt:.12g}")
+def frame_timing(cls, params, fps=None, substeps=None, given=()):
+    """(frame_dt [s], substeps, fps) of a scene class with resolved ``params``: the
+    :class:`~warpsim.scenes.timing.FrameTiming` ``warpsim run`` resolves, as a tuple
+    (``substeps="auto"``: the scene's own number, the fewest of the automatic ones)."""
+    t = resolve_timing(cls, params, fps=fps, substeps=substeps, given=given)
+    return t.frame_dt, t.steps, t.fps
 
 
 class Session:
@@ -91,16 +89,25 @@ class Session:
         self._build(scene)
 
     # ------------------------------------------------------------------ building
+    def _timing(self):
+        """The session's :class:`~warpsim.scenes.timing.FrameTiming`, resolved as ``warpsim run``
+        does from the parameters, ``fps`` and ``substeps``. A dt set on the page is the step, and
+        frames are dt x the steps a frame apart (--fps then follows: the page changes the step)."""
+        fps = self.fps_arg
+        if self.dt_by_hand and "dt" in self.cls.params:
+            steps = self.substeps_arg if isinstance(self.substeps_arg, int) else self.cls.substeps
+            fps = 1.0 / (float(self.params["dt"]) * steps)
+        return resolve_timing(self.cls, self.params, fps=fps, substeps=self.substeps_arg,
+                              given=("dt",) if self.dt_by_hand else ())
+
     def _build(self, scene=None):
         self._close_recording("the scene was rebuilt")
         if scene is None:
-            scene = self.cls(dict(self.params), device=self.device)
+            scene = self.cls(self._timing().scene_params(self.params), device=self.device)
         self.scene = scene
-        self.frame_dt, self.substeps, self.fps = frame_timing(self.cls, self.params, self.fps_arg, self.substeps_arg)
-        if self.substeps_arg == "auto":
-            scene.auto_substeps = True
-        elif self.dt_by_hand or self.substeps_arg is not None:
-            scene.auto_substeps = False
+        self.timing = self._timing()
+        self.frame_dt, self.substeps, self.fps = self.timing.frame_dt, self.timing.steps, self.timing.fps
+        scene.use_timing(self.timing)
         self.exploding = None
         self._clamping = False
         self._frames_since_change = 0
@@ -140,7 +147,7 @@ class Session:
         with self.lock:
             dt = float(self.params["dt"]) if "dt" in self.params else self.frame_dt / self.substeps
             limit = self.limit
-            auto = bool(getattr(self.scene, "auto_substeps", False))
+            auto = self.timing.auto
             known = limit is not None and math.isfinite(limit.dt)
             return {"dt": dt, "step": self.step_dt, "limit": limit.dt if limit is not None else None, "auto": auto,
                     "exceeded": bool(known and limit.exceeded_by(self.step_dt)),

@@ -363,12 +363,37 @@ class WorldBatch:
             vars(stand_in).pop(name, None)
         return stand_in
 
+    def world_limits(self) -> list:
+        """:meth:`stability` computed once (the worlds' limits about their initial positions)."""
+        if getattr(self, "_world_limits", None) is None:
+            self._world_limits = self.stability()
+        return self._world_limits
+
+    def auto_steps(self, frame_dt, minimum=1) -> int:
+        """Steps a frame of ``frame_dt`` [s] takes with automatic timing: the max over the worlds
+        of each world's own count (at least ``minimum``, within ``AUTO_SAFETY`` x its own limit
+        from its own stiffness, masses and damping), so every world's step is <= 0.5 x its limit
+        and the count depends on no world but the one needing the most."""
+        return max(limit.substeps_for(frame_dt, minimum=int(minimum)) for limit in self.world_limits())
+
+    def use_timing(self, timing):
+        """Step the frames to come by ``timing`` (a :class:`~warpsim.scenes.timing.FrameTiming`):
+        with automatic timing not yet fixed, each frame takes the steps of the world needing the
+        most (:meth:`auto_steps`; the scene's own rule on top, e.g. cloth's steps per sub-step).
+        Returns the timing with the steps a frame takes."""
+        limit = None
+        if timing.auto and not timing.fixed:
+            frame_dt = timing.frame_dt
+            limit = max(self.world_limits(), key=lambda lim: lim.substeps_for(frame_dt, minimum=1))
+        return self.batch_scene.use_timing(timing, limit=limit)
+
     def stability_warning(self, frame_dt, substeps):
         """One line naming the worlds whose step is above their limit (None when none is)."""
         from ..core.stability import worlds_warning
 
         labels = [", ".join(f"{k}={p[k]}" for k in self.varied) for p in self.params]
-        return worlds_warning(self.stability(), frame_dt / self.batch_scene.frame_steps(frame_dt, substeps), labels)
+        step = frame_dt / self.batch_scene.frame_steps(frame_dt, substeps)
+        return worlds_warning(self.world_limits(), step, labels)
 
     def world_slices(self):
         """Host copies (N, P, 3) of the positions and velocities."""

@@ -209,7 +209,8 @@ def run(args, out, err):
                 worlds *= len(parse_vary(v, cls.params).values)
         world_params = sample_worlds(cls.name, fixed, args.vary, worlds, args.sample, args.seed)
         base = cls.resolve_params(world_params[0])
-        fps, _, _ = _timing(cls, base, args.fps, None if args.substeps == "auto" else args.substeps)
+        timing = _timing(cls, world_params, args.fps, args.substeps)  # the one FrameTiming of every world
+        fps = timing.fps
         track = resolve_track(cls, base, args.track, "cpu") if args.track else None
     except ValueError as exc:
         raise usage(str(exc)) from None
@@ -241,6 +242,8 @@ def run(args, out, err):
     from ..core.stability import StabilityWarning
 
     warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
+    if timing.note:  # --substeps N overriding the scene's dt (--strict: refused)
+        _stability_warning(timing.note, args.strict, err)
     if getattr(args, "ray", None) is None and devices is None:  # several devices: checked per block
         try:
             _check_memory(cls, base, len(world_params), device)
@@ -413,14 +416,16 @@ def _regions(args, fps):
     return regions, {"resolution": res, "bounds": bounds}
 
 
-def _timing(cls, params, fps, substeps):
+def _timing(cls, world_params, fps, substeps):
+    """The sweep's :class:`~warpsim.scenes.timing.FrameTiming` (``warpsim.worlds.sweep.sweep_timing``);
+    flags that disagree: a usage error (exit 2)."""
     from .. import cli
-    from .sweep import frame_timing
+    from .sweep import sweep_timing
 
     try:
-        return frame_timing(cls, params, fps, substeps)
+        return sweep_timing(cls, world_params, fps, substeps)
     except ValueError as exc:
-        raise cli.UsageError(f"--fps/--substeps: {exc}") from None
+        raise cli.UsageError(str(exc)) from None
 
 
 def _is_usage(exc):

@@ -25,17 +25,18 @@ def add_parser(sub):
     s.add_argument("--out", required=True, help="file to write (.usd, .usda or .usdc)")
     s.add_argument("--flatten", action="store_true",
                    help="copy the world's samples into the file (self-contained) instead of referencing the batch")
+    s.add_argument("--allow-damaged", action="store_true",
+                   help="pick from a sweep whose batch layer has damaged chunk files anyway (their frames are missing)")
     return s
 
 
-def pick_world(root, world, out_path, flatten=False) -> str:
+def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str:
     """Write world ``world`` of the sweep root ``root`` to ``out_path`` (see the module
     docstring) and return its absolute path. ValueError / FileNotFoundError (one line) for a
-    root that is not a sweep's, a world it does not hold, an ``out_path`` that is not USD."""
-    from pxr import Sdf, Usd
-
+    root that is not a sweep's, a world it does not hold, an ``out_path`` that is not USD or one
+    of the sweep's own files; :class:`warpsim.usd.validate.DamagedCacheError` (exit 1) when the
+    world's batch layer has damaged or missing chunk files (checked like ``warpsim info``)."""
     from .roots import sweep_root_files
-    from .usd import world_prim_name
 
     files = sweep_root_files(root)
     owner = dict(files["worlds"])
@@ -50,7 +51,30 @@ def pick_world(root, world, out_path, flatten=False) -> str:
         raise ValueError(f"--out {out_path!r} must end in .usd, .usda or .usdc")
     if os.path.isdir(out_path):
         raise ValueError(f"--out {out_path!r} is a folder; name a file in it")
-    batch = Sdf.Layer.FindOrOpen(owner[world])
+    from ..usd.family import check_output
+    from ..usd.lock import OutputLock
+
+    from ..usd.validate import check_damage
+
+    check_output(out_path, [root, *sorted(set(owner.values()))], "--out")
+    if os.path.isfile(owner[world]):  # (a missing layer is said below)
+        check_damage(owner[world], allow_damaged, what="pick")
+    with OutputLock(out_path, "--out"):
+        return _write_pick(root, world, owner, out_path, flatten)
+
+
+def _write_pick(root, world, owner, out_path, flatten) -> str:
+    from pxr import Sdf, Usd
+
+    from .usd import world_prim_name
+
+    from ..usd.pxr_errors import pxr_reason
+
+    try:
+        batch = Sdf.Layer.FindOrOpen(owner[world])
+    except Exception as exc:  # noqa: BLE001  (Tf.ErrorException: a truncated or damaged batch layer)
+        raise ValueError(f"batch layer {owner[world]} of world {world} does not open ({pxr_reason(exc, 120)}); "
+                         "run the sweep again") from None
     if batch is None:
         raise FileNotFoundError(f"batch layer {owner[world]} of world {world} is missing; run the sweep again")
     folder = os.path.dirname(out_path)
@@ -75,14 +99,20 @@ def pick_world(root, world, out_path, flatten=False) -> str:
         asset = "./" + asset
     spec.referenceList.Prepend(Sdf.Reference(asset, f"/Worlds/{world_prim_name(world)}"))
     layer.customLayerData = {"warpsim": {"pickedWorld": world, "sweepRoot": os.path.abspath(os.fspath(root))}}
-    if flatten:
-        result = Usd.Stage.Open(layer).Flatten()
-        result.defaultPrim = "World"
-        result.customLayerData = dict(layer.customLayerData)
-    else:
-        result = layer
     tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
-    if not result.Export(tmp):
+    try:
+        if flatten:
+            result = Usd.Stage.Open(layer).Flatten()
+            result.defaultPrim = "World"
+            result.customLayerData = dict(layer.customLayerData)
+        else:
+            result = layer
+        written = result.Export(tmp)
+    except Exception as exc:  # noqa: BLE001  (Tf.ErrorException, often with an empty message)
+        why = pxr_reason(exc, 120) if str(exc).strip() else "USD gave no reason"
+        raise PermissionError(f"could not write {out_path} ({why}); check the folder is writable and the sweep's "
+                              "files are intact") from None
+    if not written:
         raise PermissionError(f"could not write {out_path}; check the folder is writable")
     os.replace(tmp, out_path)
     return out_path
@@ -91,10 +121,14 @@ def pick_world(root, world, out_path, flatten=False) -> str:
 def run(args, out, err):
     from .. import cli
 
+    from ..usd.pxr_errors import error_line
+
     try:
-        path = pick_world(args.root, args.world, args.out, flatten=args.flatten)
-    except (FileNotFoundError, ValueError) as exc:
-        raise cli.UsageError(str(exc)) from None
+        path = pick_world(args.root, args.world, args.out, flatten=args.flatten, allow_damaged=args.allow_damaged)
+    except (OSError, ValueError) as exc:
+        if getattr(exc, "exit_status", 2) != 2:
+            raise  # a damaged sweep: exit 1
+        raise cli.UsageError(error_line(exc)) from None
     print(f"world {args.world} of {os.path.relpath(os.path.abspath(args.root))}: {os.path.relpath(path)}"
           f"{' (flattened)' if args.flatten else ''}", file=out)
     return 0

@@ -69,11 +69,11 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
     from .._version import __version__
     from ..scenes import get_scene
 
-    from .sweep import frame_timing
+    from .sweep import sweep_timing
 
     cls = get_scene(scene_name)
-    base = None if substeps == "auto" else substeps
-    run_fps, run_substeps, _ = frame_timing(cls, cls.resolve_params(_typed(cls, world_params[0])), fps, base)
+    timing = sweep_timing(cls, _typed(cls, world_params[0]), fps, substeps)
+    run_fps, run_substeps = timing.fps, timing.steps
     data = {"format": FORMAT, "version": MANIFEST_VERSION, "warpsim": __version__, "scene": cls.name,
             "defaults": scene_defaults(cls), "frames": int(frames),
             "fps": None if fps is None else float(fps),
@@ -186,29 +186,24 @@ def _frame_steps(manifest, fps, substeps):
 
 
 def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False):
-    """The steps per frame :func:`warpsim.worlds.sweep.run_batch` takes for these worlds (as given
-    to it) when it sub-steps automatically: the stiffest world's limit decides, so the sweep's
-    batch is built (not run) to find them. None when the count is fixed (the settings give it)."""
+    """The steps per frame every world of a sweep takes with automatic timing, from all its
+    worlds' parameters (as given to :func:`warpsim.worlds.sweep.run_batch`): the max over the
+    worlds of each world's own count (``WorldBatch.auto_steps``: every world's step <= 0.5 x its
+    own limit), so a sweep split into batches or devices afterwards steps every block alike (give
+    each ``run_batch(frame_steps=...)``). The sweep's batch is built, not run. None when the
+    count is fixed (the settings give it) or the scene has no step limit (flocks)."""
     from ..scenes import get_scene
-    from .sweep import frame_timing, make_batch
+    from .sweep import make_batch, sweep_timing, timed_params
 
     cls = get_scene(scene_name)
     world_params = [_typed(cls, p) for p in world_params]
-    fps_given = fps
-    fps, count, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps,
-                                        None if substeps == "auto" else substeps)
-    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
-                                  and "dt" not in world_params[0])  # run_batch's rule
-    if not auto:
+    timing = sweep_timing(cls, world_params, fps, substeps)
+    if not timing.auto:
         return None
-    if "dt" in cls.params and fps_given is not None:
-        world_params = [{**p, "dt": frame_dt / count} for p in world_params]
-    batch = make_batch(cls, world_params, device=device, fused=fused)
-    scene = getattr(batch, "batch_scene", None)
-    if scene is None:  # flocks: no sub-step limit
+    batch = make_batch(cls, timed_params(cls, world_params, timing), device=device, fused=fused)
+    if getattr(batch, "batch_scene", None) is None:  # flocks: no sub-step limit
         return None
-    scene.auto_substeps = True
-    return int(scene.frame_steps(frame_dt, count))
+    return int(batch.use_timing(timing).steps)
 
 
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
@@ -222,22 +217,18 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     from ..usd.writer import UsdCacheWriter
     from .agents import is_agent_scene
     from .batch import WorldBatch
-    from .sweep import frame_timing
+    from .sweep import sweep_timing, timed_params
 
     cls = get_scene(scene_name)
     world_params = [_typed(cls, p) for p in world_params]
     world = _check_world(world, len(world_params), "given")
     if is_agent_scene(cls):
         raise ValueError(f"scene {cls.name!r} is a flock: re-running one of its worlds alone is not supported")
-    fps_given = fps
-    auto = substeps == "auto"
-    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, None if auto else substeps)
-    if "dt" in cls.params and fps_given is not None:  # as run_batch does
-        world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
+    timing = sweep_timing(cls, world_params, fps, substeps)  # the sweep's one FrameTiming, as run_batch
+    fps, substeps, frame_dt = timing.fps, timing.steps, timing.frame_dt
+    world_params = timed_params(cls, world_params, timing)
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
-    batch.batch_scene.frame_steps_fixed = frame_steps
-    if auto:
-        batch.batch_scene.auto_substeps = True
+    batch.use_timing(timing if frame_steps is None else timing.with_steps(int(frame_steps)))
     writer = UsdCacheWriter(out, fps=fps)
     batch.scene.declare(writer)
     writer.begin()
@@ -367,11 +358,11 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
         raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
     manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
                 "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
-    from .sweep import frame_timing
+    from .sweep import sweep_timing
 
     try:
-        manifest["run_fps"], manifest["run_substeps"], _ = frame_timing(
-            cls, cls.resolve_params(world_params[0]), args.fps, None if args.substeps == "auto" else args.substeps)
+        timing = sweep_timing(cls, world_params, args.fps, args.substeps)
+        manifest["run_fps"], manifest["run_substeps"] = timing.fps, timing.steps
         # automatic sub-steps follow the sweep's stiffest world: found as the sweep finds them
         manifest["frame_steps"] = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps,
                                                     device=device, fused=bool(args.fused))

@@ -3,18 +3,18 @@ and the Ray driver (``warpsim.distributed``) share, so both give the same worlds
 from __future__ import annotations
 
 import csv
-import math
 import os
 
 import numpy as np
 import warp as wp
 
+from ..scenes.timing import resolve_timing
 from .batch import WorldBatch
 from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
 from .usd import BatchLayerWriter
 
-__all__ = ["frame_timing", "make_batch", "run_batch", "sample_worlds", "write_table"]
+__all__ = ["frame_timing", "make_batch", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
 
 
 def _typed_fixed(cls, fixed):
@@ -50,24 +50,29 @@ def sample_worlds(scene_name, fixed, vary, n, sample="grid", seed=0) -> list:
     return [{**fixed, **v} for v in varied]
 
 
-def frame_timing(cls, params, fps=None, substeps=None):
-    """(fps, substeps, frame_dt [s]) as ``warpsim run`` picks them: a scene with a ``dt``
-    parameter steps exactly dt, ``substeps`` times a frame (``fps`` then sets dt)."""
-    if substeps is not None and int(substeps) < 1:
-        raise ValueError(f"substeps {substeps}: it must be >= 1")
-    substeps = int(substeps or cls.substeps)
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps {fps}: it must be > 0")
-    if "dt" in cls.params:
-        dt = 1.0 / (fps * substeps) if fps is not None else float(params.get("dt", cls.params["dt"].default))
-        if not dt > 0:
-            raise ValueError(f"dt={dt}: it must be > 0 [s]")
-        frame_dt = dt * substeps
-        fps = float(f"{1.0 / frame_dt:.12g}")
-    else:
-        fps = float(fps or cls.fps)
-        frame_dt = 1.0 / fps
-    return fps, substeps, frame_dt
+def frame_timing(cls, params, fps=None, substeps=None, given=()):
+    """(fps, substeps, frame_dt [s]) as ``warpsim run`` picks them: the
+    :class:`~warpsim.scenes.timing.FrameTiming` of :func:`~warpsim.scenes.timing.resolve_timing`
+    as a tuple (``substeps="auto"``: the scene's own count, the fewest automatic steps)."""
+    t = resolve_timing(cls, params, fps=fps, substeps=substeps, given=given)
+    return t.fps, t.steps, t.frame_dt
+
+
+def sweep_timing(cls, world_params, fps=None, substeps=None):
+    """The one :class:`~warpsim.scenes.timing.FrameTiming` of a sweep's worlds (``world_params``:
+    one dict per world as given, or the first world's; the keys given are set by hand, a ``dt``
+    among them too). ValueError (one line) for flags that disagree."""
+    first = world_params if isinstance(world_params, dict) else world_params[0]
+    return resolve_timing(cls, cls.resolve_params(first), fps=fps, substeps=substeps, given=tuple(first))
+
+
+def timed_params(cls, world_params, timing) -> list:
+    """The worlds' parameters with ``dt`` set to the step ``timing`` takes where it overrides the
+    scene's dt (``--fps``, or ``--substeps N`` on a scene with a dt parameter), as run_batch does."""
+    first = cls.resolve_params(world_params[0])
+    if timing.scene_params(first) == first:
+        return list(world_params)
+    return [{**p, "dt": timing.frame_dt / timing.steps} for p in world_params]
 
 
 def _normalise(cls, params):
@@ -111,8 +116,9 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
     occupancy record of these worlds (:mod:`warpsim.worlds.occupancy`; the tracked particles
     when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
-    default to it, unless ``dt`` is given): every frame sub-steps inside the stiffest world's
-    stability limit; ``warn(line)``: called once before the first frame when a world's step is
+    default to it, unless ``dt`` is given): every frame takes the steps of the world needing the
+    most, so each world's step is <= 0.5 x its own limit (``WorldBatch.auto_steps``);
+    ``warn(line)``: called once before the first frame when a world's step is
     above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
     ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
     a world re-run alone needs it to take the same steps); ``frame_steps``: take this many steps
@@ -139,25 +145,22 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     given = [dict(p) for p in world_params]
     if not world_params:
         raise ValueError("run_batch needs at least one world")
-    fps_given = fps
-    auto = substeps == "auto" or (substeps is None and getattr(cls, "substeps_auto", False)
-                                  and "dt" not in world_params[0])
-    substeps = None if substeps == "auto" else substeps
-    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(world_params[0]), fps, substeps)
+    request = sweep_timing(cls, world_params, fps, substeps)  # the one FrameTiming of every world
+    fps, substeps, frame_dt = request.fps, request.steps, request.frame_dt
+    first = cls.resolve_params(world_params[0])
     if reference_params is not None:
         reference_params = [_normalise(cls, p) for p in reference_params]
-    if "dt" in cls.params and fps_given is not None:
+    if request.scene_params(first) != first:  # the step overrides dt (--fps, or --substeps N on a dt scene)
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
         if reference_params is not None:
             reference_params = [{**p, "dt": frame_dt / substeps} for p in reference_params]
     batch = make_batch(cls, world_params, device=device, fused=fused, reference_params=reference_params)
     stepped = getattr(batch, "batch_scene", None)  # flocks (AgentWorldBatch) step their own way
-    if stepped is not None:
-        stepped.auto_substeps = auto
-        if frame_steps is not None:  # a Ray batch: the count resolved over the whole sweep
-            stepped.frame_steps_fixed = int(frame_steps)
+    if frame_steps is not None:  # one batch of a sweep: the count resolved over the whole sweep
+        request = request.with_steps(int(frame_steps))
+    taken = batch.use_timing(request) if stepped is not None else request  # auto: the most any world needs
     if timing is not None:
-        timing["frame_steps"] = int(stepped.frame_steps(frame_dt, substeps) if stepped is not None else substeps)
+        timing["frame_steps"] = int(taken.steps)
     if warn is not None and stepped is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
