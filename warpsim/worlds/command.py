@@ -37,9 +37,12 @@ def add_parser(sub):
     s.add_argument("--frames", type=int, default=120, help="frames after frame 0 (default 120)")
     s.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
     s.add_argument("--substeps", type=cli.substeps_arg, default=None,
-                   help="steps per frame, or 'auto': inside the stiffest world's stability limit (default: the scene's)")
+                   help="steps per frame at the scene's frame rate (as 'warpsim run --help' says), or 'auto': the "
+                        "most any world needs, so every world steps within half its own stability limit (default: "
+                        "the scene's)")
     s.add_argument("--strict", action="store_true",
-                   help="exit 2 before running when a world's step is above its stability limit (default: warn)")
+                   help="exit 2 before running when a world's step is above its stability limit or --substeps "
+                        "overrides the scene's dt (default: warn)")
     s.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     s.add_argument("--devices", default=None, metavar="D0,D1,...|all",
                    help="split the worlds over several devices of this machine in one process, a contiguous block "
