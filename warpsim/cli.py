@@ -291,6 +291,7 @@ def _cmd_run(args, out, err):
     if os.path.splitext(path)[1] not in ROOT_EXTENSIONS:
         raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
     _check_out(path)
+    _hold_output(path)
     if args.preview is not None:
         from .extras import render_modules, require_extra
         from .render.output import check_out
@@ -431,6 +432,20 @@ def _cmd_run(args, out, err):
     return 0
 
 
+def _hold_output(path, flag="--out", inputs=(), own=None):
+    """Refuse an output that is one of ``inputs`` or a file of a cache or sweep other than its
+    own (``own``: the root this command writes), then take its lock for the rest of the command
+    (``warpsim.usd.lock``; another process writing it: one line, exit 2)."""
+    from .usd.family import check_output
+    from .usd.lock import hold
+
+    try:
+        check_output(path, inputs, flag, own=own)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    hold(path, flag)
+
+
 def _check_out(path, flag="--out"):
     """Create the folder of ``--out`` (or another output option ``flag``) and make sure a file
     can be written there, so an unusable path is one line and exit 2 before the scene is built."""
@@ -486,10 +501,14 @@ def main(argv=None, out=None, err=None):
             status = _cmd_list(out)
         elif args.command == "info":
             status = _cmd_info(args.cache, out, err, args.verify)
-        elif args.command in COMMANDS:
-            status = _command_module(COMMANDS[args.command]).run(args, out, err)
         else:
-            status = _cmd_run(args, out, err)
+            from .usd.lock import command_scope
+
+            with command_scope():  # the outputs' locks (warpsim.usd.lock) end with the command
+                if args.command in COMMANDS:
+                    status = _command_module(COMMANDS[args.command]).run(args, out, err)
+                else:
+                    status = _cmd_run(args, out, err)
         out.flush()  # a closed pipe shows up here, not in the interpreter's exit
         return status
     except UsageError as exc:
@@ -499,8 +518,10 @@ def main(argv=None, out=None, err=None):
         _silence_stdout(out)
         return 0
     except (ValueError, OSError) as exc:  # bad values and files found before the simulation starts
-        print(f"warpsim: error: {_one_line(exc)}", file=err)
-        return 2
+        from .usd.pxr_errors import error_line
+
+        print(f"warpsim: error: {error_line(exc)}", file=err)
+        return int(getattr(exc, "exit_status", 2))  # a damaged record or manifest: 1
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else 0
     except KeyboardInterrupt:

@@ -199,6 +199,8 @@ def run(args, out, err):
     if os.path.splitext(table)[1].lower() != ".csv":
         raise usage(f"--table {table!r} must end in .csv")
     cli._check_out(table, "--table")
+    cli._hold_output(path, "--out")  # one writer per sweep root, table and record; never another's files
+    cli._hold_output(table, "--table", own=path)
     fixed = cli._parse_sets(cls, args.sets, None)
     worlds = args.worlds
     try:

@@ -102,17 +102,20 @@ def read_manifest(root, scene=None) -> dict:
         what = "does not exist" if not os.path.exists(root) else "is not a warpsim sweep root"
         raise ValueError(f"{root} {what} (no manifest {os.path.basename(path)} beside it); give the root a "
                          "'warpsim sweep' wrote (sweeps made before re-runs existed must be run again)")
+    from ..usd.pxr_errors import DamagedFileError
+
+    if not os.path.isfile(path):  # a FIFO or a folder would block or fail obscurely
+        raise ValueError(f"{path} is not a regular file; give the root a 'warpsim sweep' wrote")
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8") as f:
             data = json.load(f)
-        if data.get("format") != FORMAT:
-            raise ValueError("not a sweep manifest")
-        worlds = data["worlds"]
-        if not isinstance(worlds, list) or not worlds:
-            raise ValueError("no worlds")
-        data["run_fps"], data["run_substeps"] = float(data["run_fps"]), int(data["run_substeps"])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{path} is not a readable warpsim sweep manifest ({exc}); run the sweep again") from None
+    except (OSError, ValueError) as exc:  # UnicodeDecodeError is a ValueError
+        raise DamagedFileError(f"sweep manifest {path} is damaged or not a manifest ({type(exc).__name__}: "
+                               f"{str(exc)[:80]}); run the sweep again") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise DamagedFileError(f"sweep manifest {path} is not a warpsim sweep manifest (field 'format' is "
+                               f"{data.get('format') if isinstance(data, dict) else None!r}); run the sweep again")
+    check_manifest_fields(data, path)
     if data.get("warpsim") != __version__:
         raise ValueError(f"the sweep {root} was made by warpsim {data.get('warpsim')}, this is {__version__}: "
                          "its worlds would not re-run exactly; run the sweep again with this version")
@@ -133,9 +136,59 @@ def read_manifest(root, scene=None) -> dict:
         new = now.get(first, now["params"].get(first))
         raise ValueError(f"scene {cls.name!r} changed since the sweep {root} was made (default {first}: {old!r} then, "
                          f"{new!r} now); its worlds would not re-run exactly: run the sweep again")
+    from ..usd.pxr_errors import DamagedFileError
+
+    for i, p in enumerate(data["worlds"]):
+        unknown = [k for k in p if k not in cls.params]
+        if unknown:
+            raise DamagedFileError(f"sweep manifest {path}: field 'worlds'[{i}] names {unknown[0]!r}, not a parameter "
+                                   f"of scene {cls.name!r}; the manifest is damaged: run the sweep again")
+        try:
+            cls.resolve_params(_typed(cls, p))
+        except (ValueError, TypeError) as exc:
+            raise DamagedFileError(f"sweep manifest {path}: field 'worlds'[{i}]: {' '.join(str(exc).split())}; the "
+                                   "manifest is damaged: run the sweep again") from None
     data["cls"] = cls
-    data["worlds"] = [_typed(cls, p) for p in worlds]
+    data["worlds"] = [_typed(cls, p) for p in data["worlds"]]
     return data
+
+
+def _whole(value, low) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def _rate(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+_MANIFEST_FIELDS = {  # field -> (check, what it must be)
+    "scene": (lambda v: isinstance(v, str) and bool(v), "a scene name"),
+    "frames": (lambda v: _whole(v, 0), "a whole number >= 0"),
+    "fps": (lambda v: v is None or _rate(v), "null or a rate > 0 [frames/s]"),
+    "substeps": (lambda v: v is None or v == "auto" or _whole(v, 1), "null, 'auto' or a whole number >= 1"),
+    "run_fps": (_rate, "a rate > 0 [frames/s]"),
+    "run_substeps": (lambda v: _whole(v, 1), "a whole number >= 1"),
+    "device": (lambda v: v is None or isinstance(v, str) and bool(v.strip()), "null or a device name"),
+    "fused": (lambda v: isinstance(v, bool), "true or false"),
+    "frame_steps": (lambda v: v is None or _whole(v, 1), "null or a whole number of steps >= 1"),
+    "worlds": (lambda v: isinstance(v, list) and bool(v) and all(isinstance(w, dict) for w in v),
+               "a non-empty list of parameter objects"),
+    "defaults": (lambda v: isinstance(v, dict), "an object"),
+}
+
+
+def check_manifest_fields(data, path) -> None:
+    """DamagedFileError (exit 1) naming the file and the field when a manifest field is missing
+    or malformed (a tampered or damaged manifest, never the user's options)."""
+    from ..usd.pxr_errors import DamagedFileError
+
+    for key, (ok, what) in _MANIFEST_FIELDS.items():
+        if key not in data:
+            raise DamagedFileError(f"sweep manifest {path}: field {key!r} is missing; the manifest is damaged: run "
+                                   "the sweep again")
+        if not ok(data[key]):
+            raise DamagedFileError(f"sweep manifest {path}: field {key!r} is {data[key]!r}, not {what}; the manifest "
+                                   "is damaged: run the sweep again")
 
 
 def _check_world(world, count, root) -> int:
@@ -256,12 +309,15 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
     settings call ``warn(message)`` (default: a Python warning) first. Returns the cache path.
     ValueError (one line) for a root that is not a sweep, another warpsim version or changed
     scene defaults, a world out of range."""
+    _check_api_args(root, frames, fps, substeps, out)
     manifest = read_manifest(root)
     world = _check_world(world, len(manifest["worlds"]), root)
     if frames is None:
         frames = manifest["frames"]
     if int(frames) < 0:
         raise ValueError(f"frames {frames}: it must be >= 0")
+    out = out or world_cache_path(root, world)
+    _check_rerun_out(out, root)
     diffs = _differences(manifest, fps, substeps, device)
     if diffs:
         message = (f"world {world} re-runs with {', '.join(diffs)}: the result will differ from its samples in the "
@@ -274,9 +330,41 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
             warn(message)
     run_fps, run_substeps = _settings(manifest, fps, substeps)
     run_device = device if device is not None else manifest["device"]
-    return run_world(manifest["scene"], manifest["worlds"], world, out=out or world_cache_path(root, world),
+    return run_world(manifest["scene"], manifest["worlds"], world, out=out,
                      frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
                      fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps))
+
+
+def _check_api_args(root, frames, fps, substeps, out) -> None:
+    """TypeError / ValueError naming the argument for values of the wrong kind (before any work)."""
+    if not isinstance(root, (str, os.PathLike)):
+        raise TypeError(f"root {root!r} is not a path; give the sweep's root file (.usda)")
+    if frames is not None and not _whole(frames, -(1 << 62)):
+        raise TypeError(f"frames {frames!r} is not a whole number; give e.g. frames=120 (or None: the sweep's)")
+    if fps is not None and not (isinstance(fps, (int, float)) and not isinstance(fps, bool)):
+        raise TypeError(f"fps {fps!r} is not a number; give e.g. fps=60 (or None: the sweep's)")
+    if fps is not None and not _rate(fps):
+        raise ValueError(f"fps {fps!r}: it must be > 0 [frames/s]")
+    if substeps is not None and substeps != "auto" and not _whole(substeps, -(1 << 62)):
+        raise TypeError(f"substeps {substeps!r} is not a whole number or 'auto'")
+    if substeps is not None and substeps != "auto" and substeps < 1:
+        raise ValueError(f"substeps {substeps}: it must be >= 1")
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"out {out!r} is not a path; give a .usda/.usdc file name")
+    if out is not None and os.path.splitext(os.fspath(out))[1] not in (".usd", ".usda", ".usdc"):
+        raise ValueError(f"out {os.fspath(out)!r} must end in .usd, .usda or .usdc")
+
+
+def _check_rerun_out(out, root, flag="out") -> None:
+    """ValueError when the re-run's cache would overwrite the sweep root or one of its files."""
+    from ..usd.family import check_output
+    from .roots import root_worlds
+
+    try:
+        layers = sorted({p for _, p in (root_worlds(root) or (None, []))[1]})
+    except Exception:  # noqa: BLE001  (a damaged root: its own name still counts)
+        layers = []
+    check_output(out, [root, *layers], flag)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -300,6 +388,8 @@ def run_command(args, out, err) -> int:
         manifest = read_manifest(args.from_sweep, scene=args.scene)
         world = _check_world(args.world, len(manifest["worlds"]), args.from_sweep)
     except ValueError as exc:
+        if getattr(exc, "exit_status", 2) != 2:
+            raise  # a damaged manifest: exit 1, naming the file and the field
         raise usage(cli.one_line(exc)) from None
     frames = manifest["frames"] if args.frames is None else args.frames
     if frames < 0:
@@ -307,9 +397,21 @@ def run_command(args, out, err) -> int:
     path = args.out or world_cache_path(args.from_sweep, world)
     if os.path.splitext(path)[1] not in (".usd", ".usda", ".usdc"):
         raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
+    try:
+        _check_rerun_out(path, args.from_sweep, "--out")
+    except ValueError as exc:
+        raise usage(cli.one_line(exc)) from None
+    from ..usd.lock import hold
+
+    hold(path, "--out")  # released when the command ends
     device = cli.device_arg(args.device) if args.device is not None else None
     if device is None and manifest["device"] is not None:
-        device = cli.device_arg(manifest["device"])  # the sweep's device must be here
+        try:  # the sweep's device must be here
+            device = cli.device_arg(manifest["device"])
+        except usage:
+            raise usage(f"the sweep {args.from_sweep} ran on {manifest['device']!r} (its manifest), which this machine "
+                        "does not have; give --device (e.g. --device cpu; world "
+                        f"{world} then differs from its samples in the sweep)") from None
     return _run_and_report(manifest, world, path, frames, args.fps, args.substeps, device,
                            not args.no_progress, out, err, SimulationError)
 
