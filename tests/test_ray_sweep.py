@@ -120,7 +120,8 @@ def cluster():
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    """The single-process sweep (``warpsim sweep`` without --ray): (worlds, table text, {world: samples})."""
+    """The single-process sweep (``warpsim sweep`` without --ray): (worlds, table text, {world: samples},
+    occupancy record bytes)."""
     from warpsim.cli import main
 
     folder = tmp_path_factory.mktemp("single")
@@ -133,7 +134,7 @@ def reference(tmp_path_factory):
     key = next(k for k in samples[0] if k.endswith(".points"))
     assert samples[0][key].shape[0] == FRAMES + 1  # every frame, and the worlds differ (the variant switches)
     assert not np.allclose(samples[0][key], samples[2][key])
-    return worlds, _read(folder / "s.csv"), samples
+    return worlds, _read(folder / "s.csv"), samples, (folder / "s.occupancy.npz").read_bytes()
 
 
 def _read(path):
@@ -165,8 +166,14 @@ def _samples(root, world_count):
 
 
 def _assert_same(reference, table_path, root):
-    _worlds, table, samples = reference
+    """The table and the merged occupancy record byte for byte (each batch recorded its worlds on
+    the whole sweep's grid) and every world's samples, as the single-process sweep's."""
+    _worlds, table, samples, record_bytes = reference
     assert _read(table_path) == table
+    from warpsim.worlds.occupancy import occupancy_path
+
+    with open(occupancy_path(root), "rb") as fh:
+        assert fh.read() == record_bytes
     got = _samples(root, len(samples))
     for w in samples:
         assert got[w].keys() == samples[w].keys()
@@ -184,6 +191,7 @@ def test_ray_without_an_address_starts_a_local_cluster_and_matches_the_single_pr
     assert r.returncode == 0, r.stderr
     assert re.findall(r"^batch (\d)/2 ", r.stderr, re.MULTILINE) in (["1", "2"], ["2", "1"])
     assert "2 blew up" in r.stdout
+    assert "occupancy record: 8 worlds x 41 frames" in r.stdout
     _assert_same(reference, tmp_path / "s.csv", out)
 
 
@@ -194,7 +202,7 @@ def test_ray_sweep_equals_single_process_and_survives_a_killed_worker(cluster, r
     marker = str(tmp_path / "killed.marker")
     out = str(tmp_path / "ray" / "s.usda")
     result = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=out, table_path=str(tmp_path / "ray" / "s.csv"),
-                           device="cpu", batch_size=3, _kill_once=marker)
+                           device="cpu", batch_size=3, _kill_once=marker, occupancy={"resolution": 16})
     # one worker was SIGKILLed after writing its layer, before publishing it; Ray ran the batch again
     killed_batch, killed_pid = map(int, _read(marker).split())
     assert result["batches"][killed_batch]["pid"] != killed_pid

@@ -119,11 +119,14 @@ def run_batch_task(spec):
     final_dir = spec["final_dir"]
     tmp = temp_batch_dir(final_dir)
     error = None
+    options = dict(spec.get("options") or {})
+    if spec.get("occupancy"):  # the batch's occupancy record, on the whole sweep's grid, in its folder
+        options["occupancy"] = {**spec["occupancy"], "path": os.path.join(tmp, spec["record_name"])}
     try:
         rows = runner(spec["scene"], spec["worlds"], frames=spec["frames"], fps=spec["fps"],
                       substeps=spec["substeps"], device=spec["device"],
                       layer_path=os.path.join(tmp, spec["layer_name"]), first_world=spec["first_world"],
-                      **(spec.get("options") or {}))
+                      **options)
     except Exception as exc:  # noqa: BLE001  (a batch that blows up is flagged, not fatal)
         error = f"{type(exc).__name__}: {exc}".splitlines()[0]
         rows = _blown_rows(spec["worlds"], spec["first_world"], error)
@@ -248,7 +251,8 @@ def _driver_device(device):
 
 def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps=None, substeps=None,
                   device=None, batch_size=DEFAULT_BATCH_SIZE, address=None, num_cpus=None, resume=False,
-                  layout="variants", max_retries=3, runner=None, batch_options=None, log=None, _kill_once=None):
+                  layout="variants", max_retries=3, runner=None, batch_options=None, log=None, _kill_once=None,
+                  occupancy=None):
     """Run a sweep's worlds as Ray tasks, one per batch; write the table and the root USD.
 
     Args:
@@ -267,9 +271,14 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         runner: the batch function (default ``warpsim.worlds.run_batch``); it must be picklable.
         batch_options: more keyword arguments for every ``runner`` call (e.g. ``track``).
         log: a file for one line per finished batch (None: silent).
+        occupancy: None, or {"resolution", "bounds"} as for ``run_batch``: every batch records its
+            worlds on the grid one process would take for the whole sweep (:func:`sweep_record_options`)
+            and the driver merges the records into ``<stem>.occupancy.npz``, the same bytes as a
+            one-process sweep's (none when a batch failed).
 
     Returns:
-        ``{"rows", "root", "table", "ran", "skipped", "batches": {index: record}, "seconds"}``;
+        ``{"rows", "root", "table", "ran", "skipped", "batches": {index: record}, "record", "seconds"}``
+        (``record``: the merged occupancy record's path, or None);
         ``ran``/``skipped`` are batch indices run now / taken from the manifest.
     """
     t_start = time.perf_counter()
@@ -288,6 +297,9 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     sweep = {"scene": scene_name, "world_count": len(world_params), "batch_size": batch_size,
              "frames": frames, "fps": fps, "substeps": substeps, "layout": layout,
              "worlds_sha256": worlds_digest(world_params), "options": _describe(batch_options or {})}
+    if occupancy is not None:  # a resumed sweep's batches must record on the same grid
+        sweep["occupancy"] = _describe({"resolution": occupancy.get("resolution"), "bounds": (
+            None if occupancy.get("bounds") is None else [list(map(float, c)) for c in occupancy["bounds"]])})
     from ..worlds.usd import LAYOUTS
 
     if layout not in LAYOUTS:
@@ -305,6 +317,11 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         if problem:
             raise ValueError(f"--resume: {problem}")
 
+    record_options = None
+    if occupancy is not None:
+        record_options = sweep_record_options(scene_name, world_params, occupancy,
+                                              track=(batch_options or {}).get("track"),
+                                              fused=bool((batch_options or {}).get("fused")))
     ray, started = _connect(address, num_cpus)
     try:
         options, task_device = _task_resources(ray, device)  # refuses a device before touching any file
@@ -334,7 +351,8 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             spec = {"scene": scene_name, "worlds": world_params[first:first + count], "first_world": first,
                     "index": i, "frames": frames, "fps": fps, "substeps": substeps, "device": task_device,
                     "final_dir": batch_dir(out_path, i, broot), "layer_name": _layer_name(out_path, i),
-                    "runner": runner, "options": batch_options, "kill_once": _kill_once}
+                    "runner": runner, "options": batch_options, "kill_once": _kill_once,
+                    "occupancy": record_options, "record_name": _record_name(out_path, i)}
             pending[task.remote(spec)] = i
         fresh = {}
         while pending:
@@ -375,6 +393,9 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         raise RaySweepError(f"every batch failed, e.g. batch 0: {manifest.batches[0]['error']}; the table "
                             f"{table_path} lists the errors")
     root = write_sweep_root(out_path, layers, len(world_params), layout=layout, worlds=worlds)
+    record = None
+    if record_options is not None:
+        record = _merge_records(out_path, batches, manifest, broot, log)
     remove_stale(out_path, broot)
     import glob
 
@@ -384,8 +405,73 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             shutil.rmtree(folder, ignore_errors=True)
     return {"rows": rows, "root": root, "table": table_path, "layers": layers, "ran": sorted(fresh),
             "skipped": skipped,
-            "batches": {i: manifest.batches[i] for i in range(len(batches))},
+            "batches": {i: manifest.batches[i] for i in range(len(batches))}, "record": record,
             "seconds": time.perf_counter() - t_start}
+
+
+def _record_name(out_path, index):
+    return f"{os.path.splitext(os.path.basename(out_path))[0]}.batch_{index:04d}.occupancy.npz"
+
+
+def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fused=False, chunk=256):
+    """``occupancy`` ({"resolution", "bounds"}) with the grid one process's recorder of every
+    world takes: bounds (when not given) as :func:`warpsim.worlds.occupancy.default_bounds` of
+    every world's frame-0 points (the tracked particles when ``track``) and the scene's static
+    geometry, and the resolution that recorder settles on for the whole world count. The worlds
+    are built on the CPU, ``chunk`` at a time, not run."""
+    import tempfile
+
+    import numpy as np
+
+    from ..scenes import get_scene
+    from ..worlds.occupancy import DEFAULT_RESOLUTION, default_bounds
+    from ..worlds.sweep import _normalise, make_batch
+    from ..worlds.usd import BatchLayerWriter
+    from .devices import _sweep_resolution
+
+    options = {"resolution": occupancy.get("resolution") or DEFAULT_RESOLUTION, "bounds": occupancy.get("bounds")}
+    n = len(world_params)
+    if options["bounds"] is None:
+        cls = get_scene(scene_name)
+        corners = []
+        for first in range(0, n, int(chunk)):
+            batch = make_batch(cls, [_normalise(cls, p) for p in world_params[first:first + int(chunk)]],
+                               device="cpu", fused=fused)
+            if not corners:  # the static geometry (floor, walls) the batch layers declare
+                with tempfile.TemporaryDirectory() as folder:
+                    writer = BatchLayerWriter(os.path.join(folder, "grid.usdc"), batch.scene, 0, batch.world_count,
+                                              60.0)
+                if np.isfinite(writer.hi - writer.lo).all():
+                    corners.append(np.array([writer.lo, writer.hi]))
+            P = batch.model.world_particle_count
+            x = batch.sim.state.positions.numpy().reshape(batch.world_count, P, 3)
+            x = x[:, list(track.values()) if track else slice(None)].reshape(-1, 3).astype(np.float64)
+            x = x[np.isfinite(x).all(1)]
+            if len(x):
+                corners.append(np.stack([x.min(0), x.max(0)]))
+        options["bounds"] = default_bounds(np.concatenate(corners) if corners else np.zeros((0, 3)))
+    options["resolution"] = _sweep_resolution(options["bounds"], options["resolution"], n)
+    return options
+
+
+def _merge_records(out_path, batches, manifest, broot, log):
+    """Merge the batches' occupancy records into ``<stem>.occupancy.npz`` (its path), or remove a
+    stale one and return None when a batch failed (its worlds have no record)."""
+    from ..worlds.occupancy import OccupancyRecord, occupancy_path
+    from .devices import merge_records
+
+    path = occupancy_path(out_path)
+    failed = [i for i in range(len(batches)) if manifest.batches[i]["error"]]
+    if failed:
+        if os.path.exists(path):
+            os.remove(path)
+        if log is not None:
+            print(f"no occupancy record: batch {failed[0]} failed ({manifest.batches[failed[0]]['error']}); "
+                  "run the sweep again with --resume", file=log, flush=True)
+        return None
+    parts = [OccupancyRecord.load(os.path.join(batch_dir(out_path, i, broot), _record_name(out_path, i)))
+             for i in range(len(batches))]
+    return merge_records(parts).save(path)
 
 
 def _describe(options):

@@ -274,7 +274,7 @@ def run(args, out, err):
                                    batch_options={**({"track": track} if track else {}),
                                                   **({"fused": True} if args.fused else {}),
                                                   **({"frame_steps": steps} if steps is not None else {})} or None,
-                                   log=err)
+                                   log=err, occupancy=occupancy)
             rows, root = result["rows"], result["root"]
             layers = result["layers"]
         elif devices is not None:
@@ -360,7 +360,11 @@ def run(args, out, err):
           f"{f' ({note})' if note else ''}", file=out)
     print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
     candidates = rows
-    if getattr(args, "ray", None) is None:
+    if regions and not os.path.exists(_record_path(path)):  # a Ray sweep whose batch failed keeps none
+        print("warpsim: sweep failed: no occupancy record to answer --inside/--outside (a batch failed); run the "
+              "sweep again with --resume", file=err)
+        return 1
+    if getattr(args, "ray", None) is None or os.path.exists(_record_path(path)):
         from .occupancy import OccupancyRecord
         from .query import answer_region, answers_note, cached_positions
 
@@ -412,8 +416,6 @@ def _regions(args, fps):
     regions = [parse_region(t, True) for t in args.inside] + [parse_region(t, False) for t in args.outside]
     for r in regions:
         check_window(r, fps, args.frames + 1)
-    if regions and getattr(args, "ray", None) is not None:
-        raise ValueError("--inside/--outside need the occupancy record of a single-process sweep; drop --ray")
     res = DEFAULT_RESOLUTION if args.occupancy_res is None else args.occupancy_res
     if not 1 <= res <= 256:
         raise ValueError(f"--occupancy-res {res}: give 1..256 cells along the grid's longest side")
