@@ -68,6 +68,8 @@ def collide_plane_out(
     stiffness: float,
     damping_ratio: float,
     dt: float,
+    q_start: wp.array(dtype=wp.vec3),
+    forces: wp.array(dtype=wp.vec3),
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
     q_out: wp.array(dtype=wp.vec3),
@@ -79,8 +81,8 @@ def collide_plane_out(
     v = qd[i]
     w = inv_mass[i]
     if w != 0.0:
-        x, v = resolve_plane(x, v, normals[plane], offsets[plane], radius[i] + thickness, mode, restitution,
-                             friction, stiffness, damping_ratio, w, dt)
+        x, v = resolve_plane(x, v, q_start[i], w * forces[i], normals[plane], offsets[plane], radius[i] + thickness,
+                             mode, restitution, friction, stiffness, damping_ratio, w, dt)
     q_out[i] = x
     qd_out[i] = v
 
@@ -102,6 +104,8 @@ def collide_capsule_out(
     stiffness: float,
     damping_ratio: float,
     dt: float,
+    q_start: wp.array(dtype=wp.vec3),
+    forces: wp.array(dtype=wp.vec3),
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
     q_out: wp.array(dtype=wp.vec3),
@@ -118,9 +122,11 @@ def collide_capsule_out(
         r = shape_radius + d
         if inside == 1:
             r = shape_radius - d
-        h, nl, pl = capsule_contact_point(wp.transform_point(wp.transform_inverse(pose), x), a, b, r, inside)
-        x, v = apply_local_contact(h, nl, pl, x, v, pose_prev, pose, mode, restitution, friction, stiffness,
-                                   damping_ratio, w, dt)
+        xl = wp.transform_point(wp.transform_inverse(pose), x)
+        x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_start[i])
+        h, nl, pl = capsule_contact_point(xl, a, b, r, inside)
+        x, v = apply_local_contact(h, nl, pl, x0l, xl, w * forces[i], x, v, pose_prev, pose, mode, restitution,
+                                   friction, stiffness, damping_ratio, w, dt)
     q_out[i] = x
     qd_out[i] = v
 

@@ -107,6 +107,7 @@ def step_shared_particle(
             fs = fs - damped_spring_force(q[other], x, qd[other], v, rest, k, kd)
     f = f + fs
     im = inv_mass[t]
+    x0 = x
     v = v + (h * im) * f
     x = x + h * v
     if im != 0.0:
@@ -114,8 +115,8 @@ def step_shared_particle(
         for g in range(walls.normals.shape[0]):
             c = walls.collider[g]
             wc = w * walls.collider_count + c
-            x, v = resolve_plane(x, v, walls.normals[g], walls.offsets[g], d + walls.thickness[c], walls.mode[c],
-                                 walls.restitution[wc], walls.friction[wc], walls.stiffness[c],
+            x, v = resolve_plane(x, v, x0, im * f, walls.normals[g], walls.offsets[g], d + walls.thickness[c],
+                                 walls.mode[c], walls.restitution[wc], walls.friction[wc], walls.stiffness[c],
                                  walls.damping_ratio[wc], im, h)
     return x, v
 

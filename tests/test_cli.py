@@ -92,7 +92,7 @@ def test_every_scene_validates_and_reads_back_its_simulation(name, tmp_path):
 
 def test_bounce_reproduces_the_seed(tmp_path):
     path = tmp_path / "b.usda"
-    run_ok("run", "bounce", "--frames", "4", "--out", str(path))
+    run_ok("run", "bounce", "--frames", "4", "--out", str(path), "--set", "collision=seed")
     stage = Usd.Stage.Open(str(path))
     assert stage.GetTimeCodesPerSecond() == pytest.approx(25.0)  # dt = 0.04 s, one step per frame
     ball = stage.GetPrimAtPath("/World/ball")
@@ -101,7 +101,7 @@ def test_bounce_reproduces_the_seed(tmp_path):
     np.testing.assert_allclose(p[0], [0, 0.04, 0])
     np.testing.assert_allclose(v[1][1], -0.3924, rtol=1e-6)
     np.testing.assert_allclose(p[1][1], 0.024304, rtol=1e-6)
-    # step 2 would reach y = 0.024304 - 0.04 * 0.7848 < 0: the floor reflects it (r = 0.5)
+    # step 2 would reach y = 0.024304 - 0.04 * 0.7848 < 0: the lecture's floor mirrors it (r = 0.5)
     h = 0.024304 - 0.04 * 0.7848
     assert h < 0
     np.testing.assert_allclose(p[2][1], -0.5 * h, rtol=1e-4)

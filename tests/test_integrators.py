@@ -8,11 +8,11 @@ import warp as wp
 import warpsim as ws
 
 
-def ball(device, integrator="semi_implicit_euler", extra=None, floor=True, restitution=0.5):
+def ball(device, integrator="semi_implicit_euler", extra=None, floor=True, restitution=0.5, mode="reflect"):
     b = ws.ModelBuilder()
     b.add_particle((0.0, 0.04, 0.0), mass=1.0)
     forces = [ws.Gravity((0.0, -9.81, 0.0))] + ([ws.ConstantForce(extra)] if extra else [])
-    colliders = [ws.Plane((0, 1, 0), 0.0, restitution=restitution)] if floor else []
+    colliders = [ws.Plane((0, 1, 0), 0.0, restitution=restitution, mode=mode)] if floor else []
     return ws.Simulator(b.finalize(device), integrator=integrator, forces=forces, colliders=colliders)
 
 
@@ -27,7 +27,7 @@ def test_seed_ball_second_step_hits_the_floor(device):
     """Free flight would reach y = 0.024304 - 0.04 * 0.7848 = -0.007088 (penetration h = 0.007088);
     the collision reflects it to y = r h and v_y = -r v_y."""
     r = 0.5
-    sim = ball(device, restitution=r)
+    sim = ball(device, restitution=r, mode="seed")
     sim.step(0.04)
     sim.step(0.04)
     h = 0.04 * 0.7848 - 0.024304
@@ -37,6 +37,23 @@ def test_seed_ball_second_step_hits_the_floor(device):
     free.step(0.04)
     free.step(0.04)
     assert free.state.positions.numpy()[0][1] == pytest.approx(-h, abs=1e-6)
+
+
+def test_seed_ball_second_step_at_the_time_of_impact(device):
+    """Reflect mode cuts step 2 at the contact on the integrator's own parabola
+    y(t) = 0.024304 + w t - g t^2 / 2 (w = -0.3924 - g dt / 2, its synchronised velocity): it lands at
+    t_c, leaves at -e times the impact speed and finishes the step on the reflected parabola."""
+    r, g, dt = 0.5, 9.81, 0.04
+    sim = ball(device, restitution=r)
+    sim.step(dt)
+    sim.step(dt)
+    w = -0.3924 - g * dt / 2
+    tc = (-w - np.sqrt(w * w + 2 * g * 0.024304)) / -g
+    u = -r * (w - g * tc)
+    rest = dt - tc
+    assert 0.0 < tc < dt
+    assert sim.state.positions.numpy()[0][1] == pytest.approx(u * rest - g * rest**2 / 2, abs=1e-6)
+    assert sim.state.velocities.numpy()[0][1] == pytest.approx(u - g * rest + g * dt / 2, abs=1e-5)
 
 
 def test_seed_ball_with_constant_force(device):

@@ -6,7 +6,11 @@ with the positions ``q_prev`` of the start of the step.
 
 Common options (keyword arguments of every collider except ParticleCollisions):
   restitution e in [0, 1]; friction mu >= 0 (Coulomb, never reverses sliding);
-  mode: "reflect" (penetration h becomes e h on the free side, v_n -> -e v_n),
+  mode: "reflect" (resolved at the time of impact: the step ends on the surface and the particle
+        leaves with e times its approach speed; no energy appears for e <= 1 at any dt, see
+        ``kernels/collide.py``),
+        "seed" (the lecture's update: penetration h becomes e h on the free side, v_n -> -e v_n;
+        it gains energy at large steps, kept to reproduce the seed's frame table),
         "project" (position correction onto the surface, v_n -> -e v_n),
         "penalty" (a penalty spring k h plus a damper acting over the step as a velocity-level
         impulse; the position is not touched; the damping ratio zeta = -ln e / sqrt(pi^2 + ln^2 e)
@@ -36,7 +40,7 @@ from ..kernels import collide as K
 from ..kernels import worlds as KW
 from .mesh_io import load_mesh
 
-MODES = {"reflect": 0, "project": 1, "penalty": 2}
+MODES = {"reflect": 0, "project": 1, "penalty": 2, "seed": 3}
 
 
 def damping_ratio_for_restitution(restitution: float) -> float:
@@ -58,6 +62,11 @@ def _coefficients(owner: str, restitution, friction, mode):
     if mode not in MODES:
         raise ValueError(f"{owner} mode {mode!r} is unknown; use one of {sorted(MODES)}")
     return r, mu, MODES[mode]
+
+
+def _start_of_step(q, q_start, forces):
+    """(q_start, forces) for the out-of-place kernels: missing ones become q and zeros."""
+    return (q if q_start is None else q_start), (wp.zeros_like(q) if forces is None else forces)
 
 
 class _Contact(Collider):
@@ -113,18 +122,20 @@ class Planes(_Contact):
         wp.launch(
             K.collide_planes, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, self._normals, self._offsets,
-                    *self._contact_args(dt), state.positions, state.velocities],
+                    *self._contact_args(dt), q_prev, state.forces, state.positions, state.velocities],
             device=model.device,
         )
 
-    def apply_out(self, model, q, qd, q_out, qd_out, dt, plane: int) -> None:
+    def apply_out(self, model, q, qd, q_out, qd_out, dt, plane: int, q_start=None, forces=None) -> None:
         """Differentiable runs (``warpsim.diff``): plane ``plane`` alone, out of place
-        (q, qd) -> (q_out, qd_out); applying planes 0..P-1 in turn equals ``apply``."""
+        (q, qd) -> (q_out, qd_out); applying planes 0..P-1 in turn equals ``apply``. q_start and
+        forces: the step's start positions [m] and force [N] (reflect mode; None: q and zero)."""
         from ..kernels import autodiff as KD
 
+        q_start, forces = _start_of_step(q, q_start, forces)
         wp.launch(KD.collide_plane_out, model.particle_count,
                   inputs=[model.particle_inv_mass, model.particle_radius, self._normals, self._offsets, int(plane),
-                          *self._contact_args(dt), q, qd, q_out, qd_out],
+                          *self._contact_args(dt), q_start, forces, q, qd, q_out, qd_out],
                   device=model.device)
 
 
@@ -312,6 +323,25 @@ class _Kinematic(_Contact):
         """Current local-to-world pose: (position (3,), quaternion (x, y, z, w))."""
         return self._world[0].copy(), self._world[1].copy()
 
+    def _extent(self) -> float:
+        """Distance [m] from the shape's local origin to its farthest surface point (a bound)."""
+        r = 0.0
+        for attr in ("a_local", "b_local"):
+            if hasattr(self, attr):
+                r = max(r, float(np.linalg.norm(getattr(self, attr))))
+        r += float(getattr(self, "radius", 0.0) or 0.0)
+        if hasattr(self, "half_x"):
+            r = max(r, math.hypot(getattr(self, "half_x"), getattr(self, "half_z")))
+        if hasattr(self, "points"):
+            r = max(r, float(np.linalg.norm(np.asarray(self.points, float), axis=1).max(initial=0.0)))
+        return r
+
+    def frame_surface_speed(self) -> float:
+        """Largest speed [m/s] of the shape's surface over the steps since the last call (0 for a
+        shape that did not move): the energy balance's allowance (``warpsim.core.energy``)."""
+        speed, self._peak_speed = getattr(self, "_peak_speed", 0.0), 0.0
+        return speed
+
     def _advance(self, dt):
         """Poses (prev, now) as wp.transforms for this step."""
         self._clock += dt
@@ -322,6 +352,11 @@ class _Kinematic(_Contact):
         elif not self._moved:
             self._world_prev = self._world
         self._moved = False
+        (p0, q0), (p1, q1) = self._world_prev, self._world
+        if dt > 0 and (np.any(p0 != p1) or np.any(q0 != q1)):
+            turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))  # rotation angle over the step [rad]
+            speed = (float(np.linalg.norm(p1 - p0)) + turn * self._extent()) / dt
+            self._peak_speed = max(getattr(self, "_peak_speed", 0.0), speed)
         prev = _wp_transform(*self._world_prev)
         now = _wp_transform(*self._world)
         self._world_prev = self._world
@@ -362,26 +397,25 @@ class Capsule(_Kinematic):
 
     def apply(self, model, state, q_prev, dt) -> None:
         prev, now = self._advance(dt)
-        if not self.continuous:
-            q_prev = state.positions  # a path of length 0 (static shape): the end point alone
         wp.launch(
             K.collide_capsule, model.particle_count,
-            inputs=[model.particle_inv_mass, model.particle_radius, q_prev, wp.vec3(*self.a_local),
-                    wp.vec3(*self.b_local), self.radius, self.inside, prev, now, *self._contact_args(dt),
-                    state.positions, state.velocities],
+            inputs=[model.particle_inv_mass, model.particle_radius, q_prev, int(self.continuous),
+                    wp.vec3(*self.a_local), wp.vec3(*self.b_local), self.radius, self.inside, prev, now,
+                    *self._contact_args(dt), state.forces, state.positions, state.velocities],
             device=model.device,
         )
 
-    def apply_out(self, model, q, qd, q_out, qd_out, dt) -> None:
+    def apply_out(self, model, q, qd, q_out, qd_out, dt, q_start=None, forces=None) -> None:
         """Differentiable runs (``warpsim.diff``): discrete detection, out of place
         (q, qd) -> (q_out, qd_out); equals ``apply`` with ``continuous=False`` on a static shape."""
         from ..kernels import autodiff as KD
 
         prev, now = self._advance(dt)
+        q_start, forces = _start_of_step(q, q_start, forces)
         wp.launch(KD.collide_capsule_out, model.particle_count,
                   inputs=[model.particle_inv_mass, model.particle_radius, wp.vec3(*self.a_local),
                           wp.vec3(*self.b_local), self.radius, self.inside, prev, now, *self._contact_args(dt),
-                          q, qd, q_out, qd_out],
+                          q_start, forces, q, qd, q_out, qd_out],
                   device=model.device)
 
 
@@ -440,7 +474,7 @@ class Quad(_Kinematic):
         wp.launch(
             K.collide_quad, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, q_prev, self.half_x, self.half_z, prev, now,
-                    *self._contact_args(dt), state.positions, state.velocities],
+                    *self._contact_args(dt), state.forces, state.positions, state.velocities],
             device=model.device,
         )
 
@@ -535,7 +569,7 @@ class TriangleMesh(_Kinematic):
         wp.launch(
             K.collide_mesh, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, q_prev, self._mesh.id, self.solid, prev, now,
-                    *self._contact_args(dt), state.positions, state.velocities],
+                    *self._contact_args(dt), state.forces, state.positions, state.velocities],
             device=model.device,
         )
 

@@ -73,6 +73,11 @@ class Force:
     """Base class. Subclasses implement ``eval`` and, when the force depends on positions or
     velocities, ``eval_jacobian`` (diagonal blocks into ``diag``, couplings as triplets)."""
 
+    energy_role = "driving"
+    """How the energy balance counts this force (``warpsim.core.energy``): ``"potential"`` (its
+    energy is summed: gravity, springs), ``"dissipative"`` (only removes energy) or ``"driving"``
+    (its work is tracked)."""
+
     def bind(self, model) -> None:
         """Validate against ``model`` and allocate device data (called once by the Simulator)."""
         self.model = model
@@ -91,6 +96,8 @@ class Force:
 
 class Gravity(Force):
     """Uniform gravity: f = m g, g [m/s^2] (default (0, -9.81, 0))."""
+
+    energy_role = "potential"
 
     def __init__(self, g=(0.0, -9.81, 0.0)):
         self.g = _vec3(g, "Gravity g")
@@ -216,6 +223,8 @@ class Magnets(Force):
 class Drag(Force):
     """Velocity-dependent drag f = -linear v - quadratic |v| v; linear [kg/s], quadratic [kg/m]."""
 
+    energy_role = "dissipative"
+
     def __init__(self, linear=0.0, quadratic=0.0):
         self.linear = checks.nonnegative(linear, "Drag linear coefficient", "kg/s")
         self.quadratic = checks.nonnegative(quadratic, "Drag quadratic coefficient", "kg/m")
@@ -245,6 +254,8 @@ class Springs(Force):
     GPUs; an opt-out for speed measurements. Under a recording ``wp.Tape`` the gather computes
     the forces and the tape records the scatter kernel for the backward pass (the adjoint of
     the same sum)."""
+
+    energy_role = "potential"
 
     def __init__(self, exact_jacobian: bool = False, deterministic: bool = True):
         if not isinstance(deterministic, (bool, np.bool_)):

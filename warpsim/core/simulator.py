@@ -1,5 +1,6 @@
 """Simulator: forces -> integrator -> colliders, with optional adaptive sub-stepping and
-blow-up detection."""
+blow-up detection (non-finite states and a speed bound every step; an energy balance every frame,
+``warpsim.core.energy``)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import numpy as np
 import warp as wp
 
 from ..kernels import integrate as K
-from ..kernels import stability as KS
 from .collider import Collider
 from . import checks
 from .errors import SimulationError
@@ -20,7 +20,8 @@ from .integrators import make_integrator
 from . import stability as stab
 from .system import ParticleSystem
 
-REMEDY = "use a smaller dt, more sub-steps (or adaptive=True), or integrator='implicit_euler'"
+REMEDY = ("use a smaller dt, more sub-steps (substeps='auto'; --substeps auto on the command line, or "
+          "adaptive=True), or integrator='implicit_euler'")
 
 
 def check_dt(dt) -> float:
@@ -34,6 +35,10 @@ def check_dt(dt) -> float:
     if not math.isfinite(value) or value <= 0.0:
         raise ValueError(f"dt must be > 0 and finite [s], got {dt}")
     return value
+
+
+def _ratio(gain: float) -> str:
+    return "a non-finite amount" if gain >= 1.0e29 else f"{gain:.3g}x"
 
 
 class Simulator:
@@ -116,10 +121,8 @@ class Simulator:
         self._time = wp.zeros(1, dtype=float, device=d)
         self._scratch_float = wp.zeros(1, dtype=float, device=d)
         self._first_bad = wp.full(1, self.system.count, dtype=int, device=d)  # kept at count: nothing bad
-        self._frame_q = wp.clone(self.state.positions)  # positions at the start of the frame (check_frame)
-        self._frame_maxima = wp.zeros(2, dtype=float, device=d)
-        self._one_world = wp.zeros(self.system.count, dtype=int, device=d)
-        self._incoherent_frames = 0
+        self._energy = None  # the energy balance (warpsim.core.energy), started at the first step
+        self._last_h = None
         self._check_launches = {}
         self._check_due = False  # the current sub-step ends a step whose blow-up test is due
         self._device_checked = False  # that test already ran inside the integrator's pass
@@ -241,6 +244,10 @@ class Simulator:
         dt = check_dt(dt)
         n = self._substeps_for(dt)
         h = dt / n
+        if self._energy is None and self.check_every and self.rollout is None and \
+                not wp.get_device(self.device).is_capturing:
+            self._start_energy(h)
+        self._last_h = h
         if self.warn_unstable and h != self._checked_dt:
             self._warn_if_unstable(h)
         due = bool(self.check_every) and (self.step_count + n) % self.check_every < n
@@ -278,38 +285,77 @@ class Simulator:
                 step=self.step_count, time=self.time, particle=bad,
             )
 
+    # ------------------------------------------------------------------ energy balance
+    def _gravity(self) -> np.ndarray:
+        g = np.zeros(3)
+        for f in self.forces:
+            if getattr(f, "energy_role", "driving") == "potential" and hasattr(f, "g"):
+                g = g + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
+        return g
+
+    def _start_energy(self, h: float) -> None:
+        from .energy import EnergyBalance
+        from .integrators import SemiImplicitEuler
+
+        st = self.state
+        self._energy = EnergyBalance(self.model, self.forces, self.colliders, self._gravity(),
+                                     synchronise=isinstance(self.integrator, SemiImplicitEuler),
+                                     springs=None if self.stability_model is None else self.stability_model())
+        self.system.eval_forces(st.positions, st.velocities, self._time, 0.0, st.forces)
+        self._energy.start(st, h, time=self._time, forces=st.forces)
+
+    def restart_energy(self) -> None:
+        """Take the energy balance's reference again at the next step (after editing the state,
+        restoring a checkpoint or changing parameters in place)."""
+        self._energy = None
+
+    @property
+    def energy_gain(self) -> float:
+        """Largest energy gain so far beyond the work of driving forces, relative to the run's
+        energy scale (``warpsim.core.energy``; 0.0 before the first frame check)."""
+        return 0.0 if self._energy is None else float(self._energy.gains()[0])
+
     def check_frame(self, frame_dt: float) -> None:
-        """End-of-frame test for instabilities that NaN and ``max_speed`` miss (call once per frame
-        of ``frame_dt`` [s]; ``run`` and the scenes do; skipped when ``check_every`` is 0): raise
-        SimulationError when the fastest particle is ``INCOHERENT_RATIO`` x faster than any particle
-        moved over the frame for ``INCOHERENT_FRAMES`` frames running (the stiffest mode flipping
-        sign every step: velocities grow while positions stay; see ``warpsim.core.stability``).
-        Reads back two floats."""
-        if not self.check_every or self.rollout is not None or wp.get_device(self.device).is_capturing:
+        """End-of-frame energy balance (call once per frame of ``frame_dt`` [s]; ``run`` and the
+        scenes do; skipped when ``check_every`` is 0): raise SimulationError when energy beyond the
+        work of driving forces has appeared (more than ``warpsim.core.energy.MARGIN`` of the run's
+        energy scale) or the energy is non-finite, naming the fastest particle and a remedy that
+        fits the cause. Contact, drags and zero damping never trip it. Reads back one int."""
+        if not self.check_every or self.rollout is not None or self._energy is None or \
+                wp.get_device(self.device).is_capturing:
             return
-        st, n = self.state, self.system.count
-        self._frame_maxima.zero_()
-        wp.launch(KS.frame_motion, n, inputs=[st.positions, self._frame_q, st.velocities, self.system.inv_mass,
-                                              self._one_world, 1.0 / float(frame_dt), self._frame_maxima[0:1],
-                                              self._frame_maxima[1:2]], device=self.device)
-        wp.copy(self._frame_q, st.positions)
-        speed, motion = (float(x) for x in self._frame_maxima.numpy())
-        if speed > stab.INCOHERENT_RATIO * motion and speed > stab.INCOHERENT_SPEED:
-            self._incoherent_frames += 1
-        else:
-            self._incoherent_frames = 0
-        if self._incoherent_frames < stab.INCOHERENT_FRAMES:
+        eb, st = self._energy, self.state
+        eb.update(st, self._last_h or frame_dt, frame_dt, time=self._time, forces=st.forces)
+        if int(eb.unstable_frame.numpy()[0]) < 0:
             return
         v = st.velocities.numpy()
-        bad = int(np.argmax(np.where(self.system.inv_mass.numpy() > 0, np.linalg.norm(v, axis=1), -1.0)))
-        limit = self._stability if self._stability is not None else self.stability()
-        h = self._checked_dt or frame_dt
+        speed = np.where(self.system.inv_mass.numpy() > 0, np.linalg.norm(v, axis=1), -1.0)
+        speed = np.where(np.isfinite(speed), speed, np.inf)
+        bad = int(np.argmax(speed))
+        gain = float(eb.gains()[0])
         raise SimulationError(
-            f"unstable at step {self.step_count} (t = {self.time:.6g} s): particle {bad} moves at "
-            f"{float(np.linalg.norm(v[bad])):.4g} m/s while no particle moved faster than {motion:.4g} m/s over the "
-            f"frame, {self._incoherent_frames} frames running (velocities that no motion explains: a step of "
-            f"{h:.4g} s against a stability limit of {limit.dt:.4g} s set by {limit.who()}). Remedy: {REMEDY} "
-            "(--substeps auto).", step=self.step_count, time=self.time, particle=bad)
+            f"unstable at step {self.step_count} (t = {self.time:.6g} s): energy grew by {_ratio(gain)} of the "
+            f"run's energy scale beyond the work of its driving forces; particle {bad} moves at "
+            f"{float(speed[bad]):.4g} m/s. {self._energy_remedy()}", step=self.step_count, time=self.time,
+            particle=bad)
+
+    def _energy_remedy(self) -> str:
+        """Why energy appeared and what to do, by cause: the step above its limit, the lecture's
+        seed collisions, or (with the step inside its limit) a force or collider."""
+        h = self._last_h
+        limit = self._stability if self._stability is not None else self.stability(positions=self.model.particle_q)
+        if h is not None and limit.exceeded_by(h):
+            return (f"Cause: a step of {h:.4g} s is above the stability limit of {limit.dt:.4g} s set by "
+                    f"{limit.who()}. Remedy: {REMEDY}.")
+        seed = [c for c in self.colliders if getattr(c, "mode_name", None) == "seed"]
+        if seed:
+            return (f"Cause: {type(seed[0]).__name__} uses mode='seed' (the lecture's mirror), which gains energy at "
+                    "large steps. Remedy: mode='reflect' (resolved at the time of impact), or a smaller dt.")
+        driving = sorted({type(f).__name__ for f in self.forces if getattr(f, "energy_role", "driving") == "driving"})
+        step = "" if h is None else f"the step of {h:.4g} s is within its stability limit of {limit.dt:.4g} s, so "
+        what = f"forces {', '.join(driving)}" if driving else "the colliders or an external edit of the state"
+        return (f"Cause: {step}the energy came from elsewhere: check {what} (coefficients, moving shapes). Remedy: "
+                "fix the input that adds energy; a smaller step will not help.")
 
     def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps=1, callback=None, writer=None):
         """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps

@@ -87,16 +87,38 @@ def _penalty(v, n, h, k, zeta, mu, w, dt):
     return vt + (vn + dvn) * n
 
 
-def _contact(x, v, n, h, opts, w, dt):
+def _impact(v, n, h, d0, a_n, e, mu, dt):
+    vn = v @ n
+    b = (-h - d0) / dt - 0.5 * a_n * dt
+    tc = 0.0
+    if d0 > 0.0:
+        root = np.sqrt(max(b * b - 2.0 * a_n * d0, 0.0))
+        tc = min(max(2.0 * d0 / max(root - b, 1.0e-30), 0.0), dt)
+    u = -e * (b + a_n * tc)
+    r = dt - tc
+    s_end, vn_new = u * r + 0.5 * a_n * r * r, u + a_n * r - 0.5 * a_n * dt
+    if s_end < 0.0:
+        s_end, vn_new = 0.0, 0.0
+    vt = v - vn * n
+    length = np.linalg.norm(vt)
+    if length > 0.0:
+        vt = vt * max(0.0, 1.0 - mu * max(vn_new - vn, 0.0) / length)
+    return (s_end + h) * n, vt + vn_new * n
+
+
+def _contact(x, v, n, h, opts, w, dt, x0, a):
     e, mu = opts.get("restitution", 0.5), opts.get("friction", 0.0)
     mode = MODES[opts.get("mode", "reflect")]
     if mode == MODES["penalty"]:
         return x, _penalty(v, n, h, opts.get("stiffness", 1.0e4), damping_ratio_for_restitution(e), mu, w, dt)
-    x = x + ((1.0 + e) * h if mode == MODES["reflect"] else h) * n
+    if mode == MODES["reflect"]:
+        dx, v = _impact(v, n, h, n @ (x0 - x) - h, a @ n, e, mu, dt)
+        return x + dx, v
+    x = x + ((1.0 + e) * h if mode == MODES["seed"] else h) * n
     return x, _respond(v, n, e, mu)
 
 
-def _collide(scene, q, v, w, dt):
+def _collide(scene, q, v, w, dt, q_start, accel):
     radius = np.asarray(scene["radius"], dtype=np.float64)
     for spec in scene["colliders"]:
         for i in range(len(q)):
@@ -116,7 +138,7 @@ def _collide(scene, q, v, w, dt):
                 n = -delta / dist if inside else delta / dist
                 h = dist - r if inside else r - dist
             if h > 0.0:
-                q[i], v[i] = _contact(q[i], v[i], n, h, opts, w[i], dt)
+                q[i], v[i] = _contact(q[i], v[i], n, h, opts, w[i], dt, q_start[i], accel[i])
     return q, v
 
 
@@ -129,6 +151,8 @@ def simulate(scene) -> np.ndarray:
     out = [q.copy()]
     for k in range(scene["steps"]):
         f, w = _forces(scene, q, v, k * h, include_gravity=not cloth)
+        q_start = q.copy()
+        accel = np.zeros_like(q) if cloth else w[:, None] * f  # the cloth step leaves its force unset
         if cloth:
             v = v + np.where(w[:, None] > 0.0, h * (w[:, None] * f + g), 0.0)
             q = q + h * v
@@ -137,7 +161,7 @@ def simulate(scene) -> np.ndarray:
             q = q + h * v
         else:
             q, v = q + h * v, v + h * w[:, None] * f
-        q, v = _collide(scene, q, v, w, h)
+        q, v = _collide(scene, q, v, w, h, q_start, accel)
         out.append(q.copy())
     return np.array(out)
 

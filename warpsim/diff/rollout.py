@@ -203,15 +203,17 @@ class Rollout:
                               inputs=[q, qd, f, sim.system.inv_mass, float(h), q1, qd1], device=d)
                 else:
                     wp.launch(KD.rk_stage, n, inputs=[q, qd, qd, f, sim.system.inv_mass, float(h), q1, qd1], device=d)
+            # reflect mode reads the step's force; the cloth solver's own step leaves State.forces unset
+            f_step = None if self.cloth else f
             j = 0
             for c in sim.colliders:
                 for p in range(len(c.normals) if hasattr(c, "normals") else 1):
                     src = stages[j]
                     dst = stages[j + 1] if j + 1 < len(stages) else (s_out.positions, s_out.velocities)
                     if hasattr(c, "normals"):
-                        c.apply_out(model, src[0], src[1], dst[0], dst[1], h, p)
+                        c.apply_out(model, src[0], src[1], dst[0], dst[1], h, p, q_start=q, forces=f_step)
                     else:
-                        c.apply_out(model, src[0], src[1], dst[0], dst[1], h)
+                        c.apply_out(model, src[0], src[1], dst[0], dst[1], h, q_start=q, forces=f_step)
                     j += 1
         self.step_count = k + 1
         sim.state = s_out

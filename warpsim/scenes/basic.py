@@ -19,13 +19,19 @@ INTEGRATOR = ("semi_implicit_euler", "time integrator", tuple(sorted(ws.INTEGRAT
     "gravity": (9.81, "gravitational acceleration [m/s^2] (downward)"),
     "restitution": (0.5, "floor restitution in [0, 1]"),
     "friction": (0.0, "floor Coulomb friction coefficient"),
+    "collision": ("reflect", "floor contact: reflect (at the time of impact: never gains energy), seed (the "
+                  "lecture's mirror h' = e h, v' = -e v: gains energy at large steps), project",
+                  ("reflect", "seed", "project")),
     "dt": (0.04, "time step [s]"),
     "integrator": INTEGRATOR,
     "display_radius": (0.004, "drawn radius [m]; the ball collides as a point, as in the seed"),
 })
 class Bounce(SimulatorScene):
     """A point mass falling onto the plane y = 0; frame 1 of the defaults has v_y = -0.3924 m/s
-    and y = 0.024304 m, and frame 2 reaches the floor."""
+    and y = 0.024304 m, and frame 2 reaches the floor. ``collision="seed"`` reproduces the
+    lecture's frame table (frame 2: y = e h with h = 0.007088 m below the floor, v_y = 0.3924 m/s);
+    the default ``"reflect"`` ends that step on the floor and never rebounds above the release
+    height (``kernels/collide.py``)."""
 
     def build(self, p):
         if p["mass"] <= 0:
@@ -39,7 +45,7 @@ class Bounce(SimulatorScene):
         self.sim = ws.Simulator(b.finalize(self.device), integrator=p["integrator"],
                                 forces=[ws.Gravity((0.0, -p["gravity"], 0.0))],
                                 colliders=[ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=p["restitution"],
-                                                    friction=p["friction"])])
+                                                    friction=p["friction"], mode=p["collision"])])
 
     live_params = ("restitution", "friction", "gravity")
 

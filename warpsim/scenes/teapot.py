@@ -50,7 +50,8 @@ def anchor_vertex(points, who: str) -> int:
     "lattice_cells": (6, "interior lattice cells along the teapot's length (shape-keeping springs)"),
     "restitution": (0.5, "wall restitution in [0, 1]"),
     "friction": (0.3, "wall Coulomb friction"),
-    "collision": ("reflect", "wall handling: reflect, project or penalty", ("reflect", "project", "penalty")),
+    "collision": ("reflect", "wall handling: reflect (at the time of impact), project, penalty or seed (the lecture's "
+                            "mirror, which gains energy at large steps)", ("reflect", "project", "penalty", "seed")),
     "wall_stiffness": (300.0, "penalty spring stiffness of the walls [N/m] (collision=penalty)"),
     "box": (0.7, "half width of the box of walls [m] (height 2 x box)"),
     "height": (0.6, "drop height of the teapot's bottom [m]"),

@@ -75,6 +75,7 @@ class WorldPlanes(Planes):
             KC.collide_planes_worlds, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, model.particle_world, self._normals,
                     self._offsets, self.world_restitution, self.world_friction, self.world_damping_ratio,
-                    self.mode, self.thickness, self.stiffness, float(dt), state.positions, state.velocities],
+                    self.mode, self.thickness, self.stiffness, float(dt), q_prev, state.forces, state.positions,
+                    state.velocities],
             device=model.device,
         )

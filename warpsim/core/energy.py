@@ -1,0 +1,212 @@
+"""The blow-up check as an energy balance: energy that appears from nowhere.
+
+Per world, once per frame (``kernels/energy.py``, fixed-order sums, one read-back of an int per
+world):
+
+    E = kinetic + gravity + elastic (the model's springs)                         [J]
+    W = work of the driving forces so far (trapezoid rule over each frame)        [J]
+    gain = (E - E_0 - W) / (scale + sum |W| + allowance)                            relative
+
+``scale`` is the world's initial kinetic and elastic energy plus the potential energy of its
+particles above the lowest floor under them (or above its lowest particle), so a dropped ball's
+scale is m g h. ``allowance`` is the energy moving colliders can hand the world (2 M v_s^2 per
+frame, v_s the shape's surface speed bound). A world whose gain exceeds ``margin`` (``MARGIN``), or
+whose energy is non-finite, is unstable from that frame; its largest gain is the sweep table's
+``energy_gain``.
+
+What is counted where (``Force.energy_role``): ``"potential"`` forces (gravity, the model's springs)
+are inside E; ``"dissipative"`` ones (still-air drag, the springs' dampers) only remove energy and
+are not tracked; every other force is ``"driving"`` (wind, constant forces, magnets, user fields,
+the mouse's drag spring, strands' own forces) and its work enters W. Contact resolved at the time of
+impact, zero damping and drags therefore raise no alarm, while a step above the stability limit
+grows the energy of its stiffest mode geometrically and trips the check within a frame or two,
+even where a box of walls stops the velocities (the springs' strain keeps growing).
+
+For semi-implicit Euler the kinetic energy uses the velocity synchronised with the positions,
+w = v + (dt / 2) f / m (the stored velocity lags half a step): with it a ballistic flight keeps E
+exactly, so a bounce at a large step reads as the no-gain it is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..kernels import energy as K
+from .reduction import FixedOrderReduction
+
+MARGIN = 0.5
+"""Relative energy gain (beyond the work of driving forces) that counts as a blow-up. Measured
+(``tests/test_energy.py``): the teapot at damping 0 over 600 frames, dragged into the walls, stays
+below 0.05; a step 1.1x above the limit passes 0.5 within two frames of the first growth."""
+
+__all__ = ["MARGIN", "EnergyBalance", "energy_role"]
+
+
+def energy_role(force) -> str:
+    """``"potential"``, ``"dissipative"`` or ``"driving"`` (see the module docstring)."""
+    return getattr(force, "energy_role", "driving")
+
+
+def _floor_heights(colliders, up) -> list:
+    """Heights [m] along ``up`` of the static planes facing up (floors), from ``Planes`` colliders."""
+    out = []
+    for c in colliders:
+        normals, offsets = getattr(c, "normals", None), getattr(c, "offsets", None)
+        if normals is None or offsets is None or getattr(c, "motion", None) is not None:
+            continue
+        for n, o in zip(np.asarray(normals, float).reshape(-1, 3), np.atleast_1d(np.asarray(offsets, float))):
+            facing = float(np.dot(n, up))
+            if facing > 0.7:
+                out.append(float(o) / facing)
+    return out
+
+
+class EnergyBalance:
+    """Per-world energy balance of a particle system (module docstring).
+
+    Args:
+        model: the model (particle arrays; ``world_count`` and ``particle_world`` for batches; worlds
+            are contiguous blocks of ``particle_count / world_count`` particles and
+            ``spring_count / world_count`` springs).
+        forces: the simulator's forces (their ``energy_role`` decides what is counted where).
+        colliders: its colliders (floors set the potential's reference; moving ones an allowance).
+        gravity: (world_count, 3) [m/s^2] per world.
+        synchronise: True for semi-implicit Euler (kinetic energy from the synchronised velocity).
+        springs: the model whose springs hold the elastic energy (default ``model``).
+        margin: relative gain that counts as unstable.
+    """
+
+    def __init__(self, model, forces, colliders, gravity, *, synchronise=True, springs=None, margin=MARGIN):
+        self.model = model
+        self.device = model.device
+        self.forces = list(forces)
+        self.colliders = list(colliders)
+        self.driving = [f for f in self.forces if energy_role(f) == "driving"]
+        self.synchronise = bool(synchronise)
+        self.springs = model if springs is None else springs
+        self.margin = float(margin)
+        n = int(getattr(model, "world_count", 1) or 1)
+        self.world_count = n
+        d = self.device
+        count = model.particle_count
+        self.gravity = np.asarray(gravity, dtype=np.float64).reshape(-1, 3)
+        if len(self.gravity) == 1 and n > 1:
+            self.gravity = np.tile(self.gravity, (n, 1))
+        self.world_gravity = wp.array(self.gravity.astype(np.float32), dtype=wp.vec3, device=d)
+        self.q_start = wp.zeros(count, dtype=wp.vec3, device=d)
+        size = count if self.driving else 0
+        self.drive = [wp.zeros(size, dtype=wp.vec3, device=d), wp.zeros(size, dtype=wp.vec3, device=d)]
+        self._zeros = wp.zeros(count, dtype=wp.vec3, device=d)
+        self._no_int = wp.zeros(0, dtype=int, device=d)
+        self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
+        self.sums = wp.zeros((n, 4), dtype=float, device=d)
+        self._reduction = FixedOrderReduction(4, first_max_column=3, device=d) if n == 1 else None
+        self.reference = wp.zeros(n, dtype=float, device=d)
+        self.scale = wp.ones(n, dtype=float, device=d)
+        self.work = wp.zeros(n, dtype=float, device=d)
+        self.abs_work = wp.zeros(n, dtype=float, device=d)
+        self.allowance = wp.zeros(n, dtype=float, device=d)
+        self.energy = wp.zeros(n, dtype=float, device=d)
+        self.gain = wp.full(n, -1.0e30, dtype=float, device=d)
+        self.unstable_frame = wp.full(n, -1, dtype=int, device=d)
+        self._allowance_host = np.zeros(n)
+        self._world_mass = None
+        self.frame_counter = wp.zeros(1, dtype=int, device=d)
+        self.frame = 0
+
+    # ------------------------------------------------------------------ sums
+    def _eval_driving(self, state, time, out) -> None:
+        if not self.driving:
+            return
+        out.zero_()
+        for f in self.driving:
+            f.eval(state.positions, state.velocities, time, 0.0, out)
+
+    def _launch_sums(self, state, forces, dt) -> wp.array:
+        m, s, d = self.model, self.springs, self.device
+        half_dt = 0.5 * float(dt) if self.synchronise else 0.0
+        broken = getattr(s, "spring_broken", None)
+        broken = self._no_int if broken is None or s.spring_count == 0 else broken
+        d0, d1 = (self.drive if self.driving else (self._zeros, self._zeros))
+        common = [state.positions, self.q_start, state.velocities, forces, d0, d1, m.particle_mass,
+                  m.particle_inv_mass, self.world_gravity, half_dt]
+        springs = [s.spring_indices, s.spring_rest_length, s.spring_stiffness, broken]
+        if self._reduction is not None:
+            wp.launch(K.energy_sums_strided, self._reduction.slots,
+                      inputs=[*common, *springs, int(s.spring_count)], outputs=[self._reduction.partials], device=d)
+            return self._reduction.finish().reshape((1, 4))
+        n = self.world_count
+        wp.launch(K.world_energy_sums, n, inputs=[*common, m.particle_count // n, *springs, int(s.spring_count) // n],
+                  outputs=[self.sums], device=d)
+        return self.sums
+
+    # ------------------------------------------------------------------ public
+    def start(self, state, dt, time=None, forces=None) -> None:
+        """Take the reference energy and scale from ``state`` (frame 0); ``forces``: the step's force
+        at this state (semi-implicit Euler's synchronised velocity), None: each particle's weight."""
+        m = self.model
+        wp.copy(self.q_start, state.positions)
+        self._eval_driving(state, time, self.drive[0])
+        sums = self._launch_sums(state, self._no_vec if forces is None else forces, dt).numpy()
+        n = self.world_count
+        q = state.positions.numpy().astype(np.float64)
+        v = state.velocities.numpy().astype(np.float64)
+        mass = m.particle_mass.numpy().astype(np.float64)
+        moving = m.particle_inv_mass.numpy() > 0
+        mass = np.where(moving, mass, 0.0)
+        P = len(q) // n
+        q, v, mass = q.reshape(n, P, 3), v.reshape(n, P, 3), mass.reshape(n, P)
+        kinetic = 0.5 * np.einsum("wp,wpk,wpk->w", mass, v, v)
+        g_norm = np.linalg.norm(self.gravity, axis=1)
+        potential = np.zeros(n)
+        for w in range(n):
+            if g_norm[w] == 0.0 or not moving.reshape(n, P)[w].any():
+                continue
+            up = -self.gravity[w] / g_norm[w]
+            heights = q[w] @ up
+            low = float(heights[moving.reshape(n, P)[w]].min())
+            floors = [h for h in _floor_heights(self.colliders, up) if h <= low + 1e-9]
+            ref = max(floors) if floors else low
+            potential[w] = float(np.sum(mass[w] * g_norm[w] * (heights - ref)))
+        total_mass = mass.sum(axis=1)
+        self._world_mass = total_mass
+        # a floor of 1 mm of the world's weight (or 1 nJ) keeps a ball at rest on the floor judgeable
+        floor = total_mass * np.maximum(g_norm, 1e-3) * 1e-3 + 1e-9
+        scale = np.maximum(kinetic + np.maximum(sums[:, 1], 0.0) + potential, floor)
+        self.scale.assign(scale.astype(np.float32))
+        self.reference.assign((sums[:, 0] + sums[:, 1]).astype(np.float32))
+        self.work.zero_()
+        self.abs_work.zero_()
+        self.allowance.zero_()
+        self._allowance_host[:] = 0.0
+        self.gain.fill_(-1.0e30)
+        self.unstable_frame.fill_(-1)
+        self.frame_counter.zero_()
+        self.frame = 0
+
+    def update(self, state, dt, frame_dt, time=None, forces=None, world_bad=None) -> None:
+        """Fold one finished frame (``dt``: its step [s], ``frame_dt`` [s]) into the balance; launches
+        only (no read-back, no allocation), so a sweep can capture it in its frame graph (moving
+        colliders' allowance is then left out: it is taken on the host)."""
+        self.frame += 1
+        d = self.device
+        wp.launch(K.count_frame, 1, inputs=[self.frame_counter], device=d)
+        self._eval_driving(state, time, self.drive[1])
+        sums = self._launch_sums(state, self._no_vec if forces is None else forces, dt)
+        if not wp.get_device(d).is_capturing:
+            speed = max((getattr(c, "frame_surface_speed", lambda: 0.0)() for c in self.colliders), default=0.0)
+            if speed > 0.0 and self._world_mass is not None:
+                self._allowance_host += 2.0 * self._world_mass * speed * speed
+                self.allowance.assign(self._allowance_host.astype(np.float32))
+        wp.launch(K.judge_worlds, self.world_count,
+                  inputs=[sums, self.frame_counter, self.margin, self._no_int if world_bad is None else world_bad,
+                          self.reference, self.scale, self.work, self.abs_work, self.allowance],
+                  outputs=[self.energy, self.gain, self.unstable_frame], device=d)
+        wp.copy(self.q_start, state.positions)
+        if self.driving:
+            wp.copy(self.drive[0], self.drive[1])
+
+    def gains(self) -> np.ndarray:
+        """Largest relative gain so far per world (0 before any frame)."""
+        return np.maximum(self.gain.numpy().astype(np.float64), 0.0) if self.frame else np.zeros(self.world_count)
