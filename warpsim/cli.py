@@ -180,6 +180,11 @@ def _cmd_info(path, out, err=None, verify=False):
         raise UsageError(f"{path!r} is a folder; give the cache file in it (.usd, .usda or .usdc)")
     if os.path.exists(path) and not os.path.isfile(path):  # reading a FIFO would wait for a writer for ever
         raise UsageError(f"{path!r} is not a regular file (a pipe, socket or device); give the cache file itself")
+    staged = _staged_sweep_note(path)
+    if staged is not None and not os.path.exists(path):  # a first sweep killed before it published anything
+        print(staged, file=out)
+        print(f"warpsim: error: {path} is not written yet: {staged.split(': ', 1)[1]}", file=err or sys.stderr)
+        return 1
     try:
         info = cache_info(path, verify=True if verify else None)
     except FileNotFoundError as exc:  # checks.MissingFileError (not imported here: it would load Warp)
@@ -193,6 +198,8 @@ def _cmd_info(path, out, err=None, verify=False):
     else:
         span = "no frames"
     print(f"{info['path']}: {span}", file=out)
+    if staged is not None:  # a later sweep into this root was interrupted: the result above is the older one
+        print(staged.replace("a sweep ", "a newer sweep ", 1), file=out)
     for prim in info["prims"]:
         count = prim.get("count")
         count = "" if count is None else (f"  count {count[0]}" if count[0] == count[1] else
@@ -214,6 +221,39 @@ def _cmd_info(path, out, err=None, verify=False):
     print(f"warpsim: error: {path}: {len(damaged)} damaged chunk file(s) (first: {damaged[0][0]}, frames "
           f"{damaged[0][1]}..{damaged[0][2]}, {damaged[0][3]}); readable frames {readable}", file=err or sys.stderr)
     return 1
+
+
+def _staged_sweep_note(path):
+    """One line on the interrupted sweep staged for root ``path`` (its staged layer, completed
+    frames, how to continue), or None when none is staged."""
+    from .worlds.staging import staged_sweep
+
+    staged = staged_sweep(path)
+    if staged is None:
+        return None
+    rel = os.path.relpath
+    if staged["why"]:
+        return f"{rel(path)}: a sweep into it was interrupted, but {staged['why']}; run the sweep again"
+    frames = ", ".join(f"{a}..{b}" for a, b in staged["frames"]) or "none"
+    settings = staged["settings"]
+    total = settings.get("frames")
+    what = f"of scene {settings['scene']!r} " if settings.get("scene") else ""
+    of = f" of 0..{total}" if isinstance(total, int) else ""
+    damaged = f" ({len(staged['damaged'])} damaged chunk file(s))" if staged["damaged"] else ""
+    import socket
+
+    from .usd.lock import lock_info, lock_path, pid_alive
+
+    holder = lock_info(lock_path(path)) or {}  # the sweep's lock file names its command (stale once killed)
+    if holder.get("host") == socket.gethostname() and pid_alive(holder.get("pid")) and holder.get("pid") != os.getpid():
+        return (f"{rel(path)}: a sweep {what}into it is running (pid {holder['pid']}): its staged layer "
+                f"{rel(staged['layer'])} holds completed frames {frames}{of} so far")
+    cmd = str(holder.get("command") or "")
+    again = "the same 'warpsim sweep ...' options and --resume"
+    if cmd.startswith("warpsim sweep"):
+        again = f"'{cmd}{'' if ' --resume' in cmd else ' --resume'}'"
+    return (f"{rel(path)}: a sweep {what}into it was interrupted: its staged layer {rel(staged['layer'])} holds "
+            f"completed frames {frames}{of}{damaged}; continue it with {again}, or run it again without --resume")
 
 
 def _parse_sets(cls, sets, integrator):

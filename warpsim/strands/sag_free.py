@@ -335,6 +335,11 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
     n = model.particle_count
     inv_mass = model.particle_inv_mass.numpy()
     x = q.numpy().astype(np.float64)
+    bad = np.flatnonzero(~np.isfinite(x).all(axis=1))
+    if len(bad):  # NaN in, NaN residuals out: "converged" with residual 0 would be a lie
+        more = f" ({len(bad)} particles in all)" if len(bad) > 1 else ""
+        raise ValueError(f"sag_free: particle {int(bad[0])} has position {x[bad[0]].tolist()}, not finite{more}; give "
+                         "finite positions (a simulation that blew up must be rebuilt first)")
     has_springs = model.spring_count > 0 and any(isinstance(f, Springs) for f in system.forces)
 
     # ---- unknowns, the geometric rest state (no internal force at the current positions), bounds --

@@ -32,6 +32,7 @@ _MEMBERS = [  # (suffix after the stem, what it is)
     (r"\.sweep\.json", "its sweep manifest"),
     (r"\.sweep-partial\.json", "its interrupted sweep's progress file"),
     (r"\.picked\.(?:usd|usda|usdc)", "its picked worlds"),
+    (r"\.thumbs", "its thumbnails folder"),
 ]
 _MEMBER_RE = [(re.compile(p + r"\Z", re.S), what) for p, what in _MEMBERS]
 
@@ -63,6 +64,11 @@ def owner_of(path) -> tuple | None:
     not count."""
     path = os.path.abspath(os.fspath(path))
     folder, name = os.path.split(path)
+    parent = os.path.basename(folder)
+    if parent.endswith(".thumbs"):  # a file inside a sweep's thumbnails folder
+        root = _root_of(os.path.join(os.path.dirname(folder), parent[: -len(".thumbs")]))
+        if root is not None:
+            return root, "one of its thumbnails"
     for k in range(1, len(name)):
         if name[k] != ".":
             continue

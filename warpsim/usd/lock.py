@@ -35,7 +35,7 @@ try:
 except ImportError:  # pragma: no cover - Windows: the pid decides
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["OutputLock", "OutputLockedError", "command_scope", "hold", "lock_info", "lock_path"]
+__all__ = ["OutputLock", "OutputLockedError", "command_scope", "hold", "lock_info", "lock_path", "pid_alive"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -65,7 +65,8 @@ def lock_info(path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
-def _pid_alive(pid) -> bool:
+def pid_alive(pid) -> bool:
+    """Whether process ``pid`` exists on this host."""
     try:
         os.kill(int(pid), 0)
     except PermissionError:  # it exists, owned by another user
@@ -136,7 +137,7 @@ def _acquire_pid(out, path, command, flag):
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
             info = lock_info(path)
-            if info and info.get("host") == socket.gethostname() and _pid_alive(info.get("pid")) \
+            if info and info.get("host") == socket.gethostname() and pid_alive(info.get("pid")) \
                     and int(info.get("pid")) != os.getpid():
                 _refuse(out, path, info, flag)
             if info and info.get("host") not in (None, socket.gethostname()):
@@ -160,9 +161,14 @@ def hold(out, flag="--out", command=None) -> str:
         if entry is not None and entry["pid"] == os.getpid():
             entry["count"] += 1
         else:
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            fd = _acquire_flock(out, path, command, flag) if fcntl is not None else \
-                _acquire_pid(out, path, command, flag)
+            try:
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                fd = _acquire_flock(out, path, command, flag) if fcntl is not None else \
+                    _acquire_pid(out, path, command, flag)
+            except OSError as exc:  # the folder cannot hold the lock file, so not the output either
+                what = f"{flag} {os.fspath(out)!r}" if flag else repr(os.fspath(out))
+                raise ValueError(f"{what}: cannot write in folder {os.path.dirname(path)!r} "
+                                 f"({(exc.strerror or str(exc)).lower()}); choose a writable folder") from None
             _held[path] = {"fd": fd, "count": 1, "pid": os.getpid()}
         if _scopes:
             _scopes[-1].append(path)

@@ -449,9 +449,9 @@ def _indexed_info(path, health):
         entry = {"path": str(prim.GetPath()), "type": str(prim.GetTypeName())}
         parent = prim.GetParent()
         name = prim.GetName() if world and (parent == world or parent.GetParent() == world) else None
-        animated = any(name in r["prims"] for r in records.values()) if name else False
+        animated = any(name in r.get("prims", {}) for r in records.values()) if name else False
         if animated:
-            stats = [r["prims"][name] for r in good if name in r["prims"]]
+            stats = [r["prims"][name] for r in good if name in r.get("prims", {})]
             counts = [c for st in stats if "count" in st for c in st["count"]]
             boxes = [st["bounds"] for st in stats if "bounds" in st]
             if counts:

@@ -247,10 +247,18 @@ class OccupancyRecord:
         if not os.path.exists(path):
             raise FileNotFoundError(f"no occupancy record {path}; run the sweep again with this warpsim (sweeps "
                                     "write <stem>.occupancy.npz beside their table)")
+        from ..usd.pxr_errors import DamagedFileError
+
+        if not os.path.isfile(path):  # a FIFO would block np.load for ever
+            raise ValueError(f"occupancy record {path} is not a regular file (a pipe, socket or folder); give the "
+                             "sweep's <stem>.occupancy.npz")
+        import zipfile
+
         try:
             z = np.load(path, allow_pickle=False)
             if str(z["format"]) != FORMAT:
                 raise ValueError(f"format {str(z['format'])!r}")
+            _check_record_fields(z, path)
             grid = OccupancyGrid(z["lo"], float(z["cell_size"]), z["dims"])
             return cls(grid=grid, fps=float(z["fps"]), first_frame=int(z["first_frame"]),
                        frame_count=int(z["frame_count"]), first_world=int(z["first_world"]),
@@ -260,9 +268,13 @@ class OccupancyRecord:
                        samples=z["samples"] if "samples" in z.files else None, scene=str(z["scene"]),
                        version=str(z["version"]),
                        source_prim=str(z["source_prim"]) if "source_prim" in z.files else "")
-        except (OSError, KeyError, ValueError) as exc:
-            raise ValueError(f"{path} is not a warpsim occupancy record ({type(exc).__name__}: {exc}); run the "
-                             "sweep again") from None
+        except DamagedFileError:
+            raise
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            size = os.path.getsize(path)
+            what = "is empty (0 bytes)" if size == 0 else \
+                f"is damaged or not a warpsim occupancy record ({size} bytes; {type(exc).__name__}: {str(exc)[:80]})"
+            raise DamagedFileError(f"occupancy record {path} {what}; run the sweep again") from None
 
     def describe(self) -> str:
         inner = "x".join(str(int(d) - 2) for d in self.grid.dims)
@@ -273,6 +285,65 @@ class OccupancyRecord:
                 f"..[{', '.join(f'{v:.4g}' for v in self.grid.hi)}] m, {what}, "
                 f"{'exact positions kept' if self.exact else 'answers conservative to one cell'}"
                 f"{f', refined from the cached {self.source_prim} points where cheap' if self.source_prim and not self.exact else ''}")
+
+
+def _check_record_fields(z, path) -> None:
+    """DamagedFileError naming ``path`` and the field when a record's arrays do not fit together
+    (a zero frame rate, a cell outside the grid, pairs that do not match the CSR, ...)."""
+    from ..usd.pxr_errors import DamagedFileError
+
+    def bad(field, why):
+        raise DamagedFileError(f"occupancy record {path}: field {field!r} {why}; the record is damaged: run the "
+                               "sweep again")
+
+    def scalar(field, low, kind=int):
+        a = np.asarray(z[field])
+        if a.ndim != 0 or not np.issubdtype(a.dtype, np.number) or not math.isfinite(float(a)):
+            bad(field, f"is {a.tolist()!r}, not one finite number")
+        value = kind(a)
+        if value < low or (kind is int and value != float(a)):
+            bad(field, f"is {a.tolist()!r}, not {'a whole number' if kind is int else 'a number'} >= {low}")
+        return value
+
+    fps = scalar("fps", 0.0, float)
+    if fps <= 0.0:
+        bad("fps", f"is {fps!r}, not a rate > 0 [frames/s]")
+    cell = scalar("cell_size", 0.0, float)
+    if cell <= 0.0:
+        bad("cell_size", f"is {cell!r}, not a length > 0 [m]")
+    scalar("first_frame", 0)
+    frames = scalar("frame_count", 1)
+    scalar("first_world", 0)
+    worlds = scalar("world_count", 1)
+    per_world = scalar("world_particle_count", 0)
+    lo = np.asarray(z["lo"])
+    if lo.shape != (3,) or not np.isfinite(lo.astype(np.float64)).all():
+        bad("lo", f"is {lo.tolist()!r}, not 3 finite coordinates [m]")
+    dims = np.asarray(z["dims"])
+    if dims.shape != (3,) or not np.issubdtype(dims.dtype, np.integer) or (dims < 3).any():
+        bad("dims", f"is {dims.tolist()!r}, not 3 whole numbers >= 3")
+    cells = int(np.prod(dims.astype(np.int64)))
+    start = np.asarray(z["world_start"])
+    pairs = np.asarray(z["pair_cell"])
+    if start.shape != (worlds + 1,) or not np.issubdtype(start.dtype, np.integer) or start[0] != 0 \
+            or (np.diff(start) < 0).any():
+        bad("world_start", f"does not hold {worlds + 1} rising offsets from 0 (world_count {worlds})")
+    if pairs.ndim != 1 or not np.issubdtype(pairs.dtype, np.integer) or len(pairs) != int(start[-1]):
+        bad("pair_cell", f"holds {pairs.size} entries, world_start ends at {int(start[-1])}")
+    if len(pairs) and int(pairs.max()) >= cells:
+        bad("pair_cell", f"names cell {int(pairs.max())}, outside the grid's {cells} cells")
+    bits = np.asarray(z["pair_bits"])
+    words = max(1, (frames + 31) // 32)
+    if bits.size != len(pairs) * words:
+        bad("pair_bits", f"holds {bits.size} words, {len(pairs)} pairs x {words} words for {frames} frames expected")
+    particles = np.asarray(z["particles"])
+    if particles.ndim != 1 or len(particles) and (not np.issubdtype(particles.dtype, np.integer) or
+                                                  particles.min() < 0 or particles.max() >= max(per_world, 1)):
+        bad("particles", f"are not indices within a world of {per_world} particles")
+    if "samples" in z.files:
+        samples = np.asarray(z["samples"])
+        if samples.shape != (worlds, frames, len(particles), 3):
+            bad("samples", f"has shape {samples.shape}, ({worlds}, {frames}, {len(particles)}, 3) expected")
 
 
 class OccupancyRecorder:

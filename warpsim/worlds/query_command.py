@@ -48,12 +48,29 @@ def _number(text):
 
 def read_table(path):
     """Rows of a sweep table, numbers parsed (vectors stay ``"x,y,z"`` text)."""
+    from ..usd.pxr_errors import DamagedFileError
+
     if not os.path.exists(path):
         raise FileNotFoundError(f"no sweep table {path}; give --table CSV or run the sweep again")
-    with open(path, newline="") as f:
-        rows = [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    if not os.path.isfile(path):  # a FIFO would block for ever
+        raise ValueError(f"sweep table {path} is not a regular file (a pipe, socket or folder); give --table CSV")
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    except UnicodeDecodeError as exc:
+        raise DamagedFileError(f"sweep table {path} is not text (byte 0x{exc.object[exc.start]:02x} at offset "
+                               f"{exc.start} is not UTF-8): it is damaged or not a table; give the sweep's --table "
+                               "CSV or run the sweep again") from None
+    except csv.Error as exc:
+        raise DamagedFileError(f"sweep table {path} is not a readable CSV table ({exc}); run the sweep again") \
+            from None
     if not rows or "world" not in rows[0]:
         raise ValueError(f"{path} is not a sweep table (no 'world' column); give --table CSV")
+    for i, row in enumerate(rows):
+        if not isinstance(row.get("world"), int) or None in row or any(v is None for v in row.values()):
+            raise DamagedFileError(f"sweep table {path}: row {i + 1} (field 'world' = {row.get('world')!r}) is "
+                                   "damaged (not a world index, or a different number of fields than the header); "
+                                   "run the sweep again")
     return rows
 
 
@@ -82,8 +99,12 @@ def run(args, out, err):
         positions = cached_positions(args.root, record) if regions else None
         answers = [answer_region(record, r, positions) for r in regions]  # windows checked here
         candidates = apply_regions(rows, record, regions, answers=answers)
-    except (FileNotFoundError, ValueError) as exc:
-        raise usage(str(exc)) from None
+    except (OSError, ValueError) as exc:
+        if getattr(exc, "exit_status", 2) != 2:
+            raise  # a damaged table or record: exit 1, naming the file and the field
+        from ..usd.pxr_errors import error_line
+
+        raise usage(error_line(exc)) from None
     params = [k for k in rows[0] if k != "world" and k not in _metric_columns(rows[0])]
     print(record.describe(), file=out)
     if regions:
@@ -100,6 +121,9 @@ def run(args, out, err):
         root = os.path.abspath(args.root)
         stem, ext = os.path.splitext(root)
         layers = sorted({layer for _, layer in files["worlds"]})
+        from ..usd.lock import hold
+
+        hold(stem + ".picked" + ext, "")  # one writer of the picked worlds (released when the command ends)
         pick_path = write_sweep_root(stem + ".picked" + ext, layers, len(rows), layout=files["layout"],
                                      worlds=[r["world"] for r in picked])
         print(f"picked worlds: {os.path.relpath(pick_path)}", file=out)

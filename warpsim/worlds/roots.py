@@ -45,11 +45,16 @@ def sweep_root_files(root, table=None):
         raise ValueError(f"{root!r} is a folder; give the sweep's root file (.usda) written by 'warpsim sweep'")
     if not os.path.exists(root):
         raise FileNotFoundError(f"no sweep root {root}; give the --out of 'warpsim sweep'")
+    if not os.path.isfile(root):  # USD would wait on a FIFO for ever
+        raise ValueError(f"{root} is not a regular file (a pipe, socket or device); give the sweep's root file "
+                         "(.usda) written by 'warpsim sweep'")
     try:
         found = root_worlds(root)
     except Exception as exc:  # noqa: BLE001  (pxr raises Tf errors for files that are not USD)
-        raise ValueError(f"{root} is not a USD file ({type(exc).__name__}); give the root of 'warpsim sweep'") \
-            from None
+        from ..usd.pxr_errors import pxr_reason
+
+        why = pxr_reason(exc, 100) if str(exc).strip() else "USD gave no reason"
+        raise ValueError(f"{root} is not a readable USD file ({why}); give the root of 'warpsim sweep'") from None
     if found is None:
         raise ValueError(f"{root} is not a sweep root (no 'world' variant set or world_ prims under /World); give "
                          "the --out of 'warpsim sweep'")

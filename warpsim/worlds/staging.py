@@ -26,7 +26,7 @@ import os
 import re
 import secrets
 
-__all__ = ["SweepStaging", "settings_digest"]
+__all__ = ["SweepStaging", "settings_digest", "staged_sweep"]
 
 VERSION = 1
 
@@ -45,6 +45,41 @@ def _atomic_json(path, data):
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def staged_sweep(root_path):
+    """What an interrupted single-process sweep of root ``root_path`` left (None when its progress
+    file is absent): ``{"progress", "layer", "settings", "frames" [(start, end)], "damaged",
+    "why"}``; ``why`` says what is unreadable (the progress file or the staged layer), else None."""
+    stem = os.path.splitext(os.path.abspath(os.fspath(root_path)))[0]
+    progress = stem + ".sweep-partial.json"
+    if not os.path.isfile(progress):
+        return None
+    out = {"progress": progress, "layer": None, "settings": {}, "frames": [], "damaged": [], "why": None}
+    try:
+        with open(progress, encoding="utf-8") as f:
+            data = json.load(f)
+        token, settings = str(data["token"]), data["settings"]
+        if not token.isalnum() or not isinstance(settings, dict):
+            raise ValueError
+    except (OSError, ValueError, KeyError, TypeError):
+        out["why"] = f"its progress file {os.path.basename(progress)} is damaged"
+        return out
+    out["settings"] = settings
+    out["layer"] = layer = f"{stem}.batch_0000.run{token}.usdc"
+    if not os.path.isfile(layer):
+        out["why"] = "no frame was completed (its staged layer does not exist yet)"
+        return out
+    from ..usd.validate import chunk_health
+
+    try:
+        health = chunk_health(layer)
+    except ValueError as exc:
+        out["why"] = f"its staged layer does not open ({' '.join(str(exc).split())[:160]})"
+        return out
+    if health is not None:
+        out["frames"], out["damaged"] = health["readable"], health["damaged"]
+    return out
 
 
 class SweepStaging:

@@ -1,0 +1,238 @@
+"""Hardening III (issue 36), classes 3, 5, 6 and 7: damaged or tampered records, manifests,
+tables and chunk indexes refused in one line naming the file and the field (exit 1); export and
+pick check the chunk index; FIFOs refused, not waited on; no bare ``[Errno N]`` or empty pxr
+text; NaN positions refused by ``sag_free``; ``info`` on a killed first sweep."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+
+import warpsim as ws
+from warpsim.cli import main
+
+
+def run(*argv):
+    out, err = io.StringIO(), io.StringIO()
+    code = main([str(a) for a in argv], out=out, err=err)
+    return code, out.getvalue(), err.getvalue()
+
+
+def one_error_line(err):
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("warpsim: error: "), err
+    assert "[Errno" not in lines[0] and "Traceback" not in err and "ErrorException" not in lines[0], err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("made")
+    root = folder / "S.usda"
+    code, _, err = run("sweep", "bounce", "--worlds", 3, "--vary", "height=0.2:0.8", "--frames", 8, "--chunk", 4,
+                       "--no-progress", "--device", "cpu", "--out", root)
+    assert code == 0, err
+    code, _, err = run("run", "bounce", "--frames", 8, "--chunk", 4, "--no-progress", "--device", "cpu", "--out",
+                       folder / "c.usda")
+    assert code == 0, err
+    return folder
+
+
+@pytest.fixture
+def copy(made, tmp_path):
+    shutil.copytree(made, tmp_path / "x")
+    return tmp_path / "x"
+
+
+QUERY = ("--inside", "-1,-1,-1,1,1,1@0:0.1")
+
+
+def _resave(path, **changes):
+    data = dict(np.load(path))
+    data.update(changes)
+    with open(path, "wb") as f:
+        np.savez(f, **data)
+
+
+# ------------------------------------------------------------------------- class 3: damaged records
+@pytest.mark.parametrize("damage, words", [
+    ("fps=0", "field 'fps' is 0.0"),
+    ("cell", "field 'pair_cell' names cell"),
+    ("frames=abc", "field 'frame_count' is 'abc'"),
+    ("truncated", "is damaged or not a warpsim occupancy record"),
+    ("empty", "is empty (0 bytes)"),
+])
+def test_damaged_occupancy_record_is_refused_naming_the_field(copy, damage, words):
+    record = copy / "S.occupancy.npz"
+    if damage == "fps=0":
+        _resave(record, fps=np.array(0.0))
+    elif damage == "cell":
+        _resave(record, pair_cell=np.load(record)["pair_cell"] + np.uint32(10**6))
+    elif damage == "frames=abc":
+        _resave(record, frame_count=np.array("abc"))
+    else:
+        data = record.read_bytes()
+        record.write_bytes(data[:200] if damage == "truncated" else b"")
+    code, _, err = run("query", copy / "S.usda", *QUERY)
+    line = one_error_line(err)
+    assert code == 1 and "S.occupancy.npz" in line and words in line, line
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("frames", "abc", "field 'frames' is 'abc'"),
+    ("frames", -5, "field 'frames' is -5"),
+    ("frame_steps", -3, "field 'frame_steps' is -3"),
+    ("fps", 0, "field 'fps' is 0"),
+    ("worlds", [{"hieght": 0.3}], "'worlds'[0] names 'hieght'"),
+])
+def test_tampered_manifest_is_damage_not_a_usage_mistake(copy, field, value, words):
+    manifest = copy / "S.sweep.json"
+    data = json.loads(manifest.read_text())
+    data[field] = value
+    manifest.write_text(json.dumps(data))
+    code, _, err = run("run", "bounce", "--from-sweep", copy / "S.usda", "--world", 0, "--no-progress",
+                       "--out", copy / "w.usda")
+    line = one_error_line(err)
+    assert code == 1 and "S.sweep.json" in line and words in line and "--frames" not in line, line
+    with pytest.raises(ValueError, match="S.sweep.json"):
+        ws.rerun_world(copy / "S.usda", 0, out=copy / "w.usda")
+    assert not (copy / "w.usda").exists()
+
+
+def test_a_manifests_missing_device_is_named_as_the_sweeps(copy):
+    manifest = copy / "S.sweep.json"
+    data = json.loads(manifest.read_text())
+    data["device"] = "cuda:99"
+    manifest.write_text(json.dumps(data))
+    code, _, err = run("run", "bounce", "--from-sweep", copy / "S.usda", "--world", 0, "--no-progress",
+                       "--out", copy / "w.usda")
+    line = one_error_line(err)
+    assert code == 2 and "ran on 'cuda:99' (its manifest)" in line and "--device 'cuda:99'" not in line
+
+
+def test_tampered_chunk_index_line_and_garbage_table(copy):
+    index = copy / "c.chunks.jsonl"
+    lines = index.read_text().splitlines()
+    rec = json.loads(lines[0])
+    rec["bytes"] = "abc"
+    index.write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
+    code, text, err = run("info", copy / "c.usda")
+    assert code == 1 and "c.chunk000000.usdc  frames 0..3: listed by a damaged chunk index line (field 'bytes' is " \
+        "'abc'" in text, text
+    with open(copy / "S.csv", "ab") as f:
+        f.write(b"\xff\xfe\x00garbage\n")
+    code, _, err = run("query", copy / "S.usda", *QUERY)
+    line = one_error_line(err)
+    assert code == 1 and "S.csv is not text (byte 0xff" in line
+
+
+def test_export_and_pick_check_the_chunk_index(copy, tmp_path):
+    os.remove(copy / "c.chunk000004.usdc")  # frames 4..7 of the ball (chunks of 4 frames, 0..8)
+    code, _, err = run("export", copy / "c.usda", "--out", tmp_path / "c.obj")
+    line = one_error_line(err)
+    assert code == 1 and "c.chunk000004.usdc (frames 4..7) is missing" in line and "readable frames: 0..3, 8" in line
+    code, _, err = run("export", copy / "c.usda", "--frame", 6, "--out", tmp_path / "c.obj", "--allow-damaged")
+    assert code == 2 and "--frame 6 lies in a damaged chunk file" in one_error_line(err)
+    code, text, err = run("export", copy / "c.usda", "--frame", 3, "--out", tmp_path / "c.obj", "--allow-damaged")
+    assert code == 0 and "wrote frame 3" in text, err
+    chunk = next(n for n in os.listdir(copy) if n.startswith("S.batch_0000.run") and n.endswith("chunk000004.usdc"))
+    os.remove(copy / chunk)
+    for flat in ([], ["--flatten"]):
+        code, _, err = run("pick", copy / "S.usda", "--world", 1, "--out", tmp_path / "w1.usda", *flat)
+        line = one_error_line(err)
+        assert code == 1 and f"{chunk} (frames 4..7) is missing" in line
+    assert not (tmp_path / "w1.usda").exists()
+
+
+# ------------------------------------------------------------------ class 5: hangs and library text
+def test_fifo_inputs_are_refused_at_once(tmp_path):
+    fifo = tmp_path / "f.usda"
+    os.mkfifo(fifo)
+    old = signal.signal(signal.SIGALRM, lambda *a: (_ for _ in ()).throw(TimeoutError("waited on a FIFO")))
+    signal.alarm(30)
+    try:
+        for argv in (["query", fifo, *QUERY], ["pick", fifo, "--world", 0, "--out", tmp_path / "p.usda"],
+                     ["run", "bounce", "--from-sweep", fifo, "--world", 0, "--out", tmp_path / "w.usda"]):
+            code, _, err = run(*argv)
+            line = one_error_line(err)
+            assert code == 2 and ("is not a regular file" in line or "is not a warpsim sweep root" in line), line
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_unwritable_outputs_are_one_line_in_words(made):
+    root, cache = made / "S.usda", made / "c.usda"
+    for argv in (["pick", root, "--world", 1, "--out", "/proc/warpsim_pick.usda"],
+                 ["pick", root, "--world", 1, "--out", "/proc/warpsim_pick.usda", "--flatten"],
+                 ["export", cache, "--out", "/proc/warpsim_x.obj"],
+                 ["plot", cache, "--out", "/proc/warpsim_x.png"],
+                 ["render", cache, "--out", "/proc/warpsim_x.png", "--no-progress"],
+                 ["run", "bounce", "--from-sweep", root, "--world", 1, "--out", "/proc/warpsim_w.usda"]):
+        code, _, err = run(*argv)
+        if code == 0:  # running as a user who may write there: nothing to check
+            continue
+        line = one_error_line(err)
+        assert code == 2 and "/proc" in line and "choose a writable folder" in line, (argv, line)
+
+
+def test_api_calls_raise_the_right_type_in_words(made):
+    with pytest.raises(TypeError, match="frames 'ten' is not a whole number"):
+        ws.rerun_world(made / "S.usda", 0, frames="ten")
+    with pytest.raises(TypeError, match="fps 'x' is not a number"):
+        ws.rerun_world(made / "S.usda", 0, fps="x")
+    with pytest.raises(ValueError, match="substeps 0: it must be >= 1"):
+        ws.rerun_world(made / "S.usda", 0, substeps=0)
+
+
+# --------------------------------------------------------------------------------- class 6: NaN
+def test_sag_free_refuses_a_nan_position_naming_the_particle():
+    from warpsim.strands import StrandForce, add_strands
+
+    b = ws.ModelBuilder()
+    lines = np.array([[[0.0, 1.0, 0.0], [0.0, 0.9, 0.0], [0.0, 0.8, 0.0], [0.0, 0.7, 0.0]]])
+    hair = add_strands(b, segments=3, polylines=lines, mass=1e-3, stretch_rigidity=5.0, bend_rigidity=5e-4)
+    sim = ws.Simulator(b.finalize("cpu"), forces=[ws.Gravity(), StrandForce(hair)])
+    report = ws.sag_free(sim)  # the finite groom solves
+    assert report.residual_relative < 1e-2
+    x = sim.state.positions.numpy()
+    x[2, 1] = np.nan
+    sim.state.positions.assign(x)
+    with pytest.raises(ValueError, match=r"particle 2 has position \[0.0, nan, 0.0\], not finite"):
+        ws.sag_free(sim)
+
+
+# ------------------------------------------------------------------------- class 7: a killed sweep
+def test_info_on_a_killed_first_sweep_names_the_staged_frames_and_resume(tmp_path):
+    root = tmp_path / "K.usda"
+    argv = ["sweep", "bounce", "--worlds", "2", "--vary", "height=0.2:0.8", "--frames", "1000000", "--chunk", "2",
+            "--no-progress", "--device", "cpu", "--out", str(root)]
+    proc = subprocess.Popen([sys.executable, "-m", "warpsim", *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        t0 = time.monotonic()
+        while not any(n.endswith(".chunks.jsonl") and (tmp_path / n).read_text().count("\n") >= 2
+                      for n in os.listdir(tmp_path)):
+            assert proc.poll() is None and time.monotonic() - t0 < 120, "the sweep did not start"
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert not root.exists()
+    code, text, err = run("info", root)
+    assert code == 1
+    staged = next(n for n in os.listdir(tmp_path) if n.startswith("K.batch_0000.run") and n.endswith(".run" + n.split(
+        ".run")[1].split(".")[0] + ".usdc"))
+    assert f"its staged layer {os.path.relpath(tmp_path / staged)} holds completed frames 0.." in text, text
+    assert "of 0..1000000" in text and "--resume" in text and "warpsim sweep bounce --worlds 2" in text
+    assert "is not written yet" in one_error_line(err)
