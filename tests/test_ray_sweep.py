@@ -28,7 +28,8 @@ SCENE = "springs"
 VARY = ["stiffness=100,400,1000,1e9", "damping=0.01,0.5"]  # grid of 8; the last two worlds blow up
 WORLDS = 8
 FRAMES = 40
-FIXED_STEPS = ["--substeps", "1"]  # one step per frame: the stiff worlds blow up (auto sub-steps would keep them stable)
+# one step of dt = 1/480 s (the scene's) per frame: the stiff worlds blow up (auto sub-steps would keep them stable)
+FIXED_STEPS = ["--fps", "480", "--substeps", "1"]
 
 
 # --- no cluster needed ---------------------------------------------------------------------------
@@ -201,7 +202,8 @@ def test_ray_sweep_equals_single_process_and_survives_a_killed_worker(cluster, r
     worlds = reference[0]
     marker = str(tmp_path / "killed.marker")
     out = str(tmp_path / "ray" / "s.usda")
-    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=out, table_path=str(tmp_path / "ray" / "s.csv"),
+    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, fps=480.0, substeps=1, out_path=out,
+                           table_path=str(tmp_path / "ray" / "s.csv"),
                            device="cpu", batch_size=3, _kill_once=marker, occupancy={"resolution": 16})
     # one worker was SIGKILLed after writing its layer, before publishing it; Ray ran the batch again
     killed_batch, killed_pid = map(int, _read(marker).split())
@@ -270,7 +272,7 @@ def test_a_batch_that_raises_is_flagged_and_the_root_spans_the_other_batches(clu
         return run_batch(scene, worlds, first_world=first_world, **kw)
 
     worlds = reference[0][:6]
-    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=str(tmp_path / "s.usda"),
+    result = run_ray_sweep(SCENE, worlds, frames=FRAMES, fps=480.0, substeps=1, out_path=str(tmp_path / "s.usda"),
                            table_path=str(tmp_path / "s.csv"), device="cpu", batch_size=2, runner=runner)
     rows = result["rows"]
     assert [r["world"] for r in rows] == list(range(6))
@@ -286,7 +288,7 @@ def test_a_batch_that_raises_is_flagged_and_the_root_spans_the_other_batches(clu
     with open(result["table"]) as fh:
         assert fh.read().count("RuntimeError: out of device memory") == 2
     # --resume runs the failed batch again (the memory may be there now) and nothing else
-    again = run_ray_sweep(SCENE, worlds, frames=FRAMES, substeps=1, out_path=str(tmp_path / "s.usda"),
+    again = run_ray_sweep(SCENE, worlds, frames=FRAMES, fps=480.0, substeps=1, out_path=str(tmp_path / "s.usda"),
                           table_path=str(tmp_path / "s.csv"), device="cpu", batch_size=2, resume=True)
     assert again["ran"] == [1] and again["skipped"] == [0, 2]
     with open(again["table"]) as fh:

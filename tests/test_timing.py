@@ -108,6 +108,8 @@ def test_substeps_1_keeps_the_scenes_fps_and_warns_and_strict_refuses(tmp_path):
 
 
 def test_bounce_with_two_substeps_takes_two_steps_of_half_the_frame(tmp_path):
+    from warpsim.viewer.session import Session
+
     path = tmp_path / "b.usda"
     code, _, err = run("run", "bounce", "--substeps", 2, "--frames", 1, "--out", path, "--device", "cpu",
                        "--no-progress")
@@ -117,6 +119,13 @@ def test_bounce_with_two_substeps_takes_two_steps_of_half_the_frame(tmp_path):
     y = np.asarray(stage.GetPrimAtPath("/World/ball").GetAttribute("points").Get(1))[0][1]
     # semi-implicit Euler, h = 0.02 s from rest at 0.04 m: y = 0.04 - h^2 g (1 + 2) = 0.028228 m (one step: 0.024304)
     assert y == pytest.approx(0.04 - 0.02 ** 2 * 9.81 * 3, rel=1e-5)
+    # the viewer: the same timing and the same frame
+    bounce = get_scene("bounce")
+    session = Session(bounce, {}, device="cpu", substeps=2)
+    assert session.timing == resolve_timing(bounce, bounce.resolve_params({}), substeps=2)
+    assert (session.fps, session.substeps, session.stability()["step"]) == (25.0, 2, 0.02)
+    assert session.advance()
+    assert session.scene.sim.state.positions.numpy()[0][1] == np.float32(y)
 
 
 # ---------------------------------------------------------------------------------- automatic steps in a sweep

@@ -165,7 +165,9 @@ class Scene:
         self.device = wp.get_device(device)
         self.params = self.resolve_params(params or {})
         self.frame = 0
-        self.timing = resolve_timing(type(self), self.params, given=tuple(params or ()))
+        cls = type(self)  # a dt other than the scene's is the user's step (automatic timing off)
+        given = tuple(k for k in (params or {}) if self.params[k] != cls.params[k].default)
+        self.timing = resolve_timing(cls, self.params, given=given)
         """The scene's :class:`~warpsim.scenes.timing.FrameTiming` (its defaults until a command or
         a batch gives it one with :meth:`use_timing`); with ``timing.auto`` each frame takes at
         least ``substeps`` steps and as many as half the stability limit needs (:meth:`steps_for`)."""
@@ -182,11 +184,15 @@ class Scene:
         """Time the frames to come by ``timing`` (a :class:`~warpsim.scenes.timing.FrameTiming` from
         :func:`~warpsim.scenes.timing.resolve_timing`; a fixed automatic count, e.g. the one a
         whole sweep took, is used as it is). ``limit``: the ``ws.StabilityLimit`` automatic steps
-        keep inside (a batch of worlds gives its stiffest world's), None: the scene's own.
-        Returns the timing with the steps a frame takes now."""
+        keep inside (anything with ``substeps_for(frame_dt, minimum=...)``: a batch of worlds gives
+        itself, the most steps any of its worlds needs), None: the scene's own."""
         self.timing = timing
         self._steps_limit = limit
-        return timing if timing.fixed else timing.with_steps(self.frame_steps(timing.frame_dt, timing.steps))
+
+    def current_timing(self):
+        """``self.timing`` with the steps a frame takes now (automatic: resolved against the limit)."""
+        t = self.timing
+        return t if t.fixed else t.with_steps(self.frame_steps(t.frame_dt, t.steps))
 
     def stability(self):
         """The ``ws.StabilityLimit`` of the scene's simulator (``self.sim``, linearised about its

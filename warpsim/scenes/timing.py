@@ -73,10 +73,6 @@ class FrameTiming:
         steps = int(steps)
         return replace(self, steps=steps, step_dt=self.frame_dt / steps, fixed=True)
 
-    def unresolved(self) -> "FrameTiming":
-        """An automatic timing whose count is to be resolved again (after parameters changed)."""
-        return replace(self, fixed=not self.auto)
-
     def scene_params(self, params: dict) -> dict:
         """``params`` with a ``dt`` parameter set to the step taken (the fewest steps' step for
         automatic timing), so a scene that reads dt sees the step it is run with."""

@@ -118,6 +118,7 @@ class WorldBatch:
             self.sim.stability_model = self._springs_model
         self.batch_scene = copy.copy(self.scene)
         self.batch_scene.sim = self.sim
+        self.batch_scene.use_timing(self.scene.timing, limit=self)  # automatic steps: each world's own limit
         if hasattr(self.batch_scene, "model"):
             self.batch_scene.model = self.model
         n, d = self.world_count, self.device
@@ -376,16 +377,17 @@ class WorldBatch:
         and the count depends on no world but the one needing the most."""
         return max(limit.substeps_for(frame_dt, minimum=int(minimum)) for limit in self.world_limits())
 
+    def substeps_for(self, frame_dt, minimum=1) -> int:
+        """:meth:`auto_steps`: the batch is the limit its scene's automatic steps keep inside."""
+        return self.auto_steps(frame_dt, minimum)
+
     def use_timing(self, timing):
         """Step the frames to come by ``timing`` (a :class:`~warpsim.scenes.timing.FrameTiming`):
         with automatic timing not yet fixed, each frame takes the steps of the world needing the
         most (:meth:`auto_steps`; the scene's own rule on top, e.g. cloth's steps per sub-step).
         Returns the timing with the steps a frame takes."""
-        limit = None
-        if timing.auto and not timing.fixed:
-            frame_dt = timing.frame_dt
-            limit = max(self.world_limits(), key=lambda lim: lim.substeps_for(frame_dt, minimum=1))
-        return self.batch_scene.use_timing(timing, limit=limit)
+        self.batch_scene.use_timing(timing, limit=self)
+        return self.batch_scene.current_timing()
 
     def stability_warning(self, frame_dt, substeps):
         """One line naming the worlds whose step is above their limit (None when none is)."""
