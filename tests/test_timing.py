@@ -147,6 +147,11 @@ def test_a_damping_sweep_steps_every_world_within_half_its_own_limit(tmp_path):
         assert step <= 0.5 * limit * (1 + 1e-6), (w, worlds[w], step, limit)
     # and no more than the most any world needs alone
     assert steps == max(timing.steps, *(math.ceil(timing.frame_dt / (0.5 * limit) - 1e-9) for limit in alone))
+    # without the outlier the damping-0.5 world sets the count (the old estimate averaged it: 0.9 x its limit)
+    steps = sweep_frame_steps("teapot", worlds[:-1], device="cpu")
+    assert steps == max(timing.steps, *(math.ceil(timing.frame_dt / (0.5 * limit) - 1e-9) for limit in alone[:-1]))
+    assert all(timing.frame_dt / steps <= 0.5 * limit * (1 + 1e-6) for limit in alone[:-1])
+    steps = sweep_frame_steps("teapot", worlds, device="cpu")
     # the count is the most any world needs alone: the same for a batch of the outlier world alone
     assert sweep_frame_steps("teapot", [worlds[-1]], device="cpu") == steps
     got = {}
