@@ -300,7 +300,7 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
                                    warn=warn, chunk_size=chunk_size, resume_frame=firsts[k], frame_steps=steps,
                                    reference_params=world_params)
         except BaseException as exc:  # noqa: BLE001  (recorded; the caller raises it with the device named)
-            errors[k] = exc
+            errors[k] = exc.with_traceback(None)  # frees the run's frames: its writer's open chunk layer too
             stop.set()
             agreement.barrier.abort()
 

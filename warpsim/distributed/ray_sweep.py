@@ -45,7 +45,8 @@ from .batches import (
 )
 from .manifest import SweepManifest, manifest_path, worlds_digest
 
-__all__ = ["RaySweepError", "add_ray_arguments", "ray_usage_error", "run_batch_task", "run_ray_sweep"]
+__all__ = ["RaySweepError", "add_ray_arguments", "default_batch_size", "ray_usage_error", "run_batch_task",
+           "run_ray_sweep"]
 
 DEFAULT_BATCH_SIZE = 64
 LAYER_EXT = ".usdc"
@@ -63,7 +64,8 @@ def add_ray_arguments(parser):
                    help="run batches as Ray tasks on the cluster at ADDRESS (host:6379, ray://host:10001 or "
                         "auto); without ADDRESS start a local cluster. Put it after SCENE.")
     g.add_argument("--batch-size", type=int, default=None, metavar="B",
-                   help=f"worlds per Ray task (default {DEFAULT_BATCH_SIZE})")
+                   help=f"worlds per Ray task (default {DEFAULT_BATCH_SIZE}; with --device cuda on a local cluster, "
+                        "one task per GPU)")
     g.add_argument("--ray-cpus", type=int, default=None, metavar="N",
                    help="CPUs of a local cluster started by --ray (default: all)")
     g.add_argument("--resume", action="store_true",
@@ -89,6 +91,19 @@ def ray_usage_error(args):
     return None
 
 
+def default_batch_size(world_count, device=None, address=None):
+    """Worlds per Ray task when ``--batch-size`` is not given: with ``--device cuda...`` on a local
+    cluster, one task per local GPU (``ceil(world_count / GPUs)``: each task holds one GPU and steps
+    its worlds in one batch); otherwise ``DEFAULT_BATCH_SIZE``."""
+    if str(device or "").startswith("cuda") and address in (None, "local"):
+        import warp as wp
+
+        gpus = wp.get_cuda_device_count()
+        if gpus:
+            return max(1, -(-int(world_count) // gpus))
+    return DEFAULT_BATCH_SIZE
+
+
 def _layer_name(out_path, index):
     return f"{os.path.splitext(os.path.basename(out_path))[0]}.batch_{index:04d}{LAYER_EXT}"
 
@@ -105,7 +120,8 @@ def run_batch_task(spec):
     ``frames``, ``fps``, ``substeps``, ``device``, ``final_dir``, ``layer_name``, ``runner`` (None:
     ``warpsim.worlds.run_batch``), ``options`` (more keyword arguments for it) and ``kill_once``
     (tests only: a marker path; the first attempt that finds no marker creates it and SIGKILLs its
-    own worker after the layer is written but before it is published). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
+    own worker after the layer is written but before it is published); ``reference``: an ObjectRef
+    of the whole sweep's parameter list (None or absent: none; ``run_batch``'s ``reference_params``). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
     """
     import warp as wp
 
@@ -120,6 +136,10 @@ def run_batch_task(spec):
     tmp = temp_batch_dir(final_dir)
     error = None
     options = dict(spec.get("options") or {})
+    if spec.get("reference") is not None:  # the whole sweep's parameters (an ObjectRef)
+        import ray
+
+        options["reference_params"] = ray.get(spec["reference"])
     if spec.get("occupancy"):  # the batch's occupancy record, on the whole sweep's grid, in its folder
         options["occupancy"] = {**spec["occupancy"], "path": os.path.join(tmp, spec["record_name"])}
     try:
@@ -345,6 +365,9 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
         skipped = [i for i in range(len(batches)) if resume and manifest.finished(i) and not manifest.batches[i]["error"]]
         todo = [i for i in range(len(batches)) if i not in skipped]
         task = ray.remote(run_batch_task).options(max_retries=max_retries, retry_exceptions=False, **options)
+        # every batch builds its worlds against the whole sweep (run_batch reference_params): a world's
+        # arrays, and so its samples, do not depend on its batch; stored once in Ray's object store
+        reference = ray.put(list(world_params)) if runner is None else None
         pending = {}
         for i in todo:
             first, count = batches[i]
@@ -352,7 +375,8 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
                     "index": i, "frames": frames, "fps": fps, "substeps": substeps, "device": task_device,
                     "final_dir": batch_dir(out_path, i, broot), "layer_name": _layer_name(out_path, i),
                     "runner": runner, "options": batch_options, "kill_once": _kill_once,
-                    "occupancy": record_options, "record_name": _record_name(out_path, i)}
+                    "occupancy": record_options, "record_name": _record_name(out_path, i),
+                    "reference": reference}
             pending[task.remote(spec)] = i
         fresh = {}
         while pending:

@@ -259,7 +259,7 @@ def run(args, out, err):
     run_timing = {}  # steps per frame the single-process batch took (a Ray sweep: the driver's count)
     try:
         if getattr(args, "ray", None) is not None:
-            from ..distributed.ray_sweep import DEFAULT_BATCH_SIZE, run_ray_sweep
+            from ..distributed.ray_sweep import default_batch_size, run_ray_sweep
             from .rerun import sweep_frame_steps
 
             # automatic sub-steps resolve over the whole sweep, not per batch (its stiffest world)
@@ -269,7 +269,8 @@ def run(args, out, err):
                 run_timing["frame_steps"] = steps
             result = run_ray_sweep(cls.name, world_params, frames=args.frames, out_path=path, table_path=table,
                                    fps=args.fps, substeps=args.substeps, device=args.device,
-                                   batch_size=args.batch_size or DEFAULT_BATCH_SIZE, address=args.ray,
+                                   batch_size=args.batch_size or default_batch_size(len(world_params), args.device,
+                                                                                     args.ray), address=args.ray,
                                    num_cpus=args.ray_cpus, resume=args.resume, layout=args.layout,
                                    batch_options={**({"track": track} if track else {}),
                                                   **({"fused": True} if args.fused else {}),
