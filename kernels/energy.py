@@ -1,17 +1,21 @@
 """Energy balance kernels: per-world mechanical energy and the work of driving forces, summed in a
 fixed order (bit-reproducible), and the per-world verdict (``warpsim.core.energy``).
 
-Per particle i (moving ones only; pinned particles have no energy of their own):
-  kinetic   m |w|^2 / 2 with w = v + (dt / 2) f / m for semi-implicit Euler (``half_dt`` = dt / 2:
-            the velocity synchronised with the positions; the stored one is staggered by half a
-            step; f the step's force, or m g where the stepper keeps no force: ``forces`` empty)
-            and w = v otherwise (``half_dt`` = 0)
-  gravity   -m g . x (g [m/s^2] of the particle's world)
-  work      (f0 + f1) . (x1 - x0) / 2 of the driving forces over the frame (trapezoid rule)
-Per spring s (unbroken): k (|x_i - x_j| - L)^2 / 2.
+For semi-implicit Euler (``half_dt`` = dt / 2) the energy is the method's modified (shadow)
+energy H = K + U + (dt / 2) v . f(x), f = -grad U the conservative force at the current positions
+and v the stored (half-step staggered) velocity: the method conserves it exactly for linear
+springs and uniform gravity at every stable step, where K + U alone swings by up to 5x near the
+stability limit (Hairer, Lubich & Wanner, Geometric Numerical Integration, IX). Other integrators
+use K + U (``half_dt`` = 0).
 
-Columns of a world's sums: 0 kinetic + gravity [J], 1 spring energy [J], 2 work [J], 3 1.0 when any
-value was non-finite (else 0).
+Per particle i (moving ones only; pinned particles have no energy of their own):
+  kinetic + gravity   m |v|^2 / 2 - m g . x + (dt / 2) m v . g   (g [m/s^2] of its world)
+  work                (f0 + f1) . (x1 - x0) / 2 of the driving forces over the frame (trapezoid rule)
+Per spring s (unbroken), d = |x_i - x_j| - L and u the unit vector from j to i:
+  elastic             k d^2 / 2 - (dt / 2) k d u . (v_i - v_j)
+
+Columns of a world's sums: 0 the plain energy K + U [J], 1 the modified energy's (dt / 2) v . f
+terms [J], 2 work [J], 3 1.0 when any value was non-finite (else 0).
 """
 
 import warp as wp
@@ -23,31 +27,29 @@ COLUMNS = wp.constant(4)
 
 @wp.func
 def particle_terms(
-    x: wp.vec3, x0: wp.vec3, v: wp.vec3, f: wp.vec3, fd0: wp.vec3, fd1: wp.vec3, m: float, inv_m: float, g: wp.vec3,
+    x: wp.vec3, x0: wp.vec3, v: wp.vec3, fd0: wp.vec3, fd1: wp.vec3, m: float, inv_m: float, g: wp.vec3,
     half_dt: float,
 ):
-    """(kinetic + gravity [J], work of the driving forces over the frame [J]) of one particle."""
+    """(kinetic + gravity [J], the (dt / 2) v . f term [J], work of the driving forces over the frame
+    [J]) of one particle."""
     if inv_m == 0.0:
-        return float(0.0), float(0.0)
-    w = v + (half_dt * inv_m) * f
-    energy = 0.5 * m * wp.dot(w, w) - m * wp.dot(g, x)
+        return float(0.0), float(0.0), float(0.0)
+    energy = 0.5 * m * wp.dot(v, v) - m * wp.dot(g, x)
     work = 0.5 * wp.dot(fd0 + fd1, x - x0)
-    return energy, work
+    return energy, half_dt * m * wp.dot(v, g), work
 
 
 @wp.func
-def step_force(forces: wp.array(dtype=wp.vec3), i: int, m: float, g: wp.vec3) -> wp.vec3:
-    """The step's force on particle i [N], or its weight m g where none is kept."""
-    if forces.shape[0] == 0:
-        return m * g
-    return forces[i]
-
-
-@wp.func
-def spring_term(x_i: wp.vec3, x_j: wp.vec3, rest: float, k: float) -> float:
-    """Elastic energy [J] of a linear spring of stiffness k [N/m] and rest length [m]."""
-    d = wp.length(x_i - x_j) - rest
-    return 0.5 * k * d * d
+def spring_term(x_i: wp.vec3, x_j: wp.vec3, v_i: wp.vec3, v_j: wp.vec3, rest: float, k: float, half_dt: float):
+    """(Elastic energy [J], its (dt / 2) v . f term [J]) of a linear spring of stiffness k [N/m]
+    and rest length [m]."""
+    delta = x_i - x_j
+    length = wp.length(delta)
+    d = length - rest
+    correction = float(0.0)
+    if length > 0.0:
+        correction = -half_dt * k * d * wp.dot(delta, v_i - v_j) / length
+    return 0.5 * k * d * d, correction
 
 
 @wp.func
@@ -63,7 +65,6 @@ def world_energy_sums(
     q: wp.array(dtype=wp.vec3),
     q_frame_start: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
-    forces: wp.array(dtype=wp.vec3),
     drive_start: wp.array(dtype=wp.vec3),
     drive_end: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
@@ -84,20 +85,24 @@ def world_energy_sums(
     g = world_gravity[w]
     energy = float(0.0)
     work = float(0.0)
-    elastic = float(0.0)
+    correction = float(0.0)
     for i in range(w * world_particles, (w + 1) * world_particles):
-        e, a = particle_terms(q[i], q_frame_start[i], qd[i], step_force(forces, i, mass[i], g), drive_start[i],
-                              drive_end[i], mass[i], inv_mass[i], g, half_dt)
+        e, c, a = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i], inv_mass[i],
+                                 g, half_dt)
         energy += e
+        correction += c
         work += a
     for s in range(w * world_springs, (w + 1) * world_springs):
         if spring_broken.shape[0] == 0 or spring_broken[s] == 0:
-            elastic += spring_term(q[spring_indices[2 * s]], q[spring_indices[2 * s + 1]], spring_rest[s],
-                                   spring_stiffness[s])
+            pi = spring_indices[2 * s]
+            pj = spring_indices[2 * s + 1]
+            e, c = spring_term(q[pi], q[pj], qd[pi], qd[pj], spring_rest[s], spring_stiffness[s], half_dt)
+            energy += e
+            correction += c
     out[w, 0] = energy
-    out[w, 1] = elastic
+    out[w, 1] = correction
     out[w, 2] = work
-    out[w, 3] = wp.max(bad(energy), wp.max(bad(elastic), bad(work)))
+    out[w, 3] = wp.max(bad(energy), wp.max(bad(correction), bad(work)))
 
 
 @wp.kernel
@@ -105,7 +110,6 @@ def energy_sums_strided(
     q: wp.array(dtype=wp.vec3),
     q_frame_start: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
-    forces: wp.array(dtype=wp.vec3),
     drive_start: wp.array(dtype=wp.vec3),
     drive_end: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
@@ -127,24 +131,28 @@ def energy_sums_strided(
     g = world_gravity[0]
     energy = float(0.0)
     work = float(0.0)
-    elastic = float(0.0)
+    correction = float(0.0)
     i = s
     while i < q.shape[0]:
-        e, a = particle_terms(q[i], q_frame_start[i], qd[i], step_force(forces, i, mass[i], g), drive_start[i],
-                              drive_end[i], mass[i], inv_mass[i], g, half_dt)
+        e, c, a = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i], inv_mass[i],
+                                 g, half_dt)
         energy += e
+        correction += c
         work += a
         i += stride
     j = s
     while j < spring_count:
         if spring_broken.shape[0] == 0 or spring_broken[j] == 0:
-            elastic += spring_term(q[spring_indices[2 * j]], q[spring_indices[2 * j + 1]], spring_rest[j],
-                                   spring_stiffness[j])
+            pi = spring_indices[2 * j]
+            pj = spring_indices[2 * j + 1]
+            e, c = spring_term(q[pi], q[pj], qd[pi], qd[pj], spring_rest[j], spring_stiffness[j], half_dt)
+            energy += e
+            correction += c
         j += stride
     partial_out[s, 0] = energy
-    partial_out[s, 1] = elastic
+    partial_out[s, 1] = correction
     partial_out[s, 2] = work
-    partial_out[s, 3] = wp.max(bad(energy), wp.max(bad(elastic), bad(work)))
+    partial_out[s, 3] = wp.max(bad(energy), wp.max(bad(correction), bad(work)))
 
 
 @wp.kernel
@@ -158,21 +166,25 @@ def judge_worlds(
     sums: wp.array2d(dtype=float),
     frame_counter: wp.array(dtype=int),
     margin: float,
+    runaway: float,
     world_bad: wp.array(dtype=int),
-    reference: wp.array(dtype=float),
+    reference: wp.array2d(dtype=float),
     scale: wp.array(dtype=float),
     work_io: wp.array(dtype=float),
     abs_work_io: wp.array(dtype=float),
     allowance: wp.array(dtype=float),
     energy_out: wp.array(dtype=float),
     gain_io: wp.array(dtype=float),
+    plain_gain_io: wp.array(dtype=float),
     unstable_frame_io: wp.array(dtype=int),
 ):
-    """Per world: E = kinetic + gravity + elastic [J]; the work W of the driving forces accumulates
-    (and |W| frame by frame). gain = (E - E_ref - W) / (scale + sum |W| + allowance) is the energy that
-    appeared from nowhere, relative; gain_io keeps its maximum, and a world whose gain exceeds
-    ``margin`` or whose energy is non-finite is unstable from this frame (unstable_frame_io, -1
-    otherwise; set once). Frozen worlds (world_bad = 1) are skipped."""
+    """Per world: the modified energy E = sums[w, 0] + sums[w, 1] [J]; the work W of the driving forces
+    accumulates (and |W| frame by frame). gain = (E - E_ref - W) / (scale + sum |W| + allowance) is the
+    energy that appeared from nowhere, relative; gain_io keeps its maximum. A world is unstable from this
+    frame (unstable_frame_io, set once; -1 otherwise) when gain > ``margin``, when the plain energy
+    K + U (reference[w, 1]) grew by more than ``runaway`` x that scale (past the stability limit the
+    modified energy is no longer positive and can fall while the motion explodes), or when a value is
+    non-finite. Frozen worlds (world_bad = 1) are skipped."""
     w = wp.tid()
     if world_bad.shape[0] > 0:
         if world_bad[w] == 1:
@@ -183,9 +195,13 @@ def judge_worlds(
     work_io[w] = work
     abs_work_io[w] = abs_work
     energy_out[w] = energy
-    gain = (energy - reference[w] - work) / (scale[w] + abs_work + allowance[w])
-    if sums[w, 3] > 0.0 or not wp.isfinite(gain):
+    budget = scale[w] + abs_work + allowance[w]
+    gain = (energy - reference[w, 0] - work) / budget
+    plain = (sums[w, 0] - reference[w, 1] - work) / budget
+    if sums[w, 3] > 0.0 or not wp.isfinite(gain) or not wp.isfinite(plain):
         gain = 1.0e30
+        plain = 1.0e30
     gain_io[w] = wp.max(gain_io[w], gain)
-    if gain > margin and unstable_frame_io[w] < 0:
+    plain_gain_io[w] = wp.max(plain_gain_io[w], plain)
+    if (gain > margin or plain > runaway) and unstable_frame_io[w] < 0:
         unstable_frame_io[w] = frame_counter[0]

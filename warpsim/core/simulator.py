@@ -301,8 +301,7 @@ class Simulator:
         self._energy = EnergyBalance(self.model, self.forces, self.colliders, self._gravity(),
                                      synchronise=isinstance(self.integrator, SemiImplicitEuler),
                                      springs=None if self.stability_model is None else self.stability_model())
-        self.system.eval_forces(st.positions, st.velocities, self._time, 0.0, st.forces)
-        self._energy.start(st, h, time=self._time, forces=st.forces)
+        self._energy.start(st, h, time=self._time)
 
     def restart_energy(self) -> None:
         """Take the energy balance's reference again at the next step (after editing the state,
@@ -325,17 +324,18 @@ class Simulator:
                 wp.get_device(self.device).is_capturing:
             return
         eb, st = self._energy, self.state
-        eb.update(st, self._last_h or frame_dt, frame_dt, time=self._time, forces=st.forces)
+        eb.update(st, self._last_h or frame_dt, frame_dt, time=self._time)
         if int(eb.unstable_frame.numpy()[0]) < 0:
             return
         v = st.velocities.numpy()
         speed = np.where(self.system.inv_mass.numpy() > 0, np.linalg.norm(v, axis=1), -1.0)
         speed = np.where(np.isfinite(speed), speed, np.inf)
         bad = int(np.argmax(speed))
-        gain = float(eb.gains()[0])
+        gain, plain = float(eb.gains()[0]), float(eb.plain_gains()[0])
+        grew = (f"energy grew by {_ratio(gain)} of the run's energy scale beyond the work of its driving forces"
+                if gain > eb.margin else f"its kinetic and elastic energy grew to {_ratio(plain)} its energy scale")
         raise SimulationError(
-            f"unstable at step {self.step_count} (t = {self.time:.6g} s): energy grew by {_ratio(gain)} of the "
-            f"run's energy scale beyond the work of its driving forces; particle {bad} moves at "
+            f"unstable at step {self.step_count} (t = {self.time:.6g} s): {grew}; particle {bad} moves at "
             f"{float(speed[bad]):.4g} m/s. {self._energy_remedy()}", step=self.step_count, time=self.time,
             particle=bad)
 
