@@ -14,7 +14,8 @@ Measured in one process, for each device set given (the first is the reference, 
             table, record and every world's samples compared byte for byte (needs ``pxr``).
 
     python benchmarks/bench_devices.py --worlds 100000 --devices cuda:0 cuda:0,cuda:1 all
-    python benchmarks/bench_devices.py --worlds 100000 --devices cuda:0 all --sweep-worlds 2000 --sweep-frames 6
+    python benchmarks/bench_devices.py --worlds 100000 --devices cuda:0 cuda:0,cuda:1 all --sweep-worlds 1000 \
+        --sweep-devices cuda:0 all
     python benchmarks/bench_devices.py --worlds 8 --devices cpu cpu,cpu --frames 2 --sweep-worlds 4   # check
 """
 
@@ -165,6 +166,9 @@ def main():
     p.add_argument("--frames", type=int, default=10, help="frames timed")
     p.add_argument("--sweep-worlds", type=int, default=0, help="worlds of the whole-sweep comparison (0: skip)")
     p.add_argument("--sweep-frames", type=int, default=6)
+    p.add_argument("--sweep-devices", nargs="+", default=None,
+                   help="device sets of the whole-sweep comparison (default: those of --devices); the first is "
+                        "the reference")
     args = p.parse_args()
     wp.config.quiet = True
     import warnings
@@ -196,7 +200,7 @@ def main():
     if args.sweep_worlds:
         with tempfile.TemporaryDirectory() as tmp:
             outs = None
-            for devices in sets:
+            for devices in [parse_devices(s) for s in args.sweep_devices] if args.sweep_devices else sets:
                 folder = os.path.join(tmp, "_".join(d.replace(":", "") for d in devices))
                 seconds, code = sweep_run(devices, args.sweep_worlds, args.sweep_frames, folder)
                 if code:
