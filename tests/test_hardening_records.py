@@ -236,3 +236,57 @@ def test_info_on_a_killed_first_sweep_names_the_staged_frames_and_resume(tmp_pat
     assert f"its staged layer {os.path.relpath(tmp_path / staged)} holds completed frames 0.." in text, text
     assert "of 0..1000000" in text and "--resume" in text and "warpsim sweep bounce --worlds 2" in text
     assert "is not written yet" in one_error_line(err)
+
+
+# ------------------------------------------------------------------- class 4: memory and time first
+@pytest.mark.parametrize("setting, words", [
+    ("strands=100000000", "strands=100000000 x segments=16 (1,700,000,000 vertices) needs about"),
+    ("segments=100000", "strands=2000 x segments=100000 (200,002,000 vertices) needs about"),
+])
+def test_a_groom_that_cannot_fit_is_refused_with_the_figure(tmp_path, setting, words):
+    from warpsim.worlds.preflight import available_host_bytes, estimate_strand_bytes
+
+    strands, segments = (10**8, 16) if setting.startswith("strands") else (2000, 10**5)
+    assert estimate_strand_bytes(strands, segments)["host"] > available_host_bytes()  # (a machine of < 200 GiB)
+    t0 = time.monotonic()
+    code, _, err = run("run", "hair", "--set", setting, "--frames", 1, "--no-progress", "--device", "cpu",
+                       "--out", tmp_path / "h.usda")
+    line = one_error_line(err)
+    assert code == 2 and words in line and "free; use at most about strands=" in line, line
+    assert time.monotonic() - t0 < 60  # refused before the groom is built (no allocation, no hang)
+    assert not (tmp_path / "h.usda").exists()
+
+
+def test_strand_memory_estimate_refuses_only_what_does_not_fit():
+    from warpsim.worlds.preflight import check_strand_memory, estimate_strand_bytes
+
+    need = estimate_strand_bytes(2000, 16)
+    assert need["vertices"] == 2000 * 17
+    assert check_strand_memory(2000, 16, "cpu", available=need["host"] + need["device"])["host"] == need["host"]
+    with pytest.raises(ValueError, match=r"strands=2000 x segments=16 \(34,000 vertices\) needs about"):
+        check_strand_memory(2000, 16, "cpu", available=need["host"] + need["device"] - 1)
+
+
+def test_many_steps_and_the_automatic_cap_are_said_before_the_first_frame(tmp_path):
+    from warpsim.core.stability import AUTO_MAX_SUBSTEPS
+
+    code, text, err = run("run", "springs", "--set", "stiffness=1e9", "--substeps", "auto", "--frames", 1,
+                          "--no-progress", "--device", "cpu", "--out", tmp_path / "a.usda")
+    note = err.splitlines()[0]  # the first thing said, before any frame
+    assert note.startswith("warpsim: note: "), err
+    steps = int(note.split("warpsim: note: ")[1].split(" steps a frame")[0].replace(",", ""))
+    # spring stiffness k, end mass m: omega <= 2 sqrt(2 k / m); half the semi-implicit limit 2 / omega
+    assert 1000 < steps < AUTO_MAX_SUBSTEPS and "set by spring" in note and "1 frames take" in note
+    code, text, err = run("run", "springs", "--set", "stiffness=1e13", "--substeps", "auto", "--frames", 1,
+                          "--no-progress", "--device", "cpu", "--out", tmp_path / "b.usda")
+    lines = err.splitlines()
+    cap = next(i for i, line in enumerate(lines) if "stopped at its cap of 100,000 steps a frame" in line)
+    assert cap < next(i for i, line in enumerate(lines) if "simulation failed" in line)  # said before stepping
+
+
+def test_a_slow_first_frame_estimates_the_run():
+    from warpsim.worlds.preflight import frame_time_note
+
+    assert frame_time_note(2.0, 119, "cpu") is None
+    line = frame_time_note(232.0, 119, "cpu")
+    assert "frame 1 took 232 s on cpu: the other 119 frames will take about 7.67 h" in line and "cuda" in line

@@ -397,6 +397,11 @@ def _cmd_run(args, out, err):
     frame_dt = timing.frame_dt
     scene.use_timing(timing)
     stability_check(scene, frame_dt, substeps, args.strict, err)
+    from .worlds.preflight import frame_time_note, steps_note
+
+    note = steps_note(scene, frame_dt, substeps, args.frames + 1 - max(start, 1))  # many steps: said now, with the figure
+    if note:
+        print(f"warpsim: note: {note}", file=err)
     try:
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
                                 resume_frame=start if args.resume else None)
@@ -435,7 +440,12 @@ def _cmd_run(args, out, err):
                     if progress:
                         progress.update(1)
                 for frame in range(max(start, 1), args.frames + 1):
+                    t_frame = time.perf_counter()
                     scene.advance(frame_dt, substeps)
+                    if frame == max(start, 1):  # a slow first frame: the whole run's time, with the figure
+                        note = frame_time_note(time.perf_counter() - t_frame, args.frames - frame, device)
+                        if note:
+                            (progress.write if progress else lambda s: print(s, file=err))(f"warpsim: note: {note}")
                     writer.write_frame(frame, scene.frame_data())
                     if progress:
                         progress.update(1)

@@ -7,11 +7,13 @@ that are not numbers and the syntax of a ``--ray`` address.
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 
-__all__ = ["HOST_BYTES_PER_WORLD", "available_host_bytes", "check_ray_address", "check_seed", "check_worlds",
-           "estimate_sweep_bytes", "format_bytes", "numeric_columns"]
+__all__ = ["HOST_BYTES_PER_WORLD", "available_host_bytes", "check_ray_address", "check_seed", "check_strand_memory",
+           "check_worlds", "estimate_strand_bytes", "estimate_sweep_bytes", "format_bytes", "frame_time_note",
+           "numeric_columns", "steps_note"]
 
 HOST_BYTES_PER_WORLD = 4096
 """Host memory a world costs besides its particles [bytes]: its parameter dict, its table row,
@@ -110,6 +112,95 @@ def check_sweep_memory(scene_name, particles, springs, worlds, device, batch_wor
         raise ValueError(f"--worlds {worlds}: {what} need about {format_bytes(host_need)} of memory, this machine "
                          f"has {format_bytes(available)} free; {fix}")
     return need
+
+
+STRAND_HOST_BYTES = 10 << 10
+"""Host memory per strand while a groom is built [bytes]: its scalp lattice entries and the
+polyline it is resampled from (160 samples of 3 doubles, a few copies); measured: 8.6 KiB."""
+
+STRAND_VERTEX_HOST_BYTES = 1280
+"""Host memory per strand vertex while a groom is built and solved sag-free [bytes]: builder
+lists, spring and bending arrays, the model's host copies and the sag-free solve's unknowns;
+measured: 660 B building, about 1,150 B with the sag-free solve."""
+
+
+def estimate_strand_bytes(strands, segments) -> dict:
+    """Estimated memory of a groom of ``strands`` strands of ``segments`` segments:
+    ``{"host", "device", "vertices"}`` (bytes, bytes, count)."""
+    vertices = int(strands) * (int(segments) + 1)
+    host = int(strands) * STRAND_HOST_BYTES + vertices * STRAND_VERTEX_HOST_BYTES
+    device = vertices * (DEVICE_BYTES_PER_PARTICLE + 2 * DEVICE_BYTES_PER_SPRING)
+    return {"host": host, "device": device, "vertices": vertices}
+
+
+def check_strand_memory(strands, segments, device=None, available=None) -> dict:
+    """Refuse (ValueError with the figures, before anything is allocated) a groom whose memory
+    estimate exceeds the host's available memory (or, on CUDA, the device's free memory)."""
+    need = estimate_strand_bytes(strands, segments)
+    available = available_host_bytes() if available is None else int(available)
+    what = f"strands={strands} x segments={segments} ({need['vertices']:,} vertices)"
+    host = need["host"] + (0 if device is not None and str(device).startswith("cuda") else need["device"])
+    if host > available:
+        per = STRAND_HOST_BYTES + (int(segments) + 1) * STRAND_VERTEX_HOST_BYTES
+        fit = max(1, int(0.8 * available) // per)
+        raise ValueError(f"{what} needs about {format_bytes(host)} of memory to build, this machine has "
+                         f"{format_bytes(available)} free; use at most about strands={fit:,} at segments={segments}, "
+                         "or fewer segments")
+    if device is not None and str(device).startswith("cuda"):
+        import warp as wp
+
+        free = int(getattr(wp.get_device(device), "free_memory", 0) or 0)
+        if free and need["device"] > free:
+            raise ValueError(f"{what} needs about {format_bytes(need['device'])} on {device}, which has "
+                             f"{format_bytes(free)} free; use fewer strands or segments")
+    return need
+
+
+STEPS_NOTE = 1000
+"""Steps a frame above which a run says how many before the first frame."""
+
+
+def steps_note(scene, frame_dt, substeps, frames) -> str | None:
+    """One line before the first frame when a frame takes many steps (> ``STEPS_NOTE``) or the
+    automatic count stopped at its cap (``AUTO_MAX_SUBSTEPS``), with the figures; None otherwise."""
+    from ..core.stability import AUTO_MAX_SUBSTEPS, AUTO_SAFETY
+
+    try:
+        steps = int(scene.frame_steps(frame_dt, substeps))
+        limit = scene.stability()
+    except (AttributeError, TypeError, ValueError, NotImplementedError):
+        return None
+    by = ""
+    wanted = None
+    if limit is not None and math.isfinite(getattr(limit, "dt", math.inf)) and limit.dt > 0:
+        by = f", set by {limit.who()} (stability limit {limit.dt:.3g} s)"
+        wanted = math.ceil(frame_dt / (AUTO_SAFETY * limit.dt) - 1e-9)
+    total = steps * max(int(frames), 1)
+    if steps >= AUTO_MAX_SUBSTEPS and wanted is not None and wanted > steps:
+        return (f"the automatic step count stopped at its cap of {AUTO_MAX_SUBSTEPS:,} steps a frame (step "
+                f"{frame_dt / steps:.3g} s); the stability limit {limit.dt:.3g} s of {limit.who()} wants {wanted:,}: "
+                "the step stays above it and the run may blow up; lower the stiffness or use integrator "
+                "implicit_euler")
+    if steps > STEPS_NOTE:
+        return (f"{steps:,} steps a frame (step {frame_dt / steps:.3g} s{by}): {frames} frames take {total:,} steps; "
+                "lower the stiffness (or --fps) for fewer")
+    return None
+
+
+FRAME_TIME_NOTE = 10.0
+"""Seconds the first frame may take before a run estimates the whole run's time."""
+
+
+def frame_time_note(seconds, frames_left, device) -> str | None:
+    """After the first simulated frame took ``seconds`` [s]: one line estimating the remaining
+    ``frames_left`` frames when the first took longer than ``FRAME_TIME_NOTE``; None otherwise."""
+    if seconds <= FRAME_TIME_NOTE or frames_left <= 0:
+        return None
+    rest = seconds * frames_left
+    when = f"{rest / 3600:.3g} h" if rest >= 3600 else f"{rest / 60:.3g} min" if rest >= 60 else f"{rest:.3g} s"
+    fix = "a CUDA device (--device cuda:0), " if str(device) == "cpu" else ""
+    return (f"frame 1 took {seconds:.3g} s on {device}: the other {frames_left} frames will take about {when}; "
+            f"{fix}fewer frames or a smaller scene is faster (Ctrl-C keeps the frames written)")
 
 
 _HOST = re.compile(r"^(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?)$")
