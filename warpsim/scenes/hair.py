@@ -17,13 +17,14 @@ import numpy as np
 import warpsim as ws
 
 from ..bodies.colliders import ParticleCollisions, Sphere, quat_multiply, quat_rotate
-from ..strands import StrandForce, StrandRoots, add_strands, sag_free, strand_stable_dt
+from ..strands import StrandForce, StrandImplicitEuler, StrandRoots, add_strands, sag_free, strand_stable_dt
 from ..usd.sink import display_hints
 from . import SimulatorScene, register_scene
 from .live import set_contact
 
 MOTIONS = ("still", "turn", "nod", "turn_nod")
 STYLES = ("straight", "wavy")
+SOLVERS = ("implicit", "explicit")
 
 HEAD_CENTER = (0.0, 0.55, 0.0)
 HEAD_RADIUS = 0.1
@@ -101,7 +102,8 @@ PARAMS = {
     "strands": (2000, "number of strands"),
     "segments": (16, "segments per strand"),
     "length": (0.25, "strand length [m]"),
-    "style": ("straight", "groom: straight, or wavy (a sideways wave of 8 mm, >= 8 segments long)", STYLES),
+    "style": ("straight", "groom: straight, or wavy (a sideways wave of 8 mm, >= 8 segments and 0.1 m long)",
+              STYLES),
     "motion": ("turn_nod", "head motion after the still time: still, turn, nod or turn_nod", MOTIONS),
     "still": (1.0, "seconds the head stays still before it moves [s]"),
     "sag_free": (True, "solve the rest state so the groom is an equilibrium at frame 0"),
@@ -113,21 +115,30 @@ PARAMS = {
     "friction": (0.3, "Coulomb friction of hair on the head and the floor"),
     "strand_friction": (0.0, "> 0: strand-strand collisions with this friction (ParticleCollisions)"),
     "radius": (0.002, "collision radius of a strand vertex [m]"),
+    "solver": ("implicit", "strand step: implicit (backward Euler, a direct solve per strand) or explicit "
+                           "(semi-implicit Euler at half the measured stable step)", SOLVERS),
+    "steps": (4, "implicit solver: strand steps per 1/60 s frame (backward Euler damps a mode of omega "
+                 "by about exp(-omega^2 h t / 2))"),
 }
 
 
 @register_scene("hair", "a head with a groom of strands that holds its shape (sag-free), then turns and nods",
                 params=PARAMS, fps=60.0, substeps=1)
 class Hair(SimulatorScene):
-    """Hair on a spherical head of radius 0.1 m at 0.55 m over the floor. The strands' step is the
-    frame sub-step split into steps of at most ``safety`` times the strands' stable semi-implicit
-    Euler step, measured on the groom at frame 0 (``strand_stable_dt(hair, model)``)."""
+    """Hair on a spherical head of radius 0.1 m at 0.55 m over the floor. ``solver=implicit``
+    (default): ``StrandImplicitEuler``, ``steps`` strand steps per 1/60 s frame, or more when
+    ``Simulator.stable_dt()`` is finite (strongly curved grooms: ``safety`` times it).
+    ``solver=explicit``: semi-implicit Euler, the frame sub-step split into steps of at most
+    ``safety`` times the strands' stable step measured on the groom at frame 0
+    (``strand_stable_dt(hair, model)``)."""
 
     smoke_params: ClassVar[dict] = {"strands": 12, "segments": 4}
     safety = 0.5
 
     def build(self, p):
-        for key in ("strands", "segments"):
+        if p["solver"] not in SOLVERS:
+            raise ValueError(f"solver={p['solver']!r}: give one of {', '.join(SOLVERS)}")
+        for key in ("strands", "segments", "steps"):
             if p[key] < 1:
                 raise ValueError(f"{key}={p[key]}: it must be >= 1")
         for key in ("length", "mass", "stretch_rigidity", "bend_rigidity", "radius"):
@@ -142,8 +153,11 @@ class Hair(SimulatorScene):
         self.head = Sphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
                            motion=head_motion(p["motion"], p["still"], HEAD_CENTER, HEAD_RADIUS))
         roots, normals = scalp_roots(p["strands"], HEAD_CENTER, HEAD_RADIUS)
-        # a wave of at least 8 segments: sharper zig-zags make the bending frames very stiff
-        wavelength = max(0.05, 8.0 * p["length"] / p["segments"])
+        # a wave of at least 8 segments and 0.1 m: sharper waves make the bending frames very stiff
+        # (the implicit step's banded Jacobian leaves out the frames' coupling along the strand, and
+        # it stays stable for segment length x curvature up to about 0.4: measured 0.39 stable,
+        # 0.47 not, at 4 steps per frame; the 8 mm wave of 0.1 m is 0.25 at 32 segments)
+        wavelength = max(0.1, 8.0 * p["length"] / p["segments"])
         lines = groom(roots, normals, HEAD_CENTER, HEAD_RADIUS, p["length"], p["style"], lift=2.0 * p["radius"] + 1e-3,
                       wavelength=wavelength)
         b = ws.ModelBuilder()
@@ -160,10 +174,18 @@ class Hair(SimulatorScene):
         forces = [ws.Gravity(), StrandForce(self.hair)]
         if p["air_drag"] > 0.0:
             forces.append(ws.Drag(linear=p["air_drag"]))
-        self.stable_dt = strand_stable_dt(self.hair, self.model)
+        self.implicit = p["solver"] == "implicit"
+        self.steps_per_frame = int(p["steps"])
+        if self.implicit:
+            # inf unless the groom is strongly curved (see warpsim.strands.stability.implicit_limit)
+            self.sim = ws.Simulator(self.model, integrator=StrandImplicitEuler(self.hair), forces=forces,
+                                    colliders=colliders, max_speed=100.0)
+            self.stable_dt = self.sim.stable_dt()
+        else:
+            self.stable_dt = strand_stable_dt(self.hair, self.model)
+            self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0)
         # the blow-up test (a device read-back) once per frame, not once per strand step
-        self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0,
-                                check_every=self.strand_steps(1.0 / self.fps))
+        self.sim.check_every = self.strand_steps(1.0 / self.fps)
         self.sag_report = sag_free(self.sim) if p["sag_free"] else None
         self._curve_particles = self.hair.curve_particles().reshape(-1)
         self._free_particles = self.hair.free_particles()
@@ -174,8 +196,12 @@ class Hair(SimulatorScene):
         self._head_tris = tris
 
     def strand_steps(self, h):
-        """Strand steps per sub-step of ``h`` [s] (inside the strands' measured stable step)."""
-        return max(1, math.ceil(h / (self.safety * self.stable_dt) - 1e-9))
+        """Strand steps per sub-step of ``h`` [s]: ``steps`` per 1/60 s (implicit), or inside the
+        strands' measured stable step (explicit)."""
+        n = math.ceil(h / (self.safety * self.stable_dt) - 1e-9) if math.isfinite(self.stable_dt) else 1
+        if self.implicit:
+            return max(1, n, math.ceil(h * 60.0 * self.steps_per_frame - 1e-9))
+        return max(1, n)
 
     def frame_steps(self, frame_dt, substeps):
         """Steps a frame takes: ``substeps`` sub-steps, each split into strand steps."""

@@ -3,12 +3,14 @@ forces and kinematic roots (``forces``), and sag-free initialization (``sag_free
 solved so the groomed shape is a static equilibrium; it also serves cloth and soft bodies).
 
 Drives ``warpsim.kernels.strands`` and ``warpsim.kernels.sag_free``.
-Entry names: add_strands, Strands, StrandForce, StrandRoots, sag_free, SagFreeReport.
+Entry names: add_strands, Strands, StrandForce, StrandRoots, StrandImplicitEuler (``implicit``: the
+backward Euler strand step), sag_free, SagFreeReport.
 """
 
 from .builder import Strands, add_strands, head_signed_distance
 from .forces import StrandForce, StrandRoots, strand_stable_dt
+from .implicit import StrandImplicitEuler
 from .sag_free import SagFreeReport, sag_free
 
-__all__ = ["SagFreeReport", "StrandForce", "StrandRoots", "Strands", "add_strands", "head_signed_distance",
+__all__ = ["SagFreeReport", "StrandForce", "StrandImplicitEuler", "StrandRoots", "Strands", "add_strands", "head_signed_distance",
            "sag_free", "strand_stable_dt"]

@@ -24,8 +24,9 @@ class StrandForce(Force):
     bending forces are the exact gradient of the bending energy, frames included): one thread per
     strand adds every force on its particles in a fixed order (bit-reproducible, no atomics).
 
-    For explicit integrators (semi-implicit Euler with sub-steps: see :func:`strand_stable_dt`);
-    it has no Jacobian, so implicit Euler would treat it explicitly."""
+    Explicit integrators step it within ``Simulator.stable_dt()`` (``stability_limit``); the
+    implicit step of hair is ``StrandImplicitEuler`` (its Jacobians are there; ``ws.ImplicitEuler``
+    sees no Jacobian of these forces)."""
 
     def __init__(self, strands):
         self.strands = _check_strands(strands, "StrandForce")
@@ -42,6 +43,17 @@ class StrandForce(Force):
                   d["frame_n"], f_out)
         cached_launch(K.eval_strand_forces, st.strand_count, inputs, self.model.device, self._launches,
                       key=(st.strand_count, id(q), id(qd), id(f_out), id(d["rest_length"]), id(d["bend_rest"])))
+
+
+    def stability_limit(self, positions, integrator, forces=()):
+        """The strands' ``StabilityLimit`` for ``integrator`` about ``positions`` (a wp.array of the
+        model's particles), damping and linear ``Drag`` among ``forces`` included; None under
+        ``StrandImplicitEuler`` (see ``warpsim.strands.stability``)."""
+        from ..core.forces import Drag
+        from .stability import strand_limit
+
+        drag = float(sum(f.linear for f in forces or () if isinstance(f, Drag)))
+        return strand_limit(self.strands, self.data, positions.numpy(), integrator, drag=drag)
 
 
 class StrandRoots(Collider):
