@@ -1,6 +1,11 @@
-"""Sweeps past one machine: a many-worlds sweep split into batches that run as Ray tasks.
+"""Sweeps past one device: a many-worlds sweep split over the GPUs of one machine, or into batches
+that run as Ray tasks on a cluster.
 
 What lives here:
+
+- ``devices``: :func:`run_device_sweep`, ``warpsim sweep --devices cuda:0,cuda:1`` (or ``all``,
+  or ``cpu,cpu``): contiguous blocks of worlds, one per device, each stepped by its own thread in
+  one process; the table, samples and occupancy record equal the one-device sweep byte for byte.
 
 - ``batches``: split a sweep's worlds into batches; each batch is written into its own folder under
   a temporary name and renamed into place only when complete (``publish_batch``), with a SHA-256
