@@ -1,15 +1,19 @@
-"""Hair step rate: the ``hair`` scene's strands against the same particles as a plain mass-spring.
+"""Hair frame rate: the ``hair`` scene's implicit strand step against its explicit step, same run.
 
-warpsim: the ``hair`` scene (sphere head turning and nodding, ``StrandForce``: stretch and
-bending with transported frames, one thread per strand, no atomics; semi-implicit Euler; head,
-kinematic roots, floor; air drag). Reference, in the same process: the same particles, masses
-and pins stepped by the generic ``ws.Simulator`` with ``ws.Springs`` (a stretch spring per segment
-and a distance spring across two segments per vertex, one thread per spring with atomic adds),
-gravity, the head (static) and the floor. Both step at the scene's measured stable step. Prints
-steps per second of each, their ratio, and the one-time costs (build, stable-step measurement,
-sag-free solve).
+warpsim: the ``hair`` scene (sphere head turning and nodding; stretch and bending with
+transported frames; head, kinematic roots, floor; air drag), stepped two ways in one process:
+- implicit (the scene's default): ``StrandImplicitEuler``, backward Euler with one float64
+  block-band direct solve per strand (one thread per strand), ``steps`` strand steps per 1/60 s
+  frame;
+- explicit (``solver=explicit``, the reference): semi-implicit Euler at half the strands'
+  measured stable step (``StrandForce``, one thread per strand).
+Prints for each the steps per second, the steps per 1/60 s frame and the frames per second
+(simulation only, no drawing or writing), their ratio, and the one-time costs (build, stable-step
+measurement, sag-free solve). ``--reference`` adds the plain mass-spring stand-in of the earlier
+version of this script (``ws.Simulator`` with ``ws.Springs``).
 
-    python benchmarks/bench_hair.py --device cpu --strands 200 --segments 16 --steps 50
+    python benchmarks/bench_hair.py --device cpu --strands 2000 --segments 16 --steps 10
+    python benchmarks/bench_hair.py --device cuda:0 --strands 15000 --segments 32
     python benchmarks/bench_hair.py --device cuda:0 --strands 100000 --segments 32
 """
 
@@ -57,45 +61,77 @@ def reference_simulator(scene, device):
                         check_every=scene.sim.check_every)
 
 
+def build(args, device, solver):
+    from warpsim.scenes import get_scene
+
+    t0 = time.perf_counter()
+    scene = get_scene("hair")({"strands": args.strands, "segments": args.segments, "still": 0.0, "motion": "turn_nod",
+                               "sag_free": False, "solver": solver}, device=device)
+    wp.synchronize_device(device)
+    return scene, time.perf_counter() - t0
+
+
+def measure(scene, label, steps, device):
+    """(seconds per strand step, steps per 1/60 s frame) of ``scene``; prints one line."""
+    n = scene.strand_steps(1.0 / 60.0)
+    h = (1.0 / 60.0) / n
+    per_step = time_per_call(lambda: scene.sim.step(h), steps, device)
+    particles = scene.model.particle_count
+    print(f"  {label}: {1.0 / per_step:10.1f} steps/s ({per_step * 1e3:.3f} ms/step, "
+          f"{particles / per_step / 1e6:.1f} M particle-steps/s; {n} steps per 1/60 s frame) = "
+          f"{1.0 / (per_step * n):.2f} frames/s")
+    return per_step, n
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--strands", type=int, default=100_000)
     parser.add_argument("--segments", type=int, default=32)
-    parser.add_argument("--steps", type=int, default=200, help="timed steps per run")
-    parser.add_argument("--no-reference", action="store_true", help="skip the plain mass-spring reference")
+    parser.add_argument("--steps", type=int, default=100, help="timed strand steps per run (implicit)")
+    parser.add_argument("--explicit-steps", type=int, default=None, help="timed steps of the explicit step "
+                                                                         "(default: --steps)")
+    parser.add_argument("--no-explicit", action="store_true", help="skip the explicit step")
+    parser.add_argument("--no-sag-free", action="store_true", help="skip the sag-free solve")
+    parser.add_argument("--reference", action="store_true", help="also the plain mass-spring stand-in")
     args = parser.parse_args()
     device = wp.get_device(args.device)
-    from warpsim.scenes import get_scene
 
-    t0 = time.perf_counter()
-    scene = get_scene("hair")({"strands": args.strands, "segments": args.segments, "still": 0.0,
-                               "motion": "turn_nod", "sag_free": False}, device=device)
-    build = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    report = ws.sag_free(scene.sim)
-    wp.synchronize_device(device)
-    solve = time.perf_counter() - t0
-    h = (1.0 / 60.0) / scene.strand_steps(1.0 / 60.0)
+    scene, built = build(args, device, "implicit")
     particles = scene.model.particle_count
-    print(f"hair: {args.strands} strands x {args.segments} segments = {particles} particles on {device}; "
-          f"step {h * 1e6:.1f} us ({scene.strand_steps(1 / 60)} steps per 1/60 s frame, stable step "
-          f"{scene.stable_dt * 1e6:.1f} us measured)")
-    print(f"  build (groom, add_strands, finalize, stable-step measurement): {build:.2f} s")
-    print(f"  sag_free: {solve:.2f} s, {report.rounds} rounds, {report.iterations} CGLS iterations, "
-          f"residual {100 * report.residual_relative:.3g} % of the largest load")
-    scene.sim.step(h)  # compile
-    per_step = time_per_call(lambda: scene.sim.step(h), args.steps, device)
-    print(f"  warpsim strands: {1.0 / per_step:10.1f} steps/s  ({per_step * 1e3:.3f} ms/step, "
-          f"{particles / per_step / 1e6:.1f} M particle-steps/s, "
-          f"{1.0 / (per_step * scene.strand_steps(1 / 60)):.2f} frames/s at 60 fps)")
-    if not args.no_reference:
-        ref = reference_simulator(scene, device)
-        ref.step(h)
-        per_ref = time_per_call(lambda: ref.step(h), args.steps, device)
-        print(f"  plain springs:   {1.0 / per_ref:10.1f} steps/s  ({per_ref * 1e3:.3f} ms/step, "
-              f"{ref.model.spring_count} springs)")
-        print(f"  ratio (strands / plain springs steps/s): {per_ref / per_step:.2f}")
+    stable = scene.stable_dt
+    print(f"hair: {args.strands} strands x {args.segments} segments = {particles} particles on {device} "
+          f"({wp.get_device(device).name})")
+    print(f"  implicit build (groom, add_strands, finalize, implicit stable-step check: "
+          f"{'unrestricted' if not np.isfinite(stable) else f'{stable * 1e6:.1f} us'}): {built:.2f} s")
+    if not args.no_sag_free:
+        t0 = time.perf_counter()
+        report = ws.sag_free(scene.sim)
+        wp.synchronize_device(device)
+        solve = time.perf_counter() - t0
+        print(f"  sag_free: {solve:.2f} s, {report.rounds} rounds, {report.iterations} CGLS iterations, "
+              f"residual {100 * report.residual_relative:.3g} % of the largest load")
+    per_i, n_i = measure(scene, "implicit (StrandImplicitEuler)", args.steps, device)
+    per_frame_i = per_i * n_i
+    print(f"  implicit: {1.0 / per_frame_i:.1f} frames/s ({n_i} steps per 1/60 s frame, {per_frame_i * 1e3:.2f} ms "
+          "per frame)")
+    if not args.no_explicit:
+        del scene
+        scene, built = build(args, device, "explicit")
+        print(f"  explicit build (with the stable-step power iteration: {scene.stable_dt * 1e6:.1f} us): "
+              f"{built:.2f} s")
+        per_e, n_e = measure(scene, "explicit (semi-implicit Euler)", args.explicit_steps or args.steps, device)
+        per_frame_e = per_e * n_e
+        print(f"  explicit: {1.0 / per_frame_e:.2f} frames/s ({n_e} steps per 1/60 s frame)")
+        print(f"  ratio (implicit / explicit frames/s): {per_frame_e / per_frame_i:.1f}; per step "
+              f"{per_i / per_e:.1f}x the explicit step's time")
+        if args.reference:
+            h = (1.0 / 60.0) / n_e
+            ref = reference_simulator(scene, device)
+            ref.step(h)
+            per_ref = time_per_call(lambda: ref.step(h), args.explicit_steps or args.steps, device)
+            print(f"  plain springs:   {1.0 / per_ref:10.1f} steps/s  ({per_ref * 1e3:.3f} ms/step, "
+                  f"{ref.model.spring_count} springs); explicit strands / plain springs time: {per_e / per_ref:.2f}")
 
 
 if __name__ == "__main__":
