@@ -52,7 +52,7 @@ def test_second_writer_is_refused_and_a_killed_writers_lock_is_taken_over(tmp_pa
         holder = json.loads(lock_file.read_text())
         assert holder["pid"] == proc.pid and holder["host"] and holder["start"] and "run bounce" in holder["command"]
         # a second writer of the same output, in this (another) process: one line, exit 2, nothing touched
-        before = sorted(os.listdir(tmp_path))
+        before = [n for n in os.listdir(tmp_path) if ".tmp-" not in n]  # (the writer renames its temporaries)
         for argv in (["run", "bounce", "--frames", 3, "--out", out],
                      ["run", "bounce", "--frames", 3, "--out", tmp_path / "s.usdc"],  # shares s.chunkNNNNNN.usdc
                      ["sweep", "bounce", "--worlds", 2, "--vary", "height=0.2:0.8", "--frames", 3, "--out", out]):
@@ -117,7 +117,7 @@ def sweep(tmp_path_factory):
 
 
 def _snapshot(folder):
-    return {n: (folder / n).read_bytes() for n in sorted(os.listdir(folder))}
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def test_every_writing_command_refuses_its_own_input(sweep, tmp_path):
