@@ -290,3 +290,17 @@ def test_a_slow_first_frame_estimates_the_run():
     assert frame_time_note(2.0, 119, "cpu") is None
     line = frame_time_note(232.0, 119, "cpu")
     assert "frame 1 took 232 s on cpu: the other 119 frames will take about 7.67 h" in line and "cuda" in line
+
+
+def test_garbage_ray_manifest_is_named_not_a_decode_error(tmp_path):
+    from warpsim.distributed.manifest import SweepManifest
+    from warpsim.usd.pxr_errors import DamagedFileError
+
+    path = tmp_path / "s.ray-manifest.json"
+    path.write_bytes(b"\xff\xfe{garbage")
+    with pytest.raises(DamagedFileError, match=r"manifest .*s.ray-manifest.json is not valid JSON text"):
+        SweepManifest.load(path)
+    os.remove(path)
+    os.mkfifo(path)
+    with pytest.raises(ValueError, match="is not a regular file"):
+        SweepManifest.load(path)

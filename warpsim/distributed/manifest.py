@@ -72,14 +72,19 @@ class SweepManifest:
     @classmethod
     def load(cls, path):
         """Read ``path``; FileNotFoundError naming it and the fix when there is none."""
+        from ..usd.pxr_errors import DamagedFileError
+
         if not os.path.exists(path):
             raise FileNotFoundError(f"--resume: no manifest {path}; start the sweep without --resume first")
-        with open(path) as fh:
+        if not os.path.isfile(path):  # a FIFO would block for ever
+            raise ValueError(f"--resume: manifest {path} is not a regular file (a pipe, socket or folder); remove it "
+                             "to start the sweep again")
+        with open(path, encoding="utf-8") as fh:
             try:
                 data = json.load(fh)
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"--resume: manifest {path} is not valid JSON ({exc}); "
-                                 "remove it to start the sweep again") from None
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                raise DamagedFileError(f"--resume: manifest {path} is not valid JSON text ({type(exc).__name__}: "
+                                       f"{str(exc)[:80]}); remove it to start the sweep again") from None
         if not isinstance(data, dict):
             raise ValueError(f"--resume: manifest {path} holds a JSON {type(data).__name__}, not a warpsim sweep "
                              "manifest; remove it to start the sweep again without --resume")
