@@ -254,10 +254,10 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
     n = len(world_params)
     blocks = plan_blocks(scene_name, world_params, devices, out_path if resume else None)
     blocks = [(b, d) for b, d in zip(blocks, devices) if b[1] > 0]
-    # automatic sub-steps: resolved over the whole sweep before the split, on the first device
-    steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=blocks[0][1], fused=fused)
     staging = SweepStaging(out_path, {**settings, "blocks": [list(b) for b, _ in blocks]}, resume=resume,
                            blocks=len(blocks))
+    # automatic sub-steps: resolved over the whole sweep before the split, on the first device
+    steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=blocks[0][1], fused=fused)
     firsts = [staging.resume_frame(k) for k in range(len(blocks))]
     if any(firsts) and log is not None:
         kept = [f"block {k} on {blocks[k][1]}: frames 0..{f - 1}" for k, f in enumerate(firsts) if f]
