@@ -304,3 +304,15 @@ def test_garbage_ray_manifest_is_named_not_a_decode_error(tmp_path):
     os.mkfifo(path)
     with pytest.raises(ValueError, match="is not a regular file"):
         SweepManifest.load(path)
+
+
+def test_truncated_batch_layer_is_damage_in_one_line(copy, tmp_path):
+    batch = copy / "S.batch_0000.usdc"
+    batch.write_bytes(batch.read_bytes()[:300])
+    for argv in (["pick", copy / "S.usda", "--world", 1, "--out", tmp_path / "p.usda"],
+                 ["pick", copy / "S.usda", "--world", 1, "--out", tmp_path / "p.usda", "--flatten"],
+                 ["query", copy / "S.usda", *QUERY]):
+        code, _, err = run(*argv)
+        line = one_error_line(err)
+        assert code == 1 and ("S.batch_0000.usdc" in line or "a batch layer of" in line), line
+        assert "possibly truncated" in line, line

@@ -58,7 +58,17 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
 
     check_output(out_path, [root, *sorted(set(owner.values()))], "--out")
     if os.path.isfile(owner[world]):  # (a missing layer is said below)
-        check_damage(owner[world], allow_damaged, what="pick")
+        from ..usd.pxr_errors import DamagedFileError
+        from ..usd.validate import DamagedCacheError
+
+        try:
+            check_damage(owner[world], allow_damaged, what="pick")
+        except DamagedCacheError:
+            raise
+        except ValueError as exc:  # the batch layer itself does not open: the sweep is damaged (exit 1)
+            why = str(exc).rsplit("(USD says: ", 1)[-1].rstrip(")") if "USD says" in str(exc) else str(exc)
+            raise DamagedFileError(f"batch layer {os.path.relpath(owner[world])} of world {world} is damaged (does not "
+                                   f"open in USD: {why}); run the sweep again") from None
     with OutputLock(out_path, "--out"):
         return _write_pick(root, world, owner, out_path, flatten)
 

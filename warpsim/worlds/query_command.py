@@ -124,8 +124,16 @@ def run(args, out, err):
         from ..usd.lock import hold
 
         hold(stem + ".picked" + ext, "")  # one writer of the picked worlds (released when the command ends)
-        pick_path = write_sweep_root(stem + ".picked" + ext, layers, len(rows), layout=files["layout"],
-                                     worlds=[r["world"] for r in picked])
+        try:
+            pick_path = write_sweep_root(stem + ".picked" + ext, layers, len(rows), layout=files["layout"],
+                                         worlds=[r["world"] for r in picked])
+        except Exception as exc:  # noqa: BLE001  (Tf.ErrorException: a batch layer that does not open)
+            from ..usd.pxr_errors import DamagedFileError, error_line
+
+            if isinstance(exc, (ValueError, OSError)) and not type(exc).__module__.startswith("pxr"):
+                raise
+            raise DamagedFileError(f"could not write the picked worlds: a batch layer of {args.root} does not open "
+                                   f"({error_line(exc)}); run the sweep again") from None
         print(f"picked worlds: {os.path.relpath(pick_path)}", file=out)
     return 0
 
