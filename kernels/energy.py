@@ -15,14 +15,16 @@ Per spring s (unbroken), d = |x_i - x_j| - L and u the unit vector from j to i:
   elastic             k d^2 / 2 - (dt / 2) k d u . (v_i - v_j)
 
 Columns of a world's sums: 0 the plain energy K + U [J], 1 the modified energy's (dt / 2) v . f
-terms [J], 2 work [J], 3 1.0 when any value was non-finite (else 0).
+terms [J], 2 work [J], 3 the gravity potential -sum m g . x [J], 4 1.0 when any value was non-finite
+(else 0; a maximum), 5 the largest single particle's kinetic energy m |v + (dt / 2) g|^2 / 2 [J] (its
+velocity synchronised for gravity; a maximum).
 """
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-COLUMNS = wp.constant(4)
+COLUMNS = wp.constant(6)
 
 
 @wp.func
@@ -31,12 +33,14 @@ def particle_terms(
     half_dt: float,
 ):
     """(kinetic + gravity [J], the (dt / 2) v . f term [J], work of the driving forces over the frame
-    [J]) of one particle."""
+    [J], gravity potential [J], kinetic energy with the velocity synchronised for gravity [J]) of one
+    particle."""
     if inv_m == 0.0:
-        return float(0.0), float(0.0), float(0.0)
-    energy = 0.5 * m * wp.dot(v, v) - m * wp.dot(g, x)
+        return float(0.0), float(0.0), float(0.0), float(0.0), float(0.0)
+    potential = -m * wp.dot(g, x)
     work = 0.5 * wp.dot(fd0 + fd1, x - x0)
-    return energy, half_dt * m * wp.dot(v, g), work
+    w = v + half_dt * g
+    return 0.5 * m * wp.dot(v, v) + potential, half_dt * m * wp.dot(v, g), work, potential, 0.5 * m * wp.dot(w, w)
 
 
 @wp.func
@@ -86,12 +90,16 @@ def world_energy_sums(
     energy = float(0.0)
     work = float(0.0)
     correction = float(0.0)
+    gravity = float(0.0)
+    peak = float(0.0)
     for i in range(w * world_particles, (w + 1) * world_particles):
-        e, c, a = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i], inv_mass[i],
-                                 g, half_dt)
+        e, c, a, u, k = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i],
+                                       inv_mass[i], g, half_dt)
         energy += e
         correction += c
         work += a
+        gravity += u
+        peak = wp.max(peak, k)
     for s in range(w * world_springs, (w + 1) * world_springs):
         if spring_broken.shape[0] == 0 or spring_broken[s] == 0:
             pi = spring_indices[2 * s]
@@ -102,7 +110,9 @@ def world_energy_sums(
     out[w, 0] = energy
     out[w, 1] = correction
     out[w, 2] = work
-    out[w, 3] = wp.max(bad(energy), wp.max(bad(correction), bad(work)))
+    out[w, 3] = gravity
+    out[w, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
+    out[w, 5] = peak
 
 
 @wp.kernel
@@ -125,20 +135,24 @@ def energy_sums_strided(
 ):
     """One world, many threads: slot s sums particles s, s + S, ... and springs s, s + S, ... in
     increasing order into partial_out[s] (S = slots; folded by ``kernels/reduce.py: reduce_rows``
-    with column 3 a maximum)."""
+    with columns 4 and 5 maxima)."""
     s = wp.tid()
     stride = partial_out.shape[0]
     g = world_gravity[0]
     energy = float(0.0)
     work = float(0.0)
     correction = float(0.0)
+    gravity = float(0.0)
+    peak = float(0.0)
     i = s
     while i < q.shape[0]:
-        e, c, a = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i], inv_mass[i],
-                                 g, half_dt)
+        e, c, a, u, k = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i],
+                                       inv_mass[i], g, half_dt)
         energy += e
         correction += c
         work += a
+        gravity += u
+        peak = wp.max(peak, k)
         i += stride
     j = s
     while j < spring_count:
@@ -152,7 +166,9 @@ def energy_sums_strided(
     partial_out[s, 0] = energy
     partial_out[s, 1] = correction
     partial_out[s, 2] = work
-    partial_out[s, 3] = wp.max(bad(energy), wp.max(bad(correction), bad(work)))
+    partial_out[s, 3] = gravity
+    partial_out[s, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
+    partial_out[s, 5] = peak
 
 
 @wp.kernel
@@ -166,7 +182,7 @@ def judge_worlds(
     sums: wp.array2d(dtype=float),
     frame_counter: wp.array(dtype=int),
     margin: float,
-    runaway: float,
+    runaway: wp.array(dtype=float),
     world_bad: wp.array(dtype=int),
     reference: wp.array2d(dtype=float),
     scale: wp.array(dtype=float),
@@ -182,9 +198,11 @@ def judge_worlds(
     accumulates (and |W| frame by frame). gain = (E - E_ref - W) / (scale + sum |W| + allowance) is the
     energy that appeared from nowhere, relative; gain_io keeps its maximum. A world is unstable from this
     frame (unstable_frame_io, set once; -1 otherwise) when gain > ``margin``, when the plain energy
-    K + U (reference[w, 1]) grew by more than ``runaway`` x that scale (past the stability limit the
-    modified energy is no longer positive and can fall while the motion explodes), or when a value is
-    non-finite. Frozen worlds (world_bad = 1) are skipped."""
+    K + U (reference[w, 1]) grew by more than ``runaway[w]`` x that scale (past the stability limit the
+    modified energy stays put or falls while the motion grows), when one particle alone holds more
+    kinetic energy than max(runaway[w], 1) x the world's whole budget (that scale plus the gravity
+    energy released since frame 0, reference[w, 2]: a local blow-up that losses elsewhere hide), or
+    when a value is non-finite. Frozen worlds (world_bad = 1) are skipped."""
     w = wp.tid()
     if world_bad.shape[0] > 0:
         if world_bad[w] == 1:
@@ -198,10 +216,12 @@ def judge_worlds(
     budget = scale[w] + abs_work + allowance[w]
     gain = (energy - reference[w, 0] - work) / budget
     plain = (sums[w, 0] - reference[w, 1] - work) / budget
-    if sums[w, 3] > 0.0 or not wp.isfinite(gain) or not wp.isfinite(plain):
+    local = sums[w, 5] / (budget + wp.max(reference[w, 2] - sums[w, 3], 0.0))
+    if sums[w, 4] > 0.0 or not wp.isfinite(gain) or not wp.isfinite(plain) or not wp.isfinite(local):
         gain = 1.0e30
         plain = 1.0e30
+    plain = wp.max(plain, local / wp.max(runaway[w], 1.0) * runaway[w])
     gain_io[w] = wp.max(gain_io[w], gain)
     plain_gain_io[w] = wp.max(plain_gain_io[w], plain)
-    if (gain > margin or plain > runaway) and unstable_frame_io[w] < 0:
+    if (gain > margin or plain > runaway[w]) and unstable_frame_io[w] < 0:
         unstable_frame_io[w] = frame_counter[0]

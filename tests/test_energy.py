@@ -173,3 +173,27 @@ def test_donuts_past_their_limit_are_flagged_although_the_box_stops_them():
             sim.step(h)
             sim.check_frame(h)
     assert frame <= 6 and "above the stability limit" in str(err.value)
+
+
+def test_seed_and_project_planes_limit_the_step_by_the_fall_height_reflect_does_not():
+    """A point ball h above a plane: in seed/project mode a step may not carry it past the contact,
+    |v| dt + g dt^2 <= h, so dt <= sqrt(h / g); auto sub-steps honour it. Reflect mode resolves at the
+    time of impact: no restriction (and no energy gain, tests above)."""
+    for h in (0.01, 0.04):
+        for mode in ("seed", "project", "reflect"):
+            b = ws.ModelBuilder()
+            b.add_particle((0.0, h, 0.0), mass=1.0)
+            sim = ws.Simulator(b.finalize("cpu"), forces=[ws.Gravity((0.0, -G, 0.0))],
+                               colliders=[ws.Plane(restitution=0.9, mode=mode)])
+            limit = sim.stability()
+            if mode == "reflect":
+                assert limit.dt == np.inf
+                continue
+            assert limit.dt == pytest.approx(np.sqrt(h / G), rel=1e-6)  # h in float32
+            assert limit.limiting == "collider" and "fall height" in limit.reason
+            assert sim.auto_substeps(DT) == int(np.ceil(DT / (0.5 * np.sqrt(h / G))))
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 0.5, 0.0), vel=(0.0, -3.0, 0.0), mass=1.0)
+    sim = ws.Simulator(b.finalize("cpu"), forces=[ws.Gravity((0.0, -G, 0.0))],
+                       colliders=[ws.Plane(mode="seed")])
+    assert sim.stability().dt == pytest.approx((np.sqrt(9.0 + 4 * G * 0.5) - 3.0) / (2 * G), rel=1e-6)

@@ -126,6 +126,18 @@ class Planes(_Contact):
             device=model.device,
         )
 
+    def step_distances(self, model, positions):
+        """Per particle, the most it may move in one step [m] (``warpsim.core.stability``): in modes
+        "seed" and "project" the larger of its collision thickness (radius + thickness) and its fall
+        height above the nearest plane; None in "reflect" (resolved at the time of impact) and
+        "penalty" (limited by its stiffness) modes."""
+        if self.mode_name not in ("seed", "project"):
+            return None
+        r = model.particle_radius.numpy().astype(np.float64) + self.thickness
+        q = np.asarray(positions, dtype=np.float64)
+        heights = q @ self.normals.T - self.offsets[None, :] - r[:, None]  # (n, planes) [m]
+        return np.maximum(r, np.maximum(heights.min(axis=1), 0.0))
+
     def apply_out(self, model, q, qd, q_out, qd_out, dt, plane: int, q_start=None, forces=None) -> None:
         """Differentiable runs (``warpsim.diff``): plane ``plane`` alone, out of place
         (q, qd) -> (q_out, qd_out); applying planes 0..P-1 in turn equals ``apply``. q_start and

@@ -36,18 +36,29 @@ from ..kernels import energy as K
 from .reduction import FixedOrderReduction
 
 RUNAWAY = 1000.0
-"""Growth of the plain energy K + U beyond the work of driving forces, relative to the energy
-scale, that counts as a blow-up whatever the modified energy says. In a stable run K + U swings by
-up to 1 / (1 - (omega dt / 2)^2) times the stiffest mode's energy (10x at 0.95x the limit, 500x at
-0.999x); past the limit it grows geometrically (x285 per 10-step frame at 1.01x), so the guard
-trips within a frame or two of the growth."""
+"""The most the plain energy K + U may grow beyond the work of driving forces, relative to the
+energy scale, before it counts as a blow-up whatever the modified energy says (the cap of
+:func:`runaway_threshold`)."""
+
+
+def runaway_threshold(step: float, limit: float) -> float:
+    """Relative growth of K + U that counts as a blow-up for steps of ``step`` [s] against the
+    stability limit ``limit`` [s]. Inside the limit (r = step / limit < 1) K + U of a stable run swings
+    by up to 1 / (1 - r^2) times the stiffest mode's energy (the semi-implicit Euler map of an
+    undamped spring, omega dt / 2 = r): the threshold is twice that, at least 2, at most ``RUNAWAY``.
+    Past the limit the stiffest mode grows (slowly just past it: its modified energy stays put while
+    K + U climbs), so any growth beyond ``MARGIN`` counts."""
+    if not (limit > 0.0) or step > limit * (1.0 + 1.0e-6):
+        return MARGIN
+    r = step / limit if np.isfinite(limit) else 0.0
+    return float(min(RUNAWAY, max(2.0, 2.0 / max(1.0 - r * r, 1.0e-12))))
 
 MARGIN = 0.25
 """Relative energy gain (beyond the work of driving forces) that counts as a blow-up. Measured
 (``tests/test_energy.py``): the teapot at damping 0 over 600 frames, dragged into the walls, stays
 below 0.05; a step 1.1x above the limit passes 0.5 within two frames of the first growth."""
 
-__all__ = ["MARGIN", "RUNAWAY", "EnergyBalance", "energy_role"]
+__all__ = ["MARGIN", "RUNAWAY", "EnergyBalance", "energy_role", "runaway_threshold"]
 
 
 def energy_role(force) -> str:
@@ -107,13 +118,14 @@ class EnergyBalance:
         self._zeros = wp.zeros(count, dtype=wp.vec3, device=d)
         self._no_int = wp.zeros(0, dtype=int, device=d)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
-        self.sums = wp.zeros((n, 4), dtype=float, device=d)
-        self._reduction = FixedOrderReduction(4, first_max_column=3, device=d) if n == 1 else None
-        self.reference = wp.zeros((n, 2), dtype=float, device=d)  # modified and plain energy at frame 0
+        self.sums = wp.zeros((n, 6), dtype=float, device=d)
+        self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if n == 1 else None
+        self.reference = wp.zeros((n, 3), dtype=float, device=d)  # modified, plain and gravity energy at frame 0
         self.scale = wp.ones(n, dtype=float, device=d)
         self.work = wp.zeros(n, dtype=float, device=d)
         self.abs_work = wp.zeros(n, dtype=float, device=d)
         self.allowance = wp.zeros(n, dtype=float, device=d)
+        self.runaway = wp.full(n, RUNAWAY, dtype=float, device=d)
         self.energy = wp.zeros(n, dtype=float, device=d)
         self.gain = wp.full(n, -1.0e30, dtype=float, device=d)
         self.plain_gain = wp.full(n, -1.0e30, dtype=float, device=d)
@@ -143,7 +155,7 @@ class EnergyBalance:
         if self._reduction is not None:
             wp.launch(K.energy_sums_strided, self._reduction.slots,
                       inputs=[*common, *springs, int(s.spring_count)], outputs=[self._reduction.partials], device=d)
-            return self._reduction.finish().reshape((1, 4))
+            return self._reduction.finish().reshape((1, 6))
         n = self.world_count
         wp.launch(K.world_energy_sums, n, inputs=[*common, m.particle_count // n, *springs, int(s.spring_count) // n],
                   outputs=[self.sums], device=d)
@@ -181,9 +193,11 @@ class EnergyBalance:
         # a floor of 1 mm of the world's weight (or 1 nJ) keeps a ball at rest on the floor judgeable
         floor = total_mass * np.maximum(g_norm, 1e-3) * 1e-3 + 1e-9
         elastic = np.maximum(sums[:, 0] - kinetic - self._gravity_energy(q, mass), 0.0)
-        scale = np.maximum(kinetic + elastic + potential, floor)
+        # semi-implicit Euler's samples from rest lie on a parabola g dt^2 / 8 above the release point
+        offset = total_mass * g_norm**2 * float(dt) ** 2 / 8.0 if self.synchronise else 0.0
+        scale = np.maximum(kinetic + elastic + potential + offset, floor)
         self.scale.assign(scale.astype(np.float32))
-        self.reference.assign(np.stack([sums[:, 0] + sums[:, 1], sums[:, 0]], axis=1).astype(np.float32))
+        self.reference.assign(np.stack([sums[:, 0] + sums[:, 1], sums[:, 0], sums[:, 3]], axis=1).astype(np.float32))
         self.work.zero_()
         self.abs_work.zero_()
         self.allowance.zero_()
@@ -209,7 +223,7 @@ class EnergyBalance:
                 self._allowance_host += 2.0 * self._world_mass * speed * speed
                 self.allowance.assign(self._allowance_host.astype(np.float32))
         wp.launch(K.judge_worlds, self.world_count,
-                  inputs=[sums, self.frame_counter, self.margin, RUNAWAY,
+                  inputs=[sums, self.frame_counter, self.margin, self.runaway,
                           self._no_int if world_bad is None else world_bad,
                           self.reference, self.scale, self.work, self.abs_work, self.allowance],
                   outputs=[self.energy, self.gain, self.plain_gain, self.unstable_frame], device=d)
@@ -220,6 +234,14 @@ class EnergyBalance:
     def _gravity_energy(self, q, mass) -> np.ndarray:
         """-sum m g . x per world [J] ((n, P, 3) positions, (n, P) masses)."""
         return -np.einsum("wp,wpk,wk->w", mass, q, self.gravity)
+
+    def set_limits(self, step: float, limits) -> None:
+        """Runaway thresholds per world from the step [s] and each world's stability limit [s]
+        (:func:`runaway_threshold`)."""
+        values = [runaway_threshold(float(step), float(lim)) for lim in np.atleast_1d(limits)]
+        if len(values) == 1 and self.world_count > 1:
+            values = values * self.world_count
+        self.runaway.assign(np.asarray(values, dtype=np.float32))
 
     def plain_gains(self) -> np.ndarray:
         """Largest growth of the plain energy K + U so far per world, relative (the runaway guard)."""

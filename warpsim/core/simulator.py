@@ -204,10 +204,11 @@ class Simulator:
         the current state) with this integrator's stability region; see
         ``warpsim.core.stability`` for the bound's assumptions."""
         q = self.state.positions if positions is None else positions
+        velocities = self.state.velocities.numpy() if positions is None else None  # else the model's initial ones
         model = self.model if self.stability_model is None else self.stability_model()
-        self._stability = stab.with_force_limits(stab.particle_limits(model, q, self.integrator, self.forces,
-                                                                      self.colliders, iterations=iterations)[0],
-                                                 self.forces, q, self.integrator)
+        limit = stab.particle_limits(model, q, self.integrator, self.forces, self.colliders, iterations=iterations,
+                                     velocities=velocities)[0]
+        self._stability = stab.with_force_limits(limit, self.forces, q, self.integrator)
         return self._stability
 
     def stable_dt(self) -> float:
@@ -216,9 +217,11 @@ class Simulator:
         return self.stability().dt
 
     def invalidate_stability(self) -> None:
-        """Forget the cached limit (after changing stiffness, masses or colliders in place)."""
+        """Forget the cached limit (after changing stiffness, masses, forces or colliders in place);
+        the energy balance takes its reference again at the next step (the energy changed by hand)."""
         self._stability = None
         self._checked_dt = None
+        self._energy = None
 
     def auto_substeps(self, frame_dt: float, safety: float = stab.AUTO_SAFETY, minimum: int = 1) -> int:
         """Sub-steps for a frame of ``frame_dt`` [s] keeping every step <= ``safety`` x the
@@ -281,7 +284,7 @@ class Simulator:
             v = self.state.velocities.numpy()[bad]
             raise SimulationError(
                 f"simulation blew up at step {self.step_count} (t = {self.time:.6g} s): particle {bad} has position "
-                f"{x} and velocity {v} (speed bound {self.max_speed:g} m/s). Remedy: {REMEDY}.",
+                f"{x} and velocity {v} (speed bound {self.max_speed:g} m/s). {self._energy_remedy(speed=True)}",
                 step=self.step_count, time=self.time, particle=bad,
             )
 
@@ -302,6 +305,7 @@ class Simulator:
                                      synchronise=isinstance(self.integrator, SemiImplicitEuler),
                                      springs=None if self.stability_model is None else self.stability_model())
         self._energy.start(st, h, time=self._time)
+        self._energy_step = None  # the step the runaway threshold was set for
 
     def restart_energy(self) -> None:
         """Take the energy balance's reference again at the next step (after editing the state,
@@ -324,7 +328,12 @@ class Simulator:
                 wp.get_device(self.device).is_capturing:
             return
         eb, st = self._energy, self.state
-        eb.update(st, self._last_h or frame_dt, frame_dt, time=self._time)
+        h = self._last_h or frame_dt
+        if self._energy_step != h:  # the threshold of K + U's growth depends on the step against the limit
+            limit = self._stability if self._stability is not None else self.stability(positions=self.model.particle_q)
+            eb.set_limits(h, limit.dt)
+            self._energy_step = h
+        eb.update(st, h, frame_dt, time=self._time)
         if int(eb.unstable_frame.numpy()[0]) < 0:
             return
         v = st.velocities.numpy()
@@ -339,18 +348,24 @@ class Simulator:
             f"{float(speed[bad]):.4g} m/s. {self._energy_remedy()}", step=self.step_count, time=self.time,
             particle=bad)
 
-    def _energy_remedy(self) -> str:
+    def _energy_remedy(self, speed: bool = False) -> str:
         """Why energy appeared and what to do, by cause: the step above its limit, the lecture's
-        seed collisions, or (with the step inside its limit) a force or collider."""
+        seed collisions, or (with the step inside its limit) a force or collider; ``speed``: the
+        speed bound tripped (perhaps a fast but sound run)."""
         h = self._last_h
         limit = self._stability if self._stability is not None else self.stability(positions=self.model.particle_q)
-        if h is not None and limit.exceeded_by(h):
-            return (f"Cause: a step of {h:.4g} s is above the stability limit of {limit.dt:.4g} s set by "
-                    f"{limit.who()}. Remedy: {REMEDY}.")
+        if h is None or limit.exceeded_by(h):
+            where = "" if h is None else (f"Cause: a step of {h:.4g} s is above the stability limit of {limit.dt:.4g} s "
+                                          f"set by {limit.who()}. ")
+            return f"{where}Remedy: {REMEDY}."
         seed = [c for c in self.colliders if getattr(c, "mode_name", None) == "seed"]
         if seed:
             return (f"Cause: {type(seed[0]).__name__} uses mode='seed' (the lecture's mirror), which gains energy at "
                     "large steps. Remedy: mode='reflect' (resolved at the time of impact), or a smaller dt.")
+        if speed:
+            return (f"Cause: not the step (within its stability limit of {limit.dt:.4g} s). Remedy: if such speeds "
+                    f"are expected, raise max_speed (now {self.max_speed:g} m/s); else look for a force or collider "
+                    f"that adds energy.")
         driving = sorted({type(f).__name__ for f in self.forces if getattr(f, "energy_role", "driving") == "driving"})
         step = "" if h is None else f"the step of {h:.4g} s is within its stability limit of {limit.dt:.4g} s, so "
         what = f"forces {', '.join(driving)}" if driving else "the colliders or an external edit of the state"

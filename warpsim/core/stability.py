@@ -38,6 +38,14 @@ Assumptions of the model estimate (``particle_limits``):
   like semi-implicit Euler on a spring k_c to a fixed point, omega_c = sqrt(k_c / m), damping
   ratio from their restitution; they are a separate oscillator (limit taken as the smaller of
   the two), whatever the integrator (implicit Euler too).
+- Colliders that resolve a contact only approximately at large steps set a step-size limit of
+  their own (``collider.step_distances(model, positions)``: per particle, the most it may move in
+  one step, e.g. a plane in ``mode="seed"`` or ``"project"``: the larger of the particle's collision
+  thickness and its fall height above the plane; soft contact: its thickness). A particle moving
+  at |v| under gravity g covers |v| dt + |g| dt^2 per step (the issue's v dt and g dt^2), so
+  dt <= (sqrt(|v|^2 + 4 |g| L) - |v|) / (2 |g|). Planes and shapes in ``"reflect"`` mode resolve
+  contact at the time of impact and ``"penalty"`` ones are limited by their stiffness: no
+  distance limit.
 - Linear theory: a step at the limit is marginal; nonlinear springs, contacts and large
   rotations can need a smaller one, hence the safety factor of ``substeps="auto"``.
 """
@@ -231,6 +239,8 @@ class StabilityLimit:
             return "nothing stiff"
         if self.limiting == "pendulum":
             return f"pendulum {self.index} (g/l = {self.stiffness:.4g} 1/s^2)"
+        if self.limiting == "collider" and self.stiffness == 0.0:
+            return f"collider {self.index} on particle {self.particle} (a step may not carry it past the contact)"
         return f"{self.limiting} {self.index} (k = {self.stiffness:.4g} N/m, m = {self.mass:.4g} kg)"
 
     def warning(self, dt: float) -> str:
@@ -332,6 +342,15 @@ def _adjacency(model):
     return value
 
 
+def _gravity_of(forces, world_count, world):
+    """Per particle gravity [m/s^2] (particle_count, 3) of the forces with a ``g`` (Gravity, WorldGravity)."""
+    g = np.zeros((max(world_count, 1), 3))
+    for f in forces or ():
+        if getattr(f, "energy_role", "") == "potential" and hasattr(f, "g"):
+            g = g + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
+    return g[world] if len(world) else np.zeros((0, 3))
+
+
 def _penalty(colliders):
     """(stiffness [N/m], damping ratio) of the stiffest penalty collider, or (0, 0)."""
     best = (0.0, 0.0)
@@ -359,12 +378,43 @@ def _linear_drag(forces):
     return float(sum(f.linear for f in forces or () if isinstance(f, Drag)))
 
 
+def _collider_steps(model, positions, velocities, colliders, gravity):
+    """Per particle: the step-size limit [s] from the colliders' step distances (module docstring),
+    inf where none applies, and the collider setting it (index into ``colliders``, -1 none), and L [m]."""
+    n = model.particle_count
+    dt = np.full(n, np.inf)
+    which = np.full(n, -1, dtype=np.int64)
+    dist = np.zeros(n)
+    q = positions.numpy().astype(np.float64) if hasattr(positions, "numpy") else np.asarray(positions, float)
+    v = np.zeros((n, 3)) if velocities is None else np.asarray(velocities, dtype=np.float64).reshape(n, 3)
+    speed = np.linalg.norm(v, axis=1)
+    g = np.linalg.norm(np.asarray(gravity, dtype=np.float64).reshape(-1, 3), axis=1)
+    if len(g) != n:
+        g = np.full(n, float(g[0]) if len(g) else 0.0)
+    moving = model.particle_inv_mass.numpy() > 0.0
+    for c_index, c in enumerate(colliders):
+        own = getattr(c, "step_distances", None)
+        L = own(model, q) if own is not None else None
+        if L is None:
+            continue
+        L = np.asarray(L, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            limit = np.where(g > 0, (np.sqrt(speed * speed + 4.0 * g * L) - speed) / (2.0 * np.where(g > 0, g, 1.0)),
+                             np.where(speed > 0, L / np.where(speed > 0, speed, 1.0), np.inf))
+        limit = np.where(moving & (L > 0) & np.isfinite(L), limit, np.inf)
+        better = limit < dt
+        dt[better], which[better], dist[better] = limit[better], c_index, L[better]
+    return dt, which, dist
+
+
 def particle_limits(model, positions, integrator, forces=(), colliders=(), *, particle_world=None,
-                    world_count: int = 1, iterations: int = POWER_ITERATIONS) -> list:
+                    world_count: int = 1, iterations: int = POWER_ITERATIONS, velocities=None) -> list:
     """One :class:`StabilityLimit` per world of a particle model (see module docstring).
 
     ``positions``: wp.array of vec3 (particle_count,) about which springs are linearised;
-    ``particle_world``: host int array (particle_count,) of world indices (None: one world)."""
+    ``particle_world``: host int array (particle_count,) of world indices (None: one world);
+    ``velocities``: (particle_count, 3) [m/s] for the colliders' distance limits (None: the model's
+    initial velocities)."""
     method = method_of(integrator)
     n, S, d = model.particle_count, model.spring_count, model.device
     inv_mass = model.particle_inv_mass.numpy().astype(np.float64)
@@ -439,6 +489,10 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         amplitude = np.einsum("ij,ij->i", vh, vh)
 
     k_c, zeta_c = _penalty(colliders)
+    if velocities is None and n:
+        velocities = model.particle_qd.numpy()
+    collider_dt, collider_of, collider_L = _collider_steps(model, positions, velocities, colliders,
+                                                           _gravity_of(forces, W, world))
     spring_world = world[idx[:, 0]] if S else np.zeros(0, dtype=np.int64)
     limits = []
     for w in range(W):
@@ -479,6 +533,16 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
                 kind, index, stiffness, m, damping, particle = "particle", p, k_d, float(mass[p]), c_d, p
                 reason = _reason(method, omega_d, zeta_d, dt_d, f"particle {p} held by a drag spring: k = {k_d:.4g} "
                                                                f"N/m, m = {m:.4g} kg")
+        if len(in_world) and np.isfinite(collider_dt[in_world]).any():
+            p = int(in_world[np.argmin(collider_dt[in_world])])
+            if collider_dt[p] < dt:
+                c = colliders[int(collider_of[p])]
+                name = getattr(c, "name", type(c).__name__)
+                dt, kind, index, particle = float(collider_dt[p]), "collider", int(collider_of[p]), p
+                stiffness, m, damping = 0.0, float(mass[p]), 0.0
+                reason = (f"{name} ({getattr(c, 'mode_name', 'contact')}) on particle {p}: it may move at most "
+                          f"{collider_L[p]:.4g} m per step (its collision thickness or fall height) and covers "
+                          f"|v| dt + |g| dt^2 per step, so dt <= {dt:.4g} s")
         limits.append(StabilityLimit(
             dt=dt, integrator=method, omega_max=omega, damping_ratio=zeta, limiting=kind, index=index,
             stiffness=stiffness, mass=m, damping=damping, particle=particle, omega_bound=math.sqrt(bound[w]),

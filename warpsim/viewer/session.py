@@ -241,6 +241,9 @@ class Session:
             self._fail(exc, frame)
             return
         sim.check_every = 0  # the build after Reset makes a fresh simulator
+        if self.grabbed is not None:  # let go: no drag line left pointing at a run that stopped
+            self.drag.release()
+            self.grabbed = None
         self.exploding = {"error": exc, "frame": frame, "left": EXPLOSION_FRAMES}
         self._last_drawn = {name: it.points.reshape(-1, 3).astype(np.float64) for name, it in self._items.items()
                             if it.kind in ("points", "mesh") and it.shown is None}  # the last good picture

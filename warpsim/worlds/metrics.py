@@ -7,10 +7,12 @@ Built-in metrics (one value per world):
   kinetic_energy                 kinetic energy at the last frame [J]
   blown_up, blown_frame          1 if the world blew up (then frozen at its last good frame) or is unstable,
                                  the frame
-  unstable                       1 if its velocities stopped matching its motion (``frame_dt`` given): the
-                                 fastest particle INCOHERENT_RATIO x faster than any particle moved over a
-                                 frame, INCOHERENT_FRAMES frames running (see warpsim.core.stability): a
-                                 step above the stability limit that NaN and the speed bound miss
+  energy_gain                    the largest energy gain beyond the work of its driving forces, relative to
+                                 its energy scale (``frame_dt`` given; ``warpsim.core.energy``): 0 for a
+                                 world that only lost energy
+  unstable                       1 if energy_gain passed ``warpsim.core.energy.MARGIN`` or the energy became
+                                 non-finite: a step above the stability limit (or a force that adds energy)
+                                 that NaN and the speed bound miss, even where walls stop the velocities
 Tracked particles (``track={"spout": 12}``, indices within one world): NAME_x, NAME_y, NAME_z (final
 position [m]) and NAME_peak_y. A user metric :class:`UserMetric` sums a ``@wp.func`` of
 (x [m], v [m/s], m [kg]) -> float over a world's particles: NAME (last frame) and NAME_peak.
@@ -28,11 +30,10 @@ import numpy as np
 import warp as wp
 
 from ..core import stability as stab
-from ..kernels import stability as KS
 from ..kernels import worlds as KW
 
 BUILTIN = ("center_x", "center_y", "center_z", "peak_center_y", "peak_speed", "kinetic_energy", "blown_up",
-           "blown_frame", "unstable")
+           "blown_frame", "energy_gain", "unstable")
 
 __all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "parse_where", "select"]
 
@@ -59,9 +60,11 @@ f"metric {name!r} needs a @wp.func of (wp.vec3, wp.vec3, float) -> float")
 class WorldMetrics:
     """Device accumulators for one :class:`warpsim.worlds.batch.WorldBatch` (allocated once;
     ``update`` launches kernels only, so it can sit in a captured graph). ``frame_dt`` [s]: the
-    frame length, for the ``unstable`` test (None: not tested, the column stays 0)."""
+    frame length, for the energy balance (``energy_gain`` and ``unstable``; None: not tested, the
+    columns stay 0); ``step_dt`` [s]: the step the frames take (semi-implicit Euler's synchronised
+    velocity; None: ``frame_dt``)."""
 
-    def __init__(self, batch, track=None, user=(), frame_dt=None):
+    def __init__(self, batch, track=None, user=(), frame_dt=None, step_dt=None):
         self.batch = batch
         n, d = batch.world_count, batch.device
         P = batch.model.world_particle_count
@@ -98,11 +101,9 @@ class WorldMetrics:
         self.user_final = [wp.zeros(n, dtype=float, device=d) for _ in self.user]
         self.user_peak = [wp.full(n, -inf, dtype=float, device=d) for _ in self.user]
         self.frame_dt = None if frame_dt is None else float(frame_dt)
-        self.frame_start = wp.clone(batch.sim.state.positions)
-        self.frame_speed = wp.zeros(n, dtype=float, device=d)
-        self.frame_motion = wp.zeros(n, dtype=float, device=d)
-        self.incoherent_streak = wp.zeros(n, dtype=int, device=d)
-        self.unstable_frame = wp.full(n, -1, dtype=int, device=d)
+        self.step_dt = self.frame_dt if step_dt is None else float(step_dt)
+        self.energy = None if frame_dt is None else self._energy_balance()
+        self._energy_started = False
 
     def update(self):
         """Fold the current state into the metrics (call after every frame, and for frame 0)."""
@@ -126,17 +127,28 @@ class WorldMetrics:
                       inputs=[st.positions, st.velocities, m.particle_mass, m.particle_world, b.world_bad, value],
                       device=d)
             wp.launch(KW.keep_metric, n, inputs=[b.world_bad, value, final, peak], device=d)
-        if self.frame_dt is not None:
-            self.frame_speed.zero_()
-            self.frame_motion.zero_()
-            wp.launch(KS.frame_motion, m.particle_count,
-                      inputs=[st.positions, self.frame_start, st.velocities, m.particle_inv_mass, m.particle_world,
-                              1.0 / self.frame_dt, self.frame_speed, self.frame_motion], device=d)
-            wp.launch(KS.flag_incoherent_worlds, n,
-                      inputs=[self.frame_speed, self.frame_motion, stab.INCOHERENT_RATIO, stab.INCOHERENT_SPEED,
-                              stab.INCOHERENT_FRAMES, b.frame_counter, self.incoherent_streak, self.unstable_frame],
-                      device=d)
-            wp.copy(self.frame_start, st.positions)
+        if self.energy is not None:
+            if not self._energy_started:
+                self.energy.start(st, self.step_dt)
+                self.energy.set_limits(self.step_dt, [lim.dt for lim in b.world_limits()])
+                self._energy_started = True
+            else:
+                self.energy.update(st, self.step_dt, self.frame_dt, world_bad=b.world_bad)
+
+    def _energy_balance(self):
+        """The batch's per-world energy balance (its springs from the stand-in on the shared path)."""
+        from ..core.energy import EnergyBalance
+        from ..core.integrators import SemiImplicitEuler
+
+        b = self.batch
+        gravity = np.zeros((b.world_count, 3))
+        for f in b.sim.forces:
+            if getattr(f, "energy_role", "driving") == "potential" and hasattr(f, "g"):
+                gravity = gravity + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
+        if b.stepper is not None:
+            gravity = np.asarray(b.stepper.world_gravity.numpy(), dtype=np.float64)
+        return EnergyBalance(b.model, b.sim.forces, b.sim.colliders, gravity,
+                             synchronise=isinstance(b.sim.integrator, SemiImplicitEuler), springs=b._springs_model())
 
     def names(self):
         out = list(BUILTIN)
@@ -156,7 +168,8 @@ class WorldMetrics:
         ke = self.final_kinetic.numpy()
         bad = b.world_bad.numpy()
         blown = b.world_blown_frame.numpy()
-        unstable = self.unstable_frame.numpy()
+        unstable = self.energy.unstable_frame.numpy() if self.energy is not None else np.full(n, -1)
+        gains = self.energy.gains() if self.energy is not None and self._energy_started else np.zeros(n)
         rows = []
         t = len(self.track)
         tf = self.tracked_final.numpy().reshape(n, -1, 3)
@@ -166,7 +179,8 @@ class WorldMetrics:
             row = {"center_x": float(center[w, 0]), "center_y": float(center[w, 1]), "center_z": float(center[w, 2]),
                    "peak_center_y": float(peak[w, 1]), "peak_speed": float(speed[w]),
                    "kinetic_energy": float(ke[w]), "blown_up": int(bad[w] or unstable[w] >= 0),
-                   "blown_frame": int(blown[w] if blown[w] >= 0 else unstable[w]), "unstable": int(unstable[w] >= 0)}
+                   "blown_frame": int(blown[w] if blown[w] >= 0 else unstable[w]),
+                   "energy_gain": float(gains[w]), "unstable": int(unstable[w] >= 0)}
             for k, name in enumerate(self.track):
                 if k < t:
                     row.update({f"{name}_x": float(tf[w, k, 0]), f"{name}_y": float(tf[w, k, 1]),

@@ -165,7 +165,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
-    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt)
+    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt, step_dt=frame_dt / taken.steps)
     if resume_frame is not None and not 0 <= int(resume_frame) <= int(frames) + 1:
         raise ValueError(f"resume_frame {resume_frame}: the run has frames 0..{frames}")
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps, chunk_size=chunk_size,
