@@ -316,3 +316,17 @@ def test_truncated_batch_layer_is_damage_in_one_line(copy, tmp_path):
         line = one_error_line(err)
         assert code == 1 and ("S.batch_0000.usdc" in line or "a batch layer of" in line), line
         assert "possibly truncated" in line, line
+
+
+def test_pick_and_export_api_type_errors_say_what_to_give(made, tmp_path):
+    from warpsim.render.export import export_frame
+    from warpsim.worlds.pick import pick_world
+
+    with pytest.raises(TypeError, match="world 'one' is not an integer index"):
+        pick_world(made / "S.usda", "one", tmp_path / "p.usda")
+    with pytest.raises(TypeError, match="out_path 3 is not a path"):
+        pick_world(made / "S.usda", 1, 3)
+    with pytest.raises(TypeError, match="frame 'x' is not a whole frame number"):
+        export_frame(made / "c.usda", tmp_path / "c.obj", "x")
+    with pytest.raises(TypeError, match="world 'ten' is not an integer index"):
+        ws.rerun_world(made / "S.usda", "ten")

@@ -404,6 +404,10 @@ def export_frame(cache, out, frame=None, *, surface=False, merge=False, guides=F
                  device=None, allow_damaged=False) -> dict:
     """Export frame ``frame`` (None: the last) of ``cache`` to ``out`` (see the module docstring).
     Returns {"frame", "paths", "parts": [(name, kind, vertex count, face or segment count)]}."""
+    if frame is not None and (isinstance(frame, bool) or not hasattr(frame, "__index__")):
+        raise TypeError(f"frame {frame!r} is not a whole frame number; give e.g. frame=10 (None: the last)")
+    if not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"out {out!r} is not a path; give e.g. 'frame.obj'")
     suffix = os.path.splitext(str(out))[1].lower()
     if suffix not in FORMATS:  # before the cache is read
         raise ValueError(f"--out {str(out)!r}: unknown suffix {suffix or '(none)'!r}; write one of "

@@ -38,6 +38,11 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
     world's batch layer has damaged or missing chunk files (checked like ``warpsim info``)."""
     from .roots import sweep_root_files
 
+    if isinstance(world, bool) or not hasattr(world, "__index__"):
+        raise TypeError(f"world {world!r} is not an integer index; give the table's 'world' (e.g. 0)")
+    for name, value in (("root", root), ("out_path", out_path)):
+        if not isinstance(value, (str, os.PathLike)):
+            raise TypeError(f"{name} {value!r} is not a path; give a .usda/.usdc file name")
     files = sweep_root_files(root)
     owner = dict(files["worlds"])
     world = int(world)

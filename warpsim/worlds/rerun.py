@@ -193,7 +193,7 @@ def check_manifest_fields(data, path) -> None:
 
 def _check_world(world, count, root) -> int:
     if isinstance(world, bool) or not isinstance(world, int) and not (hasattr(world, "__index__")):
-        raise ValueError(f"world {world!r} is not an integer index; give 0 .. {count - 1}")
+        raise TypeError(f"world {world!r} is not an integer index; give 0 .. {count - 1}")
     world = int(world)
     if not 0 <= world < count:
         raise ValueError(f"world {world} is out of range: the sweep {root} has worlds 0 .. {count - 1}")
