@@ -55,7 +55,7 @@ def strand_jacobians(strands, data, positions, picks, drag: float = 0.0):
     rows = (strands.first + picks[:, None] * stride + np.arange(stride)[None, :]).reshape(-1)
     slots = (picks[:, None] * stride + np.arange(stride)[None, :]).reshape(-1)
     x0 = np.asarray(positions, np.float64)[rows].astype(np.float32)
-    dev = "cpu"
+    dev = data["rest_length"].device  # the model's device (GPU machines may lack the CPU compiler)
 
     def arr(a, dtype=float):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
@@ -117,7 +117,7 @@ def assembled_stiffness(strands, data, positions, picks):
     S, stride, seg = len(picks), strands.stride, strands.segments
     rows = (strands.first + picks[:, None] * stride + np.arange(stride)[None, :]).reshape(-1)
     slots = (picks[:, None] * stride + np.arange(stride)[None, :]).reshape(-1)
-    dev = "cpu"
+    dev = data["rest_length"].device  # the model's device (GPU machines may lack the CPU compiler)
 
     def arr(a, dtype=float):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
