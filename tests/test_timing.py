@@ -126,6 +126,10 @@ def test_bounce_with_two_substeps_takes_two_steps_of_half_the_frame(tmp_path):
     assert (session.fps, session.substeps, session.stability()["step"]) == (25.0, 2, 0.02)
     assert session.advance()
     assert session.scene.sim.state.positions.numpy()[0][1] == np.float32(y)
+    # a dt set on the page is the step: with --substeps 2 frames are 2 dt apart (not a refusal)
+    assert session.set_param("dt", 0.01) == "rebuilt"
+    assert (session.frame_dt, session.substeps, session.stability()["step"]) == (0.02, 2, 0.01)
+    assert session.timing.chosen == "by hand" and not session.timing.note
 
 
 # ---------------------------------------------------------------------------------- automatic steps in a sweep
