@@ -330,3 +330,24 @@ def test_pick_and_export_api_type_errors_say_what_to_give(made, tmp_path):
         export_frame(made / "c.usda", tmp_path / "c.obj", "x")
     with pytest.raises(TypeError, match="world 'ten' is not an integer index"):
         ws.rerun_world(made / "S.usda", "ten")
+
+
+def test_fifo_index_checkpoint_and_progress_files_are_refused(copy):
+    os.remove(copy / "c.chunks.jsonl")
+    os.mkfifo(copy / "c.chunks.jsonl")
+    os.mkfifo(copy / "c.checkpoint.npz")
+    os.mkfifo(copy / "S.sweep-partial.json")
+    old = signal.signal(signal.SIGALRM, lambda *a: (_ for _ in ()).throw(TimeoutError("waited on a FIFO")))
+    signal.alarm(60)
+    try:
+        code, _, err = run("info", copy / "c.usda")
+        assert code == 1 and "chunk index" in one_error_line(err) and "not a regular file" in err
+        code, _, err = run("run", "bounce", "--frames", 9, "--resume", "--no-progress", "--device", "cpu", "--out",
+                           copy / "c.usda")
+        assert code == 2 and "checkpoint" in one_error_line(err) and "not a regular file" in err
+        code, _, err = run("sweep", "bounce", "--worlds", 3, "--vary", "height=0.2:0.8", "--frames", 8, "--chunk", 4,
+                           "--resume", "--no-progress", "--device", "cpu", "--out", copy / "S.usda")
+        assert code == 2 and "S.sweep-partial.json is not a regular file" in one_error_line(err)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)

@@ -36,6 +36,8 @@ def load_checkpoint(path, required=()):
 
     path = existing_file(path, "checkpoint")
     fix = "delete it and run again without --resume, or restore the file"
+    if not os.path.isfile(path):  # a FIFO would block np.load for ever
+        raise ValueError(f"checkpoint {path!r} is not a regular file (a pipe, socket or folder); {fix}")
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(bytes(data["meta"]).decode())

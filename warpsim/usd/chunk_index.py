@@ -156,6 +156,11 @@ def read_index(index_file):
     (a torn last line) are skipped. A line naming its file whose other fields are malformed (a
     tampered index) is kept as ``{"file": ..., "damaged": why}``, which :func:`chunk_problem`
     reports."""
+    if os.path.exists(index_file) and not os.path.isfile(index_file):  # a FIFO would block for ever
+        from .pxr_errors import DamagedFileError
+
+        raise DamagedFileError(f"chunk index {index_file} is not a regular file (a pipe, socket or folder); restore "
+                               "it or write the cache again")
     try:
         with open(index_file, encoding="utf-8", errors="replace") as f:
             lines = f.read().splitlines()

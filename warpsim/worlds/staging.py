@@ -120,8 +120,10 @@ class SweepStaging:
         if not os.path.exists(self.progress_path):
             raise ValueError(f"--resume: no interrupted sweep at {self.root} ({os.path.basename(self.progress_path)} "
                              f"is missing: the last sweep there finished, or none ran); {fix}")
+        if not os.path.isfile(self.progress_path):  # a FIFO would block for ever
+            raise ValueError(f"--resume: {self.progress_path} is not a regular file; {fix}")
         try:
-            with open(self.progress_path) as f:
+            with open(self.progress_path, encoding="utf-8") as f:
                 data = json.load(f)
             token, saved = str(data["token"]), data["settings"]
             if data.get("version") != VERSION or not token.isalnum() or not isinstance(saved, dict):
