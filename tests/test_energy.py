@@ -197,3 +197,53 @@ def test_seed_and_project_planes_limit_the_step_by_the_fall_height_reflect_does_
     sim = ws.Simulator(b.finalize("cpu"), forces=[ws.Gravity((0.0, -G, 0.0))],
                        colliders=[ws.Plane(mode="seed")])
     assert sim.stability().dt == pytest.approx((np.sqrt(9.0 + 4 * G * 0.5) - 3.0) / (2 * G), rel=1e-6)
+
+
+def _flagged_frame(advance, frames=30):
+    """The frame whose check raised SimulationError (None: none did)."""
+    for frame in range(1, frames + 1):
+        try:
+            advance()
+        except ws.SimulationError:
+            return frame
+    return None
+
+
+def test_cloth_past_its_limit_is_flagged_and_inside_it_is_not():
+    """The pinned cloth under semi-implicit Euler: 0.9x its limit runs 40 frames clean, 1.2x stops at
+    once (the geometric growth passes the speed bound or the balance in the first frame)."""
+    from warpsim.scenes import get_scene
+
+    cls = get_scene("cloth")
+    results = {}
+    for fraction in (0.9, 1.2):
+        sim = cls(cls.resolve_params({"integrator": "semi_implicit_euler"}), device="cpu").sim
+        sim.warn_unstable = False
+        steps = max(1, round((1.0 / 60.0) / (fraction * sim.stable_dt())))
+
+        def advance(sim=sim, steps=steps):
+            sim.frame(1.0 / 60.0, steps)
+            sim.check_frame(1.0 / 60.0)
+
+        results[fraction] = _flagged_frame(advance, 40)
+    assert results[0.9] is None
+    assert results[1.2] is not None and results[1.2] <= 2
+
+
+def test_hair_at_one_explicit_step_a_frame_is_flagged_within_two_frames():
+    """Strands stepped explicitly at 1/60 s (about 70x their limit): stopped by the second frame, the
+    step named as the cause."""
+    from warpsim.scenes import get_scene
+
+    cls = get_scene("hair")
+    sim = cls(cls.resolve_params({"strands": 50, "solver": "explicit"}), device="cpu").sim
+    sim.warn_unstable = False
+    assert sim.stable_dt() < 1e-3
+
+    def advance():
+        sim.step(1.0 / 60.0)
+        sim.check_frame(1.0 / 60.0)
+
+    with pytest.raises(ws.SimulationError, match="above the stability limit"):
+        for _ in range(2):
+            advance()

@@ -535,6 +535,10 @@ class ClothSimulator(Simulator):
             self.frame_count += 1
             return
         self.integrator.prepare(self.system)
+        h = frame_dt / substeps
+        if self._energy is None and self.check_every and not wp.get_device(self.device).is_capturing:
+            self._start_energy(h)  # the energy balance's frame 0 (``check_frame`` folds in each frame)
+        self._last_h = h
         poses = self._collider_poses()
         if poses is None or poses != self._captured_poses:
             self._graphs.clear()  # a collider moves: its pose is baked into the launches

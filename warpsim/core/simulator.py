@@ -298,11 +298,14 @@ class Simulator:
 
     def _start_energy(self, h: float) -> None:
         from .energy import EnergyBalance
-        from .integrators import SemiImplicitEuler
 
         st = self.state
+        try:  # semi-implicit Euler (cloth's fused one too) has the modified energy the balance reads
+            synchronise = stab.method_of(self.integrator) == "semi_implicit_euler"
+        except ValueError:
+            synchronise = False
         self._energy = EnergyBalance(self.model, self.forces, self.colliders, self._gravity(),
-                                     synchronise=isinstance(self.integrator, SemiImplicitEuler),
+                                     synchronise=synchronise,
                                      springs=None if self.stability_model is None else self.stability_model())
         self._energy.start(st, h, time=self._time)
         self._energy_step = None  # the step the runaway threshold was set for

@@ -494,17 +494,22 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     collider_dt, collider_of, collider_L = _collider_steps(model, positions, velocities, colliders,
                                                            _gravity_of(forces, W, world))
     spring_world = world[idx[:, 0]] if S else np.zeros(0, dtype=np.int64)
+    # each world's particles and springs as slices of one stable sort (W x n scans cost minutes at 10^5 worlds)
+    p_order = np.argsort(world, kind="stable")
+    p_start = np.searchsorted(world[p_order], np.arange(W + 1))
+    s_order = np.argsort(spring_world, kind="stable")
+    s_start = np.searchsorted(spring_world[s_order], np.arange(W + 1))
     limits = []
     for w in range(W):
         omega = math.sqrt(omega2[w])
         zeta = damp[w] / (2.0 * omega) if omega > 0 else 0.0
         dt = stable_step(method, omega, zeta)
         kind, index, stiffness, m, damping, particle = "none", -1, 0.0, 0.0, 0.0, -1
-        in_world = np.flatnonzero(world == w)
+        in_world = p_order[p_start[w]:p_start[w + 1]]
         if len(in_world) and amplitude[in_world].max() > 0:
             particle = int(in_world[np.argmax(amplitude[in_world])])
         if omega > 0:
-            springs = np.flatnonzero(spring_world == w)
+            springs = s_order[s_start[w]:s_start[w + 1]]
             s = int(springs[np.argmax(energy[springs])])
             ends = [e for e in idx[s] if moving[e]]
             kind, index, stiffness, damping = "spring", s, float(k[s]), float(c[s])
@@ -546,6 +551,6 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         limits.append(StabilityLimit(
             dt=dt, integrator=method, omega_max=omega, damping_ratio=zeta, limiting=kind, index=index,
             stiffness=stiffness, mass=m, damping=damping, particle=particle, omega_bound=math.sqrt(bound[w]),
-            reason=reason, spring_dt=spring_dt if W == 1 else spring_dt[spring_world == w],
+            reason=reason, spring_dt=spring_dt if W == 1 else spring_dt[s_order[s_start[w]:s_start[w + 1]]],
             particle_dt=particle_dt if W == 1 else particle_dt[in_world]))
     return limits
