@@ -118,6 +118,7 @@ class EnergyBalance:
         self._zeros = wp.zeros(count, dtype=wp.vec3, device=d)
         self._no_int = wp.zeros(0, dtype=int, device=d)
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
+        self._zero_time = wp.zeros(1, dtype=float, device=d)  # the clock of driving forces when none is given
         self.sums = wp.zeros((n, 6), dtype=float, device=d)
         self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if n == 1 else None
         self.reference = wp.zeros((n, 3), dtype=float, device=d)  # modified, plain and gravity energy at frame 0
@@ -141,7 +142,7 @@ class EnergyBalance:
             return
         out.zero_()
         for f in self.driving:
-            f.eval(state.positions, state.velocities, time, 0.0, out)
+            f.eval(state.positions, state.velocities, self._zero_time if time is None else time, 0.0, out)
 
     def _launch_sums(self, state, dt) -> wp.array:
         m, s, d = self.model, self.springs, self.device
@@ -209,7 +210,8 @@ class EnergyBalance:
         self.frame = 0
 
     def update(self, state, dt, frame_dt, time=None, world_bad=None) -> None:
-        """Fold one finished frame (``dt``: its step [s], ``frame_dt`` [s]) into the balance; launches
+        """Fold one finished frame (``dt``: its step [s], ``frame_dt`` [s]; ``time``: the simulation's
+        device clock, (1,) [s], that driving forces read) into the balance; launches
         only (no read-back, no allocation), so a sweep can capture it in its frame graph (moving
         colliders' allowance is then left out: it is taken on the host)."""
         self.frame += 1

@@ -128,12 +128,13 @@ class WorldMetrics:
                       device=d)
             wp.launch(KW.keep_metric, n, inputs=[b.world_bad, value, final, peak], device=d)
         if self.energy is not None:
+            clock = getattr(b.sim, "_time", None)
             if not self._energy_started:
-                self.energy.start(st, self.step_dt)
+                self.energy.start(st, self.step_dt, time=clock)
                 self.energy.set_limits(self.step_dt, [lim.dt for lim in b.world_limits()])
                 self._energy_started = True
             else:
-                self.energy.update(st, self.step_dt, self.frame_dt, world_bad=b.world_bad)
+                self.energy.update(st, self.step_dt, self.frame_dt, time=clock, world_bad=b.world_bad)
 
     def _energy_balance(self):
         """The batch's per-world energy balance (its springs from the stand-in on the shared path)."""
