@@ -199,8 +199,9 @@ def frame_time_note(seconds, frames_left, device) -> str | None:
     rest = seconds * frames_left
     when = f"{rest / 3600:.3g} h" if rest >= 3600 else f"{rest / 60:.3g} min" if rest >= 60 else f"{rest:.3g} s"
     fix = "a CUDA device (--device cuda:0), " if str(device) == "cpu" else ""
-    return (f"frame 1 took {seconds:.3g} s on {device}: the other {frames_left} frames will take about {when}; "
-            f"{fix}fewer frames or a smaller scene is faster (Ctrl-C keeps the frames written)")
+    return (f"frame 1 took {seconds:.3g} s on {device} (a first run also compiles kernels): at that rate the other "
+            f"{frames_left} frames take about {when}; {fix}fewer frames or a smaller scene is faster (Ctrl-C keeps "
+            "the frames written)")
 
 
 _HOST = re.compile(r"^(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?)$")
