@@ -136,6 +136,8 @@ def main():
                         "steps from the springs' stability limit)")
     parser.add_argument("--settle", type=int, default=1000, help="integration steps before timing (tori touching)")
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
+    parser.add_argument("--rebuild-every", type=int, default=None, help="SoftContact BVH rebuild period in steps "
+                        "(refits between; 0: refit only; default: the contact's own)")
     parser.add_argument("--profile", action="store_true", help="print the kernel table (wp.timing_begin/end), host "
                         "read-backs per step and the contact search's candidates per query first")
     args = parser.parse_args()
@@ -144,6 +146,9 @@ def main():
 
     scene, h = settle(args, args.count, device)
     sim, contact = scene.sim, scene.contact
+    if args.rebuild_every is not None:
+        contact.rebuild_period = args.rebuild_every
+        print(f"BVH rebuild every {args.rebuild_every} steps from here (0: refit only)")
     if args.profile:
         profile(scene, h, args.steps, device)
     model = sim.model

@@ -2,16 +2,19 @@
 (or of the same body with self contact). ``warpsim.bodies.soft_contact.SoftContact`` launches
 them after integration.
 
-Broad phase (one structure for all bodies of a world, refitted every step):
+Broad phase, two levels (bodies, then the other bodies' primitives):
 
-* ``find_vertex_contacts``: every contact vertex queries one ``wp.Bvh`` over the bounds of the
-  contact triangles of *all* bodies of its world (``triangle_bounds``) once, with a box of half width
-  ``max(thickness, search)``; triangles of its own body are skipped unless self contact is on
+* ``body_bounds``: each body's bounds over the step (its contact vertices at the start and end),
+  from chunks of its vertices with float atomic min/max; a small BVH over them, grouped by world.
+* ``find_vertex_contacts``: every contact vertex queries the body BVH from its world's root with
+  a box of half width ``max(thickness, search)``; for each *other* body it meets, it queries that
+  body's subtree of one grouped ``wp.Bvh`` over all contact triangles (group = body, subtree root
+  from ``group_roots``). A vertex never visits its own body's triangles unless self contact is on
   (then triangles touching the vertex, or within ``self_rest_distance`` of it in the rest pose,
-  are skipped). The cost per vertex depends on the local density only, so a step is linear in
-  the number of bodies (the former search visited every other body's BVH from every vertex).
-* ``find_edge_contacts``: every surface edge queries one ``wp.Bvh`` over the bounds of all
-  surface edges of its world (``edge_bounds``). Both BVHs are rebuilt (or refitted) every step.
+  are skipped). Measured before the split (one BVH over all bodies), 67-77 % of the candidates a
+  query visited were its own body's (``SoftContact.candidate_stats``).
+* ``find_edge_contacts``: the same for every surface edge, with its bounds over the step padded
+  by the thickness, against the grouped edge BVH (``edge_bounds``).
 * ``find_*_all_pairs``: the same narrow phase over every triangle / edge of the world, no
   broad phase (the reference the tests compare with; O(vertices x triangles)).
 
@@ -242,6 +245,32 @@ def edge_edge_test(
     return d, ut, delta / d
 
 
+BODY_BATCH = 16  # other bodies taken from the body BVH per pass (queries never nest: see collect_bodies)
+vec_bodies = wp.types.vector(length=BODY_BATCH, dtype=wp.int32)
+
+
+@wp.func
+def collect_bodies(body_bvh: wp.uint64, root: int, lower: wp.vec3, upper: wp.vec3, body: int, self_contact: int,
+                   skip: int):
+    """Up to BODY_BATCH bodies whose bounds meet [lower, upper] (the query's own body only with self
+    contact), after skipping the first ``skip`` of them; returns (bodies, how many). On CUDA a BVH
+    query keeps its stack in shared memory, one per thread, so two queries may not be open at once
+    in a thread: the body query is run to its end (again for each batch) before any triangle query."""
+    found = vec_bodies()
+    count = int(0)
+    seen = int(0)
+    query = wp.bvh_query_aabb(body_bvh, lower, upper, root)
+    other = int(0)
+    while wp.bvh_query_next(query, other):
+        if other == body and self_contact == 0:
+            continue
+        if seen >= skip and count < BODY_BATCH:
+            found[count] = other
+            count += 1
+        seen += 1
+    return found, count
+
+
 @wp.func
 def nearer(d: float, index: int, best_d: float, best: int) -> bool:
     """Nearest first, ties to the lower index (order independent)."""
@@ -287,8 +316,10 @@ def finish_vertex_contact(
 
 @wp.kernel
 def find_vertex_contacts(
-    tri_bvhs: wp.array(dtype=wp.uint64),
-    world_tri_start: wp.array(dtype=int),
+    body_bvh: wp.uint64,
+    world_root: wp.array(dtype=int),
+    tri_bvh: wp.uint64,
+    body_tri_root: wp.array(dtype=int),
     vertex_world: wp.array(dtype=int),
     vertex_particle: wp.array(dtype=int),
     vertex_body: wp.array(dtype=int),
@@ -306,44 +337,56 @@ def find_vertex_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
-    candidates_out: wp.array(dtype=wp.vec3i),
+    candidates_out: wp.array(dtype=wp.vec4i),
 ):
-    """Nearest triangle contact of contact vertex v through its world's triangle BVH (slot v).
-    ``candidates_out`` (length 0: off) receives (triangles the query returned, of them the
-    vertex's own body's, contacts kept) for the diagnostics."""
+    """Nearest triangle contact of contact vertex v (slot v), two levels: the body BVH (from its
+    world's root) gives the other bodies whose bounds meet the vertex's box, then each such body's
+    subtree of the grouped triangle BVH (``body_tri_root``) gives its triangles; the vertex's own
+    body is skipped unless self contact is on. ``candidates_out`` (length 0: off) receives
+    (triangles visited, of them own-body ones, bodies visited, contacts kept) for the diagnostics."""
     v = wp.tid()
     p = vertex_particle[v]
     body = vertex_body[v]
-    world = vertex_world[v]
     x = q[p]
     reach = wp.max(thickness, search)
+    lower = x - wp.vec3(reach)
+    upper = x + wp.vec3(reach)
     best = int(-1)
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    query = wp.bvh_query_aabb(tri_bvhs[world], x - wp.vec3(reach), x + wp.vec3(reach))
-    local = int(0)
     visited = int(0)
     own = int(0)
-    while wp.bvh_query_next(query, local):
-        t = world_tri_start[world] + local
-        visited += 1
-        if tri_body[t] == body:
-            own += 1
-        if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
-            continue
-        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
-                                             search)
-        if d >= 0.0 and nearer(d, t, best_d, best):
-            best_d = d
-            best = t
-            best_bary = bary
-            best_normal = n
+    bodies = int(0)
+    root = world_root[vertex_world[v]]
+    more = int(1)
+    while more == 1:
+        found, count = collect_bodies(body_bvh, root, lower, upper, body, self_contact, bodies)
+        bodies += count
+        more = wp.where(count == BODY_BATCH, 1, 0)
+        for i in range(count):
+            other = found[i]
+            query = wp.bvh_query_aabb(tri_bvh, lower, upper, body_tri_root[other])
+            t = int(0)
+            while wp.bvh_query_next(query, t):
+                visited += 1
+                if other == body:
+                    own += 1
+                if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact,
+                                                 self_rest_distance):
+                    continue
+                d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]],
+                                                  thickness, search)
+                if d >= 0.0 and nearer(d, t, best_d, best):
+                    best_d = d
+                    best = t
+                    best_bary = bary
+                    best_normal = n
     finish_vertex_contact(v, p, best, best_bary, best_normal, tri, contact_particles_out,
                           contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
     if candidates_out.shape[0] > 0:
-        candidates_out[v] = wp.vec3i(visited, own, wp.where(best >= 0, 1, 0))
+        candidates_out[v] = wp.vec4i(visited, own, bodies, wp.where(best >= 0, 1, 0))
 
 
 @wp.kernel
@@ -420,6 +463,42 @@ def edge_bounds(
     uppers_out[e] = wp.max(wp.max(q[a], q[b]), wp.max(q_prev[a], q_prev[b]))
 
 
+@wp.kernel
+def reset_bounds(lowers_out: wp.array(dtype=wp.vec3), uppers_out: wp.array(dtype=wp.vec3)):
+    """Empty bounds (+inf lower, -inf upper) before ``body_bounds`` grows them."""
+    b = wp.tid()
+    lowers_out[b] = wp.vec3(1.0e30)
+    uppers_out[b] = wp.vec3(-1.0e30)
+
+
+@wp.kernel
+def body_bounds(
+    chunk_start: wp.array(dtype=int), chunk_body: wp.array(dtype=int), vertex_particle: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3),
+    lowers_io: wp.array(dtype=wp.vec3), uppers_io: wp.array(dtype=wp.vec3),
+):
+    """Grow body bounds by chunk k of contact vertices (one body's vertices
+    ``chunk_start[k] .. chunk_start[k + 1]``) at the step's start and end: they hold the body's
+    triangles now and its edges over the step. Float atomic min/max: order independent, exact."""
+    k = wp.tid()
+    lo = wp.vec3(1.0e30)
+    hi = wp.vec3(-1.0e30)
+    for v in range(chunk_start[k], chunk_start[k + 1]):
+        p = vertex_particle[v]
+        lo = wp.min(lo, wp.min(q[p], q_prev[p]))
+        hi = wp.max(hi, wp.max(q[p], q_prev[p]))
+    b = chunk_body[k]
+    wp.atomic_min(lowers_io, b, lo)
+    wp.atomic_max(uppers_io, b, hi)
+
+
+@wp.kernel
+def group_roots(bvh: wp.uint64, roots_out: wp.array(dtype=int)):
+    """Root node of group g (a body, or a world) of a grouped BVH, after a rebuild."""
+    g = wp.tid()
+    roots_out[g] = wp.bvh_get_group_root(bvh, g)
+
+
 @wp.func
 def finish_edge_contact(
     slot: int, e: int, best: int, best_ut: wp.vec2, best_normal: wp.vec3,
@@ -441,8 +520,10 @@ def finish_edge_contact(
 
 @wp.kernel
 def find_edge_contacts(
-    bvhs: wp.array(dtype=wp.uint64),
-    world_edge_start: wp.array(dtype=int),
+    body_bvh: wp.uint64,
+    world_root: wp.array(dtype=int),
+    edge_bvh: wp.uint64,
+    body_edge_root: wp.array(dtype=int),
     edge_world: wp.array(dtype=int),
     edges: wp.array(dtype=int),
     edge_body: wp.array(dtype=int),
@@ -460,12 +541,13 @@ def find_edge_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     particle_contacts_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
-    candidates_out: wp.array(dtype=wp.vec3i),
+    candidates_out: wp.array(dtype=wp.vec4i),
 ):
-    """Nearest edge contact of surface edge e through its world's edge BVH (slot offset + e);
-    ``candidates_out`` as in ``find_vertex_contacts`` (slot e)."""
+    """Nearest edge contact of surface edge e (slot offset + e), two levels as
+    ``find_vertex_contacts`` (body BVH, then the other bodies' subtrees of the grouped edge BVH);
+    ``candidates_out`` as there (slot e)."""
     e = wp.tid()
-    world = edge_world[e]
+    body = edge_body[e]
     xa = q[edges[2 * e]]
     xb = q[edges[2 * e + 1]]
     pa = q_prev[edges[2 * e]]
@@ -476,28 +558,37 @@ def find_edge_contacts(
     best_normal = wp.vec3()
     lower = wp.min(wp.min(xa, xb), wp.min(pa, pb)) - wp.vec3(thickness)
     upper = wp.max(wp.max(xa, xb), wp.max(pa, pb)) + wp.vec3(thickness)
-    query = wp.bvh_query_aabb(bvhs[world], lower, upper)
-    local = int(0)
     visited = int(0)
     own = int(0)
-    while wp.bvh_query_next(query, local):
-        f = world_edge_start[world] + local
-        visited += 1
-        if edge_body[f] == edge_body[e]:
-            own += 1
-        if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
-            continue
-        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
-        if d >= 0.0 and nearer(d, f, best_d, best):
-            best_d = d
-            best = f
-            best_ut = ut
-            best_normal = n
+    bodies = int(0)
+    root = world_root[edge_world[e]]
+    more = int(1)
+    while more == 1:
+        found, count = collect_bodies(body_bvh, root, lower, upper, body, self_contact, bodies)
+        bodies += count
+        more = wp.where(count == BODY_BATCH, 1, 0)
+        for i in range(count):
+            other = found[i]
+            query = wp.bvh_query_aabb(edge_bvh, lower, upper, body_edge_root[other])
+            f = int(0)
+            while wp.bvh_query_next(query, f):
+                visited += 1
+                if other == body:
+                    own += 1
+                if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact,
+                                           self_rest_distance):
+                    continue
+                d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
+                if d >= 0.0 and nearer(d, f, best_d, best):
+                    best_d = d
+                    best = f
+                    best_ut = ut
+                    best_normal = n
     finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, edges,
                         contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
     if candidates_out.shape[0] > 0:
-        candidates_out[e] = wp.vec3i(visited, own, wp.where(best >= 0, 1, 0))
+        candidates_out[e] = wp.vec4i(visited, own, bodies, wp.where(best >= 0, 1, 0))
 
 
 @wp.kernel
@@ -649,3 +740,110 @@ def apply_contact_deltas(
         dv_io[i, c] = wp.int64(0)
     q_io[i] = q_io[i] + dx
     qd_io[i] = qd_io[i] + dv
+
+
+# ------------------------------------------------------------------------------ implicit contact
+# Contact as a penalty force inside implicit Euler (``SoftContactForce``): for each contact slot
+# (particles k, weights a_k, normal n) found by the last search, depth d = thickness - (sum a_k x_k) . n;
+# while d > 0 the energy 1/2 k_c d^2 gives particle k the force F_k = (k_c d - c_c u_n) a_k n
+# (u_n = (sum a_k v_k) . n; sum a_k = 0: momentum is conserved). The Jacobian -k_c (a a^T) (x) n n^T
+# is replaced by the diagonal blocks -m k_c a_k^2 n n^T, m the number of nonzero weights: by
+# Cauchy-Schwarz (sum a_k x_k)^2 <= m sum a_k^2 x_k^2, so the diagonal stiffness is at least the
+# true one in every direction and the linearly implicit step stays stable at any step size (with
+# a softer diagonal, z = h^2 k / m past 4/3 of its inverse scale, it would not). Sums in fixed point.
+@wp.func
+def contact_depth(particles: wp.vec4i, weights: wp.vec4, n: wp.vec3, q: wp.array(dtype=wp.vec3),
+                  thickness: float) -> float:
+    gap = wp.vec3()
+    for k in range(4):
+        gap += weights[k] * q[particles[k]]
+    return thickness - wp.dot(gap, n)
+
+
+@wp.kernel
+def eval_contact_forces(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    thickness: float,
+    stiffness: float,
+    damping: float,
+    f_io: wp.array2d(dtype=wp.int64),
+):
+    """Penalty force of contact slot c at (q, qd) into f_io (fixed point; see above)."""
+    c = wp.tid()
+    particles = contact_particles[c]
+    if particles[0] < 0:
+        return
+    weights = contact_weights[c]
+    n = contact_normal[c]
+    depth = contact_depth(particles, weights, n, q, thickness)
+    if depth <= 0.0:
+        return
+    rel = wp.vec3()
+    for k in range(4):
+        rel += weights[k] * qd[particles[k]]
+    magnitude = stiffness * depth - damping * wp.dot(rel, n)
+    if magnitude <= 0.0:  # a penalty pushes, never pulls
+        return
+    for k in range(4):
+        fk = (weights[k] * magnitude) * n
+        for i in range(3):
+            wp.atomic_add(f_io, particles[k], i, to_fixed(fk[i]))
+
+
+@wp.kernel
+def eval_contact_jacobian(
+    q: wp.array(dtype=wp.vec3),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    thickness: float,
+    coefficient: float,
+    blocks_io: wp.array2d(dtype=wp.int64),
+):
+    """Diagonal blocks coefficient m a_k^2 n n^T of contact slot c (coefficient = -(ck k_c + cd c_c):
+    ck df/dx + cd df/dv with the diagonal stand-in above) into blocks_io (n, 9), fixed point."""
+    c = wp.tid()
+    particles = contact_particles[c]
+    if particles[0] < 0:
+        return
+    weights = contact_weights[c]
+    n = contact_normal[c]
+    if contact_depth(particles, weights, n, q, thickness) <= 0.0:
+        return
+    m = float(0.0)
+    for k in range(4):
+        if weights[k] != 0.0:
+            m += 1.0
+    nn = wp.outer(n, n)
+    for k in range(4):
+        block = (coefficient * m * weights[k] * weights[k]) * nn
+        for i in range(3):
+            for j in range(3):
+                wp.atomic_add(blocks_io, particles[k], 3 * i + j, to_fixed(block[i, j]))
+
+
+@wp.kernel
+def add_fixed_forces(f_io: wp.array2d(dtype=wp.int64), f_out: wp.array(dtype=wp.vec3)):
+    """f_out[i] += f_io[i] (from fixed point), then clear f_io."""
+    i = wp.tid()
+    f = wp.vec3()
+    for c in range(3):
+        f[c] = float(wp.float64(f_io[i, c]) * wp.float64(FIXED_INV_SCALE))
+        f_io[i, c] = wp.int64(0)
+    f_out[i] = f_out[i] + f
+
+
+@wp.kernel
+def add_fixed_blocks(blocks_io: wp.array2d(dtype=wp.int64), diag_out: wp.array(dtype=wp.mat33)):
+    """diag_out[i] += blocks_io[i] (row-major 3x3, from fixed point), then clear blocks_io."""
+    i = wp.tid()
+    b = wp.mat33()
+    for r in range(3):
+        for c in range(3):
+            b[r, c] = float(wp.float64(blocks_io[i, 3 * r + c]) * wp.float64(FIXED_INV_SCALE))
+            blocks_io[i, 3 * r + c] = wp.int64(0)
+    diag_out[i] = diag_out[i] + b

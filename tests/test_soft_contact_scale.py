@@ -10,6 +10,7 @@ import io
 
 import numpy as np
 import pytest
+import warp as wp
 from test_soft_contact import penetration, two_tori
 
 import warpsim as ws
@@ -297,3 +298,119 @@ def test_add_springs_equals_add_spring_and_checks_its_input():
         assert words in str(err.value)
     with pytest.raises(ValueError, match="stiffness -1"):
         bulk.add_springs(pairs, -1.0)
+
+
+def test_copied_tori_equal_the_builder_made_one_torus_at_a_time():
+    """The donuts' heap copies one torus (replicate_model, SoftContact.copies): every model array
+    equals the one the builder makes torus by torus (add_particles, add_springs), and the contact
+    has the same triangles per body as SoftContact over SoftBody records."""
+    from warpsim.scenes.fracture import replicate_model, rotate_points
+
+    cls = get_scene("donuts")
+    params = cls.resolve_params({"count": 3, **SMALL})
+    scene = cls(params, device=DEVICE)
+    torus, model = scene.torus, scene.sim.model
+    points, faces = ws.torus_mesh(params["major_radius"], params["minor_radius"], params["segments"], params["sides"])
+    t = ws.ModelBuilder()
+    ws.add_soft_body(t, points, faces, total_mass=params["mass"], mass_distribution="uniform",
+                     stiffness=params["stiffness"], damping=params["damping"], lattice_cells=params["lattice_cells"])
+    local = np.asarray(t.particle_q, dtype=np.float64)
+    quats = np.random.default_rng(0).normal(size=(3, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    moved = rotate_points(quats, local) + np.arange(3)[:, None, None] * 0.5
+    b = ws.ModelBuilder()
+    for k in range(3):
+        start = b.particle_count
+        b.add_particles(moved[k], masses=np.asarray(t.particle_mass))
+        b.add_springs(np.asarray(t.spring_indices) + start, np.asarray(t.spring_stiffness),
+                      np.asarray(t.spring_damping), np.asarray(t.spring_rest_length))
+    reference = b.finalize(DEVICE)
+    copied = replicate_model(t.finalize(DEVICE), 3, moved.reshape(-1, 3), DEVICE)
+    assert copied.particle_count == reference.particle_count and copied.spring_count == reference.spring_count
+    for name, arr in vars(reference).items():
+        if isinstance(arr, wp.array):
+            assert np.array_equal(getattr(copied, name).numpy(), arr.numpy()), name
+    assert np.allclose(rotate_points(quats[:1], local)[0], ws.bodies.colliders.quat_rotate(quats[0], local))
+    assert model.particle_count == 3 * torus.particle_count
+    per_body = ws.SoftContact(scene.bodies, thickness=0.006)
+    assert [f.tolist() for f in per_body.faces] == [f.tolist() for f in scene.contact.faces]
+
+
+def stacked_tetrahedra(count, gap):
+    """``count`` small closed tetrahedra (2 cm) stacked ``gap`` [m] apart along y, so one query
+    box meets the bounds of all of them; returns (model, bodies' faces)."""
+    corners = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, 0.0, 0.02], [0.005, 0.002, 0.005]])
+    faces = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]])
+    if meshtools.signed_volume(corners, faces) < 0:
+        faces = faces[:, ::-1].copy()
+    b = ws.ModelBuilder()
+    bodies = []
+    for k in range(count):
+        start = b.particle_count
+        b.add_particles(corners + (0.0003 * k, gap * k, 0.0002 * k), masses=0.01)
+        bodies.append(faces + start)
+    return b.finalize(DEVICE), bodies
+
+
+def test_two_level_search_equals_all_pairs_when_a_query_meets_many_bodies():
+    """20 thin tetrahedra 1 mm apart: every vertex's box meets more bodies than the search takes
+    from the body BVH in one batch (BODY_BATCH), so it takes several; the contacts equal the
+    all-pairs search's, and no candidate of a vertex's own body is visited."""
+    from warpsim.kernels.soft_contact import BODY_BATCH
+
+    count = 20
+    assert count > BODY_BATCH
+    found = {}
+    for broad_phase in ("bvh", "all_pairs"):
+        model, bodies = stacked_tetrahedra(count, 0.001)
+        contact = ws.SoftContact(bodies, thickness=0.03, broad_phase=broad_phase, iterations=1)
+        contact.bind(model)
+        contact.record_candidates(True)
+        state = model.state()
+        contact.apply(model, state, model.particle_q, 1e-3)
+        found[broad_phase] = (contact._contact_particles.numpy().copy(), contact._contact_weights.numpy().copy(),
+                              contact.contact_count, contact.edge_contact_count)
+        if broad_phase == "bvh":
+            stats = contact.candidate_stats()
+            assert stats["vertex"]["own_body"] == 0 and stats["edge"]["own_body"] == 0
+            assert stats["vertex"]["bodies_per_query"] > BODY_BATCH  # several batches per query
+    (p, w, nv, ne), (p_ref, w_ref, nv_ref, ne_ref) = found["bvh"], found["all_pairs"]
+    assert nv == nv_ref > 0 and ne == ne_ref
+    assert np.array_equal(p, p_ref) and np.array_equal(w, w_ref)
+
+
+def test_implicit_contact_force_conserves_momentum_and_its_diagonal_bounds_the_stiffness():
+    """SoftContact.implicit_force on two pressed tori: the contact forces sum to zero (momentum),
+    and for a small displacement dx the diagonal Jacobian blocks give at least the stiffness
+    dx^T K dx that finite differences of the force give (the bound that keeps implicit Euler stable)."""
+    sim, contact = pressed_tori("bvh")
+    for _ in range(40):
+        sim.step(1.0 / 1200.0)
+    assert contact.contact_count > 5
+    model = sim.model
+    force = contact.implicit_force(stiffness=1000.0)
+    force.bind(model)
+    n = model.particle_count
+    zero_v = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+
+    def forces(q):
+        f = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+        force.eval(wp.array(q, dtype=wp.vec3, device=DEVICE), zero_v, None, 0.0, f)
+        return f.numpy().astype(np.float64)
+
+    # deepen every contact a little (the lower torus up by 1 mm) so that they all push
+    q = sim.state.positions.numpy().copy()
+    q[: n // 2, 1] += 0.001
+    f0 = forces(q)
+    assert np.abs(f0).max() > 0.1
+    assert np.abs(f0.sum(0)).max() < 1e-4 * np.abs(f0).max()
+    diag = wp.zeros(n, dtype=wp.mat33, device=DEVICE)
+    force.eval_jacobian(wp.array(q, dtype=wp.vec3, device=DEVICE), zero_v, None, 0.0, 1.0, 0.0, diag, None, None, None)
+    D = diag.numpy().astype(np.float64)  # ~ df/dx, negative semi-definite blocks
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        dx = rng.normal(size=q.shape) * 2e-5
+        stiffness_fd = -(dx * (forces(q + dx) - f0)).sum()  # dx^T K dx
+        stiffness_diag = -np.einsum("pi,pij,pj->", dx, D, dx)
+        assert stiffness_fd > 0.0
+        assert stiffness_diag >= 0.97 * stiffness_fd, (stiffness_diag, stiffness_fd)

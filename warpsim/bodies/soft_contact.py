@@ -1,11 +1,16 @@
 """Soft body against soft body: vertices against triangles and edges against edges of other bodies.
 
 :class:`SoftContact` is a collider (it runs after integration, so it works with every
-integrator, semi-implicit and implicit Euler included). Each step it rebuilds one ``wp.Bvh`` over
-the contact triangles of all bodies (one per world in a batch) and one over their surface edges;
-every surface vertex queries the triangle BVH once and keeps the nearest triangle of another body
-(optionally of its own body: ``self_contact``) closer than ``thickness`` [m], every surface edge
-queries the edge BVH once and keeps the nearest edge of another body. Each pair is pushed apart and given an inelastic impulse with restitution and
+integrator, semi-implicit and implicit Euler included). The search has two levels: a small BVH
+over the bodies' bounds (grouped by world in a batch), then one grouped ``wp.Bvh`` over the
+contact triangles of all bodies and one over their surface edges (group = body), whose subtrees
+are queried only for the *other* bodies a vertex's or edge's box meets (its own body too with
+``self_contact``). Every surface vertex keeps the nearest triangle closer than ``thickness`` [m],
+every surface edge the nearest edge. Measured on the H100 (``bench_donuts.py --profile``): the
+former single-level search visited 80 triangles per vertex query and 31 edges per edge query,
+85-93 % of them the query's own body's; the two-level search visits 11-12 and 2.2-2.5.
+Bodies can be copies of one topology (:meth:`SoftContact.copies`: the 1,000-torus heap).
+Each pair is pushed apart and given an inelastic impulse with restitution and
 Coulomb friction, equal and opposite (weighted by barycentrics or edge parameters): momentum is
 conserved. The step is deterministic (fixed-point integer sums), allocates nothing and makes no
 host read-back, so it records in a CUDA graph. Kernels: ``warpsim.kernels.soft_contact`` (the
@@ -28,6 +33,7 @@ import numpy as np
 import warp as wp
 
 from ..core.collider import Collider
+from ..core.forces import Force
 from ..kernels import soft_contact as K
 from . import meshtools
 
@@ -68,15 +74,22 @@ class SoftContact(Collider):
         broad_phase: "bvh" (one BVH over all bodies' triangles, one over their edges) or
             "all_pairs" (every vertex against every triangle of its world: the O(n^2) reference).
         rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
-            only; None: every step on CUDA, where the LBVH rebuild is cheap and a captured graph
-            replays one step, every 20 steps on the CPU, where a SAH rebuild costs about 1.2 us per
-            triangle or edge, measured). A refit keeps the tree of the first layout, whose boxes
-            swell as bodies travel (a falling heap: 8.5x the step time at 48 tori against 12 with
-            refits only, measured on the CPU). Results do not depend on it (nearest contacts).
+            only; None: ``REBUILD_EVERY_CUDA`` / ``REBUILD_EVERY_CPU``; ``rebuild_period`` changes
+            it later). A refit keeps the tree of the last rebuild, whose boxes swell as bodies
+            travel: in a falling heap of 12 tori (CPU, 24 x 12 vertices) refits alone visited 3.2x
+            the vertex candidates after 10 steps, 7.5x after 20, 16x after 80 (``candidate_stats``).
+            Results do not depend on it (nearest contacts, ties to the lower index).
 
     After a step, ``contact_count`` and ``edge_contact_count`` (one read-back each) are the
     numbers of vertex-triangle and edge-edge contacts found.
     """
+
+    CHUNK = 8
+    """Contact vertices per thread of the body-bounds pass."""
+    REBUILD_EVERY_CUDA = 1
+    """Default BVH rebuild period on CUDA (steps; refits in between)."""
+    REBUILD_EVERY_CPU = 20
+    """Default BVH rebuild period on the CPU, where a SAH rebuild costs about 1.2 us per item."""
 
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
@@ -85,7 +98,11 @@ class SoftContact(Collider):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
-        self.faces = [_body_faces(b, k) for k, b in enumerate(bodies)]
+        # bodies as topologies and particle offsets: body b has triangles topologies[body_topology[b]]
+        # + body_offset[b] (``copies`` shares one topology among many bodies: no per-body arrays)
+        self._topologies = [_body_faces(b, k) for k, b in enumerate(bodies)]
+        self._body_topology = np.arange(len(bodies), dtype=np.int64)
+        self._body_offset = np.zeros(len(bodies), dtype=np.int64)
         from ..core import checks
 
         thickness = checks.positive(thickness, "SoftContact thickness", unit="m", fix="e.g. 0.005")
@@ -107,7 +124,7 @@ class SoftContact(Collider):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"SoftContact {name} is {value}; it must be finite and >= 0 [m]")
-        if len(self.faces) < 2 and not self.self_contact:
+        if len(self._body_offset) < 2 and not self.self_contact:
             raise ValueError("SoftContact with one body does nothing unless self_contact=True; give two bodies or more")
         self.push = float(push)
         if not (math.isfinite(self.push) and 0.0 <= self.push <= 1.0):
@@ -123,7 +140,30 @@ class SoftContact(Collider):
         self._rebuild = rebuild_every
         self.edge_contact = bool(edge_contact)
         self.body_world: np.ndarray | None = None  # (faces,) world of each body's faces, batches only
-        self._tri_bvhs, self._bvhs = [], []
+
+    @classmethod
+    def copies(cls, faces, offsets, **options) -> SoftContact:
+        """Contact among copies of one body: body b has the triangles ``faces`` (F, 3) (particle
+        indices of the first copy) + ``offsets[b]`` (B,); the topology is stored once, so a heap
+        of 1,000 bodies builds in seconds. ``options`` as for the constructor."""
+        offsets = np.asarray(offsets)
+        if offsets.ndim != 1 or len(offsets) == 0 or offsets.dtype.kind not in "iu":
+            raise ValueError(f"SoftContact.copies offsets must be a non-empty 1-D integer array, got shape "
+                             f"{offsets.shape} of {offsets.dtype}")
+        contact = cls([faces, faces], **options) if len(offsets) > 1 else cls([faces], **options)
+        contact._topologies = contact._topologies[:1]
+        contact._body_topology = np.zeros(len(offsets), dtype=np.int64)
+        contact._body_offset = offsets.astype(np.int64)
+        return contact
+
+    @property
+    def faces(self) -> list:
+        """The triangles (F, 3) of each body in particle indices (made on demand)."""
+        return [self._topologies[t] + o for t, o in zip(self._body_topology, self._body_offset)]
+
+    @property
+    def body_count(self) -> int:
+        return len(self._body_offset)
 
     def tile(self, world_count: int, world_particle_count: int) -> SoftContact:
         """The same contact for ``world_count`` copies of the model laid end to end (world w owns
@@ -131,9 +171,10 @@ class SoftContact(Collider):
         bodies and its own BVHs, and contacts stay within a world (``warpsim.worlds.batch``)."""
         tiled = copy.copy(self)
         n, P = int(world_count), int(world_particle_count)
-        tiled.faces = [faces + w * P for w in range(n) for faces in self.faces]
-        tiled.body_world = np.repeat(np.arange(n), len(self.faces))
-        tiled._tri_bvhs, tiled._bvhs = [], []
+        B = self.body_count
+        tiled._body_topology = np.tile(self._body_topology, n)
+        tiled._body_offset = (self._body_offset[None, :] + P * np.arange(n)[:, None]).reshape(-1)
+        tiled.body_world = np.repeat(np.arange(n), B)
         return tiled
 
     def bind(self, model) -> None:
@@ -141,82 +182,93 @@ class SoftContact(Collider):
         n = model.particle_count
         body_world = self.body_world
         if body_world is None:
-            body_world = np.zeros(len(self.faces), dtype=np.int64)
+            body_world = np.zeros(self.body_count, dtype=np.int64)
         order = np.argsort(body_world, kind="stable")  # bodies world by world
-        tri, tri_body, vert, vert_body, edges, edge_body = [], [], [], [], [], []
+        tri, vert, edges = [], [], []
+        topo_verts = [np.unique(f) for f in self._topologies]
+        topo_edges = [meshtools.edge_topology(f)[0] if self.edge_contact else None for f in self._topologies]
         seen = np.full(n, -1, dtype=np.int64)
         for k in order:
-            faces = self.faces[k]
-            if faces.min() < 0 or faces.max() >= n:
-                raise ValueError(f"SoftContact bodies[{k}]: triangle index {int(faces.max())} is out of range "
+            t, offset = self._body_topology[k], self._body_offset[k]
+            faces = self._topologies[t] + offset
+            verts = topo_verts[t] + offset
+            if verts[0] < 0 or verts[-1] >= n:
+                raise ValueError(f"SoftContact bodies[{k}]: triangle index {int(verts[-1])} is out of range "
                                  f"[0, {n}); build the bodies into this model")
-            verts = np.unique(faces)
             shared = verts[seen[verts] >= 0]
             if len(shared):
                 raise ValueError(f"SoftContact bodies[{k}]: particle {int(shared[0])} also belongs to bodies"
                                  f"[{int(seen[shared[0]])}]; every body needs its own particles")
             seen[verts] = k
-            body_edges, _, _ = meshtools.edge_topology(faces)
             tri.append(faces)
-            tri_body.append(np.full(len(faces), k))
             vert.append(verts)
-            vert_body.append(np.full(len(verts), k))
-            edges.append(body_edges)
-            edge_body.append(np.full(len(body_edges), k))
+            if self.edge_contact:
+                edges.append(topo_edges[t] + offset)
+        # bodies are numbered in world order (s = position in ``order``): the groups of the BVHs
+        bodies = len(order)
         worlds = int(body_world.max()) + 1
         sorted_world = body_world[order]
-        counts = {"tri": [len(f) for f in tri], "vert": [len(v) for v in vert], "edge": [len(e) for e in edges]}
-
-        def starts(kind):
-            per_world = np.zeros(worlds + 1, dtype=np.int64)
-            np.add.at(per_world, sorted_world + 1, counts[kind])
-            return np.cumsum(per_world)
-
-        world_tri_start, world_edge_start = starts("tri"), starts("edge")
+        counts = {"tri": np.array([len(f) for f in tri]), "vert": np.array([len(v) for v in vert]),
+                  "edge": np.array([len(e) for e in edges], dtype=np.int64)}
         d = model.device
 
         def ints(a):
             return wp.array(np.ascontiguousarray(np.concatenate(a) if isinstance(a, list) else a).reshape(-1)
                             .astype(np.int32), dtype=int, device=d)
 
-        tri_all = np.concatenate(tri)
+        def per_body(kind):
+            return np.repeat(np.arange(bodies), counts[kind])
+
         self._tri = ints(tri)
-        self._tri_body = ints(tri_body)
+        self._tri_body = ints(per_body("tri"))
         self._vertex = ints(vert)
-        self._vertex_body = ints(vert_body)
+        self._vertex_body = ints(per_body("vert"))
         self._vertex_world = ints(np.repeat(sorted_world, counts["vert"]))
-        self._world_tri_start = ints(world_tri_start)
+        per_world = np.zeros(worlds + 1, dtype=np.int64)
+        np.add.at(per_world, sorted_world + 1, counts["tri"])
+        self._world_tri_start = ints(np.cumsum(per_world))  # the all-pairs reference's ranges
         self.vertex_count = int(self._vertex.shape[0])
-        self.triangle_count = len(tri_all)
+        self.triangle_count = int(counts["tri"].sum())
         self.world_count = worlds
+        # body bounds from chunks of at most CHUNK contact vertices, each inside one body
+        chunks = -(-counts["vert"] // self.CHUNK)
+        chunk_body = np.repeat(np.arange(bodies), chunks)
+        within = np.arange(len(chunk_body)) - (np.cumsum(chunks) - chunks)[chunk_body]
+        vert_start = np.concatenate([[0], np.cumsum(counts["vert"])])
+        self._chunk_start = ints(np.append(vert_start[chunk_body] + within * self.CHUNK, vert_start[-1]))
+        self._chunk_body = ints(chunk_body)
+        self._body_lower = wp.empty(bodies, dtype=wp.vec3, device=d)
+        self._body_upper = wp.empty(bodies, dtype=wp.vec3, device=d)
         self._tri_lower = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
         self._tri_upper = wp.empty(self.triangle_count, dtype=wp.vec3, device=d)
-        wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, model.particle_q, self._tri_lower,
-                                                                  self._tri_upper], device=d)
+        self._launch_bounds(model.particle_q, model.particle_q)
         # LBVH on CUDA: its in-place rebuild is capture safe (a CUDA graph replays the step)
         self._constructor = "lbvh" if d.is_cuda else "sah"
-        self._tri_bvhs = [wp.Bvh(self._tri_lower[int(world_tri_start[w]):int(world_tri_start[w + 1])],
-                                 self._tri_upper[int(world_tri_start[w]):int(world_tri_start[w + 1])],
-                                 constructor=self._constructor)
-                          for w in range(worlds)]
-        self._tri_bvh_ids = wp.array([b.id for b in self._tri_bvhs], dtype=wp.uint64, device=d)
+        self._body_world = ints(sorted_world)  # kept: a BVH holds its groups array by pointer (rebuilds read it)
+        self._body_bvh = wp.Bvh(self._body_lower, self._body_upper, constructor=self._constructor,
+                                groups=self._body_world)
+        self._tri_bvh = wp.Bvh(self._tri_lower, self._tri_upper, constructor=self._constructor,
+                               groups=self._tri_body)
+        self._world_root = wp.zeros(worlds, dtype=int, device=d)
+        self._body_tri_root = wp.zeros(bodies, dtype=int, device=d)
         self._steps = 0
         if self.rebuild_every is None:
-            self._rebuild = 1 if d.is_cuda else 20
-        self.edge_count = int(world_edge_start[-1]) if self.edge_contact else 0
+            self._rebuild = self.REBUILD_EVERY_CUDA if d.is_cuda else self.REBUILD_EVERY_CPU
+        self.edge_count = int(counts["edge"].sum())
         if self.edge_contact:
             self._edges = ints(edges)
-            self._edge_body = ints(edge_body)
+            self._edge_body = ints(per_body("edge"))
             self._edge_world = ints(np.repeat(sorted_world, counts["edge"]))
-            self._world_edge_start = ints(world_edge_start)
+            per_world[:] = 0
+            np.add.at(per_world, sorted_world + 1, counts["edge"])
+            self._world_edge_start = ints(np.cumsum(per_world))
             self._edge_lower = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
             self._edge_upper = wp.empty(self.edge_count, dtype=wp.vec3, device=d)
             self._launch_edge_bounds(model.particle_q, model.particle_q)
-            self._bvhs = [wp.Bvh(self._edge_lower[int(world_edge_start[w]):int(world_edge_start[w + 1])],
-                                 self._edge_upper[int(world_edge_start[w]):int(world_edge_start[w + 1])],
-                                 constructor=self._constructor)
-                          for w in range(worlds)]
-            self._bvh_ids = wp.array([b.id for b in self._bvhs], dtype=wp.uint64, device=d)
+            self._edge_bvh = wp.Bvh(self._edge_lower, self._edge_upper, constructor=self._constructor,
+                                    groups=self._edge_body)
+            self._body_edge_root = wp.zeros(bodies, dtype=int, device=d)
+        self._find_roots()
         slots = self.vertex_count + self.edge_count
         self._contact_particles = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=d)
         self._contact_weights = wp.zeros(slots, dtype=wp.vec4, device=d)
@@ -229,42 +281,80 @@ class SoftContact(Collider):
 
     def record_candidates(self, on: bool = True) -> None:
         """Diagnostics: with ``on``, every later step also writes, per vertex and per edge query,
-        (candidates the broad phase returned, of them the query's own body's, contacts kept) for
+        (candidates the broad phase returned, of them the query's own body's, bodies visited, contacts kept) for
         :meth:`candidate_stats` (allocates here, outside a step; off: zero-length buffers, no writes)."""
         d = self.model.device
-        self._candidates_vertex = wp.zeros(self.vertex_count if on else 0, dtype=wp.vec3i, device=d)
-        self._candidates_edge = wp.zeros(self.edge_count if on else 0, dtype=wp.vec3i, device=d)
+        self._candidates_vertex = wp.zeros(self.vertex_count if on else 0, dtype=wp.vec4i, device=d)
+        self._candidates_edge = wp.zeros(self.edge_count if on else 0, dtype=wp.vec4i, device=d)
 
     def candidate_stats(self) -> dict:
         """Per query kind ("vertex", "edge"): queries, candidates visited (total, mean and max
-        per query), own-body candidates (total), contacts kept, visited per contact kept, from the
+        per query), own-body candidates (total), other bodies visited per query, contacts kept, visited per contact kept, from the
         last step (reads back; :meth:`record_candidates` must be on)."""
         out = {}
         for kind, arr in (("vertex", self._candidates_vertex), ("edge", self._candidates_edge)):
-            c = arr.numpy().astype(np.int64).reshape(-1, 3)
+            c = arr.numpy().astype(np.int64).reshape(-1, 4)
             if not len(c):
                 continue
-            visited, own, kept = (int(x) for x in c.sum(0))
+            visited, own, bodies, kept = (int(x) for x in c.sum(0))
             out[kind] = {"queries": len(c), "visited": visited, "per_query": visited / len(c),
-                         "max_per_query": int(c[:, 0].max()), "own_body": own, "kept": kept,
-                         "visited_per_kept": visited / max(kept, 1)}
+                         "max_per_query": int(c[:, 0].max()), "own_body": own, "bodies_per_query": bodies / len(c),
+                         "kept": kept, "visited_per_kept": visited / max(kept, 1)}
         return out
 
     def _launch_edge_bounds(self, q, q_prev) -> None:
         wp.launch(K.edge_bounds, self.edge_count, inputs=[self._edges, q, q_prev, self._edge_lower, self._edge_upper],
                   device=self.model.device)
 
+    def _launch_bounds(self, q, q_prev) -> None:
+        """Triangle bounds now, body bounds over the step (start and end)."""
+        d = self.model.device
+        wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, q, self._tri_lower, self._tri_upper],
+                  device=d)
+        wp.launch(K.reset_bounds, self.body_count, inputs=[self._body_lower, self._body_upper], device=d)
+        wp.launch(K.body_bounds, self._chunk_body.shape[0], inputs=[self._chunk_start, self._chunk_body,
+                                                                    self._vertex, q, q_prev, self._body_lower,
+                                                                    self._body_upper], device=d)
+
+    def _find_roots(self) -> None:
+        """Subtree roots of each world (body BVH) and each body (triangle and edge BVHs)."""
+        d = self.model.device
+        wp.launch(K.group_roots, self.world_count, inputs=[self._body_bvh.id, self._world_root], device=d)
+        wp.launch(K.group_roots, self.body_count, inputs=[self._tri_bvh.id, self._body_tri_root], device=d)
+        if self.edge_contact:
+            wp.launch(K.group_roots, self.body_count, inputs=[self._edge_bvh.id, self._body_edge_root], device=d)
+
     @property
     def bvhs(self) -> list:
-        """The BVHs, per world: one over the triangle bounds, then (with edge contact) one over the
-        edge bounds, at the last step."""
-        return self._tri_bvhs + self._bvhs
+        """The BVHs at the last step: over the bodies' bounds (grouped by world), over the contact
+        triangles (grouped by body) and, with edge contact, over the surface edges (grouped by body)."""
+        return [self._body_bvh, self._tri_bvh] + ([self._edge_bvh] if self.edge_contact else [])
 
-    def _update(self, bvh) -> None:
+    @property
+    def rebuild_period(self) -> int:
+        """Steps between BVH rebuilds in use (refits in between; 0: refit only); settable."""
+        return int(self._rebuild or 0)
+
+    @rebuild_period.setter
+    def rebuild_period(self, steps: int) -> None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"SoftContact rebuild_period is {steps!r}; give an integer >= 0 (0: refit only)")
+        self._rebuild = steps
+
+    def _update_bvhs(self) -> None:
+        """Rebuild every ``rebuild_every`` steps (then find the subtree roots again), refit otherwise."""
         if self._rebuild and (self._steps - 1) % self._rebuild == 0:
-            bvh.rebuild(self._constructor)
+            for bvh in self.bvhs:
+                bvh.rebuild(self._constructor)
+            self._find_roots()
         else:
-            bvh.refit()
+            for bvh in self.bvhs:
+                bvh.refit()
+
+    def implicit_force(self, stiffness: float, damping: float = 0.0) -> SoftContactForce:
+        """This contact as a penalty force for an implicit solve (:class:`SoftContactForce`): pass it
+        among the Simulator's forces, this SoftContact among its colliders."""
+        return SoftContactForce(self, stiffness, damping)
 
     @property
     def contact_count(self) -> int:
@@ -293,24 +383,23 @@ class SoftContact(Collider):
         if all_pairs:
             wp.launch(K.find_vertex_contacts_all_pairs, v, inputs=[self._world_tri_start, *vertex, *common, *contact],
                       device=d)
+            if e:
+                wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, self._edge_world,
+                                                                     self._edges, self._edge_body, state.positions,
+                                                                     q_prev, *common, v, *contact], device=d)
         else:
-            wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, state.positions, self._tri_lower,
-                                                                      self._tri_upper], device=d)
-            for bvh in self._tri_bvhs:
-                self._update(bvh)
-            wp.launch(K.find_vertex_contacts, v, inputs=[self._tri_bvh_ids, self._world_tri_start, *vertex, *common,
-                                                         *contact, self._candidates_vertex], device=d)
-        if e:
-            edge = [self._edge_world, self._edges, self._edge_body, state.positions, q_prev]
-            if all_pairs:
-                wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, *edge, *common, v,
-                                                                     *contact], device=d)
-            else:
+            self._launch_bounds(state.positions, q_prev)
+            if e:
                 self._launch_edge_bounds(state.positions, q_prev)
-                for bvh in self._bvhs:
-                    self._update(bvh)
-                wp.launch(K.find_edge_contacts, e, inputs=[self._bvh_ids, self._world_edge_start, *edge, *common, v,
-                                                           *contact, self._candidates_edge], device=d)
+            self._update_bvhs()
+            body = [self._body_bvh.id, self._world_root]
+            wp.launch(K.find_vertex_contacts, v, inputs=[*body, self._tri_bvh.id, self._body_tri_root, *vertex,
+                                                         *common, *contact, self._candidates_vertex], device=d)
+            if e:
+                wp.launch(K.find_edge_contacts, e, inputs=[*body, self._edge_bvh.id, self._body_edge_root,
+                                                           self._edge_world, self._edges, self._edge_body,
+                                                           state.positions, q_prev, *common, v, *contact,
+                                                           self._candidates_edge], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         for _ in range(self.iterations):
             wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
@@ -318,3 +407,68 @@ class SoftContact(Collider):
                                                          self.friction, self._dx, self._dv], device=d)
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)
+
+
+class SoftContactForce(Force):
+    """A SoftContact's contacts as a penalty force inside an implicit solve (``implicit_euler``).
+
+    The contacts found by the collider's last search (the end of the previous step) push while
+    they are closer than the thickness: particle k of a contact gets (k_c d - c_c u_n) a_k n with d
+    the depth [m] and u_n the normal relative speed [m/s] (see ``warpsim.kernels.soft_contact``),
+    and the solve sees the stiffness through diagonal Jacobian blocks that bound the true ones, so
+    implicit Euler stays stable at any step (backward Euler then needs no step near the contact's
+    own time scale). The collider still runs after the step: new contacts, friction and any depth
+    left are resolved there. Momentum is conserved, sums are fixed point (bit-identical runs).
+
+    Args:
+        contact: the SoftContact (also in the Simulator's colliders).
+        stiffness: k_c [N/m] per contact.
+        damping: c_c [N s/m] per contact (normal relative velocity only).
+
+    Example::
+
+        contact = ws.SoftContact(bodies, thickness=0.006)
+        sim = ws.Simulator(model, integrator="implicit_euler",
+                           forces=[ws.Gravity(), contact.implicit_force(stiffness=500.0)],
+                           colliders=[contact])
+    """
+
+    def __init__(self, contact: SoftContact, stiffness: float, damping: float = 0.0):
+        from ..core import checks
+
+        if not isinstance(contact, SoftContact):
+            raise ValueError(f"SoftContactForce contact is {type(contact).__name__}; give the ws.SoftContact that "
+                             "the Simulator also has among its colliders")
+        self.contact = contact
+        self.stiffness = float(checks.positive(stiffness, "SoftContactForce stiffness", unit="N/m", fix="e.g. 500"))
+        self.damping = float(checks.nonnegative(damping, "SoftContactForce damping", unit="N s/m", fix="e.g. 0"))
+
+    def bind(self, model) -> None:
+        super().bind(model)
+        n, d = model.particle_count, model.device
+        self._f = wp.zeros((n, 3), dtype=wp.int64, device=d)
+        self._blocks = wp.zeros((n, 9), dtype=wp.int64, device=d)
+
+    def _slots(self):
+        c = self.contact
+        if getattr(c, "model", None) is not self.model:
+            raise ValueError("SoftContactForce: its SoftContact is not bound to this model; put it in the same "
+                             "Simulator's colliders")
+        return c._contact_particles, c._contact_weights, c._contact_normal
+
+    def eval(self, q, qd, time, time_offset, f_out) -> None:
+        particles, weights, normal = self._slots()
+        d = self.model.device
+        wp.launch(K.eval_contact_forces, particles.shape[0], inputs=[q, qd, particles, weights, normal,
+                                                                     self.contact.thickness, self.stiffness,
+                                                                     self.damping, self._f], device=d)
+        wp.launch(K.add_fixed_forces, self.model.particle_count, inputs=[self._f, f_out], device=d)
+
+    def eval_jacobian(self, q, qd, time, time_offset, ck, cd, diag, rows, cols, values) -> None:
+        particles, weights, normal = self._slots()
+        d = self.model.device
+        coefficient = -(float(ck) * self.stiffness + float(cd) * self.damping)
+        wp.launch(K.eval_contact_jacobian, particles.shape[0], inputs=[q, particles, weights, normal,
+                                                                       self.contact.thickness, coefficient,
+                                                                       self._blocks], device=d)
+        wp.launch(K.add_fixed_blocks, self.model.particle_count, inputs=[self._blocks, diag], device=d)

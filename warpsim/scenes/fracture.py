@@ -26,14 +26,15 @@ import os
 from typing import ClassVar
 
 import numpy as np
+import warp as wp
 
 import warpsim as ws
 
-from ..bodies.colliders import quat_rotate
 from ..bodies.shapes import torus_mesh
 from ..bodies.soft_contact import SoftContact
 from ..bodies.softbody import add_soft_body
 from ..core.fracture import spring_segments
+from ..core.model import Model
 from . import CONTAINER, SimulatorScene, add_floor, register_scene
 
 INTEGRATORS = tuple(sorted(ws.INTEGRATORS))
@@ -293,6 +294,47 @@ def stable_inner_steps(q, mass, springs, stiffness, damping, integrator: str, dt
     return max(1, math.ceil(dt / h_max))
 
 
+def rotate_points(quats, points) -> np.ndarray:
+    """``points`` (P, 3) rotated by each unit quaternion (x, y, z, w) of ``quats`` (N, 4): shape (N, P, 3)
+    (``quat_rotate`` for many rotations at once)."""
+    u, w = quats[:, None, :3], quats[:, None, 3:]
+    v = points[None]
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def replicate_model(template, count: int, positions, device) -> Model:
+    """``count`` copies of a finalized ``template`` Model (host arrays are read once) on ``device``,
+    copy k's particles at ``positions[k P:(k + 1) P]`` (P = template.particle_count) and its
+    springs joining its own particles: per-particle and per-spring arrays are tiled, spring ends
+    and the spring adjacency shifted, in NumPy (no per-copy Python work)."""
+    P, S = template.particle_count, template.spring_count
+    if P == S or P == 2 * S:
+        raise ValueError(f"replicate_model: {P} particles and {S} springs cannot be told apart by length")
+    model = Model(device)
+    model.particle_count, model.spring_count = count * P, count * S
+    model.breakable_spring_count = count * template.breakable_spring_count
+    k = np.arange(count)
+    for name, arr in vars(template).items():
+        if not isinstance(arr, wp.array):
+            continue
+        host = arr.numpy()
+        if name == "particle_q":
+            host = np.asarray(positions, dtype=np.float32).reshape(count * P, 3)
+        elif name == "spring_indices":
+            host = (host[None, :] + (k * P)[:, None]).reshape(-1)
+        elif name == "particle_spring_offsets":
+            host = np.append((host[None, :-1] + (k * 2 * S)[:, None]).reshape(-1), count * 2 * S)
+        elif name == "particle_springs":
+            host = (host[None, :] + (k * S)[:, None]).reshape(-1)
+        elif len(host) in (P, S):
+            host = np.tile(host, (count,) + (1,) * (host.ndim - 1))
+        else:
+            raise ValueError(f"replicate_model: the template's {name} (length {len(host)}) is neither per particle "
+                             f"({P}) nor per spring ({S})")
+        setattr(model, name, wp.array(np.ascontiguousarray(host), dtype=arr.dtype, device=model.device))
+    return model
+
+
 def check_donut_memory(count: int, torus, device) -> None:
     """ValueError (with the figures) when ``count`` copies of ``torus`` (a SoftBody) would not fit
     in the device's free memory, or the host's for the build. Per torus: about 300 B per particle
@@ -353,9 +395,15 @@ def _host_free_bytes() -> int:
     "gravity": (9.81, "gravitational acceleration [m/s^2]"),
     "dt": (1.0 / 1200.0, "time step [s] (split further where the springs' stability limit needs it)"),
     "integrator": ("semi_implicit_euler", "time integrator", INTEGRATORS),
+    "contact_stiffness": (0.0, ("implicit_euler only: penalty stiffness of the contacts inside the implicit solve "
+                                "[N/m] (SoftContact.implicit_force; 0: off, contact only after the step). Measured: "
+                                "not yet enough for 1/240 s steps (benchmarks/RESULTS.md)")),
+    "contact_damping": (0.0, "implicit_euler only: damping of the contacts inside the implicit solve [N s/m]"),
+    "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
 }, substeps=20)
 class DonutsScene(SimulatorScene):
-    """See the module docstring; ``self.bodies`` are the tori's SoftBody records, ``self.contact``
+    """See the module docstring; ``self.torus`` is the first torus's SoftBody record and
+    ``self.offsets`` the particle offset of each (``self.bodies`` makes the records on demand), ``self.contact``
     the SoftContact, ``self.inner_steps`` the integration steps per scene step ``dt`` (from the
     springs' stability limit, :func:`stable_inner_steps`: 1 at the default 288 vertices a torus,
     2 at 2,000)."""
@@ -365,7 +413,11 @@ class DonutsScene(SimulatorScene):
 
     def build(self, p):
         _positive(p, "count", "segments", "sides", "major_radius", "minor_radius", "mass", "stiffness",
-                  "lattice_cells", "thickness", "gravity")
+                  "lattice_cells", "thickness", "gravity", "newton_iterations")
+        for key, unit in (("contact_stiffness", "N/m"), ("contact_damping", "N s/m")):
+            if not (math.isfinite(p[key]) and p[key] >= 0.0):
+                raise ValueError(f"{key}={p[key]}: give a number >= 0 [{unit}] (contact_stiffness 0: no contact "
+                                 "force in the implicit solve)")
         if not (math.isfinite(p["box"]) and p["box"] >= 0.0):
             raise ValueError(f"box={p['box']}: give a half width > 0 [m], or 0 to size the box to the count")
         points, faces = torus_mesh(p["major_radius"], p["minor_radius"], p["segments"], p["sides"])
@@ -385,42 +437,52 @@ class DonutsScene(SimulatorScene):
         local = np.asarray(template_builder.particle_q, dtype=np.float64)
         masses = np.asarray(template_builder.particle_mass, dtype=np.float64)
         springs = np.asarray(template_builder.spring_indices, dtype=np.int64)
-        rest = np.asarray(template_builder.spring_rest_length, dtype=np.float64)
         stiffness = np.asarray(template_builder.spring_stiffness, dtype=np.float64)
         damping = np.asarray(template_builder.spring_damping, dtype=np.float64)
-        b = ws.ModelBuilder()
-        self.bodies = []
-        for k in range(p["count"]):
-            layer, slot = divmod(k, per_layer)
-            ix, iz = divmod(slot, per_side)
-            x = -box + (ix + 0.5) * pitch
-            z = -box + (iz + 0.5) * pitch
-            y = reach + 0.05 + layer * (2.0 * reach + 0.05)
+        count = p["count"]
+        k = np.arange(count)
+        layer, slot = np.divmod(k, per_layer)
+        ix, iz = np.divmod(slot, per_side)
+        centres = np.stack([-box + (ix + 0.5) * pitch, reach + 0.05 + layer * (2.0 * reach + 0.05),
+                            -box + (iz + 0.5) * pitch], 1)
+        quats = np.empty((count, 4))
+        for i in range(count):  # the same draws, in the same order, as one torus at a time
             axis = rng.normal(size=3)
             axis /= np.linalg.norm(axis)
             angle = rng.uniform(0.0, 0.5 * math.pi)
-            rotation = (*(math.sin(angle / 2) * axis), math.cos(angle / 2))
-            start, spring_start = b.particle_count, b.spring_count
-            b.add_particles(np.array((x, y, z)) + quat_rotate(rotation, local), masses=masses)
-            b.add_springs(springs + start, stiffness, damping, rest)
-            self.bodies.append(dataclasses.replace(template, particle_start=start, faces=template.faces + start,
-                                                   spring_start=spring_start))
-        model = b.finalize(self.device)
+            quats[i] = (*(math.sin(angle / 2) * axis), math.cos(angle / 2))
+        positions = centres[:, None, :] + rotate_points(quats, local)
+        self.torus = template
+        """The first torus's SoftBody record (particle_start 0); torus k is it shifted by ``self.offsets[k]``."""
+        self.offsets = k * template.particle_count
+        """Particle offset of each torus, shape (count,)."""
+        model = replicate_model(template_builder.finalize("cpu"), count, positions.reshape(-1, 3), self.device)
         kw = {"restitution": p["restitution"], "friction": p["friction"]}
         top = max(2.0 * box, float(model.particle_q.numpy()[:, 1].max()) + reach)
         self.lower, self.upper = (-box, 0.0, -box), (box, top, box)
         self.contact = None  # one torus without self contact touches nothing but the box
-        if len(self.bodies) > 1 or p["self_contact"]:
-            self.contact = SoftContact(self.bodies, thickness=p["thickness"], self_contact=p["self_contact"],
-                                       edge_contact=p["edge_contact"], **kw)
+        if count > 1 or p["self_contact"]:
+            self.contact = SoftContact.copies(template.faces, self.offsets, thickness=p["thickness"],
+                                              self_contact=p["self_contact"], edge_contact=p["edge_contact"], **kw)
         colliders = [ws.Box(self.lower, self.upper, **kw)] + ([self.contact] if self.contact else [])
-        self.sim = ws.Simulator(model, integrator=p["integrator"], forces=[ws.Gravity((0.0, -p["gravity"], 0.0))],
-                                colliders=colliders, max_speed=100.0)
+        forces: list = [ws.Gravity((0.0, -p["gravity"], 0.0))]
+        integrator = p["integrator"]
+        if integrator == "implicit_euler":
+            integrator = ws.ImplicitEuler(newton_iterations=p["newton_iterations"])
+            if self.contact is not None and p["contact_stiffness"] > 0.0:
+                forces.append(self.contact.implicit_force(p["contact_stiffness"], p["contact_damping"]))
+        self.sim = ws.Simulator(model, integrator=integrator, forces=forces, colliders=colliders, max_speed=100.0)
         self.inner_steps = stable_inner_steps(local, masses, springs, stiffness, damping, p["integrator"], p["dt"])
-        self.surface = np.concatenate([body.surface_indices for body in self.bodies])
-        where = np.full(model.particle_count, -1, dtype=np.int64)
-        where[self.surface] = np.arange(len(self.surface))
-        self.faces = np.concatenate([where[body.faces] for body in self.bodies])
+        surface = template.surface_count
+        self.surface = (np.arange(surface)[None, :] + self.offsets[:, None]).reshape(-1)
+        self.faces = (template.faces[None] + (k * surface)[:, None, None]).reshape(-1, 3)  # in surface order
+
+    @property
+    def bodies(self) -> list:
+        """SoftBody records of the tori, made on demand (the scene holds one template and offsets)."""
+        t = self.torus
+        return [dataclasses.replace(t, particle_start=int(o), faces=t.faces + o,
+                                    spring_start=k * t.spring_count) for k, o in enumerate(self.offsets)]
 
     def advance(self, frame_dt, substeps):
         h = frame_dt / (substeps * self.inner_steps)
