@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 
 import numpy as np
 import playwright.sync_api as playwright  # the test extra installs it; CI must run this test, never skip it
@@ -31,6 +32,28 @@ def root(tmp_path_factory):
                  "--no-progress", "--device", "cpu", "--out", str(path)], out=io.StringIO(), err=io.StringIO())
     assert code == 0
     return path
+
+
+def test_the_sweep_draws_every_world_s_picture_as_the_gallery_would(root, tmp_path):
+    from PIL import Image
+
+    from warpsim.worlds.browse import thumbnail, thumbnail_camera, thumbnails_folder
+    from warpsim.worlds.occupancy import OccupancyRecord, occupancy_path
+
+    folder = thumbnails_folder(root)
+    made = {name: np.asarray(Image.open(f"{folder}/{name}")) for name in sorted(os.listdir(folder))}
+    assert sorted(made) == [f"world_{w:06d}.png" for w in range(9)]
+    assert all(m.shape == (96, 128, 3) and m.std() > 5 for m in made.values())  # the ball and floor are drawn
+    # the picture the gallery draws on first show, for a root whose sweep drew none
+    copy = tmp_path / "drop.usda"
+    copy.write_text(root.read_text().replace("@./", f"@{root.parent}/"))
+    record = OccupancyRecord.load(occupancy_path(root))
+    for w in (0, 8):
+        drawn = np.asarray(Image.open(thumbnail(copy, w, camera=thumbnail_camera(record), device="cpu")))
+        assert np.array_equal(drawn, made[f"world_{w:06d}.png"])
+    code = main(["sweep", "bounce", "--worlds", "2", "--frames", "3", "--no-progress", "--device", "cpu",
+                 "--out", str(tmp_path / "off.usda"), "--no-thumbnails"], out=io.StringIO(), err=io.StringIO())
+    assert code == 0 and not os.path.exists(thumbnails_folder(tmp_path / "off.usda"))
 
 
 def test_dragging_the_box_changes_the_list(root):
@@ -57,6 +80,16 @@ def test_dragging_the_box_changes_the_list(root):
             page.get_by_text(f"{len(before)} of 9 worlds", exact=False).first.wait_for(timeout=30_000)
             client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
             viewer.playing = False
+            # the first framing: world 0, where the box is drawn: both corners and their gizmos' arrows
+            # are on screen, each arrow at least 4 % of the view's height long
+            _wait(lambda: np.allclose(client.camera.look_at, viewer.server.initial_camera.look_at, atol=1e-4),
+                  what="the first framing")
+            for gizmo in (query.gizmo_lo, query.gizmo_hi):
+                at = np.asarray(gizmo.position, float)
+                (x0, y0), (x1, y1) = (_project(client.camera, at + np.array([0.0, k * query.gizmo_scale, 0.0]))
+                                      for k in (0.0, 1.0))
+                assert 0 < x0 < WIDTH and 0 < y0 < HEIGHT and 0 < y1 < HEIGHT
+                assert np.hypot(x1 - x0, y1 - y0) > 0.04 * HEIGHT, (x0, y0, x1, y1)
             corner = np.asarray(query.gizmo_hi.position, float)
             client.camera.position = tuple(corner + np.array([0.0, 0.0, 1.6]))
             client.camera.look_at = tuple(corner)
@@ -82,9 +115,20 @@ def test_dragging_the_box_changes_the_list(root):
             assert after == [int(w) for w in np.flatnonzero(answer_region(query.record, query.region()).match)]
             assert query.answer_seconds < 1.0
             page.get_by_text(f"{len(after)} of 9 worlds", exact=False).first.wait_for(timeout=30_000)
-            # a listed world's button plays it alone
+            # a listed world's button plays it alone, framed, and the play button says "Pause"
+            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=30_000)
             page.get_by_role("button", name=f"#1 world {after[0]}", exact=False).first.click()
-            _wait(lambda: viewer.isolated == f"world_{after[0]:06d}", timeout=30, what="the click to play a world")
+            world = f"world_{after[0]:06d}"
+            _wait(lambda: viewer.isolated == world, timeout=30, what="the click to play a world")
+            page.get_by_role("button", name="Pause", exact=True).wait_for(timeout=30_000)
+            lo, hi = viewer.reader.world_bounds(world)
+            _wait(lambda: np.allclose(client.camera.look_at, 0.5 * (lo + hi), atol=1e-3), what="the world's framing")
+            for corner in (lo, hi):
+                x, y = _project(client.camera, corner)
+                assert 0 < x < WIDTH and 0 < y < HEIGHT
+            page.get_by_role("button", name="Pause", exact=True).click()  # pressing it pauses, as it says
+            _wait(lambda: not viewer.playing, timeout=30, what="the pause")
+            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=30_000)
             browser.close()
     finally:
         viewer.stop()
@@ -100,14 +144,26 @@ def test_panel_ranks_negates_and_hides(root):
         inside = [int(w) for w in np.flatnonzero(answer.match)]
         assert 0 < len(inside) < 9
         assert query.matches == sorted(inside, key=lambda w: (answer.entry[w], w))  # first entry first
+        buttons = [slot["button"] for slot in query._slots]
+        refreshed = []
+        refresh = viewer._refresh
+        viewer._refresh = lambda *a, **k: (refreshed.append(1), refresh(*a, **k))
         query.rank.value = "time inside"
         assert query.matches == sorted(inside, key=lambda w: (-answer.time[w], w))
+        # re-ranking sends no world's visibility and keeps the list's buttons, relabelled in place
+        assert not refreshed and [slot["button"] for slot in query._slots] == buttons
+        assert [slot["button"].label.split(":")[0] for slot in query._slots] == \
+            [f"#{k + 1} world {w}" for k, w in enumerate(query.matches)]
+        viewer._refresh = refresh
         assert query.hidden == {f"world_{w:06d}" for w in range(1, 9) if w not in inside}  # world 0 holds the box
         query.mode.value = "NOT IN"
         assert sorted(query.matches) == [w for w in range(9) if w not in inside]
         query.matches_only.value = False
         assert query.hidden == set()
+        viewer.playing = False
+        assert viewer.play.label == "Play"
         query.play(query.matches[0])
         assert viewer.isolated == f"world_{query.matches[0]:06d}" and viewer.playing and viewer.index == 0
+        assert viewer.play.label == "Pause"
     finally:
         viewer.stop()

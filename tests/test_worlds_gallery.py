@@ -1,7 +1,8 @@
 """The sweep gallery in a real browser (Debian's Chromium, headless, driven by Playwright; WebGL
 through SwiftShader): ``warpsim view`` on a sweep root shows every world side by side; a mouse
-click on one world's teapot isolates it (the other worlds' nodes are hidden), a second click
-shows them all again; the reader places each world's samples at its grid offset."""
+click on one world's teapot isolates it (the other worlds' nodes are hidden) and frames the camera
+on it, a second click shows them all again, framed as at first; the reader places each world's
+samples at its grid offset."""
 from __future__ import annotations
 
 import numpy as np
@@ -79,9 +80,21 @@ def test_click_isolates_a_world_in_the_browser(sweep):
             shown = {w for w, h in viewer._handles() if getattr(h, "visible", True)}
             assert shown == {"world_000002"}
             assert viewer.menu.value == "world_000002"
+            # the camera frames the selected world: its teapot over the run fills the middle of the view
+            lo, hi = viewer.reader.world_bounds("world_000002")
+            assert lo[0] <= center[0] <= hi[0] and lo[2] <= center[2] <= hi[2]
+            _wait(lambda: np.allclose(client.camera.look_at, 0.5 * (lo + hi), atol=1e-3), what="the world's framing")
+            corners = np.array([_project(client.camera, (a, b, c)) for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                                for c in (lo[2], hi[2])])
+            assert (corners > 0).all() and (corners[:, 0] < WIDTH).all() and (corners[:, 1] < HEIGHT).all()
+            assert np.ptp(corners[:, 1]) > 0.3 * HEIGHT  # framed, not a speck
+            page.wait_for_timeout(500)
+            x, y = _project(client.camera, center)
             page.mouse.click(x, y)
             _wait(lambda: viewer.isolated is None, timeout=30, what="a second click to show every world")
             assert {w for w, h in viewer._handles() if getattr(h, "visible", True)} == set(viewer.reader.worlds)
+            _wait(lambda: np.allclose(client.camera.look_at, viewer.gallery_pose[1], atol=1e-3),
+                  what="the gallery's framing again")
             browser.close()
     finally:
         viewer.stop()

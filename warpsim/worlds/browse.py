@@ -11,11 +11,14 @@ occupancy record (:mod:`warpsim.worlds.occupancy`):
   inside, share of particles inside, world) and "show matches only" (hides the other worlds,
   except the first, in whose frame the box is drawn);
 - the matching worlds, ranked, each a button (click: that world alone, playing from frame 0) and
-  a small picture (warpsim's renderer, one per world made on first show after the sweep and
-  kept in ``<stem>.thumbs/world_GGGGGG.png``).
+  a small picture (warpsim's renderer, kept in ``<stem>.thumbs/world_GGGGGG.png``: made by the
+  sweep itself, :func:`sweep_thumbnails`, unless ``--no-thumbnails``; else on first show).
 
 A query is asked when a gizmo is released or a setting changes (not while dragging), from the
-record (:func:`warpsim.worlds.query.answer_region`): milliseconds for 10,000 worlds; exact when
+record (:func:`warpsim.worlds.query.answer_region`; a change of the ranking alone reuses the last
+answer): milliseconds for 10,000 worlds. The worlds' visibility is sent only when the set of
+hidden worlds changes, and the list keeps its buttons and pictures, relabelled in place, so a
+control that only re-ranks redraws no world. Exact when
 the record keeps positions or at most :data:`REFINE_BUDGET` world-frames in doubt are read back
 from the cache, else conservative to one cell (the summary says which).
 """
@@ -30,7 +33,7 @@ import numpy as np
 from .occupancy import OccupancyRecord, occupancy_path
 from .query import Region, answer_region, cached_positions
 
-__all__ = ["RANKS", "QueryPanel", "thumbnail"]
+__all__ = ["RANKS", "QueryPanel", "sweep_thumbnails", "thumbnail", "thumbnail_camera"]
 
 RANKS = ("first entry", "time inside", "share inside", "world")
 REFINE_BUDGET = 2_000
@@ -50,7 +53,7 @@ def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None
     from .pick import pick_world
     from .usd import world_prim_name
 
-    folder = os.path.splitext(os.path.abspath(os.fspath(root)))[0] + ".thumbs"
+    folder = thumbnails_folder(root)
     path = os.path.join(folder, world_prim_name(world) + ".png")
     if os.path.exists(path):
         return path
@@ -60,6 +63,74 @@ def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None
         render_cache(picked, path + ".tmp.png", frame=frame, size=size, camera=camera, device=device)
     os.replace(path + ".tmp.png", path)
     return path
+
+
+def thumbnail_camera(record, size=THUMB_SIZE):
+    """The one camera of every world's picture: framing where the record's worlds go."""
+    from ..render.camera import frame_bounds
+
+    return frame_bounds(np.array(record.occupied_bounds()), *size)
+
+
+def thumbnails_folder(root) -> str:
+    return os.path.splitext(os.path.abspath(os.fspath(root)))[0] + ".thumbs"
+
+
+def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None) -> dict:
+    """Every world's picture of the sweep ``root`` (its last frame, as :func:`thumbnail` draws it,
+    with :func:`thumbnail_camera`), rendered by warpsim's renderer straight from the batch
+    ``layers`` (each opened once, its worlds drawn one after another) into
+    ``<stem>.thumbs/world_GGGGGG.png``, so the gallery finds them made. Returns {"count",
+    "seconds", "folder"}."""
+    from PIL import Image
+
+    from ..render.cache import _ground
+    from ..render.renderer import Renderer
+    from ..render.usd_scene import CacheScene
+
+    t0 = time.perf_counter()
+    folder = thumbnails_folder(root)
+    os.makedirs(folder, exist_ok=True)
+    camera = thumbnail_camera(record, size)
+    renderer = Renderer(int(size[0]), int(size[1]), device=device)
+    count = 0
+    for layer in layers:
+        scene = CacheScene(layer)
+        prims = scene.prims
+        worlds: dict = {}
+        for prim in prims:  # /Worlds/world_GGGGGG/...
+            parts = str(prim.GetPath()).split("/")
+            if len(parts) > 3 and parts[2].startswith("world_"):
+                worlds.setdefault(parts[2], []).append(prim)
+        frame = scene.frames[-1] if scene.frames else None
+        for world, own in worlds.items():
+            scene.prims = own
+            image = renderer.render(scene.geometry(frame), camera, ground_y=_ground(scene, [frame]))
+            path = os.path.join(folder, world + ".png")
+            Image.fromarray(image).save(path + ".tmp.png")
+            os.replace(path + ".tmp.png", path)
+            count += 1
+        scene.prims = prims
+    return {"count": count, "seconds": time.perf_counter() - t0, "folder": folder}
+
+
+def thumbnails_after_sweep(root, layers, record, device=None, enabled=True) -> str:
+    """What ``warpsim sweep`` does for the gallery's pictures: draw them all
+    (:func:`sweep_thumbnails`), or with ``enabled=False`` (``--no-thumbnails``) remove an older
+    sweep's pictures of this root, so the gallery draws fresh ones on first show. Returns the
+    line to print."""
+    import shutil
+
+    if not enabled:
+        shutil.rmtree(thumbnails_folder(root), ignore_errors=True)
+        return "thumbnails: none (--no-thumbnails; the gallery draws them on first show)"
+    try:
+        made = sweep_thumbnails(root, layers, record, device=device)
+    except Exception as exc:  # noqa: BLE001  (a finished sweep stands; the gallery draws them on first show)
+        return f"thumbnails: not drawn ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+    return (f"thumbnails: {made['count']} pictures of {THUMB_SIZE[0]}x{THUMB_SIZE[1]} in {made['seconds']:.2f} s "
+            f"({1e3 * made['seconds'] / max(made['count'], 1):.1f} ms each; --no-thumbnails skips them): "
+            f"{os.path.relpath(made['folder'])}")
 
 
 class QueryPanel:
@@ -79,10 +150,13 @@ class QueryPanel:
         self.matches = []
         """The ranked matching worlds (global indices) of the last answer."""
         self.answer_seconds = None
-        """How long the last answer took [s] (the record's query, the list and the visibility)."""
+        """How long the last answer took [s] (the record's query, the list and the summary; the
+        worlds' visibility follows)."""
         self._syncing = False
         self._lock = threading.Lock()
-        self._items = []
+        self._answered = None  # (region, answer) of the last query
+        self._slots = []  # per listed place: {"button", "image", "world"}
+        self._more = None
         self._pictures = {}
         self._thumb_thread = None
         self._wanted = []
@@ -126,6 +200,11 @@ class QueryPanel:
         offsets = self.viewer.reader.offsets
         name = world or (self.viewer.reader.worlds[0] if self.viewer.reader.worlds else None)
         return np.asarray(offsets.get(name, np.zeros(3)), np.float64)
+
+    def box_bounds(self):
+        """[[lo], [hi]] [m] of the box and its corner gizmos in the page (the frame it is drawn in)."""
+        pad = self.gizmo_scale
+        return np.array([self.origin + self.lo - pad, self.origin + self.hi + pad])
 
     def follow(self, world):
         """Draw the box in the frame of ``world`` (None: the first world's)."""
@@ -197,11 +276,15 @@ class QueryPanel:
         with self._lock:
             start = time.perf_counter()
             region = self.region()
-            try:
-                answer = answer_region(self.record, region, self.positions, budget=REFINE_BUDGET)
-            except ValueError as exc:
-                self.summary.content = f"**{exc}**"
-                return
+            if self._answered is not None and self._answered[0] == region:  # re-ranked only
+                answer = self._answered[1]
+            else:
+                try:
+                    answer = answer_region(self.record, region, self.positions, budget=REFINE_BUDGET)
+                except ValueError as exc:
+                    self.summary.content = f"**{exc}**"
+                    return
+                self._answered = (region, answer)
             matched = np.flatnonzero(answer.match)
             key = {"first entry": answer.entry, "time inside": -answer.time, "share inside": -answer.share}
             by = key.get(self.rank.value)
@@ -214,23 +297,31 @@ class QueryPanel:
             names = {f"world_{g:06d}" for g in self.matches}
             anchor = {self.viewer.reader.worlds[0]} if self.viewer.reader.worlds else set()
             # the world the box is drawn in stays shown, as the box's reference
-            self.hidden = set(self.viewer.reader.worlds) - names - anchor if self.matches_only.value else set()
-            with self.viewer._lock:
-                self.viewer._refresh()
+            hidden = set(self.viewer.reader.worlds) - names - anchor if self.matches_only.value else set()
             self.answer_seconds = time.perf_counter() - start
             self.summary.content = (f"**{len(self.matches)} of {self.record.world_count} worlds** "
                                     f"{'IN' if region.inside else 'NOT IN'} the box during "
                                     f"{self.window.value[0]:.3g}..{self.window.value[1]:.3g} s "
                                     f"({'exact' if answer.exact else f'to one cell of {self.record.grid.cell_size:.3g} m'}"
                                     f", {1e3 * self.answer_seconds:.1f} ms)")
+            # then the worlds' visibility, only when it changes (after the answer: the viewer's lock
+            # may wait for a frame of every world being drawn)
+            if hidden != self.hidden:
+                self.hidden = hidden
+                with self.viewer._lock:
+                    self.viewer._refresh()
 
     def _list(self, answer, matched):
-        for h in self._items:
-            h.remove()
-        self._items = []
+        """The ranked list: place k keeps its button (and picture) from answer to answer, relabelled
+        and pointed at its new world; places are added or removed only as the count changes."""
         gui = self.viewer.server.gui
         shown = matched[: self.top]
         with self.listing:
+            while len(self._slots) > len(shown):
+                slot = self._slots.pop()
+                for h in (slot["button"], slot["image"]):
+                    if h is not None:
+                        h.remove()
             for k, w in enumerate(shown):
                 g = int(self.record.first_world + w)
                 label = f"#{k + 1} world {g}"
@@ -238,14 +329,31 @@ class QueryPanel:
                     label += f": in at {answer.entry[w]:.3g} s for {answer.time[w]:.3g} s"
                     if np.isfinite(answer.share[w]):
                         label += f", {100 * answer.share[w]:.0f}%"
-                button = gui.add_button(label, order=2 * k + 1)
-                button.on_click(lambda _e, g=g: self.play(g))
-                self._items.append(button)
+                if k == len(self._slots):
+                    slot = {"button": gui.add_button(label, order=2 * k + 1), "image": None, "world": g}
+                    slot["button"].on_click(lambda _e, slot=slot: self.play(slot["world"]))
+                    self._slots.append(slot)
+                slot = self._slots[k]
+                slot["world"] = g
+                if slot["button"].label != label:
+                    slot["button"].label = label
                 picture = self._pictures.get(g)
-                if picture is not None:
-                    self._items.append(gui.add_image(picture, label=None, order=2 * k))
-            if len(matched) > len(shown):
-                self._items.append(gui.add_markdown(f"... and {len(matched) - len(shown)} more", order=2 * len(shown)))
+                if picture is None and slot["image"] is not None:
+                    slot["image"].remove()
+                    slot["image"] = None
+                elif picture is not None and slot["image"] is None:
+                    slot["image"] = gui.add_image(picture, label=None, order=2 * k)
+                elif picture is not None and slot.get("picture") != g:
+                    slot["image"].image = picture
+                slot["picture"] = g if picture is not None else None
+            more = f"... and {len(matched) - len(shown)} more" if len(matched) > len(shown) else ""
+            if self._more is not None and not more:
+                self._more.remove()
+                self._more = None
+            elif more and self._more is None:
+                self._more = gui.add_markdown(more, order=2 * self.top + 1)
+            elif more and self._more.content != more:
+                self._more.content = more
         if self.thumbnails:
             with self._lock_thumbs:
                 for w in shown:
@@ -260,9 +368,7 @@ class QueryPanel:
         """Render the wanted pictures one by one (a background thread), then list again."""
         from PIL import Image
 
-        from ..render.camera import frame_bounds
-
-        camera = frame_bounds(np.array(self.record.occupied_bounds()), *THUMB_SIZE)  # one camera for all
+        camera = thumbnail_camera(self.record)  # one camera for all
         while self.viewer.server is not None:
             with self._lock_thumbs:
                 if not self._wanted:

@@ -70,6 +70,9 @@ def add_parser(sub):
                    help="cells along the longest side of the occupancy record's grid (default 16)")
     s.add_argument("--occupancy-bounds", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="box [m] the occupancy grid covers (default: frame 0's extent, padded)")
+    s.add_argument("--no-thumbnails", action="store_true",
+                   help="draw no picture of each world for the gallery after the sweep (it then draws them on "
+                        "first show)")
     from .query import accept_negative_boxes
 
     accept_negative_boxes(s)
@@ -371,6 +374,11 @@ def run(args, out, err):
 
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
+        from .browse import thumbnails_after_sweep
+
+        print(thumbnails_after_sweep(root, layers, record, enabled=not args.no_thumbnails,
+                                     device=device if getattr(args, "ray", None) is None and devices is None else
+                                     devices[0] if devices is not None else "cpu"), file=out)
         positions = cached_positions(root, record) if regions else None
         answers = [answer_region(record, r, positions) for r in regions]
         candidates = apply_regions(rows, record, regions, answers=answers)

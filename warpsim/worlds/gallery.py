@@ -5,8 +5,12 @@ isolate it (``warpsim view SWEEP.usda`` on a root written by ``warpsim sweep``).
 variant root is laid out as a grid in memory, exactly as ``write_sweep_root(layout="grid")``
 does) frame by frame, each prim drawn as ``world_GGGGGG/NAME`` moved by its world's place on the
 grid. :class:`GalleryViewer` is the playback viewer with a world menu: clicking a world's mesh in
-the page (or picking it in the menu) shows that world alone, clicking it again (or "all") shows
-every world. Drives no kernels; viser is imported when the viewer starts.
+the page (or picking it in the menu) shows that world alone and frames the camera on it, clicking
+it again (or "all") shows every world and frames the whole gallery again. With a query panel
+(an occupancy record beside the root) the first framing is world 0, in whose frame the query
+box and its corner gizmos are drawn, so they are a usable size at once. The play button always
+says what pressing it will do ("Pause" while playing), also when a listed world starts playing.
+Drives no kernels; viser is imported when the viewer starts.
 """
 from __future__ import annotations
 
@@ -97,6 +101,27 @@ class GalleryReader(CacheReader):
         item.points = np.asarray(item.points, np.float32) + offset
         return item
 
+    def world_bounds(self, world, samples=7):
+        """[[lo], [hi]] [m] in the page of ``world``'s moving prims over ``samples`` frames spread
+        across the sweep, and its static prims (as :func:`warpsim.viewer.framing.playback_bounds`
+        frames a cache); None when it draws nothing."""
+        from ..viewer.framing import _points, _radius, robust_bounds
+
+        n = len(self.frames)
+        clouds, pad = [], 0.0
+        for index in sorted({int(round(k)) for k in np.linspace(0, max(n - 1, 0), min(samples, max(n, 1)))}):
+            code = float(self.frames[index]) if n else 0.0
+            for w, prim, offset in self.dynamic:
+                item = self._placed(w, prim, offset, code) if w == world else None
+                if item is not None:
+                    clouds.append(_points(item))
+                    pad = max(pad, _radius(item))
+        b = robust_bounds(clouds, pad=pad)
+        statics = [_points(it) for name, it in self.static.items() if name.split("/")[0] == world]
+        if b is None:
+            return robust_bounds(statics, quantile=0.0)
+        return b
+
     def items(self, index):
         code = float(self.frames[index]) if self.frames else 0.0
         out = {}
@@ -119,7 +144,7 @@ class GalleryViewer(PlaybackViewer):
         has an occupancy record, else None."""
         self.host, self.port = host, int(port)
         self.index = 0
-        self.playing = True
+        self._playing = True
         self.loop = True
         self.server = None
         self.isolated = None
@@ -130,10 +155,28 @@ class GalleryViewer(PlaybackViewer):
         self._stop = threading.Event()
         self._shown = None
         self._lock = threading.Lock()
+        self.gallery_pose = None
+        """(position, look_at) [m] framing every world (the view "all worlds" returns to)."""
+
+    @property
+    def playing(self) -> bool:
+        """Whether the frames advance; setting it also relabels the play button ("Pause" while
+        playing, "Play" while paused), whoever sets it."""
+        return self._playing
+
+    @playing.setter
+    def playing(self, value):
+        self._playing = bool(value)
+        button = getattr(self, "play", None)
+        label = "Pause" if self._playing else "Play"
+        if button is not None and button.label != label:
+            button.label = label
 
     def start(self):
         super().start()
         self.menu = self.server.gui.add_dropdown("world", (ALL, *self.reader.worlds), initial_value=ALL)
+        camera = self.server.initial_camera
+        self.gallery_pose = (np.asarray(camera.position, np.float64), np.asarray(camera.look_at, np.float64))
 
         @self.menu.on_update
         def _(_):
@@ -145,8 +188,36 @@ class GalleryViewer(PlaybackViewer):
             from .browse import QueryPanel
 
             self.query = QueryPanel(self, thumbnails=self.thumbnails)
+            if self.reader.worlds:  # the first view: world 0, where the box and its gizmos are drawn
+                position, look_at = self.world_pose(self.reader.worlds[0], self.query.box_bounds())
+                camera.look_at = tuple(float(v) for v in look_at)
+                camera.position = tuple(float(v) for v in position)
         self._refresh()
         return self
+
+    def world_pose(self, world, also=None):
+        """(position, look_at) [m] of a camera framing ``world`` over the sweep (and the bounds
+        ``also`` [[lo], [hi]] [m] in the page, e.g. the query box)."""
+        from ..viewer.framing import camera_pose
+
+        b = self.reader.world_bounds(world)
+        if also is not None:
+            also = np.asarray(also, np.float64)
+            b = also if b is None else np.array([np.minimum(b[0], also[0]), np.maximum(b[1], also[1])])
+        return camera_pose(b)
+
+    def frame_camera(self, world):
+        """Point every connected client's camera at ``world`` (None: the whole gallery)."""
+        if self.server is None:
+            return
+        if world is None:
+            position, look_at = self.gallery_pose
+        else:
+            position, look_at = self.world_pose(world)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.look_at = tuple(float(v) for v in look_at)
+                client.camera.position = tuple(float(v) for v in position)
 
     def isolate(self, world):
         """Show ``world`` alone (None: every world)."""
@@ -160,6 +231,7 @@ class GalleryViewer(PlaybackViewer):
         if self.query is not None:
             self.query.follow(world)
         self._refresh()
+        self.frame_camera(world)
 
     def show(self, index):
         with self._lock:
