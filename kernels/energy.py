@@ -22,6 +22,8 @@ velocity synchronised for gravity; a maximum).
 
 import warp as wp
 
+from .world_step import SharedSprings, world_value
+
 wp.set_module_options({"enable_backward": False})
 
 COLUMNS = wp.constant(6)
@@ -107,6 +109,60 @@ def world_energy_sums(
             e, c = spring_term(q[pi], q[pj], qd[pi], qd[pj], spring_rest[s], spring_stiffness[s], half_dt)
             energy += e
             correction += c
+    out[w, 0] = energy
+    out[w, 1] = correction
+    out[w, 2] = work
+    out[w, 3] = gravity
+    out[w, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
+    out[w, 5] = peak
+
+
+@wp.kernel
+def world_energy_sums_shared(
+    q: wp.array(dtype=wp.vec3),
+    q_frame_start: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    drive_start: wp.array(dtype=wp.vec3),
+    drive_end: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    world_gravity: wp.array(dtype=wp.vec3),
+    half_dt: float,
+    world_particles: int,
+    springs: SharedSprings,
+    out: wp.array2d(dtype=float),
+):
+    """``world_energy_sums`` for batches whose springs are stored once (``kernels/world_step.py``):
+    world w's springs are read from the shared adjacency with its own parameters, each from its
+    first end, in the order the step sums them."""
+    w = wp.tid()
+    g = world_gravity[w]
+    first = w * world_particles
+    energy = float(0.0)
+    work = float(0.0)
+    correction = float(0.0)
+    gravity = float(0.0)
+    peak = float(0.0)
+    for p in range(world_particles):
+        i = first + p
+        e, c, a, u, k = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i],
+                                       inv_mass[i], g, half_dt)
+        energy += e
+        correction += c
+        work += a
+        gravity += u
+        peak = wp.max(peak, k)
+        for s in range(springs.offsets[p], springs.offsets[p + 1]):
+            entry = springs.entries[s]
+            code = int(entry[3])
+            if code % 2 == 0:
+                packed = springs.keys[s]
+                j = first + code / 2
+                rest = world_value(entry[0], (packed & 1023) - 1, springs.world_values, springs.key_count, w)
+                stiff = world_value(entry[1], ((packed >> 10) & 1023) - 1, springs.world_values, springs.key_count, w)
+                e2, c2 = spring_term(q[i], q[j], qd[i], qd[j], rest, stiff, half_dt)
+                energy += e2
+                correction += c2
     out[w, 0] = energy
     out[w, 1] = correction
     out[w, 2] = work

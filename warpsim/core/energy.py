@@ -92,10 +92,13 @@ class EnergyBalance:
         gravity: (world_count, 3) [m/s^2] per world.
         synchronise: True for semi-implicit Euler (kinetic energy from the synchronised velocity).
         springs: the model whose springs hold the elastic energy (default ``model``).
+        shared: a batch's ``SharedSprings`` (``kernels/world_step.py``: springs stored once for every
+            world) read in place of ``springs``.
         margin: relative gain that counts as unstable.
     """
 
-    def __init__(self, model, forces, colliders, gravity, *, synchronise=True, springs=None, margin=MARGIN):
+    def __init__(self, model, forces, colliders, gravity, *, synchronise=True, springs=None, shared=None,
+                 margin=MARGIN):
         self.model = model
         self.device = model.device
         self.forces = list(forces)
@@ -103,6 +106,7 @@ class EnergyBalance:
         self.driving = [f for f in self.forces if energy_role(f) == "driving"]
         self.synchronise = bool(synchronise)
         self.springs = model if springs is None else springs
+        self.shared = shared
         self.margin = float(margin)
         n = int(getattr(model, "world_count", 1) or 1)
         self.world_count = n
@@ -120,7 +124,7 @@ class EnergyBalance:
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
         self._zero_time = wp.zeros(1, dtype=float, device=d)  # the clock of driving forces when none is given
         self.sums = wp.zeros((n, 6), dtype=float, device=d)
-        self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if n == 1 else None
+        self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if n == 1 and shared is None else None
         self.reference = wp.zeros((n, 3), dtype=float, device=d)  # modified, plain and gravity energy at frame 0
         self.scale = wp.ones(n, dtype=float, device=d)
         self.work = wp.zeros(n, dtype=float, device=d)
@@ -145,19 +149,22 @@ class EnergyBalance:
             f.eval(state.positions, state.velocities, self._zero_time if time is None else time, 0.0, out)
 
     def _launch_sums(self, state, dt) -> wp.array:
-        m, s, d = self.model, self.springs, self.device
+        m, s, d, n = self.model, self.springs, self.device, self.world_count
         half_dt = 0.5 * float(dt) if self.synchronise else 0.0
-        broken = getattr(s, "spring_broken", None)
-        broken = self._no_int if broken is None or s.spring_count == 0 else broken
         d0, d1 = (self.drive if self.driving else (self._zeros, self._zeros))
         common = [state.positions, self.q_start, state.velocities, d0, d1, m.particle_mass,
                   m.particle_inv_mass, self.world_gravity, half_dt]
+        if self.shared is not None:
+            wp.launch(K.world_energy_sums_shared, n, inputs=[*common, m.particle_count // n, self.shared],
+                      outputs=[self.sums], device=d)
+            return self.sums
+        broken = getattr(s, "spring_broken", None)
+        broken = self._no_int if broken is None or s.spring_count == 0 else broken
         springs = [s.spring_indices, s.spring_rest_length, s.spring_stiffness, broken]
         if self._reduction is not None:
             wp.launch(K.energy_sums_strided, self._reduction.slots,
                       inputs=[*common, *springs, int(s.spring_count)], outputs=[self._reduction.partials], device=d)
             return self._reduction.finish().reshape((1, 6))
-        n = self.world_count
         wp.launch(K.world_energy_sums, n, inputs=[*common, m.particle_count // n, *springs, int(s.spring_count) // n],
                   outputs=[self.sums], device=d)
         return self.sums
@@ -168,35 +175,37 @@ class EnergyBalance:
         m = self.model
         wp.copy(self.q_start, state.positions)
         self._eval_driving(state, time, self.drive[0])
-        sums = self._launch_sums(state, dt).numpy()
+        sums = self._launch_sums(state, dt).numpy().astype(np.float64)
         n = self.world_count
+        # host work is per world row (slices, row sums, minima), so a world's scale does not depend on
+        # which other worlds share its batch (a sweep split over devices writes the same table)
         q = state.positions.numpy().astype(np.float64)
-        v = state.velocities.numpy().astype(np.float64)
-        mass = m.particle_mass.numpy().astype(np.float64)
         moving = m.particle_inv_mass.numpy() > 0
-        mass = np.where(moving, mass, 0.0)
+        mass = np.where(moving, m.particle_mass.numpy().astype(np.float64), 0.0)
         P = len(q) // n
-        q, v, mass = q.reshape(n, P, 3), v.reshape(n, P, 3), mass.reshape(n, P)
-        kinetic = 0.5 * np.einsum("wp,wpk,wpk->w", mass, v, v)
-        g_norm = np.linalg.norm(self.gravity, axis=1)
-        potential = np.zeros(n)
-        for w in range(n):
-            if g_norm[w] == 0.0 or not moving.reshape(n, P)[w].any():
-                continue
-            up = -self.gravity[w] / g_norm[w]
-            heights = q[w] @ up
-            low = float(heights[moving.reshape(n, P)[w]].min())
-            floors = [h for h in _floor_heights(self.colliders, up) if h <= low + 1e-9]
-            ref = max(floors) if floors else low
-            potential[w] = float(np.sum(mass[w] * g_norm[w] * (heights - ref)))
+        q, mass, moving = q.reshape(n, P, 3), mass.reshape(n, P), moving.reshape(n, P)
         total_mass = mass.sum(axis=1)
         self._world_mass = total_mass
+        g_norm = np.linalg.norm(self.gravity, axis=1)
+        up = -self.gravity / np.where(g_norm > 0, g_norm, 1.0)[:, None]
+        heights = (q * up[:, None, :]).sum(axis=2)  # (n, P) [m] along each world's up
+        low = np.where(moving, heights, np.inf).min(axis=1)
+        ref = low.copy()
+        for direction in np.unique(up, axis=0):  # floors (static planes facing up) under the lowest particle
+            floors = np.asarray(_floor_heights(self.colliders, direction), dtype=np.float64)
+            rows = np.all(up == direction, axis=1)
+            if len(floors):
+                under = np.where(floors[None, :] <= low[rows, None] + 1e-9, floors[None, :], -np.inf).max(axis=1)
+                ref[rows] = np.where(np.isfinite(under), under, low[rows])
+        # sums[:, 3] = sum m |g| h: the potential above the reference is that minus M |g| ref
+        potential = np.where((g_norm > 0) & moving.any(axis=1) & np.isfinite(ref),
+                             sums[:, 3] - total_mass * g_norm * np.where(np.isfinite(ref), ref, 0.0), 0.0)
+        kinetic_elastic = sums[:, 0] - sums[:, 3]
         # a floor of 1 mm of the world's weight (or 1 nJ) keeps a ball at rest on the floor judgeable
         floor = total_mass * np.maximum(g_norm, 1e-3) * 1e-3 + 1e-9
-        elastic = np.maximum(sums[:, 0] - kinetic - self._gravity_energy(q, mass), 0.0)
         # semi-implicit Euler's samples from rest lie on a parabola g dt^2 / 8 above the release point
         offset = total_mass * g_norm**2 * float(dt) ** 2 / 8.0 if self.synchronise else 0.0
-        scale = np.maximum(kinetic + elastic + potential + offset, floor)
+        scale = np.maximum(kinetic_elastic + np.maximum(potential, 0.0) + offset, floor)
         self.scale.assign(scale.astype(np.float32))
         self.reference.assign(np.stack([sums[:, 0] + sums[:, 1], sums[:, 0], sums[:, 3]], axis=1).astype(np.float32))
         self.work.zero_()
@@ -232,10 +241,6 @@ class EnergyBalance:
         wp.copy(self.q_start, state.positions)
         if self.driving:
             wp.copy(self.drive[0], self.drive[1])
-
-    def _gravity_energy(self, q, mass) -> np.ndarray:
-        """-sum m g . x per world [J] ((n, P, 3) positions, (n, P) masses)."""
-        return -np.einsum("wp,wpk,wk->w", mass, q, self.gravity)
 
     def set_limits(self, step: float, limits) -> None:
         """Runaway thresholds per world from the step [s] and each world's stability limit [s]

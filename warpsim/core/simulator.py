@@ -308,7 +308,7 @@ class Simulator:
                                      synchronise=synchronise,
                                      springs=None if self.stability_model is None else self.stability_model())
         self._energy.start(st, h, time=self._time)
-        self._energy_step = None  # the step the runaway threshold was set for
+        self._energy_step: float | None = None  # the step the runaway threshold was set for
 
     def restart_energy(self) -> None:
         """Take the energy balance's reference again at the next step (after editing the state,
