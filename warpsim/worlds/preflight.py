@@ -175,15 +175,16 @@ def steps_note(scene, frame_dt, substeps, frames) -> str | None:
     if limit is not None and math.isfinite(getattr(limit, "dt", math.inf)) and limit.dt > 0:
         by = f", set by {limit.who()} (stability limit {limit.dt:.3g} s)"
         wanted = math.ceil(frame_dt / (AUTO_SAFETY * limit.dt) - 1e-9)
-    total = steps * max(int(frames), 1)
-    if steps >= AUTO_MAX_SUBSTEPS and wanted is not None and wanted > steps:
+    frames = int(frames)
+    total = steps * frames
+    if steps == AUTO_MAX_SUBSTEPS and wanted is not None and wanted > steps:
         return (f"the automatic step count stopped at its cap of {AUTO_MAX_SUBSTEPS:,} steps a frame (step "
                 f"{frame_dt / steps:.3g} s); the stability limit {limit.dt:.3g} s of {limit.who()} wants {wanted:,}: "
                 "the step stays above it and the run may blow up; lower the stiffness or use integrator "
                 "implicit_euler")
     if steps > STEPS_NOTE:
-        return (f"{steps:,} steps a frame (step {frame_dt / steps:.3g} s{by}): {frames} frames take {total:,} steps; "
-                "lower the stiffness (or --fps) for fewer")
+        run = f": {frames} frames take {total:,} steps" if frames >= 1 else ""
+        return f"{steps:,} steps a frame (step {frame_dt / steps:.3g} s{by}){run}; lower the stiffness (or --fps) for fewer"
     return None
 
 
