@@ -211,7 +211,8 @@ def test_batched_worlds_each_collide_their_own_tori(tmp_path):
 
 @pytest.mark.parametrize("setting, words", [("count=0", ["count=0", "> 0"]), ("count=-3", ["count=-3"]),
                                             ("thickness=0", ["thickness=0"]), ("thickness=-0.01", ["thickness"]),
-                                            ("count=100000000", ["count=100000000", "GiB", "free", "lower count"])])
+                                            ("count=100000000", ["count=100000000", "GiB", "free", "lower count"]),
+                                            ("contact_stiffness=-5", ["contact_stiffness=-5.0", ">= 0"])])
 def test_bad_donuts_input_exits_2_with_one_line(tmp_path, setting, words):
     from warpsim.cli import main
 

@@ -12,7 +12,8 @@ with the floor and each other (``ws.ParticleCollisions``). Prims: ``wall`` (poin
 ``broken`` per curve, custom ``warpsim:brokenCount`` and ``warpsim:brokenThisFrame``), ``floor``.
 
 ``donuts``: ``count`` soft tori (``ws.torus_mesh`` + ``ws.add_soft_body``, surface springs and
-an interior lattice, built once and copied) dropped in layers into a box sized to the count;
+an interior lattice, built once and copied in NumPy: ``replicate_model``, ``SoftContact.copies``;
+1,000 tori x 2,000 vertices build in 3.5 s) dropped in layers into a box sized to the count;
 ``ws.SoftContact`` keeps them apart (vertices against the other tori's triangles, edges against
 their edges) so they pile up and come to rest. Each step ``dt`` is split into the inner steps
 the springs' stability limit needs (:func:`stable_inner_steps`). Prims:
