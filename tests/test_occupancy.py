@@ -265,7 +265,6 @@ def test_tracked_record_equals_the_cached_samples_and_their_cells(tmp_path):
 @pytest.mark.parametrize("args, words", [
     (["--occupancy-res", "0"], ["--occupancy-res 0", "1..256"]),
     (["--occupancy-bounds", "0,0,0,1,-1,1"], ["y1 = -1 < y0 = 0"]),
-    (["--inside", "0,0,0,1,1,1@0:1", "--ray"], ["drop --ray"]),
 ])
 def test_bad_record_options_exit_2_before_running(tmp_path, args, words):
     code, out, err = run("sweep", "bounce", "--worlds", 2, "--vary", "height=0.1:0.2", "--frames", 5,

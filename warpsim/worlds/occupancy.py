@@ -362,8 +362,9 @@ class OccupancyRecorder:
     recorded without exact positions, the stepping kernel itself marks the cells at each frame's
     last sub-step (``kernels/occupancy.py: CellMarks``) from frame 1 on, so :meth:`update` reads
     no positions; the record is the same bit for bit. Every 32 frames the block's occupied words
-    are compacted on the device and only those move to the host. ``host_seconds`` sums the host
-    time of the flushes (``flush``) and of :meth:`finish` (``finish``)."""
+    are compacted on the device and only those move to the host, where a thread merges them into
+    the record's pairs while the next frames step. ``host_seconds`` sums the host time of the
+    flushes (``flush``) and of :meth:`finish` (``finish``, which waits for the last merge)."""
 
     def __init__(self, batch, frames, *, particles=None, track_names=(), bounds=None,
                  resolution=DEFAULT_RESOLUTION, exact_max=EXACT_MAX, fps=60.0, first_world=0, scene="",
@@ -398,7 +399,10 @@ class OccupancyRecorder:
         self.source_prim = ""
         """Set by the sweep (:func:`find_source_prim`): the prim whose cached points hold the
         recorded particles."""
-        self._blocks: list = []  # (block index, sorted keys world * cells + cell, words)
+        self._keys = np.zeros(0, np.int64)  # the sorted keys world * cell_count + cell flushed so far
+        self._bits = np.zeros((0, max(1, (self.frame_count + 31) // 32)), np.uint32)  # their words
+        self._merging: list = []  # the flushes' merges, run one after another beside the stepping
+        self._merger = None
         self._seen = 0
         g = self.grid
         self._args = (wp.vec3(*g.lo.astype(np.float32)), float(np.float32(1.0 / g.cell_size)),
@@ -469,9 +473,24 @@ class OccupancyRecorder:
         cell = np.array(self._cells_out[:total].numpy()) if total else np.zeros(0, np.uint32)
         words = np.array(self._words_out[:total].numpy()) if total else np.zeros(0, np.uint32)
         world = np.repeat(np.arange(n, dtype=np.int64), np.diff(start))
-        self._blocks.append(((self._seen - 1) // 32, world * cells + cell, words))
+        if self._merger is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._merger = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warpsim-occupancy")
+        self._merging.append(self._merger.submit(self._merge, (self._seen - 1) // 32, world * cells + cell, words))
         self.flushed_bytes += start.nbytes + 8 * total
         self.host_seconds["flush"] += time.perf_counter() - t0
+
+    def _merge(self, block, keys, words):
+        """Add one flush's sorted ``keys`` and their ``words`` (32-frame block ``block``) to the
+        record's pairs (a host thread: it runs while the next frames step)."""
+        union = np.union1d(self._keys, keys)
+        width = max(self._bits.shape[1], block + 1)
+        if len(union) != len(self._keys) or width != self._bits.shape[1]:
+            bits = np.zeros((len(union), width), np.uint32)
+            bits[np.searchsorted(union, self._keys), :self._bits.shape[1]] = self._bits
+            self._keys, self._bits = union, bits
+        self._bits[np.searchsorted(self._keys, keys), block] = words
 
     def finish(self) -> OccupancyRecord:
         if self._seen % 32:
@@ -481,10 +500,15 @@ class OccupancyRecorder:
         t0 = time.perf_counter()
         frame_count = self._seen
         nwords = max(1, (frame_count + 31) // 32)
-        keys = _union_sorted([k for _, k, _ in self._blocks])
-        bits = np.zeros((len(keys), nwords), dtype=np.uint32)
-        for b, k, w in self._blocks:
-            bits[np.searchsorted(keys, k), b] = w
+        for merge in self._merging:  # the last flush's merge, the others long done
+            merge.result()
+        if self._merger is not None:
+            self._merger.shutdown()
+            self._merger = None
+        self._merging = []
+        keys, bits = self._keys, np.ascontiguousarray(self._bits[:, :nwords])
+        if bits.shape[1] < nwords:
+            bits = np.pad(bits, ((0, 0), (0, nwords - bits.shape[1])))
         cells = self.grid.cell_count
         world = keys // cells
         start = np.searchsorted(world, np.arange(self.world_count + 1)).astype(np.int64)
@@ -500,13 +524,3 @@ class OccupancyRecorder:
                                  scene=self.scene, source_prim=self.source_prim)
         self.host_seconds["finish"] += time.perf_counter() - t0
         return record
-
-
-def _union_sorted(arrays):
-    """The sorted union of sorted int64 arrays (np.unique of their concatenation)."""
-    arrays = [a for a in arrays if len(a)]
-    if not arrays:
-        return np.zeros(0, np.int64)
-    if len(arrays) == 1:
-        return arrays[0]
-    return np.unique(np.concatenate(arrays))
