@@ -179,15 +179,16 @@ def test_resume_after_a_kill_in_a_two_device_sweep(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "warpsim", "sweep", *args, "--devices", "cpu,cpu", "--out",
                              str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     indexes = [str(tmp_path / "two" / f"s.batch_{k:04d}.run*.chunks.jsonl") for k in range(2)]
-    deadline = time.time() + 120
-    while proc.poll() is None and time.time() < deadline:  # both blocks have completed chunks
+    deadline = time.time() + 300  # generous: the machine may be loaded
+    listed = [0, 0]
+    while proc.poll() is None and time.time() < deadline and min(listed) < 2:  # both blocks have chunks
         found = [glob.glob(p) for p in indexes]
-        if all(found) and all(sum(1 for _ in open(f[0])) >= 2 for f in found):
-            break
+        listed = [sum(1 for _ in open(f[0])) if f else 0 for f in found]
         time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, "the sweep finished before it could be killed: make it longer"
+    assert min(listed) >= 2, f"chunks listed per block at the kill: {listed}"
     assert not out.exists()
     err = io.StringIO()
     assert main(["sweep", *args, "--devices", "cpu,cpu", "--out", str(out), "--resume"], out=io.StringIO(),
@@ -197,3 +198,24 @@ def test_resume_after_a_kill_in_a_two_device_sweep(tmp_path):
     assert not (out.parent / "s.sweep-partial.json").exists()
     tokens = {p.split(".run")[1].split(".")[0] for p in os.listdir(out.parent) if ".run" in p}
     assert len(tokens) == 1  # only the published run's chunks remain
+
+
+def test_a_gallery_root_over_several_blocks_spaces_worlds_by_their_union(tmp_path):
+    """Two blocks whose worlds sit side by side (each 1 m wide, together 2 m): the grid root
+    spaces the worlds by the union's extent, as one layer of every world would, not by the
+    larger block's own extent."""
+    from pxr import Sdf, Vt
+
+    from warpsim.worlds.usd import write_sweep_root
+
+    layers = []
+    for k, (lo, hi) in enumerate((((0, 0, 0), (1, 0.1, 0.1)), ((1, 0, 0), (2, 0.1, 0.1)))):
+        layer = Sdf.Layer.CreateNew(str(tmp_path / f"s.batch_{k:04d}.usda"))
+        Sdf.CreatePrimInLayer(layer, f"/Worlds/world_{k:06d}").specifier = Sdf.SpecifierDef
+        layer.customLayerData = {"warpsim": {"firstWorld": k, "worldCount": 1, "span": 1.0,
+                                             "lo": Vt.DoubleArray(lo), "hi": Vt.DoubleArray(hi)}}
+        layer.Save()
+        layers.append(layer.identifier)
+    stage = Usd.Stage.Open(write_sweep_root(tmp_path / "s.usda", layers, 2, layout="grid"))
+    translate = stage.GetPrimAtPath("/World/world_000001").GetAttribute("xformOp:translate").Get()
+    assert tuple(translate) == pytest.approx((2.5, 0.0, 0.0))  # 1.25 x the union's 2 m

@@ -4,7 +4,8 @@ Batch layer (one per batch, ``.usdc``): every world of the batch under
 ``/Worlds/world_GGGGGG`` (G: the world's global index), holding the scene's own prims (declared
 once by ``scene.declare`` on a :class:`warpsim.usd.writer.UsdCacheWriter`, never described twice)
 with a time sample per frame. ``customLayerData["warpsim"]`` records ``firstWorld``,
-``worldCount``, ``scene`` and ``span`` (the largest extent of a world [m], for galleries).
+``worldCount``, ``scene``, ``span`` (the largest extent of a world [m], for galleries) and ``lo`` /
+``hi`` (the corners of the worlds' extent [m]: a root over several layers spans their union).
 
 Root (``write_sweep_root``): ``/World`` (the default prim) either carries a variant set ``world``
 with one variant per world (``world_GGGGGG``, referencing that world's prim; the first is
@@ -157,6 +158,8 @@ class BatchLayerWriter(UsdCacheWriter):
         data = dict(layer.customLayerData.get("warpsim", {}))
         data.update(firstWorld=self.first_world, worldCount=self.world_count, scene=self.scene_name, span=span,
                     center=Vt.DoubleArray(list(0.5 * (self.lo + self.hi)) if finite else [0.0, 0.0, 0.0]))
+        if finite:
+            data.update(lo=Vt.DoubleArray(list(self.lo)), hi=Vt.DoubleArray(list(self.hi)))
         layer.customLayerData = {"warpsim": data}
         return layer
 
@@ -170,6 +173,7 @@ class BatchLayerWriter(UsdCacheWriter):
         self.flush()
         self._write_root()  # the final extent (span) even when the last chunk came before it
         self._closed = True
+        self._release_lock()  # the layer's lock file (warpsim.usd.lock) goes with the writer
         return self.path
 
 
@@ -222,6 +226,7 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
         raise ValueError(f"root {out_path!r} is also one of the batch layers it would reference; writing it would "
                          "overwrite that layer's worlds: give the root another name")
     owner, fps, start, end, span = {}, None, None, None, 0.0
+    corners = []  # the layers' extents: the union's span, as one layer of every world would have
     for p in layer_paths:
         layer, info = _layer_info(p)
         for g in range(int(info["firstWorld"]), int(info["firstWorld"]) + int(info["worldCount"])):
@@ -231,6 +236,9 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
             start = layer.startTimeCode if start is None else min(start, layer.startTimeCode)
             end = layer.endTimeCode if end is None else max(end, layer.endTimeCode)
         span = max(span, float(info.get("span", 1.0)))
+        corners.append(np.array([list(info["lo"]), list(info["hi"])]) if "lo" in info and "hi" in info else None)
+    if corners and all(c is not None for c in corners):
+        span = float(np.max(np.max([c[1] for c in corners], axis=0) - np.min([c[0] for c in corners], axis=0)))
     missing = [g for g in range(int(world_count)) if g not in owner]
     if missing and worlds is None:  # a chosen subset (``worlds``) may skip batches without a layer
         raise ValueError(f"world {missing[0]} is in none of the {len(layer_paths)} batch layers; run its batch")
