@@ -237,8 +237,9 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
             end = layer.endTimeCode if end is None else max(end, layer.endTimeCode)
         span = max(span, float(info.get("span", 1.0)))
         corners.append(np.array([list(info["lo"]), list(info["hi"])]) if "lo" in info and "hi" in info else None)
-    if corners and all(c is not None for c in corners):
-        span = float(np.max(np.max([c[1] for c in corners], axis=0) - np.min([c[0] for c in corners], axis=0)))
+    known = [c for c in corners if c is not None]
+    if known and len(known) == len(corners):
+        span = float(np.max(np.max([c[1] for c in known], axis=0) - np.min([c[0] for c in known], axis=0)))
     missing = [g for g in range(int(world_count)) if g not in owner]
     if missing and worlds is None:  # a chosen subset (``worlds``) may skip batches without a layer
         raise ValueError(f"world {missing[0]} is in none of the {len(layer_paths)} batch layers; run its batch")
