@@ -237,9 +237,15 @@ class UsdCacheWriter(PrimSink):
             if self.flatten:
                 self.output_path = self._flatten()
         finally:
-            if self._closed and self._lock is not None:
-                self._lock.release()
+            if self._closed:
+                self._release_lock()
         return self.output_path
+
+    def _release_lock(self) -> None:
+        """Give the output's lock back (once the writer is closed; subclasses' ``close`` call it)."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def __enter__(self):
         return self
