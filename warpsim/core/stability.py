@@ -248,9 +248,15 @@ class StabilityLimit:
         if self.dt == 0.0:
             return (f"dt = {dt:.4g} s is unstable for {self.integrator}: {self.reason}; remedies: "
                     "integrator semi_implicit_euler, rk4 or implicit_euler (or add damping)")
+        if self.limiting == "collider" and self.stiffness == 0.0:
+            return (f"dt = {dt:.4g} s is above the contact limit {self.dt:.4g} s: {self.reason}; a larger step "
+                    f"carries particles past the contact and the collider adds energy; remedies: a step <= "
+                    f"{self.dt:.4g} s (substeps='auto' in Python, --substeps auto on the command line) or "
+                    "mode='reflect' (resolved at the time of impact)")
         return (f"dt = {dt:.4g} s is above the stability limit {self.dt:.4g} s of {self.integrator} set by "
                 f"{self.who()} (omega = {self.omega_max:.4g} rad/s): it will blow up; remedies: a step <= "
-                f"{self.dt:.4g} s (more sub-steps, --substeps auto) or integrator implicit_euler")
+                f"{self.dt:.4g} s (more sub-steps: substeps='auto' in Python, --substeps auto on the command line) or "
+                "integrator implicit_euler")
 
     def substeps_for(self, frame_dt: float, safety: float = AUTO_SAFETY, minimum: int = 1) -> int:
         """Sub-steps per frame of ``frame_dt`` [s] that keep each step <= safety x dt."""
