@@ -484,12 +484,18 @@ class OccupancyRecorder:
     def _merge(self, block, keys, words):
         """Add one flush's sorted ``keys`` and their ``words`` (32-frame block ``block``) to the
         record's pairs (a host thread: it runs while the next frames step)."""
-        union = np.union1d(self._keys, keys)
+        old = self._keys
+        at = np.searchsorted(old, keys)
+        known = at < len(old)
+        known[known] = old[at[known]] == keys[known]
         width = max(self._bits.shape[1], block + 1)
-        if len(union) != len(self._keys) or width != self._bits.shape[1]:
-            bits = np.zeros((len(union), width), np.uint32)
-            bits[np.searchsorted(union, self._keys), :self._bits.shape[1]] = self._bits
-            self._keys, self._bits = union, bits
+        if width != self._bits.shape[1]:
+            self._bits = np.pad(self._bits, ((0, 0), (0, width - self._bits.shape[1])))
+        if not known.all():  # insert the new keys in order (both arrays are sorted: no sort needed)
+            new = keys[~known]
+            where = np.searchsorted(old, new)
+            self._keys = np.insert(old, where, new)
+            self._bits = np.insert(self._bits, where, 0, axis=0)
         self._bits[np.searchsorted(self._keys, keys), block] = words
 
     def finish(self) -> OccupancyRecord:
