@@ -60,22 +60,25 @@ def sweep_seconds(args, worlds, folder, tag, occupancy, frames):
 
 def make_recorder(args, batch, fps, folder, in_step):
     """The recorder a sweep makes (its grid also covers the static geometry the USD writer declares)."""
+    from warpsim.usd.sink import PrimSink
     from warpsim.worlds.occupancy import OccupancyRecorder
-    from warpsim.worlds.usd import BatchLayerWriter
 
-    writer = BatchLayerWriter(os.path.join(folder, "stepping.usdc"), batch.scene, 0, batch.world_count, fps)
-    static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
+    sink = PrimSink()  # the static prims a batch layer declares, without pxr (the GPU machine may lack it)
+    batch.scene.declare(sink)
+    static = [np.asarray(getattr(d.attrs.get("points"), "value", None), np.float64).reshape(-1, 3)
+              for d in sink.prims.values() if not d.is_dynamic and d.attrs.get("points") is not None]
+    static = np.concatenate(static) if static else np.zeros((0, 3))
+    static = static[np.isfinite(static).all(1)]
+    static = np.array([static.min(0), static.max(0)]) if len(static) else None
     track = args.track_map or None
     return OccupancyRecorder(batch, args.frames, particles=list(track.values()) if track else None,
                              track_names=list(track) if track else (), resolution=args.resolution, fps=fps,
                              scene=args.scene, include=static, in_step=in_step)
 
 
-def stepping_record(args, worlds, folder, record=True, in_step=True):
-    """(stepping seconds, recorder seconds, record path or None, recorder): F frames of a batch, the
-    recorder's work timed apart (synchronised), its record saved. On CUDA both run as captured
-    graphs, as in a sweep (``run_batch`` captures a frame's stepping, metrics and recording
-    together). ``record=False``: stepping alone."""
+def fresh_batch(args, worlds):
+    """(batch, metrics, fps, substeps, frame_dt): these worlds built anew, so every run of this
+    bench steps the same frames 0..F from the same state."""
     from warpsim.scenes import get_scene
     from warpsim.worlds.metrics import WorldMetrics
     from warpsim.worlds.sweep import frame_timing, make_batch
@@ -83,7 +86,15 @@ def stepping_record(args, worlds, folder, record=True, in_step=True):
     cls = get_scene(args.scene)
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
     batch = make_batch(cls, worlds, device=args.device)
-    stats = WorldMetrics(batch)
+    return batch, WorldMetrics(batch), fps, substeps, frame_dt
+
+
+def stepping_record(args, worlds, folder, record=True, in_step=True):
+    """(stepping seconds, recorder seconds, record path or None, recorder): F frames of a batch, the
+    recorder's work timed apart (synchronised), its record saved. On CUDA both run as captured
+    graphs, as in a sweep (``run_batch`` captures a frame's stepping, metrics and recording
+    together). ``record=False``: stepping alone."""
+    batch, stats, fps, substeps, frame_dt = fresh_batch(args, worlds)
     rec = None
     if record:
         rec = make_recorder(args, batch, fps, folder, in_step)
@@ -131,14 +142,7 @@ def stepping_record(args, worlds, folder, record=True, in_step=True):
 def profile_record(args, worlds, folder, in_step):
     """Eager frames under ``wp.timing_begin``: {(kind, name): [device ms, launches]}, the recorder,
     and for the separate pass the former host flush / finish timed on the same blocks."""
-    from warpsim.scenes import get_scene
-    from warpsim.worlds.metrics import WorldMetrics
-    from warpsim.worlds.sweep import frame_timing, make_batch
-
-    cls = get_scene(args.scene)
-    fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
-    batch = make_batch(cls, worlds, device=args.device)
-    stats = WorldMetrics(batch)
+    batch, stats, fps, substeps, frame_dt = fresh_batch(args, worlds)
     rec = make_recorder(args, batch, fps, folder, in_step)
     former = {"copy": 0.0, "flatnonzero": 0.0, "gather": 0.0, "finish": 0.0}
     kept = []
@@ -302,6 +306,11 @@ def main():
     print(f"{args.scene} x {args.worlds} worlds x {args.frames} frames on {device} ({device.name}), "
           f"record resolution {args.resolution}{', tracked ' + ', '.join(args.track_map) if args.track_map else ''}")
     occupancy = {"resolution": args.resolution}
+    t_start = time.perf_counter()
+
+    def stage(what):  # progress on stderr (a run cut short still says where it was)
+        print(f"  [{time.perf_counter() - t_start:7.1f} s] {what}", file=sys.stderr, flush=True)
+
     with tempfile.TemporaryDirectory(prefix="bench_occupancy_") as folder:
         small = worlds[: min(4, len(worlds))]
         if args.sweep_frames:
@@ -310,9 +319,13 @@ def main():
             stepping_record(argparse.Namespace(**{**vars(args), "frames": 2}), small, folder)
             stepping_record(argparse.Namespace(**{**vars(args), "frames": 2}), small, folder, in_step=False)
         if args.profile:
+            stage("profile")
             print_profile(args, worlds, folder)
+        stage("stepping without a record")
         t_plain, _, _, _ = stepping_record(args, worlds, folder, record=False)
+        stage("stepping with the separate pass")
         t_apart, t_apart_rec, _, _ = stepping_record(args, worlds, folder, in_step=False)
+        stage("stepping with marks in the step")
         t_step, t_record, rec_path, rec = stepping_record(args, worlds, folder)
         t0 = time.perf_counter()
         record = OccupancyRecord.load(rec_path)
