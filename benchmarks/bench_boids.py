@@ -16,13 +16,16 @@ is timed on at most ``--numpy-agents`` agents (same density) and the ratio compa
 
 import argparse
 import math
+import sys
 import time
 
 import numpy as np
 import warp as wp
 
-from warpsim.agents import reference as R
 from warpsim.agents import BoidParams, Flock
+from warpsim.agents import reference as R
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
+from warpsim.verbosity import set_warp_verbosity
 
 PERCEPTION = 2.0
 
@@ -79,7 +82,7 @@ def check_same_step(device, dt):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=DefaultsHelpFormatter)
     ap.add_argument("--agents", type=int, default=10_000)
     ap.add_argument("--neighbours", type=float, default=20.0, help="mean agents per perception sphere")
     ap.add_argument("--device", default="cpu")
@@ -88,9 +91,9 @@ def main():
     ap.add_argument("--numpy-agents", type=int, default=50_000, help="most agents for the NumPy reference")
     ap.add_argument("--dt", type=float, default=1.0 / 60.0)
     args = ap.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     wp.init()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
 
     diff = check_same_step(device, args.dt)
     print(f"one step, 2,000 agents: max |x_warp - x_numpy| = {diff:.2e} m")
@@ -109,4 +112,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

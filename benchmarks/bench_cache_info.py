@@ -27,6 +27,8 @@ import time
 
 import numpy as np
 
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
+
 
 def make_cache(path, frames, chunk, device):
     import warpsim.cli as cli
@@ -69,7 +71,7 @@ def make_cache(path, frames, chunk, device):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     ap.add_argument("--frames", type=int, default=50000)
     ap.add_argument("--chunk", type=int, default=24)
     ap.add_argument("--device", default="cpu")
@@ -127,4 +129,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

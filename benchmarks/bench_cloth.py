@@ -24,16 +24,20 @@ import argparse
 import ast
 import importlib.util
 import os
+import sys
 import time
 
 import numpy as np
 import warp as wp
 
-wp.config.quiet = True
+from warpsim.verbosity import set_warp_verbosity
+
+set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
 wp.config.log_level = getattr(wp, "LOG_WARNING", wp.config.log_level)  # no module-load lines
 
 import warpsim as ws
 import warpsim.bodies.colliders as ws_colliders
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 
@@ -247,7 +251,7 @@ def run_implicit(dim, args, device):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's preferred device)")
     parser.add_argument("--dims", type=int, nargs="+", default=[32, 64, 128], help="grid sizes (particles per side)")
     parser.add_argument("--implicit-dims", type=int, nargs="*", default=[64, 128, 256])
@@ -264,7 +268,7 @@ def main():
     args = parser.parse_args()
 
     wp.init()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     Cloth, WpIntegrator = load_reference()
     collide = "no collisions" if args.no_collisions else ("floor + sphere" if hasattr(ws_colliders, "Sphere") else "floor")
     print(f"device {device} ({device.name}); {SUBSTEPS} sub-steps per frame at {FPS:g} fps; warpsim colliders: "
@@ -295,4 +299,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -25,12 +25,14 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from warpsim.core.reduction import FixedOrderReduction  # noqa: E402
-from warpsim.grid_fluids.flip import FlipLiquid  # noqa: E402
-from warpsim.grid_fluids.mac_grid import MacGrid  # noqa: E402
 from warpsim.kernels import flip as KF  # noqa: E402
 from warpsim.kernels import grid as KG  # noqa: E402
 from warpsim.kernels.grid import AIR, FLUID, axis_step, label_at  # noqa: E402
+
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
+from warpsim.core.reduction import FixedOrderReduction  # noqa: E402
+from warpsim.grid_fluids.flip import FlipLiquid  # noqa: E402
+from warpsim.grid_fluids.mac_grid import MacGrid  # noqa: E402
 
 
 @wp.kernel
@@ -82,14 +84,14 @@ def report(name, ms_det, ms_atomic):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's preferred)")
     parser.add_argument("--resolution", type=int, default=48, help="FLIP cells along x (default 48)")
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--sum-grid", type=int, default=None,
                         help="cells per side of the domain-sum grid (default 128 on GPUs, 32 on the CPU)")
     args = parser.parse_args(argv)
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     det, atomic = make_flip(args.resolution, True, device), make_flip(args.resolution, False, device)
     print(f"device {device}, FLIP grid {det.grid.shape}, {det.particle_count()} particles (deterministic run), "
           f"{atomic.particle_count()} (atomic run)")
@@ -144,4 +146,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -30,8 +30,10 @@ import time
 import numpy as np
 import warp as wp
 
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
 from warpsim.distributed.devices import device_capacity, parse_devices, split_blocks
 from warpsim.scenes import get_scene
+from warpsim.verbosity import set_warp_verbosity
 from warpsim.worlds import WorldBatch, sample_worlds
 from warpsim.worlds.preflight import estimate_sweep_bytes
 
@@ -159,7 +161,7 @@ def sweep_outputs(folder):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     p.add_argument("--worlds", type=int, default=100_000)
     p.add_argument("--devices", nargs="+", default=["cuda:0", "all"],
                    help="device sets (each as --devices takes it); the first is the reference")
@@ -170,7 +172,7 @@ def main():
                    help="device sets of the whole-sweep comparison (default: those of --devices); the first is "
                         "the reference")
     args = p.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     import warnings
 
     warnings.filterwarnings("ignore", message=".*above the stability limit")
@@ -222,4 +224,4 @@ def main():
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

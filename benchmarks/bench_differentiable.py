@@ -22,15 +22,19 @@ seconds per rollout, the ratios and the rollout's memory (states, stages and the
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 import warp as wp
 
-wp.config.quiet = True
+from warpsim.verbosity import set_warp_verbosity
+
+set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
 
 from timing import time_per_call, time_per_graph_launch
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 
 FPS = 60.0
 
@@ -94,7 +98,7 @@ def bench(dim, steps, substeps, device, graph):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--dims", type=int, nargs="+", default=[16, 32, 64], help="particles per side")
     parser.add_argument("--steps", type=int, default=1000)
@@ -102,7 +106,7 @@ def main(argv=None):
     parser.add_argument("--no-graph", dest="graph", action="store_false",
                         help="skip the captured forward + backward")
     args = parser.parse_args(argv)
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     print(f"device {device}, {args.steps} steps ({args.substeps} sub-steps per frame), cloth semi-implicit Euler")
     print("eager: launched one by one from Python; graph: captured once and replayed (also on the CPU)")
     print(f"{'dim':>5} {'ref fwd [s]':>11} {'fwd [s]':>8} {'f+b [s]':>8} {'graph fwd':>9} {'graph f+b':>9} "
@@ -117,4 +121,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -20,13 +20,15 @@ far faster, so the ratio is a cost per iteration, not per accuracy.
 """
 
 import argparse
+import sys
 
 import numpy as np
 import warp as wp
 from timing import time_per_call
 
-from warpsim.grid_fluids.pressure import PressureSolver
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.grid_fluids.mac_grid import MacGrid
+from warpsim.grid_fluids.pressure import PressureSolver
 from warpsim.grid_fluids.smoke import Smoke
 
 
@@ -62,13 +64,13 @@ def example_fluid_step(mod, state, iterations, dt, device):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
     parser.add_argument("--device", default=None)
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--iterations", type=int, default=100, help="pressure iterations in part 2")
     args = parser.parse_args()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     print(f"device {device}")
     print("part 1: 3D smoke step (MacCormack, vorticity confinement, CG to 1e-5)")
     print(f"{'cells':>10} {'CG it/step':>11} {'s/step':>9} {'cell updates/s':>15}")
@@ -110,4 +112,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

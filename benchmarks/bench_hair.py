@@ -20,17 +20,21 @@ version of this script (``ws.Simulator`` with ``ws.Springs``).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import numpy as np
 import warp as wp
 
-wp.config.quiet = True
+from warpsim.verbosity import set_warp_verbosity
+
+set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
 wp.config.log_level = getattr(wp, "LOG_WARNING", wp.config.log_level)
 
 from timing import time_per_call
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 
 
 def reference_simulator(scene, device):
@@ -84,7 +88,7 @@ def measure(scene, label, steps, device):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--strands", type=int, default=100_000)
     parser.add_argument("--segments", type=int, default=32)
@@ -95,7 +99,7 @@ def main():
     parser.add_argument("--no-sag-free", action="store_true", help="skip the sag-free solve")
     parser.add_argument("--reference", action="store_true", help="also the plain mass-spring stand-in")
     args = parser.parse_args()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
 
     scene, built = build(args, device, "implicit")
     particles = scene.model.particle_count
@@ -135,4 +139,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -8,13 +8,16 @@ copy of the field (its time excludes that copy).
     python benchmarks/bench_marching_cubes.py --device cpu --sizes 64 128 256
 """
 import argparse
+import sys
 import time
 
 import numpy as np
 import warp as wp
 import warp.geometry
 
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.meshing.marching_cubes import MarchingCubes
+from warpsim.verbosity import set_warp_verbosity
 
 
 def make_field(kind, n):
@@ -46,7 +49,7 @@ def best_time(fn, device, repeats, budget_s=3.0):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (default: preferred)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--fields", nargs="+", default=["sphere", "gyroid"], choices=["sphere", "gyroid"])
@@ -55,9 +58,9 @@ def main():
     parser.add_argument("--no-skimage", action="store_true")
     args = parser.parse_args()
 
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     wp.init()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     measure = None
     if device.is_cpu and not args.no_skimage:
         try:
@@ -92,4 +95,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -10,12 +10,15 @@ and the ratio NumPy / warpsim. On CUDA the warpsim step is also timed as a captu
 """
 
 import argparse
+import sys
 
 import numpy as np
 import warp as wp
 from timing import time_per_call, time_per_graph_launch
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
+from warpsim.verbosity import set_warp_verbosity
 
 
 def grid_system(n, spacing=0.02, k=2000.0, kd=0.5, mass=0.01):
@@ -67,13 +70,13 @@ class NumpyMassSpring:
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--grid", type=int, nargs="+", default=[32, 64])
     parser.add_argument("--steps", type=int, default=50)
     args = parser.parse_args()
-    wp.config.quiet = True
-    device = wp.get_device(args.device)
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
+    device = wp.get_device(device_arg(args.device))
     h = 1e-4
     print(f"device: {device} ({device.name})")
     print(f"{'grid':>6} {'particles':>9} {'springs':>8} {'numpy ms':>9} {'warpsim ms':>10} {'ratio':>7}"
@@ -100,4 +103,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

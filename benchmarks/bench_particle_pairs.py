@@ -13,10 +13,14 @@ frame, with the contacts the scene really makes.
 """
 
 import argparse
+import sys
 import time
 
 import numpy as np
 import warp as wp
+
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
+from warpsim.verbosity import set_warp_verbosity
 
 
 def _frame_time(batch, frame_dt, substeps, frames, device):
@@ -29,12 +33,12 @@ def _frame_time(batch, frame_dt, substeps, frames, device):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--worlds", type=int, default=256)
     p.add_argument("--frames", type=int, default=20, help="timed frames (after 6 warm-up frames: the ball hits)")
     args = p.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     from warpsim.bodies.colliders import ParticleCollisions
     from warpsim.scenes import get_scene
     from warpsim.worlds.sweep import frame_timing, make_batch
@@ -72,4 +76,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -16,6 +16,7 @@ SciPy / Warp and the relative difference of the Warp and SciPy pressures.
 """
 
 import argparse
+import sys
 import time
 
 import numpy as np
@@ -23,8 +24,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from warpsim.grid_fluids.pressure import PressureSolver
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.grid_fluids.mac_grid import MacGrid
+from warpsim.grid_fluids.pressure import PressureSolver
 
 
 def make_grid(n, device):
@@ -77,7 +79,7 @@ def time_projection(g, preconditioner, tol, repeats, device):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
     parser.add_argument("--device", default=None)
     parser.add_argument("--tol", type=float, default=1e-5)
@@ -85,7 +87,7 @@ def main():
     parser.add_argument("--preconditioners", nargs="+", default=["jacobi", "rbgs", "mg"],
                         choices=["jacobi", "rbgs", "mg"])
     args = parser.parse_args()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     print(f"device {device}, tol {args.tol:g}; ratios against the first preconditioner "
           f"({args.preconditioners[0]}) and against SciPy CG (float64, Jacobi)")
     print(f"{'cells':>10} {'precond':>8} {'warp it':>8} {'warp s':>9} {'s/it':>9} {'speedup':>8} "
@@ -120,4 +122,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -30,6 +30,8 @@ import sys
 import tempfile
 import time
 
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
+
 
 def sweep(argv):
     """Seconds of ``warpsim sweep ARGV`` run in this process."""
@@ -64,7 +66,7 @@ def batch_lines(folder, name):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=DefaultsHelpFormatter)
     p.add_argument("--scene", default="teapot")
     p.add_argument("--worlds", type=int, default=64)
     p.add_argument("--batches", type=int, default=4)
@@ -126,4 +128,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

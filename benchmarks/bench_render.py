@@ -18,14 +18,17 @@ has triangles; the ratio says what shading, shadows and the sphere BVH cost on t
 """
 import argparse
 import os
+import sys
 import tempfile
 import time
 
 import numpy as np
 import warp as wp
 
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.render import Renderer, frame_bounds
 from warpsim.render.usd_scene import CacheScene
+from warpsim.verbosity import set_warp_verbosity
 
 
 def best_of(fn, device, repeats):
@@ -92,7 +95,7 @@ def reference_raycast(geom, camera, width, height, device):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (default: preferred)")
     parser.add_argument("--case", choices=["teapot", "liquid"], default="teapot")
     parser.add_argument("--points", type=int, default=1_000_000, help="particles of the liquid case")
@@ -101,9 +104,9 @@ def main():
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--keep", default=None, help="also write the picture here (.png)")
     args = parser.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     wp.init()
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     width, height = (int(v) for v in args.size.split("x"))
     with tempfile.TemporaryDirectory() as folder:
         t0 = time.perf_counter()
@@ -139,4 +142,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -20,14 +20,17 @@ NumPy + SciPy-cKDTree reference step of the same method (``warpsim.particle_flui
 
 import argparse
 import math
+import sys
 import time
 
 import numpy as np
 import warp as wp
 
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.particle_fluids.pbf import ParticleFluid
-from warpsim.particle_fluids.smoothing import fluid_block, wall_tables
 from warpsim.particle_fluids.reference import pbf_step_numpy
+from warpsim.particle_fluids.smoothing import fluid_block, wall_tables
+from warpsim.verbosity import set_warp_verbosity
 
 
 def block_for(count, spacing):
@@ -237,7 +240,7 @@ def bench_reference(fluid, steps):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--particles", type=int, default=8000)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--frames", type=int, default=6, help="timed warpsim frames of 1/60 s")
@@ -256,8 +259,8 @@ def main(argv=None):
     parser.add_argument("--reference-max", type=int, default=20000,
                         help="skip the NumPy reference above this many particles")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
-    device = wp.get_device(args.device)
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
+    device = wp.get_device(device_arg(args.device))
 
     ex = bench_warp_example(args.particles, args.steps, device)
     ex_fit = bench_warp_example(args.particles, args.steps, device, fitted_grid=True)
@@ -300,4 +303,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

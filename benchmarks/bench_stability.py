@@ -13,9 +13,13 @@ parameter change, frames every 1/60 s).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import warp as wp
+
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
+from warpsim.verbosity import set_warp_verbosity
 
 
 def _time(fn, repeat):
@@ -86,21 +90,21 @@ def energy_costs(device, cloth, worlds, frames):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=DefaultsHelpFormatter)
     p.add_argument("--device", default=None)
     p.add_argument("--cloth", type=int, default=256, help="cells per side of the grid cloth")
     p.add_argument("--frames", type=int, default=5)
     p.add_argument("--worlds", type=int, default=1000, help="teapot worlds for the sweep's energy check")
     p.add_argument("--energy-only", action="store_true", help="only the energy-check costs")
     args = p.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     import warnings
 
     import warpsim as ws
     from warpsim.scenes import get_scene
 
     warnings.simplefilter("ignore", ws.StabilityWarning)
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     energy_costs(device, args.cloth, args.worlds, args.frames)
     if args.energy_only:
         print(f"device: {device}")
@@ -116,4 +120,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

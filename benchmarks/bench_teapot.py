@@ -19,6 +19,7 @@ also timed as a captured CUDA graph.
 
 import argparse
 import math
+import sys
 
 import numpy as np
 import warp as wp
@@ -28,6 +29,8 @@ from timing import time_per_call, time_per_graph_launch
 import warpsim as ws
 from warpsim.bodies.softbody import add_soft_body
 from warpsim.bodies.teapot import teapot_mesh
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
+from warpsim.verbosity import set_warp_verbosity
 
 DT_LOW = 1.0 / 600.0
 
@@ -76,13 +79,13 @@ class NumpyTeapot(NumpyMassSpring):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--resolution", nargs="+", default=["low", "high"])
     parser.add_argument("--steps", type=int, default=200)
     args = parser.parse_args()
-    wp.config.quiet = True
-    device = wp.get_device(args.device)
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
+    device = wp.get_device(device_arg(args.device))
     print(f"device: {device} ({device.name})")
     print(f"{'res':>5} {'particles':>9} {'springs':>8} {'numpy st/s':>11} {'warpsim st/s':>13} {'ratio':>7}"
           f" {'graph st/s':>11} {'ratio':>7}")
@@ -108,4 +111,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -20,6 +20,9 @@ import socket
 import sys
 import time
 
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
+from warpsim.verbosity import set_warp_verbosity
+
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 ARGS = ["--no-sandbox", "--headless=new", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
@@ -33,7 +36,7 @@ def _free_port():
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--scene", default="teapot")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
@@ -46,7 +49,7 @@ def main(argv=None):
 
     import warp as wp
 
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     from warpsim import cli
     from warpsim.scenes import get_scene
     from warpsim.viewer.server import Viewer
@@ -129,4 +132,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

@@ -42,9 +42,11 @@ from roofline import LaunchRecorder, copy_bandwidth
 import warpsim as ws
 from warpsim.bodies.softbody import add_soft_body
 from warpsim.bodies.teapot import teapot_mesh
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.scenes import get_scene
-from warpsim.worlds import WorldBatch, sample_worlds
 from warpsim.scenes.timing import resolve_timing
+from warpsim.verbosity import set_warp_verbosity
+from warpsim.worlds import WorldBatch, sample_worlds
 from warpsim.worlds.sweep import frame_timing
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
@@ -108,7 +110,7 @@ def build(cls, worlds, device, **kwargs):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     p.add_argument("--device", default=None)
     p.add_argument("--worlds", type=int, default=1024)
     p.add_argument("--sequential", type=int, default=16, help="single-world runs actually timed (scaled to N)")
@@ -122,13 +124,13 @@ def main():
     p.add_argument("--bandwidth-bytes", type=int, default=None, help="bytes of the bandwidth copy (default 1 GiB "
                                                                      "on GPUs, 256 MiB on the CPU)")
     args = p.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     import warnings
 
     # the stiffest sampled teapots sit just past dt's limit (as in the earlier figures); a world
     # that blows up is frozen and counted below
     warnings.filterwarnings("ignore", message=".*above the stability limit")
-    device = wp.get_device(args.device)
+    device = wp.get_device(device_arg(args.device))
     cuda = device.is_cuda
     n = args.worlds
     paths = [x for x in args.paths.split(",") if x and not (args.no_fused and x == "fused")]
@@ -208,4 +210,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

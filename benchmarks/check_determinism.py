@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -124,7 +126,7 @@ def _short(values):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default="", help="Warp device, e.g. cpu or cuda:0 (default: warpsim's default)")
     parser.add_argument("--frames", type=int, default=30, help="frames per run (default 30)")
     parser.add_argument("--scenes", nargs="*", default=None, help="scene names (default: every scene)")
@@ -177,4 +179,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

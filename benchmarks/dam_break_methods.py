@@ -22,9 +22,12 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_dam_break_crosscheck import EARLY, MM_T, MM_Z, at_mm, run_flip_dam_break, run_pbf_dam_break
 
+from warpsim.cli_common import DefaultsHelpFormatter, run_script
+from warpsim.verbosity import set_warp_verbosity
+
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     ap.add_argument("--flip-res", type=int, nargs="+", default=[10, 20, 40], help="FLIP cells per a")
     ap.add_argument("--pbf-res", type=int, nargs="+", default=[10, 20], help="PBF particles per a")
     ap.add_argument("--main-res", type=int, default=20, help="FLIP cells per a of the seed and variant runs")
@@ -32,7 +35,7 @@ def main():
     ap.add_argument("--variants", action="store_true",
                     help="also FLIP with cfl 0.5, pure PIC, and without the density correction")
     args = ap.parse_args()
-    wp.config.quiet = True
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     wp.init()
 
     runs = {}
@@ -72,4 +75,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -23,12 +23,15 @@ step with the multigrid-preconditioned CG), ``cloth`` (``ws.Simulator`` semi-imp
 
 import argparse
 import collections
+import sys
 import time
 
 import numpy as np
 import warp as wp
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
+from warpsim.verbosity import set_warp_verbosity
 
 
 def copy_bandwidth(device, nbytes=1 << 30, repeats=10):
@@ -178,7 +181,7 @@ WORKLOADS = {"sph": (sph_workload, "particles"), "boids": (boids_workload, "agen
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     p.add_argument("--device", default=None)
     p.add_argument("--particles", type=int, default=1_000_000)
     p.add_argument("--agents", type=int, default=1_000_000)
@@ -190,8 +193,8 @@ def main():
                    help="smoke: Smoke(graph=True), the step replayed as a CUDA graph (CG checks on the device)")
     p.add_argument("--only", nargs="+", choices=sorted(WORKLOADS), default=sorted(WORKLOADS))
     args = p.parse_args()
-    wp.config.quiet = True
-    device = wp.get_device(args.device)
+    set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
+    device = wp.get_device(device_arg(args.device))
     bandwidth = copy_bandwidth(device, nbytes=(1 << 30) if device.is_cuda else (1 << 26), repeats=10 if device.is_cuda else 3)
     print(f"device {device} ({device.name}); copy bandwidth {bandwidth / 1e9:.0f} GB/s (read + write)")
     if not device.is_cuda:
@@ -205,4 +208,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

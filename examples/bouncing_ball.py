@@ -14,8 +14,10 @@ its release.
 """
 
 import argparse
+import sys
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.verbosity import set_warp_verbosity
 
 
@@ -42,7 +44,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--dt", type=float, default=0.04)
     parser.add_argument("--restitution", type=float, default=0.5)
@@ -54,6 +56,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     example = Example(restitution=args.restitution, height=args.height, dt=args.dt, integrator=args.integrator,
                       device=args.device, mode=args.mode)
     print(f"{'frame':>5} {'t [s]':>7} {'x':>9} {'y [m]':>10} {'v_y [m/s]':>10}")
@@ -65,4 +68,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -11,13 +11,15 @@ surface (never below the thickness) and the CG iterations.
 """
 
 import argparse
+import sys
 
 import numpy as np
 
 import warpsim as ws
+from warpsim.bodies.colliders import Sphere
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.solver import ClothImplicitEuler, ClothSimulator
-from warpsim.bodies.colliders import Sphere
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
 
@@ -44,7 +46,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--resolution", type=int, default=32, help="cells per side")
     parser.add_argument("--friction", type=float, default=0.4)
@@ -53,6 +55,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     example = Example(args.resolution, friction=args.friction, device=args.device)
     writer = UsdCacheWriter(args.out, fps=60.0)
     example.declare(writer)
@@ -70,4 +73,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -11,10 +11,12 @@ The table lists, per frame, the implicit run's CG iterations and residual and it
 """
 
 import argparse
+import sys
 
 import numpy as np
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.solver import ClothImplicitEuler, ClothSimulator, cloth_energy
 from warpsim.usd.writer import UsdCacheWriter
@@ -37,7 +39,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--resolution", type=int, default=16, help="cells per side (0.1 m each)")
     parser.add_argument("--stiffness", type=float, default=1.0e4, help="spring stiffness [N/m]")
@@ -47,6 +49,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
 
     explicit = Example("semi_implicit_euler", args.resolution, args.stiffness, device=args.device)
     try:
@@ -86,4 +89,4 @@ def mesh_frame(state):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

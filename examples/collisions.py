@@ -14,11 +14,13 @@ The total kinetic + potential energy printed per second never increases for c_R 
 """
 
 import argparse
+import sys
 
 import numpy as np
 
 import warpsim as ws
 from warpsim.bodies.colliders import Capsule, ParticleCollisions, Sphere
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
 
@@ -60,7 +62,7 @@ class BallBox:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--balls", type=int, default=400)
     parser.add_argument("--frames", type=int, default=240)
     parser.add_argument("--substeps", type=int, default=8)
@@ -70,6 +72,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
 
     print("head-on collision, m_a = 1 kg at +2 m/s, m_b = 3 kg at -1 m/s")
     print(f"{'c_R':>5} {'v_a':>9} {'exact':>9} {'v_b':>9} {'exact':>9}")
@@ -94,4 +97,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

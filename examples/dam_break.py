@@ -15,11 +15,13 @@ extra; ``--figure ''`` skips it).
 
 import argparse
 import math
+import sys
 
 import numpy as np
 
-from warpsim.particle_fluids.surface import FluidSurface
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.particle_fluids.pbf import ParticleFluid, fluid_block
+from warpsim.particle_fluids.surface import FluidSurface
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
 
@@ -63,7 +65,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--fps", type=float, default=60.0)
     parser.add_argument("--a", type=float, default=0.2, help="column width a [m] (height 2a)")
@@ -77,6 +79,14 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
+    for flag, value in (("--a", args.a), ("--spacing", args.spacing), ("--depth", args.depth)):
+        if not value > 0.0:
+            raise ValueError(f"{flag} {value:g} must be a positive length [m]")
+    if args.depth < 2.0 * args.spacing or 2.5 * args.a < 2.0 * args.spacing:
+        raise ValueError(f"--spacing {args.spacing:g} m is too coarse for --depth {args.depth:g} m and --a {args.a:g} m: "
+                         f"the box needs at least 2 particle spacings on every axis; use --spacing "
+                         f"{min(args.depth, 2.5 * args.a) / 2.0:g} or less, or a deeper --depth")
     if args.figure:  # matplotlib is the optional "plot" extra: say so before simulating
         from warpsim.extras import MissingExtraError, require_extra
 
@@ -126,4 +136,4 @@ def front_figure(times, fronts, args, path):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -25,6 +25,7 @@ except ImportError:  # SciPy is no dependency of warpsim itself
     raise SystemExit("fit_cloth.py needs SciPy (L-BFGS-B): pip install scipy") from None
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.usd.validate import open_stage
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
@@ -109,7 +110,7 @@ class Fit:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--resolution", type=int, default=8, help="cells per side")
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--hidden", type=float, nargs=2, default=(60.0, 0.05),
@@ -121,6 +122,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     if args.quick:
         args.resolution, args.frames = 5, 12
     write_target(args.out, args.resolution, args.frames, *args.hidden, device=args.device)
@@ -140,4 +142,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_script(main))

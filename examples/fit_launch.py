@@ -64,6 +64,7 @@ except ImportError:  # SciPy is no dependency of warpsim itself
     raise SystemExit("fit_launch.py needs SciPy (L-BFGS-B): pip install scipy") from None
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.scenes import get_scene
 from warpsim.verbosity import set_warp_verbosity
 
@@ -182,7 +183,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--target", type=float, nargs=3, default=(1.5, 0.0, 0.4), help="landing point [m] (y is 0)")
     parser.add_argument("--bounce-time", type=float, default=0.455,
                         help="time of the first bounce [s] (best inside a step, not on a multiple of dt)")
@@ -194,6 +195,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     if args.quick:
         args.duration = 1.1
     try:
@@ -224,4 +226,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_script(main))

@@ -13,10 +13,12 @@ a PointInstancer oriented along their velocity, coloured by state).
 """
 
 import argparse
+import sys
 
 import numpy as np
 
 from warpsim.agents import AgentState, BoidParams, Flock, FoodSources, Obstacles, Terrain, polarization
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.verbosity import set_warp_verbosity
 
 SIZE = 40.0  # side of the periodic world [m]
@@ -80,7 +82,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--frames", type=int, default=240)
     parser.add_argument("--fps", type=float, default=24.0)
     parser.add_argument("--substeps", type=int, default=2)
@@ -92,6 +94,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     example = Example(args.birds, args.geese, device=args.device)
     writer = None
     if args.out:
@@ -115,4 +118,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

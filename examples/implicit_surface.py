@@ -9,11 +9,13 @@ characteristic V - E + F = 2 - 2 genus) and writes one static USD mesh.
 """
 
 import argparse
+import sys
 
 import numpy as np
 import warp as wp
 from warpsim.kernels.implicit_fields import gyroid_ball
 
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.meshing.marching_cubes import marching_cubes
 from warpsim.verbosity import set_warp_verbosity
 
@@ -48,13 +50,14 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--resolution", type=int, default=96, help="grid nodes per axis")
     parser.add_argument("--out", default="usd_out/implicit_surface.usda")
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     example = Example(args.device, args.resolution)
     area, volume, chi = example.stats()
     print(f"{example.mesh.vertex_count} vertices, {example.mesh.face_count} triangles, area {area:.4f} m^2, "
@@ -63,4 +66,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -10,9 +10,11 @@ streamed to USD, and the liquid volume printed per frame (it should stay put).
 
 import argparse
 import math
+import sys
 
 import warp as wp
 
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.grid_fluids.levelset_liquid import LevelSetLiquid
 from warpsim.grid_fluids.mac_grid import MacGrid
 from warpsim.meshing.marching_cubes import MarchingCubes
@@ -47,8 +49,8 @@ class Example:
         writer.write_frame(frame, {"surface": self.mesher.mesh(self.liquid.phi).usd_frame()})
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--fps", type=float, default=30.0)
@@ -56,8 +58,9 @@ def main():
     parser.add_argument("--no-particles", action="store_true", help="plain level set (no marker particles)")
     parser.add_argument("--out", default="usd_out/levelset_liquid.usda")
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     with wp.ScopedDevice(args.device):
         example = Example(args.resolution, particle_level_set=not args.no_particles)
         with UsdCacheWriter(args.out, fps=args.fps) as writer:
@@ -73,4 +76,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

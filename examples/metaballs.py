@@ -10,8 +10,11 @@ where they change; points, normals and extent are sampled every frame.
 """
 
 import argparse
+import sys
 
 import numpy as np
+
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.meshing.marching_cubes import topology_changed
 from warpsim.meshing.metaballs import Metaballs
 from warpsim.verbosity import set_warp_verbosity
@@ -41,7 +44,7 @@ def euler_characteristic(vertex_count, faces):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--frames", type=int, default=90)
     parser.add_argument("--resolution", type=int, default=64, help="grid nodes per axis")
@@ -49,6 +52,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     from warpsim.usd.writer import UsdCacheWriter
 
     example = Example(args.device, args.resolution)
@@ -73,4 +77,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

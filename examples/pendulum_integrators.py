@@ -12,13 +12,15 @@ The figure (E/E0 against time, one line per integrator) goes to ``--figure`` (ma
 """
 
 import argparse
+import sys
 
 import warpsim as ws
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.verbosity import set_warp_verbosity
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--dt", type=float, default=0.01)
     parser.add_argument("--angle", type=float, default=1.0, help="release angle [rad]")
@@ -28,6 +30,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     if args.figure:  # matplotlib is the optional "plot" extra: say so before simulating
         from warpsim.extras import MissingExtraError, require_extra
 
@@ -69,4 +72,4 @@ def energy_figure(runs, args, path):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

@@ -10,13 +10,15 @@ as points with a ``density`` primvar plus a marching-cubes iso-surface of the de
 
 import argparse
 import math
+import sys
 
 import numpy as np
 import warp as wp
 
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.grid_fluids.mac_grid import MacGrid
-from warpsim.meshing.marching_cubes import MarchingCubes
 from warpsim.grid_fluids.smoke import Smoke
+from warpsim.meshing.marching_cubes import MarchingCubes
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
 
@@ -59,16 +61,17 @@ class Example:
         })
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--frames", type=int, default=48)
     parser.add_argument("--fps", type=float, default=24.0)
     parser.add_argument("--resolution", type=int, default=24, help="cells across the 1 m wide domain")
     parser.add_argument("--out", default="usd_out/smoke.usda")
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     with wp.ScopedDevice(args.device):
         example = Example(args.resolution)
         with UsdCacheWriter(args.out, fps=args.fps) as writer:
@@ -84,4 +87,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main))

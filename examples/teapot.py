@@ -24,6 +24,7 @@ import warpsim as ws
 from warpsim.bodies.drag import DragSpring
 from warpsim.bodies.softbody import add_soft_body
 from warpsim.bodies.teapot import teapot_mesh
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
 
@@ -78,7 +79,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--frames", type=int, default=180)
     parser.add_argument("--resolution", default="low", help="low, high or segments per patch edge")
     parser.add_argument("--mass", type=float, default=1.0, help="total mass [kg]")
@@ -91,6 +92,7 @@ def main(argv=None):
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
     set_warp_verbosity(args.verbose)
+    args.device = device_arg(args.device)  # one line naming the devices there are
     example = Example(args.resolution, args.mass, args.stiffness, args.damping, args.dt, args.integrator,
                       args.device)
     print(f"teapot: {example.model.particle_count} particles, {example.model.spring_count} springs")
@@ -120,4 +122,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

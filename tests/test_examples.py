@@ -170,3 +170,54 @@ def test_examples_name_a_missing_optional_module(tmp_path, name, blocked, args, 
     result = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode in (1, 2) and says in result.stderr, result.stderr[-2000:]
     assert "Traceback" not in result.stderr and not list(tmp_path.iterdir())
+
+
+def _example_module(name):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name[:-3], ROOT / "examples" / name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+ALL_EXAMPLES = sorted(p.name for p in (ROOT / "examples").glob("*.py"))
+
+
+@pytest.mark.parametrize("name", ALL_EXAMPLES)
+def test_every_example_fails_in_one_line_and_shows_its_defaults(name, tmp_path, capsys, monkeypatch):
+    """A device that does not exist is one line naming the devices there are and exit 2 (as the
+    ``warpsim`` command line), before anything is built or written; ``--help`` shows the defaults."""
+    from warpsim.cli_common import run_script
+
+    monkeypatch.chdir(tmp_path)
+    module = _example_module(name)
+    capsys.readouterr()
+    assert run_script(module.main, ["--device", "nosuch:0"], prog=name) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"{name}: error: --device 'nosuch:0' is not available"), err
+    assert "available: cpu" in err and not list(tmp_path.iterdir())
+    with pytest.raises(SystemExit) as exit_:
+        module.main(["--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    parser_defaults = [line for line in (ROOT / "examples" / name).read_text().splitlines()
+                       if "add_argument(" in line and "default=" in line and "store_true" not in line
+                       and "default=None" not in line]
+    assert parser_defaults and text.count("(default:") >= len(parser_defaults), text
+
+
+@pytest.mark.parametrize("script, args, says", [
+    ("examples/dam_break.py", ["--spacing", "0.06"], "dam_break.py: error: --spacing 0.06 m is too coarse"),
+    ("examples/teapot.py", ["--frames", "ten"], "argument --frames: invalid int value: 'ten'"),
+    ("benchmarks/bench_mass_spring.py", ["--device", "cuda:9"], "bench_mass_spring.py: error: --device 'cuda:9'"),
+])
+def test_a_bad_value_is_one_line_and_exit_2(script, args, says, tmp_path):
+    """Run as a user runs them: no traceback, one line on stderr, exit status 2, nothing written."""
+    result = subprocess.run([sys.executable, str(ROOT / script), *args], cwd=tmp_path, capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr and says in result.stderr, result.stderr
+    assert result.stderr.strip().splitlines()[-1].count(":") >= 2 and not list(tmp_path.iterdir())
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 or script.endswith("teapot.py"), lines  # argparse: usage line + the error

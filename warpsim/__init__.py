@@ -99,7 +99,12 @@ __all__ = [
 
 def __getattr__(name):
     """Lazy public names: everything in ``__all__`` is imported on first use (see _load_all);
-    ``ws.Viewer`` (the browser viewer) imports viser only when first used."""
+    ``ws.Viewer`` (the browser viewer) imports viser only when first used. The first one applies
+    warpsim's quiet default to Warp (``warpsim.verbosity``: ``$WARPSIM_VERBOSE=1`` shows its banner)."""
+    if name in __all__ and not name.startswith("__"):
+        from .verbosity import set_warp_verbosity
+
+        set_warp_verbosity()
     if name == "Viewer":
         from .viewer.server import Viewer
 
