@@ -30,6 +30,7 @@ varied parameters, ``springs=false`` so a world's USD holds its surface only):
     python benchmarks/bench_occupancy.py --device cuda:0 --worlds 10000 --frames 120 --sweep-frames 6
     python benchmarks/bench_occupancy.py --device cpu --worlds 1000 --frames 120 --sweep-frames 12
     python benchmarks/bench_occupancy.py --device cpu --worlds 16 --frames 8 --repeat 1   # check
+    python benchmarks/bench_occupancy.py --merge-check 105000   # host only: finish's merge
 """
 
 import argparse
@@ -189,6 +190,35 @@ def profile_record(args, worlds, folder, in_step):
     return table, rec, record, former
 
 
+def merge_check(pairs, worlds=10000, cells=4212, blocks=4, seed=0):
+    """Host only: the former ``finish`` (``np.unique`` of every flushed key, then a column per
+    block) against the recorder's per-flush merges (sorted insertion), on ``blocks`` flushes of
+    about ``pairs`` random keys each; prints both [ms]."""
+    from warpsim.worlds.occupancy import OccupancyRecorder
+
+    rng = np.random.default_rng(seed)
+    flushed = []
+    for b in range(blocks):
+        k = np.unique(rng.integers(0, worlds * cells, pairs)).astype(np.int64)
+        flushed.append((b, k, rng.integers(1, 2 ** 32, len(k), dtype=np.uint64).astype(np.uint32)))
+    t0 = time.perf_counter()
+    keys = np.unique(np.concatenate([k for _, k, _ in flushed]))
+    bits = np.zeros((len(keys), blocks), np.uint32)
+    for b, k, w in flushed:
+        bits[np.searchsorted(keys, k), b] = w
+    former = time.perf_counter() - t0
+    rec = OccupancyRecorder.__new__(OccupancyRecorder)
+    rec._keys, rec._bits = np.zeros(0, np.int64), np.zeros((0, blocks), np.uint32)
+    merges = []
+    for b, k, w in flushed:
+        t0 = time.perf_counter()
+        rec._merge(b, k, w)
+        merges.append(time.perf_counter() - t0)
+    assert np.array_equal(rec._keys, keys) and np.array_equal(rec._bits, bits)
+    print(f"  merge check, {len(keys)} pairs in {blocks} flushes: former finish {1e3 * former:.1f} ms; merges per "
+          f"flush {', '.join(f'{1e3 * m:.1f}' for m in merges)} ms (finish waits for the last only)")
+
+
 def print_profile(args, worlds, folder):
     for in_step in (False, True):
         table, rec, record, former = profile_record(args, worlds, folder, in_step)
@@ -288,7 +318,12 @@ def main():
     p.add_argument("--repeat", type=int, default=2, help="sweeps with and without a record (alternating)")
     p.add_argument("--queries", type=int, default=20)
     p.add_argument("--profile", action="store_true", help="device time per kernel and copy, host time per step")
+    p.add_argument("--merge-check", type=int, default=0, metavar="PAIRS",
+                   help="only compare the former finish with the per-flush merges on 4 flushes of PAIRS random keys")
     args = p.parse_args()
+    if args.merge_check:
+        merge_check(args.merge_check)
+        return 0
     wp.config.quiet = True
     wp.init()
     vary = args.vary or (VARY if args.scene == "teapot" else [])
