@@ -64,19 +64,24 @@ class ClothSemiImplicitEuler(Integrator):
     """Semi-implicit (symplectic) Euler for cloth with the spring, gravity and update kernels
     fused. ``mode``: "scatter" (a spring-force kernel, per particle over the model's CSR
     adjacency in spring order, + a particle kernel; handles breakable springs), "gather" (one
-    particle-centric kernel per step over packed adjacency lists; ClothSimulator ping-pongs its
-    output arrays) or None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2
-    particles, see benchmarks/bench_cloth.py), scatter on the CPU. Neither uses float atomics:
-    both are bit-reproducible (they sum in different orders, so they agree to float rounding).
-    ``deterministic=False`` (scatter mode only): the former per-spring kernel with float atomics,
-    whose summation order varies run to run on GPUs (an opt-out for speed comparisons)."""
+    particle-centric kernel per step over packed adjacency lists, each spring evaluated at both
+    ends), "owner" (two particle kernels per step: each spring evaluated once, by its lower end's
+    thread, which keeps the sum of its own springs and writes each one's force on the other end to
+    a slot of that end's incoming list; then each particle sums its slots in a fixed order and is
+    updated) or None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2
+    particles, see benchmarks/bench_cloth.py), owner on the CPU (scatter where springs can break).
+    "gather" and "owner" step out of place (ClothSimulator ping-pongs its state arrays). None
+    uses float atomics: all are bit-reproducible (they sum in different orders, so they agree to
+    float rounding). ``deterministic=False`` (scatter mode only): the former per-spring kernel
+    with float atomics, whose summation order varies run to run on GPUs (an opt-out for speed
+    comparisons)."""
 
     name = "cloth_semi_implicit_euler"
 
     def __init__(self, mode: str | None = None, deterministic: bool = True):
         super().__init__()
-        if mode not in (None, "scatter", "gather"):
-            raise ValueError(f"mode = {mode!r}; use 'scatter', 'gather' or None (automatic)")
+        if mode not in (None, "scatter", "gather", "owner"):
+            raise ValueError(f"mode = {mode!r}; use 'scatter', 'gather', 'owner' or None (automatic)")
         if not isinstance(deterministic, (bool, np.bool_)):
             raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.requested_mode = mode
@@ -85,21 +90,58 @@ class ClothSemiImplicitEuler(Integrator):
     def _allocate(self, system):
         model, d = system.model, system.device
         breakable = getattr(model, "breakable_spring_count", 0)
-        auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES and not breakable else "scatter"
+        if breakable:
+            auto = "scatter"
+        else:
+            auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES else "owner"
         self.mode = self.requested_mode or auto
-        if self.mode == "gather" and breakable:
-            raise ValueError(f"mode='gather' cannot break springs (its adjacency lists carry no spring index) and "
-                             f"this model has {breakable} breakable springs; use mode='scatter' or None")
+        if self.mode in ("gather", "owner") and breakable:
+            raise ValueError(f"mode={self.mode!r} cannot break springs (its adjacency lists carry no spring index) "
+                             f"and this model has {breakable} breakable springs; use mode='scatter' or None")
         if self.mode == "gather" and system.count >= GATHER_MAX_PARTICLES:
             raise ValueError(f"mode='gather' handles fewer than {GATHER_MAX_PARTICLES} particles (indices are packed "
                              f"in 24 bits), this model has {system.count}; use mode='scatter'")
         self.gravity, self.springs, self.others = _split_forces(system)
         self.f.zero_()
         self.f_ext = wp.zeros(system.count if self.others else 1, dtype=wp.vec3, device=d)
-        if self.mode == "gather":
+        if self.out_of_place:
             self.q_tmp = wp.zeros(system.count, dtype=wp.vec3, device=d)
             self.qd_tmp = wp.zeros(system.count, dtype=wp.vec3, device=d)
+        if self.mode == "gather":
             self._build_adjacency(model)
+        elif self.mode == "owner":
+            self._build_owned(model)
+
+    @property
+    def out_of_place(self) -> bool:
+        """True when a step reads (q, qd) and writes other arrays (``step_to``): "gather", "owner"."""
+        return getattr(self, "mode", None) in ("gather", "owner")
+
+    def _build_owned(self, model):
+        """"owner" mode's lists: each spring is owned by its lower end i (entries (j, parameter row,
+        slot), grouped by i, by j within a group) and holds one slot in the incoming list of its
+        upper end j (slots grouped by j, by i within a group): both orders fixed at build time."""
+        n, d = model.particle_count, model.device
+        pairs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        lo, hi = pairs.min(axis=1), pairs.max(axis=1)
+        params = np.stack([model.spring_rest_length.numpy(), model.spring_stiffness.numpy(),
+                           model.spring_damping.numpy()], axis=1).astype(np.float32)
+        table, kind = np.unique(params, axis=0, return_inverse=True)
+        kind = kind.reshape(-1)
+        own = np.lexsort((hi, lo))  # owned entries: by lower end, then upper end
+        incoming = np.lexsort((lo, hi))  # incoming slots: by upper end, then lower end
+        slot = np.empty(len(pairs), dtype=np.int64)
+        slot[incoming] = np.arange(len(pairs))
+        self.owned_offsets = wp.array(np.concatenate([[0], np.cumsum(np.bincount(lo, minlength=n))]).astype(np.int32),
+                                      dtype=int, device=d)
+        self.incoming_offsets = wp.array(
+            np.concatenate([[0], np.cumsum(np.bincount(hi, minlength=n))]).astype(np.int32), dtype=int, device=d)
+        entries = np.stack([hi[own], kind[own], slot[own]], axis=1).astype(np.int32)
+        self.owned = wp.array(entries if len(pairs) else np.zeros((0, 3), np.int32), dtype=wp.vec3i, device=d)
+        self.owned_table = wp.array(table.reshape(-1, 3) if len(table) else np.zeros((1, 3), np.float32),
+                                    dtype=wp.vec3, device=d)
+        self.owned_f = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.incoming_f = wp.zeros(max(len(pairs), 1), dtype=wp.vec3, device=d)
 
     def _build_adjacency(self, model):
         """Per-particle spring lists for the gather kernel, grouped by particle. Packed (4 bytes an
@@ -133,11 +175,21 @@ class ClothSemiImplicitEuler(Integrator):
             force.eval(q, qd, time, 0.0, f)
 
     def step_to(self, system, q, qd, time, dt, q_out, qd_out) -> None:
-        """Gather mode: read (q, qd), write the stepped state to (q_out, qd_out) (other arrays)."""
+        """Gather and owner modes: read (q, qd), write the stepped state to (q_out, qd_out) (other
+        arrays)."""
         self.prepare(system)
         if self.others:
             self.f_ext.zero_()
             self._external(system, q, qd, time, self.f_ext)
+        if self.mode == "owner":
+            wp.launch(KC.eval_cloth_owned_springs, system.count,
+                      inputs=[q, qd, self.owned_offsets, self.owned, self.owned_table, self.owned_f, self.incoming_f],
+                      device=system.device)
+            wp.launch(KC.step_cloth_owned, system.count,
+                      inputs=[q, qd, self.f_ext, int(bool(self.others)), self.owned_f, self.incoming_offsets,
+                              self.incoming_f, system.inv_mass, self.gravity, float(dt), q_out, qd_out],
+                      device=system.device)
+            return
         wp.launch(KC.step_cloth_gather, system.count,
                   inputs=[q, qd, self.f_ext, int(bool(self.others)), self.adjacency_offsets, self.adjacency,
                           self.adjacency_table, system.inv_mass, self.gravity, float(dt), q_out, qd_out],
@@ -145,7 +197,7 @@ class ClothSemiImplicitEuler(Integrator):
 
     def step(self, system, q, qd, time, dt, f_out=None):
         self.prepare(system)
-        if self.mode == "gather":
+        if self.out_of_place:
             if f_out is not None:
                 system.eval_forces(q, qd, time, 0.0, f_out)
             self.step_to(system, q, qd, time, dt, self.q_tmp, self.qd_tmp)
@@ -480,7 +532,7 @@ class ClothSimulator(Simulator):
         self._graphs.clear()
 
     def _gather(self) -> bool:
-        return isinstance(self.integrator, ClothSemiImplicitEuler) and self.integrator.mode == "gather"
+        return isinstance(self.integrator, ClothSemiImplicitEuler) and self.integrator.out_of_place
 
     def _substep(self, h: float, time_offset_steps: int, pingpong: bool) -> None:
         """One sub-step: integrate, collide, (advance time). No host read-back."""
