@@ -403,8 +403,13 @@ def _cmd_run(args, out, err):
     if note:
         print(f"warpsim: note: {note}", file=err)
     try:
+        from .usd.writer import settings_run_id
+
+        run_id = settings_run_id({"scene": cls.name, "params": params, "fps": fps, "frame_dt": frame_dt,
+                                  "steps": substeps, "auto": auto, "frames": args.frames, "chunk": args.chunk,
+                                  "device": str(device)})  # runs that differ tell their chunks apart in 'info'
         writer = UsdCacheWriter(path, fps=fps, chunk_size=args.chunk, flatten=args.flatten,
-                                resume_frame=start if args.resume else None)
+                                resume_frame=start if args.resume else None, run_id=run_id)
         scene.declare(writer)
         writer.begin()
     except ValueError as exc:

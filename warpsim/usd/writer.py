@@ -48,7 +48,7 @@ from .lock import OutputLock
 from .prims import ARRAY_TYPES, close_matches
 from .sink import PrimSink, state_frame_data
 
-__all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter"]
+__all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter", "settings_run_id"]
 
 ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -75,6 +75,17 @@ def to_vt(type_name, value):
     if type_name == "string":
         return str(value)
     return wrap[type_name](value)
+
+
+def settings_run_id(settings) -> str:
+    """A run id from a run's settings (a JSON-able dict): two runs of the same settings get the same
+    id (their files stay byte-identical; their frames are too, so a mix of them is harmless) and
+    runs that differ get different ones (``warpsim info`` tells their chunks apart)."""
+    import hashlib
+    import json
+
+    text = json.dumps(settings, sort_keys=True, default=lambda v: list(v) if isinstance(v, tuple) else str(v))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def _fsync(path):
@@ -119,6 +130,9 @@ class UsdCacheWriter(PrimSink):
         root_prim: name of the default prim holding every declared prim.
         durable: ``fsync`` files before renaming them (survives power loss, not only process kills).
         save_bytes: bytes of samples held in memory before the chunk file is saved incrementally.
+        run_id: names this run in the root layer and every chunk index line (letters and digits;
+            None: a random one; :func:`settings_run_id` gives one from the run's settings, so two
+            runs of the same settings write byte-identical files). A resumed cache keeps its own.
 
     Declare prims (``add_points``, ``add_mesh``, ``add_curves``, ``add_instancer``, static
     ``add_plane``/``add_sphere``/``add_box``/``add_static_mesh``, extra ``add_primvar``/
@@ -128,7 +142,7 @@ class UsdCacheWriter(PrimSink):
     """
 
     def __init__(self, path, fps=60.0, chunk_size=24, flatten=False, *, resume_frame=None, root_prim="World",
-                 durable=True, save_bytes=64 << 20):
+                 durable=True, save_bytes=64 << 20, run_id=None):
         path = os.path.abspath(os.fspath(path))
         self.dirname, base = os.path.split(path)
         self.stem, ext = os.path.splitext(base)
@@ -160,7 +174,9 @@ class UsdCacheWriter(PrimSink):
         self._sealed = False
         self._closed = False
         self._lock = None  # the output's lock (warpsim.usd.lock), held from begin() to close()
-        self.run_id = secrets.token_hex(6)  # names this run in the root layer and every index line
+        if run_id is not None and not (isinstance(run_id, str) and run_id.isalnum()):
+            raise ValueError(f"run_id {run_id!r} must be letters and digits, e.g. settings_run_id(settings)")
+        self.run_id = run_id or secrets.token_hex(6)  # names this run in the root layer and every index line
 
     # ------------------------------------------------------------------ declarations
     # add_points, add_mesh, add_curves, add_instancer, add_static_mesh, add_plane, add_box,
