@@ -462,7 +462,9 @@ def _cmd_run(args, out, err):
                     progress = None
                 writer.close()
                 kept = f"frames {writer.chunks[0][0]}..{writer.chunks[-1][1]}" if writer.chunks else "no frames"
-                msg = str(exc)
+                from .usd.pxr_errors import error_line
+
+                msg = error_line(exc) if isinstance(exc, OSError) else str(exc)  # no bare "[Errno 28]"
                 if not msg.startswith("frame"):
                     msg = f"frame {frame}: {msg}"
                 print(f"warpsim: simulation failed at {msg}\nwarpsim: kept {kept} in {writer.output_path}", file=err)
