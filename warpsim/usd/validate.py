@@ -348,12 +348,13 @@ def describe_ranges(ranges) -> str:
     return ", ".join(f"{a}..{b}" if a != b else f"{a}" for a, b in ranges) or "none"
 
 
-def check_damage(path, allow_damaged=False, what="draw"):
+def check_damage(path, allow_damaged=False, what="draw", verify=None):
     """Frames to leave out of ``path`` (a set; empty for an intact cache) after checking its
-    chunk index like ``warpsim info``. Without ``allow_damaged`` a damaged cache raises
-    :class:`DamagedCacheError` naming the first damaged chunk and the readable frames."""
+    chunk index like ``warpsim info`` (``verify``: as :func:`chunk_health`; False: sizes only).
+    Without ``allow_damaged`` a damaged cache raises :class:`DamagedCacheError` naming the first
+    damaged chunk and the readable frames."""
     if isinstance(path, str) or isinstance(path, os.PathLike):
-        report = damage_report(path)
+        report = damage_report(path, verify)
     else:
         return set()
     if not report or not report["damaged"]:

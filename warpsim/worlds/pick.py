@@ -67,7 +67,7 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
         from ..usd.validate import DamagedCacheError
 
         try:
-            check_damage(owner[world], allow_damaged, what="pick")
+            check_damage(owner[world], allow_damaged, what="pick", verify=False)  # sizes: cheap per thumbnail
         except DamagedCacheError:
             raise
         except ValueError as exc:  # the batch layer itself does not open: the sweep is damaged (exit 1)
