@@ -38,22 +38,6 @@ from ..kernels import soft_contact as K
 from . import meshtools
 
 
-def _morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices sorting ``points`` (N, 3) along a Morton (Z-order) curve of their bounding box
-    (10 bits an axis): neighbours in the order are neighbours in space (the patches)."""
-    lo, hi = points.min(0), points.max(0)
-    cells = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023.0).astype(np.uint64)
-
-    def spread(x):
-        x = (x | (x << np.uint64(16))) & np.uint64(0x030000FF)
-        x = (x | (x << np.uint64(8))) & np.uint64(0x0300F00F)
-        x = (x | (x << np.uint64(4))) & np.uint64(0x030C30C3)
-        return (x | (x << np.uint64(2))) & np.uint64(0x09249249)
-
-    code = spread(cells[:, 0]) | (spread(cells[:, 1]) << np.uint64(1)) | (spread(cells[:, 2]) << np.uint64(2))
-    return np.argsort(code, kind="stable")
-
-
 def _body_faces(body, k: int) -> np.ndarray:
     faces = getattr(body, "faces", body)
     try:
@@ -88,10 +72,8 @@ class SoftContact(Collider):
         edge_contact: also keep surface edges apart (edge-edge contact; without it long edges
             can cross where no vertex is near).
         broad_phase: "bvh" (two levels: the bodies' bounds, then the other bodies' subtrees of
-            grouped BVHs over all triangles and edges), "patches" (one BVH over patches of
-            ``PATCH`` triangles or edges along a Morton curve of each body; own-body patches
-            skipped, the others' items tested linearly) or "all_pairs" (every vertex against
-            every triangle of its world: the O(n^2) reference).
+            grouped BVHs over all triangles and edges) or "all_pairs" (every vertex against every
+            triangle of its world: the O(n^2) reference).
         rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
             only; None: ``REBUILD_EVERY_CUDA`` / ``REBUILD_EVERY_CPU``; ``rebuild_period`` changes
             it later). A refit keeps the tree of the last rebuild, whose boxes swell as bodies
@@ -105,8 +87,6 @@ class SoftContact(Collider):
 
     CHUNK = 8
     """Contact vertices per thread of the body-bounds pass."""
-    PATCH = 16
-    """Triangles (edges) per patch of broad_phase="patches"."""
     REBUILD_EVERY_CUDA = 10
     """Default BVH rebuild period on CUDA (steps; refits in between). Measured on the H100
     (``bench_donuts.py --rebuild-every``): a step of a settled heap of 12 tori x 2,000 vertices
@@ -152,8 +132,8 @@ class SoftContact(Collider):
         self.push = float(push)
         if not (math.isfinite(self.push) and 0.0 <= self.push <= 1.0):
             raise ValueError(f"SoftContact push is {push}; it must be in [0, 1] (fraction of the depth removed per step)")
-        if broad_phase not in ("bvh", "patches", "all_pairs"):
-            raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh', 'patches' or 'all_pairs'")
+        if broad_phase not in ("bvh", "all_pairs"):
+            raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh' or 'all_pairs'")
         self.broad_phase = broad_phase
         if rebuild_every is not None and (isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int)
                                           or rebuild_every < 0):
@@ -215,21 +195,10 @@ class SoftContact(Collider):
         tri, vert, edges = [], [], []
         topo_verts = [np.unique(f) for f in self._topologies]
         topo_edges = [meshtools.edge_topology(f)[0] if self.edge_contact else None for f in self._topologies]
-        # triangles and edges of each topology along a Morton curve of the first such body's
-        # positions at bind (the patches of broad_phase="patches" are runs of this order)
-        x0 = model.particle_q.numpy().astype(np.float64)
-        topo_faces = []
-        for t, f in enumerate(self._topologies):
-            first = self._body_offset[int(np.flatnonzero(self._body_topology == t)[0])]
-            at = x0[np.clip(f + first, 0, n - 1)]
-            topo_faces.append(f[_morton_order(at.mean(1))])
-            topo_edge = topo_edges[t]
-            if topo_edge is not None:
-                topo_edges[t] = topo_edge[_morton_order(x0[np.clip(topo_edge + first, 0, n - 1)].mean(1))]
         seen = np.full(n, -1, dtype=np.int64)
         for k in order:
             t, offset = self._body_topology[k], self._body_offset[k]
-            faces = topo_faces[t] + offset
+            faces = self._topologies[t] + offset
             verts = topo_verts[t] + offset
             if verts[0] < 0 or verts[-1] >= n:
                 raise ValueError(f"SoftContact bodies[{k}]: triangle index {int(verts[-1])} is out of range "
@@ -308,8 +277,6 @@ class SoftContact(Collider):
                                     groups=self._edge_body)
             self._body_edge_root = wp.zeros(bodies, dtype=int, device=d)
         self._find_roots()
-        if self.broad_phase == "patches":
-            self._bind_patches(counts, sorted_world, ints)
         slots = self.vertex_count + self.edge_count
         self._contact_particles = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=d)
         self._contact_weights = wp.zeros(slots, dtype=wp.vec4, device=d)
@@ -319,42 +286,6 @@ class SoftContact(Collider):
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self.record_candidates(False)
-
-    def _bind_patches(self, counts, sorted_world, ints) -> None:
-        """Patches of PATCH consecutive triangles (edges) of one body, their bounds and BVHs."""
-        d = self.model.device
-        self._patches = {}
-        for kind in ("tri", "edge") if self.edge_contact else ("tri",):
-            per_body = -(-counts[kind] // self.PATCH)
-            body = np.repeat(np.arange(len(per_body)), per_body)
-            within = np.arange(len(body)) - (np.cumsum(per_body) - per_body)[body]
-            start = np.concatenate([[0], np.cumsum(counts[kind])])
-            patch_start = ints(np.append(start[body] + within * self.PATCH, start[-1]))
-            world = ints(sorted_world[body])  # kept: the BVH reads its groups by pointer
-            lower = wp.empty(len(body), dtype=wp.vec3, device=d)
-            upper = wp.empty(len(body), dtype=wp.vec3, device=d)
-            items = (self._tri_lower, self._tri_upper) if kind == "tri" else (self._edge_lower, self._edge_upper)
-            wp.launch(K.patch_bounds, len(body), inputs=[patch_start, *items, lower, upper], device=d)
-            bvh = wp.Bvh(lower, upper, constructor=self._constructor, groups=world)
-            roots = wp.zeros(self.world_count, dtype=int, device=d)
-            self._patches[kind] = (patch_start, ints(body), world, lower, upper, items, bvh, roots)
-        self._patch_roots()
-
-    def _patch_roots(self) -> None:
-        for patch_start, _, _, _, _, _, bvh, roots in self._patches.values():
-            wp.launch(K.group_roots, self.world_count, inputs=[bvh.id, roots], device=self.model.device)
-
-    def _update_patches(self) -> None:
-        d = self.model.device
-        rebuild = self._rebuild and (self._steps - 1) % self._rebuild == 0
-        for patch_start, _, _, lower, upper, items, bvh, _ in self._patches.values():
-            wp.launch(K.patch_bounds, lower.shape[0], inputs=[patch_start, *items, lower, upper], device=d)
-            if rebuild:
-                bvh.rebuild(self._constructor)
-            else:
-                bvh.refit()
-        if rebuild:
-            self._patch_roots()
 
     def record_candidates(self, on: bool = True) -> None:
         """Diagnostics: with ``on``, every later step also writes, per vertex and per edge query,
@@ -464,22 +395,6 @@ class SoftContact(Collider):
                 wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, self._edge_world,
                                                                      self._edges, self._edge_body, state.positions,
                                                                      q_prev, *common, v, *contact], device=d)
-        elif self.broad_phase == "patches":
-            wp.launch(K.triangle_bounds, self.triangle_count, inputs=[self._tri, state.positions, self._tri_lower,
-                                                                      self._tri_upper], device=d)
-            if e:
-                self._launch_edge_bounds(state.positions, q_prev)
-            self._update_patches()
-            start, body, _, _, _, (lo, hi), bvh, roots = self._patches["tri"]
-            wp.launch(K.find_vertex_contacts_patches, v, inputs=[bvh.id, roots, start, body, lo, hi, *vertex,
-                                                                 *common, *contact, self._candidates_vertex],
-                      device=d)
-            if e:
-                start, body, _, _, _, (lo, hi), bvh, roots = self._patches["edge"]
-                wp.launch(K.find_edge_contacts_patches, e, inputs=[bvh.id, roots, start, body, lo, hi,
-                                                                   self._edge_world, self._edges, self._edge_body,
-                                                                   state.positions, q_prev, *common, v, *contact,
-                                                                   self._candidates_edge], device=d)
         else:
             self._launch_bounds(state.positions, q_prev)
             if e:
