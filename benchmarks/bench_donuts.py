@@ -20,6 +20,11 @@ step time to the first one's (linear in the number of tori would be M / count).
     python benchmarks/bench_donuts.py --device cpu --count 3 --segments 16 --sides 8 --settle 200  # quick
     python benchmarks/bench_donuts.py --device cuda:0 --settle 3000 --steps 500
     python benchmarks/bench_donuts.py --device cuda:0 --count 1000 --settle 3000 --steps 200
+    python benchmarks/bench_donuts.py --device cuda:0 --settle 1000 --steps 50 --profile  # kernel table
+
+``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
+and synchronisations per step, and the contact search's candidates per query
+(``SoftContact.record_candidates``); ``--rebuild-every N`` sets the contact's BVH rebuild period.
 """
 
 import argparse
