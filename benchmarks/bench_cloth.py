@@ -10,11 +10,14 @@ warpsim builds the same cloth with ``add_cloth_grid`` and steps it with ``ClothS
 colliding it with a floor and a sphere (``--no-collisions`` to skip them); ``--modes simulator``
 also steps it with the generic ``ws.Simulator`` at its defaults (semi-implicit Euler, gravity,
 blow-up test every step, one ``step()`` per sub-step); all run in this process, frame by frame,
-interleaved. Then implicit Euler (Baraff-Witkin, one step per frame):
-frame time and CG iterations.
+interleaved; ``--repeats`` repeats that in the same process (the spread of the ratio across
+repeats is printed: on a shared machine only ratios measured side by side mean anything).
+``--profile`` times every launch of one warpsim frame alone against the reference's launches.
+Then implicit Euler (Baraff-Witkin, one step per frame): frame time and CG iterations.
 
     python benchmarks/bench_cloth.py --device cpu --dims 32 64 128 --implicit-dims 64 128
     python benchmarks/bench_cloth.py --device cpu --dims 64 --implicit-dims --modes auto simulator --no-collisions
+    python benchmarks/bench_cloth.py --device cpu --dims 64 --implicit-dims --modes auto scatter --repeats 5 --profile
     python benchmarks/bench_cloth.py --device cuda:0 --dims 32 64 128 256 512 1024 --implicit-dims 64 128 256
 """
 
@@ -142,16 +145,23 @@ def colliders(dim, thickness):
 
 
 class Timer:
+    """Wall time [s] of each call, and this thread's CPU time [s] (``cpu``): on the CPU device
+    Warp runs kernels on the calling thread, so the CPU time is the work done, without the time
+    the thread waited for a core on a shared machine."""
+
     def __init__(self, device):
         self.device = device
         self.times = []
+        self.cpu = []
 
     def __call__(self, fn):
         wp.synchronize_device(self.device)
+        c = time.thread_time()
         t = time.perf_counter()
         fn()
         wp.synchronize_device(self.device)
         self.times.append(time.perf_counter() - t)
+        self.cpu.append(time.thread_time() - c)
 
 
 def host_copy(sim, device):
@@ -216,6 +226,8 @@ def run_explicit(dim, args, device, Cloth, WpIntegrator):
         t_ref(theirs)
         for ours, timer in runs.values():
             timer(ours)
+    if args.cpu_time:
+        return model, np.array(t_ref.cpu), {mode: np.array(timer.cpu) for mode, (_, timer) in runs.items()}
     return model, np.array(t_ref.times), {mode: np.array(timer.times) for mode, (_, timer) in runs.items()}
 
 
@@ -228,6 +240,87 @@ def agreement(dim, device, WpIntegrator, frames=10):
         x_ref = ref.simulate(1.0 / FPS, SUBSTEPS)
         sim.frame(1.0 / FPS, SUBSTEPS)
     return float(np.abs(np.asarray(x_ref) - sim.state.positions.numpy()).max())
+
+
+def record_frame(sim, ref, dt):
+    """([(kernel, recorded launch), ...] of one eager warpsim frame, the same of one reference
+    frame) in launch order: every ``wp.launch``, ``wp.copy`` and warpsim cached launch."""
+    import warpsim.core.forces as ws_forces
+
+    launch, copy, cached = wp.launch, wp.copy, ws_forces.cached_launch
+    recorded = []
+
+    def recording_launch(kernel, dim, inputs=(), outputs=(), device=None, record_cmd=False, **kw):
+        cmd = launch(kernel, dim, inputs=inputs, outputs=outputs, device=device, record_cmd=True, **kw)
+        recorded.append((kernel.key, cmd.launch))
+        if record_cmd:
+            return cmd
+        cmd.launch()
+        return None
+
+    def recording_copy(dst, src, *a, **kw):
+        recorded.append(("wp.copy", lambda: copy(dst, src, *a, **kw)))
+        copy(dst, src, *a, **kw)
+
+    def plain_cached(kernel, dim, inputs, device, cache, key=None, size=8):
+        recording_launch(kernel, dim, inputs=list(inputs), device=device)
+
+    wp.launch, wp.copy, ws_forces.cached_launch = recording_launch, recording_copy, plain_cached
+    try:
+        sim._frame_body(dt, SUBSTEPS)
+        ours = list(recorded)
+        recorded.clear()
+        ref.simulate(dt, SUBSTEPS)
+        theirs = list(recorded)
+    finally:
+        wp.launch, wp.copy, ws_forces.cached_launch = launch, copy, cached
+    return ours, theirs
+
+
+def profile(dim, args, device, WpIntegrator, repeats=40):
+    """Per-launch profile of one frame: the recorded frames (warpsim's, then the reference's)
+    replayed ``repeats`` times in launch order, each launch timed alone (thread CPU time with
+    ``--cpu-time``); per frame = launches a frame x min (and 10th percentile)."""
+    dt = 1.0 / FPS
+    ref = WpIntegrator(ReferenceCloth(dim), device)
+    for mode in [m for m in args.modes if m != "simulator"]:
+        model, _ = warpsim_model(dim, device)
+        sim = ClothSimulator(model, ClothSemiImplicitEuler(None if mode == "auto" else mode),
+                             colliders=[] if args.no_collisions else colliders(dim, 0.01))
+        for _ in range(args.warmup):
+            sim.frame(dt, SUBSTEPS)
+            ref.simulate(dt, SUBSTEPS)
+        ours_list, theirs_list = record_frame(sim, ref, dt)
+        ours, theirs = {}, {}
+        for group, prefix, cmds in ((theirs, "ref ", theirs_list), (ours, "", ours_list)):
+            for name, fn in cmds:
+                group.setdefault(prefix + name, []).append(fn)
+        everything = list(theirs.items()) + list(ours.items())
+        times = {k: [] for k, _ in everything}
+        clock = time.thread_time if args.cpu_time else time.perf_counter
+        for _ in range(repeats):
+            for prefix, cmds in (("ref ", theirs_list), ("", ours_list)):
+                for name, fn in cmds:
+                    wp.synchronize_device(device)
+                    t = clock()
+                    fn()
+                    wp.synchronize_device(device)
+                    times[prefix + name].append(clock() - t)
+
+        def per_frame(name, q):
+            return 1e3 * np.percentile(times[name], q) * len(dict(everything)[name])
+
+        ref_total = sum(per_frame(k, 10) for k in theirs)
+        print(f"profile, {dim}^2, ClothSimulator mode {sim.integrator.mode}: per frame [ms] = launches a frame x "
+              f"(min, 10th percentile) of {repeats} timings of each launch alone; share of the reference's kernels")
+        print(f"| {'kernel':30s} | launches | min [ms] | p10 [ms] | share |")
+        for name, fns in everything:
+            print(f"| {name:30s} | {len(fns):8d} | {per_frame(name, 0):8.3f} | {per_frame(name, 10):8.3f} | "
+                  f"{per_frame(name, 10) / ref_total:5.3f} |")
+        total = sum(per_frame(k, 10) for k in ours)
+        print(f"| {'warpsim total':30s} |          | {sum(per_frame(k, 0) for k in ours):8.3f} | {total:8.3f} | "
+              f"{total / ref_total:5.3f} |")
+        print(flush=True)
 
 
 def run_implicit(dim, args, device):
@@ -258,10 +351,16 @@ def main():
     parser.add_argument("--frames", type=int, default=60, help="timed frames per size")
     parser.add_argument("--implicit-frames", type=int, default=30)
     parser.add_argument("--warmup", type=int, default=3, help="untimed frames (compilation, graph capture)")
-    parser.add_argument("--modes", nargs="+", choices=["auto", "scatter", "gather", "simulator"],
+    parser.add_argument("--modes", nargs="+", choices=["auto", "scatter", "gather", "owner", "simulator"],
                         default=["auto"],
-                        help="warpsim explicit kernel layouts to time (auto: scatter on CPU, gather on CUDA; "
+                        help="warpsim explicit kernel layouts to time (auto: owner on CPU, gather on CUDA; "
                              "simulator: the generic ws.Simulator with default settings, one step() per sub-step)")
+    parser.add_argument("--cpu-time", action="store_true",
+                        help="frame times as this thread's CPU time (CPU device: the work done, less the waits "
+                             "for a core on a shared machine) instead of wall time")
+    parser.add_argument("--repeats", type=int, default=1, help="timed runs of --frames frames per size, same process")
+    parser.add_argument("--profile", action="store_true",
+                        help="per-launch kernel times of one frame of each ClothSimulator mode at the first size")
     parser.add_argument("--no-collisions", action="store_true", help="warpsim without floor and sphere")
     parser.add_argument("--cg-tol", type=float, default=1.0e-4)
     parser.add_argument("--cg-max", type=int, default=200)
@@ -276,18 +375,30 @@ def main():
     print(f"agreement with the reference after 10 frames at {args.dims[0]}^2 (no colliders): "
           f"max |x_ref - x_warpsim| = {agreement(args.dims[0], device, WpIntegrator):.2e} m")
     print()
-    print("semi-implicit Euler: frame time [ms], median (min); ratio = warpsim / reference (< 1: warpsim faster)")
+    if args.profile:
+        profile(args.dims[0], args, device, WpIntegrator)
+    clock = "thread CPU time" if args.cpu_time else "wall time"
+    print(f"semi-implicit Euler: frame time [ms] ({clock}), median (min); ratio = warpsim / reference (< 1: warpsim "
+          "faster);")
+    print("ratio med: median over frames of (warpsim frame / the reference frame timed next to it)")
     print(f"{'grid':>7} {'particles':>10} {'springs':>9} {'Warp ref':>17} {'warpsim':>17} {'ratio med':>10} "
           f"{'ratio min':>10}  layout")
     frame_ref = {}
     for dim in args.dims:
-        model, t_ref, t_ws = run_explicit(dim, args, device, Cloth, WpIntegrator)
-        frame_ref[dim] = np.median(t_ref)
-        for mode, t in t_ws.items():
-            print(f"{dim:>5}^2 {model.particle_count:>10} {model.spring_count:>9} "
-                  f"{1e3 * np.median(t_ref):>9.3f} ({1e3 * t_ref.min():>5.3f}) "
-                  f"{1e3 * np.median(t):>9.3f} ({1e3 * t.min():>5.3f}) {np.median(t) / np.median(t_ref):>10.3f} "
-                  f"{t.min() / t_ref.min():>10.3f}  {mode}", flush=True)
+        ratios = {}
+        for _ in range(max(1, args.repeats)):
+            model, t_ref, t_ws = run_explicit(dim, args, device, Cloth, WpIntegrator)
+            frame_ref[dim] = np.median(t_ref)
+            for mode, t in t_ws.items():
+                ratios.setdefault(mode, []).append(np.median(t / t_ref))
+                print(f"{dim:>5}^2 {model.particle_count:>10} {model.spring_count:>9} "
+                      f"{1e3 * np.median(t_ref):>9.3f} ({1e3 * t_ref.min():>5.3f}) "
+                      f"{1e3 * np.median(t):>9.3f} ({1e3 * t.min():>5.3f}) {ratios[mode][-1]:>10.3f} "
+                      f"{t.min() / t_ref.min():>10.3f}  {mode}", flush=True)
+        if args.repeats > 1:
+            for mode, r in ratios.items():
+                print(f"{dim:>5}^2 {mode}: ratio med over {len(r)} repeats: {min(r):.3f} - {max(r):.3f} "
+                      f"(median {np.median(r):.3f})", flush=True)
     if args.implicit_dims:
         print()
         print(f"implicit Euler (Baraff-Witkin), 1 step per frame, CG tol {args.cg_tol:g}: median frame time [ms]")
