@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import importlib.util
 import os
 import sys
@@ -277,6 +278,12 @@ def record_frame(sim, ref, dt):
     return ours, theirs
 
 
+def per_frame_ms(times, launches, name, q):
+    """Per-frame cost [ms] of kernel ``name``: its launches a frame x the q-th percentile of its
+    single-launch times [s]."""
+    return 1e3 * np.percentile(times[name], q) * launches[name]
+
+
 def profile(dim, args, device, WpIntegrator, repeats=40):
     """Per-launch profile of one frame: the recorded frames (warpsim's, then the reference's)
     replayed ``repeats`` times in launch order, each launch timed alone (thread CPU time with
@@ -307,12 +314,13 @@ def profile(dim, args, device, WpIntegrator, repeats=40):
                     wp.synchronize_device(device)
                     times[prefix + name].append(clock() - t)
 
-        def per_frame(name, q):
-            return 1e3 * np.percentile(times[name], q) * len(dict(everything)[name])
+        launches = {name: len(fns) for name, fns in everything}
+        per_frame = functools.partial(per_frame_ms, times, launches)
 
         ref_total = sum(per_frame(k, 10) for k in theirs)
         print(f"profile, {dim}^2, ClothSimulator mode {sim.integrator.mode}: per frame [ms] = launches a frame x "
-              f"(min, 10th percentile) of {repeats} timings of each launch alone; share of the reference's kernels")
+              f"(min, 10th percentile) of {repeats} timings ({'thread CPU' if args.cpu_time else 'wall'} time) of "
+              "each launch alone; share: p10 against the reference's kernels' p10")
         print(f"| {'kernel':30s} | launches | min [ms] | p10 [ms] | share |")
         for name, fns in everything:
             print(f"| {name:30s} | {len(fns):8d} | {per_frame(name, 0):8.3f} | {per_frame(name, 10):8.3f} | "
