@@ -2,8 +2,8 @@
 after one bounce.
 
 The ball is the ``bounce`` scene's (the lecture's): 1 kg from (0, 0.04, 0) m, gravity -9.81 m/s^2,
-a floor at y = 0 with the lecture's reflection (restitution 0.5: a penetration h becomes 0.5 h
-above the floor and v_n -> -0.5 v_n), semi-implicit Euler, here at dt = 0.01 s; the example
+a floor at y = 0 with the lecture's reflection (``collision="seed"``; restitution 0.5: a penetration h
+becomes 0.5 h above the floor and v_n -> -0.5 v_n), semi-implicit Euler, here at dt = 0.01 s; the example
 builds that scene and runs its model, forces and floor through ``ws.Simulator(...,
 differentiable=True)``, which records the flight on a ``wp.Tape``.
 
@@ -84,7 +84,7 @@ class Example:
         if not (0.0 < bounce_time < duration and 0.0 < dt < bounce_time):
             raise ValueError(f"bounce_time {bounce_time} s, duration {duration} s, dt {dt} s: "
                              "give 0 < dt < bounce_time < duration")
-        self.scene_params = {"dt": dt}
+        self.scene_params = {"dt": dt, "collision": "seed"}  # the lecture's reflection (see the docstring)
         scene = get_scene("bounce")(self.scene_params, device=device)
         s = scene.sim
         self.restitution = s.colliders[0].restitution
