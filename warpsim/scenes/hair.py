@@ -186,7 +186,7 @@ class Hair(SimulatorScene):
             self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0)
         # the blow-up test (a device read-back) once per frame, not once per strand step
         self.sim.check_every = self.strand_steps(1.0 / self.fps)
-        self.sag_report = sag_free(self.sim) if p["sag_free"] else None
+        self.sag_report = self._sag_free(p) if p["sag_free"] else None
         self._curve_particles = self.hair.curve_particles().reshape(-1)
         self._free_particles = self.hair.free_particles()
         from ..viewer.geometry import icosphere
@@ -194,6 +194,29 @@ class Hair(SimulatorScene):
         verts, tris = icosphere(3)
         self._head_local = verts.astype(np.float64) * HEAD_RADIUS
         self._head_tris = tris
+
+    # seconds per particle of the sag-free solve, measured: CPU 36,000 particles in 47 s (2 cores
+    # under load), H100 3.4 M particles in 220 s
+    SAG_FREE_RATE = {"cpu": 1.3e-3, "cuda": 6.5e-5}
+
+    def _sag_free(self, p):
+        """``sag_free(self.sim)``, saying on stderr what it does and about how long it takes when
+        that is more than 2 s (the viewer's start-up is mostly this)."""
+        import sys
+        import time
+
+        device = str(self.model.device)
+        estimate = self.model.particle_count * self.SAG_FREE_RATE["cpu" if device.startswith("cpu") else "cuda"]
+        loud = estimate > 2.0
+        if loud:
+            print(f"warpsim: hair: solving the sag-free rest state of {p['strands']:,} strands x {p['segments']} "
+                  f"segments on {device} (about {estimate:.0f} s; --set sag_free=false skips it) ...",
+                  file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        report = sag_free(self.sim)
+        if loud:
+            print(f"warpsim: hair: sag-free done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+        return report
 
     def strand_steps(self, h):
         """Strand steps per sub-step of ``h`` [s]: ``steps`` per 1/60 s (implicit), or inside the
@@ -221,8 +244,19 @@ class Hair(SimulatorScene):
             raise ValueError(f"{key}={value}: it must be >= 0")
         set_contact([self.head, self.floor], friction=value)
 
+    @property
+    def drag_stiffness_hint(self):
+        """The viewer's drag spring [N/m] when the step is implicit (it takes the drag spring's
+        Jacobian): the strands' median stretch stiffness, so a grabbed vertex follows about as
+        firmly as its segments hold it; None for the explicit step (the viewer's cap)."""
+        return float(np.median(self.hair.stretch_stiffness)) if self.implicit else None
+
     def drag_map(self):
-        return {"hair_vertices": self._free_particles}
+        """The free strand vertices (``hair_vertices``) and the drawn curves (``hair``: per segment
+        end, the particle of that curve vertex; the viewer picks the one nearest the pointer's ray)."""
+        curves = self.hair.curve_particles()
+        ends = np.stack([curves[:, :-1], curves[:, 1:]], axis=2).reshape(-1)
+        return {"hair_vertices": self._free_particles, "hair": ends}
 
     # ------------------------------------------------------------------ output
     def declare(self, writer):

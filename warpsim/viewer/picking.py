@@ -5,12 +5,15 @@
 * :func:`pick_point`: the grabbable point nearest a ray (within its drawn radius, if given).
 * :func:`camera_plane_target`: the pointer's ray met with the plane through the grabbed point
   that faces the camera: where the drag spring pulls the grabbed particle.
+* :func:`segment_ribbons`: crossed ribbons around drawn curve segments (hair): a mesh the browser
+  can hit, so a click on the curves picks the nearest curve point to the pointer's ray.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["camera_plane_target", "pick_mesh_vertex", "pick_point", "pointer_ray", "ray_triangles"]
+__all__ = ["camera_plane_target", "pick_mesh_vertex", "pick_point", "pointer_ray", "ray_triangles", "segment_ribbons",
+           "segment_ribbon_triangles"]
 
 
 def _unit(v, what):
@@ -103,3 +106,32 @@ def camera_plane_target(ray_origin, ray_direction, grabbed_point, view_direction
     if abs(denom) < 1e-9:
         return g.copy()
     return o + ((g - o) @ n / denom) * d
+
+
+def segment_ribbon_triangles(count) -> np.ndarray:
+    """Triangles (4 count, 3) uint32 of :func:`segment_ribbons` for ``count`` segments."""
+    base = 8 * np.arange(int(count), dtype=np.uint32)[:, None]
+    quads = np.array([[0, 1, 3], [0, 3, 2], [4, 5, 7], [4, 7, 6]], np.uint32)
+    return (base[:, None, :] + quads[None, :, :]).reshape(-1, 3)
+
+
+def segment_ribbons(segments, half_width) -> np.ndarray:
+    """Vertices (8 S, 3) float32 of two crossed quads of half width ``half_width`` [m] around each
+    segment of ``segments`` (S, 2, 3) (both planes contain the segment, at right angles, so the
+    ribbon shows an edge to no camera); triangles from :func:`segment_ribbon_triangles`."""
+    seg = np.asarray(segments, np.float32).reshape(-1, 2, 3)
+    d = seg[:, 1] - seg[:, 0]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    helper = np.where(np.abs(d[:, 1:2]) < 0.9, np.array([[0.0, 1.0, 0.0]], np.float32),
+                      np.array([[1.0, 0.0, 0.0]], np.float32))
+    n1 = np.cross(d, helper)
+    n1 /= np.maximum(np.linalg.norm(n1, axis=1, keepdims=True), 1e-12)
+    n2 = np.cross(d, n1)
+    w = np.float32(half_width)
+    out = np.empty((len(seg), 8, 3), np.float32)
+    for k, n in enumerate((n1, n2)):
+        out[:, 4 * k + 0] = seg[:, 0] - w * n
+        out[:, 4 * k + 1] = seg[:, 0] + w * n
+        out[:, 4 * k + 2] = seg[:, 1] - w * n
+        out[:, 4 * k + 3] = seg[:, 1] + w * n
+    return out.reshape(-1, 3)

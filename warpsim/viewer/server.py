@@ -2,7 +2,9 @@
 
 :class:`Drawer` turns :class:`~warpsim.viewer.sink.DrawItem`\\ s into viser scene nodes
 (meshes, point clouds or, for grabbable particles, instanced spheres that take clicks, line
-segments, instanced prototypes) and updates them in place each frame. :class:`Viewer` owns a
+segments (grabbable curves, e.g. hair, also as invisible ribbons that take clicks: the pick is the
+curve point nearest the pointer's ray), instanced prototypes) and updates them in place each
+frame. :class:`Viewer` owns a
 :class:`~warpsim.viewer.session.Session`, a stepping thread paced to the asked speed, the
 panels (``controls``, ``params``) and the mouse: a left drag on a grabbable mesh or particle
 grabs the vertex under the pointer (a ray cast from the camera) and moves the drag spring's
@@ -17,7 +19,7 @@ import time
 import numpy as np
 
 from .geometry import icosphere
-from .picking import pointer_ray
+from .picking import pointer_ray, segment_ribbon_triangles, segment_ribbons
 from .serving import Serving
 from .session import Session
 from .sink import DrawItem
@@ -25,6 +27,9 @@ from .sink import DrawItem
 __all__ = ["Drawer", "PortInUseError", "Viewer", "check_port"]
 
 PICKABLE_POINTS = 4096  # grabbable points prims up to this size are drawn as clickable spheres
+RIBBON_PERIOD = 1.0  # [s] between updates of the invisible ribbons that take clicks on grabbable curves
+# (8 vertices a segment: 3 MB a frame for 2,000 strands x 16 segments; the pick itself reads the
+# current curve points, the ribbons only have to be under the pointer)
 
 
 class PortInUseError(OSError):
@@ -63,6 +68,7 @@ class Drawer:
         self.server = server
         self.on_drag = on_drag
         self.nodes = {}  # name -> (handle or list of handles, signature)
+        self._ribbons_sent = {}  # name -> time [s] the click ribbons of grabbable curves were last sent
         self.static_nodes = []
         self.version = None
         self._sphere = icosphere(1)
@@ -99,6 +105,12 @@ class Drawer:
 
         handle.on_drag("left")(cb)
 
+    @staticmethod
+    def _ribbon_width(item):
+        """Half width [m] of the invisible ribbons a click on grabbable curves hits: 3 drawn radii
+        and at least 3 mm (thin hair is a few pixels wide)."""
+        return max(3.0 * item.radius, 3.0e-3)
+
     def _update(self, name, item, draggable):
         path = f"/scene/{name}"
         n = len(item.points)
@@ -107,7 +119,7 @@ class Drawer:
         elif item.kind == "points":
             sig = ("spheres" if draggable and n <= PICKABLE_POINTS else "cloud", n)
         elif item.kind == "segments":
-            sig = ("segments", n)
+            sig = ("pick_segments" if draggable else "segments", n)
         else:
             sig = ("instances", n, tuple(np.bincount(item.proto, minlength=len(item.prototypes))) if n else ())
         known = self.nodes.get(name)
@@ -131,6 +143,12 @@ class Drawer:
             handle.batched_positions = np.asarray(item.points, np.float32)
         elif sig[0] == "cloud" or sig[0] == "segments":
             handle.points = np.asarray(item.points, np.float32)
+        elif sig[0] == "pick_segments":
+            handle[0].points = np.asarray(item.points, np.float32)
+            now = time.perf_counter()
+            if now - self._ribbons_sent.get(name, 0.0) >= RIBBON_PERIOD:  # the click target lags a little
+                self._ribbons_sent[name] = now
+                handle[1].vertices = segment_ribbons(item.points, self._ribbon_width(item))
         else:
             for k, h in enumerate(handle):
                 sel = item.proto == k
@@ -163,6 +181,14 @@ class Drawer:
         if sig[0] == "segments":
             return scene.add_line_segments(path, np.asarray(item.points, np.float32), color,
                                            thickness=max(2.0 * item.radius, 1.5e-3))
+        if sig[0] == "pick_segments":  # grabbable curves (hair): drawn as lines, clicked on a ribbon mesh
+            lines = scene.add_line_segments(path, np.asarray(item.points, np.float32), color,
+                                            thickness=max(2.0 * item.radius, 1.5e-3))
+            ribbons = scene.add_mesh_simple(f"{path}_pick", segment_ribbons(item.points, self._ribbon_width(item)),
+                                            segment_ribbon_triangles(len(item.points)), color=color, opacity=0.0,
+                                            side="double", cast_shadow=False, receive_shadow=False)
+            self._drag_hook(ribbons, name)
+            return [lines, ribbons]
         handles = []
         for k, (v, f) in enumerate(item.prototypes):
             sel = item.proto == k

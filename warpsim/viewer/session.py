@@ -373,7 +373,7 @@ class Session:
         """(particle index per drawn vertex, bool grabbable per drawn vertex) of a drawn prim."""
         item = self.items.get(prim)
         mapping = self.drag_map.get(prim)
-        n = len(item.points)
+        n = 2 * len(item.points) if item.kind == "segments" else len(item.points)
         particles = np.arange(n) if mapping is None else np.asarray(mapping)
         if item.shown is not None:
             particles = particles[item.shown]
@@ -383,13 +383,15 @@ class Session:
     def _default_drag(self):
         """Drag spring (stiffness [N/m], damping [N s/m]): the model's median spring stiffness
         (a grabbed vertex follows about as firmly as its neighbours hold it) or, without springs,
-        m (0.5 / h)^2; explicit integrators are capped at m (0.5 / h)^2 so omega h <= 0.5."""
+        the scene's ``drag_stiffness_hint`` (hair) or m (0.5 / h)^2; explicit integrators are
+        capped at m (0.5 / h)^2 so omega h <= 0.5."""
         model = self.scene.sim.model
         inv = model.particle_inv_mass.numpy()
         m = float(np.mean(1.0 / inv[inv > 0])) if (inv > 0).any() else 1.0
         h = self.frame_dt / self.substeps
         cap = m * (0.5 / h) ** 2
-        k = float(np.median(model.spring_stiffness.numpy())) if model.spring_count else cap
+        k = float(np.median(model.spring_stiffness.numpy())) if model.spring_count else \
+            float(getattr(self.scene, "drag_stiffness_hint", None) or cap)  # e.g. hair: its stretch springs
         implicit = "implicit" in type(self.scene.sim.integrator).__name__.lower() and \
             "semi" not in type(self.scene.sim.integrator).__name__.lower()
         if self.drag_stiffness is not None:
@@ -400,7 +402,8 @@ class Session:
 
     def pick(self, prim, ray_origin, ray_direction):
         """Drawn vertex of ``prim`` under the ray (-1: none): a triangle hit for meshes, the
-        nearest point within 3 drawn radii for points."""
+        nearest point within 3 drawn radii for points, and for curves (``segments``: drawn
+        vertex 2 s + e is end e of segment s) the nearest segment end."""
         with self.lock:
             item = self.items.get(prim)
             if item is None or prim not in self.drag_map:
@@ -408,7 +411,8 @@ class Session:
             _, ok = self._grabbable(prim)
             if item.kind == "mesh":
                 return pick_mesh_vertex(ray_origin, ray_direction, item.points, item.triangles, ok)
-            return pick_point(ray_origin, ray_direction, item.points, 3.0 * max(item.radius, 1e-3) + 0.02, ok)
+            points = item.points.reshape(-1, 3) if item.kind == "segments" else item.points
+            return pick_point(ray_origin, ray_direction, points, 3.0 * max(item.radius, 1e-3) + 0.02, ok)
 
     def grab(self, prim, vertex, client=None):
         """Grab drawn vertex ``vertex`` of ``prim``: a DragSpring holds its particle where it is

@@ -1,0 +1,67 @@
+"""Hair in a real browser at the default strand count (2,000 strands x 16 segments, 32,000 free
+vertices: far more than the viewer draws as clickable spheres): a mouse drag on the drawn curves
+grabs the strand vertex nearest the pointer's ray and pulls it toward the pointer (Debian's
+Chromium, headless, driven by Playwright as in ``test_viewer_browser``; sag-free off to keep the
+start-up short: it does not change what is drawn or picked)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from test_viewer_browser import HEIGHT, WIDTH, _free_port, _project, _wait, browser  # noqa: F401  (fixture)
+from warpsim.scenes import get_scene
+from warpsim.viewer.server import PICKABLE_POINTS, Viewer
+
+
+@pytest.fixture(scope="module")
+def viewer():
+    v = Viewer("hair", params={"sag_free": False, "motion": "still"}, device="cpu", port=_free_port(), draw_fps=4.0).start()
+    yield v
+    v.stop()
+
+
+def test_hair_is_draggable_at_the_default_strand_count(viewer, browser):  # noqa: F811
+    s = viewer.session
+    hair = s.scene.hair
+    assert hair.strand_count == get_scene("hair").params["strands"].default
+    assert len(s.scene.drag_map()["hair_vertices"]) > PICKABLE_POINTS  # no clickable spheres for these
+    page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
+    page.goto(viewer.url)
+    page.wait_for_selector("canvas", timeout=30_000)
+    page.get_by_text("friction (live)").wait_for(timeout=60_000)
+    client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
+    _wait(lambda: s.frame > 1, timeout=60.0, what="the simulation to run")
+    close = page.locator(".mantine-Notification-closeButton")
+    if close.count():
+        close.first.click()
+    cam = client.camera
+    with s.lock:
+        ends = s.items["hair"].points.reshape(-1, 3).copy()
+    particles = np.asarray(s.drag_map["hair"])
+    free = (particles - hair.first) % hair.stride >= 3  # away from the pinned root
+    eye = np.asarray(cam.position, float)
+    dist = np.where(free, np.linalg.norm(ends - eye, axis=1), np.inf)
+    for front in np.argsort(dist)[:200]:  # nearest the camera (no strand in front of it), off the GUI panel
+        sx, sy = _project(cam, ends[front])
+        if 20 < sx < 640 and 20 < sy < HEIGHT - 20:
+            break
+    page.mouse.move(sx, sy)
+    page.mouse.down()
+    page.mouse.move(sx, sy - 80, steps=4)
+    grabbed = _wait(lambda: s.status()["grabbed"], timeout=30.0, what="the grab")
+    assert grabbed["prim"] == "hair"
+    strand, local = hair.strand_of(grabbed["particle"])
+    assert local >= 2  # a free strand vertex
+    gx, gy = _project(cam, grabbed["start"])
+    assert abs(gx - sx) < 15 and abs(gy - sy) < 15  # the vertex under the pointer
+    _wait(lambda: np.linalg.norm(s.status()["grabbed"]["target"] - grabbed["start"]) > 0.03, timeout=30.0,
+          what="the target")
+    target = s.status()["grabbed"]["target"]
+    tx, ty = _project(cam, target)
+    assert abs(tx - sx) < 12 and abs(ty - (sy - 80)) < 12  # the target lies under the pointer
+    start = grabbed["start"]
+    _wait(lambda: np.linalg.norm(s.grabbed_position() - target) < 0.6 * np.linalg.norm(start - target),
+          timeout=60.0, what="the strand vertex to follow the pointer")
+    page.mouse.up()
+    _wait(lambda: s.status()["grabbed"] is None, what="the release")
+    page.close()
