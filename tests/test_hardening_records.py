@@ -351,3 +351,21 @@ def test_fifo_index_checkpoint_and_progress_files_are_refused(copy):
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
+
+
+def test_info_names_an_interrupted_newer_sweep_and_a_live_writer(copy):
+    (copy / "S.sweep-partial.json").write_text(json.dumps({"version": 1, "token": "0badc0de", "settings": {
+        "scene": "bounce", "frames": 8}}))
+    code, text, err = run("info", copy / "S.usda")
+    assert code == 0, err  # the finished sweep is intact; the note says a newer one was interrupted
+    assert "a newer sweep of scene 'bounce' into it was interrupted, but no frame was completed" in text
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from warpsim.usd import lock; "
+                               f"lock.hold({str(copy / 'c.usda')!r}, command='warpsim run bounce'); "
+                               "print('held', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        code, text, err = run("info", copy / "c.usda")
+        assert code == 0 and f"being written by pid {holder.pid} ('warpsim run bounce')" in text, text + err
+    finally:
+        holder.kill()
+        holder.wait()

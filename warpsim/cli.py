@@ -200,6 +200,9 @@ def _cmd_info(path, out, err=None, verify=False):
     print(f"{info['path']}: {span}", file=out)
     if staged is not None:  # a later sweep into this root was interrupted: the result above is the older one
         print(staged.replace("a sweep ", "a newer sweep ", 1), file=out)
+    writing = _writer_note(path)
+    if writing:
+        print(writing, file=out)
     for prim in info["prims"]:
         count = prim.get("count")
         count = "" if count is None else (f"  count {count[0]}" if count[0] == count[1] else
@@ -223,6 +226,21 @@ def _cmd_info(path, out, err=None, verify=False):
     return 1
 
 
+def _writer_note(path):
+    """A line when a live process on this host holds the lock of ``path`` (the cache is still being
+    written: the frames above are the ones completed so far), else None."""
+    import socket
+
+    from .usd.lock import lock_info, lock_path, pid_alive
+
+    holder = lock_info(lock_path(path)) or {}
+    if holder.get("host") != socket.gethostname() or not pid_alive(holder.get("pid")) or \
+            holder.get("pid") == os.getpid():
+        return None
+    return f"being written by pid {holder['pid']} ('{str(holder.get('command') or '')[:120]}'): the frames above are " \
+        "the ones completed so far"
+
+
 def _staged_sweep_note(path):
     """One line on the interrupted sweep staged for root ``path`` (its staged layer, completed
     frames, how to continue), or None when none is staged."""
@@ -232,12 +250,13 @@ def _staged_sweep_note(path):
     if staged is None:
         return None
     rel = os.path.relpath
+    settings = staged["settings"]
+    what = f"of scene {settings['scene']!r} " if settings.get("scene") else ""
     if staged["why"]:
-        return f"{rel(path)}: a sweep into it was interrupted, but {staged['why']}; run the sweep again"
+        return f"{rel(path)}: a sweep {what}into it was interrupted, but {staged['why']}; run the sweep again"
     frames = ", ".join(f"{a}..{b}" for a, b in staged["frames"]) or "none"
     settings = staged["settings"]
     total = settings.get("frames")
-    what = f"of scene {settings['scene']!r} " if settings.get("scene") else ""
     of = f" of 0..{total}" if isinstance(total, int) else ""
     damaged = f" ({len(staged['damaged'])} damaged chunk file(s))" if staged["damaged"] else ""
     import socket
