@@ -255,7 +255,6 @@ def _staged_sweep_note(path):
     if staged["why"]:
         return f"{rel(path)}: a sweep {what}into it was interrupted, but {staged['why']}; run the sweep again"
     frames = ", ".join(f"{a}..{b}" for a, b in staged["frames"]) or "none"
-    settings = staged["settings"]
     total = settings.get("frames")
     of = f" of 0..{total}" if isinstance(total, int) else ""
     damaged = f" ({len(staged['damaged'])} damaged chunk file(s))" if staged["damaged"] else ""
