@@ -169,3 +169,71 @@ def test_panel_ranks_negates_and_hides(root):
         assert viewer.play.label == "Pause"
     finally:
         viewer.stop()
+
+
+MANY = 1000
+
+
+@pytest.fixture(scope="module")
+def many(tmp_path_factory):
+    """A sweep of MANY bouncing balls, few frames (the gallery's cost is its world count)."""
+    path = tmp_path_factory.mktemp("many") / "drop.usda"
+    code = main(["sweep", "bounce", "--worlds", str(MANY), "--vary", "height=0.2:1.0", "--vary", "restitution=0:0.9",
+                 "--sample", "lhs", "--set", "display_radius=0.03", "--fps", "10", "--substeps", "20", "--frames", "4",
+                 "--no-progress", "--no-thumbnails", "--device", "cpu", "--out", str(path)],
+                out=io.StringIO(), err=io.StringIO())
+    assert code == 0
+    return path
+
+
+def _choose(page, label, option):
+    """Open the drop-down ``label`` in the page and return the locator of its ``option``."""
+    page.get_by_label(label, exact=True).first.click()
+    choice = page.get_by_role("option", name=option, exact=True)
+    choice.wait_for(timeout=30_000)
+    return choice
+
+
+def test_the_answer_shows_within_a_second_of_a_control_change_at_many_worlds(many):
+    """In Chromium, with MANY worlds in the page (paused, as while browsing): from the click on a
+    drop-down's option to the new answer in the page (the ranked list, the summary) takes under a
+    second, for a re-rank and for IN -> NOT IN (which also shows and hides most worlds)."""
+    import time
+
+    viewer = GalleryViewer(str(many), port=_free_port(), thumbnails=False).start()
+    try:
+        viewer.playing = False
+        query = viewer.query
+        for y0 in np.linspace(0.1, 0.8, 8):  # a box whose first world differs by the two rankings
+            query.set_box((-0.1, y0, -0.1), (0.1, y0 + 0.2, 0.1))
+            answer = answer_region(query.record, query.region())
+            inside = np.flatnonzero(answer.match)
+            longest = max(inside, key=lambda w: (answer.time[w], -w)) if len(inside) else None
+            if 0 < len(inside) < MANY and longest != query.matches[0]:
+                break
+        assert 0 < len(inside) < MANY and longest != query.matches[0]  # ranked by first entry now
+        query.settle()
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
+            page.goto(viewer.url)
+            page.wait_for_selector("canvas", timeout=120_000)
+            page.get_by_text(f"{len(inside)} of {MANY} worlds", exact=False).first.wait_for(timeout=120_000)
+            page.wait_for_timeout(2000)  # the first frame of every world drawn
+            option = _choose(page, "rank by", "time inside")
+            start = time.perf_counter()
+            option.click()
+            page.get_by_role("button", name=f"#1 world {longest}:", exact=False).first.wait_for(timeout=30_000)
+            rerank = time.perf_counter() - start
+            option = _choose(page, "mode", "NOT IN")
+            start = time.perf_counter()
+            option.click()
+            page.get_by_text("NOT IN the box", exact=False).first.wait_for(timeout=30_000)
+            negate = time.perf_counter() - start
+            browser.close()
+        assert rerank < 1.0 and negate < 1.0, (rerank, negate)
+        assert query.matches and len(query.matches) == MANY - len(inside)
+        query.settle()
+        assert query.hidden == {f"world_{w:06d}" for w in inside if w != 0}
+    finally:
+        viewer.stop()

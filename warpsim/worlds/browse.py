@@ -40,6 +40,8 @@ REFINE_BUDGET = 2_000
 """World-frames the gallery reads back from the cache to make an answer exact (more: cells only,
 so an answer stays well under a second)."""
 MODES = ("IN", "NOT IN")
+VISIBILITY_DELAY = 0.2
+"""Seconds between an answer and the worlds' visibility it implies (the answer is painted first)."""
 THUMB_SIZE = (128, 96)
 
 
@@ -155,6 +157,7 @@ class QueryPanel:
         self._syncing = False
         self._lock = threading.Lock()
         self._answered = None  # (region, answer) of the last query
+        self._visibility = None  # the timer that applies the last answer's visibility
         self._slots = []  # per listed place: {"button", "image", "world"}
         self._more = None
         self._pictures = {}
@@ -304,12 +307,29 @@ class QueryPanel:
                                     f"{self.window.value[0]:.3g}..{self.window.value[1]:.3g} s "
                                     f"({'exact' if answer.exact else f'to one cell of {self.record.grid.cell_size:.3g} m'}"
                                     f", {1e3 * self.answer_seconds:.1f} ms)")
-            # then the worlds' visibility, only when it changes (after the answer: the viewer's lock
-            # may wait for a frame of every world being drawn)
+            # then the worlds' visibility, only when it changes, a moment after the answer (the page
+            # paints the answer before it re-renders every world; the viewer's lock may also wait
+            # for a frame of every world being drawn)
             if hidden != self.hidden:
                 self.hidden = hidden
-                with self.viewer._lock:
-                    self.viewer._refresh()
+                if self._visibility is not None:
+                    self._visibility.cancel()
+                self._visibility = threading.Timer(VISIBILITY_DELAY, self._apply_visibility)
+                self._visibility.daemon = True
+                self._visibility.start()
+
+    def _apply_visibility(self):
+        """Show and hide the worlds as ``hidden`` says now (the latest answer's)."""
+        if self.viewer.server is None:
+            return
+        with self.viewer._lock:
+            self.viewer._refresh()
+
+    def settle(self, timeout=10.0):
+        """Wait until the worlds' visibility follows the last answer (tests, scripts)."""
+        timer = self._visibility
+        if timer is not None:
+            timer.join(timeout)
 
     def _list(self, answer, matched):
         """The ranked list: place k keeps its button (and picture) from answer to answer, relabelled
