@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import warp as wp
 
 from ..core.collider import Collider
 from ..core.forces import Force, cached_launch
+from ..core.stability import StabilityLimit
 from ..kernels import strands as K
 from .builder import Strands
 
@@ -45,7 +48,7 @@ class StrandForce(Force):
                       key=(st.strand_count, id(q), id(qd), id(f_out), id(d["rest_length"]), id(d["bend_rest"])))
 
 
-    def stability_limit(self, positions, integrator, forces=()):
+    def stability_limit(self, positions, integrator, forces=()) -> Optional[StabilityLimit]:
         """The strands' ``StabilityLimit`` for ``integrator`` about ``positions`` (a wp.array of the
         model's particles), damping and linear ``Drag`` among ``forces`` included; None under
         ``StrandImplicitEuler`` (see ``warpsim.strands.stability``)."""

@@ -44,7 +44,7 @@ def _sample(strands, bend_rest, count):
     return np.unique(picks)
 
 
-def strand_jacobians(strands, data, positions, picks, drag: float = 0.0):
+def strand_jacobians(strands, data, positions, picks, drag: float = 0.0) -> tuple:
     """(K, D) (S, 3 segments, 3 segments) [N/m], [N s/m]: minus the Jacobians of the strand forces
     (plus linear ``drag`` [kg/s]) over the free vertices of strands ``picks`` (S,) about
     ``positions`` (host (particle_count, 3) [m]), by central differences of the force kernel
@@ -92,7 +92,7 @@ def strand_jacobians(strands, data, positions, picks, drag: float = 0.0):
     return Kmat, Dmat
 
 
-def strand_eigenvalues(strands, data, positions, drag: float = 0.0, sample: int = SAMPLE):
+def strand_eigenvalues(strands, data, positions, drag: float = 0.0, sample: int = SAMPLE) -> tuple:
     """(strand indices (S,), eigenvalues (S, 6 segments) complex [1/s]) of the linearised motion
     z' = A z of a sample of strands about ``positions`` (host (particle_count, 3) [m]); ``data``:
     ``strands.bind(model)``; ``drag``: linear drag [kg/s] on every vertex."""
@@ -107,7 +107,7 @@ def strand_eigenvalues(strands, data, positions, drag: float = 0.0, sample: int 
     return picks, np.linalg.eigvals(A)
 
 
-def assembled_stiffness(strands, data, positions, picks):
+def assembled_stiffness(strands, data, positions, picks) -> np.ndarray:
     """Ka (S, 3 segments, 3 segments) [N/m]: the stiffness ``StrandImplicitEuler`` assembles
     (stretch with the clamped geometric term, Gauss-Newton bending with the vertex's own frame
     Jacobian) for strands ``picks`` about ``positions`` (host (particle_count, 3) [m])."""
@@ -149,7 +149,7 @@ def assembled_stiffness(strands, data, positions, picks):
     return Ka
 
 
-def implicit_limit(strands, data, positions, drag: float = 0.0, sample: int = SAMPLE):
+def implicit_limit(strands, data, positions, drag: float = 0.0, sample: int = SAMPLE) -> float:
     """Largest stable step [s] of ``StrandImplicitEuler`` on the linearised strands (inf when
     every step is stable). With the exact stiffness K and the assembled Ka, the step maps
     (x, v) by T(h): v1 = v + A^-1 (-h K x - (h D + h^2 Ka) v), x1 = x + h v1,
@@ -187,7 +187,8 @@ def implicit_limit(strands, data, positions, drag: float = 0.0, sample: int = SA
     return lo
 
 
-def strand_limit(strands, data, positions, integrator, drag: float = 0.0, sample: int = SAMPLE):
+def strand_limit(strands, data, positions, integrator, drag: float = 0.0,
+                 sample: int = SAMPLE) -> "stab.StabilityLimit | None":
     """``StabilityLimit`` of the strands for ``integrator`` (a name or instance); under
     ``StrandImplicitEuler`` None (unrestricted) or ``implicit_limit``'s step; see the module
     docstring. Integrators with implicit
