@@ -377,7 +377,7 @@ def eval_springs_jacobian_gather(
 
 
 @wp.kernel
-def eval_spring_forces(
+def eval_spring_force_entries(
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
     spring_indices: wp.array(dtype=int),
@@ -385,9 +385,13 @@ def eval_spring_forces(
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
     spring_broken: wp.array(dtype=int),
-    spring_f_out: wp.array(dtype=wp.vec3),
+    spring_entries: wp.array(dtype=wp.vec2i),
+    entry_f_out: wp.array(dtype=wp.vec3),
 ):
-    """Per spring s: the force [N] on its end 2s (zero when broken), for ``gather_spring_forces``."""
+    """Per spring s: its force [N] on end 2s (zero when broken) into entry_f_out at
+    spring_entries[s][0], minus it at spring_entries[s][1]: the positions of (end, s) in the CSR
+    list ``particle_springs``, so that ``sum_spring_entries`` reads each particle's row
+    contiguously. Each entry has one writer: no atomics."""
     s = wp.tid()
     f = wp.vec3()
     if spring_broken[s] == 0:
@@ -395,30 +399,25 @@ def eval_spring_forces(
         j = spring_indices[2 * s + 1]
         f = damped_spring_force(q[i], q[j], qd[i], qd[j], spring_rest_length[s], spring_stiffness[s],
                                 spring_damping[s])
-    spring_f_out[s] = f
+    e = spring_entries[s]
+    entry_f_out[e[0]] = f
+    entry_f_out[e[1]] = -f
 
 
 @wp.kernel
-def gather_spring_forces(
-    spring_indices: wp.array(dtype=int),
-    spring_broken: wp.array(dtype=int),
+def sum_spring_entries(
     particle_spring_offsets: wp.array(dtype=int),
-    particle_springs: wp.array(dtype=int),
-    spring_f: wp.array(dtype=wp.vec3),
+    entry_f: wp.array(dtype=wp.vec3),
     f_out: wp.array(dtype=wp.vec3),
 ):
-    """Per particle i: f_out[i] += +-spring_f of its intact springs in CSR order: the same sums,
-    bit for bit, as ``eval_springs_gather``, with each spring evaluated once
-    (``eval_spring_forces``) instead of at both ends (faster on the CPU)."""
+    """Per particle i: f_out[i] += its CSR row of entry_f summed in order: the same bits as
+    ``eval_springs_gather`` (f - x is f + (-x); a broken spring's +0 never changes a sum that
+    starts at +0), with each spring evaluated once (``eval_spring_force_entries``) and the row
+    read contiguously."""
     i = wp.tid()
     f = wp.vec3()
     for a in range(particle_spring_offsets[i], particle_spring_offsets[i + 1]):
-        s = particle_springs[a]
-        if spring_broken[s] == 0:
-            if spring_indices[2 * s] == i:
-                f = f + spring_f[s]
-            else:
-                f = f - spring_f[s]
+        f = f + entry_f[a]
     f_out[i] = f_out[i] + f
 
 

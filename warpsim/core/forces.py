@@ -248,8 +248,9 @@ class Springs(Force):
 
     ``deterministic`` (default True): forces and Jacobian blocks are gathered per particle over
     the model's CSR adjacency (``model.particle_springs``) in a fixed order, so two runs give the
-    same bits on any device (on the CPU each spring is evaluated once into a buffer and then
-    gathered: the same sums, bit for bit, about twice as fast there). False: the former per-spring scatter with float atomics, whose
+    same bits on any device (on the CPU each spring is evaluated once, its force and minus it
+    written to its two entries of the CSR list, and each particle then sums its entries
+    contiguously: the same sums, bit for bit, faster there). False: the former per-spring scatter with float atomics, whose
     summation order (and so the last bits, which chaotic scenes amplify) varies run to run on
     GPUs; an opt-out for speed measurements. Under a recording ``wp.Tape`` the gather computes
     the forces and the tape records the scatter kernel for the backward pass (the adjoint of
@@ -286,13 +287,12 @@ class Springs(Force):
         inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
         tape = getattr(_warp_context.runtime, "tape", None)
         if tape is None and m.device.is_cpu:  # each spring once, then the same fixed-order sums
-            spring_f = self._spring_forces(m)
-            first = (*scatter[:7], spring_f)
-            cached_launch(K.eval_spring_forces, m.spring_count, first, m.device, launches,
+            entries, entry_f = self._spring_entries(m)
+            first = (*scatter[:7], entries, entry_f)
+            cached_launch(K.eval_spring_force_entries, m.spring_count, first, m.device, launches,
                           key=("springs", m.spring_count, *map(id, first)))
-            second = (m.spring_indices, m.spring_broken, m.particle_spring_offsets, m.particle_springs, spring_f,
-                      f_out)
-            cached_launch(K.gather_spring_forces, m.particle_count, second, m.device, launches,
+            second = (m.particle_spring_offsets, entry_f, f_out)
+            cached_launch(K.sum_spring_entries, m.particle_count, second, m.device, launches,
                           key=("sums", m.particle_count, *map(id, second)))
             return
         if tape is None:
@@ -304,13 +304,25 @@ class Springs(Force):
         wp.launch(K.eval_springs_gather, m.particle_count, inputs=list(inputs), device=m.device, record_tape=False)
         tape.record_launch(K.eval_springs, m.spring_count, 0, list(scatter), [], m.device)
 
-    def _spring_forces(self, model):
-        """Per-spring force buffer (spring_count,) of the CPU's two-pass gather (allocated once)."""
-        buf = self.__dict__.get("_spring_f")
-        if buf is None or buf.shape[0] != model.spring_count or buf.device != model.device:
-            buf = wp.zeros(model.spring_count, dtype=wp.vec3, device=model.device)
-            self._spring_f = buf
-        return buf
+    def _spring_entries(self, model):
+        """(entries (spring_count,) vec2i: the positions of (end 2s, s) and (end 2s+1, s) in the
+        model's CSR list ``particle_springs``; per-entry force buffer (2 spring_count,)) of the
+        CPU's two-pass gather, built once per model and CSR list."""
+        cached = self.__dict__.get("_entries")
+        if cached is not None and cached[0] is model.particle_springs and cached[1].device == model.device:
+            return cached[1], cached[2]
+        ends = model.spring_indices.numpy().reshape(-1, 2)
+        offsets, springs = model.particle_spring_offsets.numpy(), model.particle_springs.numpy()
+        owner = np.repeat(np.arange(model.particle_count), np.diff(offsets))  # particle of each CSR entry
+        order = np.argsort(springs, kind="stable")  # each spring's two entries, in CSR order
+        first, second = order[0::2], order[1::2]
+        swap = owner[first] != ends[:, 0]  # the first entry belongs to end 2s+1 (a self-loop keeps the order)
+        entries = np.stack([np.where(swap, second, first), np.where(swap, first, second)], axis=1)
+        d = model.device
+        buffers = (wp.array(entries.astype(np.int32).reshape(-1, 2), dtype=wp.vec2i, device=d),
+                   wp.zeros(max(len(springs), 1), dtype=wp.vec3, device=d))
+        self._entries = (model.particle_springs, *buffers)  # keeps the CSR list it was built from
+        return buffers
 
     def jacobian_triplet_count(self) -> int:
         return 2 * self.model.spring_count
