@@ -282,3 +282,13 @@ def test_the_readme_sweeps_leave_no_unflagged_energy_gain(tmp_path, args):
         if args[0] == "bounce":
             assert r["unstable"] == "0" and float(r["energy_gain"]) < 1e-3
             assert float(r["peak_center_y"]) <= float(r["height"]) + G * (1.0 / 25.0) ** 2 / 8 + 1e-6
+
+
+def test_stable_dt_of_a_non_finite_state_names_the_particle():
+    """A NaN position cannot have a stability limit (it used to come out inf): ValueError naming it."""
+    sim = spring_pair()
+    q = sim.state.positions.numpy()
+    q[1, 0] = np.nan
+    sim.state.positions.assign(q)
+    with pytest.raises(ValueError, match="particle 1 has a non-finite position"):
+        sim.stable_dt()

@@ -423,6 +423,12 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     initial velocities)."""
     method = method_of(integrator)
     n, S, d = model.particle_count, model.spring_count, model.device
+    host_q = positions.numpy() if hasattr(positions, "numpy") else np.asarray(positions, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(np.asarray(host_q, dtype=np.float64).reshape(-1, 3)).all(axis=1))
+    if len(bad):
+        raise ValueError(f"particle {int(bad[0])} has a non-finite position {host_q[bad[0]]}: the stability limit "
+                         "is taken about finite positions; give finite values (or restore the state from before "
+                         "the blow-up)")
     inv_mass = model.particle_inv_mass.numpy().astype(np.float64)
     mass = model.particle_mass.numpy().astype(np.float64)
     moving = inv_mass > 0.0

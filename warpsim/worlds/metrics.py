@@ -102,7 +102,9 @@ class WorldMetrics:
         self.user_peak = [wp.full(n, -inf, dtype=float, device=d) for _ in self.user]
         self.frame_dt = None if frame_dt is None else float(frame_dt)
         self.step_dt = self.frame_dt if step_dt is None else float(step_dt)
-        self.energy = None if frame_dt is None else self._energy_balance()
+        # agents (boids, crowds) propel themselves: no mechanical energy balance for them
+        mechanical = hasattr(batch.sim, "forces") and hasattr(batch.sim, "integrator")
+        self.energy = self._energy_balance() if frame_dt is not None and mechanical else None
         self._energy_started = False
 
     def update(self):
