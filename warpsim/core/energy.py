@@ -94,11 +94,14 @@ class EnergyBalance:
         springs: the model whose springs hold the elastic energy (default ``model``).
         shared: a batch's ``SharedSprings`` (``kernels/world_step.py``: springs stored once for every
             world) read in place of ``springs``.
+        per_world: sum each world in one thread even when there is one (a sweep: a world's sums, and
+            so its table row, must not depend on how many worlds share its batch); False lets a lone
+            simulation use the parallel fixed-order reduction.
         margin: relative gain that counts as unstable.
     """
 
     def __init__(self, model, forces, colliders, gravity, *, synchronise=True, springs=None, shared=None,
-                 margin=MARGIN):
+                 per_world=False, margin=MARGIN):
         self.model = model
         self.device = model.device
         self.forces = list(forces)
@@ -124,7 +127,8 @@ class EnergyBalance:
         self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
         self._zero_time = wp.zeros(1, dtype=float, device=d)  # the clock of driving forces when none is given
         self.sums = wp.zeros((n, 6), dtype=float, device=d)
-        self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if n == 1 and shared is None else None
+        lone = n == 1 and shared is None and not per_world
+        self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if lone else None
         self.reference = wp.zeros((n, 3), dtype=float, device=d)  # modified, plain and gravity energy at frame 0
         self.scale = wp.ones(n, dtype=float, device=d)
         self.work = wp.zeros(n, dtype=float, device=d)

@@ -153,7 +153,8 @@ class WorldMetrics:
         shared = None if b.stepper is None else b.stepper.springs  # read in place: no tiled copy of every world's
         return EnergyBalance(b.model, b.sim.forces, b.sim.colliders, gravity,  # springs (8 GB at 10^5 teapots)
                              synchronise=isinstance(b.sim.integrator, SemiImplicitEuler),
-                             springs=b.model if shared is not None else b._springs_model(), shared=shared)
+                             springs=b.model if shared is not None else b._springs_model(), shared=shared,
+                             per_world=True)
 
     def names(self):
         out = list(BUILTIN)
