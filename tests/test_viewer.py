@@ -289,3 +289,64 @@ def test_live_wind_pushes_the_cloth_downwind():
         windy.advance()
     dz = windy.scene.sim.state.positions.numpy()[:, 2].mean() - calm.scene.sim.state.positions.numpy()[:, 2].mean()
     assert dz > 0.02  # [m] downwind after 1/3 s
+
+
+def test_the_rate_readout_follows_a_slow_scene_at_once():
+    """A frame that takes far longer than the smoothing window replaces the estimate (the readout
+    said 0.2-0.6 sim s per wall s for many 3.5 s frames after a change to mass 0.001), and a
+    rebuild measures afresh."""
+    s = Session(get_scene("bounce"), {}, device="cpu")
+    for _ in range(20):
+        s.measure(1, s.frame_dt)  # real time: 1 sim s per wall s
+    assert s.sim_rate == pytest.approx(1.0)
+    s.measure(1, 100.0 * s.frame_dt)
+    assert s.sim_rate == pytest.approx(0.01, rel=0.05)  # not 0.7 x 1 + 0.3 x 0.01
+    s.set_param("height", 0.08)  # rebuilt
+    assert s.sim_rate == 0.0
+    from warpsim.viewer.controls import format_status
+
+    assert "0.00123 sim s per wall s" in format_status({**s.status(), "sim_rate": 0.00123})
+
+
+def test_pause_answers_while_a_frame_is_being_simulated():
+    """Pause does not wait for the lock a slow frame holds (3.5 s at mass 0.001): the stepping
+    loop reads the flag before the next frame."""
+    import threading
+
+    s = Session(get_scene("bounce"), {}, device="cpu")
+    held, done = threading.Event(), threading.Event()
+
+    def slow_frame():
+        with s.lock:
+            held.set()
+            done.wait(60.0)
+
+    t = threading.Thread(target=slow_frame)
+    t.start()
+    held.wait(10.0)
+    pauser = threading.Thread(target=s.set_playing, args=(False,))
+    pauser.start()
+    pauser.join(30.0)
+    paused_while_held = not pauser.is_alive() and not s.playing and not done.is_set()
+    done.set()
+    t.join()
+    assert paused_while_held
+
+
+def test_ctrl_c_on_the_viewer_does_not_claim_frames(monkeypatch):
+    """Ctrl-C before the viewer serves (building, compiling): 'interrupted', exit 130, and no word
+    of frames written (it writes none); a run keeps saying its frames are kept."""
+
+    from warpsim.viewer import command as view_command
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(view_command, "run", interrupted)
+    err = io.StringIO()
+    assert cli.main(["view", "bounce", "--device", "cpu"], out=io.StringIO(), err=err) == 130
+    assert err.getvalue().strip() == "warpsim: interrupted"
+    monkeypatch.setattr(cli, "_cmd_run", interrupted)
+    err = io.StringIO()
+    assert cli.main(["run", "bounce", "--frames", "1"], out=io.StringIO(), err=err) == 130
+    assert "the frames written so far are kept" in err.getvalue()

@@ -4,12 +4,17 @@ the teapot's colour where the camera projects it; written to docs/viewer_teapot.
 README when WARPSIM_WRITE_DOCS=1), a parameter slider dragged with the mouse changes the running scene's parameter, a mouse
 drag on the teapot pulls the grabbed vertex toward the pointer, Record writes a cache that
 opens and validates, the dt slider shows its stability limit, a step past it explodes (drawn,
-then paused with the explanation) and Reset recovers while the server keeps serving, and closing the page mid-drag lets go and completes a running recording."""
+then paused with the explanation, raised as a notification inside the window while the panel is
+scrolled to the dt slider) and Reset recovers while the server keeps serving (the inputs, also in a
+new tab, show the restored values and the page says so), the decade sliders' number boxes show and
+take the physical value, the scene waits at frame 0 for the first page, and closing the page
+mid-drag lets go and completes a running recording."""
 from __future__ import annotations
 
 import io
 import math
 import os
+import re
 import socket
 import time
 
@@ -83,9 +88,18 @@ def _open(browser, viewer):
     return page, client
 
 
+def _box(page, label):
+    """The number box beside the slider whose label starts with ``label``."""
+    row = page.get_by_text(re.compile("^" + re.escape(label))).first.locator("xpath=ancestor::*[.//input][1]")
+    return row.locator("input.mantine-NumberInput-input")
+
+
 def test_teapot_in_the_browser(viewer, browser, tmp_path):
     s = viewer.session
+    time.sleep(1.0)
+    assert s.frame == 0 and not s.playing  # nobody is looking yet: the scene waits at frame 0
     page, client = _open(browser, viewer)
+    assert s.playing  # the first page started it
     _wait(lambda: s.frame > 60, what="the simulation to run")  # the teapot settles on the floor
 
     # 1. the canvas shows the teapot: its light grey-blue where the camera projects it, not the background
@@ -179,8 +193,12 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     dt_row = page.get_by_text("dt [ms]").locator("xpath=ancestor::*[.//input][1]")
     assert "limit" in dt_row.inner_text()  # the slider's mark at the limit
     stable_dt = s.params["dt"]
-    s.set_param("dt", 4.0 * info["limit"])  # what dragging the dt slider past its mark does (a rebuild)
-    assert s.stability()["dt_exceeded"]
+    bad_ms = round(3.5e3 * info["limit"], 3)  # typed into the slider's box (the slider ends at 4 x 1/600 s)
+    dt_box = _box(page, "dt [ms]")
+    dt_box.scroll_into_view_if_needed()
+    dt_box.fill(f"{bad_ms:.3f}")  # a rebuild at a step past the mark
+    _wait(lambda: s.params["dt"] == pytest.approx(1e-3 * bad_ms), what="the typed step")
+    assert s.stability()["dt_exceeded"] and float(dt_box.input_value()) == pytest.approx(bad_ms)
     with s.lock:
         size = np.ptp(s.items["teapot"].points, axis=0).max()  # the teapot before it blows up
     page.get_by_text("past the limit").wait_for(timeout=15_000)
@@ -196,13 +214,39 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     assert max(np.ptp(p, axis=0).max() for p in drawn) > 1.25 * size  # and it did fly apart
     _wait(lambda: s.status()["error"], what="the pause after the explosion")
     assert not s.playing
-    page.get_by_text("Stability limit", exact=False).wait_for(timeout=15_000)  # the explanation, paused
+    page.get_by_text("Stability limit", exact=False).first.wait_for(timeout=15_000)  # the explanation, paused
     assert "Simulation error" in page.content() and "blew up" in page.content()
+    dt_row.scroll_into_view_if_needed()  # where the user is: at the dt slider, the panel's top scrolled away
+    note = page.locator(".mantine-Notification-root", has_text="Simulation error")
+    note.wait_for(timeout=15_000)
+    nb = note.bounding_box()
+    assert nb is not None and nb["x"] >= 0 and nb["y"] >= 0 and nb["x"] + nb["width"] <= WIDTH and \
+        nb["y"] + nb["height"] <= HEIGHT  # the error is inside the window, wherever the panel is scrolled
     page.get_by_role("button", name="Reset").click()
     _wait(lambda: s.status()["error"] is None, what="the reset")
     assert s.params["dt"] == pytest.approx(stable_dt)  # the last parameters that ran stable
+    page.get_by_text("reset to the last stable parameters", exact=False).wait_for(timeout=15_000)
+    _wait(lambda: abs(float(_box(page, "dt [ms]").input_value()) - 1e3 * stable_dt) < 2e-3,
+          what="the dt box to show the restored step")
+    note.wait_for(state="detached", timeout=15_000)  # the notification goes with the error
+    other = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})  # a new tab shows it too
+    other.goto(viewer.url)
+    other.get_by_text("dt [ms]").wait_for(timeout=30_000)
+    assert float(_box(other, "dt [ms]").input_value()) == pytest.approx(1e3 * stable_dt, abs=2e-3)
+    other.close()
     page.get_by_role("button", name="Play").click()
     _wait(lambda: s.status()["error"] is None and s.frame > 10, what="serving after the failure")
+
+    # the decade sliders' boxes show and take the physical value (not its log10: "0" for 1 kg)
+    assert float(_box(page, "mass [kg]").input_value()) == pytest.approx(s.params["mass"]) == 1.0
+    stiffness = _box(page, "stiffness [N/m]")
+    assert float(stiffness.input_value()) == pytest.approx(s.params["stiffness"]) == 40.0
+    stiffness.scroll_into_view_if_needed()
+    stiffness.fill("60")  # typed: 60 N/m, not 10^60 clamped to 1e4
+    _wait(lambda: s.params["stiffness"] == 60.0, what="the typed stiffness")
+    page.keyboard.press("Tab")
+    time.sleep(0.5)
+    assert float(stiffness.input_value()) == 60.0 and s.params["stiffness"] == 60.0
     # 6. closing the page mid-drag releases the grab and completes the recording
     with s.lock:
         verts = s.items["teapot"].points.copy()

@@ -599,8 +599,9 @@ def main(argv=None, out=None, err=None):
         return int(getattr(exc, "exit_status", 2))  # a damaged record or manifest: 1
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else 0
-    except KeyboardInterrupt:
-        print("warpsim: interrupted; the frames written so far are kept", file=err)
+    except KeyboardInterrupt:  # 130 = 128 + SIGINT, as shells report it (Ctrl-C while serving: view exits 0)
+        kept = "" if argv and argv[0] in ("view", "list", "info") else "; the frames written so far are kept"
+        print(f"warpsim: interrupted{kept}", file=err)  # the viewer writes only recordings, completed on stop
         return 130
 
 

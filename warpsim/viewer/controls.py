@@ -1,5 +1,8 @@
 """The control panel (viser front end): play / pause / single step / reset, speed, the frame,
-simulated time and wall milliseconds per frame, Record / Stop, and the error box.
+simulated time and wall milliseconds per frame, Record / Stop, and the error box (also raised as a
+notification over the 3D view of every open tab: seen wherever the panel is scrolled). Pause
+answers at once (the frame being simulated finishes in the background); Reset shows the values
+it runs with in every input and says what it restored.
 
 Speed choices are simulated seconds per wall second; "real time" (1x) is the default and runs
 as fast as the machine can when it cannot keep up; "max" never waits. The readout shows what
@@ -8,6 +11,7 @@ was achieved.
 from __future__ import annotations
 
 import math
+import threading
 
 __all__ = ["SPEEDS", "Controls", "format_status"]
 
@@ -19,7 +23,7 @@ def format_status(status):
     state = "playing" if status["playing"] else ("failed" if status["error"] else "paused")
     text = (f"**{status['scene']}** {state}  \nframe {status['frame']} | t = {status['time']:.3f} s  \n"
             f"{status['wall_ms']:.1f} ms/frame + {status.get('draw_ms', 0.0):.1f} ms/draw | "
-            f"{status['sim_rate']:.2f} sim s per wall s")
+            f"{status['sim_rate']:.3g} sim s per wall s")
     if status["grabbed"]:
         text += f"  \ndragging particle {status['grabbed']['particle']}"
     return text
@@ -42,11 +46,14 @@ class Controls:
             self.record_status = gui.add_markdown("not recording")
         self.error = gui.add_markdown("", visible=False)
         self.message = gui.add_markdown("")
+        self._notices = {}  # client id -> the error notification shown over its 3D view
+        self._notice_text = None
+        self._notice_lock = threading.Lock()
 
         @self.play.on_click
         def _(_):
-            session.set_playing(not session.playing)
-            self.refresh()
+            session.set_playing(not session.playing)  # no lock: answers while a slow frame runs
+            self.play.label = "Pause" if session.playing else "Play"
 
         @self.step.on_click
         def _(_):
@@ -60,6 +67,13 @@ class Controls:
                 session.reset()
             except ValueError as exc:
                 self.say(f"reset failed: {exc}")
+            else:
+                self.say(session.messages[-1][1] if session.messages else "reset to frame 0")
+            handles = getattr(viewer, "param_handles", None)
+            if handles:
+                from .params import sync_param_handles
+
+                sync_param_handles(handles, session)  # the values it runs with, in every tab
             viewer.redraw()
             self.refresh()
 
@@ -86,6 +100,36 @@ class Controls:
     def say(self, text):
         self.message.content = text
 
+    def _notify(self, text):
+        """Show ``text`` (None: nothing) as the error notification of every open tab."""
+        with self._notice_lock:
+            if text == self._notice_text:
+                return
+            self._notice_text = text
+            for note in self._notices.values():
+                note.remove()
+            self._notices = {}
+            server = self.viewer.server
+            if text is None or server is None:
+                return
+            for client_id, client in server.get_clients().items():
+                self._notices[client_id] = self._add_notice(client, text)
+
+    @staticmethod
+    def _add_notice(client, text):
+        body = text.replace("**", "").replace("  \n", "\n")
+        return client.add_notification("Simulation error", body, with_close_button=True, color="red")
+
+    def on_connect(self, client):
+        """A tab opened: it gets the error notification while there is one."""
+        with self._notice_lock:
+            if self._notice_text is not None and client.client_id not in self._notices:
+                self._notices[client.client_id] = self._add_notice(client, self._notice_text)
+
+    def on_disconnect(self, client):
+        with self._notice_lock:
+            self._notices.pop(client.client_id, None)
+
     def refresh(self):
         """Update the readouts from the session (called a few times a second)."""
         st = self.viewer.session.status()
@@ -109,10 +153,14 @@ class Controls:
             if self.error.content != text:
                 self.error.content = text
                 self.error.visible = True
+            self._notify("blowing up (shown for a moment, then paused)")
         elif st["error"]:
             text = "**Simulation error** (paused; press Reset):  \n" + st["error"]
             if self.error.content != text:
                 self.error.content = text
                 self.error.visible = True
-        elif self.error.visible:
-            self.error.visible = False
+            self._notify("paused; press Reset.  \n" + st["error"])
+        else:
+            if self.error.visible:
+                self.error.visible = False
+            self._notify(None)

@@ -3,20 +3,25 @@
 :func:`widget_spec` (pure) chooses the input for a parameter: a dropdown for choices, a
 checkbox for a bool, three numbers for a 3-vector, a slider with a sensible range for a number
 (restitution-like coefficients in [0, 1], else [0, 4 x default], or symmetric for a negative
-default), a logarithmic slider for mass-like numbers (masses, stiffnesses, densities: the slider
-moves the power of ten, from 1/1000 of the default's decade to 1000 times it, so 0.001 kg is
-reachable from 1 kg), a slider in milliseconds for the time step ``dt`` (with the stability limit
+default), a decade slider for mass-like numbers (masses, stiffnesses, densities: the slider and
+its number box hold the physical value, and after each change its range is fitted to the value,
+from the lowest allowed value (1/1000 of the default's decade) to the next power of ten above the
+value, so dragging to the right end reaches the next decade and 0.001 kg is a few drags, or one
+typed value, from 1 kg), a slider in milliseconds for the time step ``dt`` (with the stability limit
 marked on it and shown beside it, values past it flagged), a number box for zero defaults, a text
-box for free text. Labels carry the unit the parameter's help names (``stiffness [N/m]``).
+box for free text. Labels carry the unit the parameter's help names (``stiffness [N/m]``), and the
+hover text speaks the slider's unit (``dt``: [ms]).
 :func:`build_param_panel` adds the inputs; a change goes to ``Session.set_param`` and the panel
-says whether it applied live or rebuilt the scene.
+says whether it applied live or rebuilt the scene. :func:`sync_param_handles` shows the values the
+session runs with (after a Reset restored the last stable ones, in every open tab and new ones).
 """
 from __future__ import annotations
 
 import math
 import re
 
-__all__ = ["build_param_panel", "dt_limit_text", "label_for", "refresh_dt_limit", "widget_spec"]
+__all__ = ["build_param_panel", "dt_limit_text", "hint_for", "label_for", "log_window", "refresh_dt_limit",
+           "sync_param_handles", "widget_spec"]
 
 UNIT_KEYS = ("restitution", "friction", "tilt_fraction", "opacity")
 LOG_KEYS = ("mass", "stiffness", "density")
@@ -32,6 +37,27 @@ def label_for(key, param, live=False):
         units = [u for u in _UNIT.findall(param.help or "") if "," not in u]  # "[0, 1]" is a range
         unit = units[0] if units else None
     return key + (f" [{unit}]" if unit else "") + (" (live)" if live else "")
+
+
+def hint_for(key, param):
+    """The input's hover text: the parameter's help, with the time step's unit as its slider's
+    ([ms], not the [s] of ``dt``'s help, which the command line's --set uses)."""
+    hint = param.help or None
+    if key == "dt" and hint:
+        hint = hint.replace("[s]", "[ms]") if "[s]" in hint else hint + " [ms]"
+    return hint
+
+
+def log_window(value, lo, hi):
+    """(min, max) of a decade slider showing ``value``: from ``lo`` (the lowest allowed value) to
+    the power of ten above ``value`` (the value sits in the top 90 % of the track; the right end
+    is the next decade), never past ``hi``."""
+    import math
+
+    if not (isinstance(value, (int, float)) and value > 0.0 and math.isfinite(value)):
+        return lo, hi
+    top = 10.0 ** (math.floor(math.log10(value)) + 1)
+    return lo, float(f"{min(max(top, 10.0 * lo), hi):.6g}")
 
 
 def dt_limit_text(info):
@@ -87,8 +113,10 @@ def widget_spec(key, param):
             import math
 
             decade = math.floor(math.log10(d))
-            return "log_slider", {"min": float(decade - 3), "max": float(decade + 3), "step": 0.01,
-                                  "initial": math.log10(d)}
+            lo, hi = 10.0 ** (decade - 3), 10.0 ** (decade + 4)
+            lo_w, hi_w = log_window(d, lo, hi)
+            return "log_slider", {"min": lo_w, "max": hi_w, "step": float(f"{lo / 100.0:.1g}"), "initial": d,
+                                  "lo": lo, "hi": hi}
         lo, hi = (0.0, 4.0 * d) if d > 0 else (4.0 * d, -4.0 * d)
         return "slider", {"min": lo, "max": hi, "step": _nice_step(hi - lo), "initial": d}
     return "text", {"initial": str(d)}
@@ -107,7 +135,7 @@ def build_param_panel(gui, session, on_result):
         kind, o = widget_spec(key, param)
         label = label_for(key, param, key in live)
         value = session.params[key]
-        hint = param.help or None
+        hint = hint_for(key, param)
         if kind == "dt_slider":
             info = session.stability()
             marks = _dt_marks(info, o)
@@ -124,34 +152,77 @@ def build_param_panel(gui, session, on_result):
             lo, hi = o["min"], o["max"]
             v = min(max(value, lo), hi) if isinstance(value, (int, float)) else o["initial"]
             h = gui.add_slider(label, lo, hi, o["step"], v, hint=hint)
-        elif kind == "log_slider":  # the slider holds log10(value); the label shows the value
-            import math
-
-            exp = math.log10(value) if isinstance(value, (int, float)) and value > 0 else o["initial"]
-            h = gui.add_slider(f"{label} = {10.0 ** exp:.3g}", o["min"], o["max"], o["step"],
-                               min(max(exp, o["min"]), o["max"]), hint=(hint or key) + " (logarithmic slider)")
+        elif kind == "log_slider":  # the slider and its box hold the value; the range follows it
+            v = float(value) if isinstance(value, (int, float)) and value > 0 else o["initial"]
+            lo, hi = log_window(v, o["lo"], o["hi"])
+            h = gui.add_slider(label, lo, hi, o["step"], min(max(v, lo), hi),
+                               hint=(hint or key) + " (the range follows the value: drag to the right end "
+                                                    "for the next power of ten, or type a value)")
         elif kind == "number":
             h = gui.add_number(label, value, step=o["step"], hint=hint)
         else:
             h = gui.add_text(label, ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value),
                              hint=hint)
         handles[key] = h
+        handles.setdefault("_kinds", {})[key] = (kind, o.get("lo"), o.get("hi"))  # for sync_param_handles
 
         def changed(event, key=key, h=h, scale=1e-3 if kind == "dt_slider" else None, log=kind == "log_slider",
-                    label=label):
+                    bounds=(o.get("lo"), o.get("hi"))):
+            if getattr(event, "client", True) is None:
+                return  # the server set the input (sync_param_handles): nothing changed by the user
             value = h.value * scale if scale else h.value
             if log:
-                value = float(f"{10.0 ** float(value):.6g}")  # 10^-3 is 0.001, not 0.0010000000000000002
-                h.label = f"{label} = {value:.3g}"
+                value = float(f"{float(value):.6g}")  # the box's typed value, without float noise
             try:
                 outcome = session.set_param(key, value)
             except ValueError as exc:
                 on_result(key, str(exc), False)
                 return
+            if log:
+                _fit_log_range(h, value, *bounds)
             on_result(key, outcome, True)
 
         h.on_update(changed)
     return handles
+
+
+def _fit_log_range(h, value, lo, hi):
+    """Fit a decade slider's range to ``value`` (see :func:`log_window`)."""
+    lo_w, hi_w = log_window(value, lo, hi)
+    if (h.min, h.max) != (lo_w, hi_w):
+        h.max = max(hi_w, h.min)  # widen first, so the value stays inside while the range moves
+        h.min = lo_w
+        h.max = hi_w
+
+
+def sync_param_handles(handles, session):
+    """Show in every input the value the session runs with (after a Reset restored the last
+    stable parameters; viser sends it to every open tab and to tabs opened later). Setting an
+    input from here does not count as a change (see ``changed`` in :func:`build_param_panel`)."""
+    for key, (kind, lo, hi) in handles.get("_kinds", {}).items():
+        h, value = handles[key], session.params.get(key)
+        if value is None:
+            continue
+        try:
+            if kind == "dt_slider":
+                shown = min(max(1e3 * float(value), h.min), h.max)
+            elif kind == "log_slider":
+                _fit_log_range(h, float(value), lo, hi)
+                shown = min(max(float(value), h.min), h.max)
+            elif kind == "slider":
+                shown = min(max(value, h.min), h.max)
+            elif kind == "dropdown":
+                shown = str(value)
+            elif kind == "vector3":
+                shown = tuple(float(v) for v in value)
+            elif kind == "text":
+                shown = ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value)
+            else:
+                shown = value
+            if h.value != shown:
+                h.value = shown
+        except (TypeError, ValueError):  # an input the value does not fit: left as it is
+            continue
 
 
 def _dt_marks(info, o):

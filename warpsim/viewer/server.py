@@ -236,7 +236,8 @@ class Viewer(Serving):
         fps, substeps: as ``warpsim run``.
         max_points: points drawn per points prim (strided subset beyond).
         record_dir: folder of recordings.
-        paused: start paused.
+        paused: start paused (else the scene starts when the first browser tab connects, so the
+            first picture a user sees is frame 0).
         draw_fps: most frames per second sent to the browser (the simulation may run faster).
         environment: light the scene with viser's environment map too (prettier; a browser
             without a GPU renders a frame in seconds instead of milliseconds with it).
@@ -285,6 +286,7 @@ class Viewer(Serving):
         self._thread = None
         self._drawn_frame = None
         self._drawn_at = 0.0
+        self._play_on_connect = False  # set by start() unless paused: the first tab starts the scene
         self.draw_count = 0  # frames sent to the browser
         self.draw_fps = float(draw_fps)
         self.environment = bool(environment)
@@ -314,6 +316,11 @@ class Viewer(Serving):
             with self.server.gui.add_folder("Parameters"):
                 self.param_handles = build_param_panel(self.server.gui, self.session, self._param_result)
         self.server.on_client_disconnect(self._on_disconnect)
+        if not self.user_driven and self.session.playing:  # frame 0 waits for the first tab
+            self._play_on_connect = True
+            self.session.playing = False
+            self.controls.play.label = "Play"
+        self.server.on_client_connect(self._on_connect)
         self.redraw()
         self._thread = threading.Thread(target=self._loop, name="warpsim-viewer", daemon=True)
         self._thread.start()
@@ -422,7 +429,17 @@ class Viewer(Serving):
         else:
             s.release(client=event.client_id)
 
+    def _on_connect(self, client):
+        """The first tab starts the scene (from frame 0, unless ``paused``); every tab gets the
+        error notification while there is one."""
+        if self._play_on_connect:
+            self._play_on_connect = False
+            self.session.set_playing(True)
+            self.controls.play.label = "Pause"
+        self.controls.on_connect(client)
+
     def _on_disconnect(self, client):
+        self.controls.on_disconnect(client)
         self.session.release(client=client.client_id)  # a tab closed mid-drag lets go
         if self.server is not None and not self.server.get_clients():
             self.session.stop_recording()  # the last tab closed: complete the recording

@@ -123,6 +123,7 @@ class Session:
         self.frame = 0
         self.time = 0.0
         self.error = None
+        self.sim_rate = 0.0  # measured afresh: the rebuilt scene may run at another rate
         self._items = self.sink.draw(scene.frame_data(), 0)
         pts = [it.points.reshape(-1, 3) for it in self._items.values() if it.points is not None and it.points.size]
         pts = np.concatenate(pts) if pts else np.zeros((1, 3))
@@ -310,14 +311,18 @@ class Session:
         return 0.0 if not math.isfinite(self.speed) else self.frame_dt / self.speed
 
     def measure(self, frames, seconds):
-        """Record the achieved rate: ``frames`` frames in ``seconds`` wall seconds."""
+        """Record the achieved rate: ``frames`` frames in ``seconds`` wall seconds, smoothed over
+        about half a wall second (a frame that takes longer replaces the estimate outright: the
+        readout follows a parameter change at once, not after many slow frames)."""
         if seconds > 0:
             rate = frames * self.frame_dt / seconds
-            self.sim_rate = rate if self.sim_rate == 0.0 else 0.7 * self.sim_rate + 0.3 * rate
+            weight = 1.0 - math.exp(-seconds / 0.5)
+            self.sim_rate = rate if self.sim_rate == 0.0 else (1.0 - weight) * self.sim_rate + weight * rate
 
     def set_playing(self, playing):
-        with self.lock:
-            self.playing = bool(playing) and self.error is None
+        """Play or pause without waiting for the frame being simulated (no lock: the stepping loop
+        reads the flag between frames, so Pause holds from the next frame on)."""
+        self.playing = bool(playing) and self.error is None
 
     def step_once(self):
         """Pause and advance exactly one frame."""
