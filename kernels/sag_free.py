@@ -278,6 +278,18 @@ def dot_partial(
 
 
 @wp.kernel
+def fold_partials(partial: wp.array(dtype=wp.float64), stride: int, out: wp.array(dtype=wp.float64)):
+    """out[t] = sum of partial[t], partial[t + stride], ... in order (the middle level of a dot
+    product: many threads for the first level keep the GPU's loads in flight, few partials for the
+    one-thread last level)."""
+    t = wp.tid()
+    acc = wp.float64(0.0)
+    for i in range(t, partial.shape[0], stride):
+        acc = acc + partial[i]
+    out[t] = acc
+
+
+@wp.kernel
 def sum_partials(partial: wp.array(dtype=wp.float64), scalars: wp.array(dtype=wp.float64), slot: int):
     """scalars[slot] = sum of partial (one thread, in order)."""
     acc = wp.float64(0.0)
