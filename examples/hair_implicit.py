@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 import warpsim as ws
-from warpsim.cli_common import DefaultsHelpFormatter, device_arg
+from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.strands import StrandImplicitEuler
 from warpsim.verbosity import set_warp_verbosity
 
@@ -71,4 +71,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_script(main))

@@ -191,6 +191,7 @@ def test_every_example_fails_in_one_line_and_shows_its_defaults(name, tmp_path, 
     from warpsim.cli_common import run_script
 
     monkeypatch.chdir(tmp_path)
+    assert "run_script(main)" in (ROOT / "examples" / name).read_text()  # so from a shell too
     module = _example_module(name)
     capsys.readouterr()
     assert run_script(module.main, ["--device", "nosuch:0"], prog=name) == 2
