@@ -196,8 +196,8 @@ class Hair(SimulatorScene):
         self._head_tris = tris
 
     # seconds per particle of the sag-free solve, measured: CPU 36,000 particles in 47 s (2 cores
-    # under load), H100 3.4 M particles in 220 s
-    SAG_FREE_RATE = {"cpu": 1.3e-3, "cuda": 6.5e-5}
+    # under load), H100 3.4 M particles in 88 s
+    SAG_FREE_RATE = {"cpu": 1.3e-3, "cuda": 2.6e-5}
 
     def _sag_free(self, p):
         """``sag_free(self.sim)``, saying on stderr what it does and about how long it takes when
