@@ -17,6 +17,7 @@ from typing import Any
 
 import warp as wp
 
+from .forces import damped_spring_force
 from .integrate import block_inverse
 
 wp.set_module_options({"enable_backward": False})
@@ -167,15 +168,16 @@ for _adjacency in (wp.array(dtype=wp.vec4), wp.array(dtype=wp.uint32)):
 
 @wp.func
 def owned_spring_force(
-    x: wp.vec3, v: wp.vec3, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), e: wp.vec3i,
-    table: wp.array(dtype=wp.vec3), incoming_f_out: wp.array(dtype=wp.vec3),
-) -> wp.vec3:
-    """Force on the owner (at x, v) of the spring of owned entry e = (other end j, row of
-    ``table``, slot); its force on j goes to incoming_f_out[slot]."""
+    x: wp.vec3, v: wp.vec3, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), e: wp.vec4i,
+    table: wp.array(dtype=wp.vec3), entry_f_out: wp.array(dtype=wp.vec3),
+):
+    """The spring of owned entry e = (other end j, row of ``table``, the owner's CSR entry, j's CSR
+    entry): its force on the owner (at x, v) and minus it written to the two entries (the
+    arithmetic of ``damped_spring_force``, whose result only changes sign with the end)."""
     p = table[e[1]]
-    fs = spring_force(x - q[e[0]], v - qd[e[0]], p[0], p[1], p[2])
-    incoming_f_out[e[2]] = -fs
-    return fs
+    fs = damped_spring_force(x, q[e[0]], v, qd[e[0]], p[0], p[1], p[2])
+    entry_f_out[e[2]] = fs
+    entry_f_out[e[3]] = -fs
 
 
 @wp.kernel
@@ -183,21 +185,18 @@ def eval_cloth_owned_springs(
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
     owned_offsets: wp.array(dtype=int),
-    owned: wp.array(dtype=wp.vec3i),
+    owned: wp.array(dtype=wp.vec4i),
     table: wp.array(dtype=wp.vec3),
-    owned_f_out: wp.array(dtype=wp.vec3),
-    incoming_f_out: wp.array(dtype=wp.vec3),
+    entry_f_out: wp.array(dtype=wp.vec3),
 ):
     """"owner" step, pass 1: thread i evaluates once each spring it owns (i is its lower end):
     entries owned_offsets[i] .. [i + 1] of ``owned`` = (other end j, row of ``table`` = (rest [m],
-    k [N/m], kd [N s/m]), slot of the spring in j's incoming list). owned_f_out[i] = the sum of
-    their forces on i [N] in entry order; incoming_f_out[slot] = the force on j. Each slot has one
-    writer: no atomics. Four springs at a time, their entries loaded first (the sum keeps entry
-    order)."""
+    k [N/m], kd [N s/m]), i's entry, j's entry in the CSR list ``particle_springs``); the force
+    [N] on i and on j go to those entries of entry_f_out. Each entry has one writer: no atomics.
+    Four springs at a time, their entries loaded first."""
     i = wp.tid()
     x = q[i]
     v = qd[i]
-    f = wp.vec3()
     a = owned_offsets[i]
     end = owned_offsets[i + 1]
     while a + 4 <= end:
@@ -205,19 +204,14 @@ def eval_cloth_owned_springs(
         e1 = owned[a + 1]
         e2 = owned[a + 2]
         e3 = owned[a + 3]
-        f0 = owned_spring_force(x, v, q, qd, e0, table, incoming_f_out)
-        f1 = owned_spring_force(x, v, q, qd, e1, table, incoming_f_out)
-        f2 = owned_spring_force(x, v, q, qd, e2, table, incoming_f_out)
-        f3 = owned_spring_force(x, v, q, qd, e3, table, incoming_f_out)
-        f = f + f0
-        f = f + f1
-        f = f + f2
-        f = f + f3
+        owned_spring_force(x, v, q, qd, e0, table, entry_f_out)
+        owned_spring_force(x, v, q, qd, e1, table, entry_f_out)
+        owned_spring_force(x, v, q, qd, e2, table, entry_f_out)
+        owned_spring_force(x, v, q, qd, e3, table, entry_f_out)
         a += 4
     while a < end:
-        f = f + owned_spring_force(x, v, q, qd, owned[a], table, incoming_f_out)
+        owned_spring_force(x, v, q, qd, owned[a], table, entry_f_out)
         a += 1
-    owned_f_out[i] = f
 
 
 @wp.kernel
@@ -226,42 +220,42 @@ def step_cloth_owned(
     qd: wp.array(dtype=wp.vec3),
     f_ext: wp.array(dtype=wp.vec3),
     use_f_ext: int,
-    owned_f: wp.array(dtype=wp.vec3),
-    incoming_offsets: wp.array(dtype=int),
-    incoming_f: wp.array(dtype=wp.vec3),
+    particle_spring_offsets: wp.array(dtype=int),
+    entry_f: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     gravity: wp.vec3,
     h: float,
     q_out: wp.array(dtype=wp.vec3),
     qd_out: wp.array(dtype=wp.vec3),
 ):
-    """"owner" step, pass 2: f = f_ext[i] (when used) + owned_f[i] + incoming_f[incoming_offsets[i]
-    .. [i + 1]] summed in that fixed order (contiguous reads, four loads at a time), then
-    v += h (f / m + g), x += h v written to q_out / qd_out (other arrays than q, qd)."""
+    """"owner" step, pass 2: the spring forces of particle i's CSR row of entry_f summed in
+    order (contiguous reads, four loads at a time), added to f_ext[i] (when used), then
+    v += h (f / m + g), x += h v written to q_out / qd_out (other arrays than q, qd): the sums,
+    and so the bits, of the scatter mode (``ws.Springs`` + ``integrate_cloth_particles``)."""
     i = wp.tid()
     x = q[i]
     v = qd[i]
     w = inv_mass[i]
     if w > 0.0:
-        f = owned_f[i]
-        if use_f_ext != 0:
-            f = f_ext[i] + f
-        a = incoming_offsets[i]
-        end = incoming_offsets[i + 1]
+        f = wp.vec3()
+        a = particle_spring_offsets[i]
+        end = particle_spring_offsets[i + 1]
         while a + 4 <= end:
-            g0 = incoming_f[a]
-            g1 = incoming_f[a + 1]
-            g2 = incoming_f[a + 2]
-            g3 = incoming_f[a + 3]
+            g0 = entry_f[a]
+            g1 = entry_f[a + 1]
+            g2 = entry_f[a + 2]
+            g3 = entry_f[a + 3]
             f = f + g0
             f = f + g1
             f = f + g2
             f = f + g3
             a += 4
         while a < end:
-            f = f + incoming_f[a]
+            f = f + entry_f[a]
             a += 1
-        v = v + h * (w * f + gravity)
+        if use_f_ext != 0:
+            f = f_ext[i] + f
+        v = cloth_velocity(v, f, w, gravity, h)
     qd_out[i] = v
     q_out[i] = x + h * v
 

@@ -66,13 +66,13 @@ class ClothSemiImplicitEuler(Integrator):
     adjacency in spring order, + a particle kernel; handles breakable springs), "gather" (one
     particle-centric kernel per step over packed adjacency lists, each spring evaluated at both
     ends), "owner" (two particle kernels per step: each spring evaluated once, by its lower end's
-    thread, which keeps the sum of its own springs and writes each one's force on the other end to
-    a slot of that end's incoming list; then each particle sums its slots in a fixed order and is
-    updated) or None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2
-    particles, see benchmarks/bench_cloth.py), owner on the CPU (scatter where springs can break).
-    "gather" and "owner" step out of place (ClothSimulator ping-pongs its state arrays). None
-    uses float atomics: all are bit-reproducible (they sum in different orders, so they agree to
-    float rounding). ``deterministic=False`` (scatter mode only): the former per-spring kernel
+    thread, which writes its force on both ends to their entries of the model's CSR spring list;
+    then each particle sums its CSR row in order and is updated: the scatter mode's sums, bit for
+    bit) or None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2 particles,
+    see benchmarks/bench_cloth.py), owner on the CPU (scatter where springs can break). "gather"
+    and "owner" step out of place (ClothSimulator ping-pongs its state arrays). None uses float
+    atomics: all are bit-reproducible (gather sums in another order than scatter and owner, so it
+    agrees with them to float rounding). ``deterministic=False`` (scatter mode only): the former per-spring kernel
     with float atomics, whose summation order varies run to run on GPUs (an opt-out for speed
     comparisons)."""
 
@@ -118,30 +118,34 @@ class ClothSemiImplicitEuler(Integrator):
         return getattr(self, "mode", None) in ("gather", "owner")
 
     def _build_owned(self, model):
-        """"owner" mode's lists: each spring is owned by its lower end i (entries (j, parameter row,
-        slot), grouped by i, by j within a group) and holds one slot in the incoming list of its
-        upper end j (slots grouped by j, by i within a group): both orders fixed at build time."""
+        """"owner" mode's lists: each spring is owned by its lower end i: entries (other end j,
+        parameter row, i's and j's positions in the model's CSR list ``particle_springs``),
+        grouped by i, by j within a group (an order fixed at build time)."""
         n, d = model.particle_count, model.device
-        pairs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
-        lo, hi = pairs.min(axis=1), pairs.max(axis=1)
+        ensure_spring_adjacency(model)
+        ends = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        count = len(ends)
+        offsets, springs = model.particle_spring_offsets.numpy(), model.particle_springs.numpy()
+        row = np.repeat(np.arange(n), np.diff(offsets))  # particle of each CSR entry
+        order = np.argsort(springs, kind="stable")  # each spring's two CSR entries
+        first, second = order[0::2], order[1::2]
+        swap = row[first] != ends[:, 0]
+        entry = np.stack([np.where(swap, second, first), np.where(swap, first, second)], axis=1)  # ends 2s, 2s+1
+        flip = ends[:, 1] < ends[:, 0]  # end 2s+1 owns the spring
+        lo, hi = np.where(flip, ends[:, 1], ends[:, 0]), np.where(flip, ends[:, 0], ends[:, 1])
+        own_entry, other_entry = np.where(flip, entry[:, 1], entry[:, 0]), np.where(flip, entry[:, 0], entry[:, 1])
         params = np.stack([model.spring_rest_length.numpy(), model.spring_stiffness.numpy(),
                            model.spring_damping.numpy()], axis=1).astype(np.float32)
         table, kind = np.unique(params, axis=0, return_inverse=True)
         kind = kind.reshape(-1)
-        own = np.lexsort((hi, lo))  # owned entries: by lower end, then upper end
-        incoming = np.lexsort((lo, hi))  # incoming slots: by upper end, then lower end
-        slot = np.empty(len(pairs), dtype=np.int64)
-        slot[incoming] = np.arange(len(pairs))
+        own = np.lexsort((hi, lo))  # by lower end, then upper end
         self.owned_offsets = wp.array(np.concatenate([[0], np.cumsum(np.bincount(lo, minlength=n))]).astype(np.int32),
                                       dtype=int, device=d)
-        self.incoming_offsets = wp.array(
-            np.concatenate([[0], np.cumsum(np.bincount(hi, minlength=n))]).astype(np.int32), dtype=int, device=d)
-        entries = np.stack([hi[own], kind[own], slot[own]], axis=1).astype(np.int32)
-        self.owned = wp.array(entries if len(pairs) else np.zeros((0, 3), np.int32), dtype=wp.vec3i, device=d)
+        entries = np.stack([hi[own], kind[own], own_entry[own], other_entry[own]], axis=1).astype(np.int32)
+        self.owned = wp.array(entries.reshape(-1, 4), dtype=wp.vec4i, device=d)
         self.owned_table = wp.array(table.reshape(-1, 3) if len(table) else np.zeros((1, 3), np.float32),
                                     dtype=wp.vec3, device=d)
-        self.owned_f = wp.zeros(n, dtype=wp.vec3, device=d)
-        self.incoming_f = wp.zeros(max(len(pairs), 1), dtype=wp.vec3, device=d)
+        self.entry_f = wp.zeros(max(2 * count, 1), dtype=wp.vec3, device=d)
 
     def _build_adjacency(self, model):
         """Per-particle spring lists for the gather kernel, grouped by particle. Packed (4 bytes an
@@ -182,12 +186,13 @@ class ClothSemiImplicitEuler(Integrator):
             self.f_ext.zero_()
             self._external(system, q, qd, time, self.f_ext)
         if self.mode == "owner":
+            model = system.model
             wp.launch(KC.eval_cloth_owned_springs, system.count,
-                      inputs=[q, qd, self.owned_offsets, self.owned, self.owned_table, self.owned_f, self.incoming_f],
+                      inputs=[q, qd, self.owned_offsets, self.owned, self.owned_table, self.entry_f],
                       device=system.device)
             wp.launch(KC.step_cloth_owned, system.count,
-                      inputs=[q, qd, self.f_ext, int(bool(self.others)), self.owned_f, self.incoming_offsets,
-                              self.incoming_f, system.inv_mass, self.gravity, float(dt), q_out, qd_out],
+                      inputs=[q, qd, self.f_ext, int(bool(self.others)), model.particle_spring_offsets, self.entry_f,
+                              system.inv_mass, self.gravity, float(dt), q_out, qd_out],
                       device=system.device)
             return
         wp.launch(KC.step_cloth_gather, system.count,
