@@ -8,10 +8,11 @@ Euler, and a Simulator that replays each frame's sub-steps as a captured graph.
   default; or ``warp.optim.linear.cg``, preallocated); pinned rows and columns are filtered.
   Per step it reports CG iterations, final residual and tolerance.
 - :class:`ClothSemiImplicitEuler`: v += h (f/m + g), x += h v with springs, gravity and the
-  update fused ("scatter": spring-force kernel + particle kernel, or "gather": one
-  particle-centric kernel). Both sum each particle's springs in a fixed order without float
-  atomics, as does the implicit solver's assembly and its CG dot products, so runs are
-  bit-reproducible on every device.
+  update fused ("scatter": spring-force kernels + particle kernel; "owner", the CPU default:
+  each spring evaluated once by its lower end's thread + a particle kernel, scatter's sums bit
+  for bit; "gather", the CUDA default: one particle-centric kernel). All sum each particle's
+  springs in a fixed order without float atomics, as does the implicit solver's assembly and its
+  CG dot products, so runs are bit-reproducible on every device.
 - :class:`ClothSimulator`: a ``ws.Simulator`` whose ``frame()`` / ``run()`` capture a frame's
   sub-steps (forces, solve, colliders) in a graph (CUDA and CPU) and replay it; no allocation
   and no host read-back inside a frame.
