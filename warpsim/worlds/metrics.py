@@ -11,8 +11,9 @@ Built-in metrics (one value per world):
                                  its energy scale (``frame_dt`` given; ``warpsim.core.energy``): 0 for a
                                  world that only lost energy
   unstable                       1 if energy_gain passed ``warpsim.core.energy.MARGIN`` or the energy became
-                                 non-finite: a step above the stability limit (or a force that adds energy)
-                                 that NaN and the speed bound miss, even where walls stop the velocities
+                                 non-finite while the world ran on (a world frozen by a NaN or the speed bound
+                                 counts as blown up): a step above the stability limit (or a force that adds
+                                 energy) that NaN and the speed bound miss, even where walls stop the velocities
 Tracked particles (``track={"spout": 12}``, indices within one world): NAME_x, NAME_y, NAME_z (final
 position [m]) and NAME_peak_y. A user metric :class:`UserMetric` sums a ``@wp.func`` of
 (x [m], v [m/s], m [kg]) -> float over a world's particles: NAME (last frame) and NAME_peak.
@@ -186,7 +187,7 @@ class WorldMetrics:
                    "peak_center_y": float(peak[w, 1]), "peak_speed": float(speed[w]),
                    "kinetic_energy": float(ke[w]), "blown_up": int(bad[w] or unstable[w] >= 0),
                    "blown_frame": int(blown[w] if blown[w] >= 0 else unstable[w]),
-                   "energy_gain": float(gains[w]), "unstable": int(unstable[w] >= 0)}
+                   "energy_gain": float(gains[w]), "unstable": int(unstable[w] >= 0 and not bad[w])}
             for k, name in enumerate(self.track):
                 if k < t:
                     row.update({f"{name}_x": float(tf[w, k, 0]), f"{name}_y": float(tf[w, k, 1]),
