@@ -166,3 +166,13 @@ def test_every_writing_command_refuses_its_own_input(sweep, tmp_path):
     # its own files and a re-run's default cache stay writable
     code, _, err = run("pick", sweep, "--world", 1, "--out", tmp_path / "w1.usda")
     assert code == 0, err
+
+
+def test_viewer_api_misuse_is_named():
+    """Issue 36, class 5: bad viewer arguments and calls in the wrong order raise the right type with a fix."""
+    import warpsim as ws
+
+    with pytest.raises(TypeError, match="params must be a dict"):
+        ws.Viewer("bounce", params="x", device="cpu")
+    with pytest.raises(RuntimeError, match="before start"):
+        ws.Viewer("bounce", device="cpu").update()

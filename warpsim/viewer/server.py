@@ -276,6 +276,9 @@ class Viewer(Serving):
             self.user_driven = True
         else:
             raise ValueError(f"ws.Viewer: {scene!r} is not a scene name, Scene class or instance, or ws.Simulator")
+        if params is not None and not isinstance(params, dict):
+            raise TypeError(f"ws.Viewer params must be a dict of parameter values, got {params!r}; e.g. "
+                            "params={'stiffness': 80.0}")
         self.session = Session(cls, params, device, fps=fps, substeps=substeps, max_points=max_points,
                                record_dir=record_dir, scene=instance)
         if paused or self.user_driven:
@@ -368,7 +371,10 @@ class Viewer(Serving):
         s.draw_ms = ms if s.draw_ms == 0.0 else 0.8 * s.draw_ms + 0.2 * ms
 
     def update(self):
-        """Redraw a ``ws.Simulator`` the caller steps (``ws.Viewer(sim)``)."""
+        """Redraw a ``ws.Simulator`` the caller steps (``ws.Viewer(sim)``); call ``start()`` first."""
+        if self.server is None:
+            raise RuntimeError("ws.Viewer.update() before start(): call viewer.start() once, then update() after "
+                               "each step you want drawn")
         self.session.redraw()
         self.redraw()
         self.controls.refresh()
