@@ -169,13 +169,14 @@ for _adjacency in (wp.array(dtype=wp.vec4), wp.array(dtype=wp.uint32)):
 @wp.func
 def owned_spring_force(
     x: wp.vec3, v: wp.vec3, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), e: wp.vec4i,
-    table: wp.array(dtype=wp.vec3), entry_f_out: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
+    entry_f_out: wp.array(dtype=wp.vec3),
 ):
-    """The spring of owned entry e = (other end j, row of ``table``, the owner's CSR entry, j's CSR
-    entry): its force on the owner (at x, v) and minus it written to the two entries (the
-    arithmetic of ``damped_spring_force``, whose result only changes sign with the end)."""
-    p = table[e[1]]
-    fs = damped_spring_force(x, q[e[0]], v, qd[e[0]], p[0], p[1], p[2])
+    """The spring s of owned entry e = (other end j, s, the owner's CSR entry, j's CSR entry):
+    its force on the owner (at x, v) and minus it written to the two entries (the arithmetic of
+    ``damped_spring_force``, whose result only changes sign with the end)."""
+    s = e[1]
+    fs = damped_spring_force(x, q[e[0]], v, qd[e[0]], rest[s], stiffness[s], damping[s])
     entry_f_out[e[2]] = fs
     entry_f_out[e[3]] = -fs
 
@@ -186,14 +187,17 @@ def eval_cloth_owned_springs(
     qd: wp.array(dtype=wp.vec3),
     owned_offsets: wp.array(dtype=int),
     owned: wp.array(dtype=wp.vec4i),
-    table: wp.array(dtype=wp.vec3),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
     entry_f_out: wp.array(dtype=wp.vec3),
 ):
     """"owner" step, pass 1: thread i evaluates once each spring it owns (i is its lower end):
-    entries owned_offsets[i] .. [i + 1] of ``owned`` = (other end j, row of ``table`` = (rest [m],
-    k [N/m], kd [N s/m]), i's entry, j's entry in the CSR list ``particle_springs``); the force
-    [N] on i and on j go to those entries of entry_f_out. Each entry has one writer: no atomics.
-    Four springs at a time, their entries loaded first."""
+    entries owned_offsets[i] .. [i + 1] of ``owned`` = (other end j, spring s, i's entry, j's
+    entry in the CSR list ``particle_springs``); the force [N] on i and on j go to those entries
+    of entry_f_out. Spring parameters are read from the model's arrays (rest [m], k [N/m],
+    kd [N s/m]), so changes in place take effect. Each entry has one writer: no atomics. Four
+    springs at a time, their entries loaded first."""
     i = wp.tid()
     x = q[i]
     v = qd[i]
@@ -204,13 +208,13 @@ def eval_cloth_owned_springs(
         e1 = owned[a + 1]
         e2 = owned[a + 2]
         e3 = owned[a + 3]
-        owned_spring_force(x, v, q, qd, e0, table, entry_f_out)
-        owned_spring_force(x, v, q, qd, e1, table, entry_f_out)
-        owned_spring_force(x, v, q, qd, e2, table, entry_f_out)
-        owned_spring_force(x, v, q, qd, e3, table, entry_f_out)
+        owned_spring_force(x, v, q, qd, e0, spring_rest_length, spring_stiffness, spring_damping, entry_f_out)
+        owned_spring_force(x, v, q, qd, e1, spring_rest_length, spring_stiffness, spring_damping, entry_f_out)
+        owned_spring_force(x, v, q, qd, e2, spring_rest_length, spring_stiffness, spring_damping, entry_f_out)
+        owned_spring_force(x, v, q, qd, e3, spring_rest_length, spring_stiffness, spring_damping, entry_f_out)
         a += 4
     while a < end:
-        owned_spring_force(x, v, q, qd, owned[a], table, entry_f_out)
+        owned_spring_force(x, v, q, qd, owned[a], spring_rest_length, spring_stiffness, spring_damping, entry_f_out)
         a += 1
 
 

@@ -480,7 +480,8 @@ def test_semi_implicit_kernels_match_numpy(mode):
 def test_owner_mode_gives_the_scatter_modes_bits():
     """"owner" (each spring evaluated once by its lower end, written to both CSR entries) sums in
     the scatter mode's order: the same bits after captured frames with wind, a floor and a
-    sphere, with springs whose first end is the higher index and distinct parameters."""
+    sphere, with springs whose first end is the higher index and distinct parameters, changed in
+    place half way (both read the model's arrays)."""
     def run(mode):
         b, _ = small_cloth((6, 5), stiffness=400.0, damping=1.0)
         b.spring_indices = [(int(j), int(i)) for i, j in np.asarray(b.spring_indices).reshape(-1, 2)]
@@ -489,7 +490,9 @@ def test_owner_mode_gives_the_scatter_modes_bits():
                              forces=[ws.Gravity(), ws.Wind(coefficient=0.02)],
                              colliders=[ws.Plane(offset=0.9, restitution=0.0, friction=0.3),
                                         Sphere((0.15, 0.95, 0.15), 0.04, restitution=0.0, friction=0.3)])
-        for _ in range(20):
+        for frame in range(20):
+            if frame == 10:
+                sim.model.spring_stiffness.assign(0.5 * sim.model.spring_stiffness.numpy())
             sim.frame(1.0 / 60.0, 16)
         return sim.state.positions.numpy(), sim.state.velocities.numpy(), sim.integrator.mode
 

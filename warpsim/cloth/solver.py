@@ -119,9 +119,9 @@ class ClothSemiImplicitEuler(Integrator):
         return getattr(self, "mode", None) in ("gather", "owner")
 
     def _build_owned(self, model):
-        """"owner" mode's lists: each spring is owned by its lower end i: entries (other end j,
-        parameter row, i's and j's positions in the model's CSR list ``particle_springs``),
-        grouped by i, by j within a group (an order fixed at build time)."""
+        """"owner" mode's lists: each spring s is owned by its lower end i: entries (other end j,
+        s, i's and j's positions in the model's CSR list ``particle_springs``), grouped by i, by j
+        within a group (an order fixed at build time)."""
         n, d = model.particle_count, model.device
         ensure_spring_adjacency(model)
         ends = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
@@ -135,17 +135,11 @@ class ClothSemiImplicitEuler(Integrator):
         flip = ends[:, 1] < ends[:, 0]  # end 2s+1 owns the spring
         lo, hi = np.where(flip, ends[:, 1], ends[:, 0]), np.where(flip, ends[:, 0], ends[:, 1])
         own_entry, other_entry = np.where(flip, entry[:, 1], entry[:, 0]), np.where(flip, entry[:, 0], entry[:, 1])
-        params = np.stack([model.spring_rest_length.numpy(), model.spring_stiffness.numpy(),
-                           model.spring_damping.numpy()], axis=1).astype(np.float32)
-        table, kind = np.unique(params, axis=0, return_inverse=True)
-        kind = kind.reshape(-1)
         own = np.lexsort((hi, lo))  # by lower end, then upper end
         self.owned_offsets = wp.array(np.concatenate([[0], np.cumsum(np.bincount(lo, minlength=n))]).astype(np.int32),
                                       dtype=int, device=d)
-        entries = np.stack([hi[own], kind[own], own_entry[own], other_entry[own]], axis=1).astype(np.int32)
+        entries = np.stack([hi[own], own, own_entry[own], other_entry[own]], axis=1).astype(np.int32)
         self.owned = wp.array(entries.reshape(-1, 4), dtype=wp.vec4i, device=d)
-        self.owned_table = wp.array(table.reshape(-1, 3) if len(table) else np.zeros((1, 3), np.float32),
-                                    dtype=wp.vec3, device=d)
         self.entry_f = wp.zeros(max(2 * count, 1), dtype=wp.vec3, device=d)
 
     def _build_adjacency(self, model):
@@ -189,7 +183,8 @@ class ClothSemiImplicitEuler(Integrator):
         if self.mode == "owner":
             model = system.model
             wp.launch(KC.eval_cloth_owned_springs, system.count,
-                      inputs=[q, qd, self.owned_offsets, self.owned, self.owned_table, self.entry_f],
+                      inputs=[q, qd, self.owned_offsets, self.owned, model.spring_rest_length, model.spring_stiffness,
+                              model.spring_damping, self.entry_f],
                       device=system.device)
             wp.launch(KC.step_cloth_owned, system.count,
                       inputs=[q, qd, self.f_ext, int(bool(self.others)), model.particle_spring_offsets, self.entry_f,
