@@ -126,7 +126,7 @@ class Planes(_Contact):
             device=model.device,
         )
 
-    def step_distances(self, model, positions):
+    def step_distances(self, model, positions) -> np.ndarray | None:
         """Per particle, the most it may move in one step [m] (``warpsim.core.stability``): in modes
         "seed" and "project" the larger of its collision thickness (radius + thickness) and its fall
         height above the nearest plane; None in "reflect" (resolved at the time of impact) and

@@ -168,7 +168,7 @@ class SoftContact(Collider):
     def body_count(self) -> int:
         return len(self._body_offset)
 
-    def step_distances(self, model, positions):
+    def step_distances(self, model, positions) -> np.ndarray | None:
         """Per particle, the most it may move in one step [m] (``warpsim.core.stability``): the contact
         thickness, so that no vertex crosses it, and the surfaces it keeps apart, within one step."""
         return np.full(model.particle_count, self.thickness)
