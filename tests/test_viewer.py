@@ -350,3 +350,36 @@ def test_ctrl_c_on_the_viewer_does_not_claim_frames(monkeypatch):
     err = io.StringIO()
     assert cli.main(["run", "bounce", "--frames", "1"], out=io.StringIO(), err=err) == 130
     assert "the frames written so far are kept" in err.getvalue()
+
+
+def test_pause_between_sub_steps_resumes_the_same_frame():
+    """A Pause during a frame stops after the sub-step under way (the flag is read between
+    sub-steps) and the frame resumes there: the same steps, the same bits as frames not paused."""
+    params = {"stiffness": "4000"}
+    whole = Session(get_scene("springs"), params, device="cpu")
+    for _ in range(3):
+        assert whole.advance()
+    s = Session(get_scene("springs"), params, device="cpu")
+    n = s.scene.frame_steps(s.frame_dt, s.substeps)
+    assert n >= 4
+    step, calls = s.scene.sim.step, []
+
+    def stepping(pause_after):
+        def counted(h):  # a Pause click arriving while sub-step ``pause_after`` runs
+            step(h)
+            calls.append(h)
+            if len(calls) == pause_after:
+                s.set_playing(False)
+        return counted
+
+    s.scene.sim.step = stepping(3)
+    assert not s.advance(interruptible=True) and s.frame == 0 and len(calls) == 3  # stopped inside frame 1
+    s.set_playing(True)
+    assert s.advance(interruptible=True) and s.frame == 1 and len(calls) == n  # resumed: the frame's other n - 3 steps
+    assert s.advance(interruptible=True) and s.frame == 2
+    calls.clear()
+    s.scene.sim.step = stepping(2)
+    assert not s.advance(interruptible=True) and s.frame == 2  # paused inside frame 3
+    assert s.step_once() and s.frame == 3 and len(calls) == n  # Step finishes that frame
+    assert np.array_equal(s.scene.sim.state.positions.numpy(), whole.scene.sim.state.positions.numpy())
+    assert np.array_equal(s.scene.sim.state.velocities.numpy(), whole.scene.sim.state.velocities.numpy())

@@ -1,7 +1,7 @@
 """The control panel (viser front end): play / pause / single step / reset, speed, the frame,
 simulated time and wall milliseconds per frame, Record / Stop, and the error box (also raised as a
 notification over the 3D view of every open tab: seen wherever the panel is scrolled). Pause
-answers at once (the frame being simulated finishes in the background); Reset shows the values
+answers at once (a frame being simulated stops after its sub-step under way); Reset shows the values
 it runs with in every input and says what it restored.
 
 Speed choices are simulated seconds per wall second; "real time" (1x) is the default and runs

@@ -386,7 +386,7 @@ class Viewer(Serving):
             t0 = time.perf_counter()
             stepped = False
             if s.playing and not self.user_driven:
-                stepped = s.advance()
+                stepped = s.advance(interruptible=True)  # a Pause stops it between sub-steps
             due = time.perf_counter() - self._drawn_at >= 1.0 / self.draw_fps or not s.playing
             if (s.version, s.frame) != self._drawn_frame and due:
                 try:

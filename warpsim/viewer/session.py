@@ -86,6 +86,7 @@ class Session:
         self.step_dt = None  # the step the scene takes [s]
         self.exploding = None  # {"error", "frame", "left"} while a blow-up is being shown
         self._frames_since_change = 0
+        self._substeps_done = 0  # sub-steps taken of a frame a Pause interrupted
         self._build(scene)
 
     # ------------------------------------------------------------------ building
@@ -123,6 +124,7 @@ class Session:
         self.frame = 0
         self.time = 0.0
         self.error = None
+        self._substeps_done = 0
         self.sim_rate = 0.0  # measured afresh: the rebuilt scene may run at another rate
         self._items = self.sink.draw(scene.frame_data(), 0)
         pts = [it.points.reshape(-1, 3) for it in self._items.values() if it.points is not None and it.points.size]
@@ -269,10 +271,11 @@ class Session:
             self._fail(ex["error"], ex["frame"])
         return True
 
-    def advance(self):
+    def advance(self, interruptible=False):
         """Simulate one frame (recorded when recording); on a SimulationError show the explosion
         for EXPLOSION_FRAMES frames, then pause and keep the message (returns False when nothing
-        was made). Returns True when a frame was made."""
+        was made). Returns True when a frame was made. ``interruptible`` (the viewer's stepping
+        loop): a Pause stops it between sub-steps (False; the next call finishes the frame)."""
         with self.lock:
             if self.error is not None:
                 return False
@@ -280,7 +283,8 @@ class Session:
                 return self._advance_exploding()
             t0 = time.perf_counter()
             try:
-                self.scene.advance(self.frame_dt, self.substeps)
+                if not self._advance_scene(interruptible):
+                    return False  # paused between sub-steps: the frame goes on from there
                 if self.recorder is not None:
                     self.recorder.write(self.scene.frame_data())
             except (SimulationError, ValueError, FloatingPointError) as exc:
@@ -296,6 +300,29 @@ class Session:
             ms = 1e3 * (time.perf_counter() - t0)
             self.wall_ms = ms if self.wall_ms == 0.0 else 0.8 * self.wall_ms + 0.2 * ms
             return True
+
+    def _advance_scene(self, interruptible):
+        """Simulate the frame: a scene stepped as ``SimulatorScene.advance`` steps it (its sub-steps,
+        then the frame check) checks the Pause flag between sub-steps and keeps how many it took,
+        so a slow frame (mass 0.001: seconds) pauses at once and resumes where it stopped, taking
+        the same steps as one uninterrupted frame. False when paused (``interruptible``) before the
+        frame's end."""
+        from ..scenes import SimulatorScene
+
+        scene = self.scene
+        if type(scene).advance is not SimulatorScene.advance:  # a scene with a frame of its own
+            scene.advance(self.frame_dt, self.substeps)
+            return True
+        n = scene.frame_steps(self.frame_dt, self.substeps)
+        h = self.frame_dt / n
+        while self._substeps_done < n:
+            if interruptible and not self.playing:
+                return False
+            scene.sim.step(h)
+            self._substeps_done += 1
+        self._substeps_done = 0
+        scene.sim.check_frame(self.frame_dt)
+        return True
 
     def redraw(self):
         """Draw the scene's current state as the next frame without stepping it (a simulator
@@ -321,11 +348,11 @@ class Session:
 
     def set_playing(self, playing):
         """Play or pause without waiting for the frame being simulated (no lock: the stepping loop
-        reads the flag between frames, so Pause holds from the next frame on)."""
+        reads the flag between sub-steps, see ``_advance_scene``)."""
         self.playing = bool(playing) and self.error is None
 
     def step_once(self):
-        """Pause and advance exactly one frame."""
+        """Pause and advance exactly one frame (the rest of one a Pause interrupted)."""
         with self.lock:
             self.playing = False
             return self.advance()
