@@ -66,17 +66,55 @@ def bad(value: float) -> float:
     return 1.0
 
 
+@wp.struct
+class EnergyInputs:
+    """What the sums read: positions now and at the frame's start [m], velocities [m/s], the driving
+    forces at the frame's start and end [N] (empty arrays of length 0 are not allowed: zeros when
+    nothing drives), masses [kg], inverse masses [1/kg], gravity per world [m/s^2] and dt / 2 [s]
+    (0 for integrators other than semi-implicit Euler)."""
+
+    q: wp.array(dtype=wp.vec3)
+    q_frame_start: wp.array(dtype=wp.vec3)
+    qd: wp.array(dtype=wp.vec3)
+    drive_start: wp.array(dtype=wp.vec3)
+    drive_end: wp.array(dtype=wp.vec3)
+    mass: wp.array(dtype=float)
+    inv_mass: wp.array(dtype=float)
+    world_gravity: wp.array(dtype=wp.vec3)
+    half_dt: float
+
+
+@wp.func
+def add_particle(p: EnergyInputs, i: int, g: wp.vec3, energy: float, correction: float, work: float,
+                 gravity: float, peak: float):
+    """The running (energy, correction, work, gravity, peak) with particle i added."""
+    e, c, a, u, k = particle_terms(p.q[i], p.q_frame_start[i], p.qd[i], p.drive_start[i], p.drive_end[i],
+                                   p.mass[i], p.inv_mass[i], g, p.half_dt)
+    return energy + e, correction + c, work + a, gravity + u, wp.max(peak, k)
+
+
+@wp.func
+def add_spring(p: EnergyInputs, i: int, j: int, rest: float, k: float, energy: float, correction: float):
+    """The running (energy, correction) with the spring joining particles i and j added."""
+    e, c = spring_term(p.q[i], p.q[j], p.qd[i], p.qd[j], rest, k, p.half_dt)
+    return energy + e, correction + c
+
+
+@wp.func
+def write_row(out: wp.array2d(dtype=float), r: int, energy: float, correction: float, work: float,
+              gravity: float, peak: float):
+    """Row r of the sums (the module's columns)."""
+    out[r, 0] = energy
+    out[r, 1] = correction
+    out[r, 2] = work
+    out[r, 3] = gravity
+    out[r, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
+    out[r, 5] = peak
+
+
 @wp.kernel
 def world_energy_sums(
-    q: wp.array(dtype=wp.vec3),
-    q_frame_start: wp.array(dtype=wp.vec3),
-    qd: wp.array(dtype=wp.vec3),
-    drive_start: wp.array(dtype=wp.vec3),
-    drive_end: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-    inv_mass: wp.array(dtype=float),
-    world_gravity: wp.array(dtype=wp.vec3),
-    half_dt: float,
+    p: EnergyInputs,
     world_particles: int,
     spring_indices: wp.array(dtype=int),
     spring_rest: wp.array(dtype=float),
@@ -88,100 +126,52 @@ def world_energy_sums(
     """One thread per world w sums its particles [w P, (w + 1) P) and springs [w S, (w + 1) S) in
     index order into out[w] (the module's columns); ``spring_broken`` may be empty (none break)."""
     w = wp.tid()
-    g = world_gravity[w]
+    g = p.world_gravity[w]
     energy = float(0.0)
-    work = float(0.0)
     correction = float(0.0)
+    work = float(0.0)
     gravity = float(0.0)
     peak = float(0.0)
     for i in range(w * world_particles, (w + 1) * world_particles):
-        e, c, a, u, k = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i],
-                                       inv_mass[i], g, half_dt)
-        energy += e
-        correction += c
-        work += a
-        gravity += u
-        peak = wp.max(peak, k)
+        energy, correction, work, gravity, peak = add_particle(p, i, g, energy, correction, work, gravity, peak)
     for s in range(w * world_springs, (w + 1) * world_springs):
         if spring_broken.shape[0] == 0 or spring_broken[s] == 0:
-            pi = spring_indices[2 * s]
-            pj = spring_indices[2 * s + 1]
-            e, c = spring_term(q[pi], q[pj], qd[pi], qd[pj], spring_rest[s], spring_stiffness[s], half_dt)
-            energy += e
-            correction += c
-    out[w, 0] = energy
-    out[w, 1] = correction
-    out[w, 2] = work
-    out[w, 3] = gravity
-    out[w, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
-    out[w, 5] = peak
+            energy, correction = add_spring(p, spring_indices[2 * s], spring_indices[2 * s + 1], spring_rest[s],
+                                            spring_stiffness[s], energy, correction)
+    write_row(out, w, energy, correction, work, gravity, peak)
 
 
 @wp.kernel
-def world_energy_sums_shared(
-    q: wp.array(dtype=wp.vec3),
-    q_frame_start: wp.array(dtype=wp.vec3),
-    qd: wp.array(dtype=wp.vec3),
-    drive_start: wp.array(dtype=wp.vec3),
-    drive_end: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-    inv_mass: wp.array(dtype=float),
-    world_gravity: wp.array(dtype=wp.vec3),
-    half_dt: float,
-    world_particles: int,
-    springs: SharedSprings,
-    out: wp.array2d(dtype=float),
-):
+def world_energy_sums_shared(p: EnergyInputs, world_particles: int, springs: SharedSprings,
+                             out: wp.array2d(dtype=float)):
     """``world_energy_sums`` for batches whose springs are stored once (``kernels/world_step.py``):
     world w's springs are read from the shared adjacency with its own parameters, each from its
     first end, in the order the step sums them."""
     w = wp.tid()
-    g = world_gravity[w]
+    g = p.world_gravity[w]
     first = w * world_particles
     energy = float(0.0)
-    work = float(0.0)
     correction = float(0.0)
+    work = float(0.0)
     gravity = float(0.0)
     peak = float(0.0)
-    for p in range(world_particles):
-        i = first + p
-        e, c, a, u, k = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i],
-                                       inv_mass[i], g, half_dt)
-        energy += e
-        correction += c
-        work += a
-        gravity += u
-        peak = wp.max(peak, k)
-        for s in range(springs.offsets[p], springs.offsets[p + 1]):
+    for local in range(world_particles):
+        i = first + local
+        energy, correction, work, gravity, peak = add_particle(p, i, g, energy, correction, work, gravity, peak)
+        for s in range(springs.offsets[local], springs.offsets[local + 1]):
             entry = springs.entries[s]
             code = int(entry[3])
             if code % 2 == 0:
                 packed = springs.keys[s]
-                j = first + code / 2
                 rest = world_value(entry[0], (packed & 1023) - 1, springs.world_values, springs.key_count, w)
                 stiff = world_value(entry[1], ((packed >> 10) & 1023) - 1, springs.world_values, springs.key_count, w)
-                e2, c2 = spring_term(q[i], q[j], qd[i], qd[j], rest, stiff, half_dt)
-                energy += e2
-                correction += c2
-    out[w, 0] = energy
-    out[w, 1] = correction
-    out[w, 2] = work
-    out[w, 3] = gravity
-    out[w, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
-    out[w, 5] = peak
+                energy, correction = add_spring(p, i, first + code / 2, rest, stiff, energy, correction)
+    write_row(out, w, energy, correction, work, gravity, peak)
 
 
 @wp.kernel
 def energy_sums_strided(
-    q: wp.array(dtype=wp.vec3),
-    q_frame_start: wp.array(dtype=wp.vec3),
-    qd: wp.array(dtype=wp.vec3),
-    drive_start: wp.array(dtype=wp.vec3),
-    drive_end: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-    inv_mass: wp.array(dtype=float),
-    world_gravity: wp.array(dtype=wp.vec3),
-    half_dt: float,
+    p: EnergyInputs,
     spring_indices: wp.array(dtype=int),
     spring_rest: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
@@ -194,37 +184,23 @@ def energy_sums_strided(
     with columns 4 and 5 maxima)."""
     s = wp.tid()
     stride = partial_out.shape[0]
-    g = world_gravity[0]
+    g = p.world_gravity[0]
     energy = float(0.0)
-    work = float(0.0)
     correction = float(0.0)
+    work = float(0.0)
     gravity = float(0.0)
     peak = float(0.0)
     i = s
-    while i < q.shape[0]:
-        e, c, a, u, k = particle_terms(q[i], q_frame_start[i], qd[i], drive_start[i], drive_end[i], mass[i],
-                                       inv_mass[i], g, half_dt)
-        energy += e
-        correction += c
-        work += a
-        gravity += u
-        peak = wp.max(peak, k)
+    while i < p.q.shape[0]:
+        energy, correction, work, gravity, peak = add_particle(p, i, g, energy, correction, work, gravity, peak)
         i += stride
     j = s
     while j < spring_count:
         if spring_broken.shape[0] == 0 or spring_broken[j] == 0:
-            pi = spring_indices[2 * j]
-            pj = spring_indices[2 * j + 1]
-            e, c = spring_term(q[pi], q[pj], qd[pi], qd[pj], spring_rest[j], spring_stiffness[j], half_dt)
-            energy += e
-            correction += c
+            energy, correction = add_spring(p, spring_indices[2 * j], spring_indices[2 * j + 1], spring_rest[j],
+                                            spring_stiffness[j], energy, correction)
         j += stride
-    partial_out[s, 0] = energy
-    partial_out[s, 1] = correction
-    partial_out[s, 2] = work
-    partial_out[s, 3] = gravity
-    partial_out[s, 4] = wp.max(bad(energy), wp.max(bad(correction), wp.max(bad(work), bad(peak))))
-    partial_out[s, 5] = peak
+    write_row(partial_out, s, energy, correction, work, gravity, peak)
 
 
 @wp.kernel

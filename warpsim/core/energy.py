@@ -156,8 +156,12 @@ class EnergyBalance:
         m, s, d, n = self.model, self.springs, self.device, self.world_count
         half_dt = 0.5 * float(dt) if self.synchronise else 0.0
         d0, d1 = (self.drive if self.driving else (self._zeros, self._zeros))
-        common = [state.positions, self.q_start, state.velocities, d0, d1, m.particle_mass,
-                  m.particle_inv_mass, self.world_gravity, half_dt]
+        inputs = K.EnergyInputs()
+        inputs.q, inputs.q_frame_start, inputs.qd = state.positions, self.q_start, state.velocities
+        inputs.drive_start, inputs.drive_end = d0, d1
+        inputs.mass, inputs.inv_mass, inputs.world_gravity = m.particle_mass, m.particle_inv_mass, self.world_gravity
+        inputs.half_dt = half_dt
+        common = [inputs]
         if self.shared is not None:
             wp.launch(K.world_energy_sums_shared, n, inputs=[*common, m.particle_count // n, self.shared],
                       outputs=[self.sums], device=d)
