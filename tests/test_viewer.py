@@ -383,3 +383,15 @@ def test_pause_between_sub_steps_resumes_the_same_frame():
     assert s.step_once() and s.frame == 3 and len(calls) == n  # Step finishes that frame
     assert np.array_equal(s.scene.sim.state.positions.numpy(), whole.scene.sim.state.positions.numpy())
     assert np.array_equal(s.scene.sim.state.velocities.numpy(), whole.scene.sim.state.velocities.numpy())
+
+
+def test_the_viewer_prints_no_server_banner(capfd):
+    """viser's address box and its 'Server stopped' line stay out of the output (``warpsim view``
+    prints the URL once itself); ``verbose=True`` lets them through."""
+    from warpsim.viewer.server import Viewer
+
+    for verbose in (False, True):
+        v = Viewer("bounce", device="cpu", port=_free_port(), paused=True, verbose=verbose).start()
+        v.stop()
+        said = capfd.readouterr().out
+        assert (str(v.port) in said and "Server stopped" in said) == verbose, said

@@ -161,10 +161,11 @@ class PlaybackViewer(Serving):
     def start(self):
         import viser
 
-        from .server import Drawer, check_port
+        from .server import Drawer, check_port, quiet_stdout
 
         check_port(self.host, self.port)
-        self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim playback", verbose=False)
+        with quiet_stdout():  # viser's address box: ``warpsim view`` says the URL itself
+            self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim playback", verbose=False)
         self.server.scene.set_up_direction("+y")
         self.server.scene.configure_default_lights(True, cast_shadow=False)
         self.server.scene.configure_environment_map(None)
@@ -224,7 +225,10 @@ class PlaybackViewer(Serving):
             self._stop.wait(max(0.0, period - (time.perf_counter() - t0)))
 
     def stop(self):
+        from .server import quiet_stdout
+
         self._stop.set()
         if self.server is not None:
-            self.server.stop()
+            with quiet_stdout():  # viser's "Server stopped"
+                self.server.stop()
             self.server = None

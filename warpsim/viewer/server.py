@@ -56,6 +56,15 @@ def check_port(host, port):
         raise PortInUseError(f"port {port} on {host} is in use; try --port {alt}")
 
 
+def quiet_stdout(quiet=True):
+    """Context: standard output dropped while ``quiet`` (viser prints a box with the address on every
+    start, ``verbose`` or not; ``warpsim view`` says the URL itself)."""
+    import contextlib
+    import io
+
+    return contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext()
+
+
 def _rgb(color):
     return tuple(round(255 * min(max(float(c), 0.0), 1.0)) for c in color)
 
@@ -307,7 +316,8 @@ class Viewer(Serving):
         from .params import build_param_panel
 
         check_port(self.host, self.port)
-        self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim", verbose=self.verbose)
+        with quiet_stdout(not self.verbose):  # viser's address box: the caller says the URL once
+            self.server = viser.ViserServer(host=self.host, port=self.port, label="warpsim", verbose=self.verbose)
         self.server.scene.set_up_direction("+y")
         self.server.scene.configure_default_lights(True, cast_shadow=False)  # shadow maps cost most frames
         if not self.environment:  # image-based lighting re-renders its maps: slow in software WebGL
@@ -346,7 +356,8 @@ class Viewer(Serving):
             self._thread.join(timeout=5.0)
         self.session.close()
         if self.server is not None:
-            self.server.stop()
+            with quiet_stdout(not self.verbose):  # viser's "Server stopped"
+                self.server.stop()
             self.server = None
 
     # ------------------------------------------------------------------ frames
