@@ -43,7 +43,8 @@ NOISE = ("Could not find or load the NVIDIA CUDA driver", "initialized:", "Modul
 
 def _run(args, tmp_path, **env):
     base = {k: v for k, v in os.environ.items() if k not in ("WARPSIM_VERBOSE", "WARP_QUIET")}
-    return subprocess.run([sys.executable, *args], cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    return subprocess.run([sys.executable, *args], check=False, cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300,
                           env={**base, "PYTHONPATH": str(ROOT), **env})
 
 
