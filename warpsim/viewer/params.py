@@ -166,8 +166,10 @@ def build_param_panel(gui, session, on_result):
         handles[key] = h
         handles.setdefault("_kinds", {})[key] = (kind, o.get("lo"), o.get("hi"))  # for sync_param_handles
 
+        bounds = (o.get("lo"), o.get("hi"))  # a decade slider's allowed values
+
         def changed(event, key=key, h=h, scale=1e-3 if kind == "dt_slider" else None, log=kind == "log_slider",
-                    bounds=(o.get("lo"), o.get("hi"))):
+                    bounds=bounds):
             if getattr(event, "client", True) is None:
                 return  # the server set the input (sync_param_handles): nothing changed by the user
             value = h.value * scale if scale else h.value
