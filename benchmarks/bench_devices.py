@@ -178,8 +178,8 @@ def main():
     warnings.filterwarnings("ignore", message=".*above the stability limit")
     cls = get_scene("teapot")
     sets = [parse_devices(s) for s in args.devices]
-    names = [str(wp.get_device(d).name) for d in sets[-1]]
-    print(f"devices: {', '.join(f'{d} ({n})' for d, n in zip(sets[-1], names))}; Warp {wp.__version__}")
+    used = list(dict.fromkeys(d for s in sets for d in s))
+    print(f"devices: {', '.join(f'{d} ({wp.get_device(d).name})' for d in used)}; Warp {wp.__version__}")
     worlds = sample_worlds("teapot", FIXED, VARY, args.worlds, sample="lhs", seed=0)
     steps, frame_dt = cls.substeps, cls.substeps * cls.params["dt"].default
     print(f"{args.worlds} teapot worlds, {steps} steps a frame (the scene's own count, fixed), {args.frames} frames "
