@@ -18,6 +18,7 @@ EXAMPLES = {
     "flock.py": ["--frames", "3", "--out", "flock.usda"],
     "fit_launch.py": ["--quick"],  # exits 1 unless the landing is within 1 mm of the target
     "fit_cloth.py": ["--quick"],  # exits 1 unless both values are within 1 % of the hidden ones
+    "hair_implicit.py": ["--frames", "3", "--strands", "12", "--segments", "6"],
 }
 
 
