@@ -6,6 +6,7 @@ the old result readable and unchanged until the new one is complete."""
 
 import csv
 import glob
+import shutil
 import io
 import os
 import random
@@ -122,9 +123,12 @@ def test_killed_sweep_keeps_completed_chunks_and_resume_equals_an_uninterrupted_
 def test_rerun_into_a_finished_sweep_keeps_the_old_result_until_the_new_one_is_complete(tmp_path, reference):
     folder = tmp_path / "f"
     folder.mkdir()
-    for name in os.listdir(reference["dir"]):
+    for name in os.listdir(reference["dir"]):  # the finished sweep's files (its thumbnails are a folder)
         src = reference["dir"] / name
-        (folder / name).write_bytes(src.read_bytes())
+        if src.is_dir():
+            shutil.copytree(src, folder / name)
+        else:
+            (folder / name).write_bytes(src.read_bytes())
     out = folder / "s.usda"
     old_root = Usd.Stage.Open(str(out))
     before = np.asarray(old_root.GetPrimAtPath("/World/ball").GetAttribute("points").Get(30.0))
