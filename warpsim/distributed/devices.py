@@ -271,12 +271,27 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
             options["resolution"] = _sweep_resolution(options["bounds"], options.get("resolution") or 16, n)
     stop = threading.Event()
     lock = threading.Lock()
+    # one block at a time until its first frame is done: Warp loads (and compiles) a module on first
+    # use, and two threads loading the same module at once once hung a two-block CPU sweep
+    setup = threading.Lock()
+    holding = [False] * len(blocks)
+
+    def acquire(k):
+        setup.acquire()
+        holding[k] = True
+
+    def release(k):
+        if holding[k]:
+            holding[k] = False
+            setup.release()
+
     reached = [0] * len(blocks)
     shown = [0]
     results: list = [None] * len(blocks)
     errors: list = [None] * len(blocks)
 
     def tick(k, frame):
+        release(k)  # its modules are loaded
         if stop.is_set():
             raise _Stopped()
         with lock:
@@ -292,7 +307,8 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
         if options is not None:
             opts = {**options, "path": staging.partial(f"{os.path.splitext(record)[0]}.block{k}.npz")}
             if opts.get("bounds") is None:
-                opts["agree"] = lambda points, resolution, k=k: agreement.agree(k, points, resolution)
+                opts["agree"] = lambda points, resolution, k=k: meet(k, points, resolution)
+        acquire(k)
         try:
             results[k] = run_batch(scene_name, world_params[first:first + count], frames=frames, fps=fps,
                                    substeps=substeps, device=device, layer_path=staging.layers[k], first_world=first,
@@ -303,6 +319,14 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
             errors[k] = exc.with_traceback(None)  # frees the run's frames: its writer's open chunk layer too
             stop.set()
             agreement.barrier.abort()
+        finally:
+            release(k)
+
+    def meet(k, points, resolution):
+        release(k)  # the other blocks come to the meeting too
+        agreed = agreement.agree(k, points, resolution)
+        acquire(k)
+        return agreed
 
     threads = [threading.Thread(target=block, args=(k,), name=f"warpsim-block-{k}", daemon=True)
                for k in range(len(blocks))]
