@@ -111,7 +111,8 @@ COMMANDS = {
 
 # ```python blocks, by their first line -> (text the output must contain) or skip(reason)
 PYTHON = {
-    "import warpsim as ws\n\nv = ws.Viewer(": skip("serves until stopped, and `sim` is the reader's own"),
+    "import warpsim as ws\n\nv = ws.Viewer(": skip("serves on ports 8080 and 8081 until stopped (tests/test_viewer*.py "
+                                                  "drive the viewer)"),
     "import warpsim as ws\n\nbuilder = ws.ModelBuilder()": "0.024304",
 }
 # what a Python block's comments promise, checked against its output (e.g. "y = 0.024304, v_y = -0.3924")
