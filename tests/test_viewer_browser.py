@@ -220,9 +220,13 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     dt_row.scroll_into_view_if_needed()  # where the user is: at the dt slider, the panel's top scrolled away
     note = page.locator(".mantine-Notification-root", has_text="Simulation error")
     note.wait_for(timeout=15_000)
-    nb = note.bounding_box()
-    assert nb is not None and nb["x"] >= 0 and nb["y"] >= 0 and nb["x"] + nb["width"] <= WIDTH and \
-        nb["y"] + nb["height"] <= HEIGHT  # the error is inside the window, wherever the panel is scrolled
+
+    def inside(nb):
+        return nb is not None and nb["x"] >= 0 and nb["y"] >= 0 and nb["x"] + nb["width"] <= WIDTH and \
+            nb["y"] + nb["height"] <= HEIGHT
+
+    # the error is inside the window, wherever the panel is scrolled (once its slide-in animation has ended)
+    _wait(lambda: inside(note.bounding_box()), what="the error notification inside the window")
     page.get_by_role("button", name="Reset").click()
     _wait(lambda: s.status()["error"] is None, what="the reset")
     assert s.params["dt"] == pytest.approx(stable_dt)  # the last parameters that ran stable
