@@ -26,9 +26,6 @@ from .world_step import SharedSprings, world_value
 
 wp.set_module_options({"enable_backward": False})
 
-COLUMNS = wp.constant(6)
-
-
 @wp.func
 def particle_terms(
     x: wp.vec3, x0: wp.vec3, v: wp.vec3, fd0: wp.vec3, fd1: wp.vec3, m: float, inv_m: float, g: wp.vec3,
@@ -236,7 +233,7 @@ def judge_worlds(
     energy released since frame 0, reference[w, 2]: a local blow-up that losses elsewhere hide), or
     when a value is non-finite. Frozen worlds (world_bad = 1) are skipped."""
     w = wp.tid()
-    if world_bad.shape[0] > 0:
+    if world_bad.shape[0] > 0:  # nested: no read of world_bad[w] when it is empty
         if world_bad[w] == 1:
             return
     energy = sums[w, 0] + sums[w, 1]

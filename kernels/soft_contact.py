@@ -791,7 +791,7 @@ def eval_contact_forces(
     for k in range(4):
         fk = (weights[k] * magnitude) * n
         for i in range(3):
-            wp.atomic_add(f_io, particles[k], i, to_fixed(fk[i]))
+            wp.atomic_add(f_io, particles[k], i, to_fixed(fk[i]))  # int64 fixed point: any order, same bits
 
 
 @wp.kernel
@@ -823,7 +823,7 @@ def eval_contact_jacobian(
         block = (coefficient * m * weights[k] * weights[k]) * nn
         for i in range(3):
             for j in range(3):
-                wp.atomic_add(blocks_io, particles[k], 3 * i + j, to_fixed(block[i, j]))
+                wp.atomic_add(blocks_io, particles[k], 3 * i + j, to_fixed(block[i, j]))  # int64: order-free
 
 
 @wp.kernel

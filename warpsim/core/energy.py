@@ -58,12 +58,22 @@ MARGIN = 0.25
 (``tests/test_energy.py``): the teapot at damping 0 over 600 frames, dragged into the walls, stays
 below 0.05; a step 1.1x above the limit passes 0.5 within two frames of the first growth."""
 
-__all__ = ["MARGIN", "RUNAWAY", "EnergyBalance", "energy_role", "runaway_threshold"]
+__all__ = ["MARGIN", "RUNAWAY", "EnergyBalance", "energy_role", "gravity_of", "runaway_threshold"]
 
 
 def energy_role(force) -> str:
     """``"potential"``, ``"dissipative"`` or ``"driving"`` (see the module docstring)."""
     return getattr(force, "energy_role", "driving")
+
+
+def gravity_of(forces, world_count: int = 1) -> np.ndarray:
+    """Gravity [m/s^2] per world, (world_count, 3): the sum of the ``g`` of every ``"potential"`` force
+    that has one (``ws.Gravity``; a batch's per-world gravity)."""
+    g = np.zeros((max(int(world_count), 1), 3))
+    for f in forces or ():
+        if energy_role(f) == "potential" and hasattr(f, "g"):
+            g = g + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
+    return g
 
 
 def _floor_heights(colliders, up) -> list:
@@ -124,7 +134,6 @@ class EnergyBalance:
         self.drive = [wp.zeros(size, dtype=wp.vec3, device=d), wp.zeros(size, dtype=wp.vec3, device=d)]
         self._zeros = wp.zeros(count, dtype=wp.vec3, device=d)
         self._no_int = wp.zeros(0, dtype=int, device=d)
-        self._no_vec = wp.zeros(0, dtype=wp.vec3, device=d)
         self._zero_time = wp.zeros(1, dtype=float, device=d)  # the clock of driving forces when none is given
         self.sums = wp.zeros((n, 6), dtype=float, device=d)
         lone = n == 1 and shared is None and not per_world

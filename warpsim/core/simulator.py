@@ -122,6 +122,7 @@ class Simulator:
         self._scratch_float = wp.zeros(1, dtype=float, device=d)
         self._first_bad = wp.full(1, self.system.count, dtype=int, device=d)  # kept at count: nothing bad
         self._energy = None  # the energy balance (warpsim.core.energy), started at the first step
+        self._energy_step: float | None = None  # the step its runaway threshold was set for
         self._last_h = None
         self._check_launches = {}
         self._check_due = False  # the current sub-step ends a step whose blow-up test is due
@@ -289,26 +290,15 @@ class Simulator:
             )
 
     # ------------------------------------------------------------------ energy balance
-    def _gravity(self) -> np.ndarray:
-        g = np.zeros(3)
-        for f in self.forces:
-            if getattr(f, "energy_role", "driving") == "potential" and hasattr(f, "g"):
-                g = g + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
-        return g
-
     def _start_energy(self, h: float) -> None:
-        from .energy import EnergyBalance
+        from .energy import EnergyBalance, gravity_of
 
         st = self.state
-        try:  # semi-implicit Euler (cloth's fused one too) has the modified energy the balance reads
-            synchronise = stab.method_of(self.integrator) == "semi_implicit_euler"
-        except ValueError:
-            synchronise = False
-        self._energy = EnergyBalance(self.model, self.forces, self.colliders, self._gravity(),
-                                     synchronise=synchronise,
+        self._energy_step = None  # a new balance takes its runaway threshold at its first check
+        self._energy = EnergyBalance(self.model, self.forces, self.colliders, gravity_of(self.forces),
+                                     synchronise=stab.synchronised_energy(self.integrator),
                                      springs=None if self.stability_model is None else self.stability_model())
         self._energy.start(st, h, time=self._time)
-        self._energy_step: float | None = None  # the step the runaway threshold was set for
 
     def restart_energy(self) -> None:
         """Take the energy balance's reference again at the next step (after editing the state,

@@ -59,6 +59,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels import stability as K
+from .energy import gravity_of
 
 __all__ = ["AUTO_SAFETY", "StabilityLimit", "StabilityWarning", "method_of", "particle_limits", "pendulum_limit",
            "stable_step", "stable_steps", "worlds_warning"]
@@ -348,13 +349,13 @@ def _adjacency(model):
     return value
 
 
-def _gravity_of(forces, world_count, world):
-    """Per particle gravity [m/s^2] (particle_count, 3) of the forces with a ``g`` (Gravity, WorldGravity)."""
-    g = np.zeros((max(world_count, 1), 3))
-    for f in forces or ():
-        if getattr(f, "energy_role", "") == "potential" and hasattr(f, "g"):
-            g = g + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
-    return g[world] if len(world) else np.zeros((0, 3))
+def synchronised_energy(integrator) -> bool:
+    """True when ``integrator`` has semi-implicit Euler's stability region (cloth's fused one too): the
+    energy balance then reads its modified energy (``warpsim.core.energy``)."""
+    try:
+        return method_of(integrator) == "semi_implicit_euler"
+    except ValueError:
+        return False
 
 
 def _penalty(colliders):
@@ -504,7 +505,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     if velocities is None and n:
         velocities = model.particle_qd.numpy()
     collider_dt, collider_of, collider_L = _collider_steps(model, positions, velocities, colliders,
-                                                           _gravity_of(forces, W, world))
+                                                           gravity_of(forces, W)[world])
     spring_world = world[idx[:, 0]] if S else np.zeros(0, dtype=np.int64)
     # each world's particles and springs as slices of one stable sort (W x n scans cost minutes at 10^5 worlds)
     p_order = np.argsort(world, kind="stable")

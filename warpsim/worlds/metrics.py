@@ -30,7 +30,6 @@ import re
 import numpy as np
 import warp as wp
 
-from ..core import stability as stab
 from ..kernels import worlds as KW
 
 BUILTIN = ("center_x", "center_y", "center_z", "peak_center_y", "peak_speed", "kinetic_energy", "blown_up",
@@ -141,19 +140,17 @@ class WorldMetrics:
 
     def _energy_balance(self):
         """The batch's per-world energy balance (its springs from the stand-in on the shared path)."""
-        from ..core.energy import EnergyBalance
-        from ..core.integrators import SemiImplicitEuler
+        from ..core.energy import EnergyBalance, gravity_of
+        from ..core.stability import synchronised_energy
 
         b = self.batch
-        gravity = np.zeros((b.world_count, 3))
-        for f in b.sim.forces:
-            if getattr(f, "energy_role", "driving") == "potential" and hasattr(f, "g"):
-                gravity = gravity + np.asarray(f.g, dtype=np.float64).reshape(-1, 3)
-        if b.stepper is not None:
+        if b.stepper is not None:  # the shared step keeps gravity itself
             gravity = np.asarray(b.stepper.world_gravity.numpy(), dtype=np.float64)
+        else:
+            gravity = gravity_of(b.sim.forces, b.world_count)
         shared = None if b.stepper is None else b.stepper.springs  # read in place: no tiled copy of every world's
         return EnergyBalance(b.model, b.sim.forces, b.sim.colliders, gravity,  # springs (8 GB at 10^5 teapots)
-                             synchronise=isinstance(b.sim.integrator, SemiImplicitEuler),
+                             synchronise=synchronised_energy(b.sim.integrator),
                              springs=b.model if shared is not None else b._springs_model(), shared=shared,
                              per_world=True)
 
