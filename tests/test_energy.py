@@ -292,3 +292,19 @@ def test_stable_dt_of_a_non_finite_state_names_the_particle():
     sim.state.positions.assign(q)
     with pytest.raises(ValueError, match="particle 1 has a non-finite position"):
         sim.stable_dt()
+
+
+def test_a_restarted_balance_takes_its_runaway_threshold_again():
+    """After a parameter change (``invalidate_stability``) the new balance judges K + U's growth by the step
+    against the limit again, not by the lenient cap."""
+    from warpsim.core.energy import RUNAWAY, runaway_threshold
+
+    sim = spring_pair()
+    h = 0.5 * sim.stable_dt()
+    expected = runaway_threshold(h, sim.stable_dt())
+    assert expected < RUNAWAY
+    for _ in range(2):
+        sim.step(h)
+        sim.check_frame(h)
+        assert float(sim._energy.runaway.numpy()[0]) == pytest.approx(expected, rel=1e-6)
+        sim.invalidate_stability()
