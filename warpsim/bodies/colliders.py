@@ -336,7 +336,11 @@ class _Kinematic(_Contact):
         return self._world[0].copy(), self._world[1].copy()
 
     def _extent(self) -> float:
-        """Distance [m] from the shape's local origin to its farthest surface point (a bound)."""
+        """Distance [m] from the shape's local origin to its farthest surface point (a bound; the
+        geometry is fixed, so it is measured once)."""
+        cached = getattr(self, "_extent_m", None)
+        if cached is not None:
+            return cached
         r = 0.0
         for attr in ("a_local", "b_local"):
             if hasattr(self, attr):
@@ -346,6 +350,7 @@ class _Kinematic(_Contact):
             r = max(r, math.hypot(getattr(self, "half_x"), getattr(self, "half_z")))
         if hasattr(self, "points"):
             r = max(r, float(np.linalg.norm(np.asarray(self.points, float), axis=1).max(initial=0.0)))
+        self._extent_m: float | None = r
         return r
 
     def frame_surface_speed(self) -> float:
