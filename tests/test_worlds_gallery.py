@@ -79,7 +79,7 @@ def test_click_isolates_a_world_in_the_browser(sweep):
             _wait(lambda: viewer.isolated == "world_000002", timeout=30, what="the click to isolate world 2")
             shown = {w for w, h in viewer._handles() if getattr(h, "visible", True)}
             assert shown == {"world_000002"}
-            assert viewer.menu.value == "world_000002"
+            _wait(lambda: viewer.menu.value == "world_000002", what="the menu to follow the isolated world")
             # the camera frames the selected world: its teapot over the run fills the middle of the view
             lo, hi = viewer.reader.world_bounds("world_000002")
             assert lo[0] <= center[0] <= hi[0] and lo[2] <= center[2] <= hi[2]
