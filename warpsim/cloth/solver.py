@@ -4,7 +4,7 @@ Euler, and a Simulator that replays each frame's sub-steps as a captured graph.
 - :class:`ClothImplicitEuler`: each step solves ``(M - h D - h^2 K) dv = h (f0 + h K v0)``
   (Baraff & Witkin 1998; ``newton_iterations > 1`` continues with Newton iterations on backward
   Euler). Spring blocks are written by one kernel straight into a fixed-topology BSR matrix;
-  block-Jacobi preconditioned CG solves it (``warpsim.cloth.block_cg.BlockCG``, capturable, by
+  block-Jacobi preconditioned CG solves it (``warpsim.core.block_cg.BlockCG``, capturable, by
   default; or ``warp.optim.linear.cg``, preallocated); pinned rows and columns are filtered.
   Per step it reports CG iterations, final residual and tolerance.
 - :class:`ClothSemiImplicitEuler`: v += h (f/m + g), x += h v with springs, gravity and the
@@ -29,7 +29,7 @@ import warp as wp
 import warp.optim.linear as wpl
 import warp.sparse as wps
 
-from .block_cg import BlockCG
+from ..core.block_cg import BlockCG
 from ..core.forces import Force, Gravity, Springs
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
 from ..core.model import ensure_spring_adjacency

@@ -4,7 +4,8 @@ time integrators, the systems they advance, the :class:`Simulator` loop and the 
 
 Drives ``warpsim.kernels.forces`` (gravity, wind, drag, magnets, springs) and
 ``warpsim.kernels.integrate`` (explicit/semi-implicit/implicit Euler, RK2, RK4, sparse Jacobians) and
-``warpsim.kernels.fracture`` (springs that break: ``SpringFracture``).
+``warpsim.kernels.fracture`` (springs that break: ``SpringFracture``) and ``warpsim.kernels.block_cg``
+(``BlockCG``: the preallocated block-Jacobi CG of the implicit solvers).
 Entry classes: ModelBuilder, Simulator, Gravity, Springs, SemiImplicitEuler, Pendulum.
 """
 

@@ -25,6 +25,7 @@ import warp.optim.linear as wpl
 import warp.sparse as wps
 
 from . import checks
+from .block_cg import BlockCG
 from .forces import Gravity, cached_launch
 from ..kernels import integrate as K
 
@@ -255,8 +256,6 @@ class ImplicitEuler(Integrator):
         self.active_linear_solver = solver if B is wp.mat33 else "warp_cg"
         """The CG actually used ("warp_cg" or "block_cg")."""
         if self.active_linear_solver == "block_cg":
-            from ..cloth.block_cg import BlockCG
-
             block_cg = BlockCG(self.A, self.rhs, self.dv, self.inverse, rtol=self.cg_tol, atol=1.0e-12,
                                max_iterations=self.cg_max_iterations)
 

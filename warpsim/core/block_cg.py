@@ -4,11 +4,11 @@ systems, with every scalar kept on the device so a solve can be captured in a gr
 The loop runs under ``wp.capture_while`` on a device-side condition (r.r > tol^2 and
 iterations < max), so the same code runs eagerly, inside a CPU graph capture or inside a CUDA
 graph (conditional nodes). Dot products are one grid-stride kernel with a block-wide tile sum
-per block, then one block adding the blocks in a fixed order (``kernels.cloth.cg_dots``,
+per block, then one block adding the blocks in a fixed order (``kernels.block_cg.cg_dots``,
 ``cg_sum_partials``: every add whose order could vary lands on a zero, so the iteration count and
 result are bit-reproducible; ``wp.utils.array_inner`` allocates on CUDA, which a conditional
 graph body may not), the product is ``warp.sparse.bsr_mv``; nothing is allocated per solve.
-ClothImplicitEuler uses it by default: ``warp.optim.linear.cg``'s tile-based dot products
+ClothImplicitEuler uses it by default, and ImplicitEuler on the CPU: ``warp.optim.linear.cg``'s tile-based dot products
 take ~10 ms each on the CPU, and without host checks (check_every=0) it runs to the cap there.
 """
 
@@ -20,7 +20,7 @@ import numpy as np
 import warp as wp
 import warp.sparse as wps
 
-from ..kernels import cloth as K
+from ..kernels import block_cg as K
 
 
 class BlockCG:
