@@ -671,8 +671,9 @@ def scatter_contact(
             wp.atomic_add(out, p, c, to_fixed(dk[c]))
 
 
-@wp.kernel
-def resolve_contacts(
+@wp.func
+def resolve_one(
+    c: int,
     q: wp.array(dtype=wp.vec3),
     qd: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -687,11 +688,10 @@ def resolve_contacts(
     dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
 ):
-    """One pass of contact c (module docstring): the position push removing ``fraction`` of the
+    """One pass of contact slot c (module docstring): the position push removing ``fraction`` of the
     depth thickness - (sum a_k x_k) . n at the current positions (mass-weighted: the centre of mass
     does not move; no pull when the pair is already apart) and the normal impulse with restitution
     and Coulomb friction from the current velocities."""
-    c = wp.tid()
     particles = contact_particles[c]
     if particles[0] < 0:
         return
@@ -723,14 +723,35 @@ def resolve_contacts(
 
 
 @wp.kernel
-def apply_contact_deltas(
+def resolve_contacts(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    particle_contacts: wp.array(dtype=int),
+    thickness: float,
+    fraction: float,
+    restitution: float,
+    friction: float,
+    dx_io: wp.array2d(dtype=wp.int64),
+    dv_io: wp.array2d(dtype=wp.int64),
+):
+    """``resolve_one`` for every contact slot c."""
+    resolve_one(wp.tid(), q, qd, inv_mass, contact_particles, contact_weights, contact_normal, particle_contacts,
+                thickness, fraction, restitution, friction, dx_io, dv_io)
+
+
+@wp.func
+def apply_one(
+    i: int,
     dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
     q_io: wp.array(dtype=wp.vec3),
     qd_io: wp.array(dtype=wp.vec3),
 ):
-    """q += dx, qd += dv (from fixed point), then clear both buffers."""
-    i = wp.tid()
+    """q[i] += dx[i], qd[i] += dv[i] (from fixed point), then clear both."""
     dx = wp.vec3()
     dv = wp.vec3()
     for c in range(3):
@@ -740,6 +761,17 @@ def apply_contact_deltas(
         dv_io[i, c] = wp.int64(0)
     q_io[i] = q_io[i] + dx
     qd_io[i] = qd_io[i] + dv
+
+
+@wp.kernel
+def apply_contact_deltas(
+    dx_io: wp.array2d(dtype=wp.int64),
+    dv_io: wp.array2d(dtype=wp.int64),
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """q += dx, qd += dv (from fixed point), then clear both buffers."""
+    apply_one(wp.tid(), dx_io, dv_io, q_io, qd_io)
 
 
 # ------------------------------------------------------------------------------ implicit contact

@@ -108,8 +108,10 @@ def pressed_tori(broad_phase):
 
 
 def test_bvh_broad_phase_equals_all_pairs_search():
+    """The two-level BVH search and the candidate list (``broad_phase="list"``) find the all-pairs
+    search's contacts over 100 steps in contact; the list gives the BVH search's bits."""
     runs = {}
-    for broad_phase in ("bvh", "all_pairs"):
+    for broad_phase in ("bvh", "list", "all_pairs"):
         sim, contact = pressed_tori(broad_phase)
         positions, counts = [], []
         for _ in range(100):
@@ -118,20 +120,72 @@ def test_bvh_broad_phase_equals_all_pairs_search():
             counts.append((contact.contact_count, contact.edge_contact_count))
         runs[broad_phase] = np.array(positions), counts
     (x, counts), (x_ref, counts_ref) = runs["bvh"], runs["all_pairs"]
-    assert counts == counts_ref
+    assert counts == counts_ref == runs["list"][1]
     assert min(c[0] for c in counts) > 5 and max(c[1] for c in counts) > 0  # vertex and edge contacts
     assert np.abs(x - x_ref).max() <= 1e-6  # over 100 steps in contact
+    assert np.array_equal(runs["list"][0], x)
 
 
-def test_two_runs_are_bit_identical():
+@pytest.mark.parametrize("broad_phase", ["bvh", "list"])
+def test_two_runs_are_bit_identical(broad_phase):
     finals = []
     for _ in range(2):
-        sim, contact = pressed_tori("bvh")
+        sim, contact = pressed_tori(broad_phase)
         for _ in range(200):
             sim.step(1.0 / 1200.0)
         assert contact.contact_count > 5
         finals.append((sim.state.positions.numpy(), sim.state.velocities.numpy()))
     assert np.array_equal(finals[0][0], finals[1][0]) and np.array_equal(finals[0][1], finals[1][1])
+
+
+def listed_contacts(contact):
+    """The set of (particles, weights) of the contacts found in the last step."""
+    p, w = contact._contact_particles.numpy(), contact._contact_weights.numpy()
+    keep = p[:, 0] >= 0
+    return sorted(zip(map(tuple, p[keep]), map(tuple, np.round(w[keep], 6))))
+
+
+def test_candidate_list_searches_again_when_a_vertex_moves_past_the_pad():
+    """Two tori 30 mm apart (beyond the list's reach, max(thickness, search) + 2 pad = 26 mm: the
+    first search keeps no candidate), no refit due for 1,000 steps; the upper torus moved down by
+    half the pad keeps the list, then by 26 mm more (2 mm apart) the device searches again, and the
+    contacts found equal the all-pairs search's (the old, empty list would find none)."""
+    pad = 0.004
+    found = {}
+    for broad_phase in ("list", "all_pairs"):
+        b, (lower, upper) = two_tori(gap=0.030)
+        model = b.finalize(DEVICE)
+        contact = ws.SoftContact([lower, upper], thickness=0.006, broad_phase=broad_phase, pad=pad,
+                                 search_every=1000, iterations=1)
+        contact.bind(model)
+        state = model.state()
+        contact.apply(model, state, state.positions, 1e-3)
+        assert contact.contact_count == 0
+        for move in (0.5 * pad, 0.026):
+            q = state.positions.numpy()
+            q[upper.particle_start:upper.particle_start + upper.particle_count, 1] -= move
+            state.positions.assign(q)
+            contact.apply(model, state, state.positions, 1e-3)
+            if broad_phase == "list":
+                found[move] = contact.list_stats()["searches"]
+        found[broad_phase] = (contact.contact_count, listed_contacts(contact))
+    assert found[0.5 * pad] == 1 and found[0.026] == 2  # kept, then searched again
+    assert found["list"][0] > 5 and found["list"] == found["all_pairs"]
+
+
+def test_candidate_list_counts_an_overflow():
+    """Capacity 1 candidate per query on pressed tori: queries with more count an overflow;
+    the default capacity has none."""
+    overflow = {}
+    for capacity in (1, 32):
+        b, (lower, upper) = two_tori(gap=0.002)
+        model = b.finalize(DEVICE)
+        contact = ws.SoftContact([lower, upper], thickness=0.006, broad_phase="list", capacity=capacity)
+        contact.bind(model)
+        state = model.state()
+        contact.apply(model, state, state.positions, 1e-3)
+        overflow[capacity] = contact.candidate_overflow
+    assert overflow[1] > 0 and overflow[32] == 0
 
 
 def box_mesh(size):

@@ -35,6 +35,7 @@ import warp as wp
 from ..core.collider import Collider
 from ..core.forces import Force
 from ..kernels import soft_contact as K
+from ..kernels import soft_contact_list as L
 from . import meshtools
 
 
@@ -72,8 +73,18 @@ class SoftContact(Collider):
         edge_contact: also keep surface edges apart (edge-edge contact; without it long edges
             can cross where no vertex is near).
         broad_phase: "bvh" (two levels: the bodies' bounds, then the other bodies' subtrees of
-            grouped BVHs over all triangles and edges) or "all_pairs" (every vertex against every
-            triangle of its world: the O(n^2) reference).
+            grouped BVHs over all triangles and edges, every step), "list" (that search only when
+            needed, into a candidate list evaluated every step: ``pad``, ``search_every``,
+            ``capacity``; ``warpsim.kernels.soft_contact_list``) or "all_pairs" (every vertex
+            against every triangle of its world: the O(n^2) reference). All three find the same
+            contacts.
+        pad: "list" only: how far [m] a contact vertex may move before the device searches again
+            (default: the thickness); candidates are kept within max(thickness, search) + 2 pad.
+        search_every: "list" only: steps between the host's BVH refits, each followed by a search
+            (between them the device searches when a vertex moved more than ``pad``; default
+            ``SEARCH_EVERY``).
+        capacity: "list" only: candidates kept per vertex or edge query; a query with more counts
+            an overflow (``candidate_overflow``) and may miss contacts.
         rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
             only; None: ``REBUILD_EVERY_CUDA`` / ``REBUILD_EVERY_CPU``; ``rebuild_period`` changes
             it later). A refit keeps the tree of the last rebuild, whose boxes swell as bodies
@@ -93,11 +104,14 @@ class SoftContact(Collider):
     1.106 ms rebuilding every 10 steps against 1.596 ms every step, 100 tori 2.744 against 3.590 ms."""
     REBUILD_EVERY_CPU = 20
     """Default BVH rebuild period on the CPU, where a SAH rebuild costs about 1.2 us per item."""
+    SEARCH_EVERY = 20
+    """Default refit-and-search period of ``broad_phase="list"`` (steps)."""
 
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
-                 broad_phase: str = "bvh", rebuild_every: int | None = None):
+                 broad_phase: str = "bvh", rebuild_every: int | None = None, pad: float | None = None,
+                 search_every: int | None = None, capacity: int = 32):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -132,8 +146,13 @@ class SoftContact(Collider):
         self.push = float(push)
         if not (math.isfinite(self.push) and 0.0 <= self.push <= 1.0):
             raise ValueError(f"SoftContact push is {push}; it must be in [0, 1] (fraction of the depth removed per step)")
-        if broad_phase not in ("bvh", "all_pairs"):
-            raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh' or 'all_pairs'")
+        if broad_phase not in ("bvh", "list", "all_pairs"):
+            raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh', 'list' or 'all_pairs'")
+        self.pad = self.thickness if pad is None else float(checks.positive(pad, "SoftContact pad", unit="m",
+                                                                            fix="e.g. the thickness"))
+        self.search_every = self.SEARCH_EVERY if search_every is None else checks.integer(
+            search_every, "SoftContact search_every", lo=1, hi=1_000_000, fix="e.g. 20 (steps between refits)")
+        self.capacity = checks.integer(capacity, "SoftContact capacity", lo=1, hi=4096, fix="e.g. 32")
         self.broad_phase = broad_phase
         if rebuild_every is not None and (isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int)
                                           or rebuild_every < 0):
@@ -285,7 +304,24 @@ class SoftContact(Collider):
         self._total = wp.zeros(2, dtype=int, device=d)
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
+        if self.broad_phase == "list":
+            self._bind_list(n, slots)
         self.record_candidates(False)
+
+    def _bind_list(self, n: int, slots: int) -> None:
+        """Buffers of the candidate list (``broad_phase="list"``): ``capacity`` candidates a query,
+        the contact vertices' positions at the last refit and search, the device flags
+        (``warpsim.kernels.soft_contact_list``), the found contacts and their particles."""
+        d = self.model.device
+        self._cand = wp.zeros(slots * self.capacity, dtype=int, device=d)
+        self._cand_count = wp.zeros(slots, dtype=int, device=d)
+        self._x_tree = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
+        self._x_search = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
+        self._flags = wp.zeros(3, dtype=int, device=d)
+        self._motion = wp.zeros(1, dtype=float, device=d)
+        self._active = wp.zeros(slots, dtype=int, device=d)
+        self._touched = wp.zeros(n, dtype=int, device=d)
+        self._listed = wp.zeros(2, dtype=int, device=d)
 
     def record_candidates(self, on: bool = True) -> None:
         """Diagnostics: with ``on``, every later step also writes, per vertex and per edge query,
@@ -339,6 +375,30 @@ class SoftContact(Collider):
         return [self._body_bvh, self._tri_bvh] + ([self._edge_bvh] if self.edge_contact else [])
 
     @property
+    def schedule_period(self) -> int:
+        """Steps after which the host's launches repeat (a CUDA graph of this many steps replays
+        the schedule): ``search_every`` for "list", else the rebuild period (at least 1)."""
+        return self.search_every if self.broad_phase == "list" else max(1, self.rebuild_period)
+
+    def list_stats(self) -> dict:
+        """``broad_phase="list"``: searches done, queries that overflowed the capacity, and the last
+        search's candidates per query (mean and max, vertex and edge queries) (reads back)."""
+        flags = self._flags.numpy()
+        counts = self._cand_count.numpy()
+        v = self.vertex_count
+        out: dict = {"searches": int(flags[1]), "overflow": int(flags[2])}
+        for kind, c in (("vertex", counts[:v]), ("edge", counts[v:])):
+            if len(c):
+                out[kind] = {"per_query": float(c.mean()), "max": int(c.max())}
+        return out
+
+    @property
+    def candidate_overflow(self) -> int:
+        """``broad_phase="list"``: queries whose candidates exceeded ``capacity`` so far (reads back;
+        read it at a frame's end: nonzero means contacts may have been missed, raise the capacity)."""
+        return int(self._flags.numpy()[2]) if self.broad_phase == "list" else 0
+
+    @property
     def rebuild_period(self) -> int:
         """Steps between BVH rebuilds in use (refits in between; 0: refit only); settable."""
         return int(self._rebuild or 0)
@@ -381,6 +441,9 @@ class SoftContact(Collider):
                              "ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
         all_pairs = self.broad_phase == "all_pairs"
         self._steps += 1
+        if self.broad_phase == "list":
+            self._apply_listed(model, state, q_prev)
+            return
         self._particle_contacts.zero_()
         self._total.zero_()
         contact = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts,
@@ -415,6 +478,54 @@ class SoftContact(Collider):
                                                          self.friction, self._dx, self._dv], device=d)
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)
+
+
+    def _search_listed(self, q) -> None:
+        """Refit-and-search steps (host cadence) raise the flag; every step checks the motion,
+        searches if the flag is up (both pair kinds, one launch) and lowers it."""
+        d, v, e = self.model.device, self.vertex_count, self.edge_count
+        if (self._steps - 1) % self.search_every == 0:
+            self._launch_bounds(q, q)
+            if e:
+                self._launch_edge_bounds(q, q)
+            for bvh in self.bvhs:
+                bvh.rebuild(self._constructor)
+            self._find_roots()
+            wp.launch(L.begin_search, v, inputs=[self._vertex, q, self._x_tree, self._flags, self._motion], device=d)
+        wp.launch(L.check_motion, v, inputs=[self._vertex, q, self._x_search, self._x_tree, self.pad, self._flags,
+                                             self._motion], device=d)
+        edge_tree = [self._edge_bvh.id, self._body_edge_root, self._edge_world, self._edges, self._edge_body] if e \
+            else [self._tri_bvh.id, self._body_tri_root, self._vertex_world, self._tri, self._tri_body]
+        keep = max(self.thickness, self.search) + 2.0 * self.pad
+        wp.launch(L.search_candidates, v + e, inputs=[
+            self._flags, self._motion, keep, self._body_bvh.id, self._world_root, self._tri_bvh.id,
+            self._body_tri_root, edge_tree[0], edge_tree[1], self._vertex_world, self._vertex, self._vertex_body,
+            self._tri, self._tri_body, *edge_tree[2:], q, self.model.particle_q, self.model.particle_inv_mass,
+            int(self.self_contact), self.self_rest_distance, self.capacity, self._x_search, self._cand,
+            self._cand_count], device=d)
+        wp.launch(L.end_search, 1, inputs=[self._flags], device=d)
+
+    def _apply_listed(self, model, state, q_prev) -> None:
+        """``broad_phase="list"``: search when needed, the nearest contact per query among its
+        candidates, then ``iterations`` passes over the found contacts and their particles only."""
+        d, n, slots = model.device, model.particle_count, self.vertex_count + self.edge_count
+        q = state.positions
+        self._search_listed(q)
+        self._particle_contacts.zero_()
+        self._total.zero_()
+        self._listed.zero_()
+        contact = [self._contact_particles, self._contact_weights, self._contact_normal]
+        wp.launch(L.narrow_candidates, slots, inputs=[
+            self._cand, self._cand_count, self.capacity, self._vertex, self._tri,
+            self._edges if self.edge_count else self._tri, q, q_prev, self.thickness, self.search, *contact,
+            self._particle_contacts, self._total, self._active, self._touched, self._listed], device=d)
+        for _ in range(self.iterations):
+            wp.launch(L.resolve_listed, slots, inputs=[
+                self._listed, self._active, q, state.velocities, model.particle_inv_mass, *contact,
+                self._particle_contacts, self.thickness, self.push, self.restitution, self.friction, self._dx,
+                self._dv], device=d)
+            wp.launch(L.apply_listed, n, inputs=[self._listed, self._touched, self._dx, self._dv, q,
+                                                 state.velocities], device=d)
 
 
 class SoftContactForce(Force):

@@ -1,0 +1,351 @@
+"""Soft-body contact from a Verlet-style candidate list (``SoftContact(broad_phase="list")``).
+
+The two-level BVH search of ``warpsim.kernels.soft_contact`` runs only on some steps and writes,
+for every query (contact vertex v, slot v; surface edge e, slot V + e), the primitives (other
+bodies' triangles, edges) closer than ``keep = max(thickness, search) + 2 pad`` at the search, up to
+``capacity`` per query, into one buffer (both pair kinds, one launch). Every step then evaluates
+only those candidates (``narrow_candidates``: same narrow phase, nearest contact per query, ties
+to the lower index), which finds exactly the contacts of a full search as long as no contact
+vertex has moved more than ``pad`` since the search: a contact needs distance < max(thickness,
+search), and when each of the (up to four) particles of a pair moved at most ``pad``, the
+pair's distance changed by at most 2 pad.
+
+The device decides when to search again (no host read-back): ``check_motion`` compares every
+contact vertex with its position at the last search and raises ``flags[0]`` when one moved more
+than ``pad``; ``search_candidates`` does nothing unless ``flags[0]`` is set. The host refits (or
+rebuilds) the BVHs on a fixed cadence and raises the flag then (``begin_search``); a search between
+two refits uses the refitted tree's stale leaves, so its boxes grow by ``motion[0]``, the largest
+move of a contact vertex since the refit (exact float atomic max: order independent).
+
+A query with more than ``capacity`` candidates keeps the first ``capacity`` and counts an
+overflow (``flags[2]``, read at a frame's end): its contacts may be missed, so raise the capacity.
+Contacts found are appended to a compact list (``active``) and their particles to ``touched`` (a
+particle is appended by the contact that raises its count from 0): the pushes and impulses run
+over those lists only. The order of either list depends on the thread schedule, the sums do not
+(int64 fixed point), so runs stay bit-identical.
+"""
+
+import warp as wp
+
+from .soft_contact import (
+    BODY_BATCH,
+    apply_one,
+    collect_bodies,
+    edge_edge_candidate,
+    edge_edge_test,
+    nearer,
+    resolve_one,
+    segment_closest_params,
+    triangle_barycentric,
+    vertex_triangle_candidate,
+    vertex_triangle_test,
+)
+
+wp.set_module_options({"enable_backward": False})
+
+FLAG_SEARCH = wp.constant(0)  # flags[0]: search this step
+FLAG_SEARCHES = wp.constant(1)  # flags[1]: searches done (statistics)
+FLAG_OVERFLOW = wp.constant(2)  # flags[2]: queries that had more candidates than the capacity
+
+
+@wp.kernel
+def begin_search(
+    vertex_particle: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), x_tree_out: wp.array(dtype=wp.vec3),
+    flags_io: wp.array(dtype=int), motion_out: wp.array(dtype=float),
+):
+    """After a refit or rebuild (host cadence): remember the contact vertices' positions of the
+    tree, zero the motion since it and raise the search flag."""
+    v = wp.tid()
+    x_tree_out[v] = q[vertex_particle[v]]
+    if v == 0:
+        flags_io[FLAG_SEARCH] = 1
+        motion_out[0] = 0.0
+
+
+@wp.kernel
+def check_motion(
+    vertex_particle: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), x_search: wp.array(dtype=wp.vec3),
+    x_tree: wp.array(dtype=wp.vec3), pad: float, flags_io: wp.array(dtype=int), motion_io: wp.array(dtype=float),
+):
+    """motion[0] = max over contact vertices of the distance moved since the refit (atomic max
+    only when larger than the value read: the result is the exact maximum); raise the search flag
+    when a vertex moved more than ``pad`` since the last search."""
+    v = wp.tid()
+    x = q[vertex_particle[v]]
+    moved = wp.length(x - x_tree[v])
+    if moved > motion_io[0]:
+        wp.atomic_max(motion_io, 0, moved)
+    if wp.length(x - x_search[v]) > pad and flags_io[FLAG_SEARCH] == 0:
+        flags_io[FLAG_SEARCH] = 1
+
+
+@wp.kernel
+def end_search(flags_io: wp.array(dtype=int)):
+    """Lower the search flag (after ``search_candidates``) and count the search."""
+    if flags_io[FLAG_SEARCH] != 0:
+        flags_io[FLAG_SEARCH] = 0
+        flags_io[FLAG_SEARCHES] = flags_io[FLAG_SEARCHES] + 1
+
+
+@wp.func
+def push_candidate(slot: int, found: int, item: int, capacity: int, cand_out: wp.array(dtype=int)) -> int:
+    """Store candidate ``item`` as the query's ``found``-th (if it fits); returns found + 1."""
+    if found < capacity:
+        cand_out[slot * capacity + found] = item
+    return found + 1
+
+
+@wp.func
+def search_vertex(
+    v: int, grow: float, keep: float, body_bvh: wp.uint64, world_root: wp.array(dtype=int), tri_bvh: wp.uint64,
+    body_tri_root: wp.array(dtype=int), vertex_world: wp.array(dtype=int), vertex_particle: wp.array(dtype=int),
+    vertex_body: wp.array(dtype=int), tri: wp.array(dtype=int), tri_body: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3), rest: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+    self_contact: int, self_rest_distance: float, capacity: int, cand_out: wp.array(dtype=int),
+) -> int:
+    """Triangles of the other bodies within ``keep`` of contact vertex v (query box half width
+    ``grow``: keep + the tree's staleness); returns how many (may exceed the capacity)."""
+    p = vertex_particle[v]
+    body = vertex_body[v]
+    x = q[p]
+    lower = x - wp.vec3(grow)
+    upper = x + wp.vec3(grow)
+    found = int(0)
+    bodies = int(0)
+    root = world_root[vertex_world[v]]
+    more = int(1)
+    while more == 1:
+        others, count = collect_bodies(body_bvh, root, lower, upper, body, self_contact, bodies)
+        bodies += count
+        more = wp.where(count == BODY_BATCH, 1, 0)
+        for i in range(count):
+            query = wp.bvh_query_aabb(tri_bvh, lower, upper, body_tri_root[others[i]])
+            t = int(0)
+            while wp.bvh_query_next(query, t):
+                if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact,
+                                                 self_rest_distance):
+                    continue
+                a = q[tri[3 * t]]
+                b = q[tri[3 * t + 1]]
+                c = q[tri[3 * t + 2]]
+                w = triangle_barycentric(x, a, b, c)
+                if wp.length(x - (w[0] * a + w[1] * b + w[2] * c)) < keep:
+                    found = push_candidate(v, found, t, capacity, cand_out)
+    return found
+
+
+@wp.func
+def search_edge(
+    e: int, slot: int, grow: float, keep: float, body_bvh: wp.uint64, world_root: wp.array(dtype=int),
+    edge_bvh: wp.uint64, body_edge_root: wp.array(dtype=int), edge_world: wp.array(dtype=int),
+    edges: wp.array(dtype=int), edge_body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), self_contact: int, self_rest_distance: float,
+    capacity: int, cand_out: wp.array(dtype=int),
+) -> int:
+    """Edges of the other bodies within ``keep`` of surface edge e (as ``search_vertex``)."""
+    body = edge_body[e]
+    xa = q[edges[2 * e]]
+    xb = q[edges[2 * e + 1]]
+    lower = wp.min(xa, xb) - wp.vec3(grow)
+    upper = wp.max(xa, xb) + wp.vec3(grow)
+    found = int(0)
+    bodies = int(0)
+    root = world_root[edge_world[e]]
+    more = int(1)
+    while more == 1:
+        others, count = collect_bodies(body_bvh, root, lower, upper, body, self_contact, bodies)
+        bodies += count
+        more = wp.where(count == BODY_BATCH, 1, 0)
+        for i in range(count):
+            query = wp.bvh_query_aabb(edge_bvh, lower, upper, body_edge_root[others[i]])
+            f = int(0)
+            while wp.bvh_query_next(query, f):
+                if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
+                    continue
+                xc = q[edges[2 * f]]
+                xd = q[edges[2 * f + 1]]
+                ut = segment_closest_params(xa, xb, xc, xd)
+                if wp.length((xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))) < keep:
+                    found = push_candidate(slot, found, f, capacity, cand_out)
+    return found
+
+
+@wp.kernel
+def search_candidates(
+    flags_io: wp.array(dtype=int),
+    motion: wp.array(dtype=float),
+    keep: float,
+    body_bvh: wp.uint64,
+    world_root: wp.array(dtype=int),
+    tri_bvh: wp.uint64,
+    body_tri_root: wp.array(dtype=int),
+    edge_bvh: wp.uint64,
+    body_edge_root: wp.array(dtype=int),
+    vertex_world: wp.array(dtype=int),
+    vertex_particle: wp.array(dtype=int),
+    vertex_body: wp.array(dtype=int),
+    tri: wp.array(dtype=int),
+    tri_body: wp.array(dtype=int),
+    edge_world: wp.array(dtype=int),
+    edges: wp.array(dtype=int),
+    edge_body: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    self_contact: int,
+    self_rest_distance: float,
+    capacity: int,
+    x_search_out: wp.array(dtype=wp.vec3),
+    cand_out: wp.array(dtype=int),
+    count_out: wp.array(dtype=int),
+):
+    """Candidates of query i (vertex i < V, else edge i - V) when the search flag is up; both pair
+    kinds in one launch and one buffer (``capacity`` slots a query)."""
+    i = wp.tid()
+    if flags_io[FLAG_SEARCH] == 0:
+        return
+    grow = keep + motion[0]
+    V = vertex_particle.shape[0]
+    found = int(0)
+    if i < V:
+        x_search_out[i] = q[vertex_particle[i]]
+        found = search_vertex(i, grow, keep, body_bvh, world_root, tri_bvh, body_tri_root, vertex_world,
+                              vertex_particle, vertex_body, tri, tri_body, q, rest, inv_mass, self_contact,
+                              self_rest_distance, capacity, cand_out)
+    else:
+        found = search_edge(i - V, i, grow, keep, body_bvh, world_root, edge_bvh, body_edge_root, edge_world, edges,
+                            edge_body, q, rest, inv_mass, self_contact, self_rest_distance, capacity, cand_out)
+    if found > capacity:
+        wp.atomic_add(flags_io, FLAG_OVERFLOW, 1)
+    count_out[i] = wp.min(found, capacity)
+
+
+@wp.func
+def list_contact(
+    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, kind: int,
+    contact_particles_out: wp.array(dtype=wp.vec4i), contact_weights_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3), particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int), active_out: wp.array(dtype=int), touched_out: wp.array(dtype=int),
+    listed_io: wp.array(dtype=int),
+):
+    """Store contact ``slot``, append it to ``active`` and each of its particles seen for the
+    first time to ``touched`` (listed[0], listed[1]: their lengths)."""
+    contact_particles_out[slot] = particles
+    contact_weights_out[slot] = weights
+    contact_normal_out[slot] = normal
+    for k in range(4):
+        if wp.atomic_add(particle_contacts_io, particles[k], 1) == 0:
+            touched_out[wp.atomic_add(listed_io, 1, 1)] = particles[k]
+    wp.atomic_add(contact_total_io, kind, 1)
+    active_out[wp.atomic_add(listed_io, 0, 1)] = slot
+
+
+@wp.kernel
+def narrow_candidates(
+    cand: wp.array(dtype=int),
+    cand_count: wp.array(dtype=int),
+    capacity: int,
+    vertex_particle: wp.array(dtype=int),
+    tri: wp.array(dtype=int),
+    edges: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    q_prev: wp.array(dtype=wp.vec3),
+    thickness: float,
+    search: float,
+    contact_particles_out: wp.array(dtype=wp.vec4i),
+    contact_weights_out: wp.array(dtype=wp.vec4),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    particle_contacts_io: wp.array(dtype=int),
+    contact_total_io: wp.array(dtype=int),
+    active_out: wp.array(dtype=int),
+    touched_out: wp.array(dtype=int),
+    listed_io: wp.array(dtype=int),
+):
+    """Nearest contact of query i among its candidates (vertex-triangle for i < V, else edge-edge),
+    the narrow phase of ``warpsim.kernels.soft_contact``; slot i cleared when there is none."""
+    i = wp.tid()
+    V = vertex_particle.shape[0]
+    best = int(-1)
+    best_d = float(1.0e30)
+    best_w = wp.vec3()
+    best_normal = wp.vec3()
+    contact_particles_out[i] = wp.vec4i(-1, -1, -1, -1)
+    if i < V:
+        p = vertex_particle[i]
+        x = q[p]
+        for k in range(cand_count[i]):
+            t = cand[i * capacity + k]
+            d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
+                                              search)
+            if d >= 0.0 and nearer(d, t, best_d, best):
+                best_d = d
+                best = t
+                best_w = bary
+                best_normal = n
+        if best >= 0:
+            list_contact(i, wp.vec4i(p, tri[3 * best], tri[3 * best + 1], tri[3 * best + 2]),
+                         wp.vec4(1.0, -best_w[0], -best_w[1], -best_w[2]), best_normal, 0, contact_particles_out,
+                         contact_weights_out, contact_normal_out, particle_contacts_io, contact_total_io,
+                         active_out, touched_out, listed_io)
+        return
+    e = i - V
+    xa = q[edges[2 * e]]
+    xb = q[edges[2 * e + 1]]
+    pa = q_prev[edges[2 * e]]
+    pb = q_prev[edges[2 * e + 1]]
+    for k in range(cand_count[i]):
+        f = cand[i * capacity + k]
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
+        if d >= 0.0 and nearer(d, f, best_d, best):
+            best_d = d
+            best = f
+            best_w = wp.vec3(ut[0], ut[1], 0.0)
+            best_normal = n
+    if best >= 0:
+        u = best_w[0]
+        s = best_w[1]
+        list_contact(i, wp.vec4i(edges[2 * e], edges[2 * e + 1], edges[2 * best], edges[2 * best + 1]),
+                     wp.vec4(1.0 - u, u, s - 1.0, -s), best_normal, 1, contact_particles_out, contact_weights_out,
+                     contact_normal_out, particle_contacts_io, contact_total_io, active_out, touched_out, listed_io)
+
+
+@wp.kernel
+def resolve_listed(
+    listed: wp.array(dtype=int),
+    active: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    particle_contacts: wp.array(dtype=int),
+    thickness: float,
+    fraction: float,
+    restitution: float,
+    friction: float,
+    dx_io: wp.array2d(dtype=wp.int64),
+    dv_io: wp.array2d(dtype=wp.int64),
+):
+    """``resolve_one`` for the i-th found contact (launched over the capacity; the rest return)."""
+    i = wp.tid()
+    if i >= listed[0]:
+        return
+    resolve_one(active[i], q, qd, inv_mass, contact_particles, contact_weights, contact_normal, particle_contacts,
+                thickness, fraction, restitution, friction, dx_io, dv_io)
+
+
+@wp.kernel
+def apply_listed(
+    listed: wp.array(dtype=int),
+    touched: wp.array(dtype=int),
+    dx_io: wp.array2d(dtype=wp.int64),
+    dv_io: wp.array2d(dtype=wp.int64),
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """``apply_one`` for the i-th particle in a contact (launched over the capacity)."""
+    i = wp.tid()
+    if i >= listed[1]:
+        return
+    apply_one(touched[i], dx_io, dv_io, q_io, qd_io)
