@@ -67,8 +67,8 @@ def bad(value: float) -> float:
 class EnergyInputs:
     """What the sums read: positions now and at the frame's start [m], velocities [m/s], the driving
     forces at the frame's start and end [N] (empty arrays of length 0 are not allowed: zeros when
-    nothing drives), masses [kg], inverse masses [1/kg], gravity per world [m/s^2] and dt / 2 [s]
-    (0 for integrators other than semi-implicit Euler)."""
+    nothing drives), masses [kg], inverse masses [1/kg], gravity per world [m/s^2] and dt / 2 per world [s]
+    (each world's own step; 0 for integrators other than semi-implicit Euler)."""
 
     q: wp.array(dtype=wp.vec3)
     q_frame_start: wp.array(dtype=wp.vec3)
@@ -78,22 +78,24 @@ class EnergyInputs:
     mass: wp.array(dtype=float)
     inv_mass: wp.array(dtype=float)
     world_gravity: wp.array(dtype=wp.vec3)
-    half_dt: float
+    half_dt: wp.array(dtype=float)
 
 
 @wp.func
-def add_particle(p: EnergyInputs, i: int, g: wp.vec3, energy: float, correction: float, work: float,
-                 gravity: float, peak: float):
-    """The running (energy, correction, work, gravity, peak) with particle i added."""
+def add_particle(p: EnergyInputs, i: int, g: wp.vec3, half_dt: float, energy: float, correction: float,
+                 work: float, gravity: float, peak: float):
+    """The running (energy, correction, work, gravity, peak) with particle i added (``half_dt``: its
+    world's dt / 2 [s])."""
     e, c, a, u, k = particle_terms(p.q[i], p.q_frame_start[i], p.qd[i], p.drive_start[i], p.drive_end[i],
-                                   p.mass[i], p.inv_mass[i], g, p.half_dt)
+                                   p.mass[i], p.inv_mass[i], g, half_dt)
     return energy + e, correction + c, work + a, gravity + u, wp.max(peak, k)
 
 
 @wp.func
-def add_spring(p: EnergyInputs, i: int, j: int, rest: float, k: float, energy: float, correction: float):
+def add_spring(p: EnergyInputs, i: int, j: int, rest: float, k: float, half_dt: float, energy: float,
+               correction: float):
     """The running (energy, correction) with the spring joining particles i and j added."""
-    e, c = spring_term(p.q[i], p.q[j], p.qd[i], p.qd[j], rest, k, p.half_dt)
+    e, c = spring_term(p.q[i], p.q[j], p.qd[i], p.qd[j], rest, k, half_dt)
     return energy + e, correction + c
 
 
@@ -124,17 +126,18 @@ def world_energy_sums(
     index order into out[w] (the module's columns); ``spring_broken`` may be empty (none break)."""
     w = wp.tid()
     g = p.world_gravity[w]
+    h2 = p.half_dt[w]
     energy = float(0.0)
     correction = float(0.0)
     work = float(0.0)
     gravity = float(0.0)
     peak = float(0.0)
     for i in range(w * world_particles, (w + 1) * world_particles):
-        energy, correction, work, gravity, peak = add_particle(p, i, g, energy, correction, work, gravity, peak)
+        energy, correction, work, gravity, peak = add_particle(p, i, g, h2, energy, correction, work, gravity, peak)
     for s in range(w * world_springs, (w + 1) * world_springs):
         if spring_broken.shape[0] == 0 or spring_broken[s] == 0:
             energy, correction = add_spring(p, spring_indices[2 * s], spring_indices[2 * s + 1], spring_rest[s],
-                                            spring_stiffness[s], energy, correction)
+                                            spring_stiffness[s], h2, energy, correction)
     write_row(out, w, energy, correction, work, gravity, peak)
 
 
@@ -146,6 +149,7 @@ def world_energy_sums_shared(p: EnergyInputs, world_particles: int, springs: Sha
     first end, in the order the step sums them."""
     w = wp.tid()
     g = p.world_gravity[w]
+    h2 = p.half_dt[w]
     first = w * world_particles
     energy = float(0.0)
     correction = float(0.0)
@@ -154,7 +158,7 @@ def world_energy_sums_shared(p: EnergyInputs, world_particles: int, springs: Sha
     peak = float(0.0)
     for local in range(world_particles):
         i = first + local
-        energy, correction, work, gravity, peak = add_particle(p, i, g, energy, correction, work, gravity, peak)
+        energy, correction, work, gravity, peak = add_particle(p, i, g, h2, energy, correction, work, gravity, peak)
         for s in range(springs.offsets[local], springs.offsets[local + 1]):
             entry = springs.entries[s]
             code = int(entry[3])
@@ -162,7 +166,7 @@ def world_energy_sums_shared(p: EnergyInputs, world_particles: int, springs: Sha
                 packed = springs.keys[s]
                 rest = world_value(entry[0], (packed & 1023) - 1, springs.world_values, springs.key_count, w)
                 stiff = world_value(entry[1], ((packed >> 10) & 1023) - 1, springs.world_values, springs.key_count, w)
-                energy, correction = add_spring(p, i, first + code / 2, rest, stiff, energy, correction)
+                energy, correction = add_spring(p, i, first + code / 2, rest, stiff, h2, energy, correction)
     write_row(out, w, energy, correction, work, gravity, peak)
 
 
@@ -182,6 +186,7 @@ def energy_sums_strided(
     s = wp.tid()
     stride = partial_out.shape[0]
     g = p.world_gravity[0]
+    h2 = p.half_dt[0]
     energy = float(0.0)
     correction = float(0.0)
     work = float(0.0)
@@ -189,13 +194,13 @@ def energy_sums_strided(
     peak = float(0.0)
     i = s
     while i < p.q.shape[0]:
-        energy, correction, work, gravity, peak = add_particle(p, i, g, energy, correction, work, gravity, peak)
+        energy, correction, work, gravity, peak = add_particle(p, i, g, h2, energy, correction, work, gravity, peak)
         i += stride
     j = s
     while j < spring_count:
         if spring_broken.shape[0] == 0 or spring_broken[j] == 0:
             energy, correction = add_spring(p, spring_indices[2 * j], spring_indices[2 * j + 1], spring_rest[j],
-                                            spring_stiffness[j], energy, correction)
+                                            spring_stiffness[j], h2, energy, correction)
         j += stride
     write_row(partial_out, s, energy, correction, work, gravity, peak)
 

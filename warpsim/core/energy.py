@@ -136,6 +136,8 @@ class EnergyBalance:
         self._no_int = wp.zeros(0, dtype=int, device=d)
         self._zero_time = wp.zeros(1, dtype=float, device=d)  # the clock of driving forces when none is given
         self.sums = wp.zeros((n, 6), dtype=float, device=d)
+        self.half_dt = wp.zeros(n, dtype=float, device=d)  # each world's dt / 2 [s] (0 unless synchronised)
+        self._half_dt_host = np.zeros(n, dtype=np.float32)
         lone = n == 1 and shared is None and not per_world
         self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if lone else None
         self.reference = wp.zeros((n, 3), dtype=float, device=d)  # modified, plain and gravity energy at frame 0
@@ -161,15 +163,25 @@ class EnergyBalance:
         for f in self.driving:
             f.eval(state.positions, state.velocities, self._zero_time if time is None else time, 0.0, out)
 
+    def _set_steps(self, dt) -> None:
+        """Each world's dt / 2 from ``dt`` [s] (a number, or one per world); copied to the device only
+        when it changes (never inside a captured frame, whose step stays the same)."""
+        half = 0.5 * np.broadcast_to(np.asarray(dt, dtype=np.float64), (self.world_count,)) if self.synchronise \
+            else np.zeros(self.world_count)
+        half = half.astype(np.float32)
+        if not np.array_equal(half, self._half_dt_host):
+            self._half_dt_host = half
+            self.half_dt.assign(half)
+
     def _launch_sums(self, state, dt) -> wp.array:
         m, s, d, n = self.model, self.springs, self.device, self.world_count
-        half_dt = 0.5 * float(dt) if self.synchronise else 0.0
+        self._set_steps(dt)
         d0, d1 = (self.drive if self.driving else (self._zeros, self._zeros))
         inputs = K.EnergyInputs()
         inputs.q, inputs.q_frame_start, inputs.qd = state.positions, self.q_start, state.velocities
         inputs.drive_start, inputs.drive_end = d0, d1
         inputs.mass, inputs.inv_mass, inputs.world_gravity = m.particle_mass, m.particle_inv_mass, self.world_gravity
-        inputs.half_dt = half_dt
+        inputs.half_dt = self.half_dt
         common = [inputs]
         if self.shared is not None:
             wp.launch(K.world_energy_sums_shared, n, inputs=[*common, m.particle_count // n, self.shared],
@@ -188,7 +200,8 @@ class EnergyBalance:
 
     # ------------------------------------------------------------------ public
     def start(self, state, dt, time=None) -> None:
-        """Take the reference energy and scale from ``state`` (frame 0) for steps of ``dt`` [s]."""
+        """Take the reference energy and scale from ``state`` (frame 0) for steps of ``dt`` [s] (a
+        number, or one per world)."""
         m = self.model
         wp.copy(self.q_start, state.positions)
         self._eval_driving(state, time, self.drive[0])
@@ -221,7 +234,8 @@ class EnergyBalance:
         # a floor of 1 mm of the world's weight (or 1 nJ) keeps a ball at rest on the floor judgeable
         floor = total_mass * np.maximum(g_norm, 1e-3) * 1e-3 + 1e-9
         # semi-implicit Euler's samples from rest lie on a parabola g dt^2 / 8 above the release point
-        offset = total_mass * g_norm**2 * float(dt) ** 2 / 8.0 if self.synchronise else 0.0
+        step = np.broadcast_to(np.asarray(dt, dtype=np.float64), (n,))
+        offset = total_mass * g_norm**2 * step**2 / 8.0 if self.synchronise else 0.0
         scale = np.maximum(kinetic_elastic + np.maximum(potential, 0.0) + offset, floor)
         self.scale.assign(scale.astype(np.float32))
         self.reference.assign(np.stack([sums[:, 0] + sums[:, 1], sums[:, 0], sums[:, 3]], axis=1).astype(np.float32))
@@ -236,8 +250,8 @@ class EnergyBalance:
         self.frame = 0
 
     def update(self, state, dt, frame_dt, time=None, world_bad=None) -> None:
-        """Fold one finished frame (``dt``: its step [s], ``frame_dt`` [s]; ``time``: the simulation's
-        device clock, (1,) [s], that driving forces read) into the balance; launches
+        """Fold one finished frame (``dt``: its step [s], a number or one per world; ``frame_dt`` [s];
+        ``time``: the simulation's device clock, (1,) [s], that driving forces read) into the balance; launches
         only (no read-back, no allocation), so a sweep can capture it in its frame graph (moving
         colliders' allowance is then left out: it is taken on the host)."""
         self.frame += 1
@@ -262,7 +276,9 @@ class EnergyBalance:
     def set_limits(self, step: float, limits) -> None:
         """Runaway thresholds per world from the step [s] and each world's stability limit [s]
         (:func:`runaway_threshold`)."""
-        values = [runaway_threshold(float(step), float(lim)) for lim in np.atleast_1d(limits)]
+        limits = np.atleast_1d(np.asarray(limits, dtype=np.float64))
+        steps = np.broadcast_to(np.asarray(step, dtype=np.float64), limits.shape)  # a number, or one per world
+        values = [runaway_threshold(float(h), float(lim)) for h, lim in zip(steps, limits)]
         if len(values) == 1 and self.world_count > 1:
             values = values * self.world_count
         self.runaway.assign(np.asarray(values, dtype=np.float32))
