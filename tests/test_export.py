@@ -1,6 +1,9 @@
 """``warpsim export``: one frame of a cache as .obj/.ply/.stl/.glb, read back with trimesh and
 compared with the positions written for that frame; particles meshed with ``--surface`` enclose
-the volume of the ball they fill; every mistake is one line with exit status 2 and no file."""
+the volume of the ball they fill; a Z-up file is the Y-up file turned +90 degrees about x (the
+default for .ply and .stl); ``--prims`` chooses prims and .stl leaves curves out with a note; an
+.obj point cloud is what Blender's OBJ importer reads as points (``v`` lines alone); every mistake
+is one line with exit status 2 and no file."""
 
 import io
 
@@ -71,18 +74,27 @@ def test_obj_per_prim_holds_the_frames_geometry(cache, tmp_path):
     assert box.volume == pytest.approx(1.0 * 2.0 * 3.0, rel=1e-6)
     text = (tmp_path / "f_hair.obj").read_text()
     assert sum(line.startswith("l ") for line in text.splitlines()) == 3  # 2 + 1 segments
-    points = (tmp_path / "f_ball.obj").read_text().splitlines()
-    assert sum(line.startswith("p ") for line in points) == len(ball_points())
+    points = [line for line in (tmp_path / "f_ball.obj").read_text().splitlines() if not line.startswith("#")]
+    # Blender's OBJ importer reads a file without faces or lines as a point cloud, and warns once per
+    # line at 'p' elements (obj_import_file_reader.cc: use_all_vertices_if_no_faces)
+    assert sum(line.startswith("v ") for line in points) == len(ball_points())
+    assert [line for line in points if not line.startswith("v ")] == ["o ball"]
+    cloud = trimesh.load(tmp_path / "f_ball.obj")
+    np.testing.assert_allclose(np.sort(cloud.vertices, 0), np.sort(ball_points() + shift(1), 0), atol=1e-6)
     assert "wrote frame 1 to 4 files" in out
 
 
+Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # row vectors: (x, y, z) -> (x, -z, y)
+
+
 def test_ply_points_and_stl_mesh_and_last_frame_default(cache, tmp_path):
-    assert run_cli([cache, "--out", tmp_path / "p.ply"])[0] == 0  # default: the last frame (2)
+    assert run_cli([cache, "--out", tmp_path / "p.ply", "--up", "y"])[0] == 0  # default: the last frame (2)
     cloud = trimesh.load(tmp_path / "p_ball.ply")
     np.testing.assert_allclose(np.sort(cloud.vertices, axis=0), np.sort(ball_points() + shift(2), axis=0), atol=1e-6)
-    code, _, err = run_cli([cache, "--frame", 0, "--out", tmp_path / "s.stl", "--surface"])
-    assert code == 2 and "prim 'hair' is curves and .stl holds triangles only" in err  # before any file
-    assert not list(tmp_path.glob("s*.stl"))
+    code, _, err = run_cli([cache, "--frame", 0, "--out", tmp_path / "s.stl", "--surface", "--device", "cpu"])
+    assert code == 0 and err.strip() == ("note: left out curves hair (.stl holds triangles only; write .obj, .ply "
+                                         "or .glb for them)"), err
+    assert sorted(p.name for p in tmp_path.glob("s*.stl")) == ["s_ball.stl", "s_box.stl", "s_tet.stl"]
     guides = tmp_path / "g.usda"
     write_cache(guides, with_guide_only=True)
     assert run_cli([guides, "--out", tmp_path / "walls.stl", "--guides"])[0] == 0
@@ -111,12 +123,47 @@ def test_surface_encloses_the_particle_ball(cache, tmp_path):
     np.testing.assert_allclose(ball.vertices.mean(0), shift(1), atol=0.01)
 
 
+def test_z_up_is_the_y_up_file_turned_and_the_default_for_ply_and_stl(cache, tmp_path):
+    """Blender reads .ply and .stl as they are (Z-up): a Z-up file is the cache's Y-up geometry turned
+    +90 degrees about x, winding kept (the volume stays positive); .obj and .glb stay Y-up."""
+    files = {}
+    for name, extra in [("y.ply", ["--up", "y"]), ("z.ply", ["--up", "z"]), ("d.ply", []), ("z.stl", []),
+                        ("d.obj", []), ("y.obj", ["--up", "y"])]:
+        code, _, err = run_cli([cache, "--frame", 1, "--out", tmp_path / name, "--prims", "tet", *extra])
+        assert code == 0, err
+        files[name] = (tmp_path / name).read_bytes()
+    y, z = (trimesh.load(tmp_path / n, process=False) for n in ("y.ply", "z.ply"))
+    np.testing.assert_allclose(y.vertices, TET_POINTS + shift(1), atol=1e-6)
+    np.testing.assert_allclose(z.vertices, (TET_POINTS + shift(1)) @ Y_TO_Z, atol=1e-6)
+    assert z.vertices[:, 2].min() == pytest.approx(0.5)  # the cache's height is the file's z
+    assert files["d.ply"] == files["z.ply"] and files["d.obj"] == files["y.obj"]
+    stl = trimesh.load(tmp_path / "z.stl")
+    assert stl.volume == pytest.approx(1.0 / 6.0, rel=1e-6)  # outward winding kept by the rotation
+
+
+def test_prims_choose_what_goes_into_one_stl(cache, tmp_path):
+    """The teapot case: a mesh with spring curves into one .stl (--merge): curves left out with a
+    one-line note, the chosen meshes merged; an unknown name is one line listing the prims."""
+    code, out, err = run_cli([cache, "--out", tmp_path / "m.stl", "--merge", "--prims", "tet,box,hair"])
+    assert code == 0 and err.count("\n") == 1 and "left out curves hair" in err, err
+    merged = trimesh.load(tmp_path / "m.stl")
+    assert merged.volume == pytest.approx(1.0 / 6.0 + 6.0, rel=1e-6) and "wrote frame 2 to" in out
+    code, _, err = run_cli([cache, "--out", tmp_path / "n.stl", "--prims", "tet,nosuch"])
+    assert code == 2 and "--prims nosuch: frame 2 has no drawn prim of that name; its prims: tet, ball, hair, box" in err
+    code, _, err = run_cli([cache, "--out", tmp_path / "h.stl", "--prims", "hair"])
+    assert code == 2 and "prim 'hair' is curves and .stl holds triangles only" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.stl"]
+
+
 @pytest.mark.parametrize("argv, says", [
     (["--frame", 7, "--out", "x.obj"], "--frame 7: cache"),
     (["--frame", -1, "--out", "x.obj"], "has frames 0..2"),
     (["--out", "x.fbx"], "unknown suffix '.fbx'"),
     (["--out", "x.stl"], "holds triangles only; pass --surface"),
-    (["--out", "x.ply", "--merge"], "one kind; merge into .obj or .glb"),
+    (["--out", "x.ply", "--merge"], "one kind; choose prims of one kind with --prims"),
+    (["--out", "x.obj", "--merge"], "--merge into .obj: points 'ball' with curves and mesh"),
+    (["--out", "x.obj", "--up", "x"], "argument --up: invalid choice: 'x'"),
+    (["--out", "x.obj", "--prims", "tet,"], "--prims 'tet,': an empty name"),
 ])
 def test_mistakes_are_one_line_and_write_nothing(cache, tmp_path, argv, says):
     argv = [str(tmp_path / a) if str(a).startswith("x.") else a for a in argv]

@@ -3,22 +3,31 @@
 
     export_frame("usd_out/dam_break.usda", "splash.obj", frame=60, surface=True)
 
-What becomes what (world space, metres, +Y up, as in the cache):
+What becomes what (world space, metres; ``up``: the file's up axis, by default the format's
+convention, ``UP_AXIS``: Z for ``.ply`` and ``.stl``, which Blender and most mesh tools read as
+Z-up, Y for ``.obj`` and ``.glb``, whose readers turn Y-up into their own; warpsim's caches are
+Y-up, so a Z-up file holds (x, -z, y), a proper rotation that keeps the winding):
 
 - ``Mesh`` prims: triangle meshes (polygons fan-triangulated); ``Cube``, ``Cone``, ``Sphere``,
   ``Capsule`` and ``Cylinder`` (colliders) are tessellated; a ``PointInstancer`` becomes its
   instances' prototype meshes (spheres and capsules tessellated).
 - ``Points`` prims: a point cloud, or with ``surface=True`` a closed marching-cubes surface of the
-  particles (Zhu-Bridson field on a grid of about the particle spacing, Warp kernels).
-- ``BasisCurves`` prims: line sets (one segment per pair of consecutive curve vertices).
+  particles (Zhu-Bridson field on a grid of about the particle spacing, Warp kernels). In ``.obj`` a
+  point cloud is its ``v`` lines alone: Blender's OBJ importer reads a file without faces or lines
+  as a point cloud and warns once per line at ``p`` elements, so points are never merged into an
+  ``.obj`` with meshes or curves (refused: write them to their own file, ``.ply`` or ``.glb``).
+- ``BasisCurves`` prims: line sets (one segment per pair of consecutive curve vertices). A format
+  that holds no lines (``.stl``) leaves curves out with a note (``export_frame``'s ``notes``).
+
+``prims`` chooses prims by name (default: every drawn prim).
 
 Prims are read as USD tools draw them: purpose ``default`` or ``render`` (``guide`` prims only
 with ``guides=True``), not invisible. Without ``merge`` each prim goes to its own file
 ``OUT-STEM_PRIM.SUFFIX``; with ``merge`` all go to ``OUT`` (``.glb`` and ``.obj`` hold every kind
 together; ``.ply`` and ``.stl`` hold one kind: triangles, or for ``.ply`` one point cloud or one line
-set). STL holds triangles only, so points need ``surface=True`` and curves another format there.
-Every mistake (a frame outside the cache, a cache with nothing to export, an unknown suffix, a kind
-the format cannot hold) is a ``ValueError`` raised before any file is written.
+set). STL holds triangles only, so points need ``surface=True`` there.
+Every mistake (a frame outside the cache, a cache with nothing to export, an unknown suffix or prim
+name, a kind the format cannot hold) is a ``ValueError`` raised before any file is written.
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ import numpy as np
 from ..usd.validate import frame_codes, open_stage
 from .geometry import cone_mesh, cube_mesh, triangulate
 
-__all__ = ["FORMATS", "ExportPart", "export_frame", "read_frame", "surface_from_points", "write_parts"]
+__all__ = ["FORMATS", "UP_AXIS", "ExportPart", "export_frame", "read_frame", "surface_from_points", "write_parts"]
 
 FORMATS = {
     ".obj": ("mesh", "points", "curves"),
@@ -41,6 +50,10 @@ FORMATS = {
     ".glb": ("mesh", "points", "curves"),
 }
 """Suffix -> the kinds of geometry it holds."""
+
+UP_AXIS = {".obj": "y", ".ply": "z", ".stl": "z", ".glb": "y"}
+"""Suffix -> the up axis its readers assume (Blender: PLY and STL are read as they are, Z-up; its
+OBJ and glTF importers turn Y-up files Z-up)."""
 
 EXPORTED_PURPOSES = ("default", "render")
 
@@ -83,6 +96,16 @@ def _quat_rotate(q, v):
     xyz, w = q[:, :3], q[:, 3:4]
     t = 2.0 * np.cross(xyz, v)
     return v + w * t + np.cross(xyz, t)
+
+
+def up_rotation(source: str, target: str) -> np.ndarray:
+    """Rotation (3, 3), row-vector convention (``p @ R``), from a ``source``-up to a ``target``-up
+    frame ("y" or "z"): Y-up to Z-up takes (x, y, z) to (x, -z, y), +90 degrees about +X."""
+    source, target = source.lower(), target.lower()
+    if source == target:
+        return np.eye(3)
+    y_to_z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    return y_to_z if (source, target) == ("y", "z") else y_to_z.T
 
 
 def _axis_rotation(axis: str) -> np.ndarray:
@@ -180,9 +203,10 @@ def frame_range_text(frames) -> str:
     return f"frames {frames[0]}..{frames[-1]}" if frames else "no time samples (a static file)"
 
 
-def read_frame(cache, frame=None, guides=False) -> tuple:
-    """(frame, [ExportPart, ...]) of ``cache`` at ``frame`` (None: the last frame). ValueError when
-    the frame is outside the cache or nothing is there to export."""
+def read_frame(cache, frame=None, guides=False, up=None) -> tuple:
+    """(frame, [ExportPart, ...]) of ``cache`` at ``frame`` (None: the last frame), turned to ``up``
+    ("y" or "z"; None: the cache's own up axis). ValueError when the frame is outside the cache or
+    nothing is there to export."""
     from pxr import Usd, UsdGeom
 
     stage = open_stage(cache)
@@ -195,6 +219,7 @@ def read_frame(cache, frame=None, guides=False) -> tuple:
     t = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(float(frame))
     purposes = EXPORTED_PURPOSES + (("guide",) if guides else ())
     xf = UsdGeom.XformCache(t)
+    turn = up_rotation(str(UsdGeom.GetStageUpAxis(stage)), up) if up else np.eye(3)
     skip, parts, names = set(), [], {}
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.PointInstancer):
@@ -210,6 +235,7 @@ def read_frame(cache, frame=None, guides=False) -> tuple:
         if img.ComputePurpose() not in purposes or img.ComputeVisibility(t) == UsdGeom.Tokens.invisible:
             continue
         m = np.asarray(xf.GetLocalToWorldTransform(prim), np.float64)
+        m = np.hstack([m[:, :3] @ turn, m[:, 3:]])  # world space turned to the file's up axis
         kind = prim.GetTypeName()
         part = None
         if kind == "Points":
@@ -307,8 +333,8 @@ def _trimesh_geometry(part):
 
 
 def _obj_text(parts) -> str:
-    """Wavefront OBJ with one object per part: ``f`` for triangles, ``l`` for line segments, ``p``
-    for points (1-based indices)."""
+    """Wavefront OBJ with one object per part: ``f`` for triangles, ``l`` for line segments (1-based
+    indices); a point cloud is its ``v`` lines alone (what Blender's importer reads as points)."""
     lines, base = ["# warpsim export"], 1
     for part in parts:
         lines.append(f"o {part.name}")
@@ -317,8 +343,6 @@ def _obj_text(parts) -> str:
             lines.extend(f"f {a + base} {b + base} {c + base}" for a, b, c in part.faces)
         elif part.kind == "curves":
             lines.extend(f"l {a + base} {b + base}" for a, b in part.segments)
-        else:
-            lines.extend(f"p {k + base}" for k in range(len(part.vertices)))
         base += len(part.vertices)
     return "\n".join(lines) + "\n"
 
@@ -379,12 +403,19 @@ def _plan(parts, out, merge):
         if len(parts) == 1:
             return [(out, parts)]
         return [(f"{stem}_{part.name}{suffix}", [part]) for part in parts]
+    kinds = sorted({p.kind for p in parts})
+    if suffix == ".obj" and "points" in kinds and len(kinds) > 1:
+        points = [p.name for p in parts if p.kind == "points"]
+        others = " and ".join(k for k in kinds if k != "points")
+        raise ValueError(f"--merge into .obj: points {', '.join(map(repr, points))} with {others}: "
+                         "an OBJ reader (Blender's) takes the points of a file without faces or lines only; leave out "
+                         "--merge (one file per prim), pass --surface, or merge into .glb")
     if suffix in (".obj", ".glb"):
         return [(out, parts)]
-    kinds = sorted({p.kind for p in parts})
     if len(kinds) > 1:
         raise ValueError(f"--merge into {suffix}: the frame holds {' and '.join(kinds)} and a {suffix} file one kind; "
-                         "merge into .obj or .glb, or leave out --merge (one file per prim)")
+                         "choose prims of one kind with --prims, merge into .obj or .glb, or leave out --merge (one "
+                         "file per prim)")
     return [(out, [_merge_same_kind(parts, os.path.splitext(os.path.basename(out))[0])])]
 
 
@@ -401,9 +432,11 @@ def write_parts(parts, out, merge=False) -> list:
 
 
 def export_frame(cache, out, frame=None, *, surface=False, merge=False, guides=False, spacing=None,
-                 device=None, allow_damaged=False) -> dict:
-    """Export frame ``frame`` (None: the last) of ``cache`` to ``out`` (see the module docstring).
-    Returns {"frame", "paths", "parts": [(name, kind, vertex count, face or segment count)]}."""
+                 device=None, allow_damaged=False, up=None, prims=None) -> dict:
+    """Export frame ``frame`` (None: the last) of ``cache`` to ``out`` (see the module docstring):
+    ``up`` "y" or "z" (None: ``UP_AXIS`` of the suffix), ``prims`` prim names (None: every drawn
+    prim). Returns {"frame", "paths", "parts": [(name, kind, vertex count, face or segment count)],
+    "notes": [one line per thing left out]}."""
     if frame is not None and (isinstance(frame, bool) or not hasattr(frame, "__index__")):
         raise TypeError(f"frame {frame!r} is not a whole frame number; give e.g. frame=10 (None: the last)")
     if not isinstance(out, (str, os.PathLike)):
@@ -412,6 +445,11 @@ def export_frame(cache, out, frame=None, *, surface=False, merge=False, guides=F
     if suffix not in FORMATS:  # before the cache is read
         raise ValueError(f"--out {str(out)!r}: unknown suffix {suffix or '(none)'!r}; write one of "
                          f"{', '.join(FORMATS)}")
+    if up is not None and str(up).lower() not in ("y", "z"):
+        raise ValueError(f"--up {up!r}: give y or z (default for {suffix}: {UP_AXIS[suffix]})")
+    if prims is not None and (isinstance(prims, str) or not all(isinstance(n, str) and n for n in prims)):
+        raise ValueError(f"prims {prims!r}: give a list of prim names, e.g. ['teapot']")
+    up = str(up or UP_AXIS[suffix]).lower()
     from ..usd.family import check_output
     from ..usd.lock import OutputLock
     from ..usd.validate import check_damage
@@ -425,15 +463,40 @@ def export_frame(cache, out, frame=None, *, surface=False, merge=False, guides=F
             raise ValueError(f"--frame {frame} lies in a damaged chunk file of {os.fspath(cache)!r}; export a readable "
                              "frame, or restore the file")
     with OutputLock(out, "--out"):
-        return _export(cache, out, frame, surface, merge, guides, spacing, device)
+        return _export(cache, out, frame, surface, merge, guides, spacing, device, up, prims)
 
 
 def _readable_frames(cache):
     return frame_codes(open_stage(cache))
 
 
-def _export(cache, out, frame, surface, merge, guides, spacing, device) -> dict:
-    frame, parts = read_frame(cache, frame, guides)
+def _chosen(parts, prims, frame):
+    """``parts`` of the names in ``prims`` (None: all); ValueError naming an unknown one."""
+    if prims is None:
+        return parts
+    have = {p.name: p for p in parts}
+    unknown = [n for n in prims if n not in have]
+    if unknown:
+        raise ValueError(f"--prims {','.join(unknown)}: frame {frame} has no drawn prim of that name; its prims: "
+                         f"{', '.join(have)}")
+    return [have[n] for n in dict.fromkeys(prims)]
+
+
+def _without_curves(parts, suffix):
+    """(parts, notes): curves left out of a format that holds no lines, with a one-line note."""
+    if "curves" in FORMATS[suffix]:
+        return parts, []
+    curves = [p.name for p in parts if p.kind == "curves"]
+    if not curves or len(curves) == len(parts):  # nothing but curves: _plan says why it cannot write them
+        return parts, []
+    return ([p for p in parts if p.kind != "curves"],
+            [f"note: left out curves {', '.join(curves)} ({suffix} holds triangles only; write .obj, .ply or .glb "
+             "for them)"])
+
+
+def _export(cache, out, frame, surface, merge, guides, spacing, device, up="y", prims=None) -> dict:
+    frame, parts = read_frame(cache, frame, guides, up)
+    parts, notes = _without_curves(_chosen(parts, prims, frame), os.path.splitext(str(out))[1].lower())
     if surface:
         meshed = []
         for part in parts:
@@ -448,4 +511,4 @@ def _export(cache, out, frame, surface, merge, guides, spacing, device) -> dict:
     paths = write_parts(parts, str(out), merge)
     summary = [(p.name, p.kind, len(p.vertices), len(p.faces) if p.kind == "mesh" else
                 len(p.segments) if p.kind == "curves" else 0) for p in parts]
-    return {"frame": frame, "paths": paths, "parts": summary}
+    return {"frame": frame, "paths": paths, "parts": summary, "notes": notes}

@@ -1,4 +1,5 @@
-"""``warpsim export CACHE [--frame N] --out FILE.obj|.ply|.stl|.glb [--surface] [--merge] [--guides]``:
+"""``warpsim export CACHE [--frame N] --out FILE.obj|.ply|.stl|.glb [--surface] [--merge] [--guides]
+[--up y|z] [--prims NAME[,NAME]]``:
 one frame's geometry as files other tools read (see :mod:`warpsim.render.export`)."""
 
 from __future__ import annotations
@@ -17,6 +18,12 @@ def add_parser(sub):
     p.add_argument("--spacing", type=float, default=None,
                    help="--surface grid spacing [m] (default: the particles' width or neighbour distance)")
     p.add_argument("--merge", action="store_true", help="every prim into the one file --out")
+    p.add_argument("--up", choices=("y", "z"), default=None,
+                   help="the file's up axis (default: the format's: z for .ply and .stl, which Blender reads as they "
+                        "are; y for .obj and .glb, which Blender's importers turn Z-up themselves)")
+    p.add_argument("--prims", default=None, metavar="NAME[,NAME]",
+                   help="export only these prims (default: every drawn prim; a format without lines, .stl, leaves "
+                        "curves out with a note)")
     p.add_argument("--guides", action="store_true", help="also export guide prims (pure helpers)")
     p.add_argument("--device", default=None, help="Warp device for --surface (default: CUDA when present)")
     p.add_argument("--allow-damaged", action="store_true",
@@ -37,6 +44,11 @@ def run(args, out, err):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
     if args.spacing is not None and not args.spacing > 0.0:
         raise UsageError(f"--spacing {args.spacing}: it must be > 0 [m]")
+    prims = None
+    if args.prims is not None:
+        prims = [name.strip() for name in args.prims.split(",")]
+        if not all(prims):
+            raise UsageError(f"--prims {args.prims!r}: an empty name; give NAME[,NAME], e.g. --prims teapot")
     device = None
     if args.surface:
         from ..verbosity import set_warp_verbosity
@@ -46,7 +58,7 @@ def run(args, out, err):
     try:
         result = export_frame(args.cache, args.out, args.frame, surface=args.surface, merge=args.merge,
                               guides=args.guides, spacing=args.spacing, device=device,
-                              allow_damaged=args.allow_damaged)
+                              allow_damaged=args.allow_damaged, up=args.up, prims=prims)
     except (ValueError, OSError) as exc:
         if getattr(exc, "exit_status", 2) != 2:
             raise  # damaged chunk files: exit 1 (like render), naming the first and the readable frames
@@ -56,6 +68,8 @@ def run(args, out, err):
     for name, kind, verts, elems in result["parts"]:
         what = {"mesh": f"{elems} triangles", "curves": f"{elems} segments", "points": "points"}[kind]
         print(f"  {name}: {kind}, {verts} vertices" + ("" if kind == "points" else f", {what}"), file=out)
+    for note in result["notes"]:
+        print(note, file=err)
     paths = result["paths"]
     print(f"wrote frame {result['frame']} to {paths[0]}" if len(paths) == 1 else
           f"wrote frame {result['frame']} to {len(paths)} files: {', '.join(paths)}", file=out)
