@@ -8,6 +8,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core.solver import SolverBase
 from ..kernels import agents as K
 from ..kernels import worlds as KW
 from .params import AgentState, _rule_struct
@@ -17,8 +18,9 @@ from .world import Obstacles, Terrain, _points
 # --------------------------------------------------------------------------------------
 # Common machinery
 # --------------------------------------------------------------------------------------
-class _Agents:
-    """Arrays, neighbour grid and the rules kernel shared by Flock and Crowd."""
+class _Agents(SolverBase):
+    """Arrays, neighbour grid and the rules kernel shared by Flock and Crowd (each a
+    ``warpsim.core.solver.Solver``: ``step(dt)``, ``frame``, ``state``, ``notify_changed``)."""
 
     state: wp.array
     """Each agent's AgentState as an int, shape (agent_count,) (set by Flock / Crowd)."""

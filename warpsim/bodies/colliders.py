@@ -321,6 +321,24 @@ class _Kinematic(_Contact):
         """The collider's clock [s]: simulated time it has been applied for."""
         return self._clock
 
+    @property
+    def clock(self) -> float:
+        """The collider's clock [s] (as ``time``); setting it calls ``set_clock``."""
+        return self._clock
+
+    @clock.setter
+    def clock(self, t: float) -> None:
+        self.set_clock(t)
+
+    def set_clock(self, t: float) -> None:
+        """Set the clock to ``t`` [s] (restoring a checkpoint, restarting a run). A shape that
+        follows ``motion`` is placed at its pose at ``t`` with no sweep from the old pose: the next
+        step starts there."""
+        self._clock = checks.finite(t, f"{self._owner} clock", "s", "the simulated time, e.g. 0.0")
+        if self.motion is not None:
+            self._motion_pose = self._eval_motion(self._clock)
+            self._world = self._world_prev = self._compose(self._motion_pose)
+
     def set_transform(self, position=(0.0, 0.0, 0.0), rotation=None) -> None:
         """Move the shape to the motion pose (position [m] and rotation quaternion (x, y, z, w) or
         3x3 matrix, None: no rotation; or one 4x4 rigid matrix / wp.transform), applied on top of

@@ -532,6 +532,12 @@ class ClothSimulator(Simulator):
         self._needs_time = any(not isinstance(f, (Gravity, Springs)) for f in self.forces)
         self._graphs.clear()
 
+    def notify_changed(self, what: str) -> None:
+        """As ``Simulator.notify_changed``; the captured frame graphs are dropped too (re-captured
+        at the next frame, with the new values baked into their launches)."""
+        super().notify_changed(what)
+        self._graphs.clear()
+
     def _gather(self) -> bool:
         return isinstance(self.integrator, ClothSemiImplicitEuler) and self.integrator.out_of_place
 

@@ -52,6 +52,11 @@ class Integrator:
         self.f = wp.zeros(n, dtype=T, device=d)
         self._allocate(system)
 
+    def reset(self) -> None:
+        """Forget the prepared system: the next ``prepare`` allocates anew (after the system's
+        force list changed, or on a copy of this integrator that will drive another system)."""
+        self._system = None
+
     def _allocate(self, system) -> None:
         pass
 

@@ -17,6 +17,7 @@ from .forces import Force, Gravity, cached_launch
 from .fracture import SpringFracture
 from .model import Model
 from .integrators import make_integrator
+from .solver import SolverBase, check_change, frame_steps
 from . import stability as stab
 from .system import ParticleSystem
 
@@ -41,8 +42,9 @@ def _ratio(gain: float) -> str:
     return "a non-finite amount" if gain >= 1.0e29 else f"{gain:.3g}x"
 
 
-class Simulator:
-    """Steps a Model's particles.
+class Simulator(SolverBase):
+    """Steps a Model's particles (a ``warpsim.core.solver.Solver``: ``step``, ``frame``, ``state``,
+    ``notify_changed``).
 
     Args:
         model: a finalized ws.Model.
@@ -193,9 +195,21 @@ class Simulator:
         the integrator re-allocates its buffers for the new force list (once, here)."""
         self.system.add_force(force)
         self.forces = self.system.forces
-        self.integrator._system = None  # prepare() is idempotent per system: force a re-allocation
-        self.integrator.prepare(self.system)
-        self.invalidate_stability()
+        self.notify_changed("forces")
+
+    def notify_changed(self, what: str) -> None:
+        """Announce an edit from outside (``warpsim.core.solver.CHANGES``): "forces" (the force
+        list changed: the integrator re-allocates its buffers, once, here), "colliders" or
+        "parameters" (the stability limit is taken again), "state" (the energy balance takes its
+        reference again at the next step)."""
+        what = check_change(what, type(self).__name__)
+        if what == "forces":
+            self.integrator.reset()  # prepare() is idempotent per system: force a re-allocation
+            self.integrator.prepare(self.system)
+        if what == "state":
+            self.restart_energy()
+        else:
+            self.invalidate_stability()
 
     # ------------------------------------------------------------------ stability
     def stability(self, positions=None, iterations: int = stab.POWER_ITERATIONS) -> stab.StabilityLimit:
@@ -365,6 +379,14 @@ class Simulator:
         return (f"Cause: {step}the energy came from elsewhere: check {what} (coefficients, moving shapes). Remedy: "
                 "fix the input that adds energy; a smaller step will not help.")
 
+    def frame(self, frame_dt: float = 1.0 / 60.0, steps: int = 1) -> None:
+        """Advance one frame of ``frame_dt`` [s] in ``steps`` equal ``step`` calls, then the
+        frame's energy balance (``check_frame``)."""
+        frame_dt, steps = frame_steps(frame_dt, steps, type(self).__name__)
+        for _ in range(steps):
+            self.step(frame_dt / steps)
+        self.check_frame(frame_dt)
+
     def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps=1, callback=None, writer=None):
         """Simulate ``frames`` frames of ``frame_dt`` [s], each split into ``substeps`` steps
         (``"auto"``: as many as keep each step within half the stability limit, see ``auto_substeps``).
@@ -381,9 +403,7 @@ class Simulator:
             writer.write(0, self.state)
         for frame in range(1, int(frames) + 1):
             try:
-                for _ in range(int(substeps)):
-                    self.step(frame_dt / substeps)
-                self.check_frame(frame_dt)
+                self.frame(frame_dt, substeps)
             except SimulationError as err:
                 err.frame = frame
                 err.args = (f"frame {frame}: {err.args[0]}",)

@@ -236,8 +236,8 @@ class Rollout:
         self.sim.time = 0.0
         self.sim.step_count = 0
         for c in self.sim.colliders:
-            if hasattr(c, "_clock"):
-                c._clock = 0.0
+            if hasattr(c, "set_clock"):
+                c.set_clock(0.0)
 
     def backward(self, loss: wp.array) -> None:
         """Propagate d loss / d (everything recorded); ``loss`` is a (1,) float array computed

@@ -10,6 +10,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core.solver import SolverBase
 from .particles import GridParticles
 from .pressure import PressureSolver
 from ..kernels import advect as KA
@@ -19,8 +20,8 @@ from .levelset_liquid import gravity_vector
 from .mac_grid import MacGrid, check_finite, check_positive
 
 
-class FlipLiquid:
-    """A FLIP liquid on a MacGrid.
+class FlipLiquid(SolverBase):
+    """A FLIP liquid on a MacGrid (a ``warpsim.core.solver.Solver``).
 
     Args:
         grid: the MacGrid (walls and solids hold the liquid).
@@ -122,6 +123,12 @@ class FlipLiquid:
         self._upper = wp.vec3(*(u - inset for u in grid.upper))
 
     # ------------------------------------------------------------------ seeding
+    @property
+    def state(self):
+        """The MacGrid whose face velocities (``u``, ``v``, ``w``) this solver advances (the solver
+        protocol's ``state``; the other fields are this object's attributes)."""
+        return self.grid
+
     def add_box(self, lower, upper, velocity=(0.0, 0.0, 0.0)):
         """Fill the cells whose centres lie in [lower, upper] [m] with jittered particles moving at
         ``velocity`` [m/s]; cells inside solids are skipped."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..core.solver import SolverBase
 from .advection import Advector
 from .pressure import PressureSolver
 from ..kernels import grid_forces as KF
@@ -26,8 +27,8 @@ def gravity_vector(gravity, dim):
     return tuple(g)
 
 
-class LevelSetLiquid:
-    """Free-surface liquid: phi < 0 inside.
+class LevelSetLiquid(SolverBase):
+    """Free-surface liquid: phi < 0 inside (a ``warpsim.core.solver.Solver``).
 
     Args:
         grid: the MacGrid (its walls and solids hold the liquid).
@@ -61,6 +62,12 @@ class LevelSetLiquid:
     @property
     def phi(self):
         return self.levelset.phi
+
+    @property
+    def state(self):
+        """The MacGrid whose face velocities (``u``, ``v``, ``w``) this solver advances (the solver
+        protocol's ``state``; the other fields are this object's attributes)."""
+        return self.grid
 
     def step(self, dt) -> None:
         """Advance by ``dt`` [s]: advect phi and velocity, add gravity, project with the ghost-fluid

@@ -6,14 +6,15 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..core.solver import SolverBase, check_change
 from .advection import Advector
 from .pressure import PressureSolver
 from ..kernels import grid_forces as KF
 from .mac_grid import check_finite, check_positive
 
 
-class Smoke:
-    """Buoyant smoke filling every non-solid cell of a MacGrid.
+class Smoke(SolverBase):
+    """Buoyant smoke filling every non-solid cell of a MacGrid (a ``warpsim.core.solver.Solver``).
 
     Args:
         grid: the MacGrid (open the top, e.g. ``open_sides=("+y",)``, to let the plume leave).
@@ -56,6 +57,18 @@ class Smoke:
         self.time = 0.0
         self.steps = 0
         grid.label(None)
+
+    @property
+    def state(self):
+        """The MacGrid whose face velocities (``u``, ``v``, ``w``) this solver advances (the solver
+        protocol's ``state``; the other fields are this object's attributes)."""
+        return self.grid
+
+    def notify_changed(self, what: str) -> None:
+        """Announce an outside edit (``warpsim.core.solver.CHANGES``): the captured step graphs,
+        which bake buoyancy, vorticity and source values into their launches, are dropped."""
+        check_change(what, "Smoke")
+        self._graphs.clear()
 
     def add_source(self, lower, upper, density=1.0, temperature=1.0) -> None:
         """Emit smoke in the box [lower, upper] [m]: every step the cells inside are raised to at

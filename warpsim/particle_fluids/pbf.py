@@ -56,6 +56,7 @@ from ..core.builder import _vec3
 from ..core.errors import SimulationError
 from ..core.reduction import FixedOrderReduction
 from ..core.simulator import check_dt
+from ..core.solver import SolverBase, frame_steps
 from ..kernels import sph as K
 from .boundaries import _collider_geometry, _positive
 from .emitters import Nozzle, Sink
@@ -63,8 +64,9 @@ from .smoothing import KERNELS, fluid_block, kernel_numpy, lattice_mass, wall_ta
 
 __all__ = ["KERNELS", "Nozzle", "ParticleFluid", "Sink", "fluid_block", "kernel_numpy"]
 
-class ParticleFluid:
-    """Position-based fluid with signed-distance boundaries, emitters and sinks.
+class ParticleFluid(SolverBase):
+    """Position-based fluid with signed-distance boundaries, emitters and sinks (a
+    ``warpsim.core.solver.Solver``: ``advance`` is ``frame`` with CFL-limited sub-steps).
 
     Args:
         positions: initial particle centres, (N, 3) [m] (e.g. :func:`fluid_block`).
@@ -562,16 +564,22 @@ class ParticleFluid:
                 f"frame {self.frame_count + 1}: the CFL condition asks for {substeps} sub-steps (> {max_substeps}); "
                 "the fluid is far too fast: lower gravity/emitter speed or check the setup",
                 step=self.step_count, time=self.time, particle=-1, frame=self.frame_count + 1)
-        h = frame_dt / substeps
+        self.frame(frame_dt, substeps)
+        return substeps
+
+    def frame(self, frame_dt: float, steps: int = 1) -> None:
+        """Advance one frame of ``frame_dt`` [s] in ``steps`` equal sub-steps (emitters run per
+        sub-step, sinks once at the end; particles sorted every ``sort_every`` frames)."""
+        frame_dt, steps = frame_steps(frame_dt, steps, "ParticleFluid")
+        h = frame_dt / steps
         if self.sort_every and self.frame_count % self.sort_every == 0:
             self.sort_particles()
-        for _ in range(substeps):
+        for _ in range(steps):
             self.step(h)
         self.apply_sinks()
         self.frame_count += 1
-        self.last_substeps = substeps
+        self.last_substeps = steps
         self._check_overflow()
-        return substeps
 
     def sort_particles(self) -> None:
         """Reorder the active particles into hash-grid cell order (ids move with them)."""

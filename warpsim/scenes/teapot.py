@@ -189,17 +189,14 @@ class TeapotScene(SimulatorScene):
 
     def checkpoint(self):
         data = super().checkpoint()
-        if self.obstacle is not None and hasattr(self.obstacle, "_clock"):
-            data["obstacle_clock"] = np.float64(self.obstacle._clock)
+        if self.obstacle is not None and hasattr(self.obstacle, "clock"):
+            data["obstacle_clock"] = np.float64(self.obstacle.clock)
         return data
 
     def restore(self, data):
         super().restore(data)
         if "obstacle_clock" in data and self.obstacle is not None:
-            self.obstacle._clock = float(data["obstacle_clock"])
-            if self.obstacle.motion is not None:
-                self.obstacle._motion_pose = self.obstacle._eval_motion(self.obstacle._clock)
-                self.obstacle._world = self.obstacle._world_prev = self.obstacle._compose(self.obstacle._motion_pose)
+            self.obstacle.set_clock(float(data["obstacle_clock"]))
 
 
 def _capsule_mesh(a, b, radius, segments=16, rings=8):
