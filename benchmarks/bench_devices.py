@@ -34,8 +34,9 @@ from warpsim.cli_common import DefaultsHelpFormatter, run_script
 from warpsim.distributed.devices import device_capacity, parse_devices, split_blocks
 from warpsim.scenes import get_scene
 from warpsim.verbosity import set_warp_verbosity
-from warpsim.worlds import WorldBatch, sample_worlds
-from warpsim.worlds.preflight import estimate_sweep_bytes
+from warpsim.sweeps import sample_worlds
+from warpsim.worlds import WorldBatch
+from warpsim.sweeps.preflight import estimate_sweep_bytes
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
 FIXED = {"resolution": "low", "springs": False}

@@ -42,9 +42,9 @@ import time
 import numpy as np
 import warp as wp
 
-from warpsim.worlds import run_batch, sample_worlds
-from warpsim.worlds.occupancy import OccupancyRecord
-from warpsim.worlds.query import Region, answer_region
+from warpsim.sweeps import run_batch, sample_worlds
+from warpsim.browse.occupancy import OccupancyRecord
+from warpsim.browse.query import Region, answer_region
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
 
@@ -62,7 +62,7 @@ def sweep_seconds(args, worlds, folder, tag, occupancy, frames):
 def make_recorder(args, batch, fps, folder, in_step):
     """The recorder a sweep makes (its grid also covers the static geometry the USD writer declares)."""
     from warpsim.usd.sink import PrimSink
-    from warpsim.worlds.occupancy import OccupancyRecorder
+    from warpsim.browse.occupancy import OccupancyRecorder
 
     sink = PrimSink()  # the static prims a batch layer declares, without pxr (the GPU machine may lack it)
     batch.scene.declare(sink)
@@ -81,8 +81,8 @@ def fresh_batch(args, worlds):
     """(batch, metrics, fps, substeps, frame_dt): these worlds built anew, so every run of this
     bench steps the same frames 0..F from the same state."""
     from warpsim.scenes import get_scene
-    from warpsim.worlds.metrics import WorldMetrics
-    from warpsim.worlds.sweep import frame_timing, make_batch
+    from warpsim.sweeps.metrics import WorldMetrics
+    from warpsim.sweeps.sweep import frame_timing, make_batch
 
     cls = get_scene(args.scene)
     fps, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
@@ -194,7 +194,7 @@ def merge_check(pairs, worlds=10000, cells=4212, blocks=4, seed=0):
     """Host only: the former ``finish`` (``np.unique`` of every flushed key, then a column per
     block) against the recorder's per-flush merges (sorted insertion), on ``blocks`` flushes of
     about ``pairs`` random keys each; prints both [ms]."""
-    from warpsim.worlds.occupancy import OccupancyRecorder
+    from warpsim.browse.occupancy import OccupancyRecorder
 
     rng = np.random.default_rng(seed)
     flushed = []
@@ -245,7 +245,7 @@ def panel_seconds(record, count, seed=1):
     import socket
     import threading
 
-    from warpsim.worlds.browse import QueryPanel
+    from warpsim.browse.panel import QueryPanel
 
     class Reader:  # what the panel reads of a gallery: its worlds and their places
         worlds = [f"world_{record.first_world + w:06d}" for w in range(record.world_count)]
@@ -333,7 +333,7 @@ def main():
     args.track_map = {}
     if args.track:
         from warpsim.scenes import get_scene
-        from warpsim.worlds.command import resolve_track
+        from warpsim.sweeps.command import resolve_track
 
         cls = get_scene(args.scene)
         args.track_map = resolve_track(cls, cls.resolve_params(worlds[0]), args.track, "cpu")

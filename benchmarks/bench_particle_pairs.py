@@ -41,7 +41,7 @@ def main():
     set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
     from warpsim.bodies.colliders import ParticleCollisions
     from warpsim.scenes import get_scene
-    from warpsim.worlds.sweep import frame_timing, make_batch
+    from warpsim.sweeps.sweep import frame_timing, make_batch
 
     cls = get_scene("wall")
     params = cls.resolve_params({"ball_speed": 20.0})

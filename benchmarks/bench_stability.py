@@ -60,8 +60,9 @@ def energy_costs(device, cloth, worlds, frames):
     ``worlds`` teapots (one thread per world, as ``warpsim sweep`` runs it)."""
     import warpsim as ws
     from warpsim.scenes import get_scene
-    from warpsim.worlds import WorldBatch, sample_worlds
-    from warpsim.worlds.metrics import WorldMetrics
+    from warpsim.sweeps import sample_worlds
+    from warpsim.worlds import WorldBatch
+    from warpsim.sweeps.metrics import WorldMetrics
 
     b = ws.ModelBuilder()
     ws.add_cloth_grid(b, resolution=(cloth, cloth), size=(1.0, 1.0), origin=(0.0, 1.0, 0.0), pin=[0, cloth])

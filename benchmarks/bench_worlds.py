@@ -46,8 +46,9 @@ from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.scenes import get_scene
 from warpsim.scenes.timing import resolve_timing
 from warpsim.verbosity import set_warp_verbosity
-from warpsim.worlds import WorldBatch, sample_worlds
-from warpsim.worlds.sweep import frame_timing
+from warpsim.sweeps import sample_worlds
+from warpsim.worlds import WorldBatch
+from warpsim.sweeps.sweep import frame_timing
 
 VARY = ["stiffness=20:60", "height=0.4:0.6", "restitution=0.2:0.8", "friction=0.1:0.5"]
 

@@ -1,5 +1,5 @@
 """Occupancy records of batched worlds: which cells of a grid each world's particles occupy, frame
-by frame, as bits (``warpsim/worlds/occupancy.py`` drives these kernels).
+by frame, as bits (``warpsim/browse/occupancy.py`` drives these kernels).
 
 Grid: cubic cells of side ``h`` [m] from corner ``lo`` [m], ``dims`` cells per axis counting one
 extra layer on each side for everything beyond the grid (cell coordinate 0 and dims - 1), so

@@ -2,7 +2,7 @@
 Playwright; WebGL through SwiftShader): ``warpsim view`` on a sweep root with an occupancy record
 shows the query box; dragging the box's corner gizmo with the mouse moves the box, and on release
 the listed worlds change to those the record says are inside it (the same as
-:func:`warpsim.worlds.query.answer_region`), each listed world a button that plays it alone.
+:func:`warpsim.browse.query.answer_region`), each listed world a button that plays it alone.
 Without a browser: the panel ranks by first entry or time inside, NOT IN gives the complement,
 and "show matches only" hides the rest."""
 from __future__ import annotations
@@ -18,8 +18,8 @@ from test_viewer_browser import ARGS, CHROMIUM, HEIGHT, WIDTH, _free_port, _proj
 
 from warpsim.cli import main
 from warpsim.viewer.command import add_parser, build
-from warpsim.worlds.gallery import GalleryViewer
-from warpsim.worlds.query import answer_region
+from warpsim.browse.gallery import GalleryViewer
+from warpsim.browse.query import answer_region
 
 HEIGHTS = "0.2:1.0"
 
@@ -37,8 +37,8 @@ def root(tmp_path_factory):
 def test_the_sweep_draws_every_world_s_picture_as_the_gallery_would(root, tmp_path):
     from PIL import Image
 
-    from warpsim.worlds.browse import thumbnail, thumbnail_camera, thumbnails_folder
-    from warpsim.worlds.occupancy import OccupancyRecord, occupancy_path
+    from warpsim.browse.panel import thumbnail, thumbnail_camera, thumbnails_folder
+    from warpsim.browse.occupancy import OccupancyRecord, occupancy_path
 
     folder = thumbnails_folder(root)
     made = {name: np.asarray(Image.open(f"{folder}/{name}")) for name in sorted(os.listdir(folder))}

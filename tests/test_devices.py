@@ -106,8 +106,8 @@ def test_two_cpu_devices_equal_one_byte_for_byte(tmp_path, one_device, name):
 def test_teapot_blocks_take_the_whole_sweeps_steps():
     """The stiffest teapot is in the second block only: alone, the first block's worlds would
     take fewer steps a frame, so the byte equality above needs the sweep-wide count."""
-    from warpsim.worlds import sample_worlds
-    from warpsim.worlds.rerun import sweep_frame_steps
+    from warpsim.sweeps import sample_worlds
+    from warpsim.sweeps.rerun import sweep_frame_steps
 
     worlds = sample_worlds("teapot", {"resolution": "3", "springs": False}, ["stiffness=20:60"], 5)
     first, second = split_blocks(5, [None, None])
@@ -145,7 +145,7 @@ def test_devices_with_device_or_ray_is_a_usage_error(tmp_path):
 
 
 def test_a_failing_device_stops_the_sweep_naming_it_and_resume_completes_it(tmp_path, one_device, monkeypatch):
-    from warpsim.worlds.usd import BatchLayerWriter
+    from warpsim.sweeps.usd import BatchLayerWriter
 
     folder, expected, samples = one_device["bounce"]
     write = BatchLayerWriter.write_worlds
@@ -206,7 +206,7 @@ def test_a_gallery_root_over_several_blocks_spaces_worlds_by_their_union(tmp_pat
     larger block's own extent."""
     from pxr import Sdf, Vt
 
-    from warpsim.worlds.usd import write_sweep_root
+    from warpsim.browse.roots import write_sweep_root
 
     layers = []
     for k, (lo, hi) in enumerate((((0, 0, 0), (1, 0.1, 0.1)), ((1, 0, 0), (2, 0.1, 0.1)))):

@@ -15,7 +15,7 @@ from pxr import Usd
 
 from warpsim.cli import main
 from warpsim.distributed.ray_sweep import DEFAULT_BATCH_SIZE, default_batch_size
-from warpsim.worlds import sample_worlds
+from warpsim.sweeps import sample_worlds
 
 FIXED = {"resolution": "3", "springs": False}
 VARY = ["height=0.4:0.6", "restitution=0.2:0.8"]

@@ -244,7 +244,7 @@ def test_info_on_a_killed_first_sweep_names_the_staged_frames_and_resume(tmp_pat
     ("segments=100000", "strands=2000 x segments=100000 (200,002,000 vertices) needs about"),
 ])
 def test_a_groom_that_cannot_fit_is_refused_with_the_figure(tmp_path, setting, words):
-    from warpsim.worlds.preflight import available_host_bytes, estimate_strand_bytes
+    from warpsim.sweeps.preflight import available_host_bytes, estimate_strand_bytes
 
     strands, segments = (10**8, 16) if setting.startswith("strands") else (2000, 10**5)
     assert estimate_strand_bytes(strands, segments)["host"] > available_host_bytes()  # (a machine of < 200 GiB)
@@ -258,7 +258,7 @@ def test_a_groom_that_cannot_fit_is_refused_with_the_figure(tmp_path, setting, w
 
 
 def test_strand_memory_estimate_refuses_only_what_does_not_fit():
-    from warpsim.worlds.preflight import check_strand_memory, estimate_strand_bytes
+    from warpsim.sweeps.preflight import check_strand_memory, estimate_strand_bytes
 
     need = estimate_strand_bytes(2000, 16)
     assert need["vertices"] == 2000 * 17
@@ -285,7 +285,7 @@ def test_many_steps_and_the_automatic_cap_are_said_before_the_first_frame(tmp_pa
 
 
 def test_a_slow_first_frame_estimates_the_run():
-    from warpsim.worlds.preflight import frame_time_note
+    from warpsim.sweeps.preflight import frame_time_note
 
     assert frame_time_note(2.0, 119, "cpu") is None
     line = frame_time_note(232.0, 119, "cpu")
@@ -320,7 +320,7 @@ def test_truncated_batch_layer_is_damage_in_one_line(copy, tmp_path):
 
 def test_pick_and_export_api_type_errors_say_what_to_give(made, tmp_path):
     from warpsim.render.export import export_frame
-    from warpsim.worlds.pick import pick_world
+    from warpsim.browse.pick import pick_world
 
     with pytest.raises(TypeError, match="world 'one' is not an integer index"):
         pick_world(made / "S.usda", "one", tmp_path / "p.usda")

@@ -17,8 +17,8 @@ pytest.importorskip("pxr")
 
 from warpsim.cli import main
 from warpsim.kernels import occupancy as KO
-from warpsim.worlds.occupancy import OccupancyGrid, OccupancyRecord, occupancy_path
-from warpsim.worlds.query import answer_region, parse_region
+from warpsim.browse.occupancy import OccupancyGrid, OccupancyRecord, occupancy_path
+from warpsim.browse.query import answer_region, parse_region
 
 G = 9.81
 FPS, FRAMES = 50, 40  # 0.8 s, frame every 0.02 s
@@ -156,9 +156,10 @@ def test_cells_marked_inside_the_step_equal_the_separate_pass_and_numpy(device, 
     sets from the positions read back, over more than 32 frames (two flushes of the device's
     compaction) and with worlds flagged as blown up at different frames (frozen after the step)."""
     from warpsim.scenes import get_scene
-    from warpsim.worlds import WorldBatch, sample_worlds
-    from warpsim.worlds.occupancy import OccupancyRecorder
-    from warpsim.worlds.sweep import frame_timing
+    from warpsim.sweeps import sample_worlds
+    from warpsim.worlds import WorldBatch
+    from warpsim.browse.occupancy import OccupancyRecorder
+    from warpsim.sweeps.sweep import frame_timing
 
     cls = get_scene("springs")
     worlds = sample_worlds("springs", {"shape": "lattice", "count": 4}, ["stiffness=200:600", "gravity=3:12"], 6,
@@ -281,7 +282,7 @@ def test_answers_refined_from_the_cached_positions(tmp_path):
     cached point; with no budget to read, the cells' answer is a superset within one cell."""
     from pxr import Usd, UsdGeom
 
-    from warpsim.worlds.query import cached_positions
+    from warpsim.browse.query import cached_positions
 
     root = tmp_path / "c.usda"
     code, out, err = run("sweep", "springs", "--worlds", 6, "--vary", "stiffness=50:800:log", "--frames", 30,

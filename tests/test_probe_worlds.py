@@ -15,7 +15,7 @@ from pxr import Usd
 
 from warpsim.scenes import get_scene
 from warpsim.usd.writer import UsdCacheWriter
-from warpsim.worlds.sweep import frame_timing, run_batch
+from warpsim.sweeps.sweep import frame_timing, run_batch
 
 # scene -> (--set values that keep it small, frames); frames are enough for the stage to act
 CASES = {

@@ -22,7 +22,7 @@ import pytest
 
 from warpsim.distributed.batches import load_rows, publish_batch, split_batches, temp_batch_dir, tree_checksum
 from warpsim.distributed.manifest import SweepManifest, manifest_path
-from warpsim.worlds import run_batch, sample_worlds
+from warpsim.sweeps import run_batch, sample_worlds
 
 SCENE = "springs"
 VARY = ["stiffness=100,400,1000,1e9", "damping=0.01,0.5"]  # grid of 8; the last two worlds blow up
@@ -95,7 +95,7 @@ def test_ray_options_without_ray_or_out_of_range_exit_2_with_one_line(tmp_path):
 
 
 def test_import_warpsim_does_not_import_ray():
-    code = ("import sys, warpsim, warpsim.distributed.ray_sweep, warpsim.worlds.command, warpsim.cli as c; "
+    code = ("import sys, warpsim, warpsim.distributed.ray_sweep, warpsim.sweeps.command, warpsim.cli as c; "
             "c._parser(); assert 'ray' not in sys.modules, 'ray imported'")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
@@ -171,7 +171,7 @@ def _assert_same(reference, table_path, root):
     the whole sweep's grid) and every world's samples, as the single-process sweep's."""
     _worlds, table, samples, record_bytes = reference
     assert _read(table_path) == table
-    from warpsim.worlds.occupancy import occupancy_path
+    from warpsim.browse.occupancy import occupancy_path
 
     with open(occupancy_path(root), "rb") as fh:
         assert fh.read() == record_bytes

@@ -9,7 +9,7 @@ import os
 import pytest
 
 from warpsim.cli import main
-from warpsim.worlds.rerun import first_difference, manifest_path, rerun_world
+from warpsim.sweeps.rerun import first_difference, manifest_path, rerun_world
 
 pytest.importorskip("pxr")
 

@@ -7,10 +7,11 @@ import pytest
 import warp as wp
 
 from warpsim.scenes import get_scene
-from warpsim.worlds import WorldBatch, sample_worlds
+from warpsim.sweeps import sample_worlds
+from warpsim.worlds import WorldBatch
 from warpsim.worlds.plan import StructuralError
 from warpsim.scenes.timing import resolve_timing
-from warpsim.worlds.sweep import frame_timing
+from warpsim.sweeps.sweep import frame_timing
 
 # (varying the teapot's mass scales its per-vertex masses as (mass at 1 kg) x mass in float32, which
 # rounds differently from the scene's own total / count: worlds then agree with their scenes to

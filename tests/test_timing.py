@@ -76,8 +76,8 @@ def test_automatic_steps_start_at_the_scenes_own_count():
 
 def test_run_view_sweep_and_rerun_resolve_one_timing():
     from warpsim.viewer.session import frame_timing as view_timing
-    from warpsim.worlds.sweep import frame_timing as sweep_frame_timing
-    from warpsim.worlds.sweep import sweep_timing
+    from warpsim.sweeps.sweep import frame_timing as sweep_frame_timing
+    from warpsim.sweeps.sweep import sweep_timing
 
     for name, opts in (("bounce", {"substeps": 3}), ("teapot", {"fps": 30.0}), ("cloth", {"substeps": 2}),
                        ("springs", {})):
@@ -137,8 +137,8 @@ DAMPING = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.25, 5.0]  # 0 to 0.5 and one outlier 
 
 
 def test_a_damping_sweep_steps_every_world_within_half_its_own_limit(tmp_path):
-    from warpsim.worlds.rerun import sweep_frame_steps
-    from warpsim.worlds.sweep import run_batch, sweep_timing
+    from warpsim.sweeps.rerun import sweep_frame_steps
+    from warpsim.sweeps.sweep import run_batch, sweep_timing
 
     cls = get_scene("teapot")
     worlds = [{"resolution": "2", "damping": d} for d in DAMPING]

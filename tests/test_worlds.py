@@ -10,10 +10,11 @@ pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom
 
 from warpsim.scenes import get_scene
-from warpsim.worlds import UserMetric, WorldBatch, run_batch, sample_worlds, write_sweep_root, write_table
-from warpsim.worlds.metrics import parse_rank, parse_where, select
-from warpsim.worlds.sampling import parse_vary, sample_params
-from warpsim.worlds.sweep import frame_timing
+from warpsim.sweeps import UserMetric, run_batch, sample_worlds, write_sweep_root, write_table
+from warpsim.worlds import WorldBatch
+from warpsim.sweeps.metrics import parse_rank, parse_where, select
+from warpsim.sweeps.sampling import parse_vary, sample_params
+from warpsim.sweeps.sweep import frame_timing
 
 CASES = {
     "bounce": ({}, [{"height": 0.03, "restitution": 0.3, "velocity": (0.1, 0.0, 0.0)},
@@ -250,7 +251,7 @@ def test_picking_parses_comparisons_and_never_evaluates_them():
 def test_flock_worlds_keep_to_their_own_neighbours_and_food():
     """Flocks of different seeds in one batch: each equals its own run alone, birds included that
     ate from their own world's food (the neighbour grid and the food are keyed by world)."""
-    from warpsim.worlds.sweep import make_batch
+    from warpsim.sweeps.sweep import make_batch
 
     cls = get_scene("flock")
     params = [cls.resolve_params({"birds": 20, "geese": 4, "food": 2, "seed": s, "food_bites": 5 + s})
@@ -280,7 +281,7 @@ def test_particle_collisions_pair_particles_of_one_world_only():
     overlap in space, yet a world's result does not change when its neighbour's ball changes
     (bit for bit), and each world follows its run alone (summation order in the keyed grid may
     differ: float32 rounding amplified by the fracture, well below a millimetre)."""
-    from warpsim.worlds.sweep import make_batch
+    from warpsim.sweeps.sweep import make_batch
 
     cls = get_scene("wall")
     base = dict(cls.smoke_params)

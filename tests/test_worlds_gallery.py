@@ -11,8 +11,8 @@ import pytest
 from test_viewer_browser import ARGS, CHROMIUM, HEIGHT, WIDTH, _free_port, _project, _wait
 
 from warpsim.viewer.command import add_parser
-from warpsim.worlds import run_batch, sample_worlds, write_sweep_root
-from warpsim.worlds.gallery import GalleryReader, GalleryViewer, is_sweep_root
+from warpsim.sweeps import run_batch, sample_worlds, write_sweep_root
+from warpsim.browse.gallery import GalleryReader, GalleryViewer, is_sweep_root
 
 
 @pytest.fixture(scope="module")

@@ -43,7 +43,7 @@ if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and 
     from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
     from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
     from .viewer.server import Viewer
-    from .worlds.rerun import rerun_world
+    from .sweeps.rerun import rerun_world
 
 
 def _load_all():
@@ -73,7 +73,7 @@ def _load_all():
     from .meshing import MarchingCubes, MarchingCubesResult, Metaballs, marching_cubes, topology_changed
     from .particle_fluids import FluidSurface, Nozzle, ParticleFluid, Sink, fluid_block
     from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
-    from .worlds.rerun import rerun_world
+    from .sweeps.rerun import rerun_world
     globals().update({k: v for k, v in locals().items() if not k.startswith("_")})
 
 

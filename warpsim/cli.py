@@ -30,9 +30,9 @@ COMMANDS = {
     "view": "warpsim.viewer.command",
     "render": "warpsim.render.command",
     "plot": "warpsim.render.plot",
-    "sweep": "warpsim.worlds.command",
-    "query": "warpsim.worlds.query_command",
-    "pick": "warpsim.worlds.pick",
+    "sweep": "warpsim.sweeps.command",
+    "query": "warpsim.sweeps.query_command",
+    "pick": "warpsim.browse.pick",
     "export": "warpsim.render.export_command",
 }
 """Sub-commands beyond list/run/info, by name -> module path. A command module (e.g.
@@ -244,7 +244,7 @@ def _writer_note(path):
 def _staged_sweep_note(path):
     """One line on the interrupted sweep staged for root ``path`` (its staged layer, completed
     frames, how to continue), or None when none is staged."""
-    from .worlds.staging import staged_sweep
+    from .sweeps.staging import staged_sweep
 
     staged = staged_sweep(path)
     if staged is None:
@@ -334,7 +334,7 @@ def _cmd_run(args, out, err):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     if args.from_sweep is not None or args.world is not None:  # one world of a sweep, exactly
-        from .worlds.rerun import run_command
+        from .sweeps.rerun import run_command
 
         return run_command(args, out, err)
     if args.frames is None:
@@ -415,7 +415,7 @@ def _cmd_run(args, out, err):
     frame_dt = timing.frame_dt
     scene.use_timing(timing)
     stability_check(scene, frame_dt, substeps, args.strict, err)
-    from .worlds.preflight import frame_time_note, steps_note
+    from .sweeps.preflight import frame_time_note, steps_note
 
     note = steps_note(scene, frame_dt, substeps, args.frames + 1 - max(start, 1))  # many steps: said now, with the figure
     if note:

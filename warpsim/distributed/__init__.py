@@ -16,8 +16,8 @@ What lives here:
   the cluster has GPUs, one CPU otherwise, Ray's task retries for killed workers), and the
   ``--ray`` / ``--batch-size`` / ``--resume`` options of ``warpsim sweep``.
 
-It drives no kernels of its own: each task calls ``warpsim.worlds.run_batch`` (the batched
-many-worlds run) and the driver ``warpsim.worlds.write_sweep_root`` / ``write_table``. Ray (the
+It drives no kernels of its own: each task calls ``warpsim.sweeps.run_batch`` (the batched
+many-worlds run) and the driver ``warpsim.sweeps.write_sweep_root`` / ``write_table``. Ray (the
 optional extra ``warpsim[ray]``) is imported only inside the functions that need it, so
 ``import warpsim`` never imports it.
 """

@@ -7,13 +7,13 @@
    fewer worlds, in which case its block shrinks to what fits and the devices with room take the
    rest (:func:`block_sizes`).
 2. Automatic sub-steps are resolved once over the WHOLE sweep (its stiffest world,
-   :func:`warpsim.worlds.rerun.sweep_frame_steps`, on the first device) and every block takes
+   :func:`warpsim.sweeps.rerun.sweep_frame_steps`, on the first device) and every block takes
    that count: the split never changes a world's steps.
-3. Each block runs :func:`warpsim.worlds.run_batch` in its own thread on its own device (a CUDA
+3. Each block runs :func:`warpsim.sweeps.run_batch` in its own thread on its own device (a CUDA
    device steps on its own stream and replays its own graphs) with the whole sweep's parameters
    as the batch's reference, so a world's arrays, and with the fixed-order sums its bits, do not
    depend on its block. Block K writes its own batch layer ``<stem>.batch_000K.usdc`` (staged and
-   chunked as a one-device sweep's, :class:`warpsim.worlds.staging.SweepStaging`). Before frame 0
+   chunked as a one-device sweep's, :class:`warpsim.sweeps.staging.SweepStaging`). Before frame 0
    the blocks agree on one occupancy grid (the whole sweep's frame-0 extent and resolution).
 4. The rows merge in world order into one table, the blocks' occupancy records into one record
    (:func:`merge_records`), the layers into one root: the table, every world's samples and the
@@ -113,7 +113,7 @@ def split_blocks(world_count, capacities) -> list:
 
 def device_capacity(device, bytes_per_world, share=0.9):
     """Worlds of ``bytes_per_world`` [bytes] that ``share`` of a CUDA device's free memory holds
-    (None on the CPU: the host check of :mod:`warpsim.worlds.preflight` covers it)."""
+    (None on the CPU: the host check of :mod:`warpsim.sweeps.preflight` covers it)."""
     import warp as wp
 
     dev = wp.get_device(device)
@@ -124,10 +124,10 @@ def device_capacity(device, bytes_per_world, share=0.9):
 
 
 def merge_records(records):
-    """One :class:`warpsim.worlds.occupancy.OccupancyRecord` from the records of consecutive
+    """One :class:`warpsim.browse.occupancy.OccupancyRecord` from the records of consecutive
     blocks of worlds on one grid (their pairs are sorted by world, so the merge is their
     concatenation); ValueError when the grids or frames differ."""
-    from ..worlds.occupancy import OccupancyRecord
+    from ..browse.occupancy import OccupancyRecord
 
     first = records[0]
     for r in records[1:]:
@@ -154,7 +154,7 @@ def merge_records(records):
 def _sweep_resolution(bounds, resolution, world_count):
     """The resolution a one-device recorder of ``world_count`` worlds settles on (it halves while
     a 32-frame block of bits would pass ``BLOCK_BYTES_MAX``)."""
-    from ..worlds.occupancy import BLOCK_BYTES_MAX, OccupancyGrid
+    from ..browse.occupancy import BLOCK_BYTES_MAX, OccupancyGrid
 
     resolution = int(resolution)
     grid = OccupancyGrid.over(bounds[0], bounds[1], resolution)
@@ -166,7 +166,7 @@ def _sweep_resolution(bounds, resolution, world_count):
 
 class _Agreement:
     """The blocks' meeting before frame 0: each hands in its frame-0 extent, all get the whole
-    sweep's occupancy grid (bounds as :func:`warpsim.worlds.occupancy.default_bounds` of every
+    sweep's occupancy grid (bounds as :func:`warpsim.browse.occupancy.default_bounds` of every
     world's points, resolution as one recorder of every world would take)."""
 
     def __init__(self, blocks, world_count):
@@ -175,7 +175,7 @@ class _Agreement:
         self.world_count = world_count
 
     def agree(self, block, points, resolution):
-        from ..worlds.occupancy import default_bounds
+        from ..browse.occupancy import default_bounds
 
         p = np.asarray(points, np.float64).reshape(-1, 3)
         p = p[np.isfinite(p).all(1)]
@@ -210,9 +210,9 @@ def plan_blocks(scene_name, world_params, devices, resume_root=None):
     """``[(first_world, count), ...]`` for ``devices``: from their free memory (see
     :func:`split_blocks`), or, resuming the sweep of root ``resume_root``, the split it started
     with when it has as many blocks. Checks each device's share against its memory
-    (:func:`warpsim.worlds.preflight.check_sweep_memory`; ValueError with the figures)."""
+    (:func:`warpsim.sweeps.preflight.check_sweep_memory`; ValueError with the figures)."""
     from ..scenes import get_scene
-    from ..worlds import preflight
+    from ..sweeps import preflight
 
     cls = get_scene(scene_name)
     counts = _world_counts(cls, cls.resolve_params(world_params[0]))
@@ -238,17 +238,17 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
     """Run a sweep split over ``devices`` in this process; write its layers, table, occupancy
     record and root (module docstring). ``settings``: what ``--resume`` must match (the one-device
     sweep's staging settings; the split is added). ``occupancy``: None, or the options of
-    :func:`warpsim.worlds.run_batch` without ``path`` (the record goes beside the root).
+    :func:`warpsim.sweeps.run_batch` without ``path`` (the record goes beside the root).
     ``progress(frames)``: called with the frames every block has finished, as that grows;
     ``log``: a file told of a resume. Returns ``{"rows", "root", "layers", "record", "blocks",
     "frame_steps"}``. DeviceSweepError naming the device when a block fails after frame 0; a
     ValueError a block raises before it (a bad parameter) is raised as it is."""
     from ..cli_common import UsageError
-    from ..worlds.occupancy import OccupancyRecord, occupancy_path
-    from ..worlds.rerun import sweep_frame_steps
-    from ..worlds.staging import SweepStaging
-    from ..worlds.sweep import run_batch, write_table
-    from ..worlds.usd import write_sweep_root
+    from ..browse.occupancy import OccupancyRecord, occupancy_path
+    from ..sweeps.rerun import sweep_frame_steps
+    from ..sweeps.staging import SweepStaging
+    from ..sweeps.sweep import run_batch, write_table
+    from ..browse.roots import write_sweep_root
 
     world_params = list(world_params)
     n = len(world_params)

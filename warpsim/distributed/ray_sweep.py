@@ -6,7 +6,7 @@
    single-process sweep does and splits them into batches of ``B`` (the last holds the rest).
 2. Each batch is one Ray task: ``num_gpus=1`` when the cluster has GPUs (Ray sets
    ``CUDA_VISIBLE_DEVICES``, so the task runs on ``cuda:0``), one CPU otherwise. The task calls
-   ``warpsim.worlds.run_batch`` with a layer path inside a temporary folder, stores its metric rows
+   ``warpsim.sweeps.run_batch`` with a layer path inside a temporary folder, stores its metric rows
    beside it and renames the folder into place (``warpsim.distributed.batches``). A task whose
    worker dies (killed, out of memory, node lost) is run again by Ray (``max_retries``); the dead
    attempt's temporary folder is never referenced and is removed at the end.
@@ -118,7 +118,7 @@ def run_batch_task(spec):
 
     ``spec`` keys: ``scene``, ``worlds`` (list of parameter dicts), ``first_world``, ``index``,
     ``frames``, ``fps``, ``substeps``, ``device``, ``final_dir``, ``layer_name``, ``runner`` (None:
-    ``warpsim.worlds.run_batch``), ``options`` (more keyword arguments for it) and ``kill_once``
+    ``warpsim.sweeps.run_batch``), ``options`` (more keyword arguments for it) and ``kill_once``
     (tests only: a marker path; the first attempt that finds no marker creates it and SIGKILLs its
     own worker after the layer is written but before it is published); ``reference``: an ObjectRef
     of the whole sweep's parameter list (None or absent: none; ``run_batch``'s ``reference_params``). Returns ``{"index", "rows", "sha256", "seconds", "host", "pid", "error"}``.
@@ -130,7 +130,7 @@ def run_batch_task(spec):
         wp.config.log_level = wp.LOG_WARNING
     runner = spec.get("runner")
     if runner is None:
-        from ..worlds import run_batch as runner
+        from ..sweeps import run_batch as runner
     t0 = time.perf_counter()
     final_dir = spec["final_dir"]
     tmp = temp_batch_dir(final_dir)
@@ -215,7 +215,7 @@ retries an address that does not answer for minutes)."""
 def _probe_address(address, timeout=None):
     """ValueError naming ``address`` when nothing accepts a connection there within ``timeout``
     seconds (``auto`` is left to Ray: it reads the address of the cluster on this machine)."""
-    from ..worlds.preflight import check_ray_address
+    from ..sweeps.preflight import check_ray_address
 
     timeout = CONNECT_TIMEOUT_S if timeout is None else float(timeout)
     target = check_ray_address(address)
@@ -276,8 +276,8 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     """Run a sweep's worlds as Ray tasks, one per batch; write the table and the root USD.
 
     Args:
-        scene_name: a registered scene that ``warpsim.worlds.run_batch`` supports.
-        world_params: one parameter dict per world (``warpsim.worlds.sample_worlds``).
+        scene_name: a registered scene that ``warpsim.sweeps.run_batch`` supports.
+        world_params: one parameter dict per world (``warpsim.sweeps.sample_worlds``).
         frames, fps, substeps: as for ``warpsim sweep`` (None: the scene's defaults).
         out_path: the root USD (``.usd``/``.usda``/``.usdc``); batches live in ``<stem>.batches/``,
             the manifest in ``<stem>.ray-manifest.json``.
@@ -288,7 +288,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
             ``num_cpus`` CPUs (an open ``ray.init`` connection is reused either way).
         resume: skip the batches the manifest lists with an unchanged checksum and no error.
         max_retries: Ray task retries after a worker dies.
-        runner: the batch function (default ``warpsim.worlds.run_batch``); it must be picklable.
+        runner: the batch function (default ``warpsim.sweeps.run_batch``); it must be picklable.
         batch_options: more keyword arguments for every ``runner`` call (e.g. ``track``).
         log: a file for one line per finished batch (None: silent).
         occupancy: None, or {"resolution", "bounds"} as for ``run_batch``: every batch records its
@@ -305,8 +305,8 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     world_params = list(world_params)
     if "frame_steps" not in (batch_options or {}):
         # automatic sub-steps resolve over the whole sweep (its stiffest world), as in one process,
-        # not per batch: every batch is told the count (warpsim.worlds.rerun.sweep_frame_steps)
-        from ..worlds.rerun import sweep_frame_steps
+        # not per batch: every batch is told the count (warpsim.sweeps.rerun.sweep_frame_steps)
+        from ..sweeps.rerun import sweep_frame_steps
 
         steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=_driver_device(device),
                                   fused=bool((batch_options or {}).get("fused")))
@@ -320,7 +320,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     if occupancy is not None:  # a resumed sweep's batches must record on the same grid
         sweep["occupancy"] = _describe({"resolution": occupancy.get("resolution"), "bounds": (
             None if occupancy.get("bounds") is None else [list(map(float, c)) for c in occupancy["bounds"]])})
-    from ..worlds.usd import LAYOUTS
+    from ..browse.roots import LAYOUTS
 
     if layout not in LAYOUTS:
         raise ValueError(f"layout {layout!r} is unknown; use one of {', '.join(LAYOUTS)}")
@@ -405,7 +405,7 @@ def run_ray_sweep(scene_name, world_params, *, frames, out_path, table_path, fps
     for i in range(len(batches)):
         rows.extend(fresh[i] if i in fresh else load_rows(batch_dir(out_path, i, broot)))
     rows.sort(key=lambda r: r["world"])
-    from ..worlds import write_sweep_root, write_table
+    from ..sweeps import write_sweep_root, write_table
 
     write_table(table_path, rows)
     ok = [i for i in range(len(batches)) if not manifest.batches[i]["error"]]
@@ -439,7 +439,7 @@ def _record_name(out_path, index):
 
 def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fused=False, chunk=256):
     """``occupancy`` ({"resolution", "bounds"}) with the grid one process's recorder of every
-    world takes: bounds (when not given) as :func:`warpsim.worlds.occupancy.default_bounds` of
+    world takes: bounds (when not given) as :func:`warpsim.browse.occupancy.default_bounds` of
     every world's frame-0 points (the tracked particles when ``track``) and the scene's static
     geometry, and the resolution that recorder settles on for the whole world count. The worlds
     are built on the CPU, ``chunk`` at a time, not run."""
@@ -448,9 +448,9 @@ def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fus
     import numpy as np
 
     from ..scenes import get_scene
-    from ..worlds.occupancy import DEFAULT_RESOLUTION, default_bounds
-    from ..worlds.sweep import _normalise, make_batch
-    from ..worlds.usd import BatchLayerWriter
+    from ..browse.occupancy import DEFAULT_RESOLUTION, default_bounds
+    from ..sweeps.sweep import _normalise, make_batch
+    from ..sweeps.usd import BatchLayerWriter
     from .devices import _sweep_resolution
 
     options = {"resolution": occupancy.get("resolution") or DEFAULT_RESOLUTION, "bounds": occupancy.get("bounds")}
@@ -481,7 +481,7 @@ def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fus
 def _merge_records(out_path, batches, manifest, broot, log):
     """Merge the batches' occupancy records into ``<stem>.occupancy.npz`` (its path), or remove a
     stale one and return None when a batch failed (its worlds have no record)."""
-    from ..worlds.occupancy import OccupancyRecord, occupancy_path
+    from ..browse.occupancy import OccupancyRecord, occupancy_path
     from .devices import merge_records
 
     path = occupancy_path(out_path)

@@ -37,7 +37,8 @@ def add_parser(sub):
     v.add_argument("--paused", action="store_true", help="start paused")
     v.add_argument("--environment", action="store_true",
                    help="image-based lighting (prettier; slow where the browser has no GPU)")
-    v.add_argument("--record-dir", default="usd_out", help="folder for recordings (default usd_out)")
+    v.add_argument("--record-dir", default="usd_out", help="folder for recordings; a relative path is taken from the "
+                   "current folder (default usd_out)")
     return v
 
 
@@ -66,7 +67,7 @@ def build(args):
         if args.sets or args.integrator:
             raise cli.UsageError("--set and --integrator apply to scenes, not to a cache being played")
         from ..usd.validate import DamagedCacheError, check_damage
-        from ..worlds.gallery import GalleryViewer, is_sweep_root
+        from ..browse.gallery import GalleryViewer, is_sweep_root
         from .playback import PlaybackViewer
 
         player = GalleryViewer if is_sweep_root(args.scene) else PlaybackViewer  # a sweep: its worlds side by side

@@ -64,7 +64,7 @@ class WorldBatch:
     worlds themselves). Its first world is the tiling base and its values shape the plan, so a
     world gets the same arrays, and with the fixed-order gathers the same bits every step,
     whichever batch it runs in: a world of a sweep re-runs alone exactly
-    (:func:`warpsim.worlds.rerun.rerun_world`)."""
+    (:func:`warpsim.sweeps.rerun.rerun_world`)."""
 
     def __init__(self, cls, world_params, device=None, *, fused=False, reference_params=None, shared=None,
                  block_per_world=False):

@@ -20,8 +20,7 @@ import tempfile
 import numpy as np
 
 from ..viewer.playback import _DYNAMIC, CacheReader, PlaybackViewer
-from .roots import root_worlds as _root_worlds
-from .usd import write_sweep_root
+from .roots import root_worlds, write_sweep_root
 
 __all__ = ["GalleryReader", "GalleryViewer", "is_sweep_root"]
 
@@ -31,7 +30,7 @@ ALL = "all worlds"
 def is_sweep_root(path) -> bool:
     """Whether ``path`` is the root USD of a sweep (worlds referenced from batch layers)."""
     try:
-        return _root_worlds(path) is not None
+        return root_worlds(path) is not None
     except Exception:  # noqa: BLE001  (not USD, unreadable: not a sweep root)
         return False
 
@@ -44,7 +43,7 @@ class GalleryReader(CacheReader):
 
         from ..usd.validate import frame_codes
 
-        found = _root_worlds(path)
+        found = root_worlds(path)
         if found is None:
             raise ValueError(f"{path} is not a sweep root (no 'world' variant set or world_ prims under /World)")
         layout, worlds = found
@@ -140,7 +139,7 @@ class GalleryViewer(PlaybackViewer):
         self.root = os.fspath(path)
         self.thumbnails = bool(thumbnails)
         self.query = None
-        """The spacetime query panel (:class:`warpsim.worlds.browse.QueryPanel`) when the sweep
+        """The spacetime query panel (:class:`warpsim.browse.panel.QueryPanel`) when the sweep
         has an occupancy record, else None."""
         self.host, self.port = host, int(port)
         self.index = 0
@@ -185,7 +184,7 @@ class GalleryViewer(PlaybackViewer):
         from .occupancy import occupancy_path
 
         if os.path.exists(occupancy_path(self.root)):
-            from .browse import QueryPanel
+            from .panel import QueryPanel
 
             self.query = QueryPanel(self, thumbnails=self.thumbnails)
             if self.reader.worlds:  # the first view: world 0, where the box and its gizmos are drawn

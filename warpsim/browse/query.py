@@ -11,7 +11,7 @@ f / fps; ``@t0:`` runs to the end, ``@:t1`` from the start, no ``@`` the whole r
   insideK_share   largest share of the world's recorded particles inside at one frame of the
                   window, in [0, 1] (exact answers only; nan otherwise)
 
-Answers come from the cells of :class:`warpsim.worlds.occupancy.OccupancyRecord`: conservative to
+Answers come from the cells of :class:`warpsim.browse.occupancy.OccupancyRecord`: conservative to
 one cell (a world whose particles come within one cell of the box may be kept by IN and dropped
 by NOT IN). The worlds the cells leave in doubt are then decided exactly where that is cheap:
 from the exact positions the record keeps (few particles per world), or else read back from the

@@ -4,7 +4,7 @@
                        [--rank METRIC [--top K]] [--where METRIC<VALUE ...] [--table CSV]
 
 Reads the sweep's table (``<stem>.csv``) and occupancy record (``<stem>.occupancy.npz``, see
-:mod:`warpsim.worlds.occupancy`) beside ``ROOT`` and prints the picked worlds exactly as
+:mod:`warpsim.browse.occupancy`) beside ``ROOT`` and prints the picked worlds exactly as
 ``warpsim sweep`` does with the same options (the same worlds in the same order), then writes
 ``<stem>.picked<ext>`` holding only those. Exit status 2 (one line) for a bad box or window, a
 root without a record, an unknown metric.
@@ -24,7 +24,7 @@ def add_parser(sub):
                         "(repeatable; adds insideK_time, insideK_entry, insideK_share to rank by)")
     s.add_argument("--outside", action="append", default=[], metavar="X0,Y0,Z0,X1,Y1,Z1@T0:T1",
                    help="keep worlds with no (tracked) particle inside the box during the window (repeatable)")
-    from .query import accept_negative_boxes
+    from ..browse.query import accept_negative_boxes
 
     accept_negative_boxes(s)
     s.add_argument("--rank", default=None, metavar="METRIC", help="order worlds by a metric or query column "
@@ -76,12 +76,11 @@ def read_table(path):
 
 def run(args, out, err):
     from .. import cli
+    from ..browse.occupancy import OccupancyRecord
+    from ..browse.query import answer_region, answers_note, apply_regions, cached_positions, parse_region, region_columns
+    from ..browse.roots import sweep_root_files, write_sweep_root
     from .command import _format
     from .metrics import parse_rank, parse_where, select
-    from .occupancy import OccupancyRecord
-    from .query import answer_region, answers_note, apply_regions, cached_positions, parse_region, region_columns
-    from .roots import sweep_root_files
-    from .usd import write_sweep_root
 
     usage = cli.UsageError
     if args.top is not None and args.top < 1:

@@ -9,7 +9,7 @@
 Writes ``PATH`` (default ``usd_out/SCENE_sweep.usda``): a root whose ``/World`` carries a variant
 set ``world`` (or, with ``--layout grid``, every world side by side), the batch layer beside it
 (``<stem>.batch_0000.usdc``) and the table ``<stem>.csv`` (one row per world: parameters and
-metrics) and the occupancy record ``<stem>.occupancy.npz`` (:mod:`warpsim.worlds.occupancy`;
+metrics) and the occupancy record ``<stem>.occupancy.npz`` (:mod:`warpsim.browse.occupancy`;
 ``warpsim query`` asks it later). ``--rank``/``--where``/``--inside``/``--outside`` print the
 picked worlds and write ``<stem>.picked.usda`` holding only those. Exit status 2 for usage
 mistakes (one line), 1 when the run fails.
@@ -73,7 +73,7 @@ def add_parser(sub):
     s.add_argument("--no-thumbnails", action="store_true",
                    help="draw no picture of each world for the gallery after the sweep (it then draws them on "
                         "first show)")
-    from .query import accept_negative_boxes
+    from ..browse.query import accept_negative_boxes
 
     accept_negative_boxes(s)
     s.add_argument("--fused", action="store_true",
@@ -146,9 +146,9 @@ def run(args, out, err):
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
     from ..scenes import get_scene
     from .metrics import BUILTIN, parse_rank, parse_where, select
-    from .query import apply_regions, region_columns
+    from ..browse.query import apply_regions, region_columns
     from .sweep import run_batch, sample_worlds, write_table
-    from .usd import LAYOUTS, write_sweep_root
+    from ..browse.roots import LAYOUTS, write_sweep_root
 
     usage = cli.UsageError
     try:
@@ -369,12 +369,12 @@ def run(args, out, err):
               "sweep again with --resume", file=err)
         return 1
     if getattr(args, "ray", None) is None or os.path.exists(_record_path(path)):
-        from .occupancy import OccupancyRecord
-        from .query import answer_region, answers_note, cached_positions
+        from ..browse.occupancy import OccupancyRecord
+        from ..browse.query import answer_region, answers_note, cached_positions
 
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
-        from .browse import thumbnails_after_sweep
+        from ..browse.panel import thumbnails_after_sweep
 
         print(thumbnails_after_sweep(root, layers, record, enabled=not args.no_thumbnails,
                                      device=device if getattr(args, "ray", None) is None and devices is None else
@@ -411,7 +411,7 @@ def _check_memory(cls, base, worlds, device):
 
 
 def _record_path(root):
-    from .occupancy import occupancy_path
+    from ..browse.occupancy import occupancy_path
 
     return occupancy_path(root)
 
@@ -419,8 +419,8 @@ def _record_path(root):
 def _regions(args, fps):
     """(regions, occupancy options) from --inside/--outside/--occupancy-*; windows checked
     against the run's frames. ValueError (one line) for a bad box, window or resolution."""
-    from .occupancy import DEFAULT_RESOLUTION, parse_bounds
-    from .query import check_window, parse_region
+    from ..browse.occupancy import DEFAULT_RESOLUTION, parse_bounds
+    from ..browse.query import check_window, parse_region
 
     regions = [parse_region(t, True) for t in args.inside] + [parse_region(t, False) for t in args.outside]
     for r in regions:
@@ -433,7 +433,7 @@ def _regions(args, fps):
 
 
 def _timing(cls, world_params, fps, substeps):
-    """The sweep's :class:`~warpsim.scenes.timing.FrameTiming` (``warpsim.worlds.sweep.sweep_timing``);
+    """The sweep's :class:`~warpsim.scenes.timing.FrameTiming` (``warpsim.sweeps.sweep.sweep_timing``);
     flags that disagree: a usage error (exit 2)."""
     from .. import cli
     from .sweep import sweep_timing

@@ -1,7 +1,7 @@
 """Browsing a sweep's worlds by where things go, in the gallery (``warpsim view SWEEP.usda``).
 
-:class:`QueryPanel` adds to a :class:`warpsim.worlds.gallery.GalleryViewer` whose sweep has an
-occupancy record (:mod:`warpsim.worlds.occupancy`):
+:class:`QueryPanel` adds to a :class:`warpsim.browse.gallery.GalleryViewer` whose sweep has an
+occupancy record (:mod:`warpsim.browse.occupancy`):
 
 - a translucent box in the page with a gizmo on each of two opposite corners: drag a gizmo's
   arrows or planes with the mouse to place and resize the box (or type its corners in
@@ -15,7 +15,7 @@ occupancy record (:mod:`warpsim.worlds.occupancy`):
   sweep itself, :func:`sweep_thumbnails`, unless ``--no-thumbnails``; else on first show).
 
 A query is asked when a gizmo is released or a setting changes (not while dragging), from the
-record (:func:`warpsim.worlds.query.answer_region`; a change of the ranking alone reuses the last
+record (:func:`warpsim.browse.query.answer_region`; a change of the ranking alone reuses the last
 answer): milliseconds for 10,000 worlds. The worlds' visibility is sent only when the set of
 hidden worlds changes, and the list keeps its buttons and pictures, relabelled in place, so a
 control that only re-ranks redraws no world. Exact when
@@ -53,7 +53,7 @@ def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None
 
     from ..render.cache import render_cache
     from .pick import pick_world
-    from .usd import world_prim_name
+    from .roots import world_prim_name
 
     folder = thumbnails_folder(root)
     path = os.path.join(folder, world_prim_name(world) + ".png")
@@ -137,7 +137,7 @@ def thumbnails_after_sweep(root, layers, record, device=None, enabled=True) -> s
 
 class QueryPanel:
     """The spacetime query of a gallery (see the module docstring). ``viewer``: a started
-    :class:`warpsim.worlds.gallery.GalleryViewer`; ``record``: its occupancy record (default:
+    :class:`warpsim.browse.gallery.GalleryViewer`; ``record``: its occupancy record (default:
     read from beside ``viewer.root``); ``top``: worlds listed; ``thumbnails``: draw a picture per
     listed world (in a background thread)."""
 

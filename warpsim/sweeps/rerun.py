@@ -63,7 +63,7 @@ def _typed(cls, params: dict) -> dict:
 def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps=None, device=None,
                    fused=False, frame_steps=None) -> str:
     """Write the manifest of the sweep whose root is ``root``; ``world_params`` as given to
-    :func:`warpsim.worlds.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
+    :func:`warpsim.sweeps.sweep.run_batch`, ``fps`` / ``substeps`` as given (None: the scene's),
     ``frame_steps`` the steps each frame took (``run_batch``'s ``timing``; auto sub-steps are
     resolved over all worlds, so a world alone must be told). Returns its path."""
     from .._version import __version__
@@ -240,7 +240,7 @@ def _frame_steps(manifest, fps, substeps):
 
 def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, device=None, fused=False):
     """The steps per frame every world of a sweep takes with automatic timing, from all its
-    worlds' parameters (as given to :func:`warpsim.worlds.sweep.run_batch`): the max over the
+    worlds' parameters (as given to :func:`warpsim.sweeps.sweep.run_batch`): the max over the
     worlds of each world's own count (``WorldBatch.auto_steps``: every world's step <= 0.5 x its
     own limit), so a sweep split into batches or devices afterwards steps every block alike (give
     each ``run_batch(frame_steps=...)``). The sweep's batch is built, not run. None when the
@@ -262,14 +262,14 @@ def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, devi
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
               progress=None, frame_steps=None) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
-    :func:`warpsim.worlds.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
+    :func:`warpsim.sweeps.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
     and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
     the cache path. ``progress(frame)`` is called after each frame; ``frame_steps``: the steps per
     frame the whole batch took (its manifest's ``frame_steps``), None to let the world decide."""
     from ..scenes import get_scene
     from ..usd.writer import UsdCacheWriter
-    from .agents import is_agent_scene
-    from .batch import WorldBatch
+    from ..worlds.agents import is_agent_scene
+    from ..worlds.batch import WorldBatch
     from .sweep import sweep_timing, timed_params
 
     cls = get_scene(scene_name)
@@ -358,7 +358,7 @@ def _check_api_args(root, frames, fps, substeps, out) -> None:
 def _check_rerun_out(out, root, flag="out") -> None:
     """ValueError when the re-run's cache would overwrite the sweep root or one of its files."""
     from ..usd.family import check_output
-    from .roots import root_worlds
+    from ..browse.roots import root_worlds
 
     try:
         layers = sorted({p for _, p in (root_worlds(root) or (None, []))[1]})

@@ -81,7 +81,7 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
 def _write_pick(root, world, owner, out_path, flatten) -> str:
     from pxr import Sdf, Usd
 
-    from .usd import world_prim_name
+    from .roots import world_prim_name
 
     from ..usd.pxr_errors import pxr_reason
 

@@ -9,7 +9,7 @@ import numpy as np
 import warp as wp
 
 from ..scenes.timing import resolve_timing
-from .batch import WorldBatch
+from ..worlds.batch import WorldBatch
 from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
 from .usd import BatchLayerWriter
@@ -86,10 +86,10 @@ def _normalise(cls, params):
 def make_batch(cls, world_params, device=None, fused=False, reference_params=None):
     """A :class:`WorldBatch` (``fused``, ``reference_params``: see there), or for flock scenes an
     :class:`warpsim.worlds.agents.AgentWorldBatch` (its worlds never depend on their batch)."""
-    from .agents import is_agent_scene
+    from ..worlds.agents import is_agent_scene
 
     if is_agent_scene(cls):
-        from .agents import AgentWorldBatch
+        from ..worlds.agents import AgentWorldBatch
 
         return AgentWorldBatch(cls, world_params, device=device)
     return WorldBatch(cls, world_params, device=device, fused=fused, reference_params=reference_params)
@@ -102,10 +102,10 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
-    ``/Worlds/world_GGGGGG``, G = first_world + i; see :mod:`warpsim.worlds.usd`). Rows hold
+    ``/Worlds/world_GGGGGG``, G = first_world + i; see :mod:`warpsim.sweeps.usd`). Rows hold
     ``"world"`` (the global index), the world's parameters as given, the metrics of
-    :mod:`warpsim.worlds.metrics` and ``"blown_up"``. ``track``: {name: particle index within a
-    world} for position metrics; ``metrics``: :class:`warpsim.worlds.metrics.UserMetric` list;
+    :mod:`warpsim.sweeps.metrics` and ``"blown_up"``. ``track``: {name: particle index within a
+    world} for position metrics; ``metrics``: :class:`warpsim.sweeps.metrics.UserMetric` list;
     ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
     ``fused``: step through the fused semi-implicit kernel (:class:`WorldBatch`);
     ``chunk_size``: frames per chunk file of the layer (completed chunks survive a kill);
@@ -114,7 +114,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     write on from there;
     ``progress(frame)``: called after each frame; ``occupancy``: None, or {"path": record file,
     "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
-    occupancy record of these worlds (:mod:`warpsim.worlds.occupancy`; the tracked particles
+    occupancy record of these worlds (:mod:`warpsim.browse.occupancy`; the tracked particles
     when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
     default to it, unless ``dt`` is given): every frame takes the steps of the world needing the
     most, so each world's step is <= 0.5 x its own limit (``WorldBatch.auto_steps``);
@@ -221,11 +221,11 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
 
 
 def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer):
-    """An :class:`warpsim.worlds.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record);
+    """An :class:`warpsim.browse.occupancy.OccupancyRecorder` for ``run_batch`` (None: no record);
     its default grid also covers the static geometry the writer has seen (floor, walls)."""
     if not occupancy:
         return None
-    from .occupancy import DEFAULT_RESOLUTION, OccupancyRecorder, find_source_prim
+    from ..browse.occupancy import DEFAULT_RESOLUTION, OccupancyRecorder, find_source_prim
 
     static = np.array([writer.lo, writer.hi]) if np.isfinite(writer.hi - writer.lo).all() else None
     bounds, resolution = occupancy.get("bounds"), occupancy.get("resolution") or DEFAULT_RESOLUTION

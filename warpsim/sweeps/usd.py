@@ -1,4 +1,4 @@
-"""USD output of many worlds: batch layers, and a root with a ``world`` variant set or a gallery.
+"""USD output of many worlds: the batch layers (the root over them: :mod:`warpsim.browse.roots`).
 
 Batch layer (one per batch, ``.usdc``): every world of the batch under
 ``/Worlds/world_GGGGGG`` (G: the world's global index), holding the scene's own prims (declared
@@ -7,28 +7,19 @@ with a time sample per frame. ``customLayerData["warpsim"]`` records ``firstWorl
 ``worldCount``, ``scene``, ``span`` (the largest extent of a world [m], for galleries) and ``lo`` /
 ``hi`` (the corners of the worlds' extent [m]: a root over several layers spans their union).
 
-Root (``write_sweep_root``): ``/World`` (the default prim) either carries a variant set ``world``
-with one variant per world (``world_GGGGGG``, referencing that world's prim; the first is
-selected), or (``layout="grid"``) holds every world side by side on a grid in the x-z plane.
 ``pxr`` is imported lazily.
 """
 from __future__ import annotations
 
-import math
 import operator
 import os
 
 import numpy as np
 
+from ..browse.roots import world_prim_name
 from ..usd.writer import UsdCacheWriter
 
-__all__ = ["BatchLayerWriter", "world_prim_name", "write_sweep_root"]
-
-LAYOUTS = ("variants", "grid")
-
-
-def world_prim_name(world: int) -> str:
-    return f"world_{int(world):06d}"
+__all__ = ["BatchLayerWriter"]
 
 
 class BatchLayerWriter(UsdCacheWriter):
@@ -186,108 +177,3 @@ def _custom_value(value):
     if isinstance(value, (tuple, list, np.ndarray)):
         return Vt.DoubleArray([float(v) for v in value])
     return str(value)
-
-
-def _layer_info(path):
-    from pxr import Sdf
-
-    layer = Sdf.Layer.Find(os.path.abspath(os.fspath(path)))
-    if layer is not None:
-        layer.Reload()  # another process may have rewritten it
-    else:
-        layer = Sdf.Layer.FindOrOpen(os.fspath(path))
-    if layer is None:
-        raise FileNotFoundError(f"batch layer {path} does not exist or is not USD; run the batch first")
-    info = dict(layer.customLayerData.get("warpsim", {}))
-    if "firstWorld" not in info:
-        raise ValueError(f"{path} is not a warpsim batch layer (no customLayerData warpsim.firstWorld)")
-    return layer, info
-
-
-def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, worlds=None, spacing=None) -> str:
-    """Write the root USD of a sweep and return its path.
-
-    ``layer_paths``: batch layers covering worlds ``0 .. world_count - 1``; ``layout``: "variants"
-    (``/World`` with a variant set ``world``, one variant per world, the first selected) or
-    "grid" (a gallery: the worlds side by side, ``spacing`` [m] apart, default 1.25 x the largest
-    world extent). ``worlds``: only these global indices (a picked subset), in this order."""
-    from pxr import Gf, Sdf
-
-    from ..core import checks
-
-    if layout not in LAYOUTS:
-        raise ValueError(f"layout {layout!r} is unknown; use one of {', '.join(LAYOUTS)}")
-    world_count = checks.integer(world_count, "write_sweep_root world_count", lo=1, fix="worlds in the sweep")
-    out_path = os.path.abspath(os.fspath(out_path))
-    if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
-        raise ValueError(f"root {out_path!r} must end in .usd, .usda or .usdc")
-    layer_paths = [os.path.abspath(os.fspath(p)) for p in layer_paths]
-    if out_path in layer_paths:
-        raise ValueError(f"root {out_path!r} is also one of the batch layers it would reference; writing it would "
-                         "overwrite that layer's worlds: give the root another name")
-    owner, fps, start, end, span = {}, None, None, None, 0.0
-    corners = []  # the layers' extents: the union's span, as one layer of every world would have
-    for p in layer_paths:
-        layer, info = _layer_info(p)
-        for g in range(int(info["firstWorld"]), int(info["firstWorld"]) + int(info["worldCount"])):
-            owner[g] = os.path.abspath(os.fspath(p))
-        fps = fps or layer.timeCodesPerSecond
-        if layer.HasStartTimeCode():
-            start = layer.startTimeCode if start is None else min(start, layer.startTimeCode)
-            end = layer.endTimeCode if end is None else max(end, layer.endTimeCode)
-        span = max(span, float(info.get("span", 1.0)))
-        corners.append(np.array([list(info["lo"]), list(info["hi"])]) if "lo" in info and "hi" in info else None)
-    known = [c for c in corners if c is not None]
-    if known and len(known) == len(corners):
-        span = float(np.max(np.max([c[1] for c in known], axis=0) - np.min([c[0] for c in known], axis=0)))
-    missing = [g for g in range(int(world_count)) if g not in owner]
-    if missing and worlds is None:  # a chosen subset (``worlds``) may skip batches without a layer
-        raise ValueError(f"world {missing[0]} is in none of the {len(layer_paths)} batch layers; run its batch")
-    chosen = list(range(int(world_count))) if worlds is None else [int(w) for w in worlds]
-    for g in chosen:
-        if g not in owner:
-            raise ValueError(f"world {g} is out of range [0, {world_count})")
-    folder = os.path.dirname(out_path)
-    os.makedirs(folder, exist_ok=True)
-    layer = Sdf.Layer.CreateAnonymous(".usda")
-    layer.defaultPrim = "World"
-    layer.timeCodesPerSecond = fps or 60.0
-    layer.framesPerSecond = fps or 60.0
-    layer.pseudoRoot.SetInfo("upAxis", "Y")
-    layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
-    if start is not None:
-        layer.startTimeCode, layer.endTimeCode = start, end
-    root = Sdf.CreatePrimInLayer(layer, "/World")
-    root.specifier = Sdf.SpecifierDef
-    root.typeName = "Xform"
-
-    def reference(spec, g):
-        asset = "./" + os.path.relpath(owner[g], folder).replace(os.sep, "/")
-        spec.referenceList.Prepend(Sdf.Reference(asset, f"/Worlds/{world_prim_name(g)}"))
-
-    if layout == "variants":
-        vset = Sdf.VariantSetSpec(root, "world")
-        for g in chosen:
-            reference(Sdf.VariantSpec(vset, world_prim_name(g)).primSpec, g)
-        root.variantSetNameList.Prepend("world")
-        if chosen:
-            root.variantSelections["world"] = world_prim_name(chosen[0])
-    else:
-        step = float(spacing) if spacing is not None else 1.25 * max(span, 1e-3)
-        if not (math.isfinite(step) and step > 0):
-            raise ValueError(f"spacing {spacing} must be > 0 [m]")
-        columns = max(1, math.ceil(math.sqrt(len(chosen))))
-        for k, g in enumerate(chosen):
-            spec = Sdf.CreatePrimInLayer(layer, f"/World/{world_prim_name(g)}")
-            spec.specifier = Sdf.SpecifierDef
-            spec.typeName = "Xform"
-            reference(spec, g)
-            op = Sdf.AttributeSpec(spec, "xformOp:translate", Sdf.ValueTypeNames.Double3)
-            op.default = Gf.Vec3d((k % columns) * step, 0.0, (k // columns) * step)
-            order = Sdf.AttributeSpec(spec, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
-            order.default = ["xformOp:translate"]
-    tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
-    if not layer.Export(tmp):
-        raise PermissionError(f"could not write {out_path}; check the folder is writable")
-    os.replace(tmp, out_path)
-    return out_path

@@ -3,7 +3,7 @@
 After Goel & James, *Unified Many-Worlds Browsing of Arbitrary Physics-Based Animations*
 (SIGGRAPH 2022): simulate once, keep per world a compact record of which space it occupies over
 time, then answer "inside this box during this window" (IN) and "never inside" (NOT IN) for
-any box drawn later without simulating again (:mod:`warpsim.worlds.query`).
+any box drawn later without simulating again (:mod:`warpsim.browse.query`).
 
 The record (``OccupancyRecorder``, made on the device while the sweep runs; kernels in
 ``kernels/occupancy.py``):
