@@ -147,7 +147,7 @@ class Hair(SimulatorScene):
         for key in ("damping", "air_drag", "friction", "strand_friction", "still"):
             if not p[key] >= 0.0:
                 raise ValueError(f"{key}={p[key]}: it must be >= 0")
-        from ..worlds.preflight import check_strand_memory
+        from ..sweeps.preflight import check_strand_memory
 
         check_strand_memory(p["strands"], p["segments"], self.device)  # refused with the figure, before allocating
         self.head = Sphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
