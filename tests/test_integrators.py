@@ -312,13 +312,14 @@ def test_every_integrator_runs_every_force(device):
 def _separate_passes_step(sim, h):
     """One Simulator sub-step the way it ran before the passes were fused: copy q_prev, zero f,
     every force in order, the semi-implicit update, the colliders, the clock."""
+    from warpsim.core.launch import recording
     from warpsim.kernels import integrate as KI
 
     st, s = sim.state, sim.system
     wp.copy(sim._q_prev, st.positions)
     st.forces.zero_()
     for f in s.forces:
-        with wp.Tape():  # a recording tape: every launch goes through plain wp.launch
+        with recording(wp.Tape()):  # a tape warpsim sees: every launch goes through plain wp.launch
             f.eval(st.positions, st.velocities, sim._time, 0.0, st.forces)
     wp.launch(KI.step_semi_implicit_euler, s.count,
               inputs=[st.positions, st.velocities, st.forces, s.inv_mass, h, st.positions, st.velocities], device="cpu")

@@ -6,67 +6,14 @@ number of times without allocating. Forces only accumulate; the caller zeroes ``
 
 from __future__ import annotations
 
-import ctypes
-from typing import Any
-
 import numpy as np
 import warp as wp
-from warp._src import context as _warp_context
 
 from . import checks
 from .builder import _vec3, check_indices
+from .launch import cached_launch, recording_tape
 from .model import ensure_spring_adjacency
 from ..kernels import forces as K
-
-
-def cached_launch(kernel, dim, inputs, device, cache: dict, key=None, size: int = 8) -> None:
-    """``wp.launch(kernel, dim, inputs)`` through a recorded ``wp.Launch`` kept in ``cache`` per
-    (dim, arrays by identity, scalars by value): on the CPU packing a launch's arguments costs
-    ~1-2 us each, a recorded launch replays without it. At most ``size`` entries (then cleared);
-    each entry keeps its arrays referenced, so their ids cannot be reused while it lives. While a
-    ``wp.Tape`` records or a graph is being captured it launches plainly (both see only
-    ``wp.launch``). ``key``: the caller's own hashable stand-in for (dim, inputs) with the same
-    meaning (cheaper than the generic one)."""
-    runtime: Any = _warp_context.runtime  # never None once Warp is initialised
-    if runtime.tape is not None or (device if isinstance(device, wp.Device) else
-                                                   wp.get_device(device)).is_capturing:
-        wp.launch(kernel, dim, inputs=list(inputs), device=device)
-        return
-    if key is None:
-        key = (dim, *(id(a) if isinstance(a, wp.array) else (type(a).__name__, tuple(a) if hasattr(a, "__len__") else a)
-                      for a in inputs))
-    entry = cache.get(key)
-    if entry is None:
-        if len(cache) >= size:
-            cache.clear()
-        cmd = wp.launch(kernel, dim, inputs=list(inputs), device=device, record_cmd=True)
-        cmd.launch()  # this call's launch (it also fills Warp's struct-type cache _cpu_replay reads)
-        cache[key] = (_cpu_replay(cmd) or cmd.launch, inputs)
-        return
-    entry[0]()
-
-
-def _cpu_replay(cmd):
-    """A callable that runs the recorded CPU launch ``cmd`` with its argument struct packed once
-    (what ``wp.Launch.launch`` does on the CPU, less re-packing ~10 ctypes fields per call:
-    ~8 us a launch), or None where that path does not apply (CUDA, tiled launches, Warp
-    internals not as expected: then ``cmd.launch`` is used)."""
-    try:
-        if not cmd.device.is_cpu or cmd.block_dim > 1 or cmd.adjoint:
-            return None
-        params = cmd.params
-        struct, fields = cmd.kernel._invoke_cache[(tuple(type(p) for p in params[1:]), False)]
-        args = struct()
-        for i, field in enumerate(fields):
-            setattr(args, field[0], params[1 + i])
-        forward, bounds, packed = cmd.hooks.forward, ctypes.byref(params[0]), ctypes.byref(args)
-    except (AttributeError, KeyError, TypeError, ValueError):
-        return None
-
-    def replay(args=args, params=params):  # the defaults keep the packed structs alive
-        forward(bounds, packed)
-
-    return replay
 
 
 class Force:
@@ -263,20 +210,21 @@ class Springs(Force):
             raise TypeError(f"Springs deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.exact_jacobian = exact_jacobian
         self.deterministic = bool(deterministic)
-        self._launches = {}
+        self._launches: dict = {}
+        self._entries = None  # the CPU's two-pass gather buffers (_spring_entries)
 
     def bind(self, model) -> None:
         super().bind(model)
         ensure_spring_adjacency(model)
 
     def _gathers(self) -> bool:
-        return self.__dict__.get("deterministic", True)
+        return self.deterministic
 
     def eval(self, q, qd, time, time_offset, f_out) -> None:
         m = self.model
         if m.spring_count == 0:
             return
-        launches = self.__dict__.setdefault("_launches", {})  # a subclass that skipped __init__ has none
+        launches = self._launches
         scatter = (q, qd, m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping,
                    m.spring_broken, f_out)
         if not self._gathers():  # the same launch every step: replayed recorded
@@ -285,7 +233,12 @@ class Springs(Force):
             return
         ensure_spring_adjacency(m)
         inputs = (*scatter[:7], m.particle_spring_offsets, m.particle_springs, f_out)
-        tape = getattr(_warp_context.runtime, "tape", None)
+        tape = recording_tape()
+        if tape is None and any(a.requires_grad for a in scatter[:6]):
+            # a plain wp.Tape (not entered through warpsim.core.launch.recording) may record: the
+            # scatter kernel, whose adjoint it can take (float atomics: the last bits may differ)
+            wp.launch(K.eval_springs, m.spring_count, inputs=list(scatter), device=m.device)
+            return
         if tape is None and m.device.is_cpu:  # each spring once, then the same fixed-order sums
             entries, entry_f = self._spring_entries(m)
             first = (*scatter[:7], entries, entry_f)
@@ -308,7 +261,7 @@ class Springs(Force):
         """(entries (spring_count,) vec2i: the positions of (end 2s, s) and (end 2s+1, s) in the
         model's CSR list ``particle_springs``; per-entry force buffer (2 spring_count,)) of the
         CPU's two-pass gather, built once per model and CSR list."""
-        cached = self.__dict__.get("_entries")
+        cached = self._entries
         if cached is not None and cached[0] is model.particle_springs and cached[1].device == model.device:
             return cached[1], cached[2]
         ends = model.spring_indices.numpy().reshape(-1, 2)

@@ -26,7 +26,8 @@ import warp.sparse as wps
 
 from . import checks
 from .block_cg import BlockCG
-from .forces import Gravity, cached_launch
+from .forces import Gravity
+from .launch import cached_launch
 from ..kernels import integrate as K
 
 

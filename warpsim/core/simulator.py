@@ -13,7 +13,8 @@ from ..kernels import integrate as K
 from .collider import Collider
 from . import checks
 from .errors import SimulationError
-from .forces import Force, Gravity, cached_launch
+from .forces import Force, Gravity
+from .launch import cached_launch
 from .fracture import SpringFracture
 from .model import Model
 from .integrators import make_integrator

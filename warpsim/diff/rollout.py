@@ -49,6 +49,7 @@ import warp as wp
 
 from ..core.forces import ConstantForce, Drag, Gravity, Magnets, Springs, Wind
 from ..core.integrators import ExplicitEuler, SemiImplicitEuler
+from ..core.launch import recording
 from ..core.model import State
 from ..kernels import autodiff as KD
 
@@ -185,7 +186,7 @@ class Rollout:
         t = self.times[k]
         q, qd, f = s_in.positions, s_in.velocities, s_out.forces  # f: the force of the step that led to s_out
         q1, qd1 = stages[0] if stages else (s_out.positions, s_out.velocities)
-        with self.tape:
+        with recording(self.tape):
             if self.cloth:
                 integ = sim.integrator
                 integ.prepare(sim.system)
@@ -287,7 +288,7 @@ class Rollout:
         elif not isinstance(loss, wp.array) or loss.dtype != wp.float32 or loss.shape != (1,):
             raise ValueError(f"trajectory_loss loss must be a (1,) float32 wp.array or None, got {checks.show(loss)}")
         loss.zero_()
-        with self.tape:
+        with recording(self.tape):
             for k, target in zip(steps, targets):
                 wp.launch(KD.squared_distance, self.model.particle_count,
                           inputs=[self.states[k].positions, target, float(weight), loss], device=self.device)
