@@ -32,6 +32,7 @@ _verbose: Optional[bool] = None
 _lock = threading.Lock()
 _notice_said = False
 _hooked = False
+_started = False
 
 
 def warp_verbose() -> bool:
@@ -65,17 +66,15 @@ def set_warp_verbosity(verbose: Optional[bool] = None) -> None:
         _init_without_driver_warning(wp)
 
 
-def _runtime_started(wp) -> bool:
-    context = getattr(getattr(wp, "_src", None), "context", None) or getattr(wp, "context", None)
-    return getattr(context, "runtime", None) is not None
-
-
 def _init_without_driver_warning(wp) -> None:
     """``wp.init()`` with file descriptor 2 captured, then everything it printed re-emitted except
-    the native "no CUDA driver" line (printed by C code: Python's sys.stderr cannot catch it)."""
-    if _runtime_started(wp):
-        return
+    the native "no CUDA driver" line (printed by C code: Python's sys.stderr cannot catch it). Once
+    per process (``wp.init()`` on a started runtime prints nothing)."""
+    global _started
     with _lock:
+        if _started:
+            return
+        _started = True
         try:
             fd = sys.stderr.fileno()
         except (AttributeError, OSError, ValueError):  # a replaced stderr (notebooks): nothing to filter
@@ -119,7 +118,9 @@ def _hook_compile_notice() -> None:
         _hooked = True
     import warp as wp
 
-    module_cls = getattr(getattr(getattr(wp, "_src", None), "context", None), "Module", None)
+    from .kernels import reduce  # any kernel: its module's class is Warp's (no public name for it)
+
+    module_cls = type(reduce.reduce_rows.module)
     original = getattr(module_cls, "_compile", None)
     if original is None:
         return
