@@ -22,6 +22,9 @@ step time to the first one's (linear in the number of tori would be M / count).
     python benchmarks/bench_donuts.py --device cuda:0 --count 1000 --settle 3000 --steps 200
     python benchmarks/bench_donuts.py --device cuda:0 --settle 1000 --steps 50 --profile  # kernel table
 
+``--broad-phase list`` (default; the scene's) uses SoftContact's candidate list (``--pad``,
+``--search-every``), ``--broad-phase bvh`` the two-level BVH search every step (the earlier default).
+
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
 and synchronisations per step, and the contact search's candidates per query
 (``SoftContact.record_candidates``); ``--rebuild-every N`` sets the contact's BVH rebuild period.
@@ -39,8 +42,14 @@ from warpsim.scenes import get_scene
 def build(args, count, device):
     cls = get_scene("donuts")
     params = cls.resolve_params({"count": count, "segments": args.segments, "sides": args.sides,
-                                 "lattice_cells": args.lattice_cells, "dt": args.dt})
-    return cls(params, device=device)
+                                 "lattice_cells": args.lattice_cells, "dt": args.dt, "broad_phase": args.broad_phase})
+    scene = cls(params, device=device)
+    if scene.contact is not None:
+        if args.search_every:
+            scene.contact.search_every = args.search_every
+        if args.pad:
+            scene.contact.pad = args.pad
+    return scene
 
 
 def settle(args, count, device):
@@ -53,7 +62,11 @@ def settle(args, count, device):
     print(f"device {device}; {count} tori x {args.segments * args.sides} surface vertices; {model.particle_count} "
           f"particles, {model.spring_count} springs, {contact.triangle_count} contact triangles, {contact.edge_count} "
           f"contact edges; step {h:.3g} s ({scene.inner_steps} per scene step of {scene.params['dt']:.3g} s, from "
-          f"the springs' stability limit); built in {time.perf_counter() - t0:.1f} s")
+          f"the springs' stability limit, {round(1.0 / 60.0 / h)} per frame of 1/60 s); contact search "
+          f"{contact.broad_phase!r}" + (f" (pad {contact.pad * 1e3:.2g} mm, refit and search every "
+                                        f"{contact.search_every} steps, {contact.capacity} candidates a query)"
+                                        if contact.broad_phase == "list" else "") +
+          f"; built in {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
     for _ in range(args.settle):
         sim.step(h)
@@ -119,7 +132,18 @@ def profile(scene, h, steps, device, top=14):
         print(f"  {'activity':44s} {'calls/step':>10s} {'ms/step':>9s} {'share':>7s}")
         for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
             print(f"  {name[:44]:44s} {calls[name] / steps:10.2f} {ms:9.4f} {ms / gpu:7.1%}")
-    if contact is not None:
+    if contact is not None and contact.broad_phase == "list":
+        before = contact.list_stats()["searches"]
+        for _ in range(steps):
+            sim.step(h)
+        ls = contact.list_stats()
+        print(f"  candidate list: {(ls['searches'] - before) / steps:.3f} searches a step over {steps} steps (refit "
+              f"every {contact.search_every}), overflowed queries so far {ls['overflow']}")
+        for kind in ("vertex", "edge"):
+            if kind in ls:
+                print(f"  {kind} queries: candidates kept at the last search {ls[kind]['per_query']:.2f} per query "
+                      f"(max {ls[kind]['max']})")
+    elif contact is not None:
         contact.record_candidates(True)
         sim.step(h)
         for kind, st in contact.candidate_stats().items():
@@ -143,6 +167,11 @@ def main():
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
     parser.add_argument("--rebuild-every", type=int, default=None, help="SoftContact BVH rebuild period in steps "
                         "(refits between; 0: refit only; default: the contact's own)")
+    parser.add_argument("--broad-phase", default="list", choices=["list", "bvh", "all_pairs"],
+                        help="SoftContact search (list: candidate list; bvh: two-level BVH search every step)")
+    parser.add_argument("--search-every", type=int, default=0, help="list: steps between refit-and-search "
+                        "(0: the contact's default)")
+    parser.add_argument("--pad", type=float, default=0.0, help="list: motion pad [m] (0: the contact's default)")
     parser.add_argument("--profile", action="store_true", help="print the kernel table (wp.timing_begin/end), host "
                         "read-backs per step and the contact search's candidates per query first")
     args = parser.parse_args()
@@ -170,10 +199,14 @@ def main():
     print(f"SoftContact stage     {stage * 1e3:9.3f} ms   share of a step: {stage / full:.1%}  "
           f"({contacts[0]} vertex, {contacts[1]} edge contacts)")
     print(f"step without contact  {without * 1e3:9.3f} ms   with / without: {full / without:.2f}x")
+    per_frame = round(1.0 / 60.0 / h)
+    print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
+    if contact is not None and contact.broad_phase == "list":
+        print(f"candidate overflow (queries, so far): {contact.candidate_overflow}")
     if device.is_cuda:
         try:
             # one graph of a whole rebuild period (a rebuild and its refits), against as many eager steps
-            period = max(1, contact.rebuild_period) if contact is not None else 1
+            period = contact.schedule_period if contact is not None else 1
 
             def steps():
                 for _ in range(period):

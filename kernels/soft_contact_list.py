@@ -2,13 +2,20 @@
 
 The two-level BVH search of ``warpsim.kernels.soft_contact`` runs only on some steps and writes,
 for every query (contact vertex v, slot v; surface edge e, slot V + e), the primitives (other
-bodies' triangles, edges) closer than ``keep = max(thickness, search) + 2 pad`` at the search, up to
-``capacity`` per query, into one buffer (both pair kinds, one launch). Every step then evaluates
-only those candidates (``narrow_candidates``: same narrow phase, nearest contact per query, ties
-to the lower index), which finds exactly the contacts of a full search as long as no contact
-vertex has moved more than ``pad`` since the search: a contact needs distance < max(thickness,
-search), and when each of the (up to four) particles of a pair moved at most ``pad``, the
-pair's distance changed by at most 2 pad.
+bodies' triangles, edges) closer than ``keep`` at the search, up to ``capacity`` per query, into
+one buffer (both pair kinds, one launch). Every step then evaluates only those candidates
+(``narrow_candidates``: same narrow phase, nearest contact per query, ties to the lower index),
+which finds exactly the contacts of a full search as long as no contact vertex has moved more
+than ``pad`` since the search (when each of the up to four particles of a pair moved at most
+``pad``, the pair's distance changed by at most 2 pad) and none more than ``thickness / 2`` in
+one step:
+
+* vertex-triangle: a contact needs distance < max(thickness, search): keep = that + 2 pad;
+* edge-edge: a contact needs distance < thickness, or the edges crossed during the step: with
+  g the gap between the closest points (fixed parameters) at the step's start g0 and end g1,
+  g0 . g1 < 0 gives |g1|^2 < g1 . (g1 - g0) <= |g1| |g1 - g0|, so |g1| < |g1 - g0| <= 2 m, m the
+  largest move of a vertex in the step: keep = max(thickness, min(search, 2 m)) + 2 pad with m of
+  the search's step, and a later step with m > thickness / 2 searches again.
 
 The device decides when to search again (no host read-back): ``check_motion`` compares every
 contact vertex with its position at the last search and raises ``flags[0]`` when one moved more
@@ -64,27 +71,40 @@ def begin_search(
 
 @wp.kernel
 def check_motion(
-    vertex_particle: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), x_search: wp.array(dtype=wp.vec3),
-    x_tree: wp.array(dtype=wp.vec3), pad: float, flags_io: wp.array(dtype=int), motion_io: wp.array(dtype=float),
+    vertex_particle: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3),
+    x_search: wp.array(dtype=wp.vec3), x_tree: wp.array(dtype=wp.vec3), pad: float, step_limit: float,
+    flags_io: wp.array(dtype=int), motion_io: wp.array(dtype=float),
 ):
-    """motion[0] = max over contact vertices of the distance moved since the refit (atomic max
-    only when larger than the value read: the result is the exact maximum); raise the search flag
-    when a vertex moved more than ``pad`` since the last search."""
+    """motion[0] = max over contact vertices of the distance moved since the refit, motion[1] =
+    max distance moved in this step (zeroed by the last ``end_search``; atomic max only when larger than the
+    value read: the result is the exact maximum); raise the search flag when a vertex moved more
+    than ``pad`` since the last search or more than ``step_limit`` in this step."""
     v = wp.tid()
-    x = q[vertex_particle[v]]
+    p = vertex_particle[v]
+    x = q[p]
     moved = wp.length(x - x_tree[v])
     if moved > motion_io[0]:
         wp.atomic_max(motion_io, 0, moved)
-    if wp.length(x - x_search[v]) > pad and flags_io[FLAG_SEARCH] == 0:
+    step = wp.length(x - q_prev[p])
+    if step > motion_io[1]:
+        wp.atomic_max(motion_io, 1, step)
+    if (wp.length(x - x_search[v]) > pad or step > step_limit) and flags_io[FLAG_SEARCH] == 0:
         flags_io[FLAG_SEARCH] = 1
 
 
 @wp.kernel
-def end_search(flags_io: wp.array(dtype=int)):
-    """Lower the search flag (after ``search_candidates``) and count the search."""
+def end_search(flags_io: wp.array(dtype=int), motion_io: wp.array(dtype=float), total_out: wp.array(dtype=int),
+               listed_out: wp.array(dtype=int)):
+    """After ``search_candidates``: lower the search flag and count the search; zero this step's
+    largest move (for the next step's ``check_motion``) and the contact counts and list lengths
+    (for ``narrow_candidates``): one launch instead of four clears."""
     if flags_io[FLAG_SEARCH] != 0:
         flags_io[FLAG_SEARCH] = 0
         flags_io[FLAG_SEARCHES] = flags_io[FLAG_SEARCHES] + 1
+    motion_io[1] = 0.0
+    for k in range(2):
+        total_out[k] = 0
+        listed_out[k] = 0
 
 
 @wp.func
@@ -174,7 +194,9 @@ def search_edge(
 def search_candidates(
     flags_io: wp.array(dtype=int),
     motion: wp.array(dtype=float),
-    keep: float,
+    thickness: float,
+    search: float,
+    pad: float,
     body_bvh: wp.uint64,
     world_root: wp.array(dtype=int),
     tri_bvh: wp.uint64,
@@ -200,20 +222,23 @@ def search_candidates(
     count_out: wp.array(dtype=int),
 ):
     """Candidates of query i (vertex i < V, else edge i - V) when the search flag is up; both pair
-    kinds in one launch and one buffer (``capacity`` slots a query)."""
+    kinds in one launch and one buffer (``capacity`` slots a query). Kept within
+    max(thickness, search) + 2 pad of a vertex, max(thickness, min(search, 2 motion[1])) + 2 pad of an
+    edge (module docstring); query boxes grow by the tree's staleness motion[0]."""
     i = wp.tid()
     if flags_io[FLAG_SEARCH] == 0:
         return
-    grow = keep + motion[0]
     V = vertex_particle.shape[0]
     found = int(0)
     if i < V:
+        keep = wp.max(thickness, search) + 2.0 * pad
         x_search_out[i] = q[vertex_particle[i]]
-        found = search_vertex(i, grow, keep, body_bvh, world_root, tri_bvh, body_tri_root, vertex_world,
+        found = search_vertex(i, keep + motion[0], keep, body_bvh, world_root, tri_bvh, body_tri_root, vertex_world,
                               vertex_particle, vertex_body, tri, tri_body, q, rest, inv_mass, self_contact,
                               self_rest_distance, capacity, cand_out)
     else:
-        found = search_edge(i - V, i, grow, keep, body_bvh, world_root, edge_bvh, body_edge_root, edge_world, edges,
+        keep = wp.max(thickness, wp.min(search, 2.0 * motion[1])) + 2.0 * pad
+        found = search_edge(i - V, i, keep + motion[0], keep, body_bvh, world_root, edge_bvh, body_edge_root, edge_world, edges,
                             edge_body, q, rest, inv_mass, self_contact, self_rest_distance, capacity, cand_out)
     if found > capacity:
         wp.atomic_add(flags_io, FLAG_OVERFLOW, 1)
@@ -343,9 +368,16 @@ def apply_listed(
     dv_io: wp.array2d(dtype=wp.int64),
     q_io: wp.array(dtype=wp.vec3),
     qd_io: wp.array(dtype=wp.vec3),
+    last: int,
+    particle_contacts_io: wp.array(dtype=int),
 ):
-    """``apply_one`` for the i-th particle in a contact (launched over the capacity)."""
+    """``apply_one`` for the i-th particle in a contact (launched over the capacity); after the
+    last pass (``last`` 1) also zero its contact count for the next step."""
     i = wp.tid()
     if i >= listed[1]:
         return
-    apply_one(touched[i], dx_io, dv_io, q_io, qd_io)
+    p = touched[i]
+    apply_one(p, dx_io, dv_io, q_io, qd_io)
+    if last != 0:
+        particle_contacts_io[p] = 0
+

@@ -173,6 +173,57 @@ def test_candidate_list_searches_again_when_a_vertex_moves_past_the_pad():
     assert found["list"][0] > 5 and found["list"] == found["all_pairs"]
 
 
+@pytest.mark.parametrize("speed", [1.0, 4.0])
+def test_candidate_list_equals_the_bvh_search_when_tori_collide_fast(speed):
+    """Two tori thrown at each other (each at ``speed`` [m/s]: 0.8 and 3.3 mm a step, the second
+    beyond half the thickness, where edges may cross within a step and the list searches every
+    such step): over 60 steps the list gives the BVH search's bits, with contacts on both kinds."""
+    runs = {}
+    for broad_phase in ("bvh", "list"):
+        b, (lower, upper) = two_tori(gap=0.02, velocity=((0.0, speed, 0.0), (0.0, -speed, 0.0)))
+        contact = ws.SoftContact([lower, upper], thickness=0.006, broad_phase=broad_phase, search_every=1000)
+        sim = ws.Simulator(b.finalize(DEVICE), colliders=[contact])
+        counts = []
+        for _ in range(60):
+            sim.step(1.0 / 1200.0)
+            counts.append((contact.contact_count, contact.edge_contact_count))
+        runs[broad_phase] = sim.state.positions.numpy(), sim.state.velocities.numpy(), counts
+        if broad_phase == "list":
+            searches = contact.list_stats()["searches"]
+    assert max(c[0] for c in runs["bvh"][2]) > 5 and max(c[1] for c in runs["bvh"][2]) > 0
+    assert runs["list"][2] == runs["bvh"][2]
+    assert np.array_equal(runs["list"][0], runs["bvh"][0]) and np.array_equal(runs["list"][1], runs["bvh"][1])
+    assert searches > 1  # searched again on the device (no refit was due)
+
+
+def test_candidate_list_keeps_edges_that_cross_within_one_step():
+    """Two crossed rods 4 mm apart, the upper one moved 16 mm down in one step (its edges pass
+    through the lower rod's): the list finds the all-pairs search's edge contacts, and no vertex
+    contact (every vertex is at a rod end). (The faces' diagonal edges also cross within
+    thickness + 2 pad here, so this does not isolate the list's reach of 2 x the step's move.)"""
+    thickness = 0.005
+    found = {}
+    for broad_phase in ("list", "all_pairs"):
+        b = ws.ModelBuilder()
+        rods = []
+        for k, size in enumerate(((0.3, 0.02, 0.02), (0.02, 0.02, 0.3))):
+            points, faces = box_mesh(size)
+            rods.append(ws.add_soft_body(b, points, faces, position=(0.0, k * 0.024, 0.0), total_mass=0.1,
+                                         interior="none", name=f"rod {k}"))
+        model = b.finalize(DEVICE)
+        contact = ws.SoftContact(rods, thickness=thickness, broad_phase=broad_phase, iterations=1)
+        contact.bind(model)
+        state = model.state()
+        contact.apply(model, state, model.particle_q, 1e-3)
+        q = state.positions.numpy()
+        q[rods[1].surface_indices, 1] -= 0.016
+        state.positions.assign(q)
+        contact.apply(model, state, model.particle_q, 1e-3)
+        found[broad_phase] = (contact.contact_count, contact.edge_contact_count, listed_contacts(contact))
+    assert found["list"][0] == 0 and found["list"][1] > 0
+    assert found["list"] == found["all_pairs"]
+
+
 def test_candidate_list_counts_an_overflow():
     """Capacity 1 candidate per query on pressed tori: queries with more count an overflow;
     the default capacity has none."""

@@ -79,7 +79,8 @@ class SoftContact(Collider):
             against every triangle of its world: the O(n^2) reference). All three find the same
             contacts.
         pad: "list" only: how far [m] a contact vertex may move before the device searches again
-            (default: the thickness); candidates are kept within max(thickness, search) + 2 pad.
+            (default: half the thickness); candidates are kept within max(thickness, search) + 2 pad
+            of a vertex, thickness + 2 pad of an edge (kernel docstring).
         search_every: "list" only: steps between the host's BVH refits, each followed by a search
             (between them the device searches when a vertex moved more than ``pad``; default
             ``SEARCH_EVERY``).
@@ -111,7 +112,7 @@ class SoftContact(Collider):
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
                  broad_phase: str = "bvh", rebuild_every: int | None = None, pad: float | None = None,
-                 search_every: int | None = None, capacity: int = 32):
+                 search_every: int | None = None, capacity: int = 64):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -148,11 +149,11 @@ class SoftContact(Collider):
             raise ValueError(f"SoftContact push is {push}; it must be in [0, 1] (fraction of the depth removed per step)")
         if broad_phase not in ("bvh", "list", "all_pairs"):
             raise ValueError(f"SoftContact broad_phase is {broad_phase!r}; use 'bvh', 'list' or 'all_pairs'")
-        self.pad = self.thickness if pad is None else float(checks.positive(pad, "SoftContact pad", unit="m",
+        self.pad = 0.5 * self.thickness if pad is None else float(checks.positive(pad, "SoftContact pad", unit="m",
                                                                             fix="e.g. the thickness"))
         self.search_every = self.SEARCH_EVERY if search_every is None else checks.integer(
             search_every, "SoftContact search_every", lo=1, hi=1_000_000, fix="e.g. 20 (steps between refits)")
-        self.capacity = checks.integer(capacity, "SoftContact capacity", lo=1, hi=4096, fix="e.g. 32")
+        self.capacity = checks.integer(capacity, "SoftContact capacity", lo=1, hi=4096, fix="e.g. 64")
         self.broad_phase = broad_phase
         if rebuild_every is not None and (isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int)
                                           or rebuild_every < 0):
@@ -318,7 +319,7 @@ class SoftContact(Collider):
         self._x_tree = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
         self._x_search = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
         self._flags = wp.zeros(3, dtype=int, device=d)
-        self._motion = wp.zeros(1, dtype=float, device=d)
+        self._motion = wp.zeros(2, dtype=float, device=d)  # moved since the refit, in this step (max)
         self._active = wp.zeros(slots, dtype=int, device=d)
         self._touched = wp.zeros(n, dtype=int, device=d)
         self._listed = wp.zeros(2, dtype=int, device=d)
@@ -480,7 +481,7 @@ class SoftContact(Collider):
                       device=d)
 
 
-    def _search_listed(self, q) -> None:
+    def _search_listed(self, q, q_prev) -> None:
         """Refit-and-search steps (host cadence) raise the flag; every step checks the motion,
         searches if the flag is up (both pair kinds, one launch) and lowers it."""
         d, v, e = self.model.device, self.vertex_count, self.edge_count
@@ -492,40 +493,38 @@ class SoftContact(Collider):
                 bvh.rebuild(self._constructor)
             self._find_roots()
             wp.launch(L.begin_search, v, inputs=[self._vertex, q, self._x_tree, self._flags, self._motion], device=d)
-        wp.launch(L.check_motion, v, inputs=[self._vertex, q, self._x_search, self._x_tree, self.pad, self._flags,
-                                             self._motion], device=d)
+        wp.launch(L.check_motion, v, inputs=[self._vertex, q, q_prev, self._x_search, self._x_tree, self.pad,
+                                             0.5 * self.thickness, self._flags, self._motion], device=d)
         edge_tree = [self._edge_bvh.id, self._body_edge_root, self._edge_world, self._edges, self._edge_body] if e \
             else [self._tri_bvh.id, self._body_tri_root, self._vertex_world, self._tri, self._tri_body]
-        keep = max(self.thickness, self.search) + 2.0 * self.pad
         wp.launch(L.search_candidates, v + e, inputs=[
-            self._flags, self._motion, keep, self._body_bvh.id, self._world_root, self._tri_bvh.id,
-            self._body_tri_root, edge_tree[0], edge_tree[1], self._vertex_world, self._vertex, self._vertex_body,
+            self._flags, self._motion, self.thickness, self.search, self.pad, self._body_bvh.id, self._world_root,
+            self._tri_bvh.id, self._body_tri_root, edge_tree[0], edge_tree[1], self._vertex_world, self._vertex, self._vertex_body,
             self._tri, self._tri_body, *edge_tree[2:], q, self.model.particle_q, self.model.particle_inv_mass,
             int(self.self_contact), self.self_rest_distance, self.capacity, self._x_search, self._cand,
             self._cand_count], device=d)
-        wp.launch(L.end_search, 1, inputs=[self._flags], device=d)
+        wp.launch(L.end_search, 1, inputs=[self._flags, self._motion, self._total, self._listed], device=d)
 
     def _apply_listed(self, model, state, q_prev) -> None:
         """``broad_phase="list"``: search when needed, the nearest contact per query among its
         candidates, then ``iterations`` passes over the found contacts and their particles only."""
         d, n, slots = model.device, model.particle_count, self.vertex_count + self.edge_count
         q = state.positions
-        self._search_listed(q)
-        self._particle_contacts.zero_()
-        self._total.zero_()
-        self._listed.zero_()
+        self._search_listed(q, q_prev)  # also zeroes the counts (end_search); the last pass zeroes the
+        # particles' contact counts (each step leaves them zero)
         contact = [self._contact_particles, self._contact_weights, self._contact_normal]
         wp.launch(L.narrow_candidates, slots, inputs=[
             self._cand, self._cand_count, self.capacity, self._vertex, self._tri,
             self._edges if self.edge_count else self._tri, q, q_prev, self.thickness, self.search, *contact,
             self._particle_contacts, self._total, self._active, self._touched, self._listed], device=d)
-        for _ in range(self.iterations):
+        for k in range(self.iterations):
             wp.launch(L.resolve_listed, slots, inputs=[
                 self._listed, self._active, q, state.velocities, model.particle_inv_mass, *contact,
                 self._particle_contacts, self.thickness, self.push, self.restitution, self.friction, self._dx,
                 self._dv], device=d)
             wp.launch(L.apply_listed, n, inputs=[self._listed, self._touched, self._dx, self._dv, q,
-                                                 state.velocities], device=d)
+                                                 state.velocities, int(k == self.iterations - 1),
+                                                 self._particle_contacts], device=d)
 
 
 class SoftContactForce(Force):

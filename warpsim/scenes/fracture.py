@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from typing import ClassVar
 
 import numpy as np
@@ -392,6 +393,9 @@ def _host_free_bytes() -> int:
     "box": (0.0, "half width of the box the tori fall into [m]; 0: sized to the count (0.35 m for 12 tori)"),
     "self_contact": (False, "also collide each torus with itself"),
     "edge_contact": (True, "edge-edge contact beside vertex-triangle contact"),
+    "broad_phase": ("list", ("contact search: 'list' (a candidate list searched again only when a vertex moved "
+                             "more than the pad, or every search_every steps), 'bvh' (search every step), "
+                             "'all_pairs' (reference); all find the same contacts"), ("list", "bvh", "all_pairs")),
     "seed": (1, "random orientations"),
     "gravity": (9.81, "gravitational acceleration [m/s^2]"),
     "dt": (1.0 / 1200.0, "time step [s] (split further where the springs' stability limit needs it)"),
@@ -464,7 +468,8 @@ class DonutsScene(SimulatorScene):
         self.contact = None  # one torus without self contact touches nothing but the box
         if count > 1 or p["self_contact"]:
             self.contact = SoftContact.copies(template.faces, self.offsets, thickness=p["thickness"],
-                                              self_contact=p["self_contact"], edge_contact=p["edge_contact"], **kw)
+                                              self_contact=p["self_contact"], edge_contact=p["edge_contact"],
+                                              broad_phase=p["broad_phase"], **kw)
         colliders = [ws.Box(self.lower, self.upper, **kw)] + ([self.contact] if self.contact else [])
         forces: list = [ws.Gravity((0.0, -p["gravity"], 0.0))]
         integrator = p["integrator"]
@@ -489,6 +494,16 @@ class DonutsScene(SimulatorScene):
         h = frame_dt / (substeps * self.inner_steps)
         for _ in range(substeps * self.inner_steps):
             self.sim.step(h)
+        if self.contact is not None and self.contact.broad_phase == "list" and not self.device_capturing():
+            # one read-back a frame (not while a sweep captures the frame as a CUDA graph)
+            overflow = self.contact.candidate_overflow
+            if overflow > getattr(self, "_overflow_seen", 0):
+                self._overflow_seen = overflow
+                warnings.warn(f"donuts: {overflow} contact queries had more than {self.contact.capacity} candidates "
+                              "so far (contacts may have been missed); raise SoftContact capacity", stacklevel=2)
+
+    def device_capturing(self) -> bool:
+        return bool(wp.get_device(self.sim.model.device).is_capturing)
 
     def kinetic_energy(self) -> float:
         """Kinetic energy of every particle [J] (reads the state back)."""
