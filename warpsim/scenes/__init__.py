@@ -52,7 +52,7 @@ from typing import Any, ClassVar, Optional
 
 import numpy as np
 
-from ..usd.prims import close_matches
+from ..core.names import close_matches
 from .timing import FrameTiming, resolve_timing
 
 __all__ = ["FrameTiming", "Param", "Scene", "SimulatorScene", "get_scene", "parse_value", "register_scene",

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import warnings
 from typing import ClassVar
 
@@ -36,6 +35,7 @@ from ..bodies.shapes import torus_mesh
 from ..bodies.soft_contact import SoftContact
 from ..bodies.softbody import add_soft_body
 from ..core.fracture import spring_segments
+from ..core.memory import available_host_bytes
 from ..core.model import Model
 from . import CONTAINER, SimulatorScene, add_floor, register_scene
 
@@ -346,7 +346,7 @@ def check_donut_memory(count: int, torus, device) -> None:
     faces = len(torus.faces)
     device_bytes = count * (300 * torus.particle_count + 120 * torus.spring_count + 260 * faces)
     host_bytes = count * (200 * torus.particle_count + 250 * torus.spring_count)
-    need = [("host", host_bytes, _host_free_bytes())]
+    need = [("host", host_bytes, available_host_bytes(unknown=0))]
     if device.is_cuda:
         need.append((str(device), device_bytes, int(device.free_memory)))
     else:
@@ -358,21 +358,6 @@ def check_donut_memory(count: int, torus, device) -> None:
                              f"need about {needed / 2**30:.1f} GiB on the {where} ({per / 2**20:.2f} MiB a torus) but "
                              f"{free / 2**30:.1f} GiB are free; lower count to {max(1, int(0.8 * free / per))} or "
                              "fewer, or use fewer segments/sides/lattice_cells")
-
-
-def _host_free_bytes() -> int:
-    """Available host memory [bytes] (0 when unknown)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return 0
 
 
 @register_scene("donuts", "a dozen soft tori dropped into a heap that comes to rest (soft body against soft body)",

@@ -61,8 +61,8 @@ class WorldMetrics:
     """Device accumulators for one :class:`warpsim.worlds.batch.WorldBatch` (allocated once;
     ``update`` launches kernels only, so it can sit in a captured graph). ``frame_dt`` [s]: the
     frame length, for the energy balance (``energy_gain`` and ``unstable``; None: not tested, the
-    columns stay 0); ``step_dt`` [s]: the step the frames take (semi-implicit Euler's synchronised
-    velocity; None: ``frame_dt``)."""
+    columns stay 0); ``step_dt`` [s]: the step the frames take, one for all worlds or one per world
+    (semi-implicit Euler's synchronised velocity; None: ``frame_dt``)."""
 
     def __init__(self, batch, track=None, user=(), frame_dt=None, step_dt=None):
         self.batch = batch
@@ -101,7 +101,7 @@ class WorldMetrics:
         self.user_final = [wp.zeros(n, dtype=float, device=d) for _ in self.user]
         self.user_peak = [wp.full(n, -inf, dtype=float, device=d) for _ in self.user]
         self.frame_dt = None if frame_dt is None else float(frame_dt)
-        self.step_dt = self.frame_dt if step_dt is None else float(step_dt)
+        self.step_dt = self.frame_dt if step_dt is None else np.asarray(step_dt, dtype=np.float64)
         # agents (boids, crowds) propel themselves: no mechanical energy balance for them
         mechanical = hasattr(batch.sim, "forces") and hasattr(batch.sim, "integrator")
         self.energy = self._energy_balance() if frame_dt is not None and mechanical else None
@@ -203,7 +203,7 @@ _OPS = {"<": np.less, "<=": np.less_equal, ">": np.greater, ">=": np.greater_equ
 
 def parse_where(text, names):
     """(metric, operator, value) from ``METRIC<VALUE``; ValueError naming the problem."""
-    from ..usd.prims import close_matches
+    from ..core.names import close_matches
 
     match = _COMPARE.match(str(text))
     if not match:
@@ -224,7 +224,7 @@ def parse_where(text, names):
 
 def parse_rank(text, names):
     """(metric, descending) from ``METRIC``, ``-METRIC`` or ``METRIC:desc`` / ``METRIC:asc``."""
-    from ..usd.prims import close_matches
+    from ..core.names import close_matches
 
     text = str(text).strip()
     descending = False
