@@ -291,12 +291,10 @@ class Hair(SimulatorScene):
 
     def checkpoint(self):
         data = super().checkpoint()
-        data["head_clock"] = np.float64(self.head._clock)
+        data["head_clock"] = np.float64(self.head.clock)
         return data
 
     def restore(self, data):
         super().restore(data)
-        self.head._clock = float(data["head_clock"])
-        self.head._motion_pose = self.head._eval_motion(self.head._clock)
-        self.head._world = self.head._world_prev = self.head._compose(self.head._motion_pose)
+        self.head.set_clock(float(data["head_clock"]))
         self.roots.reset_pose()
