@@ -8,8 +8,8 @@ import os
 def add_parser(sub):
     p = sub.add_parser("render", help="render a USD cache to a .png, .gif or .mp4")
     p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
-    p.add_argument("--out", default=None, help="picture to write: .png (one frame), .gif or .mp4 "
-                   "(default: the cache's name with .gif)")
+    p.add_argument("--out", default=None, help="picture to write: .png (one frame), .gif or .mp4; a relative "
+                   "path is taken from the current folder (default: beside the cache, its name with .gif)")
     p.add_argument("--frame", type=int, default=None, help="one frame (default for .png: the last)")
     p.add_argument("--frames", default=None, metavar="A:B[:STEP]", help="inclusive frame range (default: all)")
     p.add_argument("--size", default="480x360", metavar="WxH", help="image size in pixels (default 480x360)")

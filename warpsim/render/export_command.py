@@ -12,7 +12,7 @@ def add_parser(sub):
     p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
     p.add_argument("--frame", type=int, default=None, help="frame to export (default: the last)")
     p.add_argument("--out", required=True, help="file to write: .obj, .ply, .stl or .glb (one file per prim, "
-                   "named OUT-STEM_PRIM.SUFFIX, unless --merge)")
+                   "named OUT-STEM_PRIM.SUFFIX, unless --merge); a relative path is taken from the current folder")
     p.add_argument("--surface", action="store_true",
                    help="particles as a closed marching-cubes surface instead of a point cloud")
     p.add_argument("--spacing", type=float, default=None,

@@ -142,7 +142,8 @@ def save_figure(fig, path, dpi=90, legend=True):
 def add_parser(sub):
     p = sub.add_parser("plot", help="plot the per-frame data of a USD cache (energies, errors, counts, states)")
     p.add_argument("cache", help="path of a .usd/.usda/.usdc cache")
-    p.add_argument("--out", default=None, help="figure to write (.png/.pdf/.svg; default CACHE.plot.png)")
+    p.add_argument("--out", default=None, help="figure to write (.png/.pdf/.svg); a relative path is taken "
+                   "from the current folder (default: beside the cache, CACHE.plot.png)")
     p.add_argument("--allow-damaged", action="store_true",
                    help="plot a cache with damaged chunk files anyway, leaving their frames out (said on stderr)")
 
