@@ -17,7 +17,7 @@ import warpsim.kernels.sph as K
 from warpsim.core.errors import SimulationError
 from warpsim.particle_fluids.emitters import Nozzle, Sink
 from warpsim.particle_fluids.pbf import ParticleFluid
-from warpsim.particle_fluids.smoothing import _kernel_dw_numpy, fluid_block, kernel_numpy, lattice_mass, wall_tables
+from warpsim.particle_fluids.smoothing import kernel_dw_numpy, fluid_block, kernel_numpy, lattice_mass, wall_tables
 from warpsim.particle_fluids.reference import pbf_step_numpy
 
 G = 9.81
@@ -76,7 +76,7 @@ def test_pair_terms_match_numpy(kernel, device):
     w, g, w_only = out.numpy().astype(np.float64).T
     np.testing.assert_allclose(w, m * kernel_numpy(r, h, kernel), rtol=1e-5, atol=1e-6 * m * kernel_numpy(0.0, h, kernel))
     np.testing.assert_allclose(w, w_only, rtol=1e-6, atol=0.0)
-    expected = m / rho0 * _kernel_dw_numpy(r[1:], h, kernel) / r[1:]
+    expected = m / rho0 * kernel_dw_numpy(r[1:], h, kernel) / r[1:]
     np.testing.assert_allclose(g[1:], expected, rtol=1e-4, atol=1e-5 * np.abs(expected).max())
     assert np.isfinite(g[0])  # at r = 0 the gradient f (x_i - x_j) is 0 whatever f is
     assert np.all(w[r >= h] == 0.0) and np.all(g[r >= h] == 0.0)

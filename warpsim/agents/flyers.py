@@ -7,14 +7,15 @@ import warp as wp
 
 from ..kernels import agents as K
 from .params import AgentState, BoidParams
-from .swarm import _Agents, _check_dt, _int_labels
-from .world import FoodSources, _food_struct, _points
+from ..core.simulator import check_dt
+from .swarm import AgentSwarm, int_labels
+from .world import FoodSources, food_struct, as_points
 
 
 # --------------------------------------------------------------------------------------
 # Flock
 # --------------------------------------------------------------------------------------
-class Flock(_Agents):
+class Flock(AgentSwarm):
     """Boids that fly or swim in 3-D.
 
     Args:
@@ -38,7 +39,7 @@ class Flock(_Agents):
     def __init__(self, positions, velocities=None, species=None, params=None, *, bounds=None, wrap=False,
                  margin=2.0, terrain=None, obstacles=None, food=None, goals=None, energy=None, state=None,
                  device=None):
-        x = _points(positions, "positions")
+        x = as_points(positions, "positions")
         n = len(x)
         if n == 0:
             raise ValueError("positions is empty: a flock needs at least one agent")
@@ -50,7 +51,7 @@ class Flock(_Agents):
             if not isinstance(p, BoidParams):
                 raise ValueError(f"params[{k}] is a {type(p).__name__}, not a BoidParams")
             p.validate(f"params[{k}]" if len(params) > 1 else "BoidParams")
-        sp = _int_labels(species, n, "species")
+        sp = int_labels(species, n, "species")
         if sp.max() >= len(params):
             bad = int(np.flatnonzero(sp >= len(params))[0])
             raise ValueError(f"species[{bad}] = {sp[bad]} but only {len(params)} BoidParams were given "
@@ -73,7 +74,7 @@ class Flock(_Agents):
             raise ValueError(f"energy must be {n} finite values >= 0, got shape {e.shape}")
         self.energy = wp.array(e.astype(np.float32), dtype=float, device=d)
         """Energy of each agent, shape (agent_count,)."""
-        st = _int_labels(state, n, "state", default=int(AgentState.FLYING))
+        st = int_labels(state, n, "state", default=int(AgentState.FLYING))
         if not np.isin(st, (AgentState.FLYING, AgentState.RESTING)).all():
             bad = int(np.flatnonzero(~np.isin(st, (AgentState.FLYING, AgentState.RESTING)))[0])
             raise ValueError(f"state[{bad}] = {st[bad]}: flock agents start FLYING (0) or RESTING (1)")
@@ -85,7 +86,7 @@ class Flock(_Agents):
         self.bites = wp.zeros(n, dtype=int, device=d)
         """Bites each agent has eaten, shape (agent_count,)."""
         self.food = food
-        self._food = _food_struct(food, d)
+        self._food = food_struct(food, d)
         self.food_amounts = self._food.amounts
         """Bites left at each food source, shape (food count,)."""
         # bites are granted in agent order (requests sorted by source with a stable sort), not by
@@ -99,7 +100,7 @@ class Flock(_Agents):
 
     def step(self, dt: float) -> None:
         """Advance the flock by ``dt`` [s]."""
-        dt = _check_dt(dt)
+        dt = check_dt(dt)
         self.eval_rules(dt)
         wp.launch(K.integrate_flyers, self.agent_count,
                   inputs=[self.rules, self.flight, self.space, self._obstacles, self._terrain, self._food, self.kinds,

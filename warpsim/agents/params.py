@@ -50,7 +50,7 @@ def _check_fields(obj, positive=(), nonnegative=(), unit_interval=(), name=None)
             raise ValueError(f"{name}.{key} must lie in [0, 1], got {getattr(obj, key)}")
 
 
-def _rule_struct(values: dict) -> K.RuleParams:
+def rule_struct(values: dict) -> K.RuleParams:
     r = K.RuleParams()
     for key, value in values.items():
         setattr(r, key, value)

@@ -1,5 +1,5 @@
 """The machinery flyers and walkers share: device arrays, the neighbour grid (``wp.HashGrid``) and
-the rules kernel launch (:class:`_Agents`), and input checks."""
+the rules kernel launch (:class:`AgentSwarm`), and input checks."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ import warp as wp
 from ..core.solver import SolverBase
 from ..kernels import agents as K
 from ..kernels import worlds as KW
-from .params import AgentState, _rule_struct
-from .world import Obstacles, Terrain, _points
+from .params import AgentState, rule_struct
+from .world import Obstacles, Terrain, as_points
 
 
 # --------------------------------------------------------------------------------------
 # Common machinery
 # --------------------------------------------------------------------------------------
-class _Agents(SolverBase):
+class AgentSwarm(SolverBase):
     """Arrays, neighbour grid and the rules kernel shared by Flock and Crowd (each a
     ``warpsim.core.solver.Solver``: ``step(dt)``, ``frame``, ``state``, ``notify_changed``)."""
 
@@ -34,7 +34,7 @@ class _Agents(SolverBase):
         self.agent_count = n
         if velocities is None:
             velocities = np.zeros((n, 3))
-        vel = _points(velocities, "velocities")
+        vel = as_points(velocities, "velocities")
         if vel.shape != x.shape:
             raise ValueError(f"velocities has shape {vel.shape} but positions has {x.shape}")
         self.space, self.box = self._space(bounds, wrap, margin, rules)
@@ -53,7 +53,7 @@ class _Agents(SolverBase):
         self.obstacles, self.terrain = obstacles, terrain
         if goals is None:
             goals = x
-        g = _points(goals, "goals")
+        g = as_points(goals, "goals")
         if len(g) == 1:
             g = np.repeat(g, n, axis=0)
         if g.shape != x.shape:
@@ -75,7 +75,7 @@ class _Agents(SolverBase):
         """Goal position of each agent [m], shape (agent_count,)."""
         self.timer = wp.zeros(n, dtype=float, device=d)
         """Remaining rest / recovery time [s] (RESTING, lying FALLEN agents), shape (agent_count,)."""
-        self.rules = wp.array([_rule_struct(r) for r in rules], dtype=K.RuleParams, device=d)
+        self.rules = wp.array([rule_struct(r) for r in rules], dtype=K.RuleParams, device=d)
         self.rule_values = rules
         self.separation = wp.zeros(n, dtype=wp.vec3, device=d)
         """Separation steering of the last step [m/s^2] (also alignment, cohesion, draft)."""
@@ -132,8 +132,8 @@ class _Agents(SolverBase):
             lo, hi = bounds
         except (TypeError, ValueError):
             raise ValueError(f"bounds must be (lower, upper) with 3 coordinates each, got {bounds!r}") from None
-        lo = _points(lo, "bounds lower")[0]
-        hi = _points(hi, "bounds upper")[0]
+        lo = as_points(lo, "bounds lower")[0]
+        hi = as_points(hi, "bounds upper")[0]
         if not (hi > lo).all():
             raise ValueError(f"bounds upper {hi.tolist()} must exceed lower {lo.tolist()} on every axis")
         margin = float(margin)
@@ -183,17 +183,7 @@ class _Agents(SolverBase):
         return {st.name: int((s == st).sum()) for st in AgentState}
 
 
-def _check_dt(dt):
-    try:
-        value = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a number > 0 [s], got {dt!r}") from None
-    if not (math.isfinite(value) and value > 0.0):
-        raise ValueError(f"dt must be > 0 and finite [s], got {dt}")
-    return value
-
-
-def _int_labels(values, n, what, default=0):
+def int_labels(values, n, what, default=0):
     if values is None:
         return np.full(n, default, dtype=np.int64)
     a = np.asarray(values)

@@ -7,11 +7,12 @@ import warp as wp
 
 from ..kernels import agents as K
 from .params import AgentState, WalkerParams
-from .swarm import _Agents, _check_dt, _int_labels
-from .world import Terrain, _points
+from ..core.simulator import check_dt
+from .swarm import AgentSwarm, int_labels
+from .world import Terrain, as_points
 
 
-class Crowd(_Agents):
+class Crowd(AgentSwarm):
     """Agents that walk on terrain towards goals (people, zombies).
 
     Args:
@@ -39,7 +40,7 @@ class Crowd(_Agents):
             raise ValueError(f"params must be a WalkerParams, got {type(params).__name__}")
         params.validate()
         self.params = params
-        grp = _int_labels(groups, n, "groups") if groups is not None else np.arange(n)
+        grp = int_labels(groups, n, "groups") if groups is not None else np.arange(n)
         terrain = Terrain.flat(0.0) if terrain is None else terrain
         if not isinstance(terrain, Terrain):
             raise ValueError(f"terrain must be a warpsim.Terrain, got {type(terrain).__name__}")
@@ -64,11 +65,11 @@ class Crowd(_Agents):
             a = a[None]
         if a.ndim == 2 and a.shape[1] == 2:
             a = np.stack([a[:, 0], np.zeros(len(a)), a[:, 1]], axis=1)
-        return _points(a, what).copy()
+        return as_points(a, what).copy()
 
     def step(self, dt: float) -> None:
         """Advance the crowd by ``dt`` [s]."""
-        dt = _check_dt(dt)
+        dt = check_dt(dt)
         self.eval_rules(dt)
         wp.launch(K.integrate_walkers, self.agent_count,
                   inputs=[self.rules, self._walk, self.space, self._obstacles, self._terrain, self.kinds,

@@ -12,7 +12,7 @@ from ..core import checks
 from ..kernels import agents as K
 
 
-def _points(value, what, width=3):
+def as_points(value, what, width=3):
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -28,7 +28,7 @@ def _points(value, what, width=3):
 
 
 def _mesh_arrays(points, faces, what):
-    pts = _points(points, f"{what} points")
+    pts = as_points(points, f"{what} points")
     try:
         tri = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     except ValueError:
@@ -63,7 +63,7 @@ class Terrain:
         self.kind = int(kind)
         self.flat_height = checks.finite(height, "Terrain height", "m")
         self.spacing = checks.positive(spacing, "Terrain spacing", "m", "the height-field sample spacing")
-        o = _points(origin, "Terrain origin (x, z)", width=2)
+        o = as_points(origin, "Terrain origin (x, z)", width=2)
         if len(o) != 1:
             raise ValueError(f"Terrain origin must be one (x, z) pair [m], got {len(o)}")
         self.origin = (float(o[0, 0]), float(o[0, 1]))
@@ -106,8 +106,8 @@ class Terrain:
     @classmethod
     def from_function(cls, fn, lower, upper, spacing):
         """Height field sampling ``fn(x, z)`` (NumPy, vectorised) on [lower, upper] (x, z pairs) [m]."""
-        lo = _points(lower, "terrain lower (x, z)", width=2)[0]
-        hi = _points(upper, "terrain upper (x, z)", width=2)[0]
+        lo = as_points(lower, "terrain lower (x, z)", width=2)[0]
+        hi = as_points(upper, "terrain upper (x, z)", width=2)[0]
         if not (hi > lo).all():
             raise ValueError(f"terrain upper {hi} must exceed lower {lo} in x and z")
         spacing = checks.positive(spacing, "terrain spacing", "m")
@@ -161,7 +161,7 @@ class Terrain:
         p = np.asarray(points, dtype=np.float64)
         if p.ndim == 2 and p.shape[1] == 2:
             p = np.stack([p[:, 0], np.zeros(len(p)), p[:, 1]], axis=1)
-        p = _points(p, "terrain sample points")
+        p = as_points(p, "terrain sample points")
         out = wp.zeros(len(p), dtype=wp.vec3, device=device)
         wp.launch(K.sample_terrain, len(p), inputs=[self.bind(device), wp.array(p.astype(np.float32), dtype=wp.vec3,
                                                                                  device=device), out], device=device)
@@ -215,7 +215,7 @@ class Obstacles:
                 c, r = s
             except (TypeError, ValueError):
                 raise ValueError(f"obstacle sphere {k} must be (center, radius), got {s!r}") from None
-            c = _points(c, f"obstacle sphere {k} center")[0]
+            c = as_points(c, f"obstacle sphere {k} center")[0]
             if not (math.isfinite(float(r)) and float(r) > 0.0):
                 raise ValueError(f"obstacle sphere {k} radius must be > 0 [m], got {r}")
             self.spheres.append((c, float(r)))
@@ -225,7 +225,7 @@ class Obstacles:
                 n, off = pl
             except (TypeError, ValueError):
                 raise ValueError(f"obstacle plane {k} must be (normal, offset), got {pl!r}") from None
-            n = _points(n, f"obstacle plane {k} normal")[0]
+            n = as_points(n, f"obstacle plane {k} normal")[0]
             if np.linalg.norm(n) == 0.0 or not math.isfinite(float(off)):
                 raise ValueError(f"obstacle plane {k} needs a non-zero normal and a finite offset, got {pl!r}")
             self.planes.append((n / np.linalg.norm(n), float(off)))
@@ -270,7 +270,7 @@ class Obstacles:
     def distance(self, points, max_dist=1.0e6, device=None) -> np.ndarray:
         """Smallest signed distance [m] from each point (n, 3) to the obstacles (NumPy (n,))."""
         device = wp.get_device(device)
-        p = _points(points, "obstacle distance points")
+        p = as_points(points, "obstacle distance points")
         out = wp.zeros(len(p), dtype=float, device=device)
         wp.launch(K.eval_obstacle_distance, len(p), inputs=[self.bind(device), wp.array(
             p.astype(np.float32), dtype=wp.vec3, device=device), float(max_dist), out], device=device)
@@ -281,7 +281,7 @@ class FoodSources:
     """Food at ``positions`` (n, 3) [m] holding ``amounts`` (n,) bites each (ints >= 0)."""
 
     def __init__(self, positions, amounts):
-        self.positions = _points(positions, "food positions")
+        self.positions = as_points(positions, "food positions")
         a = np.asarray(amounts)
         if a.ndim == 0:
             a = np.full(len(self.positions), a)
@@ -293,7 +293,7 @@ class FoodSources:
         self.initial_amounts = a.astype(np.int64)
 
 
-def _food_struct(food, device):
+def food_struct(food, device):
     f = K.Food()
     if food is None:
         f.positions = wp.zeros(1, dtype=wp.vec3, device=device)

@@ -34,7 +34,6 @@ import numpy as np
 import warp as wp
 
 from ..core import checks
-from ..core.builder import _vec3
 from ..core.collider import Collider
 from ..kernels import collide as K
 from ..kernels import worlds as KW
@@ -156,7 +155,7 @@ class Plane(Planes):
 
     def __init__(self, normal=(0.0, 1.0, 0.0), offset=0.0, restitution=0.5, friction=0.0, mode="reflect", *,
                  thickness=0.0, stiffness=1.0e4):
-        super().__init__([_vec3(normal, "Plane normal")], [offset], restitution, friction, mode, name="Plane",
+        super().__init__([checks.vec3(normal, "Plane normal")], [offset], restitution, friction, mode, name="Plane",
                          thickness=thickness, stiffness=stiffness)
 
 
@@ -165,7 +164,7 @@ class Box(Planes):
 
     def __init__(self, lower=(-1.0, 0.0, -1.0), upper=(1.0, 2.0, 1.0), restitution=0.5, friction=0.0, mode="reflect",
                  *, thickness=0.0, stiffness=1.0e4):
-        lo, hi = np.array(_vec3(lower, "Box lower")), np.array(_vec3(upper, "Box upper"))
+        lo, hi = np.array(checks.vec3(lower, "Box lower")), np.array(checks.vec3(upper, "Box upper"))
         if np.any(hi <= lo):
             raise ValueError(f"Box upper {tuple(hi)} must exceed lower {tuple(lo)} on every axis")
         eye = np.eye(3)
@@ -241,7 +240,7 @@ def keyframe_motion(keys):
         except (TypeError, ValueError):
             raise ValueError(f"keyframe {k} must be (time, position, rotation_xyzw or None), got {key!r}") from None
         times.append(float(t))
-        poses.append(_pose(position, rotation, f"keyframe {k}"))
+        poses.append(parse_pose(position, rotation, f"keyframe {k}"))
     times = np.array(times)
     if len(times) == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0.0):
         raise ValueError(f"keyframe times {times.tolist()} must be finite and strictly increasing")
@@ -259,7 +258,7 @@ def keyframe_motion(keys):
     return motion
 
 
-def _pose(position, rotation, owner) -> tuple:
+def parse_pose(position, rotation, owner) -> tuple:
     m = np.asarray(position, dtype=np.float64) if not isinstance(position, wp.transform) else None
     if isinstance(position, wp.transform):
         return np.array(position.p, dtype=np.float64), np.array(position.q, dtype=np.float64)
@@ -269,7 +268,7 @@ def _pose(position, rotation, owner) -> tuple:
         if not np.all(np.isfinite(m)):
             raise ValueError(f"{owner}: the 4x4 matrix is not finite")
         return m[:3, 3].copy(), quat_from_matrix(m[:3, :3])
-    p = np.array(_vec3(position, f"{owner} position"))
+    p = np.array(checks.vec3(position, f"{owner} position"))
     if rotation is None:
         return p, np.array([0.0, 0.0, 0.0, 1.0])
     q = np.asarray(rotation, dtype=np.float64).reshape(-1)
@@ -289,7 +288,7 @@ class _Kinematic(_Contact):
     on top of it, a motion pose (identity unless moved)."""
 
     def _set_pose(self, rest_position, rest_rotation, motion, owner):
-        self._rest = _pose(rest_position, rest_rotation, owner)
+        self._rest = parse_pose(rest_position, rest_rotation, owner)
         if motion is not None and not callable(motion):
             raise ValueError(f"{owner} motion must be a callable t -> (position, rotation_xyzw), got {motion!r}")
         self.motion = motion
@@ -310,7 +309,7 @@ class _Kinematic(_Contact):
             position, rotation = out
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self._owner} motion({t}) must return (position, rotation_xyzw)") from exc
-        return _pose(position, rotation, f"{self._owner} motion({t})")
+        return parse_pose(position, rotation, f"{self._owner} motion({t})")
 
     def _compose(self, motion_pose):
         (pm, qm), (pr, qr) = motion_pose, self._rest
@@ -345,7 +344,7 @@ class _Kinematic(_Contact):
         its rest pose. Call it between frames; the next step sweeps the shape from the old pose to
         the new one (surface velocity = displacement / that step). For motion that must be
         followed within every sub-step, give ``motion=`` (e.g. ``keyframe_motion(...)``)."""
-        self._motion_pose = _pose(position, rotation, f"{self._owner} set_transform")
+        self._motion_pose = parse_pose(position, rotation, f"{self._owner} set_transform")
         self._world = self._compose(self._motion_pose)
         self._moved = True
 
@@ -408,7 +407,7 @@ class Capsule(_Kinematic):
     def __init__(self, a=(0.0, 0.0, 0.0), b=(0.0, 1.0, 0.0), radius=0.25, *, restitution=0.5, friction=0.0,
                  mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="Capsule", continuous=True):
         self.continuous = bool(continuous)
-        a, b = np.array(_vec3(a, f"{name} a")), np.array(_vec3(b, f"{name} b"))
+        a, b = np.array(checks.vec3(a, f"{name} a")), np.array(checks.vec3(b, f"{name} b"))
         radius = checks.number(radius, f"{name} radius", "m", "give a number > 0")
         if not (math.isfinite(radius) and radius > 0.0):
             raise ValueError(f"{name} radius {radius} must be finite and > 0 [m]")
@@ -460,7 +459,7 @@ class Sphere(Capsule):
 
     def __init__(self, center=(0.0, 0.0, 0.0), radius=0.5, *, inside=False, restitution=0.5, friction=0.0,
                  mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, continuous=True):
-        c = _vec3(center, "Sphere center")
+        c = checks.vec3(center, "Sphere center")
         super().__init__(c, c, radius, restitution=restitution, friction=friction, mode=mode, thickness=thickness,
                          stiffness=stiffness, motion=motion, name="Sphere", continuous=continuous)
         self.inside = int(bool(inside))
@@ -480,8 +479,8 @@ class Quad(_Kinematic):
 
     def __init__(self, center=(0.0, 0.0, 0.0), axis_u=(0.5, 0.0, 0.0), axis_v=(0.0, 0.0, 0.5), *, restitution=0.5,
                  friction=0.0, mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="Quad"):
-        u = np.array(_vec3(axis_u, f"{name} axis_u"))
-        v = np.array(_vec3(axis_v, f"{name} axis_v"))
+        u = np.array(checks.vec3(axis_u, f"{name} axis_u"))
+        v = np.array(checks.vec3(axis_v, f"{name} axis_v"))
         lu, lv = np.linalg.norm(u), np.linalg.norm(v)
         if lu == 0.0 or lv == 0.0:
             raise ValueError(f"{name} axis_u and axis_v must be non-zero half-edge vectors [m]")

@@ -25,7 +25,7 @@ from typing import Any, Optional
 import numpy as np
 import warp as wp
 
-from ..core.builder import _vec3
+from ..core import checks
 from ..core.forces import Force
 from ..kernels import interaction as K
 
@@ -36,8 +36,8 @@ def pick_particle(positions, origin, direction, max_distance=None, device=None) 
     """Index of the particle closest to the ray origin + t direction (t >= 0), or -1 when none
     is within ``max_distance`` [m] (None: no limit). ``positions``: wp.array of wp.vec3 or an
     (N, 3) array."""
-    o = np.array(_vec3(origin, "ray origin"))
-    d = np.array(_vec3(direction, "ray direction"))
+    o = np.array(checks.vec3(origin, "ray origin"))
+    d = np.array(checks.vec3(direction, "ray direction"))
     length = np.linalg.norm(d)
     if length == 0.0:
         raise ValueError("ray direction is the zero vector; give the direction the ray points to")
@@ -142,7 +142,7 @@ class DragSpring(Force):
             target = src[particle]
         self.particle = int(particle)
         self._window = (-_FOREVER, _FOREVER)
-        self._keys = (np.zeros(1), np.array([_vec3(target, "DragSpring target")]))
+        self._keys = (np.zeros(1), np.array([checks.vec3(target, "DragSpring target")]))
         self._upload()
 
     def grab_ray(self, positions, origin, direction, max_distance=None) -> int:
@@ -159,7 +159,7 @@ class DragSpring(Force):
         self._check_bound()
         if self.particle < 0:
             raise ValueError("DragSpring.set_target: nothing is grabbed; call grab first")
-        self._keys = (np.zeros(1), np.array([_vec3(target, "DragSpring target")]))
+        self._keys = (np.zeros(1), np.array([checks.vec3(target, "DragSpring target")]))
         self._upload()
 
     def set_path(self, path, release=None) -> None:
@@ -170,7 +170,7 @@ class DragSpring(Force):
             raise ValueError("DragSpring.set_path: nothing is grabbed; call grab first")
         try:
             times = np.array([float(t) for t, _ in path])
-            points = np.array([_vec3(p, f"DragSpring path point {k}") for k, (_, p) in enumerate(path)])
+            points = np.array([checks.vec3(p, f"DragSpring path point {k}") for k, (_, p) in enumerate(path)])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"DragSpring path must be [(time, (x, y, z)), ...]: {exc}") from None
         if len(times) == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0.0):

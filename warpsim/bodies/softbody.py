@@ -31,8 +31,7 @@ import numpy as np
 
 from . import meshtools
 from ..core import checks
-from ..core.builder import _vec3
-from .colliders import _pose, check_triangles, quat_rotate
+from .colliders import parse_pose, check_triangles, quat_rotate
 from .mesh_io import MESH_EXTENSIONS, USD_EXTENSIONS, load_mesh, load_usd_mesh, triangulate  # noqa: F401 (moved)
 
 INTERIOR_MODES = ("lattice", "none")
@@ -222,8 +221,8 @@ def add_soft_body(builder, points, faces, *, position=(0.0, 0.0, 0.0), rotation=
     else:
         total_mass = _check_coefficient(name, "total_mass", total_mass, positive=True)
     ties = checks.count(ties, f"{name} ties", fix="each surface vertex needs >= 1 tie to the lattice")
-    pos, rot = _pose(position, rotation, name)
-    velocity = _vec3(velocity, f"{name} velocity")
+    pos, rot = parse_pose(position, rotation, name)
+    velocity = checks.vec3(velocity, f"{name} velocity")
 
     world = pos + np.array([quat_rotate(rot, scale * p) for p in points]) if len(points) else points
     lattice = np.zeros((0, 3))

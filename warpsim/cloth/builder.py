@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.builder import _vec3
+from ..core import checks
 
 SPRING_KINDS = ("structural", "shear", "bend")
 GRID_PIN_NAMES = ("corners", "corner_00", "corner_10", "corner_01", "corner_11", "edge_u0", "edge_u1", "edge_v0",
@@ -186,8 +186,8 @@ def _local_indices(indices, count, what):
 
 
 def _axes(u_axis, v_axis):
-    u = np.asarray(_vec3(u_axis, "u_axis"))
-    v = np.asarray(_vec3(v_axis, "v_axis"))
+    u = np.asarray(checks.vec3(u_axis, "u_axis"))
+    v = np.asarray(checks.vec3(v_axis, "v_axis"))
     if np.linalg.norm(u) == 0.0 or np.linalg.norm(v) == 0.0:
         raise ValueError("u_axis and v_axis must be non-zero vectors")
     u = u / np.linalg.norm(u)
@@ -231,7 +231,7 @@ def add_cloth_grid(builder, resolution=(16, 16), size=(1.0, 1.0), origin=(0.0, 0
         raise ValueError(f"size = {size!r}; give (width along u, height along v) [m]")
     width, height = _positive(sz[0], "size[0]"), _positive(sz[1], "size[1]")
     u, v = _axes(u_axis, v_axis)
-    o = np.asarray(_vec3(origin, "origin"))
+    o = np.asarray(checks.vec3(origin, "origin"))
     du, dv = width / nu, height / nv
     ii, jj = np.meshgrid(np.arange(nu + 1), np.arange(nv + 1))
     positions = o + (ii.reshape(-1, 1) * du) * u + (jj.reshape(-1, 1) * dv) * v
@@ -252,7 +252,7 @@ def add_cloth_grid(builder, resolution=(16, 16), size=(1.0, 1.0), origin=(0.0, 0
     tris = np.concatenate([np.stack([a, a + 1, a + cols + 1], 1), np.stack([a, a + cols + 1, a + cols], 1)])
     params = _kind_params(structural, shear, bend, stiffness, damping)
     pins = grid_pins(pin, nu, nv)
-    cloth = _add_cloth(builder, positions, _vec3(velocity, "velocity"), masses, _radius(radius), tris,
+    cloth = _add_cloth(builder, positions, checks.vec3(velocity, "velocity"), masses, _radius(radius), tris,
                        grid_springs(nu, nv), params, pins)
     cloth.grid_shape = (nv + 1, nu + 1)
     return cloth
@@ -352,5 +352,5 @@ def add_cloth_mesh(builder, vertices, triangles, *, density=0.1, particle_mass=N
                              "remove it or give particle_mass")
     params = _kind_params(structural, shear, bend, stiffness, damping)
     pins = np.zeros(0, dtype=np.int64) if pin is None else _local_indices(pin, len(x), "pin")
-    return _add_cloth(builder, x, _vec3(velocity, "velocity"), masses, _radius(radius), t,
+    return _add_cloth(builder, x, checks.vec3(velocity, "velocity"), masses, _radius(radius), t,
                       mesh_springs(x, t, bend_angle_deg), params, pins)

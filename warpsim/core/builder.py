@@ -12,11 +12,6 @@ from . import checks
 from .model import Model, spring_adjacency
 
 
-def _vec3(value, what: str) -> tuple:
-    """3 finite floats (see :func:`warpsim.core.checks.vec3`)."""
-    return checks.vec3(value, what)
-
-
 _COINCIDENT = 1.0e-6  # particles closer than this fraction of a spring's rest length count as coincident
 
 
@@ -63,8 +58,8 @@ class ModelBuilder:
         """Add a particle at ``pos`` [m] with velocity ``vel`` [m/s], ``mass`` [kg] (0 = pinned or
         kinematic: forces never move it) and collision ``radius`` [m]. Returns its index."""
         index = self.particle_count
-        pos = _vec3(pos, f"particle {index} position")
-        vel = _vec3(vel, f"particle {index} velocity")
+        pos = checks.vec3(pos, f"particle {index} position")
+        vel = checks.vec3(vel, f"particle {index} velocity")
         mass = checks.number(mass, f"particle {index} mass", "kg", "give a number >= 0 (0 pins it)")
         if not math.isfinite(mass) or mass < 0.0:
             raise ValueError(f"particle {index} has mass {mass}; mass must be finite and >= 0 (0 pins it)")

@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from . import checks
-from .builder import _vec3, check_indices
+from .builder import check_indices
 from .launch import cached_launch, recording_tape
 from .model import ensure_spring_adjacency
 from ..kernels import forces as K
@@ -47,7 +47,7 @@ class Gravity(Force):
     energy_role = "potential"
 
     def __init__(self, g=(0.0, -9.81, 0.0)):
-        self.g = _vec3(g, "Gravity g")
+        self.g = checks.vec3(g, "Gravity g")
 
     def eval(self, q, qd, time, time_offset, f_out) -> None:
         m = self.model
@@ -58,7 +58,7 @@ class ConstantForce(Force):
     """A constant force [N] on chosen particles (None: every particle)."""
 
     def __init__(self, force, particles=None):
-        self.force = _vec3(force, "ConstantForce force")
+        self.force = checks.vec3(force, "ConstantForce force")
         self.particles = particles
 
     def bind(self, model) -> None:
@@ -85,7 +85,7 @@ class Wind(Force):
 
     def __init__(self, direction=(1.0, 0.0, 0.0), speed=5.0, gust_amplitude=0.3, gust_frequency=0.5,
                  turn_amplitude=0.0, turn_frequency=0.1, coefficient=0.1, seed=0):
-        d = np.asarray(_vec3(direction, "Wind direction"))
+        d = np.asarray(checks.vec3(direction, "Wind direction"))
         if np.linalg.norm(d) == 0.0:
             raise ValueError("Wind direction is the zero vector; give a direction")
         self.direction = tuple(d / np.linalg.norm(d))

@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 
-from ..core.builder import _vec3
+from ..core import checks
 
 
-def _positive(name, value, allow_zero=False):
+def positive_value(name, value, allow_zero=False):
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -20,7 +20,7 @@ def _positive(name, value, allow_zero=False):
     return v
 
 
-def _collider_geometry(k, c):
+def collider_geometry(k, c):
     """Boundary geometry of a warpsim collider, in world space at its current pose:
     ('planes', normals (P, 3), offsets (P,)), ('capsule', a, b, radius, sign) (a sphere has
     a == b; sign -1 for a hollow container) or ('mesh', points (V, 3), faces (F, 3), solid,
@@ -37,9 +37,9 @@ def _collider_geometry(k, c):
         if not (math.isfinite(r) and r > 0.0):
             raise ValueError(f"{name}: radius {c.radius} must be > 0 [m]")
         if hasattr(c, "a") and hasattr(c, "b"):
-            a, b = np.array(_vec3(c.a, f"{name} a")), np.array(_vec3(c.b, f"{name} b"))
+            a, b = np.array(checks.vec3(c.a, f"{name} a")), np.array(checks.vec3(c.b, f"{name} b"))
         else:
-            a = b = np.array(_vec3(c.center, f"{name} center"))
+            a = b = np.array(checks.vec3(c.center, f"{name} center"))
         return ("capsule", a, b, r, -1.0 if getattr(c, "inside", False) else 1.0)
     if hasattr(c, "corners") and callable(c.corners):
         pts = np.asarray(c.corners(), np.float64).reshape(-1, 3)

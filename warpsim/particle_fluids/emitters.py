@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ..core.builder import _vec3
+from ..core import checks
 
 
 class Nozzle:
@@ -22,8 +22,8 @@ class Nozzle:
     """
 
     def __init__(self, center, direction=(0.0, -1.0, 0.0), radius=0.05, speed=1.0, start=0.0, stop=math.inf):
-        self.center = np.array(_vec3(center, "Nozzle center"))
-        d = np.array(_vec3(direction, "Nozzle direction"))
+        self.center = np.array(checks.vec3(center, "Nozzle center"))
+        d = np.array(checks.vec3(direction, "Nozzle direction"))
         if np.linalg.norm(d) == 0.0:
             raise ValueError("Nozzle direction must be a non-zero vector")
         self.direction = d / np.linalg.norm(d)
@@ -72,8 +72,8 @@ class Sink:
     """Outflow region: particles inside the box [lower, upper] [m] are removed (once per frame)."""
 
     def __init__(self, lower, upper):
-        self.lower = np.array(_vec3(lower, "Sink lower"))
-        self.upper = np.array(_vec3(upper, "Sink upper"))
+        self.lower = np.array(checks.vec3(lower, "Sink lower"))
+        self.upper = np.array(checks.vec3(upper, "Sink upper"))
         if np.any(self.upper <= self.lower):
             raise ValueError(f"Sink upper {tuple(self.upper)} must exceed lower {tuple(self.lower)} on every axis")
         self.removed = 0

@@ -52,13 +52,13 @@ import warnings
 import numpy as np
 import warp as wp
 
-from ..core.builder import _vec3
+from ..core import checks
 from ..core.errors import SimulationError
 from ..core.reduction import FixedOrderReduction
 from ..core.simulator import check_dt
 from ..core.solver import SolverBase, frame_steps
 from ..kernels import sph as K
-from .boundaries import _collider_geometry, _positive
+from .boundaries import collider_geometry, positive_value
 from .emitters import Nozzle, Sink
 from .smoothing import KERNELS, fluid_block, kernel_numpy, lattice_mass, wall_tables
 
@@ -155,12 +155,12 @@ class ParticleFluid(SolverBase):
                        max_neighbors, gravity):
         """Validate the scalar options (before anything touches the device); returns the filter
         coefficients (viscosity, wall_friction, vorticity, surface_tension) and the cfl option."""
-        self.spacing = _positive("spacing", spacing)
-        self.rest_density = _positive("rest_density", rest_density)
+        self.spacing = positive_value("spacing", spacing)
+        self.rest_density = positive_value("rest_density", rest_density)
         if kernel not in KERNELS:
             raise ValueError(f"kernel {kernel!r} is unknown; use one of {sorted(KERNELS)}")
         self.kernel = kernel
-        support = _positive("support", support)
+        support = positive_value("support", support)
         if support < 1.0:
             raise ValueError(f"support = {support} spacings is too small; use >= 1 (2 is typical)")
         self.h = support * self.spacing
@@ -168,25 +168,25 @@ class ParticleFluid(SolverBase):
         if int(iterations) != iterations or iterations < 1:
             raise ValueError(f"iterations = {iterations!r}; it must be an integer >= 1")
         self.iterations = int(iterations)
-        self.density_tolerance = _positive("density_tolerance", density_tolerance, allow_zero=True)
+        self.density_tolerance = positive_value("density_tolerance", density_tolerance, allow_zero=True)
         if peak_tolerance is None:
             peak_tolerance = 10.0 * self.density_tolerance if self.density_tolerance > 0.0 else 3.0e38
-        self.peak_tolerance = _positive("peak_tolerance", peak_tolerance)
+        self.peak_tolerance = positive_value("peak_tolerance", peak_tolerance)
         if not (0.0 <= float(viscosity) <= 1.0):
             raise ValueError(f"viscosity = {viscosity}; it must be in [0, 1]")
-        wall_friction = _positive("wall_friction", wall_friction, allow_zero=True)
-        vorticity = _positive("vorticity", vorticity, allow_zero=True)
-        surface_tension = _positive("surface_tension", surface_tension, allow_zero=True)
+        wall_friction = positive_value("wall_friction", wall_friction, allow_zero=True)
+        vorticity = positive_value("vorticity", vorticity, allow_zero=True)
+        surface_tension = positive_value("surface_tension", surface_tension, allow_zero=True)
         if cfl is not None:
-            cfl = _positive("cfl", cfl)
-        self.max_dt = _positive("max_dt", max_dt)
-        self.max_speed = _positive("max_speed", max_speed)
+            cfl = positive_value("cfl", cfl)
+        self.max_dt = positive_value("max_dt", max_dt)
+        self.max_speed = positive_value("max_speed", max_speed)
         if int(sort_every) != sort_every or sort_every < 0:
             raise ValueError(f"sort_every = {sort_every!r}; it must be an integer >= 0 (0: never sort)")
         self.sort_every = int(sort_every)
         if int(max_neighbors) != max_neighbors or max_neighbors < 1:
             raise ValueError(f"max_neighbors = {max_neighbors!r}; it must be an integer >= 1")
-        self.gravity = np.array(_vec3(gravity, "gravity"))
+        self.gravity = np.array(checks.vec3(gravity, "gravity"))
         return (float(viscosity), wall_friction, vorticity, surface_tension), cfl
 
     def _check_particles(self, positions, velocities, capacity):
@@ -219,7 +219,7 @@ class ParticleFluid(SolverBase):
                 lo, hi = domain
             except (TypeError, ValueError):
                 raise ValueError(f"domain must be (lower, upper) or None, got {domain!r}") from None
-            lo, hi = np.array(_vec3(lo, "domain lower")), np.array(_vec3(hi, "domain upper"))
+            lo, hi = np.array(checks.vec3(lo, "domain lower")), np.array(checks.vec3(hi, "domain upper"))
             if np.any(hi - lo < 2.0 * self.spacing):
                 raise ValueError(f"domain upper {tuple(hi)} must exceed lower {tuple(lo)} by >= 2 spacings on every axis")
             self.domain = (lo, hi)
@@ -252,7 +252,7 @@ class ParticleFluid(SolverBase):
             planes_o += list(lo) + list(-hi)
         self.colliders = list(colliders)
         for k, c in enumerate(self.colliders):
-            g = _collider_geometry(k, c)
+            g = collider_geometry(k, c)
             if g[0] == "planes":
                 lengths = np.linalg.norm(g[1], axis=1)
                 if np.any(~np.isfinite(lengths)) or np.any(lengths == 0.0) or np.any(~np.isfinite(g[2])):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .smoothing import _kernel_dw_numpy, kernel_numpy
+from .smoothing import kernel_dw_numpy, kernel_numpy
 
 
 def neighbor_pairs(x: np.ndarray, h: float, use_kdtree: bool = True):
@@ -83,7 +83,7 @@ def pbf_step_numpy(x, v, dt, *, h, mass, rest_density, kernel="cubic", gravity=(
         rij = xc[i] - xc[j]
         r = np.linalg.norm(rij, axis=1)
         ok = r > 1e-9 * h
-        g = rij * np.where(ok, _kernel_dw_numpy(r, h, kernel) / np.where(ok, r, 1.0), 0.0)[:, None]
+        g = rij * np.where(ok, kernel_dw_numpy(r, h, kernel) / np.where(ok, r, 1.0), 0.0)[:, None]
         return r, g
 
     density = np.zeros(n)

@@ -9,7 +9,6 @@ import math
 import numpy as np
 
 from ..core import checks
-from ..core.builder import _vec3
 
 KERNELS = {"cubic": 0, "wendland": 1}
 _TABLE_COUNT = 257
@@ -37,7 +36,7 @@ def kernel_gradient_numpy(rij, h: float, kernel: str = "cubic"):
     rij = np.asarray(rij, dtype=np.float64)
     r = np.linalg.norm(rij, axis=-1)
     ok = r > 1e-9 * h
-    scale = np.where(ok, _kernel_dw_numpy(r, h, kernel) / np.where(ok, r, 1.0), 0.0)
+    scale = np.where(ok, kernel_dw_numpy(r, h, kernel) / np.where(ok, r, 1.0), 0.0)
     return rij * scale[..., None]
 
 
@@ -70,11 +69,11 @@ def wall_tables(h: float, kernel: str = "cubic", spacing: float | None = None, c
     phi = norm * kernel_numpy(r, h, kernel).sum(axis=(1, 2))
     # d/dd of W(|r|) with z = d + depth: dW/dr * z / r, i.e. the z component of grad W(rvec)
     rr = np.where(r > 0, r, 1.0)
-    dphi = norm * (_kernel_dw_numpy(r, h, kernel) * z / rr).sum(axis=(1, 2))
+    dphi = norm * (kernel_dw_numpy(r, h, kernel) * z / rr).sum(axis=(1, 2))
     return phi, dphi
 
 
-def _kernel_dw_numpy(r, h: float, kernel: str = "cubic"):
+def kernel_dw_numpy(r, h: float, kernel: str = "cubic"):
     """dW/dr [1/m^4] in NumPy."""
     q = np.asarray(r, dtype=np.float64) / h
     dw = np.zeros_like(q)
@@ -102,8 +101,8 @@ def lattice_mass(spacing: float, h: float, rest_density: float, kernel: str = "c
 def fluid_block(lower, upper, spacing: float, jitter: float = 0.0, seed: int = 0) -> np.ndarray:
     """Cubic lattice of particle centres filling the box [lower, upper] [m], first layer half a
     spacing inside each face; shape (N, 3). ``jitter``: random offsets, a fraction of spacing."""
-    lo = np.array(_vec3(lower, "fluid_block lower"))
-    hi = np.array(_vec3(upper, "fluid_block upper"))
+    lo = np.array(checks.vec3(lower, "fluid_block lower"))
+    hi = np.array(checks.vec3(upper, "fluid_block upper"))
     spacing = checks.positive(spacing, "fluid_block spacing", "m")
     if np.any(hi - lo < spacing):
         raise ValueError(f"fluid_block upper {hi.tolist()} must exceed lower {lo.tolist()} by at least one spacing "

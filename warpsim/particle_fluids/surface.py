@@ -14,7 +14,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..core.builder import _vec3
+from ..core import checks
 from ..kernels import fluid_surface as K
 from ..meshing.marching_cubes import MarchingCubes
 
@@ -49,7 +49,7 @@ class FluidSurface:
                 raise ValueError("FluidSurface needs lower= and upper= (the grid box) when the fluid has no domain")
             lo, hi = fluid.domain
         else:
-            lo, hi = np.array(_vec3(lower, "FluidSurface lower")), np.array(_vec3(upper, "FluidSurface upper"))
+            lo, hi = np.array(checks.vec3(lower, "FluidSurface lower")), np.array(checks.vec3(upper, "FluidSurface upper"))
             if np.any(hi <= lo):
                 raise ValueError(f"FluidSurface upper {tuple(hi)} must exceed lower {tuple(lo)} on every axis")
         self.shape = tuple(int(max(2, math.ceil((h - l) / self.cell) + 1)) for l, h in zip(lo, hi))
