@@ -23,6 +23,12 @@ def add_parser(sub):
                    help="draw a cache with damaged chunk files anyway, skipping their frames (said on stderr)")
 
 
+def preview_target(preview: str, cache: str) -> str:
+    """Where ``run --preview [FILE]`` writes: FILE as given (a relative path from the current
+    folder, as every output path); ``--preview`` alone (``""``): beside the cache, its name with .gif."""
+    return preview or os.path.splitext(cache)[0] + ".gif"
+
+
 def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camera=None, fps=None, device=None,
               guides=False, progress=True, max_frames=None, allow_damaged=False):
     """Shared by ``render`` and ``run --preview``: render and return the result dict; usage
