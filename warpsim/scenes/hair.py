@@ -23,7 +23,7 @@ from . import SimulatorScene, register_scene
 from .live import set_contact
 
 MOTIONS = ("still", "turn", "nod", "turn_nod")
-STYLES = ("straight", "wavy")
+STYLES = ("straight", "wavy", "curly")
 SOLVERS = ("implicit", "explicit")
 
 HEAD_CENTER = (0.0, 0.55, 0.0)
@@ -77,7 +77,9 @@ def scalp_roots(count, center, radius):
 def groom(roots, normals, center, radius, length, style, lift, wavelength=0.05, samples=160):
     """Polylines (S, samples, 3) [m]: from each root along the meridian over the head at ``lift``
     above the scalp down to its equator, then straight down; ``wavy`` adds a sideways wave
-    (amplitude 8 mm, wavelength ``wavelength`` [m]) growing in over the first 3 cm."""
+    (amplitude 8 mm, wavelength ``wavelength`` [m]) growing in over the first 3 cm, ``curly`` a
+    helix about the path (radius 8 mm, one turn per ``wavelength``, away from the head first),
+    growing in the same way."""
     c = np.asarray(center, np.float64)
     s = np.linspace(0.0, 1.0, samples)[None, :] * np.asarray(length, np.float64).reshape(-1, 1)  # (S, K)
     horizontal = normals * np.array([1.0, 0.0, 1.0])
@@ -91,10 +93,13 @@ def groom(roots, normals, center, radius, length, style, lift, wavelength=0.05, 
     pts = c + rho[..., None] * (np.sin(theta)[..., None] * horizontal[:, None, :] + np.cos(theta)[..., None] * up)
     below = np.maximum(s - over, 0.0)
     pts = pts - below[..., None] * up
-    if style == "wavy":
+    if style in ("wavy", "curly"):
         side = np.cross(up, horizontal)
-        wave = 0.008 * np.clip(s / 0.03, 0.0, 1.0) * np.sin(2.0 * math.pi * s / wavelength)
-        pts = pts + wave[..., None] * side[:, None, :]
+        grow = 0.008 * np.clip(s / 0.03, 0.0, 1.0)
+        angle = 2.0 * math.pi * s / wavelength
+        pts = pts + (grow * np.sin(angle))[..., None] * side[:, None, :]
+        if style == "curly":
+            pts = pts + (grow * (1.0 - np.cos(angle)))[..., None] * horizontal[:, None, :]
     return pts
 
 
@@ -102,7 +107,8 @@ PARAMS = {
     "strands": (2000, "number of strands"),
     "segments": (16, "segments per strand"),
     "length": (0.25, "strand length [m]"),
-    "style": ("straight", "groom: straight, or wavy (a sideways wave of 8 mm, >= 8 segments and 0.1 m long)",
+    "style": ("straight", "groom: straight, wavy (a sideways wave of 8 mm) or curly (a helix of 8 mm radius); "
+                          "a wave or curl spans >= 8 segments and 0.1 m",
               STYLES),
     "motion": ("turn_nod", "head motion after the still time: still, turn, nod or turn_nod", MOTIONS),
     "still": (1.0, "seconds the head stays still before it moves [s]"),
@@ -127,7 +133,7 @@ PARAMS = {
 class Hair(SimulatorScene):
     """Hair on a spherical head of radius 0.1 m at 0.55 m over the floor. ``solver=implicit``
     (default): ``StrandImplicitEuler``, ``steps`` strand steps per 1/60 s frame, or more when
-    ``Simulator.stable_dt()`` is finite (strongly curved grooms: ``safety`` times it).
+    ``Simulator.stable_dt()`` is finite (``safety`` times it; every groom style is unrestricted).
     ``solver=explicit``: semi-implicit Euler, the frame sub-step split into steps of at most
     ``safety`` times the strands' stable step measured on the groom at frame 0
     (``strand_stable_dt(hair, model)``)."""
@@ -153,10 +159,9 @@ class Hair(SimulatorScene):
         self.head = Sphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
                            motion=head_motion(p["motion"], p["still"], HEAD_CENTER, HEAD_RADIUS))
         roots, normals = scalp_roots(p["strands"], HEAD_CENTER, HEAD_RADIUS)
-        # a wave of at least 8 segments and 0.1 m: sharper waves make the bending frames very stiff
-        # (the implicit step's banded Jacobian leaves out the frames' coupling along the strand, and
-        # it stays stable for segment length x curvature up to about 0.4: measured 0.39 stable,
-        # 0.47 not, at 4 steps per frame; the 8 mm wave of 0.1 m is 0.25 at 32 segments)
+        # a wave or curl of at least 8 segments and 0.1 m (resolved by the segments; the implicit step
+        # takes the bending frames' coupling, so sharper ones stay stable too: 0.05 m at 32 segments
+        # measured stiffness ratios 0.89-1.13)
         wavelength = max(0.1, 8.0 * p["length"] / p["segments"])
         lines = groom(roots, normals, HEAD_CENTER, HEAD_RADIUS, p["length"], p["style"], lift=2.0 * p["radius"] + 1e-3,
                       wavelength=wavelength)
@@ -177,7 +182,7 @@ class Hair(SimulatorScene):
         self.implicit = p["solver"] == "implicit"
         self.steps_per_frame = int(p["steps"])
         if self.implicit:
-            # inf unless the groom is strongly curved (see warpsim.strands.stability.implicit_limit)
+            # inf for every groom style (see warpsim.strands.stability.implicit_limit)
             self.sim = ws.Simulator(self.model, integrator=StrandImplicitEuler(self.hair), forces=forces,
                                     colliders=colliders, max_speed=100.0)
             self.stable_dt = self.sim.stable_dt()

@@ -18,8 +18,9 @@ __all__ = ["StrandImplicitEuler"]
 
 class StrandImplicitEuler(Integrator):
     """Backward Euler for hair: (M + h C + h^2 K) dv = h f - h^2 K v0 per strand, K and C the
-    positive semi-definite stretch, Gauss-Newton bending, air-drag and drag-spring Jacobians,
-    solved directly per strand (one thread per strand, block band elimination), then
+    positive semi-definite stretch, Gauss-Newton bending (the transported frames' coupling along
+    the strand included through a twist unknown per vertex), air-drag and drag-spring Jacobians,
+    solved directly per strand (one thread per strand, block band Cholesky), then
     ``newton_iterations - 1`` further Newton iterations that reuse the factors.
 
     Unconditionally stable for the strands (``Simulator.stable_dt()`` is inf); its numerical
@@ -60,10 +61,10 @@ class StrandImplicitEuler(Integrator):
         st, d = self.strands, system.device
         self.data = st.bind(model)
         slots = st.strand_count * st.stride
-        self.pinv = wp.zeros(slots, dtype=wp.mat33d, device=d)  # the factors (float64)
-        self.up1 = wp.zeros(slots, dtype=wp.mat33d, device=d)
-        self.up2 = wp.zeros(slots, dtype=wp.mat33d, device=d)
-        self.rhs = wp.zeros(slots, dtype=wp.vec3d, device=d)
+        self.pinv = wp.zeros(slots, dtype=wp.mat44d, device=d)  # the factors (float64; x, y, z and twist)
+        self.up1 = wp.zeros(slots, dtype=wp.mat44d, device=d)
+        self.up2 = wp.zeros(slots, dtype=wp.mat44d, device=d)
+        self.rhs = wp.zeros(slots, dtype=wp.vec4d, device=d)
         n = system.count
         self.dv = wp.zeros(n, dtype=wp.vec3, device=d)
         if self.newton_iterations > 1:

@@ -12,7 +12,7 @@ omega = |lambda|, zeta = -Re(lambda) / |lambda| (``warpsim.core.stability.stable
 limit is the smallest per-eigenvalue step over the strands examined. With many strands a sample
 is examined: the stiffest by the Gershgorin bound, the most curved (largest rest bending
 vector) and the rest evenly spaced. Under ``StrandImplicitEuler`` the strands are unrestricted
-unless strongly curved (``implicit_limit``).
+unless its assembled stiffness misjudges them (``implicit_limit``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import warp as wp
 from ..core import stability as stab
 from ..kernels import strands as K
 
-__all__ = ["assembled_stiffness", "implicit_limit", "strand_eigenvalues", "strand_jacobians", "strand_limit"]
+__all__ = ["assembled_stiffness", "band_matrix", "band_to_dense", "implicit_limit", "strand_eigenvalues", "strand_jacobians", "strand_limit"]
 
 SAMPLE = 48
 """Strands examined at most."""
@@ -107,10 +107,35 @@ def strand_eigenvalues(strands, data, positions, drag: float = 0.0, sample: int 
     return picks, np.linalg.eigvals(A)
 
 
+def band_matrix(P, U1, U2) -> np.ndarray:
+    """The symmetric matrix (S, 4 stride, 4 stride) of the upper band blocks P, U1, U2
+    (S, stride, 4, 4) that ``StrandImplicitEuler`` assembles (factor = 0; x, y, z, twist per vertex)."""
+    S, stride = P.shape[0], P.shape[1]
+    A = np.zeros((S, 4 * stride, 4 * stride))
+    for v in range(stride):
+        A[:, 4 * v:4 * v + 4, 4 * v:4 * v + 4] = P[:, v]
+        for gap, U in ((1, U1), (2, U2)):
+            if v + gap < stride:
+                w = 4 * (v + gap)
+                A[:, 4 * v:4 * v + 4, w:w + 4] = U[:, v]
+                A[:, w:w + 4, 4 * v:4 * v + 4] = np.transpose(U[:, v], (0, 2, 1))
+    return A
+
+
+def band_to_dense(P, U1, U2, free) -> np.ndarray:
+    """``band_matrix`` over the positions of the free vertices ``free`` (F local vertex indices),
+    (S, 3 F, 3 F), the twists eliminated (the Schur complement onto the positions)."""
+    A = band_matrix(P, U1, U2)
+    x = np.array([4 * v + c for v in free for c in range(3)])
+    t = 4 * np.arange(P.shape[1]) + 3
+    Axx, Axt, Att = A[:, x][:, :, x], A[:, x][:, :, t], A[:, t][:, :, t]
+    return Axx - Axt @ np.linalg.solve(Att, np.transpose(Axt, (0, 2, 1)))
+
+
 def assembled_stiffness(strands, data, positions, picks) -> np.ndarray:
     """Ka (S, 3 segments, 3 segments) [N/m]: the stiffness ``StrandImplicitEuler`` assembles
-    (stretch with the clamped geometric term, Gauss-Newton bending with the vertex's own frame
-    Jacobian) for strands ``picks`` about ``positions`` (host (particle_count, 3) [m])."""
+    (stretch with the clamped geometric term, Gauss-Newton bending with the frames' twist, the
+    twists eliminated) for strands ``picks`` about ``positions`` (host (particle_count, 3) [m])."""
     from ..kernels import strands_implicit as KI
 
     picks = np.asarray(picks, dtype=np.int64)
@@ -127,26 +152,16 @@ def assembled_stiffness(strands, data, positions, picks) -> np.ndarray:
     zero = arr(np.zeros(S))
     q = arr(np.asarray(positions, np.float64)[rows].astype(np.float32), wp.vec3)
     vel = wp.zeros(S * stride, dtype=wp.vec3, device=dev)
-    blocks = [wp.zeros(S * stride, dtype=wp.mat33d, device=dev) for _ in range(3)]
-    rhs = wp.zeros(S * stride, dtype=wp.vec3d, device=dev)
+    blocks = [wp.zeros(S * stride, dtype=wp.mat44d, device=dev) for _ in range(3)]
+    rhs = wp.zeros(S * stride, dtype=wp.vec4d, device=dev)
     wp.launch(KI.strand_implicit_solve, S,
               inputs=[q, vel, vel, arr(mass.reshape(-1)), 0, stride, arr(data["rest_length"].numpy()[slots]),
                       arr(data["bend_rest"].numpy()[slots], wp.vec3), arr(data["stretch_stiffness"].numpy()[picks]),
                       arr(data["bend_stiffness"].numpy()[picks]), zero, zero,
                       arr(data["root_normal"].numpy()[picks], wp.vec3), 0.0, -1, 0.0, 0.0, 1.0, *blocks, rhs, 0, vel],
               device=dev)
-    P, U1, U2 = (b.numpy().reshape(S, stride, 3, 3) for b in blocks)
-    N = 3 * seg
-    Ka = np.zeros((S, N, N))
-    for a in range(seg):
-        v = a + 2
-        Ka[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] = P[:, v] - np.eye(3)
-        for gap, U in ((1, U1), (2, U2)):
-            if a + gap < seg:
-                b = 3 * (a + gap)
-                Ka[:, 3 * a:3 * a + 3, b:b + 3] = U[:, v]
-                Ka[:, b:b + 3, 3 * a:3 * a + 3] = np.transpose(U[:, v], (0, 2, 1))
-    return Ka
+    P, U1, U2 = (b.numpy().reshape(S, stride, 4, 4) for b in blocks)
+    return band_to_dense(P, U1, U2, range(2, stride)) - np.eye(3 * seg)[None]
 
 
 def implicit_limit(strands, data, positions, drag: float = 0.0, sample: int = SAMPLE) -> float:
@@ -155,9 +170,9 @@ def implicit_limit(strands, data, positions, drag: float = 0.0, sample: int = SA
     (x, v) by T(h): v1 = v + A^-1 (-h K x - (h D + h^2 Ka) v), x1 = x + h v1,
     A = M + h D + h^2 Ka. In the stiff limit x1 = (I - Ka^-1 K) x, so every step is stable when
     the eigenvalues of Ka^-1 K lie in (0, 2) (measured: 0.68-1.89 on the straight groom at 16-48
-    segments); otherwise (strongly curved strands: the banded Ka leaves out the transported
-    frames' coupling along the strand) the largest h with spectral radius of T(h) <= 1 over the
-    sampled strands is found by bisection."""
+    segments, 0.97-1.07 on the wavy and curly grooms at 32 with the frames' twist in Ka; without
+    it, up to 8.8); otherwise the largest h with spectral radius of T(h) <= 1 over the sampled
+    strands is found by bisection."""
     picks = _sample(strands, data["bend_rest"].numpy(), sample)
     Kmat, Dmat = strand_jacobians(strands, data, positions, picks, drag)
     Ka = assembled_stiffness(strands, data, positions, picks)
@@ -201,8 +216,8 @@ def strand_limit(strands, data, positions, integrator, drag: float = 0.0,
         if not math.isfinite(dt):
             return None
         return stab.StabilityLimit(dt=dt, integrator="implicit_euler", limiting="strand", reason=(
-            f"the strands' implicit step with its banded Jacobian is stable up to {dt:.4g} s (strongly curved "
-            "strands: the transported frames couple the whole strand)"))
+            f"the strands' implicit step with its Gauss-Newton Jacobian is stable up to {dt:.4g} s on the "
+            "linearised strands"))
     method = stab.method_of(integrator)
     if method == "implicit_euler":
         method = "semi_implicit_euler"
