@@ -22,8 +22,8 @@ step time to the first one's (linear in the number of tori would be M / count).
     python benchmarks/bench_donuts.py --device cuda:0 --count 1000 --settle 3000 --steps 200
     python benchmarks/bench_donuts.py --device cuda:0 --settle 1000 --steps 50 --profile  # kernel table
 
-``--broad-phase list`` (default; the scene's) uses SoftContact's candidate list (``--pad``,
-``--search-every``), ``--broad-phase bvh`` the two-level BVH search every step (the earlier default).
+``--broad-phase list`` (the scene's default on CUDA) uses SoftContact's candidate list (``--pad``,
+``--search-every``), ``--broad-phase bvh`` (its default on the CPU) the two-level BVH search every step.
 
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
 and synchronisations per step, and the contact search's candidates per query
@@ -167,8 +167,9 @@ def main():
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
     parser.add_argument("--rebuild-every", type=int, default=None, help="SoftContact BVH rebuild period in steps "
                         "(refits between; 0: refit only; default: the contact's own)")
-    parser.add_argument("--broad-phase", default="list", choices=["list", "bvh", "all_pairs"],
-                        help="SoftContact search (list: candidate list; bvh: two-level BVH search every step)")
+    parser.add_argument("--broad-phase", default="auto", choices=["auto", "list", "bvh", "all_pairs"],
+                        help="SoftContact search (list: candidate list; bvh: two-level BVH search every step; auto: "
+                        "the scene's, list on CUDA and bvh on the CPU)")
     parser.add_argument("--search-every", type=int, default=0, help="list: steps between refit-and-search "
                         "(0: the contact's default)")
     parser.add_argument("--pad", type=float, default=0.0, help="list: motion pad [m] (0: the contact's default)")

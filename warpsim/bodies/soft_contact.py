@@ -481,50 +481,72 @@ class SoftContact(Collider):
                       device=d)
 
 
-    def _search_listed(self, q, q_prev) -> None:
-        """Refit-and-search steps (host cadence) raise the flag; every step checks the motion,
-        searches if the flag is up (both pair kinds, one launch) and lowers it."""
-        d, v, e = self.model.device, self.vertex_count, self.edge_count
-        if (self._steps - 1) % self.search_every == 0:
-            self._launch_bounds(q, q)
-            if e:
-                self._launch_edge_bounds(q, q)
-            for bvh in self.bvhs:
-                bvh.rebuild(self._constructor)
-            self._find_roots()
-            wp.launch(L.begin_search, v, inputs=[self._vertex, q, self._x_tree, self._flags, self._motion], device=d)
-        wp.launch(L.check_motion, v, inputs=[self._vertex, q, q_prev, self._x_search, self._x_tree, self.pad,
-                                             0.5 * self.thickness, self._flags, self._motion], device=d)
+    def _refit_listed(self, q) -> None:
+        """Host cadence (every ``search_every`` steps): rebuild the BVHs at the current positions and
+        raise the search flag."""
+        d = self.model.device
+        self._launch_bounds(q, q)
+        if self.edge_count:
+            self._launch_edge_bounds(q, q)
+        for bvh in self.bvhs:
+            bvh.rebuild(self._constructor)
+        self._find_roots()
+        wp.launch(L.begin_search, self.vertex_count, inputs=[self._vertex, q, self._x_tree, self._flags, self._motion],
+                  device=d)
+
+    def _record_listed(self, model, state, q_prev) -> list:
+        """The launches of every step of ``broad_phase="list"``, recorded once (``record_cmd``: a
+        replayed launch skips most of ``wp.launch``'s host work): check the motion, search if the flag
+        is up (both pair kinds, one launch), lower it and clear the counts (``end_search``), the nearest
+        contact per query among its candidates, then ``iterations`` passes over the found contacts and
+        their particles only (the last also zeroes the particles' contact counts)."""
+        d, n, v, e = model.device, model.particle_count, self.vertex_count, self.edge_count
+        q, qd = state.positions, state.velocities
         edge_tree = [self._edge_bvh.id, self._body_edge_root, self._edge_world, self._edges, self._edge_body] if e \
             else [self._tri_bvh.id, self._body_tri_root, self._vertex_world, self._tri, self._tri_body]
-        wp.launch(L.search_candidates, v + e, inputs=[
-            self._flags, self._motion, self.thickness, self.search, self.pad, self._body_bvh.id, self._world_root,
-            self._tri_bvh.id, self._body_tri_root, edge_tree[0], edge_tree[1], self._vertex_world, self._vertex, self._vertex_body,
-            self._tri, self._tri_body, *edge_tree[2:], q, self.model.particle_q, self.model.particle_inv_mass,
-            int(self.self_contact), self.self_rest_distance, self.capacity, self._x_search, self._cand,
-            self._cand_count], device=d)
-        wp.launch(L.end_search, 1, inputs=[self._flags, self._motion, self._total, self._listed], device=d)
+        contact = [self._contact_particles, self._contact_weights, self._contact_normal]
+
+        def record(kernel, dim, inputs):
+            return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True)
+
+        launches = [
+            record(L.check_motion, v, [self._vertex, q, q_prev, self._x_search, self._x_tree, self.pad,
+                                       0.5 * self.thickness, self._flags, self._motion]),
+            record(L.search_candidates, v + e, [
+                self._flags, self._motion, self.thickness, self.search, self.pad, self._body_bvh.id,
+                self._world_root, self._tri_bvh.id, self._body_tri_root, edge_tree[0], edge_tree[1],
+                self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, *edge_tree[2:], q,
+                model.particle_q, model.particle_inv_mass, int(self.self_contact), self.self_rest_distance,
+                self.capacity, self._x_search, self._cand, self._cand_count]),
+            record(L.end_search, 1, [self._flags, self._motion, self._total, self._listed]),
+            record(L.narrow_candidates, v + e, [
+                self._cand, self._cand_count, self.capacity, self._vertex, self._tri, edge_tree[3], q, q_prev,
+                self.thickness, self.search, *contact, self._particle_contacts, self._total, self._active,
+                self._touched, self._listed]),
+        ]
+        for k in range(self.iterations):
+            launches.append(record(L.resolve_listed, v + e, [
+                self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
+                self.thickness, self.push, self.restitution, self.friction, self._dx, self._dv]))
+            launches.append(record(L.apply_listed, n, [self._listed, self._touched, self._dx, self._dv, q, qd,
+                                                       int(k == self.iterations - 1), self._particle_contacts]))
+        return launches
 
     def _apply_listed(self, model, state, q_prev) -> None:
-        """``broad_phase="list"``: search when needed, the nearest contact per query among its
-        candidates, then ``iterations`` passes over the found contacts and their particles only."""
-        d, n, slots = model.device, model.particle_count, self.vertex_count + self.edge_count
-        q = state.positions
-        self._search_listed(q, q_prev)  # also zeroes the counts (end_search); the last pass zeroes the
-        # particles' contact counts (each step leaves them zero)
-        contact = [self._contact_particles, self._contact_weights, self._contact_normal]
-        wp.launch(L.narrow_candidates, slots, inputs=[
-            self._cand, self._cand_count, self.capacity, self._vertex, self._tri,
-            self._edges if self.edge_count else self._tri, q, q_prev, self.thickness, self.search, *contact,
-            self._particle_contacts, self._total, self._active, self._touched, self._listed], device=d)
-        for k in range(self.iterations):
-            wp.launch(L.resolve_listed, slots, inputs=[
-                self._listed, self._active, q, state.velocities, model.particle_inv_mass, *contact,
-                self._particle_contacts, self.thickness, self.push, self.restitution, self.friction, self._dx,
-                self._dv], device=d)
-            wp.launch(L.apply_listed, n, inputs=[self._listed, self._touched, self._dx, self._dv, q,
-                                                 state.velocities, int(k == self.iterations - 1),
-                                                 self._particle_contacts], device=d)
+        """``broad_phase="list"``: the host's refit cadence, then the recorded launches of a step
+        (recorded again when an array or a setting they take changed)."""
+        if (self._steps - 1) % self.search_every == 0:
+            self._refit_listed(state.positions)
+        key = (state.positions.ptr, state.velocities.ptr, q_prev.ptr, self.pad, self.thickness, self.search,
+               self.iterations, self.push, self.restitution, self.friction, self._bvh_ids())
+        if getattr(self, "_recorded_key", None) != key:
+            self._recorded = self._record_listed(model, state, q_prev)
+            self._recorded_key = key
+        for launch in self._recorded:
+            launch.launch()
+
+    def _bvh_ids(self) -> tuple:
+        return tuple(int(b.id) for b in self.bvhs)
 
 
 class SoftContactForce(Force):
