@@ -15,9 +15,17 @@ same arithmetic in the same order, so the results are bit-identical to it:
 Reads (q, qd), writes (q_out, qd_out): other threads read this step's positions of the
 neighbours, so the stepper ping-pongs two buffers.
 
-Occupancy (``marks``, ``kernels/occupancy.py: CellMarks``; empty arrays: off): at a frame's last
-sub-step each thread marks the cell of the position it has just computed, and the block-per-world
-kernel folds its world's marks into the record's bits after its last barrier.
+Per-world step counts (``WorldSteps``): world w takes ``steps[w]`` steps of ``h[w]`` [s] a frame
+(the count and step it takes run alone); a batch launches its largest count, and at sub-step k
+world w steps only while k < steps[w] (the others idle: no read, no write). The count is data, not
+host control flow, so a frame captures as one CUDA graph. With the per-step kernel, sub-step k
+reads buffer k % 2 and writes the other, so a world that took an odd count ends in the spare
+buffer (``settle_worlds`` brings it home).
+
+Occupancy (``marks``, ``kernels/occupancy.py: CellMarks``; empty arrays: off): at a world's last
+sub-step of the frame each of its threads marks the cell of the position it has just computed,
+and the block-per-world kernel folds its world's marks into the record's bits after its last
+barrier.
 """
 
 import warp as wp
@@ -51,6 +59,14 @@ class SharedSprings:
     keys: wp.array(dtype=int)
     world_values: wp.array(dtype=float)
     key_count: int
+
+
+@wp.struct
+class WorldSteps:
+    """Steps per frame of each world (world_count,) and each world's step [s] (world_count,)."""
+
+    steps: wp.array(dtype=int)
+    h: wp.array(dtype=float)
 
 
 @wp.struct
@@ -132,21 +148,44 @@ def step_shared_worlds(
     particle_count: int,
     springs: SharedSprings,
     walls: WorldWalls,
-    h: float,
+    steps: WorldSteps,
+    k: int,
     q_out: wp.array(dtype=wp.vec3),
     qd_out: wp.array(dtype=wp.vec3),
     marks: CellMarks,
 ):
-    """One step of particle t = w P + p (module docstring); P = ``particle_count`` per world, h [s];
-    ``marks`` (on for a frame's last sub-step): the new position marks its cell."""
+    """Sub-step ``k`` of particle t = w P + p (module docstring); P = ``particle_count`` per world:
+    world w steps by ``steps.h[w]`` [s] while k < ``steps.steps[w]`` and idles after; at its last
+    sub-step the new position marks its cell in ``marks``."""
     t = wp.tid()
     w = t / particle_count
+    n = steps.steps[w]
+    if k >= n:
+        return
     p = t - w * particle_count
     x, v = step_shared_particle(t, w, p, w * particle_count, q, qd, mass, inv_mass, radius, world_gravity, springs,
-                                walls, h)
+                                walls, steps.h[w])
     q_out[t] = x
     qd_out[t] = v
-    mark_cell(marks, w, x)
+    if k == n - 1:
+        mark_cell(marks, w, x)
+
+
+@wp.kernel
+def settle_worlds(
+    q_spare: wp.array(dtype=wp.vec3),
+    qd_spare: wp.array(dtype=wp.vec3),
+    particle_count: int,
+    steps: WorldSteps,
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+):
+    """After a frame of ``step_shared_worlds``: particle t of a world that took an odd count goes
+    from the spare buffers home to (q, qd)."""
+    t = wp.tid()
+    if steps.steps[t / particle_count] % 2 == 1:
+        q[t] = q_spare[t]
+        qd[t] = qd_spare[t]
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -170,23 +209,26 @@ def frame_shared_worlds(
     lanes: int,
     springs: SharedSprings,
     walls: WorldWalls,
-    h: float,
-    substeps: int,
+    steps: WorldSteps,
     marks: CellMarks,
 ):
-    """A whole frame of ``substeps`` steps of h [s] in one launch, one thread block per world:
-    launched with dim = world_count x ``lanes`` and block_dim = ``lanes`` (1 on the CPU: one
-    thread steps a whole world). Lane l steps particles l, l + lanes, ... of its world from one
-    buffer pair into the other (q, qd -> spares on even steps, back on odd ones), then the block
-    waits for every lane (``sync_block``) before the next step reads its neighbours; after an odd
-    count each lane copies its own particles home. The same arithmetic as
-    ``step_shared_worlds``, sub-step by sub-step: the same bits. ``marks``: the last sub-step's
-    positions mark their cells, which the block folds into its world's words after the barrier."""
+    """A whole frame in one launch, one thread block per world: world w takes ``steps.steps[w]``
+    steps of ``steps.h[w]`` [s] (a block is one world, so its loop count is uniform across its
+    lanes); launched with dim = world_count x ``lanes`` and block_dim = ``lanes`` (1 on the CPU:
+    one thread steps a whole world). Lane l steps particles l, l + lanes, ... of its world from
+    one buffer pair into the other (q, qd -> spares on even steps, back on odd ones), then the
+    block waits for every lane (``sync_block``) before the next step reads its neighbours; after
+    an odd count each lane copies its own particles home. The same arithmetic as
+    ``step_shared_worlds``, sub-step by sub-step: the same bits. ``marks``: the world's last
+    sub-step's positions mark their cells, which the block folds into its world's words after the
+    barrier."""
     tid = wp.tid()
     w = tid / lanes
     lane = tid - w * lanes
     first = w * particle_count
-    for k in range(substeps):
+    n = steps.steps[w]
+    h = steps.h[w]
+    for k in range(n):
         p = lane
         while p < particle_count:
             t = first + p
@@ -200,12 +242,12 @@ def frame_shared_worlds(
                                             world_gravity, springs, walls, h)
                 q[t] = x
                 qd[t] = v
-            if k == substeps - 1:
+            if k == n - 1:
                 mark_cell(marks, w, x)
             p += lanes
         sync_block()
     fold_world_marks(marks, w, lane, lanes)
-    if substeps % 2 == 1:
+    if n % 2 == 1:
         p = lane
         while p < particle_count:
             q[first + p] = q_spare[first + p]

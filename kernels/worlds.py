@@ -125,6 +125,26 @@ def eval_gravity_worlds(
 
 
 # --------------------------------------------------------------------------------------
+# Per-world step counts on paths without a masked step kernel: one pass per distinct count
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def keep_worlds_of_count(
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=int),
+    world_steps: wp.array(dtype=int),
+    count: int,
+    q_out: wp.array(dtype=wp.vec3),
+    qd_out: wp.array(dtype=wp.vec3),
+):
+    """(q_out, qd_out)[i] = (q, qd)[i] for the particles of worlds that take ``count`` steps a frame."""
+    i = wp.tid()
+    if world_steps[particle_world[i]] == count:
+        q_out[i] = q[i]
+        qd_out[i] = qd[i]
+
+
+# --------------------------------------------------------------------------------------
 # Faults stay local: flag a world that blew up, freeze it at its last good frame
 # --------------------------------------------------------------------------------------
 @wp.kernel

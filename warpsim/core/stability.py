@@ -284,17 +284,18 @@ def _reason(method, omega, zeta, dt, who):
     return f"{head}; {method} is stable for dt <= {rule} = {dt:.4g} s"
 
 
-def worlds_warning(limits, dt: float, labels=None):
-    """One line when a step ``dt`` [s] is above the limit of some of ``limits`` (one per world;
-    ``labels``: text per world, e.g. its varied parameters), naming the count and the worst world;
-    None when every world is inside."""
-    bad = [w for w, limit in enumerate(limits) if limit.exceeded_by(dt)]
+def worlds_warning(limits, dt, labels=None):
+    """One line when a step ``dt`` [s] (a number, or one per world) is above the limit of some of
+    ``limits`` (one per world; ``labels``: text per world, e.g. its varied parameters), naming the
+    count and the worst world; None when every world is inside."""
+    steps = np.broadcast_to(np.asarray(dt, dtype=np.float64), (len(limits),))
+    bad = [w for w, limit in enumerate(limits) if limit.exceeded_by(float(steps[w]))]
     if not bad:
         return None
-    worst = min(bad, key=lambda w: limits[w].dt)
+    worst = min(bad, key=lambda w: limits[w].dt / steps[w])
     label = f" ({labels[worst]})" if labels and labels[worst] else ""
     return f"{len(bad)} of {len(limits)} worlds step above their stability limit; world {worst}{label}: " + \
-        limits[worst].warning(dt)
+        limits[worst].warning(float(steps[worst]))
 
 
 def with_force_limits(limit, forces, positions, integrator) -> StabilityLimit:

@@ -116,13 +116,16 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     "resolution": cells along the longest side, "bounds": (lo, hi) [m] or None} to keep an
     occupancy record of these worlds (:mod:`warpsim.browse.occupancy`; the tracked particles
     when ``track`` is given, else every particle); ``substeps="auto"`` (or None for scenes that
-    default to it, unless ``dt`` is given): every frame takes the steps of the world needing the
-    most, so each world's step is <= 0.5 x its own limit (``WorldBatch.auto_steps``);
+    default to it, unless ``dt`` is given): each world takes the steps a frame its own run takes
+    (``WorldBatch.world_steps``), so world N equals ``warpsim run SCENE --set ...`` with its
+    parameters whichever worlds share its batch;
     ``warn(line)``: called once before the first frame when a world's step is
     above its stability limit (it may raise to stop the run); ``timing``: a dict that receives
-    ``frame_steps``, the steps every frame took (the auto count resolved over all these worlds:
-    a world re-run alone needs it to take the same steps); ``frame_steps``: take this many steps
-    every frame instead (a Ray sweep's batches take the count resolved over the whole sweep);
+    ``frame_steps``, the most steps any world took a frame (the batch's launches per frame; a
+    world re-run alone needs it only when its worlds share one count, ``WorldBatch.own_counts``
+    False); ``frame_steps``: for such scenes, every world takes this many steps a frame (the
+    count resolved over the whole sweep, when these worlds are one block of it; other scenes
+    ignore it: each world takes its own);
     ``reference_params``: the whole sweep's parameter list when these worlds are one block of it
     (:class:`WorldBatch`: each world then gets the arrays it gets in the whole sweep, bit for bit);
     ``occupancy["agree"]``: ``agree(points (M, 3) [m], resolution) -> (bounds, resolution)``, called
@@ -156,16 +159,17 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
             reference_params = [{**p, "dt": frame_dt / substeps} for p in reference_params]
     batch = make_batch(cls, world_params, device=device, fused=fused, reference_params=reference_params)
     stepped = getattr(batch, "batch_scene", None)  # flocks (AgentWorldBatch) step their own way
-    if frame_steps is not None:  # one batch of a sweep: the count resolved over the whole sweep
+    if frame_steps is not None and not getattr(batch, "own_counts", False):  # worlds sharing one count: the sweep's
         request = request.with_steps(int(frame_steps))
     taken = batch.use_timing(request) if stepped is not None else request  # auto: the most any world needs
     if timing is not None:
         timing["frame_steps"] = int(taken.steps)
+    counts = batch.world_steps(frame_dt, substeps) if stepped is not None else taken.steps  # each world's own
     if warn is not None and stepped is not None:
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
-    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt, step_dt=frame_dt / taken.steps)
+    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt, step_dt=frame_dt / np.asarray(counts))
     if resume_frame is not None and not 0 <= int(resume_frame) <= int(frames) + 1:
         raise ValueError(f"resume_frame {resume_frame}: the run has frames 0..{frames}")
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps, chunk_size=chunk_size,

@@ -16,6 +16,7 @@ the end of the frame and frozen at its last good frame; the others run on.
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import warp as wp
@@ -34,8 +35,6 @@ __all__ = ["WorldBatch"]
 
 ADJACENCY_ARRAYS = ("particle_spring_offsets", "particle_springs")
 
-LIMIT_ITERATIONS = 400
-"""Power iterations of the per-world limits that automatic steps and the step warning use."""
 
 
 class WorldBatch:
@@ -59,6 +58,15 @@ class WorldBatch:
     per stage) and to the scene's own Simulator, with a quarter of the memory per world.
     ``block_per_world`` (shared path): a frame's sub-steps in one launch, one thread block per
     world (``kernels/world_step.py: frame_shared_worlds``), the same bits.
+
+    Step counts (:meth:`world_steps`): each world takes the steps a frame its scene takes run
+    alone with its parameters (with automatic timing, from its own stability limit, estimated as
+    its own run estimates it), so world N of a sweep equals ``warpsim run SCENE --set ...`` with
+    its parameters, bit for bit on the same device, whichever worlds share its batch. The shared
+    path masks per world (worlds past their count idle); the other paths run one pass per distinct
+    count (:mod:`warpsim.worlds.passes`). Scenes whose stepping the passes cannot repeat (breaking
+    springs, colliders following a host ``motion``, a scene's own sub-stepping) take the largest
+    count for every world (``own_counts`` False; a re-run is then told the sweep's count).
 
     ``reference_params``: the parameter list of the sweep these worlds belong to (None: the
     worlds themselves). Its first world is the tiling base and its values shape the plan, so a
@@ -109,6 +117,8 @@ class WorldBatch:
         self.model = self._tile(sim0.model)
         self.sim = self._simulator(sim0)
         self.stepper = None
+        self._steps = None  # (key, counts) of world_steps
+        self._passes = None
         if self.shared:  # the simulator was built without springs; the model counts every world's
             self.model.spring_count = self.world_count * self.model.world_spring_count
             gravity = next((f.g for f in self.sim.forces if isinstance(f, WorldGravity)), None)
@@ -319,13 +329,74 @@ class WorldBatch:
     def advance(self, frame_dt, substeps) -> None:
         """One frame for every world (the scene's own stepping on the batched simulator; with
         ``fused`` the ClothSimulator's captured frame)."""
+        counts = self.world_steps(frame_dt, substeps)
         if self.stepper is not None:
-            self.stepper.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))  # auto sub-steps too
-        elif self.fused and not hasattr(self.scene.sim, "use_graph"):
-            self.sim.frame(frame_dt, self.batch_scene.frame_steps(frame_dt, substeps))
+            self.stepper.frame(frame_dt, counts)  # each world its own count, one kernel per sub-step
+        elif counts.min() == counts.max():
+            self._advance_all(frame_dt, substeps, int(counts[0]))
         else:
-            self.batch_scene.advance(frame_dt, substeps)
+            if self._passes is None or not np.array_equal(self._passes.world_steps.numpy(), counts):
+                from .passes import CountPasses
+
+                self._passes = CountPasses(self, counts)
+            self._passes.frame(lambda c: self._advance_all(frame_dt, substeps, c))
         self.end_frame()
+
+    def _advance_all(self, frame_dt, substeps, count) -> None:
+        """Every world a frame of ``count`` steps by the scene's own stepping."""
+        timing = self.batch_scene.timing
+        if timing.auto:  # the scene steps by its timing: the count given
+            self.batch_scene.use_timing(timing.with_steps(int(count)))
+        try:
+            if self.fused and not hasattr(self.scene.sim, "use_graph"):
+                self.sim.frame(frame_dt, int(count))
+            else:
+                self.batch_scene.advance(frame_dt, substeps)
+        finally:
+            if timing.auto:
+                self.batch_scene.use_timing(timing, limit=self)
+
+    @property
+    def own_counts(self) -> bool:
+        """Whether each world takes its own count (False: the largest for all; see the class doc)."""
+        if self.stepper is not None:
+            return True
+        sim = self.sim
+        if getattr(sim, "fracture", None) is not None or any(getattr(c, "motion", None) is not None
+                                                              for c in sim.colliders):
+            return False
+        from ..cloth.solver import ClothSimulator
+        from ..scenes import SimulatorScene
+        from ..scenes.cloth import ClothScene
+
+        advance = type(self.batch_scene).advance
+        return advance in (SimulatorScene.advance, ClothScene.advance) or (self.fused and isinstance(sim,
+                                                                                                     ClothSimulator))
+
+    def world_steps(self, frame_dt, substeps) -> np.ndarray:
+        """Steps each world takes in a frame of ``frame_dt`` [s] (``substeps``: as the scene's
+        ``frame_steps`` takes it), shape (world_count,): the count its scene takes run alone with
+        its parameters (its own rule, e.g. cloth's steps per sub-step; automatic timing: from that
+        world's own limit, whatever count the batch's timing was fixed to); the batch's count for
+        every world when not :attr:`own_counts`."""
+        scene, timing = self.batch_scene, self.batch_scene.timing
+        key = (float(frame_dt), str(substeps), timing)
+        if self._steps is not None and self._steps[0] == key:
+            return self._steps[1]
+        n = self.world_count
+        if not timing.auto or not self.own_counts:
+            counts = np.full(n, int(scene.frame_steps(frame_dt, substeps)), dtype=np.int64)
+        else:  # a count fixed for the whole batch (e.g. a sweep's largest) does not bind a world: its own does
+            own = dataclasses.replace(timing, fixed=False)
+            counts = np.empty(n, dtype=np.int64)
+            try:
+                for w, limit in enumerate(self.world_limits()):
+                    scene.use_timing(own, limit=limit)
+                    counts[w] = scene.frame_steps(frame_dt, substeps)
+            finally:
+                scene.use_timing(timing, limit=self)
+        self._steps = (key, counts)
+        return counts
 
     def stable_dt(self) -> np.ndarray:
         """Largest stable step [s] of each world, shape (world_count,) (``Simulator.stability``
@@ -370,19 +441,18 @@ class WorldBatch:
         return stand_in
 
     def world_limits(self) -> list:
-        """:meth:`stability` computed once (the worlds' limits about their initial positions), with
-        ``LIMIT_ITERATIONS`` power iterations: each world's estimate starts from its own block of
-        the random start vector, which for some worlds converges slowly (teapot damping sweep:
-        up to 2 % above the world's converged limit after 80 iterations, < 0.01 % after 400)."""
+        """:meth:`stability` computed once (the worlds' limits about their initial positions): each
+        world's estimate starts where its own run's starts and takes as many power iterations
+        (``warpsim.core.stability.POWER_ITERATIONS``), so it is its own run's limit, bit for bit."""
         if getattr(self, "_world_limits", None) is None:
-            self._world_limits = self.stability(iterations=LIMIT_ITERATIONS)
+            self._world_limits = self.stability()
         return self._world_limits
 
     def auto_steps(self, frame_dt, minimum=1) -> int:
-        """Steps a frame of ``frame_dt`` [s] takes with automatic timing: the max over the worlds
-        of each world's own count (at least ``minimum``, within ``AUTO_SAFETY`` x its own limit
-        from its own stiffness, masses and damping), so every world's step is <= 0.5 x its limit
-        and the count depends on no world but the one needing the most."""
+        """The most steps a frame of ``frame_dt`` [s] takes with automatic timing (the batch's
+        launches per frame on the shared path): the max over the worlds of each world's own count
+        (at least ``minimum``, within ``AUTO_SAFETY`` x its own limit from its own stiffness,
+        masses and damping); each world takes its own (:meth:`world_steps`)."""
         return max(limit.substeps_for(frame_dt, minimum=int(minimum)) for limit in self.world_limits())
 
     def substeps_for(self, frame_dt, minimum=1) -> int:
@@ -391,9 +461,9 @@ class WorldBatch:
 
     def use_timing(self, timing):
         """Step the frames to come by ``timing`` (a :class:`~warpsim.scenes.timing.FrameTiming`):
-        with automatic timing not yet fixed, each frame takes the steps of the world needing the
-        most (:meth:`auto_steps`; the scene's own rule on top, e.g. cloth's steps per sub-step).
-        Returns the timing with the steps a frame takes."""
+        with automatic timing not yet fixed, each world takes its own count (:meth:`world_steps`).
+        Returns the timing with the most steps a frame takes (:meth:`auto_steps`; the scene's own
+        rule on top, e.g. cloth's steps per sub-step)."""
         self.batch_scene.use_timing(timing, limit=self)
         return self.batch_scene.current_timing()
 
@@ -402,8 +472,8 @@ class WorldBatch:
         from ..core.stability import worlds_warning
 
         labels = [", ".join(f"{k}={p[k]}" for k in self.varied) for p in self.params]
-        step = frame_dt / self.batch_scene.frame_steps(frame_dt, substeps)
-        return worlds_warning(self.world_limits(), step, labels)
+        steps = frame_dt / self.world_steps(frame_dt, substeps)  # each world's own step [s]
+        return worlds_warning(self.world_limits(), steps, labels)
 
     def world_slices(self):
         """Host copies (N, P, 3) of the positions and velocities."""

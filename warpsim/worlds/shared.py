@@ -12,8 +12,6 @@ pair and writes the other), masses, inverse masses, radii and the per-world valu
 """
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import warp as wp
 
@@ -55,9 +53,12 @@ def eligibility(sim0) -> str | None:
 
 class SharedStepper:
     """Steps the worlds of ``batch`` (a WorldBatch on the shared path) in place of its simulator:
-    ``frame(frame_dt, substeps)`` runs the sub-steps, one launch each (``block_per_world``: the
-    whole frame in one launch, one thread block of ``lanes`` threads per world, the same bits),
-    and leaves the state in ``batch.sim.state`` (no allocation: a frame captures as a CUDA graph).
+    ``frame(frame_dt, steps)`` runs a frame in which world w takes ``steps[w]`` steps of
+    ``frame_dt / steps[w]`` (``steps``: one count for all, or one per world: each world's own
+    automatic count), one launch per sub-step up to the largest count (worlds past their count
+    idle), or with ``block_per_world`` the whole frame in one launch, one thread block of
+    ``lanes`` threads per world (the same bits); the state ends in ``batch.sim.state`` (no
+    allocation: a frame captures as a CUDA graph).
 
     ``scales``: {spring array name: (base (S,) host, key (S,) device int, coefficient (S,) device
     float)} and ``world_values`` (device, world_count K) as the tiling computed them."""
@@ -74,58 +75,81 @@ class SharedStepper:
         st = batch.sim.state
         self._home = (st.positions, st.velocities)
         self._spare = (wp.zeros_like(st.positions), wp.zeros_like(st.velocities))
+        n = batch.world_count
+        self.steps = K.WorldSteps()
+        """Each world's steps per frame and step [s] (``kernels/world_step.py: WorldSteps``)."""
+        self.steps.steps = wp.ones(n, dtype=int, device=d)
+        self.steps.h = wp.zeros(n, dtype=float, device=d)
+        self._steps_key: tuple | None = None
+        self.max_steps = 1
+        """The largest count of the last frame: launches per frame of the per-step path."""
+        self._odd = False
         self.marks = None
-        """A ``kernels/occupancy.py: CellMarks`` set by an occupancy recorder: a frame's last sub-step
-        marks the cells of its positions (None: no marks)."""
+        """A ``kernels/occupancy.py: CellMarks`` set by an occupancy recorder: each world's last
+        sub-step of a frame marks the cells of its positions (None: no marks)."""
         self._no_marks = KO.CellMarks()
         self._no_marks.dims = wp.vec3i(1, 1, 1)
         self._no_marks.cell_hit = wp.zeros(0, dtype=wp.uint8, device=d)
         self._no_marks.bits = wp.zeros(0, dtype=wp.uint32, device=d)
         self._no_marks.frame = wp.zeros(1, dtype=int, device=d)
 
-    def step(self, h: float, marks=None) -> None:
-        """One sub-step of ``h`` [s]: (q, qd) -> the other buffer pair, which becomes the state;
-        ``marks`` (a CellMarks): the new positions mark their cells."""
-        b, st = self.batch, self.batch.sim.state
-        m = b.model
-        q_out = self._spare[0] if st.positions is self._home[0] else self._home[0]
-        qd_out = self._spare[1] if st.velocities is self._home[1] else self._home[1]
-        wp.launch(K.step_shared_worlds, m.particle_count,
-                  inputs=[st.positions, st.velocities, m.particle_mass, m.particle_inv_mass, m.particle_radius,
-                          self.world_gravity, m.world_particle_count, self.springs, self.walls, float(h), q_out,
-                          qd_out, self._no_marks if marks is None else marks], device=b.device)
-        st.positions, st.velocities = q_out, qd_out
+    def set_steps(self, frame_dt: float, steps) -> None:
+        """World w takes ``steps[w]`` steps of ``frame_dt / steps[w]`` [s] a frame (``steps``: an int
+        for all worlds or (world_count,) ints); the step is the float32 of the same float64
+        division a world run alone makes. Copied to the device only when it changes (a captured
+        frame replays with the same counts)."""
+        n = self.batch.world_count
+        counts = np.broadcast_to(np.asarray(steps, dtype=np.int64), (n,))
+        if (counts < 1).any():
+            w = int(np.flatnonzero(counts < 1)[0])
+            raise ValueError(f"world {w} has {int(counts[w])} steps a frame; give >= 1")
+        key = (float(frame_dt), counts.tobytes())
+        if key == self._steps_key:
+            return
+        self.steps.steps.assign(counts.astype(np.int32))
+        self.steps.h.assign((np.float64(frame_dt) / counts).astype(np.float32))
+        self._steps_key = key
+        self.max_steps = int(counts.max())
+        self._odd = bool((counts % 2 == 1).any())
 
-    def frame(self, frame_dt: float, substeps: int) -> None:
-        h = frame_dt / substeps
-        if self.block_per_world:
-            self._frame_blocks(h, int(substeps))
-        for k in range(0 if self.block_per_world else int(substeps)):
-            self.step(h, self.marks if k == int(substeps) - 1 else None)
-        st = self.batch.sim.state
-        if st.positions is not self._home[0]:  # the frame ends in the state's own arrays
+    def frame(self, frame_dt: float, steps) -> None:
+        """One frame: world w takes ``steps[w]`` steps (or ``steps`` each) of ``frame_dt / steps[w]``
+        [s]; worlds past their count idle (the mask is data: the launches depend on the largest
+        count only)."""
+        self.set_steps(frame_dt, steps)
+        b, st = self.batch, self.batch.sim.state
+        if st.positions is not self._home[0]:  # a state swapped in from outside: start from the home pair
             wp.copy(self._home[0], st.positions)
             wp.copy(self._home[1], st.velocities)
             st.positions, st.velocities = self._home
-        sim = self.batch.sim
+        m, marks = b.model, self._no_marks if self.marks is None else self.marks
+        if self.block_per_world:
+            wp.launch(K.frame_shared_worlds, b.world_count * self.lanes,
+                      inputs=[st.positions, st.velocities, self._spare[0], self._spare[1], m.particle_mass,
+                              m.particle_inv_mass, m.particle_radius, self.world_gravity, m.world_particle_count,
+                              self.lanes, self.springs, self.walls, self.steps, marks],
+                      block_dim=self.lanes, device=b.device)
+        else:
+            pairs = (self._home, self._spare)  # sub-step k reads pair k % 2 and writes the other
+            for k in range(self.max_steps):
+                (q, qd), (q_out, qd_out) = pairs[k % 2], pairs[(k + 1) % 2]
+                wp.launch(K.step_shared_worlds, m.particle_count,
+                          inputs=[q, qd, m.particle_mass, m.particle_inv_mass, m.particle_radius, self.world_gravity,
+                                  m.world_particle_count, self.springs, self.walls, self.steps, k, q_out, qd_out,
+                                  marks], device=b.device)
+            if self._odd:  # worlds that took an odd count end in the spare pair
+                wp.launch(K.settle_worlds, m.particle_count,
+                          inputs=[*self._spare, m.world_particle_count, self.steps, *self._home], device=b.device)
+        sim = b.sim
         sim.time += frame_dt
-        sim.step_count += int(substeps)
-
-    def _frame_blocks(self, h: float, substeps: int) -> None:
-        """The whole frame in one launch, one thread block of ``lanes`` threads per world."""
-        b, st = self.batch, self.batch.sim.state
-        m = b.model
-        wp.launch(K.frame_shared_worlds, b.world_count * self.lanes,
-                  inputs=[st.positions, st.velocities, self._spare[0], self._spare[1], m.particle_mass,
-                          m.particle_inv_mass, m.particle_radius, self.world_gravity, m.world_particle_count,
-                          self.lanes, self.springs, self.walls, float(h), int(substeps),
-                          self._no_marks if self.marks is None else self.marks],
-                  block_dim=self.lanes, device=b.device)
+        sim.step_count += self.max_steps
 
     def device_bytes(self) -> int:
-        """Bytes of the shared arrays (stored once for all worlds) and the spare state pair."""
+        """Bytes of the shared arrays (stored once for all worlds), the spare state pair and the
+        per-world counts and steps."""
         s = self.springs
-        arrays = [s.offsets, s.entries, s.keys, s.world_values, *self._spare, self.world_gravity]
+        arrays = [s.offsets, s.entries, s.keys, s.world_values, *self._spare, self.world_gravity, self.steps.steps,
+                  self.steps.h]
         return sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
 
 
