@@ -211,10 +211,12 @@ def finite_difference(scene, targets, name: str, indices, eps: float = 1.0e-6, s
 
 
 def build(scene, device="cpu", differentiable=True):
-    """The ws.Simulator (ClothSimulator for integrator "cloth") of ``scene``."""
-    import warpsim as ws
+    """The Simulator (ClothSimulator for integrator "cloth") of ``scene``."""
+    from ..bodies import Plane, Sphere
+    from ..cloth import ClothSimulator
+    from ..core import ConstantForce, Drag, Gravity, Magnets, ModelBuilder, Simulator, Wind
 
-    b = ws.ModelBuilder()
+    b = ModelBuilder()
     for x, v, m, r in zip(scene["q"], scene["v"], scene["mass"], scene["radius"]):
         b.add_particle(tuple(map(float, x)), tuple(map(float, v)), mass=float(m), radius=float(r))
     for i, j, k, kd, rest in scene["springs"]:
@@ -223,22 +225,22 @@ def build(scene, device="cpu", differentiable=True):
     for spec in scene["forces"]:
         kind = spec[0]
         if kind == "gravity":
-            forces.append(ws.Gravity(tuple(map(float, spec[1]))))
+            forces.append(Gravity(tuple(map(float, spec[1]))))
         elif kind == "constant":
-            forces.append(ws.ConstantForce(tuple(map(float, spec[1])), spec[2]))
+            forces.append(ConstantForce(tuple(map(float, spec[1])), spec[2]))
         elif kind == "drag":
-            forces.append(ws.Drag(spec[1], spec[2]))
+            forces.append(Drag(spec[1], spec[2]))
         elif kind == "wind":
-            forces.append(ws.Wind(**spec[1]))
+            forces.append(Wind(**spec[1]))
         elif kind == "magnets":
-            forces.append(ws.Magnets(spec[1], spec[2], softening=spec[3], cutoff=spec[4]))
+            forces.append(Magnets(spec[1], spec[2], softening=spec[3], cutoff=spec[4]))
     colliders = []
     for spec in scene["colliders"]:
         if spec[0] == "plane":
-            colliders.append(ws.Plane(tuple(map(float, spec[1])), float(spec[2]), **spec[3]))
+            colliders.append(Plane(tuple(map(float, spec[1])), float(spec[2]), **spec[3]))
         else:
-            colliders.append(ws.Sphere(tuple(map(float, spec[1])), float(spec[2]), continuous=False, **spec[3]))
+            colliders.append(Sphere(tuple(map(float, spec[1])), float(spec[2]), continuous=False, **spec[3]))
     model = b.finalize(device)
     if scene["integrator"] == "cloth":
-        return ws.ClothSimulator(model, "semi_implicit_euler", forces, colliders, differentiable=differentiable)
-    return ws.Simulator(model, scene["integrator"], forces, colliders, differentiable=differentiable)
+        return ClothSimulator(model, "semi_implicit_euler", forces, colliders, differentiable=differentiable)
+    return Simulator(model, scene["integrator"], forces, colliders, differentiable=differentiable)
