@@ -274,7 +274,7 @@ class WorldBatch:
 
     def _simulator(self, sim0):
         integrator = copy.copy(sim0.integrator)
-        integrator._system = None  # prepare() allocates for the batched system
+        integrator.reset()  # a copy: prepare() allocates for the batched system
         forces = []
         for j, f in enumerate(sim0.forces):
             effects = [(e, e.gravity[j]) for e in self.plan.values() if j in e.gravity]
