@@ -107,12 +107,14 @@ class SoftContact(Collider):
     """Default BVH rebuild period on the CPU, where a SAH rebuild costs about 1.2 us per item."""
     SEARCH_EVERY = 20
     """Default refit-and-search period of ``broad_phase="list"`` (steps)."""
+    DEFAULT_CAPACITY = 64
+    """Default candidates kept per query of ``broad_phase="list"``."""
 
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
                  broad_phase: str = "bvh", rebuild_every: int | None = None, pad: float | None = None,
-                 search_every: int | None = None, capacity: int = 64):
+                 search_every: int | None = None, capacity: int | None = None):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -153,7 +155,8 @@ class SoftContact(Collider):
                                                                             fix="e.g. the thickness"))
         self.search_every = self.SEARCH_EVERY if search_every is None else checks.integer(
             search_every, "SoftContact search_every", lo=1, hi=1_000_000, fix="e.g. 20 (steps between refits)")
-        self.capacity = checks.integer(capacity, "SoftContact capacity", lo=1, hi=4096, fix="e.g. 64")
+        self.capacity = checks.integer(self.DEFAULT_CAPACITY if capacity is None else capacity, "SoftContact capacity",
+                                       lo=1, hi=4096, fix="e.g. 64")
         self.broad_phase = broad_phase
         if rebuild_every is not None and (isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int)
                                           or rebuild_every < 0):

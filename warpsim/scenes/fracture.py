@@ -337,14 +337,16 @@ def replicate_model(template, count: int, positions, device) -> Model:
     return model
 
 
-def check_donut_memory(count: int, torus, device) -> None:
+def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> None:
     """ValueError (with the figures) when ``count`` copies of ``torus`` (a SoftBody) would not fit
     in the device's free memory, or the host's for the build. Per torus: about 300 B per particle
     (state, model, integrator and contact buffers), 120 B per spring (model, adjacency), 260 B per
-    surface triangle (BVHs, edges, contact slots); the Python build holds about 250 B per spring
-    and 200 B per particle on the host."""
+    surface triangle (BVHs, edges, contact slots), and with a candidate list of ``list_capacity``
+    candidates a query 2 (4 capacity + 8) B per triangle (about two queries, a vertex's and 1.5 edges',
+    per triangle); the Python build holds about 250 B per spring and 200 B per particle on the host."""
     faces = len(torus.faces)
-    device_bytes = count * (300 * torus.particle_count + 120 * torus.spring_count + 260 * faces)
+    per_face = 260 + (2 * (4 * list_capacity + 8) if list_capacity else 0)
+    device_bytes = count * (300 * torus.particle_count + 120 * torus.spring_count + per_face * faces)
     host_bytes = count * (200 * torus.particle_count + 250 * torus.spring_count)
     need = [("host", host_bytes, available_host_bytes(unknown=0))]
     if device.is_cuda:
@@ -419,7 +421,11 @@ class DonutsScene(SimulatorScene):
         template = add_soft_body(template_builder, points, faces, total_mass=p["mass"], mass_distribution="uniform",
                                  stiffness=p["stiffness"], damping=p["damping"], lattice_cells=p["lattice_cells"],
                                  name="torus")
-        check_donut_memory(p["count"], template, self.device)
+        broad_phase = p["broad_phase"]
+        if broad_phase == "auto":
+            broad_phase = "list" if wp.get_device(self.device).is_cuda else "bvh"
+        check_donut_memory(p["count"], template, wp.get_device(self.device),
+                           SoftContact.DEFAULT_CAPACITY if broad_phase == "list" else 0)
         reach = p["major_radius"] + p["minor_radius"]
         box = p["box"] or 0.35 * p["major_radius"] / 0.1 * (p["count"] / 12.0) ** (1.0 / 3.0)
         per_side = max(1, int((2.0 * box) // (2.0 * reach + 0.02)))
@@ -453,9 +459,6 @@ class DonutsScene(SimulatorScene):
         top = max(2.0 * box, float(model.particle_q.numpy()[:, 1].max()) + reach)
         self.lower, self.upper = (-box, 0.0, -box), (box, top, box)
         self.contact = None  # one torus without self contact touches nothing but the box
-        broad_phase = p["broad_phase"]
-        if broad_phase == "auto":
-            broad_phase = "list" if wp.get_device(self.device).is_cuda else "bvh"
         if count > 1 or p["self_contact"]:
             self.contact = SoftContact.copies(template.faces, self.offsets, thickness=p["thickness"],
                                               self_contact=p["self_contact"], edge_contact=p["edge_contact"],
