@@ -70,3 +70,79 @@ def test_a_sweep_world_equals_its_plain_run_bit_for_bit(tmp_path, name):
         batch.advance(timing.frame_dt, timing.steps)
         shared.advance(fixed.frame_dt, fixed.steps)
     assert batch.world_slices()[0][w].tobytes() != shared.world_slices()[0][w].tobytes()
+
+
+@pytest.mark.parametrize("block_per_world", [False, True])
+def test_cells_marked_at_each_worlds_own_last_sub_step(block_per_world):
+    """The occupancy record marked inside the step (at each world's own last sub-step of a frame)
+    equals the separate pass over the positions after the frame, with worlds of different counts."""
+    from warpsim.browse.occupancy import OccupancyRecorder
+
+    cls, worlds = sweep_worlds("springs")
+    timing = sweep_timing(cls, worlds)
+    records = []
+    for in_step in (True, False):
+        batch = WorldBatch(cls, worlds, device="cpu", block_per_world=block_per_world)
+        batch.use_timing(timing)
+        counts = batch.world_steps(timing.frame_dt, timing.steps)
+        assert len(set(counts.tolist())) == 3 and (counts % 2 == 1).any(), counts  # an odd count ends in the spare
+        recorder = OccupancyRecorder(batch, 6, resolution=16, exact_max=0, in_step=in_step)
+        assert recorder.in_step == in_step
+        recorder.update()
+        recorder.after_frame()
+        for _ in range(6):
+            batch.advance(timing.frame_dt, timing.steps)
+            recorder.update()
+            recorder.after_frame()
+        records.append(recorder.finish())
+    step, apart = records
+    assert len(np.unique(step.pair_bits[:, 0])) > 3  # cells change over the frames
+    for key in ("world_start", "pair_cell", "pair_bits"):
+        assert getattr(step, key).tobytes() == getattr(apart, key).tobytes(), key
+
+
+def test_a_fixed_substeps_sweep_steps_every_world_alike(tmp_path):
+    """--substeps N: every world takes N steps (the former shared count), and world N still equals its
+    plain run with --substeps N."""
+    from warpsim.sweeps.rerun import first_difference
+
+    cls, worlds = sweep_worlds("springs")
+    timing = sweep_timing(cls, worlds, substeps=12)
+    batch = WorldBatch(cls, worlds, device="cpu")
+    batch.use_timing(timing)
+    assert batch.world_steps(timing.frame_dt, timing.steps).tolist() == [12, 12, 12]
+    fixed, key, values, _ = SWEEPS["springs"]
+    sets = [a for k, v in fixed.items() for a in ("--set", f"{k}={v}")]
+    root = tmp_path / "sweep.usda"
+    code, _, err = cli("sweep", "springs", *sets, "--vary", f"{key}={','.join(map(str, values))}", "--worlds", 3,
+                       "--frames", FRAMES, "--device", "cpu", "--out", root, "--no-progress", "--substeps", 12)
+    assert code == 0, err
+    cache = tmp_path / "alone.usda"
+    code, _, err = cli("run", "springs", *sets, "--set", f"{key}={values[0]}", "--frames", FRAMES, "--device", "cpu",
+                       "--out", cache, "--no-progress", "--substeps", 12)
+    assert code == 0, err
+    assert first_difference(root, 0, cache) is None
+
+
+def test_a_rerun_needs_no_count_from_the_manifest(tmp_path):
+    """A re-run of a sweep whose worlds take different counts equals its samples with the manifest's
+    frame_steps removed (null) as with it kept."""
+    import json
+
+    from warpsim.sweeps.rerun import first_difference, manifest_path, rerun_world
+
+    fixed, key, values, extra = SWEEPS["cloth"]
+    sets = [a for k, v in fixed.items() for a in ("--set", f"{k}={v}")]
+    root = tmp_path / "sweep.usda"
+    code, _, err = cli("sweep", "cloth", *sets, "--vary", f"{key}={','.join(map(str, values))}", "--worlds", 3,
+                       "--frames", FRAMES, "--device", "cpu", "--out", root, "--no-progress", *extra)
+    assert code == 0, err
+    path = manifest_path(root)
+    with open(path) as f:
+        manifest = json.load(f)
+    assert manifest["frame_steps"] is not None
+    manifest["frame_steps"] = None
+    with open(path, "w") as f:
+        json.dump(manifest, f)
+    for world in (0, 2):  # the fewest and the most steps a frame
+        assert first_difference(root, world, rerun_world(root, world, out=tmp_path / f"w{world}.usda")) is None
