@@ -359,9 +359,10 @@ def main():
     parser.add_argument("--frames", type=int, default=60, help="timed frames per size")
     parser.add_argument("--implicit-frames", type=int, default=30)
     parser.add_argument("--warmup", type=int, default=3, help="untimed frames (compilation, graph capture)")
-    parser.add_argument("--modes", nargs="+", choices=["auto", "scatter", "gather", "owner", "simulator"],
+    parser.add_argument("--modes", nargs="+", choices=["auto", "scatter", "gather", "owner", "lanes", "simulator"],
                         default=["auto"],
-                        help="warpsim explicit kernel layouts to time (auto: owner on CPU, gather on CUDA; "
+                        help="warpsim explicit kernel layouts to time (auto: lanes on CPU where it fills half its "
+                             "lanes, else owner; gather on CUDA; "
                              "simulator: the generic ws.Simulator with default settings, one step() per sub-step)")
     parser.add_argument("--cpu-time", action="store_true",
                         help="frame times as this thread's CPU time (CPU device: the work done, less the waits "

@@ -454,7 +454,7 @@ def test_hanging_cloth_comes_to_static_equilibrium():
 # ------------------------------------------------------------------------------------------
 # Explicit kernels, graph replay, collisions
 # ------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mode", ["scatter", "gather", "owner"])
+@pytest.mark.parametrize("mode", ["scatter", "gather", "owner", "lanes"])
 def test_semi_implicit_kernels_match_numpy(mode):
     b, cloth = small_cloth((4, 3), stiffness=500.0, damping=2.0)
     model = b.finalize(DEVICE)

@@ -33,7 +33,10 @@ from ..core.block_cg import BlockCG
 from ..core.forces import Force, Gravity, Springs
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
 from ..core.model import ensure_spring_adjacency
+from .lanes import build_lane_blocks
 from ..kernels import cloth as KC
+from ..kernels import cloth_lanes as KL
+from ..kernels.cloth_lanes import ROW_MAX as LANE_ROW_MAX
 from ..kernels import forces as KF
 from ..kernels import integrate as KI
 from ..core.simulator import Simulator, check_dt
@@ -69,9 +72,14 @@ class ClothSemiImplicitEuler(Integrator):
     ends), "owner" (two particle kernels per step: each spring evaluated once, by its lower end's
     thread, which writes its force on both ends to their entries of the model's CSR spring list;
     then each particle sums its CSR row in order and is updated: the scatter mode's sums, bit for
-    bit) or None: gather on CUDA (measured faster there on an H100 from 32^2 to 1024^2 particles,
-    see benchmarks/bench_cloth.py), owner on the CPU (scatter where springs can break). "gather"
-    and "owner" step out of place (ClothSimulator ping-pongs its state arrays). None uses float
+    bit), "lanes" (one kernel per step, eight particles a thread whose CSR rows share a neighbour
+    pattern, their springs in SIMD lanes: the scatter mode's sums bit for bit, rows of at most
+    12 springs; ``warpsim.cloth.lanes``) or None: gather on CUDA (measured faster there on an
+    H100 from 32^2 to 1024^2 particles, see benchmarks/bench_cloth.py), lanes on the CPU where
+    at least half of its lanes hold distinct particles, else owner (scatter where springs can
+    break). "gather", "owner" and "lanes" step out of place (ClothSimulator ping-pongs its state
+    arrays); lanes reads spring parameters from the model's arrays once per ClothSimulator frame
+    (once per step otherwise). None uses float
     atomics: all are bit-reproducible (gather sums in another order than scatter and owner, so it
     agrees with them to float rounding). ``deterministic=False`` (scatter mode only): the former per-spring kernel
     with float atomics, whose summation order varies run to run on GPUs (an opt-out for speed
@@ -81,8 +89,8 @@ class ClothSemiImplicitEuler(Integrator):
 
     def __init__(self, mode: str | None = None, deterministic: bool = True):
         super().__init__()
-        if mode not in (None, "scatter", "gather", "owner"):
-            raise ValueError(f"mode = {mode!r}; use 'scatter', 'gather', 'owner' or None (automatic)")
+        if mode not in (None, "scatter", "gather", "owner", "lanes"):
+            raise ValueError(f"mode = {mode!r}; use 'scatter', 'gather', 'owner', 'lanes' or None (automatic)")
         if not isinstance(deterministic, (bool, np.bool_)):
             raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.requested_mode = mode
@@ -95,8 +103,13 @@ class ClothSemiImplicitEuler(Integrator):
             auto = "scatter"
         else:
             auto = "gather" if d.is_cuda and system.count < GATHER_MAX_PARTICLES else "owner"
+        self.lane_blocks = None
+        if self.requested_mode == "lanes" or (self.requested_mode is None and auto == "owner"):
+            self.lane_blocks = self._lane_blocks(model, required=self.requested_mode == "lanes")
+            if self.lane_blocks is not None:
+                auto = "lanes"
         self.mode = self.requested_mode or auto
-        if self.mode in ("gather", "owner") and breakable:
+        if self.mode in ("gather", "owner", "lanes") and breakable:
             raise ValueError(f"mode={self.mode!r} cannot break springs (its adjacency lists carry no spring index) "
                              f"and this model has {breakable} breakable springs; use mode='scatter' or None")
         if self.mode == "gather" and system.count >= GATHER_MAX_PARTICLES:
@@ -112,11 +125,67 @@ class ClothSemiImplicitEuler(Integrator):
             self._build_adjacency(model)
         elif self.mode == "owner":
             self._build_owned(model)
+        elif self.mode == "lanes":
+            self._upload_lanes(system)
 
     @property
     def out_of_place(self) -> bool:
-        """True when a step reads (q, qd) and writes other arrays (``step_to``): "gather", "owner"."""
-        return getattr(self, "mode", None) in ("gather", "owner")
+        """True when a step reads (q, qd) and writes other arrays (``step_to``): "gather", "owner",
+        "lanes"."""
+        return getattr(self, "mode", None) in ("gather", "owner", "lanes")
+
+    @staticmethod
+    def _lane_blocks(model, required: bool):
+        """The lanes mode's blocks, or None (automatic choice) where a row is too long or fewer than
+        half of the lanes would hold distinct particles."""
+        ensure_spring_adjacency(model)
+        offsets = model.particle_spring_offsets.numpy()
+        if not required and (model.particle_count == 0 or np.diff(offsets).max() > LANE_ROW_MAX):
+            return None
+        blocks = build_lane_blocks(offsets, model.particle_springs.numpy(), model.spring_indices.numpy(),
+                                   model.particle_count)
+        return blocks if required or blocks.utilisation >= 0.5 else None
+
+    def _upload_lanes(self, system):
+        d, b = system.device, self.lane_blocks
+        self.lane_particles = wp.array(b.particles, dtype=KL.lane8i, device=d)
+        self.lane_info = wp.array(b.info, dtype=wp.vec4i, device=d)
+        self.lane_deltas = wp.array(b.deltas, dtype=int, device=d)
+        self.lane_slot_springs = wp.array(b.slot_springs, dtype=KL.lane8i, device=d)
+        self.lane_params = wp.zeros(3 * len(b.slot_springs), dtype=KL.lane8, device=d)
+        blocks = (system.count + KL.LANES - 1) // KL.LANES
+        self.planar8 = [wp.zeros(blocks, dtype=KL.lane8, device=d) for _ in range(6)]
+        self.planar = [a.view(float).flatten() for a in self.planar8]  # float views of the same memory
+        self._params_fresh = False
+
+    def begin_frame(self, system) -> None:
+        """Lanes mode: read the spring parameters once for the frame's steps (ClothSimulator calls
+        this before a frame's sub-steps and ``end_frame`` after them)."""
+        if getattr(self, "mode", None) == "lanes":
+            self._pack_lane_params(system)
+            self._params_fresh = True
+
+    def end_frame(self) -> None:
+        self._params_fresh = False
+
+    def _pack_lane_params(self, system):
+        model = system.model
+        wp.launch(KL.pack_lane_params, len(self.lane_slot_springs),
+                  inputs=[self.lane_slot_springs, model.spring_rest_length, model.spring_stiffness,
+                          model.spring_damping, self.lane_params], device=system.device)
+
+    def _step_lanes(self, system, q, qd, dt, q_out, qd_out):
+        if not self._params_fresh:
+            self._pack_lane_params(system)
+        n, runs = system.count, self.lane_blocks.runs
+        wp.launch(KL.pack_planar, (n + KL.LANES - 1) // KL.LANES, inputs=[q, qd, n, *self.planar8], device=system.device)
+        for kernel, first, count in ((KL.step_cloth_lanes_run, 0, runs),
+                                     (KL.step_cloth_lanes_any, runs, len(self.lane_particles) - runs)):
+            if count:
+                wp.launch(kernel, count,
+                          inputs=[*self.planar, self.f_ext, int(bool(self.others)), first, self.lane_particles,
+                                  self.lane_info, self.lane_deltas, self.lane_params, system.inv_mass, self.gravity,
+                                  float(dt), q_out, qd_out], device=system.device)
 
     def _build_owned(self, model):
         """"owner" mode's lists: each spring s is owned by its lower end i: entries (other end j,
@@ -180,6 +249,9 @@ class ClothSemiImplicitEuler(Integrator):
         if self.others:
             self.f_ext.zero_()
             self._external(system, q, qd, time, self.f_ext)
+        if self.mode == "lanes":
+            self._step_lanes(system, q, qd, dt, q_out, qd_out)
+            return
         if self.mode == "owner":
             model = system.model
             wp.launch(KC.eval_cloth_owned_springs, system.count,
@@ -569,8 +641,15 @@ class ClothSimulator(Simulator):
 
     def _frame_body(self, frame_dt: float, substeps: int) -> None:
         h = frame_dt / substeps
-        for k in range(substeps):
-            self._substep(h, k, pingpong=True)
+        begin = getattr(self.integrator, "begin_frame", None)
+        if begin is not None:
+            begin(self.system)
+        try:
+            for k in range(substeps):
+                self._substep(h, k, pingpong=True)
+        finally:
+            if begin is not None:
+                self.integrator.end_frame()
         self._go_home()
         if not self._needs_time:
             wp.launch(KI.advance_time, 1, inputs=[self._time, frame_dt], device=self.device)

@@ -1,0 +1,115 @@
+"""The cloth "lanes" step (eight particles a thread sharing a neighbour pattern, springs in SIMD
+lanes): its blocks cover the model's CSR rows exactly, and it gives the scatter and owner modes'
+bits."""
+
+import numpy as np
+import pytest
+
+import warpsim as ws
+from warpsim.bodies.colliders import Sphere
+from warpsim.cloth.builder import add_cloth_grid
+from warpsim.cloth.lanes import build_lane_blocks
+from warpsim.cloth.solver import ClothSemiImplicitEuler, ClothSimulator
+from warpsim.core.model import ensure_spring_adjacency
+from warpsim.kernels.cloth_lanes import LANES, ROW_MAX
+
+DEVICE = "cpu"
+
+
+def grid(resolution, reverse=False, distinct=False):
+    b = ws.ModelBuilder()
+    add_cloth_grid(b, resolution, (0.3, 0.3), (0.0, 1.0, 0.0), particle_mass=0.1, pin=["corner_00", "corner_10"],
+                   stiffness=400.0, damping=1.0)
+    if reverse:  # first end the higher index
+        b.spring_indices = [(int(j), int(i)) for i, j in np.asarray(b.spring_indices).reshape(-1, 2)]
+    if distinct:
+        b.spring_stiffness = list(np.random.default_rng(2).uniform(300.0, 500.0, b.spring_count))
+    return b
+
+
+def test_blocks_cover_every_row_entry_in_order():
+    """Every particle is in one block (padding repeats a particle of its block); lane c of block
+    b at entry k reaches the other end of its particle's k-th CSR entry through the pattern's
+    delta, and its slot names that entry's spring; consecutive blocks hold eight consecutive
+    particles and come first."""
+    model = grid((20, 12), reverse=True).finalize(DEVICE)
+    ensure_spring_adjacency(model)
+    offsets, springs = model.particle_spring_offsets.numpy(), model.particle_springs.numpy()
+    ends = model.spring_indices.numpy().reshape(-1, 2)
+    blocks = build_lane_blocks(offsets, springs, ends, model.particle_count)
+    seen = np.zeros(model.particle_count, dtype=int)
+    for b, (lanes, (start, count, slot, run)) in enumerate(zip(blocks.particles, blocks.info)):
+        assert (run == 1) == (b < blocks.runs)
+        if run:
+            assert np.array_equal(lanes, lanes[0] + np.arange(LANES))
+        for p in set(lanes.tolist()):
+            seen[p] += 1
+        for k in range(count):
+            for c, p in enumerate(lanes):
+                s = springs[offsets[p] + k]
+                assert blocks.slot_springs[slot + k, c] == s
+                assert p + blocks.deltas[start + k] == (ends[s, 1] if ends[s, 0] == p else ends[s, 0])
+        assert all(offsets[p + 1] - offsets[p] == count for p in lanes)
+    assert np.all(seen == 1)
+    assert blocks.runs > 0 and blocks.utilisation >= 0.5  # the automatic choice takes lanes
+
+
+def run_frames(mode, resolution, frames=20):
+    b = grid(resolution, reverse=True, distinct=True)
+    sim = ClothSimulator(b.finalize(DEVICE), ClothSemiImplicitEuler(mode),
+                         forces=[ws.Gravity(), ws.Wind(coefficient=0.02)],
+                         colliders=[ws.Plane(offset=0.9, restitution=0.0, friction=0.3),
+                                    Sphere((0.15, 0.95, 0.15), 0.04, restitution=0.0, friction=0.3)])
+    for frame in range(frames):
+        if frame == frames // 2:  # changed in place: read again at the next frame
+            sim.model.spring_stiffness.assign(0.5 * sim.model.spring_stiffness.numpy())
+        sim.frame(1.0 / 60.0, 16)
+    return sim.state.positions.numpy(), sim.state.velocities.numpy(), sim.integrator.mode
+
+
+@pytest.mark.parametrize("resolution, mode", [((20, 12), None), ((5, 4), "lanes")])
+def test_lanes_give_the_scatter_modes_bits(resolution, mode):
+    """Captured frames with wind (an external force), a floor and a sphere, springs whose first
+    end is the higher index, distinct stiffnesses halved in place half way: the lanes step gives
+    the scatter mode's bits, with consecutive blocks (20 x 12, where it is the CPU default) and
+    with per-lane blocks only (5 x 4: no eight consecutive rows alike; asked for by name)."""
+    x_lanes, v_lanes, mode = run_frames(mode, resolution)
+    x_scatter, v_scatter, _ = run_frames("scatter", resolution)
+    assert mode == "lanes"
+    assert x_lanes.tobytes() == x_scatter.tobytes() and v_lanes.tobytes() == v_scatter.tobytes()
+    assert 0.88 < x_lanes[:, 1].min() < 0.95  # it fell onto the floor, which held it
+
+
+def test_lanes_steps_like_eager_steps_and_runs_twice_alike():
+    """ws.Simulator's eager steps (parameters read every step) give the frames' bits, and two runs
+    give identical bytes."""
+    def eager():
+        sim = ws.Simulator(grid((20, 12)).finalize(DEVICE), ClothSemiImplicitEuler("lanes"))
+        for _ in range(40):
+            sim.step(1.0 / 960.0)
+        return sim.state.positions.numpy()
+
+    b = grid((20, 12))
+    sim = ClothSimulator(b.finalize(DEVICE), ClothSemiImplicitEuler("lanes"), forces=[ws.Gravity()])
+    for _ in range(4):
+        sim.frame(1.0 / 96.0, 10)
+    first = eager()
+    assert first.tobytes() == eager().tobytes()
+    assert first.tobytes() == sim.state.positions.numpy().tobytes()
+
+
+def test_rows_longer_than_the_lanes_take_fall_back_to_owner():
+    """A particle with more than ROW_MAX springs: mode='lanes' is refused with the figures, the
+    automatic choice is owner."""
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+    for k in range(ROW_MAX + 1):
+        angle = 2.0 * np.pi * k / (ROW_MAX + 1)
+        b.add_particle((np.cos(angle), 0.0, np.sin(angle)), (0.0, 0.0, 0.0), 0.1)
+        b.add_spring(0, k + 1, 100.0, 1.0)
+    model = b.finalize(DEVICE)
+    with pytest.raises(ValueError, match=f"at most {ROW_MAX} springs.*with {ROW_MAX + 1}"):
+        ws.Simulator(model, ClothSemiImplicitEuler("lanes")).step(1e-3)
+    sim = ws.Simulator(model, ClothSemiImplicitEuler())
+    sim.step(1e-3)
+    assert sim.integrator.mode == "owner"
