@@ -20,7 +20,7 @@ import socket
 import sys
 import time
 
-from warpsim.cli_common import DefaultsHelpFormatter, run_script
+from warpsim.cli_common import DefaultsHelpFormatter, parse_sets, run_script
 from warpsim.verbosity import set_warp_verbosity
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -50,12 +50,11 @@ def main(argv=None):
     import warp as wp
 
     set_warp_verbosity()  # quiet unless $WARPSIM_VERBOSE=1 (Warp 1.19 ignores config.quiet)
-    from warpsim import cli
     from warpsim.scenes import get_scene
     from warpsim.viewer.server import Viewer
 
     cls = get_scene(a.scene)
-    given = cli._parse_sets(cls, a.sets, None)
+    given = parse_sets(cls, a.sets, None)
     params = cls.resolve_params(given)
 
     from warpsim.viewer.session import frame_timing

@@ -15,7 +15,9 @@ pytest.importorskip("pxr")
 from pxr import Sdf, Usd
 
 from warpsim.usd.checkpoint import load_checkpoint
-from warpsim.cli import _timing, checkpoint_path, main
+from warpsim.cli import main
+from warpsim.cli_common import timing_from_flags
+from warpsim.commands.run import checkpoint_path
 from warpsim.scenes import SimulatorScene, format_value, get_scene, register_scene, scenes
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.usd.validate import validate_cache
@@ -69,7 +71,7 @@ def test_every_scene_validates_and_reads_back_its_simulation(name, tmp_path):
     given = cls.resolve_params(dict(cls.smoke_params))
     given = {k: given[k] for k in cls.smoke_params}
     params = cls.resolve_params(given)
-    timing, params = _timing(cls, params, given, None, None)
+    timing, params = timing_from_flags(cls, params, given, None, None)
     fps, substeps = timing.fps, timing.steps
     scene = cls(params, device="cpu")
     scene.use_timing(timing)

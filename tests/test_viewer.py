@@ -346,7 +346,9 @@ def test_ctrl_c_on_the_viewer_does_not_claim_frames(monkeypatch):
     err = io.StringIO()
     assert cli.main(["view", "bounce", "--device", "cpu"], out=io.StringIO(), err=err) == 130
     assert err.getvalue().strip() == "warpsim: interrupted"
-    monkeypatch.setattr(cli, "_cmd_run", interrupted)
+    from warpsim.commands import run as run_command
+
+    monkeypatch.setattr(run_command, "run", interrupted)
     err = io.StringIO()
     assert cli.main(["run", "bounce", "--frames", "1"], out=io.StringIO(), err=err) == 130
     assert "the frames written so far are kept" in err.getvalue()

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import os
 
+from ..cli_common import UsageError
+
 __all__ = ["add_parser", "pick_world", "run"]
 
 
@@ -22,7 +24,8 @@ def add_parser(sub):
     s = sub.add_parser("pick", help="write one world of a sweep as a USD file any tool opens (stage settings kept)")
     s.add_argument("root", help="root USD written by 'warpsim sweep'")
     s.add_argument("--world", type=int, required=True, metavar="N", help="the world's index (the table's 'world')")
-    s.add_argument("--out", required=True, help="file to write (.usd, .usda or .usdc)")
+    s.add_argument("--out", required=True, help="file to write (.usd, .usda or .usdc); a relative path is taken "
+                   "from the current folder")
     s.add_argument("--flatten", action="store_true",
                    help="copy the world's samples into the file (self-contained) instead of referencing the batch")
     s.add_argument("--allow-damaged", action="store_true",
@@ -134,7 +137,6 @@ def _write_pick(root, world, owner, out_path, flatten) -> str:
 
 
 def run(args, out, err):
-    from .. import cli
 
     from ..usd.pxr_errors import error_line
 
@@ -143,7 +145,7 @@ def run(args, out, err):
     except (OSError, ValueError) as exc:
         if getattr(exc, "exit_status", 2) != 2:
             raise  # a damaged sweep: exit 1
-        raise cli.UsageError(error_line(exc)) from None
+        raise UsageError(error_line(exc)) from None
     print(f"world {args.world} of {os.path.relpath(os.path.abspath(args.root))}: {os.path.relpath(path)}"
           f"{' (flattened)' if args.flatten else ''}", file=out)
     return 0

@@ -19,13 +19,13 @@ from __future__ import annotations
 import os
 import sys
 
+from ..cli_common import UsageError, check_output_path, device_arg, hold_output, parse_sets, substeps_arg
 from . import preflight
 
 LAYER_EXT = ".usdc"
 
 
 def add_parser(sub):
-    from .. import cli
 
     s = sub.add_parser("sweep", help="many worlds of a scene in one batched run: USD variants, a table, picking")
     s.add_argument("scene", help="scene name (see 'warpsim list')")
@@ -36,7 +36,7 @@ def add_parser(sub):
     s.add_argument("--seed", type=int, default=0, help="seed of random / lhs sampling (default 0)")
     s.add_argument("--frames", type=int, default=120, help="frames after frame 0 (default 120)")
     s.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
-    s.add_argument("--substeps", type=cli.substeps_arg, default=None,
+    s.add_argument("--substeps", type=substeps_arg, default=None,
                    help="steps per frame at the scene's frame rate (as 'warpsim run --help' says), or 'auto': the "
                         "most any world needs, so every world steps within half its own stability limit (default: "
                         "the scene's)")
@@ -96,10 +96,9 @@ def add_parser(sub):
 
 def _stability_warning(line, strict, err):
     """Before the first frame: one warning line on ``err`` (``--strict``: a usage error, exit 2)."""
-    from .. import cli
 
     if strict:
-        raise cli.UsageError(f"--strict: {line}")
+        raise UsageError(f"--strict: {line}")
     print(f"warpsim: warning: {line}", file=err)
 
 
@@ -140,7 +139,6 @@ def run(args, out, err):
     from ..verbosity import set_warp_verbosity
 
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
-    from .. import cli
     from ..core.errors import SimulationError
     from ..distributed.devices import DeviceSweepError
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
@@ -150,7 +148,7 @@ def run(args, out, err):
     from .sweep import run_batch, sample_worlds, write_table
     from ..browse.roots import LAYOUTS, write_sweep_root
 
-    usage = cli.UsageError
+    usage = UsageError
     try:
         cls = get_scene(args.scene)
     except ValueError as exc:
@@ -198,13 +196,13 @@ def run(args, out, err):
         preflight.check_ray_address(getattr(args, "ray", None))
     except ValueError as exc:
         raise usage(str(exc)) from None
-    cli._check_out(path, "--out")
+    check_output_path(path, "--out")
     if os.path.splitext(table)[1].lower() != ".csv":
         raise usage(f"--table {table!r} must end in .csv")
-    cli._check_out(table, "--table")
-    cli._hold_output(path, "--out")  # one writer per sweep root, table and record; never another's files
-    cli._hold_output(table, "--table", own=path)
-    fixed = cli._parse_sets(cls, args.sets, None)
+    check_output_path(table, "--table")
+    hold_output(path, "--out")  # one writer per sweep root, table and record; never another's files
+    hold_output(table, "--table", own=path)
+    fixed = parse_sets(cls, args.sets, None)
     worlds = args.worlds
     try:
         if worlds is None:
@@ -240,7 +238,7 @@ def run(args, out, err):
                                  f"parameter ({', '.join(sorted(numeric)) or 'none here'})")
     except ValueError as exc:
         raise usage(str(exc)) from None
-    device = cli._device(args.device) if devices is None else ",".join(devices)
+    device = device_arg(args.device) if devices is None else ",".join(devices)
     if args.rerun is not None:
         from .rerun import rerun_in_sweep
 
@@ -435,13 +433,12 @@ def _regions(args, fps):
 def _timing(cls, world_params, fps, substeps):
     """The sweep's :class:`~warpsim.scenes.timing.FrameTiming` (``warpsim.sweeps.sweep.sweep_timing``);
     flags that disagree: a usage error (exit 2)."""
-    from .. import cli
     from .sweep import sweep_timing
 
     try:
         return sweep_timing(cls, world_params, fps, substeps)
     except ValueError as exc:
-        raise cli.UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
 
 
 def _is_usage(exc):

@@ -14,6 +14,8 @@ from __future__ import annotations
 import csv
 import os
 
+from ..cli_common import UsageError
+
 
 def add_parser(sub):
     s = sub.add_parser("query", help="pick a sweep's worlds by where their particles went (IN / NOT IN a box during "
@@ -75,14 +77,13 @@ def read_table(path):
 
 
 def run(args, out, err):
-    from .. import cli
     from ..browse.occupancy import OccupancyRecord
     from ..browse.query import answer_region, answers_note, apply_regions, cached_positions, parse_region, region_columns
     from ..browse.roots import sweep_root_files, write_sweep_root
     from .command import _format
     from .metrics import parse_rank, parse_where, select
 
-    usage = cli.UsageError
+    usage = UsageError
     if args.top is not None and args.top < 1:
         raise usage(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:

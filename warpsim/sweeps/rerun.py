@@ -21,6 +21,8 @@ import json
 import math
 import os
 
+from ..cli_common import UsageError, device_arg, one_line
+
 __all__ = ["manifest_path", "read_manifest", "rerun_world", "run_world", "write_manifest"]
 
 FORMAT = "warpsim-sweep"
@@ -373,10 +375,9 @@ def _check_rerun_out(out, root, flag="out") -> None:
 def run_command(args, out, err) -> int:
     """``warpsim run SCENE --from-sweep ROOT --world N [--frames F] [--fps F] [--substeps S]
     [--device D] [--out PATH]``; UsageError (exit 2) for bad input found before the run."""
-    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
-    usage = cli.UsageError
+    usage = UsageError
     if args.world is None or args.from_sweep is None:
         raise usage("--from-sweep ROOT and --world N go together (re-run world N of the sweep at ROOT)")
     for flag, given in (("--set", args.sets), ("--integrator", args.integrator), ("--resume", args.resume),
@@ -390,7 +391,7 @@ def run_command(args, out, err) -> int:
     except ValueError as exc:
         if getattr(exc, "exit_status", 2) != 2:
             raise  # a damaged manifest: exit 1, naming the file and the field
-        raise usage(cli.one_line(exc)) from None
+        raise usage(one_line(exc)) from None
     frames = manifest["frames"] if args.frames is None else args.frames
     if frames < 0:
         raise usage(f"--frames {frames}: it must be >= 0")
@@ -400,14 +401,14 @@ def run_command(args, out, err) -> int:
     try:
         _check_rerun_out(path, args.from_sweep, "--out")
     except ValueError as exc:
-        raise usage(cli.one_line(exc)) from None
+        raise usage(one_line(exc)) from None
     from ..usd.lock import hold
 
     hold(path, "--out")  # released when the command ends
-    device = cli.device_arg(args.device) if args.device is not None else None
+    device = device_arg(args.device) if args.device is not None else None
     if device is None and manifest["device"] is not None:
         try:  # the sweep's device must be here
-            device = cli.device_arg(manifest["device"])
+            device = device_arg(manifest["device"])
         except usage:
             raise usage(f"the sweep {args.from_sweep} ran on {manifest['device']!r} (its manifest), which this machine "
                         "does not have; give --device (e.g. --device cpu; world "
@@ -418,7 +419,6 @@ def run_command(args, out, err) -> int:
 
 def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_progress, out, err,
                     SimulationError) -> int:
-    from .. import cli_common as cli
 
     for line in _differences(manifest, fps, substeps, device):
         print(f"warpsim: warning: {line}: world {world} will differ from its samples in the sweep", file=err)
@@ -435,10 +435,10 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
                            progress=(lambda f: progress.update(1)) if progress else None,
                            frame_steps=_frame_steps(manifest, fps, substeps))
     except SimulationError as exc:
-        print(f"warpsim: simulation failed: {cli.one_line(exc)}", file=err)
+        print(f"warpsim: simulation failed: {one_line(exc)}", file=err)
         return 1
     except ValueError as exc:
-        raise cli.UsageError(cli.one_line(exc)) from None
+        raise UsageError(one_line(exc)) from None
     finally:
         if progress:
             progress.close()
@@ -451,13 +451,12 @@ def _run_and_report(manifest, world, path, frames, fps, substeps, device, show_p
 def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
     """``warpsim sweep ... --rerun N``: world N of the sweep these arguments describe, alone, into
     ``<stem>.world_NNNNNN.usda`` beside ``path`` (the sweep's root)."""
-    from .. import cli_common as cli
     from ..core.errors import SimulationError
 
     try:
         world = _check_world(args.rerun, len(world_params), f"described ({len(world_params)} worlds)")
     except ValueError as exc:
-        raise cli.UsageError(f"--rerun: {cli.one_line(exc)}") from None
+        raise UsageError(f"--rerun: {one_line(exc)}") from None
     manifest = {"scene": cls.name, "worlds": world_params, "fps": args.fps, "substeps": args.substeps,
                 "fused": bool(args.fused), "device": None, "run_fps": None, "run_substeps": None}
     from .sweep import sweep_timing
@@ -469,7 +468,7 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
         manifest["frame_steps"] = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps,
                                                     device=device, fused=bool(args.fused))
     except ValueError as exc:
-        raise cli.UsageError(cli.one_line(exc)) from None
+        raise UsageError(one_line(exc)) from None
     return _run_and_report(manifest, world, world_cache_path(path, world), args.frames, None, None, device,
                            not args.no_progress, out, err, SimulationError)
 

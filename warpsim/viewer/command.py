@@ -9,11 +9,14 @@ from __future__ import annotations
 import os
 import sys
 
+from ..cli_common import (
+    UsageError, device_arg, parse_sets, stability_check, substeps_arg, timing_from_flags, timing_note,
+)
+
 __all__ = ["add_parser", "run"]
 
 
 def add_parser(sub):
-    from .. import cli
 
     v = sub.add_parser("view", help="watch a scene live in the browser (or play a USD cache)")
     v.add_argument("scene", help="scene name (see 'warpsim list') or a warpsim cache .usd/.usda/.usdc to play")
@@ -22,7 +25,7 @@ def add_parser(sub):
     v.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     v.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
     v.add_argument("--fps", type=float, default=None, help="frames per second (default: the scene's)")
-    v.add_argument("--substeps", type=cli.substeps_arg, default=None,
+    v.add_argument("--substeps", type=substeps_arg, default=None,
                    help="simulation steps per frame at the scene's frame rate, or 'auto' (default: the scene's; "
                         "as 'warpsim run --help' says)")
     v.add_argument("--strict", action="store_true",
@@ -50,22 +53,21 @@ def _viser_or_usage():
 
 def build(args):
     """The Viewer (or PlaybackViewer) the arguments describe; UsageError for mistakes."""
-    from .. import cli
     from .server import PortInUseError, check_port
 
     if not 0 < args.port < 65536:
-        raise cli.UsageError(f"--port {args.port}: it must be in 1..65535")
+        raise UsageError(f"--port {args.port}: it must be in 1..65535")
     if args.max_points < 1:
-        raise cli.UsageError(f"--max-points {args.max_points}: it must be >= 1")
+        raise UsageError(f"--max-points {args.max_points}: it must be >= 1")
     try:
         check_port(args.host, args.port)
     except PortInUseError as exc:
-        raise cli.UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     except OSError as exc:
-        raise cli.UsageError(f"--host {args.host!r}: {exc}") from None
+        raise UsageError(f"--host {args.host!r}: {exc}") from None
     if os.path.splitext(args.scene)[1] in (".usd", ".usda", ".usdc"):
         if args.sets or args.integrator:
-            raise cli.UsageError("--set and --integrator apply to scenes, not to a cache being played")
+            raise UsageError("--set and --integrator apply to scenes, not to a cache being played")
         from ..usd.validate import DamagedCacheError, check_damage
         from ..browse.gallery import GalleryViewer, is_sweep_root
         from .playback import PlaybackViewer
@@ -77,7 +79,7 @@ def build(args):
         except DamagedCacheError:
             raise  # exit 1: the cache, not the command line, is at fault
         except ValueError as exc:
-            raise cli.UsageError(str(exc)) from None
+            raise UsageError(str(exc)) from None
         reader = getattr(viewer, "reader", None)
         if bad and reader is not None and hasattr(reader, "frames"):
             reader.frames = [f for f in reader.frames if f not in bad]
@@ -89,17 +91,17 @@ def build(args):
     try:
         cls = get_scene(args.scene)
     except ValueError as exc:
-        raise cli.UsageError(str(exc)) from None
-    given = cli._parse_sets(cls, args.sets, args.integrator)
+        raise UsageError(str(exc)) from None
+    given = parse_sets(cls, args.sets, args.integrator)
     params = cls.resolve_params(given)
-    cli._timing(cls, params, given, args.fps, args.substeps)  # flags that disagree: one line, exit 2, before serving
-    device = cli._device(args.device)
+    timing_from_flags(cls, params, given, args.fps, args.substeps)  # flags that disagree: one line, exit 2, before serving
+    device = device_arg(args.device)
     try:
         return Viewer(cls, params, device, host=args.host, port=args.port, fps=args.fps, substeps=args.substeps,
                       max_points=args.max_points, record_dir=args.record_dir, paused=args.paused,
                       environment=args.environment)
     except ValueError as exc:
-        raise cli.UsageError(f"scene {cls.name!r}: {exc}") from None
+        raise UsageError(f"scene {cls.name!r}: {exc}") from None
 
 
 def threading_is_main():
@@ -109,7 +111,6 @@ def threading_is_main():
 
 
 def run(args, out, err):
-    from .. import cli
     from ..verbosity import set_warp_verbosity
     from .server import PortInUseError
 
@@ -129,12 +130,12 @@ def run(args, out, err):
         from ..core.stability import StabilityWarning
 
         warnings.simplefilter("ignore", StabilityWarning)  # said once here; the page shows the limit
-        cli.timing_note(session.timing, getattr(args, "strict", False), err)
-        cli.stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
+        timing_note(session.timing, getattr(args, "strict", False), err)
+        stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
     try:
         viewer.start()
     except PortInUseError as exc:  # taken between the check and the start
-        raise cli.UsageError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     import signal
 
     if threading_is_main():
