@@ -13,7 +13,13 @@ default) or ``block`` (``block_per_world=True``: a whole frame in one launch, a 
 world, whose blocks end at their own count). Reported: seconds per frame (median of
 ``--repeats``), the ratio own / max against the ideal, world-steps per second.
 
+``--check``: on the device, small sweeps whose worlds take different counts (teapot on the shared
+path, teapot with a sphere obstacle on the tiled path, cloth), their frames captured as CUDA graphs
+where a sweep captures them, and each world compared bit for bit with its own run (a scene built
+with its parameters and stepped as ``warpsim run`` steps it).
+
     python benchmarks/bench_world_steps.py --device cuda:0 --worlds 10000
+    python benchmarks/bench_world_steps.py --device cuda:0 --check
     python benchmarks/bench_world_steps.py --device cpu --worlds 8 --frames 2 --repeats 1   # check
 """
 
@@ -60,6 +66,53 @@ def frames_seconds(batch, frame_dt, steps, frames, repeats):
     return float(np.median(out))
 
 
+CHECKS = {  # name: (scene, fixed parameters, varied key and values)
+    "teapot (shared path)": ("teapot", {"resolution": "low"}, "stiffness", (40.0, 160.0, 640.0)),
+    "teapot + sphere (tiled)": ("teapot", {"resolution": "low", "obstacle": "sphere"}, "stiffness",
+                                (40.0, 160.0, 640.0)),
+    "cloth (passes)": ("cloth", {"integrator": "semi_implicit_euler", "resolution": "16", "explicit_substeps": "1"},
+                       "structural", (400.0, 1600.0, 6400.0)),
+}
+
+
+def check(device, frames):
+    """Each world of the CHECKS sweeps against its own run on ``device``: prints one line each."""
+    from warpsim.scenes.timing import resolve_timing
+
+    ok = True
+    for label, (name, fixed, key, values) in CHECKS.items():
+        cls = get_scene(name)
+        worlds = [{**fixed, key: v} for v in values]
+        timing = sweep_timing(cls, worlds)
+        batch = WorldBatch(cls, worlds, device=device)
+        batch.use_timing(timing)
+        counts = batch.world_steps(timing.frame_dt, timing.steps)
+        graph = None
+        for frame in range(frames):
+            if graph is not None:
+                wp.capture_launch(graph)
+            elif frame == 1 and device.is_cuda and batch.can_capture():  # as run_batch: frame 1 eager
+                with wp.ScopedCapture(device=device) as capture:
+                    batch.advance(timing.frame_dt, timing.steps)
+                graph = capture.graph
+                wp.capture_launch(graph)
+            else:
+                batch.advance(timing.frame_dt, timing.steps)
+        x = batch.sim.state.positions.numpy().reshape(len(worlds), -1, 3)
+        same = []
+        for w, p in enumerate(worlds):
+            scene = cls(p, device=device)
+            t = resolve_timing(cls, scene.params, given=tuple(p))
+            scene.use_timing(t)
+            for _ in range(frames):
+                scene.advance(t.frame_dt, t.steps)
+            same.append(scene.sim.state.positions.numpy().tobytes() == x[w].tobytes())
+        ok = ok and all(same)
+        print(f"check {label}: counts {counts.tolist()}, graph {'yes' if graph is not None else 'no'}, "
+              f"each world equals its own run bit for bit: {same}")
+    return ok
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=DefaultsHelpFormatter)
     ap.add_argument("--device", type=device_arg, default=None, help="Warp device (default: Warp's preferred)")
@@ -68,10 +121,13 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=20, help="frames per timed run")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs (the median is reported)")
     ap.add_argument("--path", choices=("step", "block"), default="step", help="the shared path's launch shape")
+    ap.add_argument("--check", action="store_true", help="compare small sweeps' worlds with their own runs only")
     args = ap.parse_args(argv)
     set_warp_verbosity(False)
     wp.init()
     device = wp.get_device(args.device)
+    if args.check:
+        return 0 if check(device, max(args.frames, 3)) else 1
     cls = get_scene("teapot")
     worlds = sample_worlds("teapot", {"resolution": "low", "springs": False}, [args.vary], args.worlds,
                            sample="lhs", seed=0)

@@ -27,8 +27,10 @@ class CountPasses:
     def __init__(self, batch, counts):
         d, st = batch.device, batch.sim.state
         self.batch = batch
+        self.host_counts = np.array(counts, dtype=np.int64)
+        """Each world's count (world_count,), on the host."""
         self.counts = sorted({int(c) for c in counts})
-        self.world_steps = wp.array(np.asarray(counts, dtype=np.int32), dtype=int, device=d)
+        self.world_steps = wp.array(self.host_counts.astype(np.int32), dtype=int, device=d)
         self.start = (wp.empty_like(st.positions), wp.empty_like(st.velocities))
         self.result = (wp.empty_like(st.positions), wp.empty_like(st.velocities))
         sim = batch.sim
