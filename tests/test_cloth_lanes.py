@@ -4,6 +4,7 @@ bits."""
 
 import numpy as np
 import pytest
+from warpsim.kernels.cloth_lanes import LANES, ROW_MAX
 
 import warpsim as ws
 from warpsim.bodies.colliders import Sphere
@@ -11,7 +12,6 @@ from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.lanes import build_lane_blocks
 from warpsim.cloth.solver import ClothSemiImplicitEuler, ClothSimulator
 from warpsim.core.model import ensure_spring_adjacency
-from warpsim.kernels.cloth_lanes import LANES, ROW_MAX
 
 DEVICE = "cpu"
 

@@ -33,13 +33,13 @@ from ..core.block_cg import BlockCG
 from ..core.forces import Force, Gravity, Springs
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
 from ..core.model import ensure_spring_adjacency
-from .lanes import build_lane_blocks
+from ..core.simulator import Simulator, check_dt
 from ..kernels import cloth as KC
 from ..kernels import cloth_lanes as KL
-from ..kernels.cloth_lanes import ROW_MAX as LANE_ROW_MAX
 from ..kernels import forces as KF
 from ..kernels import integrate as KI
-from ..core.simulator import Simulator, check_dt
+from ..kernels.cloth_lanes import ROW_MAX as LANE_ROW_MAX
+from .lanes import build_lane_blocks
 
 GEOMETRIC_MODES = {"clamped": 0, "full": 1}
 LINEAR_SOLVERS = ("block_cg", "warp_cg")
