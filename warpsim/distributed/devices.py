@@ -6,9 +6,10 @@
    the world count allows (sizes differ by at most one) unless a device's free memory holds
    fewer worlds, in which case its block shrinks to what fits and the devices with room take the
    rest (:func:`block_sizes`).
-2. Automatic sub-steps are resolved once over the WHOLE sweep (its stiffest world,
-   :func:`warpsim.sweeps.rerun.sweep_frame_steps`, on the first device) and every block takes
-   that count: the split never changes a world's steps.
+2. Each world takes its own automatic count (the one its own run takes,
+   ``WorldBatch.world_steps``), so the split never changes a world's steps. The whole sweep's
+   largest count (:func:`warpsim.sweeps.rerun.sweep_frame_steps`, on the first device) is given
+   to every block for the scenes whose worlds share one count (``WorldBatch.own_counts`` False).
 3. Each block runs :func:`warpsim.sweeps.run_batch` in its own thread on its own device (a CUDA
    device steps on its own stream and replays its own graphs) with the whole sweep's parameters
    as the batch's reference, so a world's arrays, and with the fixed-order sums its bits, do not

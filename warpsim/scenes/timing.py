@@ -17,8 +17,7 @@ The rules (``warpsim run --help`` says the same):
 - ``--substeps auto`` (and the default of scenes with ``substeps_auto``, unless dt is set by
   hand): at least the scene's own count of steps a frame, and as many as keep each step within
   ``AUTO_SAFETY`` (0.5) x the stability limit; the count is resolved against the built scene
-  (a batch of worlds: the limit of its stiffest world, so every world's step is <= 0.5 x its own
-  limit).
+  (a batch of worlds: each world its own count, the one its own run takes).
 """
 from __future__ import annotations
 
