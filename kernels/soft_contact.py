@@ -879,3 +879,51 @@ def add_fixed_blocks(blocks_io: wp.array2d(dtype=wp.int64), diag_out: wp.array(d
             b[r, c] = float(wp.float64(blocks_io[i, 3 * r + c]) * wp.float64(FIXED_INV_SCALE))
             blocks_io[i, 3 * r + c] = wp.int64(0)
     diag_out[i] = diag_out[i] + b
+
+
+@wp.kernel
+def eval_contact_coupling(
+    q: wp.array(dtype=wp.vec3),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    thickness: float,
+    coefficient: float,
+    blocks_io: wp.array2d(dtype=wp.int64),
+    rows_out: wp.array(dtype=int),
+    cols_out: wp.array(dtype=int),
+    values_out: wp.array(dtype=wp.mat33),
+):
+    """The exact Jacobian of contact slot c's penalty, coefficient (a a^T) (x) n n^T: diagonal
+    blocks coefficient a_k^2 n n^T into blocks_io (fixed point) and the 12 coupling blocks
+    coefficient a_j a_k n n^T (j != k) as triplets 12 c .. 12 c + 11. A slot without a pushing
+    contact writes zero blocks at (0, 0), so the number of triplets never changes."""
+    c = wp.tid()
+    particles = contact_particles[c]
+    active = int(0)
+    weights = wp.vec4()
+    nn = wp.mat33()
+    if particles[0] >= 0:
+        weights = contact_weights[c]
+        n = contact_normal[c]
+        if contact_depth(particles, weights, n, q, thickness) > 0.0:
+            active = 1
+            nn = wp.outer(n, n)
+    slot = 12 * c
+    for j in range(4):
+        if active == 1:
+            block = (coefficient * weights[j] * weights[j]) * nn
+            for r in range(3):
+                for s in range(3):
+                    wp.atomic_add(blocks_io, particles[j], 3 * r + s, to_fixed(block[r, s]))  # int64: order-free
+        for k in range(4):
+            if k != j:
+                if active == 1:
+                    rows_out[slot] = particles[j]
+                    cols_out[slot] = particles[k]
+                    values_out[slot] = (coefficient * weights[j] * weights[k]) * nn
+                else:
+                    rows_out[slot] = 0
+                    cols_out[slot] = 0
+                    values_out[slot] = wp.mat33()
+                slot += 1

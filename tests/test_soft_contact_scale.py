@@ -494,7 +494,7 @@ def test_implicit_contact_force_conserves_momentum_and_its_diagonal_bounds_the_s
         sim.step(1.0 / 1200.0)
     assert contact.contact_count > 5
     model = sim.model
-    force = contact.implicit_force(stiffness=1000.0)
+    force = contact.implicit_force(stiffness=1000.0, coupling=False)
     force.bind(model)
     n = model.particle_count
     zero_v = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
@@ -520,3 +520,44 @@ def test_implicit_contact_force_conserves_momentum_and_its_diagonal_bounds_the_s
         stiffness_diag = -np.einsum("pi,pij,pj->", dx, D, dx)
         assert stiffness_fd > 0.0
         assert stiffness_diag >= 0.97 * stiffness_fd, (stiffness_diag, stiffness_fd)
+
+
+def test_implicit_contact_coupling_blocks_are_the_exact_jacobian():
+    """With ``coupling`` the contact force's diagonal blocks and coupling triplets times a small
+    displacement dx give the change of the force that finite differences give (the penalty is
+    linear in the positions for fixed contacts and normals), and there are 12 triplets a slot."""
+    sim, contact = pressed_tori("bvh")
+    for _ in range(40):
+        sim.step(1.0 / 1200.0)
+    model = sim.model
+    force = contact.implicit_force(stiffness=1000.0)
+    force.bind(model)
+    n = model.particle_count
+    slots = contact.vertex_count + contact.edge_count
+    assert force.jacobian_triplet_count() == 12 * slots == 12 * contact.slot_count()
+    zero_v = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+
+    def forces(q):
+        f = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+        force.eval(wp.array(q, dtype=wp.vec3, device=DEVICE), zero_v, None, 0.0, f)
+        return f.numpy().astype(np.float64)
+
+    q = sim.state.positions.numpy().copy()
+    q[: n // 2, 1] += 0.001  # every contact pushes
+    f0 = forces(q)
+    diag = wp.zeros(n, dtype=wp.mat33, device=DEVICE)
+    m = 12 * slots
+    rows, cols = wp.zeros(m, dtype=int, device=DEVICE), wp.zeros(m, dtype=int, device=DEVICE)
+    values = wp.zeros(m, dtype=wp.mat33, device=DEVICE)
+    force.eval_jacobian(wp.array(q, dtype=wp.vec3, device=DEVICE), zero_v, None, 0.0, 1.0, 0.0, diag, rows, cols,
+                        values)
+    D, V = diag.numpy().astype(np.float64), values.numpy().astype(np.float64)
+    R, C = rows.numpy(), cols.numpy()
+    assert np.abs(V).max() > 0.0 and (np.abs(V).sum(axis=(1, 2)) > 0).sum() >= 12 * 5  # couplings written
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        dx = rng.normal(size=q.shape) * 1e-6
+        df = forces(q + dx) - f0
+        Kdx = np.einsum("pij,pj->pi", D, dx)
+        np.add.at(Kdx, R, np.einsum("tij,tj->ti", V, dx[C]))
+        assert np.abs(Kdx - df).max() <= 0.02 * np.abs(df).max(), (np.abs(Kdx - df).max(), np.abs(df).max())

@@ -187,6 +187,13 @@ class SoftContact(Collider):
         """The triangles (F, 3) of each body in particle indices (made on demand)."""
         return [self._topologies[t] + o for t, o in zip(self._body_topology, self._body_offset)]
 
+    def slot_count(self) -> int:
+        """Contact slots: one per contact vertex and, with edge contact, one per surface edge (from
+        the topologies; no binding needed)."""
+        per_topology = np.array([len(np.unique(f)) + (len(meshtools.edge_topology(f)[0]) if self.edge_contact else 0)
+                                 for f in self._topologies], dtype=np.int64)
+        return int(per_topology[self._body_topology].sum())
+
     @property
     def body_count(self) -> int:
         return len(self._body_offset)
@@ -423,10 +430,10 @@ class SoftContact(Collider):
             for bvh in self.bvhs:
                 bvh.refit()
 
-    def implicit_force(self, stiffness: float, damping: float = 0.0) -> SoftContactForce:
+    def implicit_force(self, stiffness: float, damping: float = 0.0, coupling: bool = True) -> SoftContactForce:
         """This contact as a penalty force for an implicit solve (:class:`SoftContactForce`): pass it
         among the Simulator's forces, this SoftContact among its colliders."""
-        return SoftContactForce(self, stiffness, damping)
+        return SoftContactForce(self, stiffness, damping, coupling)
 
     @property
     def contact_count(self) -> int:
@@ -557,16 +564,18 @@ class SoftContactForce(Force):
 
     The contacts found by the collider's last search (the end of the previous step) push while
     they are closer than the thickness: particle k of a contact gets (k_c d - c_c u_n) a_k n with d
-    the depth [m] and u_n the normal relative speed [m/s] (see ``warpsim.kernels.soft_contact``),
-    and the solve sees the stiffness through diagonal Jacobian blocks that bound the true ones, so
-    implicit Euler stays stable at any step (backward Euler then needs no step near the contact's
-    own time scale). The collider still runs after the step: new contacts, friction and any depth
+    the depth [m] and u_n the normal relative speed [m/s] (see ``warpsim.kernels.soft_contact``).
+    With ``coupling`` (default) the solve gets the exact Jacobian -(k_c + c_c / h) (a a^T) (x) n n^T
+    (diagonal blocks and 12 coupling blocks a contact: ``ws.ImplicitEuler``); without it,
+    diagonal blocks m a_k^2 n n^T that bound it (for solvers without coupling blocks,
+    ``ClothImplicitEuler``). Either keeps implicit Euler stable at any step. The collider still runs after the step: new contacts, friction and any depth
     left are resolved there. Momentum is conserved, sums are fixed point (bit-identical runs).
 
     Args:
         contact: the SoftContact (also in the Simulator's colliders).
         stiffness: k_c [N/m] per contact.
         damping: c_c [N s/m] per contact (normal relative velocity only).
+        coupling: the exact Jacobian with coupling blocks (True) or the diagonal bound (False).
 
     Example::
 
@@ -576,7 +585,7 @@ class SoftContactForce(Force):
                            colliders=[contact])
     """
 
-    def __init__(self, contact: SoftContact, stiffness: float, damping: float = 0.0):
+    def __init__(self, contact: SoftContact, stiffness: float, damping: float = 0.0, coupling: bool = True):
         from ..core import checks
 
         if not isinstance(contact, SoftContact):
@@ -585,6 +594,12 @@ class SoftContactForce(Force):
         self.contact = contact
         self.stiffness = float(checks.positive(stiffness, "SoftContactForce stiffness", unit="N/m", fix="e.g. 500"))
         self.damping = float(checks.nonnegative(damping, "SoftContactForce damping", unit="N s/m", fix="e.g. 0"))
+        self.coupling = bool(coupling)
+
+    def jacobian_triplet_count(self) -> int:
+        """12 coupling blocks per contact slot with ``coupling`` (zero blocks where no contact pushes);
+        known before the SoftContact is bound (the forces are bound first)."""
+        return 12 * self.contact.slot_count() if self.coupling else 0
 
     def bind(self, model) -> None:
         super().bind(model)
@@ -611,7 +626,12 @@ class SoftContactForce(Force):
         particles, weights, normal = self._slots()
         d = self.model.device
         coefficient = -(float(ck) * self.stiffness + float(cd) * self.damping)
-        wp.launch(K.eval_contact_jacobian, particles.shape[0], inputs=[q, particles, weights, normal,
-                                                                       self.contact.thickness, coefficient,
-                                                                       self._blocks], device=d)
+        if self.coupling:
+            wp.launch(K.eval_contact_coupling, particles.shape[0], inputs=[
+                q, particles, weights, normal, self.contact.thickness, coefficient, self._blocks, rows, cols, values],
+                device=d)
+        else:
+            wp.launch(K.eval_contact_jacobian, particles.shape[0], inputs=[q, particles, weights, normal,
+                                                                           self.contact.thickness, coefficient,
+                                                                           self._blocks], device=d)
         wp.launch(K.add_fixed_blocks, self.model.particle_count, inputs=[self._blocks, diag], device=d)
