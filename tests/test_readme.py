@@ -97,7 +97,7 @@ COMMANDS = {
     "warpsim run zombies --frames 2400 --checkpoint-every 200":
         run("of scene 'zombies'", "--frames 2400 => --frames 4", "+ --set zombies=20"),
     "warpsim info usd_out/teapot.usda": run("teapot"),
-    "warpsim run teapot --preview teapot.gif":
+    "warpsim run teapot --preview":
         run("preview: usd_out/teapot.gif", "+ --frames 3", "+ --set resolution=3"),
     "warpsim render usd_out/dam_break.usdc --out dam_break.mp4 --size 640x480":
         run("wrote dam_break.mp4", "--size 640x480 => --size 64x48", "+ --frames 0:4"),

@@ -225,12 +225,12 @@ def test_run_preview_writes_the_animation_beside_the_cache(tmp_path):
     from PIL import Image
 
     cache = tmp_path / "sub" / "b.usda"
-    code, _, err = _run("run", "pendulum", "--frames", "4", "--out", str(cache), "--preview", "b.gif",
-                           "--device", "cpu", "--no-progress")
+    code, _, err = _run("run", "pendulum", "--frames", "4", "--out", str(cache), "--preview",  # alone: beside it
+                        "--device", "cpu", "--no-progress")
     assert code == 0, err
     with Image.open(tmp_path / "sub" / "b.gif") as im:
         assert im.n_frames == 5
-    assert _run("run", "pendulum", "--frames", "1", "--out", str(cache), "--preview", "b.jpg")[0] == 2
+    assert _run("run", "pendulum", "--frames", "1", "--out", str(cache), "--preview", str(tmp_path / "b.jpg"))[0] == 2
 
 
 def test_instances_curves_and_cubes_land_where_they_are(tmp_path):

@@ -43,7 +43,8 @@ def add_parser(sub):
                         "overrides the scene's dt (default: warn)")
     r.add_argument("--integrator", default=None, help="time integrator (scenes with an 'integrator' parameter)")
     r.add_argument("--device", default=None, help="Warp device, e.g. cpu or cuda:0 (default: CUDA when present)")
-    r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc; default usd_out/SCENE.usda)")
+    r.add_argument("--out", default=None, help="cache to write (.usd/.usda/.usdc); a relative path is taken from "
+                   "the current folder (default usd_out/SCENE.usda)")
     r.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="set a scene parameter (repeatable)")
     r.add_argument("--chunk", type=int, default=24, help="frames per chunk file (default 24)")
@@ -56,8 +57,10 @@ def add_parser(sub):
     r.add_argument("--from-sweep", default=None, metavar="ROOT",
                    help="re-run one world of the sweep whose root is ROOT exactly (with --world N)")
     r.add_argument("--world", type=int, default=None, metavar="N", help="the world of --from-sweep to re-run")
-    r.add_argument("--preview", default=None, metavar="FILE.gif",
-                   help="also render the cache to a .gif/.mp4/.png beside it (at most 300 frames; see 'warpsim render')")
+    r.add_argument("--preview", nargs="?", const="", default=None, metavar="FILE.gif",
+                   help="also render the cache to a .gif/.mp4/.png (at most 300 frames; see 'warpsim render'); a "
+                        "relative path is taken from the current folder (--preview alone: beside the cache, its name "
+                        "with .gif)")
 
 
 def checkpoint_path(cache_path):
@@ -114,7 +117,7 @@ def run(args, out, err):
 def _checked_output(args, cls):
     """The cache path of ``--out`` (default ``usd_out/SCENE.usda``) once the frame, chunk and
     checkpoint counts are valid, its folder writable, it is held by this command and a
-    ``--preview`` can be rendered beside it; UsageError otherwise."""
+    ``--preview`` can be written; UsageError otherwise."""
     from ..usd.writer import ROOT_EXTENSIONS
 
     if args.frames is None:
@@ -132,11 +135,13 @@ def _checked_output(args, cls):
     hold_output(path)
     if args.preview is not None:
         from ..extras import render_modules, require_extra
+        from ..render.command import preview_target
         from ..render.output import check_out
 
-        require_extra("render", f"--preview {args.preview}", render_modules(args.preview))  # before simulating
+        preview = preview_target(args.preview, path)
+        require_extra("render", f"--preview {preview}", render_modules(preview))  # before simulating
         try:
-            check_out(os.path.join(os.path.dirname(path), args.preview))
+            check_out(preview)
         except (ValueError, OSError) as exc:
             raise UsageError(f"--preview: {exc}") from None
     return path
@@ -284,16 +289,16 @@ def _failed(writer, frame, exc, err):
 
 def _report(args, cls, writer, start, seconds, device, out, err):
     """The result lines on ``out`` (frames written, speed, the file to open) and the ``--preview``
-    rendered from the cache just written (a relative name lands beside it)."""
+    rendered from the cache just written (``render.command.preview_target``)."""
     written = args.frames + 1 - start
     print(f"wrote {written} frames ({start}..{args.frames}, {written / max(seconds, 1e-9):.1f} frames/s) "
           f"of scene {cls.name!r} on {device}", file=out)
     print(f"open: {os.path.relpath(writer.output_path)}   (e.g. usdview {os.path.relpath(writer.output_path)})",
           file=out)
     if args.preview is not None:
-        from ..render.command import render_to
+        from ..render.command import preview_target, render_to
 
-        preview = os.path.join(os.path.dirname(writer.output_path), args.preview)
+        preview = preview_target(args.preview, writer.output_path)
         result = render_to(writer.output_path, preview, err, device=device, progress=not args.no_progress,
                            max_frames=300)  # long runs: every k-th frame, played in real time
         print(f"preview: {os.path.relpath(result['path'])} ({result['frames']} frames, {result['seconds']:.2f} s)",

@@ -48,7 +48,8 @@ def add_parser(sub):
                    help="split the worlds over several devices of this machine in one process, a contiguous block "
                         "and a thread each (e.g. cuda:0,cuda:1, all: every GPU, cpu,cpu); the same table and samples "
                         "as on one device")
-    s.add_argument("--out", default=None, help="root USD to write (default usd_out/SCENE_sweep.usda)")
+    s.add_argument("--out", default=None, help="root USD to write; a relative path is taken from the current "
+                   "folder (default usd_out/SCENE_sweep.usda; the table, record and picked worlds go beside it)")
     s.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter shared by every world (repeatable)")
     s.add_argument("--layout", default="variants", help="variants (a 'world' variant set, default) or grid")
