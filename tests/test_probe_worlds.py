@@ -14,8 +14,8 @@ pytest.importorskip("pxr")
 from pxr import Usd
 
 from warpsim.scenes import get_scene
-from warpsim.usd.writer import UsdCacheWriter
 from warpsim.sweeps.sweep import frame_timing, run_batch
+from warpsim.sweeps.usd import BatchLayerWriter
 
 # scene -> (--set values that keep it small, frames); frames are enough for the stage to act
 CASES = {
@@ -61,8 +61,7 @@ def test_identical_worlds_give_identical_rows_and_each_equals_its_run_alone(tmp_
     assert not rows[0]["blown_up"], rows[0]
     stage = Usd.Stage.Open(str(tmp_path / "b.usdc"))
     alone = cls(params, device="cpu")
-    decls = UsdCacheWriter(str(tmp_path / "alone.usda"))  # the samples a cache holds (nothing is written)
-    alone.declare(decls)
+    decls = BatchLayerWriter(str(tmp_path / "alone.usdc"), alone, 0, 1, 60.0)  # the samples a batch layer holds
     alone.use_timing(alone.timing.with_steps(timing["frame_steps"]))  # the steps per frame the batch took (auto)
     _, substeps, frame_dt = frame_timing(cls, params)
     moved = 0.0

@@ -38,6 +38,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..usd.prims import segment_pairs
 from ..usd.validate import frame_codes, open_stage
 from .geometry import cone_mesh, cube_mesh, triangulate
 
@@ -238,7 +239,13 @@ def read_frame(cache, frame=None, guides=False, up=None) -> tuple:
         m = np.hstack([m[:, :3] @ turn, m[:, 3:]])  # world space turned to the file's up axis
         kind = prim.GetTypeName()
         part = None
-        if kind == "Points":
+        pairs = segment_pairs(prim)  # a sweep's springs: curves between its points (line segments)
+        if kind == "Points" and pairs is not None:
+            pts = _np(UsdGeom.Points(prim).GetPointsAttr().Get(t)).reshape(-1, 3)
+            if len(pts) and len(pairs) and pairs.max() < len(pts):
+                part = ExportPart(prim.GetName(), "curves", _apply(m, pts), segments=pairs,
+                                  color=_color(prim, t, len(pts)))
+        elif kind == "Points":
             pts = _np(UsdGeom.Points(prim).GetPointsAttr().Get(t)).reshape(-1, 3)
             if len(pts):
                 widths = _np(UsdGeom.Points(prim).GetWidthsAttr().Get(t))

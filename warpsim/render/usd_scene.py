@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..usd.prims import segment_pairs
 from ..usd.validate import frame_codes, open_stage
 from .geometry import GeometryBuilder, cone_mesh, cube_mesh
 
@@ -265,6 +266,11 @@ class CacheScene:
                 g.set_volume(grid, lo - 0.5 * dx, dx, c)
                 return
         widths = _np(UsdGeom.Points(prim).GetWidthsAttr().Get(t), np.float32)
+        pairs = segment_pairs(prim)  # a sweep's springs: curves between its points, drawn as curves are
+        if pairs is not None and len(widths) == 1 and (not len(pairs) or pairs.max() < len(pts)):
+            g.add_capsules(pts[pairs[:, 0]], pts[pairs[:, 1]], 0.5 * float(widths[0]) * self._scale(m),
+                           color if color is None or len(color) == 1 else None)
+            return
         r = 0.5 * (widths if len(widths) == len(pts) else (widths[:1] if len(widths) else np.float32(0.01)))
         g.add_spheres(pts, r * self._scale(m), color if color is None or len(color) in (1, len(pts)) else None)
 

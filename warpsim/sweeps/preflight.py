@@ -11,7 +11,8 @@ import math
 import os
 import re
 
-__all__ = ["HOST_BYTES_PER_WORLD", "available_host_bytes", "check_ray_address", "check_seed", "check_strand_memory",
+__all__ = ["HOST_BYTES_PER_WORLD", "available_host_bytes", "check_disk", "check_ray_address", "check_seed",
+           "check_strand_memory", "free_disk_bytes",
            "check_worlds", "estimate_strand_bytes", "estimate_sweep_bytes", "format_bytes", "frame_time_note",
            "numeric_columns", "steps_note"]
 
@@ -112,6 +113,35 @@ def check_sweep_memory(scene_name, particles, springs, worlds, device, batch_wor
         raise ValueError(f"--worlds {worlds}: {what} need about {format_bytes(host_need)} of memory, this machine "
                          f"has {format_bytes(available)} free; {fix}")
     return need
+
+
+LARGE_OUTPUT_BYTES = 10 << 20
+"""Bytes of output above which a sweep says how much it will write before its first step."""
+
+
+def free_disk_bytes(path) -> int:
+    """Bytes free on the disk that holds ``path`` (its nearest existing folder)."""
+    import shutil
+
+    folder = os.path.abspath(os.fspath(path))
+    while not os.path.isdir(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    return int(shutil.disk_usage(folder).free)
+
+
+def check_disk(out, need, detail="", free=None) -> str | None:
+    """Refuse (ValueError naming the sizes and fixes) a sweep whose output ``out`` needs ``need``
+    bytes where its disk has less free (``free``: default what it has now); else the line a
+    large sweep (>= ``LARGE_OUTPUT_BYTES``) prints before its first step (None for a small one)."""
+    free = free_disk_bytes(out) if free is None else int(free)
+    where = os.path.relpath(os.path.dirname(os.path.abspath(os.fspath(out)))) + os.sep
+    if need > free:
+        raise ValueError(f"--out {out}: the sweep writes about {format_bytes(need)}{detail}, the disk holding "
+                         f"{where} has {format_bytes(free)} free; free some space, write elsewhere with --out, or use "
+                         "fewer --worlds or --frames")
+    if need < LARGE_OUTPUT_BYTES:
+        return None
+    return f"writing about {format_bytes(need)} to {where}{detail}; the disk has {format_bytes(free)} free"
 
 
 STRAND_HOST_BYTES = 10 << 10

@@ -478,9 +478,12 @@ def rerun_in_sweep(args, cls, world_params, path, device, out, err) -> int:
 # ----------------------------------------------------------------------------------------------
 def _samples(stage, root_path) -> dict:
     """{(prim path relative to root_path, attribute): [(time, numpy array), ...]} of every
-    time-sampled attribute below ``root_path``."""
+    time-sampled attribute below ``root_path``; a sweep's curves stored as their particles'
+    points (``warpsim:segments``) in the form a full cache writes them (segment ends, extent)."""
     import numpy as np
     from pxr import Usd
+
+    from ..usd.prims import curve_samples, segment_pairs
 
     out = {}
     root = stage.GetPrimAtPath(root_path)
@@ -490,6 +493,14 @@ def _samples(stage, root_path) -> dict:
             times = attr.GetTimeSamples()
             if times:
                 out[(rel, attr.GetName())] = [(t, np.asarray(attr.Get(t))) for t in times]
+        pairs = segment_pairs(prim)
+        if pairs is not None and (rel, "points") in out:
+            width = float(np.asarray(prim.GetAttribute("widths").Get(), np.float64)[0])
+            curves = [(t, curve_samples(x, pairs, width)) for t, x in out[(rel, "points")]]
+            out[(rel, "points")] = [(t, c["points"]) for t, c in curves]
+            out[(rel, "extent")] = [(t, c["extent"]) for t, c in curves]
+            if (rel, "velocities") in out:
+                out[(rel, "velocities")] = [(t, v[pairs.reshape(-1)]) for t, v in out[(rel, "velocities")]]
     return out
 
 

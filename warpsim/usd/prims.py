@@ -417,6 +417,68 @@ class CurvesDecl(PrimDecl):
         return out
 
 
+SEGMENTS_ATTR = "warpsim:segments"
+"""Custom ``int[]`` attribute of a :class:`JoinedPointsDecl` prim: the point index pairs its curves join."""
+
+
+class JoinedPointsDecl(PointsDecl):
+    """``UsdGeom.Points`` standing for linear curves between particles: the compact form of a
+    :class:`CurvesDecl` declared with ``indices`` (e.g. springs) that a sweep writes. ``points``
+    are the particles' positions (n, 3) [m] every frame (as given to the curves), and
+    ``warpsim:segments`` (int[], written once) the pairs of points each curve joins: a reader
+    draws the curves from the points (:func:`segment_pairs`) instead of the file holding both
+    ends of every curve every frame (two points per curve instead of one per particle). Widths
+    (the curves' diameter) and colour carry over."""
+
+    def __init__(self, curves):
+        width = np.asarray(curves.attrs["widths"].value, np.float64).reshape(-1)
+        color = curves.attrs.get("primvars:displayColor")
+        super().__init__(curves.name, radius=0.5 * float(width[0]), velocities=curves.has_velocities,
+                         color=None if color is None else tuple(np.asarray(color.value).reshape(-1, 3)[0]))
+        self.static(SEGMENTS_ATTR, "int[]", curves.gather.astype(np.int32), custom=True, uniform=True)
+        self.index_max = int(curves.gather.max()) if len(curves.gather) else -1
+
+    def prepare(self, data, where):
+        out = super().prepare(data, where)
+        if self.index_max >= len(out["points"]):
+            raise ValueError(f"{where}: curve indices reach {self.index_max} but 'points' has {len(out['points'])} "
+                             "particles")
+        return out
+
+
+_CURVE_ATTRS = {"type", "curveVertexCounts", "widths", "points", "velocities", "extent", "primvars:displayColor"}
+
+
+def joined_form(decl):
+    """:class:`JoinedPointsDecl` for curves between particles (``add_curves(name, indices)`` with
+    one width and at most a constant colour); any other declaration unchanged."""
+    if not isinstance(decl, CurvesDecl) or decl.gather is None or not set(decl.attrs) <= _CURVE_ATTRS:
+        return decl
+    widths = decl.attrs["widths"]
+    if widths.metadata.get("interpolation") != "constant" or decl.children or decl.relationships:
+        return decl
+    return JoinedPointsDecl(decl)
+
+
+def curve_samples(points, pairs, width):
+    """The samples a :class:`CurvesDecl` with ``indices = pairs`` writes for particle positions
+    ``points`` (n, 3) and diameter ``width`` [m]: ``{"points": (2 S, 3) segment ends, "extent"}``
+    (the full cache's form of a sweep's :class:`JoinedPointsDecl` frame, bit for bit)."""
+    ends = np.asarray(points, np.float32).reshape(-1, 3)[np.asarray(pairs, np.int64).reshape(-1)]
+    return {"points": ends, "extent": _extent(ends, 0.5 * float(width))}
+
+
+def segment_pairs(prim):
+    """(S, 2) int64 point index pairs of a USD prim written by :class:`JoinedPointsDecl` (its
+    ``warpsim:segments``), or None for any other prim; readers draw its curves as
+    ``points[pairs]``."""
+    attr = prim.GetAttribute(SEGMENTS_ATTR) if prim.GetTypeName() == "Points" else None
+    if not attr or not attr.HasValue():
+        return None
+    pairs = np.asarray(attr.Get(), np.int64)
+    return pairs[: len(pairs) // 2 * 2].reshape(-1, 2)
+
+
 PROTOTYPE_KINDS = ("sphere", "cube", "cone", "capsule", "mesh")
 
 
