@@ -23,11 +23,10 @@ is imported, or through the ``warpsim.scenes`` entry-point group)::
                                     colliders=[ws.Plane(restitution=p["restitution"])])
 
         def declare(self, writer):         # prims on the UsdCacheWriter
-            writer.add_points("particles", radius=0.01, from_state=True)
-            writer.add_plane("floor", size=1.0)
+            self.declare_state(writer, "particles", radius=0.01)
 
-        # frame_data() of SimulatorScene writes state positions/velocities into the
-        # from_state points; override it to add more prims (meshes, curves, primvars).
+        # frame_data() of SimulatorScene writes state positions/velocities into the points
+        # declare_state declared; override it to add more prims (meshes, curves, primvars).
 
 A parameter is ``(default, help)`` or ``(default, help, choices)``; its type comes from the
 default (bool, int, float, str, or a tuple of floats written ``x,y,z``). A ``dt`` parameter is
