@@ -530,7 +530,7 @@ def test_implicit_contact_coupling_blocks_are_the_exact_jacobian():
     for _ in range(40):
         sim.step(1.0 / 1200.0)
     model = sim.model
-    force = contact.implicit_force(stiffness=1000.0)
+    force = contact.implicit_force(stiffness=1000.0, coupling=True)
     force.bind(model)
     n = model.particle_count
     slots = contact.vertex_count + contact.edge_count

@@ -430,7 +430,7 @@ class SoftContact(Collider):
             for bvh in self.bvhs:
                 bvh.refit()
 
-    def implicit_force(self, stiffness: float, damping: float = 0.0, coupling: bool = True) -> SoftContactForce:
+    def implicit_force(self, stiffness: float, damping: float = 0.0, coupling: bool = False) -> SoftContactForce:
         """This contact as a penalty force for an implicit solve (:class:`SoftContactForce`): pass it
         among the Simulator's forces, this SoftContact among its colliders."""
         return SoftContactForce(self, stiffness, damping, coupling)
@@ -565,17 +565,19 @@ class SoftContactForce(Force):
     The contacts found by the collider's last search (the end of the previous step) push while
     they are closer than the thickness: particle k of a contact gets (k_c d - c_c u_n) a_k n with d
     the depth [m] and u_n the normal relative speed [m/s] (see ``warpsim.kernels.soft_contact``).
-    With ``coupling`` (default) the solve gets the exact Jacobian -(k_c + c_c / h) (a a^T) (x) n n^T
-    (diagonal blocks and 12 coupling blocks a contact: ``ws.ImplicitEuler``); without it,
-    diagonal blocks m a_k^2 n n^T that bound it (for solvers without coupling blocks,
-    ``ClothImplicitEuler``). Either keeps implicit Euler stable at any step. The collider still runs after the step: new contacts, friction and any depth
+    By default the solve gets diagonal blocks m a_k^2 n n^T that bound the true stiffness (also for
+    solvers without coupling blocks, ``ClothImplicitEuler``); with ``coupling`` the exact Jacobian
+    -(k_c + c_c / h) (a a^T) (x) n n^T (diagonal blocks and 12 coupling blocks a contact:
+    ``ws.ImplicitEuler``). Either keeps implicit Euler stable at any step. Measured (CPU, 4 tori of
+    14 x 7 vertices, implicit Euler, k_c = 2,000 N/m, 40 frames): at 1/240 s the deepest vertex
+    2.6 mm with the bound, 29.0 mm exact; at 1/480 s 1.0 and 3.0 mm; edges crossed with both. The collider still runs after the step: new contacts, friction and any depth
     left are resolved there. Momentum is conserved, sums are fixed point (bit-identical runs).
 
     Args:
         contact: the SoftContact (also in the Simulator's colliders).
         stiffness: k_c [N/m] per contact.
         damping: c_c [N s/m] per contact (normal relative velocity only).
-        coupling: the exact Jacobian with coupling blocks (True) or the diagonal bound (False).
+        coupling: the exact Jacobian with coupling blocks (True) or the diagonal bound (False, default).
 
     Example::
 
@@ -585,7 +587,7 @@ class SoftContactForce(Force):
                            colliders=[contact])
     """
 
-    def __init__(self, contact: SoftContact, stiffness: float, damping: float = 0.0, coupling: bool = True):
+    def __init__(self, contact: SoftContact, stiffness: float, damping: float = 0.0, coupling: bool = False):
         from ..core import checks
 
         if not isinstance(contact, SoftContact):
