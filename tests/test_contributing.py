@@ -4,18 +4,15 @@
 the command line); and its floors table, like the docs page's, is ``FLOORS`` of
 tests/test_import_graph.py."""
 
-import contextlib
 import io
-import os
 import re
 import runpy
-import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 from test_import_graph import FLOORS
+from test_readme import run_command
 
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = ROOT / "CONTRIBUTING.md"
@@ -77,40 +74,13 @@ def test_what_ci_runs_is_in_ci_and_the_gpu_group_exists():
     assert re.search(r"^\s*core\)", script.read_text(), re.M)
 
 
-def _run(command, cwd):
-    """(exit status, output) of ``command`` run from ``cwd`` in this process (Warp starts once):
-    ``warpsim`` through ``warpsim.cli.main`` (the console script's entry point), ``python3
-    SCRIPT`` through runpy as ``__main__``."""
-    argv = shlex.split(command)
-    out, err, here, saved_argv, saved_path = io.StringIO(), io.StringIO(), os.getcwd(), sys.argv, list(sys.path)
-    os.chdir(cwd)
-    try:
-        if argv[0] == "warpsim":
-            from warpsim import cli
-
-            return cli.main(argv[1:], out, err), out.getvalue() + err.getvalue()
-        assert argv[0] in ("python", "python3"), f"cannot run {command!r} here: add a way to run it"
-        sys.argv = [str(ROOT / argv[1]), *argv[2:]]
-        sys.path.insert(0, os.path.dirname(sys.argv[0]))  # as `python SCRIPT` does
-        code = 0
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                runpy.run_path(sys.argv[0], run_name="__main__")
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-        return code, out.getvalue() + err.getvalue()
-    finally:
-        sys.argv, sys.path[:] = saved_argv, saved_path
-        os.chdir(here)
-
-
 def test_the_commands_run(tmp_path):
     commands, _ = guide_blocks(GUIDE.read_text())
     for command in commands:
         row = COMMANDS[command]
         if isinstance(row, skip):
             continue
-        code, out = _run(command, tmp_path)  # what they write lands in the test's folder
+        code, out = run_command(command, tmp_path)  # in this process; what they write lands in tmp_path
         assert code == 0, f"{command}: exit {code}\n{out[-3000:]}"
         assert row.expect in out, f"{command}: {row.expect!r} not in its output\n{out[-3000:]}"
 
