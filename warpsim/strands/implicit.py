@@ -7,7 +7,8 @@ from __future__ import annotations
 import warp as wp
 
 from ..core import checks
-from ..core.forces import Drag, cached_launch
+from ..core.forces import Drag
+from ..core.launch import cached_launch
 from ..core.integrators import Integrator
 from ..kernels import strands_implicit as K
 from .builder import Strands
