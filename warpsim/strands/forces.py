@@ -8,7 +8,8 @@ import numpy as np
 import warp as wp
 
 from ..core.collider import Collider
-from ..core.forces import Force, cached_launch
+from ..core.forces import Force
+from ..core.launch import cached_launch
 from ..core.stability import StabilityLimit
 from ..kernels import strands as K
 from .builder import Strands
