@@ -138,3 +138,22 @@ def test_the_query_refines_from_the_particles_true_positions(sweep):
     for k, f in enumerate(range(8, 11)):
         surface = np.asarray(mesh.Get(record.first_frame + f))
         assert np.array_equal(got[k, : len(surface)], surface)
+
+
+def test_a_layer_of_the_former_form_is_not_resumed_into(tmp_path):
+    """A batch layer written before the worlds inherited ``/WorldShared`` (its chunks hold the
+    curves' segment ends) is refused by a resume, which would mix the two forms in one layer."""
+    from pxr import Sdf
+
+    from warpsim.sweeps.sweep import run_batch
+    from warpsim.sweeps.usd import SHARED
+
+    worlds = [{"stiffness": 50.0}, {"stiffness": 400.0}]
+    part = tmp_path / "part.usdc"
+    run_batch("springs", worlds, frames=7, device="cpu", layer_path=part, chunk_size=4)
+    layer = Sdf.Layer.FindOrOpen(str(part))
+    edit = Sdf.BatchNamespaceEdit()
+    edit.Add(SHARED, Sdf.Path.emptyPath)  # the former form: no class (prims declared per world)
+    assert layer.Apply(edit) and layer.Save()
+    with pytest.raises(ValueError, match="earlier warpsim"):
+        run_batch("springs", worlds, frames=12, device="cpu", layer_path=part, chunk_size=4, resume_frame=8)

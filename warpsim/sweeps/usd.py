@@ -149,6 +149,20 @@ class BatchLayerWriter(UsdCacheWriter):
         return [f"{self._world_path(k)}/{name}.{a.name}" for k in range(self.world_count)
                 for name, d in self.dynamic.items() for a in d.dynamic_attrs()]
 
+    def _load_for_resume(self, resume_frame):
+        """Adopt the kept chunks (``UsdCacheWriter``), refusing a layer written before the worlds
+        inherited ``/WorldShared`` (its chunks hold curves' segment ends where this layer writes
+        particles' points: the frames would not match)."""
+        from pxr import Sdf
+
+        if resume_frame and os.path.exists(self.path):
+            old = Sdf.Layer.OpenAsAnonymous(self.path)
+            if old is not None and old.GetPrimAtPath("/Worlds") and not old.GetPrimAtPath(SHARED):
+                raise ValueError(f"cannot resume at frame {resume_frame}: {os.path.basename(self.path)} was written "
+                                 "by an earlier warpsim (each world's prims declared in full, curves stored as "
+                                 "segment ends); run the sweep again without --resume")
+        super()._load_for_resume(resume_frame)
+
     def _clip_prim(self, layer):
         return layer.GetPrimAtPath(self._world_path(0))
 
