@@ -26,6 +26,8 @@ sums are bit-reproducible and need no atomics.
 
 import warp as wp
 
+from .collide import apply_local_contact, capsule_contact
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -193,6 +195,35 @@ def bend_world_from_rest(
         world_out[slot + v] = vertex_frame(t, n) * bend_rest[slot + v]
 
 
+@wp.func
+def place_roots(
+    s: int,
+    first: int,
+    stride: int,
+    head_prev: wp.transform,
+    head: wp.transform,
+    ghost_local: wp.array(dtype=wp.vec3),
+    root_local: wp.array(dtype=wp.vec3),
+    normal_local: wp.array(dtype=wp.vec3),
+    inv_dt: float,
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    root_normal_out: wp.array(dtype=wp.vec3),
+):
+    """Ghost and root of strand ``s`` at the head pose ``head`` applied to their head-frame
+    positions [m]; their velocity is their displacement from pose ``head_prev`` times ``inv_dt``
+    [1/s] (from the poses, not from the integrated positions, which a pinned particle's velocity
+    extrapolates); the root frame normal turns with the head."""
+    base = first + s * stride
+    g = wp.transform_point(head, ghost_local[s])
+    r = wp.transform_point(head, root_local[s])
+    qd[base] = (g - wp.transform_point(head_prev, ghost_local[s])) * inv_dt
+    qd[base + 1] = (r - wp.transform_point(head_prev, root_local[s])) * inv_dt
+    q[base] = g
+    q[base + 1] = r
+    root_normal_out[s] = wp.transform_vector(head, normal_local[s])
+
+
 @wp.kernel
 def set_strand_roots(
     first: int,
@@ -207,19 +238,66 @@ def set_strand_roots(
     qd: wp.array(dtype=wp.vec3),
     root_normal_out: wp.array(dtype=wp.vec3),
 ):
-    """Kinematic roots: ghost and root of strand ``s`` move to the head pose ``head`` applied to
-    their head-frame positions [m]; their velocity is their displacement from pose ``head_prev``
-    times ``inv_dt`` [1/s] (from the poses, not from the integrated positions, which a pinned
-    particle's velocity extrapolates); the root frame normal turns with the head."""
-    s = wp.tid()
-    base = first + s * stride
-    g = wp.transform_point(head, ghost_local[s])
-    r = wp.transform_point(head, root_local[s])
-    qd[base] = (g - wp.transform_point(head_prev, ghost_local[s])) * inv_dt
-    qd[base + 1] = (r - wp.transform_point(head_prev, root_local[s])) * inv_dt
-    q[base] = g
-    q[base + 1] = r
-    root_normal_out[s] = wp.transform_vector(head, normal_local[s])
+    """Kinematic roots (``place_roots``) between the head poses ``head_prev`` and ``head``."""
+    place_roots(wp.tid(), first, stride, head_prev, head, ghost_local, root_local, normal_local, inv_dt, q, qd,
+                root_normal_out)
+
+
+@wp.kernel
+def set_strand_roots_posed(
+    first: int,
+    stride: int,
+    poses: wp.array(dtype=wp.transform),
+    step: int,
+    ghost_local: wp.array(dtype=wp.vec3),
+    root_local: wp.array(dtype=wp.vec3),
+    normal_local: wp.array(dtype=wp.vec3),
+    inv_dt: float,
+    q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3),
+    root_normal_out: wp.array(dtype=wp.vec3),
+):
+    """``set_strand_roots`` with the head poses of the frame's step ``step`` read from the device
+    (poses[2 step], poses[2 step + 1]: before and after it), so a captured frame replays with new
+    poses."""
+    place_roots(wp.tid(), first, stride, poses[2 * step], poses[2 * step + 1], ghost_local, root_local, normal_local,
+                inv_dt, q, qd, root_normal_out)
+
+
+@wp.kernel
+def collide_sphere_posed(
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    q_prev: wp.array(dtype=wp.vec3),
+    poses: wp.array(dtype=wp.transform),
+    step: int,
+    shape_radius: float,
+    restitution: float,
+    friction: float,
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
+    forces: wp.array(dtype=wp.vec3),
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """A solid sphere (continuous detection, ``ws.Sphere``'s contact funcs) between the poses
+    poses[2 step] and poses[2 step + 1] read from the device (``set_strand_roots_posed``)."""
+    i = wp.tid()
+    w = inv_mass[i]
+    if w == 0.0:
+        return
+    pose_prev = poses[2 * step]
+    pose = poses[2 * step + 1]
+    xl = wp.transform_point(wp.transform_inverse(pose), q_io[i])
+    x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])
+    h, nl, pl = capsule_contact(x0l, xl, wp.vec3(), wp.vec3(), shape_radius + (radius[i] + thickness), 0)
+    x, v = apply_local_contact(h, nl, pl, x0l, xl, w * forces[i], q_io[i], qd_io[i], pose_prev, pose, mode,
+                               restitution, friction, stiffness, damping_ratio, w, dt)
+    q_io[i] = x
+    qd_io[i] = v
 
 
 @wp.kernel

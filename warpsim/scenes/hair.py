@@ -16,8 +16,9 @@ import numpy as np
 
 import warpsim as ws
 
-from ..bodies.colliders import ParticleCollisions, Sphere, quat_multiply, quat_rotate
+from ..bodies.colliders import ParticleCollisions, quat_multiply, quat_rotate
 from ..strands import StrandForce, StrandImplicitEuler, StrandRoots, add_strands, sag_free, strand_stable_dt
+from ..strands.frame import HairFrame, PosedSphere
 from ..usd.sink import display_hints
 from . import SimulatorScene, register_scene
 from .live import set_contact
@@ -123,6 +124,8 @@ PARAMS = {
     "radius": (0.002, "collision radius of a strand vertex [m]"),
     "solver": ("implicit", "strand step: implicit (backward Euler, a direct solve per strand) or explicit "
                            "(semi-implicit Euler at half the measured stable step)", SOLVERS),
+    "graph": (True, "on CUDA: capture a frame's strand steps as one CUDA graph and replay it (the head's poses "
+                    "are read from the device)"),
     "steps": (4, "implicit solver: strand steps per 1/60 s frame (backward Euler damps a mode of omega "
                  "by about exp(-omega^2 h t / 2))"),
 }
@@ -156,7 +159,7 @@ class Hair(SimulatorScene):
         from ..sweeps.preflight import check_strand_memory
 
         check_strand_memory(p["strands"], p["segments"], self.device)  # refused with the figure, before allocating
-        self.head = Sphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
+        self.head = PosedSphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
                            motion=head_motion(p["motion"], p["still"], HEAD_CENTER, HEAD_RADIUS))
         roots, normals = scalp_roots(p["strands"], HEAD_CENTER, HEAD_RADIUS)
         # a wave or curl of at least 8 segments and 0.1 m (resolved by the segments; the implicit step
@@ -192,6 +195,8 @@ class Hair(SimulatorScene):
         # the blow-up test (a device read-back) once per frame, not once per strand step
         self.sim.check_every = self.strand_steps(1.0 / self.fps)
         self.sag_report = self._sag_free(p) if p["sag_free"] else None
+        # a frame's strand steps read the head's poses from the device: one CUDA graph a frame on CUDA
+        self.frame = HairFrame(self.sim, self.head, self.roots, use_graph=None if p["graph"] else False)
         self._curve_particles = self.hair.curve_particles().reshape(-1)
         self._free_particles = self.hair.free_particles()
         from ..viewer.geometry import icosphere
@@ -200,15 +205,15 @@ class Hair(SimulatorScene):
         self._head_local = verts.astype(np.float64) * HEAD_RADIUS
         self._head_tris = tris
 
-    # the sag-free solve's CGLS tolerance: its residual force is floored near 0.3 % of the load by the
-    # float32 force kernels whatever the tolerance (150 strands x 32 segments, CPU: rtol 1e-10 13,775
-    # iterations, residual 0.33 %; 1e-4 5,475 iterations, 0.31 %; tips within 0.014 mm over 2 s)
+    # the sag-free solve's CGLS tolerance, for rounds whose direct per-strand solve leaves its bounds
+    # (CGLS takes those): its residual force is floored near 0.3 % of the load by the float32 force
+    # kernels whatever the tolerance (150 strands x 32 segments, CPU: rtol 1e-10 13,775 iterations,
+    # residual 0.33 %; 1e-4 5,475 iterations, 0.31 %)
     SAG_FREE_RTOL = 1.0e-4
-    # seconds per particle of the sag-free solve at SAG_FREE_RTOL: CPU measured (36,000 particles in
-    # 33.7 s, 1,925 iterations, 2 cores under load);
-    # H100 measured at rtol 1e-10 (3.4 M particles in 88 s, 14,200 iterations) scaled by the
-    # iteration count (an estimate)
-    SAG_FREE_RATE = {"cpu": 1.0e-3, "cuda": 1.0e-5}
+    # seconds per particle of the sag-free solve (the direct per-strand solve): CPU measured (36,000
+    # particles in 0.29 s, 2 cores under load; 150 x 32: 0.23 s, tips within 0.009 mm over 2 s);
+    # CUDA: a bound until measured (the CGLS solve took 2.6e-5 at 3.4 M particles on an H100)
+    SAG_FREE_RATE = {"cpu": 1.0e-5, "cuda": 1.0e-6}
 
     def _sag_free(self, p):
         """``sag_free(self.sim)``, saying on stderr what it does and about how long it takes when
@@ -243,9 +248,7 @@ class Hair(SimulatorScene):
         return substeps * self.strand_steps(frame_dt / substeps)
 
     def advance(self, frame_dt, substeps):
-        n = self.frame_steps(frame_dt, substeps)
-        for _ in range(n):
-            self.sim.step(frame_dt / n)
+        self.frame.advance(frame_dt, self.frame_steps(frame_dt, substeps))
 
     # ------------------------------------------------------------------ live parameters, dragging
     live_params = ("friction",)

@@ -73,6 +73,14 @@ class StrandRoots(Collider):
             raise ValueError(f"StrandRoots head must be a kinematic collider with world_pose() (ws.Sphere, "
                              f"ws.TriangleMesh, ...), got {type(head).__name__}")
         self.head = head if head is not None else strands.head
+        self.frame_poses = None
+        self.step_index = 0
+
+    def use_poses(self, poses) -> None:
+        """Inside a ``HairFrame``: read the head's pose of each step from ``poses`` (``HeadPoses``,
+        on the device) instead of launch parameters, so the frame can be captured as a graph."""
+        self.frame_poses = poses
+        self.step_index = 0
 
     def bind(self, model):
         super().bind(model)
@@ -92,6 +100,16 @@ class StrandRoots(Collider):
 
     def apply(self, model, state, q_prev, dt):
         st, d = self.strands, self.data
+        fp = self.frame_poses
+        if fp is not None and self.step_index < fp.steps:
+            k, self.step_index = self.step_index, self.step_index + 1
+            wp.launch(K.set_strand_roots_posed, st.strand_count,
+                      inputs=[st.first, st.stride, fp.poses, k, d["ghost_local"], d["root_local"], d["normal_local"],
+                              1.0 / float(dt), state.positions, state.velocities, d["root_normal"]],
+                      device=model.device)
+            if self.step_index == fp.steps:
+                self._prev = self._pose()  # the head's pose after the frame (its host pose is there)
+            return
         pose = self._pose()
         prev, self._prev = self._prev, pose
         wp.launch(K.set_strand_roots, st.strand_count,
