@@ -259,6 +259,18 @@ def external_rhs(
             b_out[3 * i + c] = -wp.float64(f[i][c])
 
 
+@wp.kernel
+def flat_from_vec3(
+    y: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), scale: wp.float64, out: wp.array(dtype=wp.float64)
+):
+    """out = scale y at free particles, 0 at pinned (3 entries a particle)."""
+    i = wp.tid()
+    for c in range(3):
+        out[3 * i + c] = wp.float64(0.0)
+        if inv_mass[i] > 0.0:
+            out[3 * i + c] = scale * wp.float64(y[i][c])
+
+
 # --------------------------------------------------------------------------------------
 # Deterministic reductions and vector updates (CGLS)
 # --------------------------------------------------------------------------------------

@@ -17,8 +17,12 @@ bending unknowns per vertex; cloth: more springs than particles), so the global 
 the rest states that balance the load, the one of least elastic energy of the change,
 sum t^2 / k + |g|^2 / k_b (minimum complementary energy: the regularisation toward the geometric
 rest state; stiff springs carry the load). With u = t / sqrt(k) this is the minimum-norm solution
-of A diag(sqrt(k)) u = -f, found by CGLS (conjugate gradients on the normal equations, float64,
-from u = 0). The frames of curved strands add a force that depends on the rest state too; it is
+of A diag(sqrt(k)) u = -f. For strands alone (no springs, no supports) it is found directly, one
+thread per strand: A A^T over a strand's free vertices is the Gauss-Newton stiffness of the
+implicit strand step without mass, solved by its block band Cholesky (``_Solver.solve_direct``;
+150 strands x 32 segments on the CPU: 0.23 s instead of 5,475 CGLS iterations); otherwise, and
+for a round whose direct solution leaves its bounds, by CGLS (conjugate gradients on the normal
+equations, float64, from u = 0). The frames of curved strands add a force that depends on the rest state too; it is
 handled global-local: the local step measures every particle's residual force with the
 simulator's own force kernels at the current rest state, the global step solves A du = -residual
 for a correction, until the residual stops falling (a few rounds).
@@ -43,6 +47,7 @@ from ..core import checks
 from ..core.forces import Springs
 from ..kernels import sag_free as K
 from ..kernels import strands as KS
+from ..kernels import strands_implicit as KI
 from .forces import StrandForce
 
 __all__ = ["SagFreeReport", "sag_free"]
@@ -146,6 +151,8 @@ class _Group:
         self.length[:, 1:-1] = np.linalg.norm(np.diff(xs[:, 1:], axis=1), axis=2)
         self.bend_geo = np.zeros((st.strand_count, st.stride, 3))
         self.bend_geo[:, 1:-1] = xs[:, :-2] - 2.0 * xs[:, 1:-1] + xs[:, 2:]
+        self.length32 = wp.array(self.length.reshape(-1).astype(np.float32), dtype=float, device=d)  # geometric
+        self.zero_s = wp.zeros(st.strand_count, dtype=float, device=d)
         self.sqrt_stretch = wp.array(np.sqrt(st.stretch_stiffness), dtype=wp.float64, device=d)
         self.sqrt_bend = wp.array(np.sqrt(st.bend_stiffness), dtype=wp.float64, device=d)
         self.world = wp.zeros(self.slots, dtype=wp.vec3, device=d)
@@ -222,6 +229,15 @@ class _Solver:
         self.Ap = wp.zeros_like(self.b)
         self.scalars = wp.zeros(8, dtype=wp.float64, device=d)  # 0 gamma, 1 delta, 2 gamma_new, 3 |r|^2, 4 |b|^2
         self.partial = {}
+        self.direct = not m and contacts is None and bool(groups)
+        if self.direct:  # strands alone: a direct solve per strand (``solve_direct``)
+            inv_mass = model.particle_inv_mass.numpy()
+            self.tiny_mass = wp.array(np.where(inv_mass > 0.0, 1.0e-30, 0.0).astype(np.float32), dtype=float, device=d)
+            self.zero_v = wp.zeros(n, dtype=wp.vec3, device=d)
+            self.y = wp.zeros(n, dtype=wp.vec3, device=d)
+            slots = max(g.slots for g in groups)
+            self.factors = [wp.zeros(slots, dtype=wp.mat44d, device=d) for _ in range(3)]
+            self.factor_rhs = wp.zeros(slots, dtype=wp.vec4d, device=d)
 
     def apply(self, u_in, f_out):
         """f_out = A u_in (3 per particle, 0 at pinned particles)."""
@@ -271,6 +287,30 @@ class _Solver:
         wp.launch(K.dot_partial, threads, inputs=[a, c, threads, buf[0]], device=self.device)
         wp.launch(K.fold_partials, middle, inputs=[buf[0], middle, buf[1]], device=self.device)
         wp.launch(K.sum_partials, 1, inputs=[buf[1], self.scalars, slot], device=self.device)
+
+    def solve_direct(self, force, fixed, lo, hi):
+        """The least-norm u with A u = -force (strands alone), directly: A A^T over a strand's free
+        vertices is the Gauss-Newton stiffness of ``StrandImplicitEuler`` without mass (stretch
+        k d d^T, bending k_b J^T J with the frames' twist), so its per-strand block band Cholesky
+        (one thread per strand, float64) gives y = -(A A^T)^-1 force and u = A^T y (the exact
+        transpose, frames included). Returns (u host, 0 iterations), or None when u leaves its
+        bounds (CGLS with its active set takes the round)."""
+        d = self.device
+        for g in self.groups:
+            st, data = g.strands, g.data
+            wp.launch(KI.strand_implicit_solve, st.strand_count,
+                      inputs=[self.q, self.zero_v, force, self.tiny_mass, st.first, st.stride, g.length32,
+                              data["bend_rest"], data["stretch_stiffness"], data["bend_stiffness"], g.zero_s, g.zero_s,
+                              data["root_normal"], 0.0, -1, 0.0, 0.0, 1.0, *self.factors, self.factor_rhs, 1, self.y],
+                      device=d)
+        wp.launch(K.flat_from_vec3, self.n, inputs=[self.y, self.model.particle_inv_mass, wp.float64(-1.0), self.r],
+                  device=d)
+        self.mask.assign(fixed.astype(np.int32))
+        self.apply_transpose(self.r, self.u)
+        u = self.u.numpy()
+        if (((u < lo) | (u > hi)) & ~fixed).any():
+            return None
+        return u, 0
 
     def solve(self, fixed, lo, hi, rtol, max_iterations):
         """u with A u ~ b (self.b) of least norm, lo <= u <= hi; ``fixed`` (bool) unknowns stay 0.
@@ -427,7 +467,8 @@ def sag_free(target, *, forces=None, max_strain: float = 0.2, tol: float = 1.0e-
         for done_rounds in range(1, rounds + 1):
             # global step: the least-energy correction that cancels the measured residual force
             wp.launch(K.external_rhs, n, inputs=[force, model.particle_inv_mass, solver.b], device=d)
-            du, its = solver.solve(fixed, lower - u, bound - u, rtol, max_iterations)
+            direct = solver.solve_direct(force, fixed, lower - u, bound - u) if solver.direct else None
+            du, its = direct if direct is not None else solver.solve(fixed, lower - u, bound - u, rtol, max_iterations)
             iterations += its
             u = u + du
             at = np.isfinite(bound) & (bound > 0.0) & (np.abs(np.abs(u) - bound) <= 1.0e-9 * bound)
