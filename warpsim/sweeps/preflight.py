@@ -11,6 +11,8 @@ import math
 import os
 import re
 
+from ..core.memory import available_host_bytes
+
 __all__ = ["HOST_BYTES_PER_WORLD", "available_host_bytes", "check_disk", "check_ray_address", "check_seed",
            "check_strand_memory", "free_disk_bytes",
            "check_worlds", "estimate_strand_bytes", "estimate_sweep_bytes", "format_bytes", "frame_time_note",
@@ -41,21 +43,6 @@ def format_bytes(n) -> str:
             return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
         n /= 1024
     return f"{n:.3g} EiB"  # pragma: no cover
-
-
-def available_host_bytes() -> int:
-    """Memory the system can still give [bytes] (``MemAvailable``; 1/2 of the pages elsewhere)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - no sysconf
-        return 1 << 62
 
 
 def check_seed(seed) -> int:

@@ -7,9 +7,9 @@ manifest) and how to turn one frame of user arrays into validated attribute samp
 """
 from __future__ import annotations
 
-import difflib
-
 import numpy as np
+
+from ..core.names import close_matches
 
 # USD array type name -> (NumPy dtype, components per element; 0 = scalar elements)
 ARRAY_TYPES = {
@@ -52,12 +52,6 @@ def as_numpy(value):
     if hasattr(value, "numpy") and callable(value.numpy):
         return value.numpy()
     return np.asarray(value)
-
-
-def close_matches(word, choices):
-    """' Did you mean ...?' suffix for an error message ('' when nothing is close)."""
-    match = difflib.get_close_matches(str(word), [str(c) for c in choices], n=3, cutoff=0.5)
-    return f" Did you mean {' or '.join(repr(m) for m in match)}?" if match else ""
 
 
 def coerce(type_name, value, what):

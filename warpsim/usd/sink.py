@@ -15,7 +15,8 @@ import re
 
 import numpy as np
 
-from .prims import CurvesDecl, GeomDecl, InstancerDecl, MeshDecl, PointsDecl, bind_preview_material, close_matches
+from ..core.names import close_matches
+from .prims import CurvesDecl, GeomDecl, InstancerDecl, MeshDecl, PointsDecl, bind_preview_material
 
 __all__ = ["PrimSink", "state_frame_data"]
 

@@ -45,7 +45,8 @@ import numpy as np
 
 from . import chunk_index
 from .lock import OutputLock
-from .prims import ARRAY_TYPES, close_matches
+from ..core.names import close_matches
+from .prims import ARRAY_TYPES
 from .sink import PrimSink, state_frame_data
 
 __all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter", "settings_run_id"]
