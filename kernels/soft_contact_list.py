@@ -336,6 +336,7 @@ def narrow_candidates(
 
 @wp.kernel
 def resolve_listed(
+    stride: int,
     listed: wp.array(dtype=int),
     active: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3),
@@ -352,16 +353,16 @@ def resolve_listed(
     dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
 ):
-    """``resolve_one`` for the i-th found contact (launched over the capacity; the rest return)."""
-    i = wp.tid()
-    if i >= listed[0]:
-        return
-    resolve_one(active[i], q, qd, inv_mass, contact_particles, contact_weights, contact_normal, particle_contacts,
-                thickness, fraction, restitution, friction, dx_io, dv_io)
+    """``resolve_one`` for every found contact: thread t of ``stride`` threads takes contacts t,
+    t + stride, ... (the launch does not grow with the contact slots)."""
+    for i in range(wp.tid(), listed[0], stride):
+        resolve_one(active[i], q, qd, inv_mass, contact_particles, contact_weights, contact_normal,
+                    particle_contacts, thickness, fraction, restitution, friction, dx_io, dv_io)
 
 
 @wp.kernel
 def apply_listed(
+    stride: int,
     listed: wp.array(dtype=int),
     touched: wp.array(dtype=int),
     dx_io: wp.array2d(dtype=wp.int64),
@@ -371,13 +372,10 @@ def apply_listed(
     last: int,
     particle_contacts_io: wp.array(dtype=int),
 ):
-    """``apply_one`` for the i-th particle in a contact (launched over the capacity); after the
-    last pass (``last`` 1) also zero its contact count for the next step."""
-    i = wp.tid()
-    if i >= listed[1]:
-        return
-    p = touched[i]
-    apply_one(p, dx_io, dv_io, q_io, qd_io)
-    if last != 0:
-        particle_contacts_io[p] = 0
-
+    """``apply_one`` for every particle in a contact (``stride`` threads, as ``resolve_listed``);
+    after the last pass (``last`` 1) also zero its contact count for the next step."""
+    for i in range(wp.tid(), listed[1], stride):
+        p = touched[i]
+        apply_one(p, dx_io, dv_io, q_io, qd_io)
+        if last != 0:
+            particle_contacts_io[p] = 0

@@ -107,6 +107,9 @@ class SoftContact(Collider):
     """Default BVH rebuild period on the CPU, where a SAH rebuild costs about 1.2 us per item."""
     SEARCH_EVERY = 20
     """Default refit-and-search period of ``broad_phase="list"`` (steps)."""
+    LIST_THREADS = 65536
+    """Threads of the list's push-and-impulse passes (each takes every LIST_THREADS-th contact or
+    particle: the launches stay this small however many contact slots there are)."""
     DEFAULT_CAPACITY = 64
     """Default candidates kept per query of ``broad_phase="list"``."""
 
@@ -534,11 +537,12 @@ class SoftContact(Collider):
                 self.thickness, self.search, *contact, self._particle_contacts, self._total, self._active,
                 self._touched, self._listed]),
         ]
+        threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
         for k in range(self.iterations):
-            launches.append(record(L.resolve_listed, v + e, [
-                self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
+            launches.append(record(L.resolve_listed, threads[0], [
+                threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
                 self.thickness, self.push, self.restitution, self.friction, self._dx, self._dv]))
-            launches.append(record(L.apply_listed, n, [self._listed, self._touched, self._dx, self._dv, q, qd,
+            launches.append(record(L.apply_listed, threads[1], [threads[1], self._listed, self._touched, self._dx, self._dv, q, qd,
                                                        int(k == self.iterations - 1), self._particle_contacts]))
         return launches
 
