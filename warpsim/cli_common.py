@@ -36,7 +36,8 @@ def device_arg(name) -> str:
 
 def parse_sets(cls, sets, integrator):
     """{key: typed value} from --set KEY=VALUE items (and --integrator)."""
-    from .scenes import close_matches, parse_value
+    from .core.names import close_matches
+    from .scenes import parse_value
 
     given = {}
     for item in sets:

@@ -44,7 +44,8 @@ class VarySpec:
 def parse_vary(text, params) -> VarySpec:
     """Parse one ``--vary`` item against a scene's ``{key: Param}``; ValueError (one line) names
     the key, the value and the fix."""
-    from ..scenes import close_matches, parse_value
+    from ..core.names import close_matches
+    from ..scenes import parse_value
 
     text = str(text)
     if "=" not in text:
