@@ -4,17 +4,20 @@ warpsim: the ``hair`` scene (sphere head turning and nodding; stretch and bendin
 transported frames; head, kinematic roots, floor; air drag), stepped two ways in one process:
 - implicit (the scene's default): ``StrandImplicitEuler``, backward Euler with one float64
   block-band direct solve per strand (one thread per strand), ``steps`` strand steps per 1/60 s
-  frame;
+  frame, timed by whole frames (``scene.advance``: the head's poses uploaded, the steps, the
+  blow-up test's read-back) with each frame captured as one CUDA graph (the scene's default on
+  CUDA) and eagerly, launch by launch;
 - explicit (``solver=explicit``, the reference): semi-implicit Euler at half the strands'
   measured stable step (``StrandForce``, one thread per strand).
 Prints for each the steps per second, the steps per 1/60 s frame and the frames per second
 (simulation only, no drawing or writing), their ratio, and the one-time costs (build, stable-step
-measurement, sag-free solve). ``--reference`` adds the plain mass-spring stand-in of the earlier
+measurement, sag-free solve). ``--style wavy`` / ``curly``: the curled grooms. ``--reference`` adds the plain mass-spring stand-in of the earlier
 version of this script (``ws.Simulator`` with ``ws.Springs``).
 
     python benchmarks/bench_hair.py --device cpu --strands 2000 --segments 16 --steps 10
     python benchmarks/bench_hair.py --device cuda:0 --strands 15000 --segments 32
     python benchmarks/bench_hair.py --device cuda:0 --strands 100000 --segments 32
+    python benchmarks/bench_hair.py --device cuda:0 --strands 15000 --segments 32 --style wavy --no-explicit
 """
 
 from __future__ import annotations
@@ -70,7 +73,7 @@ def build(args, device, solver):
 
     t0 = time.perf_counter()
     scene = get_scene("hair")({"strands": args.strands, "segments": args.segments, "still": 0.0, "motion": "turn_nod",
-                               "sag_free": False, "solver": solver}, device=device)
+                               "sag_free": False, "solver": solver, "style": args.style}, device=device)
     wp.synchronize_device(device)
     return scene, time.perf_counter() - t0
 
@@ -87,12 +90,27 @@ def measure(scene, label, steps, device):
     return per_step, n
 
 
+def measure_frames(scene, label, frames, device, graph):
+    """Seconds per 1/60 s frame of ``scene.advance`` (``graph``: captured as a CUDA graph where
+    the device is CUDA, else eager); prints one line."""
+    scene.frame.use_graph = bool(graph)
+    n = scene.frame_steps(1.0 / 60.0, 1)
+    for _ in range(2):  # the eager first frame loads the modules, the second captures the graph
+        scene.advance(1.0 / 60.0, 1)
+    per_frame = time_per_call(lambda: scene.advance(1.0 / 60.0, 1), frames, device)
+    particles = scene.model.particle_count
+    print(f"  {label}: {1.0 / per_frame:.1f} frames/s ({n} steps per 1/60 s frame, {per_frame / n * 1e3:.3f} ms/step, "
+          f"{particles * n / per_frame / 1e6:.1f} M particle-steps/s)")
+    return per_frame, n
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=DefaultsHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--strands", type=int, default=100_000)
     parser.add_argument("--segments", type=int, default=32)
-    parser.add_argument("--steps", type=int, default=100, help="timed strand steps per run (implicit)")
+    parser.add_argument("--steps", type=int, default=100, help="timed strand steps (implicit: steps / 4 frames)")
+    parser.add_argument("--style", default="straight", choices=("straight", "wavy", "curly"), help="the groom")
     parser.add_argument("--explicit-steps", type=int, default=None, help="timed steps of the explicit step "
                                                                          "(default: --steps)")
     parser.add_argument("--no-explicit", action="store_true", help="skip the explicit step")
@@ -113,11 +131,17 @@ def main():
         report = ws.sag_free(scene.sim, rtol=scene.SAG_FREE_RTOL)  # as the scene solves it
         wp.synchronize_device(device)
         solve = time.perf_counter() - t0
-        print(f"  sag_free (rtol {scene.SAG_FREE_RTOL:g}): {solve:.2f} s, {report.rounds} rounds, "
-              f"{report.iterations} CGLS iterations, "
+        how = "the direct per-strand solve" if report.iterations == 0 else f"{report.iterations} CGLS iterations"
+        print(f"  sag_free (rtol {scene.SAG_FREE_RTOL:g} for CGLS): {solve:.2f} s, {report.rounds} rounds, {how}, "
               f"residual {100 * report.residual_relative:.3g} % of the largest load")
-    per_i, n_i = measure(scene, "implicit (StrandImplicitEuler)", args.steps, device)
-    per_frame_i = per_i * n_i
+    frames = max(1, args.steps // 4)
+    graph = device.is_cuda
+    eager, n_i = measure_frames(scene, "implicit, eager frames", frames, device, False)
+    per_frame_i = eager
+    if graph:
+        per_frame_i, _ = measure_frames(scene, "implicit, one CUDA graph a frame", frames, device, True)
+        print(f"  graph / eager frame time: {per_frame_i / eager:.3f}")
+    per_i = per_frame_i / n_i
     print(f"  implicit: {1.0 / per_frame_i:.1f} frames/s ({n_i} steps per 1/60 s frame, {per_frame_i * 1e3:.2f} ms "
           "per frame)")
     if not args.no_explicit:

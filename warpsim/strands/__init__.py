@@ -4,13 +4,15 @@ solved so the groomed shape is a static equilibrium; it also serves cloth and so
 
 Drives ``warpsim.kernels.strands`` and ``warpsim.kernels.sag_free``.
 Entry names: add_strands, Strands, StrandForce, StrandRoots, StrandImplicitEuler (``implicit``: the
-backward Euler strand step), sag_free, SagFreeReport.
+backward Euler strand step), HairFrame and PosedSphere (``frame``: a frame's steps with the head's
+poses on the device, one CUDA graph a frame), sag_free, SagFreeReport.
 """
 
 from .builder import Strands, add_strands, head_signed_distance
 from .forces import StrandForce, StrandRoots, strand_stable_dt
+from .frame import HairFrame, HeadPoses, PosedSphere
 from .implicit import StrandImplicitEuler
 from .sag_free import SagFreeReport, sag_free
 
-__all__ = ["SagFreeReport", "StrandForce", "StrandImplicitEuler", "StrandRoots", "Strands", "add_strands", "head_signed_distance",
+__all__ = ["HairFrame", "HeadPoses", "PosedSphere", "SagFreeReport", "StrandForce", "StrandImplicitEuler", "StrandRoots", "Strands", "add_strands", "head_signed_distance",
            "sag_free", "strand_stable_dt"]
