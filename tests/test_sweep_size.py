@@ -58,6 +58,14 @@ def test_a_teapot_sweep_fits_the_budget(sweep):
     assert sweep["written"] <= budget, f"{sweep['written']:,} bytes written, budget {budget:,.0f}"
 
 
+def test_the_sweep_says_its_size_before_it_starts(sweep):
+    said = re.search(r"writing about ([\d.]+) (bytes|KiB|MiB|GiB) to .*4 worlds x 11 frames", sweep["err"])
+    assert said, sweep["err"]
+    assert sweep["err"].index(said.group(0)) == 0  # before anything else the sweep says
+    estimate = float(said.group(1)) * UNITS[said.group(2)]
+    assert abs(estimate - sweep["written"]) <= 0.25 * sweep["written"], (estimate, sweep["written"])
+
+
 def test_topology_is_stored_once_and_every_world_inherits_it(sweep):
     from pxr import Sdf, Usd, UsdGeom
 
@@ -97,13 +105,14 @@ def test_topology_is_stored_once_and_every_world_inherits_it(sweep):
 
 def test_readers_draw_the_springs_a_full_cache_holds(sweep, tmp_path):
     """World 2 re-run alone writes its full cache (springs as curves, bit for bit the sweep's
-    world); the exporter draws the sweep's springs from its points exactly as it draws the full
-    cache's curves; the picked world opens with pxr with the expected prims."""
+    world); the viewer and the exporter draw the sweep's springs from its points exactly as they
+    draw the full cache's curves; the picked world opens with pxr with the expected prims."""
     from pxr import Usd
 
     from warpsim.browse.pick import pick_world
     from warpsim.render.export import read_frame
     from warpsim.sweeps.rerun import first_difference, rerun_world
+    from warpsim.viewer.playback import CacheReader
 
     full = rerun_world(sweep["root"], 2, out=tmp_path / "w2.usda", device="cpu")
     assert first_difference(sweep["root"], 2, full) is None
@@ -114,6 +123,8 @@ def test_readers_draw_the_springs_a_full_cache_holds(sweep, tmp_path):
     cached = Usd.Stage.Open(str(full))
     assert cached.GetPrimAtPath("/World/springs").GetTypeName() == "BasisCurves"
     frame = FRAMES // 2
+    a, b = CacheReader(picked).items(frame)["springs"], CacheReader(str(full)).items(frame)["springs"]
+    assert a.kind == b.kind == "segments" and np.array_equal(a.points, b.points) and a.radius == b.radius
     ends = []
     for path in (picked, full):
         part = {p.name: p for p in read_frame(path, frame)[1]}["springs"]
@@ -138,6 +149,20 @@ def test_the_query_refines_from_the_particles_true_positions(sweep):
     for k, f in enumerate(range(8, 11)):
         surface = np.asarray(mesh.Get(record.first_frame + f))
         assert np.array_equal(got[k, : len(surface)], surface)
+
+
+def test_a_sweep_larger_than_the_free_disk_is_refused_before_it_runs(tmp_path, monkeypatch):
+    from warpsim.sweeps import preflight
+
+    monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 100 << 10)  # the sweep writes ~0.8 MB
+    code, out, err = run(*SWEEP, "--out", tmp_path / "big" / "t.usda")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert "writes about" in lines[0] and "100 KiB free" in lines[0] and "--worlds" in lines[0], lines[0]
+    assert not os.path.exists(tmp_path / "big" / "t.batch_0000.usdc")
+    assert preflight.check_disk(tmp_path / "t.usda", 5 << 20, free=6 << 20) is None  # small: nothing to say
+    line = preflight.check_disk(tmp_path / "t.usda", 50 << 20, free=60 << 20)
+    assert line.startswith("writing about 50 MiB to ") and "60 MiB free" in line
 
 
 def test_a_layer_of_the_former_form_is_not_resumed_into(tmp_path):

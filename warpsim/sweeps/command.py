@@ -251,11 +251,16 @@ def run(args, out, err):
     warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
     if timing.note:  # --substeps N overriding the scene's dt (--strict: refused)
         _stability_warning(timing.note, args.strict, err)
-    if getattr(args, "ray", None) is None and devices is None:  # several devices: checked per block
-        try:
-            _check_memory(cls, base, len(world_params), device)
-        except ValueError as exc:
-            raise usage(str(exc)) from None
+    try:
+        scene = cls(base, device="cpu")  # world 0: the memory and output estimates
+        if getattr(args, "ray", None) is None and devices is None:  # several devices: checked per block
+            _check_memory(cls, scene, len(world_params), device)
+        size_note = _check_disk(scene, path, len(world_params), args.frames + 1, fps,
+                                resume=bool(getattr(args, "resume", False)))
+    except ValueError as exc:
+        raise usage(str(exc)) from None
+    if size_note:
+        print(size_note, file=err)
     layer = f"{stem}.batch_0000{LAYER_EXT}"
     progress = None
     run_timing = {}  # steps per frame the single-process batch took (a Ray sweep: the driver's count)
@@ -400,13 +405,24 @@ def run(args, out, err):
     return 0
 
 
-def _check_memory(cls, base, worlds, device):
+def _check_memory(cls, scene, worlds, device):
     """Refuse a sweep whose memory estimate (from world 0 built on the CPU) does not fit."""
-    scene = cls(base, device="cpu")
     model = getattr(getattr(scene, "sim", None), "model", None)
     if model is None:
         return
     preflight.check_sweep_memory(cls.name, int(model.particle_count), int(model.spring_count), worlds, device)
+
+
+def _check_disk(scene, path, worlds, frames, fps, resume=False):
+    """The line saying how much a large sweep writes (None: a small one), from world 0's
+    ``scene`` and the prims its batch layers write; ValueError when the disk holding ``path``
+    has less free (not when resuming: the chunks written so far are kept)."""
+    from .usd import estimate_sweep_bytes
+
+    stem = os.path.splitext(path)[0]
+    need = estimate_sweep_bytes(scene, f"{stem}.batch_0000{LAYER_EXT}", worlds, frames, fps)
+    detail = f" ({worlds} worlds x {frames} frames of {preflight.format_bytes(need['frame_bytes'])})"
+    return preflight.check_disk(path, need["bytes"], detail, free=None if not resume else 1 << 62)
 
 
 def _record_path(root):

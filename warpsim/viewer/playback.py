@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from ..usd.prims import segment_pairs
 from .geometry import curve_segments, subsample, triangulate, unit_mesh, xyzw_to_wxyz
 from .serving import Serving
 from .sink import DrawItem
@@ -100,6 +101,9 @@ class CacheReader:
             pts = np.asarray(prim.GetAttribute("points").Get(code) or [], np.float32).reshape(-1, 3)
             widths = prim.GetAttribute("widths").Get(code)
             radius = 0.5 * float(np.mean(widths)) if widths is not None and len(widths) else 0.01
+            pairs = segment_pairs(prim)  # a sweep's springs: curves drawn from the particles' points
+            if pairs is not None and (not len(pairs) or pairs.max() < len(pts)):
+                return DrawItem(name, "segments", pts[pairs], _color(prim, (0.35, 0.35, 0.35)), radius=radius)
             shown = subsample(len(pts), self.max_points)
             return DrawItem(name, "points", pts if shown is None else pts[shown], _color(prim, (0.2, 0.5, 0.9)),
                             radius=radius, shown=shown)
