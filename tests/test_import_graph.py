@@ -46,13 +46,8 @@ UPWARD = {
 FACE = "warpsim"
 """The package face re-exports every floor (the upper ones lazily, in ``__getattr__``)."""
 
-PRIVATE_PENDING = {
-    ("warpsim.browse.gallery", "_DYNAMIC"), ("warpsim.browse.gallery", "_points"),
-    ("warpsim.browse.gallery", "_radius"), ("warpsim.browse.panel", "_ground"),
-    ("warpsim.distributed.ray_sweep", "_normalise"), ("warpsim.distributed.ray_sweep", "_sweep_resolution"),
-    ("warpsim.sweeps.query_command", "_format"), ("warpsim.sweeps.staging", "_root_chunks"),
-}
-"""(module, name) private imports left in the packages split out of worlds/ (being reworked):
+PRIVATE_PENDING: set = set()
+"""(module, name) private imports still allowed (none left since the worlds/ split was reworked):
 this list only shrinks."""
 
 

@@ -19,7 +19,7 @@ import tempfile
 
 import numpy as np
 
-from ..viewer.playback import _DYNAMIC, CacheReader, PlaybackViewer
+from ..viewer.playback import DYNAMIC_TYPES, CacheReader, PlaybackViewer
 from .roots import root_worlds, write_sweep_root
 
 __all__ = ["GalleryReader", "GalleryViewer", "is_sweep_root"]
@@ -80,7 +80,7 @@ class GalleryReader(CacheReader):
             self.offsets[world] = offset
             for prim in Usd.PrimRange(top):
                 t = prim.GetTypeName()
-                if prim == top or "Prototypes" in str(prim.GetPath()) or t not in _DYNAMIC:
+                if prim == top or "Prototypes" in str(prim.GetPath()) or t not in DYNAMIC_TYPES:
                     continue
                 attr = prim.GetAttribute("positions" if t == "PointInstancer" else "points")
                 if attr.ValueMightBeTimeVarying() or t == "PointInstancer":
@@ -104,7 +104,7 @@ class GalleryReader(CacheReader):
         """[[lo], [hi]] [m] in the page of ``world``'s moving prims over ``samples`` frames spread
         across the sweep, and its static prims (as :func:`warpsim.viewer.framing.playback_bounds`
         frames a cache); None when it draws nothing."""
-        from ..viewer.framing import _points, _radius, robust_bounds
+        from ..viewer.framing import item_points, item_radius, robust_bounds
 
         n = len(self.frames)
         clouds, pad = [], 0.0
@@ -113,10 +113,10 @@ class GalleryReader(CacheReader):
             for w, prim, offset in self.dynamic:
                 item = self._placed(w, prim, offset, code) if w == world else None
                 if item is not None:
-                    clouds.append(_points(item))
-                    pad = max(pad, _radius(item))
+                    clouds.append(item_points(item))
+                    pad = max(pad, item_radius(item))
         b = robust_bounds(clouds, pad=pad)
-        statics = [_points(it) for name, it in self.static.items() if name.split("/")[0] == world]
+        statics = [item_points(it) for name, it in self.static.items() if name.split("/")[0] == world]
         if b is None:
             return robust_bounds(statics, quantile=0.0)
         return b

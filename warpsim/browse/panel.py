@@ -86,7 +86,7 @@ def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None) -> d
     "seconds", "folder"}."""
     from PIL import Image
 
-    from ..render.cache import _ground
+    from ..render.cache import ground_height
     from ..render.renderer import Renderer
     from ..render.usd_scene import CacheScene
 
@@ -107,7 +107,7 @@ def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None) -> d
         frame = scene.frames[-1] if scene.frames else None
         for world, own in worlds.items():
             scene.prims = own
-            image = renderer.render(scene.geometry(frame), camera, ground_y=_ground(scene, [frame]))
+            image = renderer.render(scene.geometry(frame), camera, ground_y=ground_height(scene, [frame]))
             path = os.path.join(folder, world + ".png")
             Image.fromarray(image).save(path + ".tmp.png")
             os.replace(path + ".tmp.png", path)

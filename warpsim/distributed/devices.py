@@ -33,7 +33,7 @@ import threading
 import numpy as np
 
 __all__ = ["DeviceSweepError", "block_sizes", "merge_records", "parse_devices", "run_device_sweep",
-           "split_blocks"]
+           "split_blocks", "sweep_resolution"]
 
 
 class DeviceSweepError(RuntimeError):
@@ -152,7 +152,7 @@ def merge_records(records):
                            scene=first.scene, source_prim=first.source_prim)
 
 
-def _sweep_resolution(bounds, resolution, world_count):
+def sweep_resolution(bounds, resolution, world_count):
     """The resolution a one-device recorder of ``world_count`` worlds settles on (it halves while
     a 32-frame block of bits would pass ``BLOCK_BYTES_MAX``)."""
     from ..browse.occupancy import BLOCK_BYTES_MAX, OccupancyGrid
@@ -186,7 +186,7 @@ class _Agreement:
         except threading.BrokenBarrierError:
             raise _Stopped() from None
         bounds = default_bounds(np.concatenate(self.corners))
-        return bounds, _sweep_resolution(bounds, resolution, self.world_count)
+        return bounds, sweep_resolution(bounds, resolution, self.world_count)
 
 
 def _world_counts(cls, base):
@@ -269,7 +269,7 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
     if occupancy is not None:
         options = dict(occupancy)
         if options.get("bounds") is not None:  # given bounds: only the resolution depends on the count
-            options["resolution"] = _sweep_resolution(options["bounds"], options.get("resolution") or 16, n)
+            options["resolution"] = sweep_resolution(options["bounds"], options.get("resolution") or 16, n)
     stop = threading.Event()
     lock = threading.Lock()
     # one block at a time until its first frame is done: Warp loads (and compiles) a module on first

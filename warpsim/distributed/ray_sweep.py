@@ -449,9 +449,9 @@ def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fus
 
     from ..scenes import get_scene
     from ..browse.occupancy import DEFAULT_RESOLUTION, default_bounds
-    from ..sweeps.sweep import _normalise, make_batch
+    from ..sweeps.sweep import normalise_params, make_batch
     from ..sweeps.usd import BatchLayerWriter
-    from .devices import _sweep_resolution
+    from .devices import sweep_resolution
 
     options = {"resolution": occupancy.get("resolution") or DEFAULT_RESOLUTION, "bounds": occupancy.get("bounds")}
     n = len(world_params)
@@ -459,7 +459,7 @@ def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fus
         cls = get_scene(scene_name)
         corners = []
         for first in range(0, n, int(chunk)):
-            batch = make_batch(cls, [_normalise(cls, p) for p in world_params[first:first + int(chunk)]],
+            batch = make_batch(cls, [normalise_params(cls, p) for p in world_params[first:first + int(chunk)]],
                                device="cpu", fused=fused)
             if not corners:  # the static geometry (floor, walls) the batch layers declare
                 with tempfile.TemporaryDirectory() as folder:
@@ -474,7 +474,7 @@ def sweep_record_options(scene_name, world_params, occupancy, *, track=None, fus
             if len(x):
                 corners.append(np.stack([x.min(0), x.max(0)]))
         options["bounds"] = default_bounds(np.concatenate(corners) if corners else np.zeros((0, 3)))
-    options["resolution"] = _sweep_resolution(options["bounds"], options["resolution"], n)
+    options["resolution"] = sweep_resolution(options["bounds"], options["resolution"], n)
     return options
 
 

@@ -120,7 +120,7 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     renderer = Renderer(width, height, device=device)
     sink = open_sink(out, fps, gif_colors)
     t0 = time.perf_counter()
-    ground_y = _ground(scene, chosen)
+    ground_y = ground_height(scene, chosen)
     for k, f in enumerate(chosen):
         sink.add(renderer.render(scene.geometry(f), camera, ground_y=ground_y))
         if progress is not None:
@@ -140,7 +140,7 @@ def _ranges(frames):
     return out
 
 
-def _ground(scene, chosen):
+def ground_height(scene, chosen):
     """Ground height [m]: the bottom of everything in the cache, guides included (a box's floor)."""
     full = CacheScene.__new__(CacheScene)
     full.__dict__.update(scene.__dict__)

@@ -303,6 +303,14 @@ class Scene:
         """Attach a ``ws.DragSpring`` (unbound) to the running simulation."""
         raise NotImplementedError(f"scene {self.name!r} cannot be dragged")
 
+    # ------------------------------------------------------------------ sweep hooks
+    track_anchors: ClassVar[tuple] = ()
+    """Names ``warpsim sweep --track NAME`` takes besides particle indices (:meth:`anchor_particle`)."""
+
+    def anchor_particle(self, name) -> int:
+        """The particle index of anchor ``name`` (one of ``track_anchors``) in this built scene."""
+        raise ValueError(f"scene {self.name!r} has no anchor {name!r}; give a particle index")
+
     def checkpoint(self):
         """Everything needed to continue exactly: a dict of NumPy arrays / scalars."""
         raise NotImplementedError(f"scene {self.name!r} does not support checkpoints")

@@ -73,6 +73,11 @@ class TeapotScene(SimulatorScene):
 
     smoke_params: ClassVar[dict] = {"resolution": "3", "drag": "spout:0.3,0.6,0@0-0.05", "obstacle": "paddle"}
     substeps_auto = True  # dt = 1/600 s sits at the limit (stiffness 40 N/m); stiffer or lighter blows up
+    track_anchors = ANCHORS  # warpsim sweep --track spout (the spout tip's vertex)
+
+    def anchor_particle(self, name) -> int:
+        """The surface vertex of anchor ``name`` (``spout``, ``handle``, ``knob``, ``bottom``)."""
+        return anchor_vertex(self.model.particle_q.numpy()[: self.body.surface_count], name)
 
     def build(self, p):
         for key in ("mass", "size", "box", "gravity"):

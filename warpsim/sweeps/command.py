@@ -113,27 +113,17 @@ def resolve_track(cls, params, items, device):
         try:
             index = int(value)
         except ValueError:
-            if cls.name != "teapot":
+            anchors = cls.track_anchors  # the scene's named particles (Scene.anchor_particle)
+            if not anchors:
                 raise ValueError(f"--track {item!r}: give a particle index (NAME=INDEX)") from None
-            from ..scenes.teapot import ANCHORS, anchor_vertex
-
-            if value not in ANCHORS:
-                raise ValueError(f"--track {item!r}: not an index or one of {', '.join(ANCHORS)}") from None
+            if value not in anchors:
+                raise ValueError(f"--track {item!r}: not an index or one of {', '.join(anchors)}") from None
             if scene is None:
                 scene = cls(params, device=device)
-            q0 = scene.model.particle_q.numpy()[: scene.body.surface_count]
-            index = anchor_vertex(q0, value)
+            index = scene.anchor_particle(value)
         name = (name or (value if not value.lstrip("-").isdigit() else f"p{index}")).strip()
         out[name] = index
     return out
-
-
-def _format(value):
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    if isinstance(value, (tuple, list)):
-        return ",".join(f"{v:g}" for v in value)
-    return str(value)
 
 
 def run(args, out, err):
@@ -144,7 +134,7 @@ def run(args, out, err):
     from ..distributed.devices import DeviceSweepError
     from ..distributed.ray_sweep import RaySweepError, ray_usage_error
     from ..scenes import get_scene
-    from .metrics import BUILTIN, parse_rank, parse_where, select
+    from .metrics import BUILTIN, format_cell, parse_rank, parse_where, print_picked, select
     from ..browse.query import apply_regions, region_columns
     from .sweep import run_batch, sample_worlds, write_table
     from ..browse.roots import LAYOUTS, write_sweep_root
@@ -234,7 +224,7 @@ def run(args, out, err):
             if metric in world_params[0] and metric not in numeric:
                 value = world_params[0][metric]
                 kind = "a vector" if isinstance(value, (tuple, list)) else f"a {type(value).__name__}"
-                raise ValueError(f"{flag} {metric}: parameter {metric} is {kind} ({_format(value)}), not one number; "
+                raise ValueError(f"{flag} {metric}: parameter {metric} is {kind} ({format_cell(value)}), not one number; "
                                  f"{flag} compares numbers: a metric ({', '.join(BUILTIN[:3])}, ...) or a numeric "
                                  f"parameter ({', '.join(sorted(numeric)) or 'none here'})")
     except ValueError as exc:
@@ -390,14 +380,8 @@ def run(args, out, err):
             print(answers_note(record, regions, answers), file=out)
     if args.rank or args.where or regions:
         picked = select(candidates, rank=rank, top=args.top, where=where)
-        shown = [k for k in world_params[0]] + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where]
-                                                 + region_columns(regions)
-                                                 if m not in world_params[0]]
-        shown = list(dict.fromkeys(shown))
-        print(f"picked {len(picked)} of {len(rows)} worlds:", file=out)
-        print("  " + "  ".join(["world", *shown]), file=out)
-        for r in picked:
-            print("  " + "  ".join([str(r["world"]), *(_format(r.get(k, "")) for k in shown)]), file=out)
+        print_picked(picked, len(rows), list(world_params[0]), rank=rank, where=where, extra=region_columns(regions),
+                     out=out)
         if picked:
             pick_path = write_sweep_root(stem + ".picked" + ext, layers, len(rows), layout=args.layout,
                                          worlds=[r["world"] for r in picked])

@@ -35,7 +35,8 @@ from ..kernels import worlds as KW
 BUILTIN = ("center_x", "center_y", "center_z", "peak_center_y", "peak_speed", "kinetic_energy", "blown_up",
            "blown_frame", "energy_gain", "unstable")
 
-__all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "parse_where", "select"]
+__all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "format_cell", "parse_rank", "parse_where", "print_picked",
+           "select"]
 
 
 class UserMetric:
@@ -265,3 +266,27 @@ def select(rows, *, rank=None, top=None, where=()):
     if top is not None:
         keep = keep[: int(top)]
     return keep
+
+
+def format_cell(value) -> str:
+    """A table value as the picked-worlds listing prints it: floats to 6 significant digits,
+    vectors as comma-separated numbers."""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, (tuple, list)):
+        return ",".join(f"{v:g}" for v in value)
+    return str(value)
+
+
+def print_picked(picked, total, params, *, rank=None, where=(), extra=(), out):
+    """Print the picked worlds (``warpsim sweep`` and ``warpsim query`` alike): ``picked N of TOTAL
+    worlds:``, a header, then one line per row of ``picked`` with its world, the parameters
+    ``params`` and the columns it was picked by (``rank``, ``where`` as :func:`select` takes them,
+    then ``extra``, e.g. the region answers), each once."""
+    shown = list(params) + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where] + list(extra)
+                            if m not in params]
+    shown = list(dict.fromkeys(shown))
+    print(f"picked {len(picked)} of {total} worlds:", file=out)
+    print("  " + "  ".join(["world", *shown]), file=out)
+    for r in picked:
+        print("  " + "  ".join([str(r["world"]), *(format_cell(r.get(k, "")) for k in shown)]), file=out)

@@ -80,8 +80,7 @@ def run(args, out, err):
     from ..browse.occupancy import OccupancyRecord
     from ..browse.query import answer_region, answers_note, apply_regions, cached_positions, parse_region, region_columns
     from ..browse.roots import sweep_root_files, write_sweep_root
-    from .command import _format
-    from .metrics import parse_rank, parse_where, select
+    from .metrics import parse_rank, parse_where, print_picked, select
 
     usage = UsageError
     if args.top is not None and args.top < 1:
@@ -110,13 +109,7 @@ def run(args, out, err):
     if regions:
         print(answers_note(record, regions, answers), file=out)
     picked = select(candidates, rank=rank, top=args.top, where=where)
-    shown = params + [m for m in ([rank[0]] if rank else []) + [w[0] for w in where] + region_columns(regions)
-                      if m not in params]
-    shown = list(dict.fromkeys(shown))
-    print(f"picked {len(picked)} of {len(rows)} worlds:", file=out)
-    print("  " + "  ".join(["world", *shown]), file=out)
-    for r in picked:
-        print("  " + "  ".join([str(r["world"]), *(_format(r.get(k, "")) for k in shown)]), file=out)
+    print_picked(picked, len(rows), params, rank=rank, where=where, extra=region_columns(regions), out=out)
     if picked:
         root = os.path.abspath(args.root)
         stem, ext = os.path.splitext(root)

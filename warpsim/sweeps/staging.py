@@ -171,10 +171,10 @@ class SweepStaging:
             return 0
         from pxr import Sdf
 
-        from ..usd.validate import _root_chunks, pxr_reason
+        from ..usd.validate import root_chunks, pxr_reason
 
         try:
-            chunks = _root_chunks(Sdf.Layer.OpenAsAnonymous(layer))
+            chunks = root_chunks(Sdf.Layer.OpenAsAnonymous(layer))
         except Exception as exc:  # noqa: BLE001  (Tf.ErrorException)
             raise ValueError(f"--resume: the interrupted sweep's layer {layer} does not open ("
                              f"{pxr_reason(exc, 120)}); run the sweep without --resume") from None

@@ -14,7 +14,7 @@ from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
 from .usd import BatchLayerWriter
 
-__all__ = ["frame_timing", "make_batch", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
+__all__ = ["frame_timing", "make_batch", "normalise_params", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
 
 
 def _typed_fixed(cls, fixed):
@@ -75,7 +75,8 @@ def timed_params(cls, world_params, timing) -> list:
     return [{**p, "dt": timing.frame_dt / timing.steps} for p in world_params]
 
 
-def _normalise(cls, params):
+def normalise_params(cls, params):
+    """``params`` with list values of vector parameters as tuples (as the scene's defaults hold them)."""
     out = {}
     for k, v in params.items():
         default = cls.params[k].default if k in cls.params else None
@@ -144,7 +145,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         if not isinstance(p, dict):
             raise TypeError(f"run_batch world_params[{w}] is {checks.show(p)}; give one dict of parameters per "
                             "world (sample_worlds makes them)")
-    world_params = [_normalise(cls, p) for p in world_params]
+    world_params = [normalise_params(cls, p) for p in world_params]
     given = [dict(p) for p in world_params]
     if not world_params:
         raise ValueError("run_batch needs at least one world")
@@ -152,7 +153,7 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     fps, substeps, frame_dt = request.fps, request.steps, request.frame_dt
     first = cls.resolve_params(world_params[0])
     if reference_params is not None:
-        reference_params = [_normalise(cls, p) for p in reference_params]
+        reference_params = [normalise_params(cls, p) for p in reference_params]
     if request.scene_params(first) != first:  # the step overrides dt (--fps, or --substeps N on a dt scene)
         world_params = [{**p, "dt": frame_dt / substeps} for p in world_params]
         if reference_params is not None:

@@ -19,7 +19,7 @@ from .pxr_errors import pxr_reason
 import numpy as np
 
 __all__ = ["DamagedCacheError", "cache_info", "check_damage", "chunk_health", "damage_report", "open_stage",
-           "sweep_layers", "validate_cache"]
+           "root_chunks", "sweep_layers", "validate_cache"]
 
 _POINT_ATTR = {"Points": "points", "Mesh": "points", "BasisCurves": "points", "PointInstancer": "positions"}
 
@@ -182,7 +182,7 @@ def validate_cache(path_or_stage):
     return errors
 
 
-def _root_chunks(layer, root_prim=None):
+def root_chunks(layer, root_prim=None):
     """[[start, end, file], ...] listed by a warpsim root layer, or None if it lists none."""
     data = dict(layer.customLayerData.get("warpsim", {}))
     world = layer.GetPrimAtPath("/" + (root_prim or layer.defaultPrim or "World"))
@@ -214,7 +214,7 @@ def chunk_health(path, verify=None):
         raise _not_usd(path, exc) from None
     if layer is None:
         raise ValueError(f"USD cache {path!r} does not open")
-    chunks = _root_chunks(layer)
+    chunks = root_chunks(layer)
     if chunks is None:
         return None
     dirname, base = os.path.split(path)

@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["VIEW", "camera_pose", "live_bounds", "playback_bounds", "robust_bounds"]
+__all__ = ["VIEW", "camera_pose", "item_points", "item_radius", "live_bounds", "playback_bounds",
+           "robust_bounds"]
 
 VIEW = np.array([0.35, 0.45, 1.0])
 """Direction from the subject to the camera (front, above, a little to the right), +Y up."""
 
 
-def _points(item) -> np.ndarray:
+def item_points(item) -> np.ndarray:
+    """A drawn item's points as an (N, 3) float64 array [m] (empty: (0, 3))."""
     p = np.asarray(item.points, np.float64)
     return p.reshape(-1, 3) if p.size else np.zeros((0, 3))
 
@@ -38,24 +40,25 @@ def robust_bounds(clouds, quantile=0.01, pad=0.0):
     return np.array([lo - grow, hi + grow])
 
 
-def _radius(item) -> float:
+def item_radius(item) -> float:
+    """A drawn item's point radius [m] (0 when it has none)."""
     return float(getattr(item, "radius", 0.0) or 0.0)
 
 
 def live_bounds(items, static_items):
     """Bounds to frame for a live scene: ``items`` ({name: DrawItem}, the first frame's moving prims)
     with the see-through containers among ``static_items`` and down to the ground below them."""
-    moving = [it for it in items.values() if len(_points(it))]
-    pad = max([_radius(it) for it in moving] or [0.0])
-    b = robust_bounds([_points(it) for it in moving], pad=pad)
-    statics = [it for it in static_items.values() if len(_points(it))]
+    moving = [it for it in items.values() if len(item_points(it))]
+    pad = max([item_radius(it) for it in moving] or [0.0])
+    b = robust_bounds([item_points(it) for it in moving], pad=pad)
+    statics = [it for it in static_items.values() if len(item_points(it))]
     containers = [it for it in statics if it.opacity is not None and it.opacity < 1.0]
     if b is None:  # nothing moves: frame what is drawn
-        return robust_bounds([_points(it) for it in statics], quantile=0.0)
+        return robust_bounds([item_points(it) for it in statics], quantile=0.0)
     if containers:
-        c = robust_bounds([_points(it) for it in containers], quantile=0.0)
+        c = robust_bounds([item_points(it) for it in containers], quantile=0.0)
         b = np.array([np.minimum(b[0], c[0]), np.maximum(b[1], c[1])])
-    below = [(_points(it)[:, 1]).min() for it in statics]
+    below = [(item_points(it)[:, 1]).min() for it in statics]
     below = [y for y in below if y <= b[0][1]]
     if below:
         b[0][1] = min(below)  # the ground everything below the subject rests on
@@ -69,11 +72,11 @@ def playback_bounds(reader, samples=7):
     clouds, pad = [], 0.0
     for index in sorted({int(round(k)) for k in np.linspace(0, max(n - 1, 0), min(samples, max(n, 1)))}):
         for item in (reader.items(index) if n else {}).values():
-            clouds.append(_points(item))
-            pad = max(pad, _radius(item))
+            clouds.append(item_points(item))
+            pad = max(pad, item_radius(item))
     b = robust_bounds(clouds, pad=pad)
     if b is None:
-        b = robust_bounds([_points(it) for it in reader.static.values()], quantile=0.0)
+        b = robust_bounds([item_points(it) for it in reader.static.values()], quantile=0.0)
     return b
 
 

@@ -18,9 +18,9 @@ from .geometry import curve_segments, subsample, triangulate, unit_mesh, xyzw_to
 from .serving import Serving
 from .sink import DrawItem
 
-__all__ = ["CacheReader", "PlaybackViewer"]
+__all__ = ["DYNAMIC_TYPES", "CacheReader", "PlaybackViewer"]
 
-_DYNAMIC = ("Points", "Mesh", "BasisCurves", "PointInstancer")
+DYNAMIC_TYPES = ("Points", "Mesh", "BasisCurves", "PointInstancer")
 _GPRIMS = ("Sphere", "Cube", "Cone", "Capsule", "Cylinder")
 
 
@@ -62,7 +62,7 @@ class CacheReader:
             if "Prototypes" in str(prim.GetPath()):
                 continue  # drawn through their instancer
             name = prim.GetName()
-            if t in _DYNAMIC:
+            if t in DYNAMIC_TYPES:
                 attr = prim.GetAttribute("positions" if t == "PointInstancer" else "points")
                 if attr.ValueMightBeTimeVarying() or t == "PointInstancer":
                     self.dynamic.append(prim)
