@@ -6,11 +6,12 @@ Modules:
   sweep     :func:`sample_worlds`, :func:`run_batch`, :func:`write_table`: the sweep driver
   metrics   per-world metrics on the device (centre of mass, peak speed, kinetic energy, tracked
             particles, user ``@wp.func`` metrics), ``--rank`` / ``--where`` picking
-  usd       batch layers (``/Worlds/world_GGGGGG``); the root over them is
+  usd       batch layers (``/Worlds/world_GGGGGG``, each prim declared once in ``/WorldShared``,
+            springs stored as their particles' points); the root over them is
             :mod:`warpsim.browse.roots`
   staging   where a sweep writes while it runs (temporary names, chunks, ``--resume``) and the swap
             that publishes it
-  preflight checks of a sweep request (seed, memory, paths, picking options) before any simulation
+  preflight checks of a sweep request (seed, memory, disk, paths, picking options) before any simulation
   rerun     one world of a sweep re-run alone, bit for bit (``--from-sweep``, ``--rerun``,
             :func:`rerun_world`); the sweep's manifest ``<stem>.sweep.json``
   command   ``warpsim sweep``
