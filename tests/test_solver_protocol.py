@@ -199,3 +199,16 @@ def test_a_restored_teapot_paddle_continues_bit_for_bit():
         resumed.advance(1.0 / 60.0, 2)
     assert np.array_equal(np.concatenate(resumed.obstacle.world_pose()), np.concatenate(full.obstacle.world_pose()))
     assert resumed.sim.state.positions.numpy().tobytes() == full.sim.state.positions.numpy().tobytes()
+
+
+def test_a_pendulum_lengthened_in_place_swings_at_its_new_period():
+    amplitude = 0.3
+    pendulum = ws.Pendulum([amplitude, amplitude], length=[1.0, 1.0], integrator="rk4", device=CPU)
+    assert isinstance(pendulum, Solver)
+    pendulum.length.assign(np.array([1.0, 4.0], np.float32))
+    pendulum.notify_changed("parameters")  # without it the second one keeps g / 1 m
+    periods = [ws.exact_period(amplitude, length) for length in (1.0, 4.0)]
+    pendulum.frame(periods[1] / 2.0, 150)
+    angle = pendulum.state.angle.numpy()
+    assert angle[1] == pytest.approx(-amplitude, abs=1e-4)  # half its period: at the far side
+    assert angle[0] == pytest.approx(amplitude, abs=1e-4)  # T(1 m) = T(4 m) / 2: back where it started

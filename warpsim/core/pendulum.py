@@ -12,6 +12,7 @@ from .integrators import make_integrator
 from ..kernels import forces as KF
 from ..kernels import integrate as KI
 from .simulator import check_dt
+from .solver import SolverBase, check_change
 from .system import PendulumSystem
 
 
@@ -32,8 +33,9 @@ def exact_period(amplitude: float, length: float = 1.0, gravity: float = 9.81) -
     return 4.0 * math.sqrt(length / gravity) * math.pi / (2.0 * a)
 
 
-class Pendulum:
-    """A batch of independent pendulums (one per entry of ``angle``).
+class Pendulum(SolverBase):
+    """A batch of independent pendulums (one per entry of ``angle``); a
+    ``warpsim.core.solver.Solver`` whose ``state`` is the pendulum itself.
 
     Args:
         angle: initial angle(s) from the downward vertical [rad], shape () or (N,).
@@ -88,6 +90,22 @@ class Pendulum:
         """Largest stable step [s] (2 / omega for semi-implicit Euler, 2.83 / omega for RK4, 0.0
         for explicit Euler and RK2, inf for implicit Euler; omega = sqrt(g / l))."""
         return self.stability().dt
+
+    @property
+    def state(self):
+        """The pendulum itself: ``angle`` [rad] and ``angular_velocity`` [rad/s], shape (N,)."""
+        return self
+
+    def notify_changed(self, what: str) -> None:
+        """Announce an outside edit (``warpsim.core.solver.CHANGES``); "parameters": g / l is taken
+        again from ``length`` (edited in place) and ``gravity``."""
+        if check_change(what, "Pendulum") != "parameters":
+            return
+        length = self.length.numpy()
+        if np.any(~(length > 0.0)):
+            raise ValueError(f"pendulum {int(np.flatnonzero(~(length > 0.0))[0])} has length <= 0; lengths must be "
+                             "> 0 [m]")
+        self.system.g_over_l.assign(self.gravity / length)
 
     def step(self, dt: float) -> None:
         dt = check_dt(dt)
