@@ -33,8 +33,11 @@ unknowns (x, y, z, phi per vertex) is symmetric positive definite and block-band
 blocks on each side of the diagonal. It is solved directly by a block band Cholesky
 factorisation A = R^T R (Golub and Van Loan, "Matrix Computations", 4th ed., sec. 4.3.5 (band
 Cholesky) and 4.5 (block tridiagonal / block band systems); no pivoting for SPD matrices, sec.
-4.2), each 4x4 pivot block factored by Cholesky. Cost per strand: O(segments) 4x4 block
-operations, in a fixed order (bit-reproducible, no atomics).
+4.2), each 4x4 pivot block factored by Cholesky. The rows are assembled in a window of four
+block rows (registers) and each is factored as soon as its last element is in, its Schur
+complement going to the two rows after it still in the window: a row is written once, as its
+factor (assembling into global scratch and factoring in a second pass cost 2x on the CPU). Cost
+per strand: O(segments) 4x4 block operations, in a fixed order (bit-reproducible, no atomics).
 
 Pinned vertices (mass 0: ghost and root) are not unknowns (identity rows and columns in their
 x, y, z, dv = 0): their velocity enters through the K v0 term (the roots move with the head) and
@@ -95,113 +98,67 @@ def cross_matrix(n: wp.vec3d) -> wp.mat33d:
 
 
 @wp.func
-def add_block(pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), up2: wp.array(dtype=wp.mat44d),
-              slot: int, a: int, b: int, m: wp.mat44d):
-    """Adds ``m`` to the upper band's block (a, b), a <= b <= a + 2, of the strand at ``slot``."""
-    if b == a:
-        pinv[slot + a] = pinv[slot + a] + m
-    elif b == a + 1:
-        up1[slot + a] = up1[slot + a] + m
-    else:
-        up2[slot + a] = up2[slot + a] + m
-
-
-@wp.func
-def add_bending(pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), up2: wp.array(dtype=wp.mat44d),
-                rhs: wp.array(dtype=wp.vec4d), slot: int, v: int, j0: mat34d, j1: mat34d, j2: mat34d,
-                w: wp.float64, z0: wp.vec4d, z1: wp.vec4d, z2: wp.vec4d):
-    """Gauss-Newton element w J^T J of bending vertex v (J = [j0, j1, j2] on vertices v-1, v, v+1)
-    into the band, and -w J^T (J z) into the right-hand side (z the velocities with their twist
-    rates [m/s], [1/s]; w = h^2 k_b [kg])."""
-    rho = j0 * z0 + j1 * z1 + j2 * z2
-    t0 = wp.transpose(j0)
-    t1 = wp.transpose(j1)
-    t2 = wp.transpose(j2)
-    add_block(pinv, up1, up2, slot, v - 1, v - 1, w * (t0 * j0))
-    add_block(pinv, up1, up2, slot, v - 1, v, w * (t0 * j1))
-    add_block(pinv, up1, up2, slot, v - 1, v + 1, w * (t0 * j2))
-    add_block(pinv, up1, up2, slot, v, v, w * (t1 * j1))
-    add_block(pinv, up1, up2, slot, v, v + 1, w * (t1 * j2))
-    add_block(pinv, up1, up2, slot, v + 1, v + 1, w * (t2 * j2))
-    rhs[slot + v - 1] = rhs[slot + v - 1] - w * (t0 * rho)
-    rhs[slot + v] = rhs[slot + v] - w * (t1 * rho)
-    rhs[slot + v + 1] = rhs[slot + v + 1] - w * (t2 * rho)
-
-
-@wp.func
-def add_twist_penalty(pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d),
-                      up2: wp.array(dtype=wp.mat44d), slot: int, v: int, c0: wp.vec4d, c1: wp.vec4d, c2: wp.vec4d,
-                      w: wp.float64):
-    """Penalty w s^2 / 2 on the twist recurrence's residual s = c0 . z[v-2] + c1 . z[v-1] + c2 . z[v]
-    (c0 unused for v = 1); its right-hand side is 0 (the twist rates satisfy the recurrence)."""
-    if v >= 2:
-        add_block(pinv, up1, up2, slot, v - 2, v - 2, w * wp.outer(c0, c0))
-        add_block(pinv, up1, up2, slot, v - 2, v - 1, w * wp.outer(c0, c1))
-        add_block(pinv, up1, up2, slot, v - 2, v, w * wp.outer(c0, c2))
-    add_block(pinv, up1, up2, slot, v - 1, v - 1, w * wp.outer(c1, c1))
-    add_block(pinv, up1, up2, slot, v - 1, v, w * wp.outer(c1, c2))
-    add_block(pinv, up1, up2, slot, v, v, w * wp.outer(c2, c2))
-
-
-@wp.func
-def add_stretch(pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), rhs: wp.array(dtype=wp.vec4d),
-                slot: int, v: int, xa: wp.vec3, xb: wp.vec3, va: wp.vec3d, vb: wp.vec3d, rest: wp.float64,
-                ks: wp.float64, ds: wp.float64, hd: wp.float64):
-    """Stretch spring (v, v + 1): h^2 K_e + h C_e into the band, -h^2 K_e (v0 differences) into the
-    right-hand side."""
+def stretch_element(xa: wp.vec3, xb: wp.vec3, va: wp.vec3d, vb: wp.vec3d, rest: wp.float64, ks: wp.float64,
+                    ds: wp.float64, hd: wp.float64):
+    """Stretch spring (a, b): (A_e, r_e) with h^2 K_e + h C_e = A_e on the blocks [[A_e, -A_e],
+    [-A_e, A_e]] and h^2 K_e (v0 differences) = r_e to take from a's right-hand side and give to b's."""
     u = wp.vec3d(xb) - wp.vec3d(xa)
     l = wp.length(u)
-    if l > wp.float64(1.0e-12):
-        eye = wp.identity(n=3, dtype=wp.float64)
-        d = u / l
-        dd = wp.outer(d, d)
-        geometric = wp.max(wp.float64(0.0), wp.float64(1.0) - rest / l)
-        Ks = ks * (dd + geometric * (eye - dd))
-        Ae = embed3(hd * hd * Ks + (hd * ds) * dd)
-        pinv[slot + v] = pinv[slot + v] + Ae
-        pinv[slot + v + 1] = pinv[slot + v + 1] + Ae
-        up1[slot + v] = up1[slot + v] - Ae
-        kv = four((hd * hd) * (Ks * (va - vb)), wp.float64(0.0))
-        rhs[slot + v] = rhs[slot + v] - kv
-        rhs[slot + v + 1] = rhs[slot + v + 1] + kv
+    if l <= wp.float64(1.0e-12):
+        return wp.mat44d(), wp.vec4d()
+    eye = wp.identity(n=3, dtype=wp.float64)
+    d = u / l
+    dd = wp.outer(d, d)
+    geometric = wp.max(wp.float64(0.0), wp.float64(1.0) - rest / l)
+    Ks = ks * (dd + geometric * (eye - dd))
+    return embed3(hd * hd * Ks + (hd * ds) * dd), four((hd * hd) * (Ks * (va - vb)), wp.float64(0.0))
 
 
 @wp.func
-def add_bend_damping(pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d),
-                     up2: wp.array(dtype=wp.mat44d), slot: int, v: int, hdb: wp.float64):
-    """h C_e of the bending damper of vertex v: h k_b,d [1, -2, 1]^T [1, -2, 1] (x) I."""
-    e = embed3(hdb * wp.identity(n=3, dtype=wp.float64))
-    two = wp.float64(2.0)
-    pinv[slot + v - 1] = pinv[slot + v - 1] + e
-    up1[slot + v - 1] = up1[slot + v - 1] - two * e
-    up2[slot + v - 1] = up2[slot + v - 1] + e
-    pinv[slot + v] = pinv[slot + v] + (two * two) * e
-    up1[slot + v] = up1[slot + v] - two * e
-    pinv[slot + v + 1] = pinv[slot + v + 1] + e
+def row_diagonal(qd: wp.array(dtype=wp.vec3), f: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), i: int,
+                 air_drag: float, drag_particle: int, drag_stiffness: float, drag_damping: float, hd: wp.float64):
+    """(M + h c_air (+ the drag spring's h c + h^2 k), h f (- h^2 k v0)) of particle i."""
+    h2 = hd * hd
+    eye = wp.identity(n=3, dtype=wp.float64)
+    diag = (wp.float64(mass[i]) + hd * wp.float64(air_drag)) * eye
+    r = hd * wp.vec3d(f[i])
+    if i == drag_particle:
+        diag = diag + (hd * wp.float64(drag_damping) + h2 * wp.float64(drag_stiffness)) * eye
+        r = r - (h2 * wp.float64(drag_stiffness)) * wp.vec3d(qd[i])
+    return embed3(diag), four(r, wp.float64(0.0))
 
 
 @wp.func
-def pin_vertices(mass: wp.array(dtype=float), base: int, slot: int, stride: int,
-                 pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), up2: wp.array(dtype=wp.mat44d),
-                 rhs: wp.array(dtype=wp.vec4d)):
-    """Pinned vertices (mass 0) are not unknowns in x, y, z: identity rows and columns there,
-    right-hand side 0 (their velocity entered through K v0); their twist stays an unknown. Twists
-    that no element touches (the ghost's, the tip's) get a unit diagonal."""
+def store_row(pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), up2: wp.array(dtype=wp.mat44d),
+              rhs: wp.array(dtype=wp.vec4d), k: int, P: wp.mat44d, E: wp.mat44d, F: wp.mat44d, y: wp.vec4d):
+    pinv[k] = P
+    up1[k] = E
+    up2[k] = F
+    rhs[k] = y
+
+
+@wp.func
+def finish_row(mass: wp.array(dtype=float), base: int, stride: int, r: int, P: wp.mat44d, E: wp.mat44d, F: wp.mat44d,
+               y: wp.vec4d):
+    """Row r of a strand, assembled: pinned vertices (mass 0) are not unknowns in x, y, z (identity
+    rows and columns there, right-hand side 0: their velocity entered through K v0); their twist
+    stays an unknown. Twists that no element touches (the ghost's, the tip's) get a unit diagonal."""
     keep = wp.mat44d()
     keep[3, 3] = wp.float64(1.0)
-    eye3 = embed3(wp.identity(n=3, dtype=wp.float64))
-    for v in range(stride):
-        if v == 0 or v == stride - 1:
-            pinv[slot + v] = pinv[slot + v] + keep
-        if mass[base + v] <= 0.0:
-            pinv[slot + v] = keep * pinv[slot + v] * keep + eye3
-            rhs[slot + v] = keep * rhs[slot + v]
-            up1[slot + v] = keep * up1[slot + v]
-            up2[slot + v] = keep * up2[slot + v]
-            if v >= 1:
-                up1[slot + v - 1] = up1[slot + v - 1] * keep
-            if v >= 2:
-                up2[slot + v - 2] = up2[slot + v - 2] * keep
+    if r == 0 or r == stride - 1:
+        P = P + keep
+    if mass[base + r] <= 0.0:
+        P = keep * P * keep + embed3(wp.identity(n=3, dtype=wp.float64))
+        y = keep * y
+        E = keep * E
+        F = keep * F
+    if r + 1 < stride:
+        if mass[base + r + 1] <= 0.0:
+            E = E * keep
+    if r + 2 < stride:
+        if mass[base + r + 2] <= 0.0:
+            F = F * keep
+    return P, E, F, y
 
 
 @wp.func
@@ -232,30 +189,25 @@ def cholesky_inverse(a: wp.mat44d) -> wp.mat44d:
 
 
 @wp.func
-def factor_band(slot: int, stride: int, pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d),
-                up2: wp.array(dtype=wp.mat44d), rhs: wp.array(dtype=wp.vec4d)):
-    """Block band Cholesky in place (A = R^T R; pinv := R[v, v]^-1, up1 := R[v, v+1], up2 :=
-    R[v, v+2]), solving R^T y = rhs with it. (The block LU with explicit inverses of the pivot
-    blocks lost 0.4 % of the residual on a curly 32-segment strand, condition number 2e9; the
-    Cholesky factors keep it at 1e-17.)"""
-    for v in range(stride):
-        Ri = cholesky_inverse(pinv[slot + v])
-        pinv[slot + v] = Ri
-        RiT = wp.transpose(Ri)
-        y = RiT * rhs[slot + v]
-        rhs[slot + v] = y
-        if v + 1 < stride:
-            E = RiT * up1[slot + v]
-            up1[slot + v] = E
-            ET = wp.transpose(E)
-            pinv[slot + v + 1] = pinv[slot + v + 1] - ET * E
-            rhs[slot + v + 1] = rhs[slot + v + 1] - ET * y
-            if v + 2 < stride:
-                F = RiT * up2[slot + v]
-                up2[slot + v] = F
-                up1[slot + v + 1] = up1[slot + v + 1] - ET * F
-                pinv[slot + v + 2] = pinv[slot + v + 2] - wp.transpose(F) * F
-                rhs[slot + v + 2] = rhs[slot + v + 2] - wp.transpose(F) * y
+def complete_row(mass: wp.array(dtype=float), base: int, slot: int, stride: int, r: int, factor: int,
+                 pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), up2: wp.array(dtype=wp.mat44d),
+                 rhs: wp.array(dtype=wp.vec4d), P: wp.mat44d, E: wp.mat44d, F: wp.mat44d, y: wp.vec4d):
+    """Row r assembled (and, with ``factor``, its pivot already reduced by the rows before it):
+    ``finish_row``, then one step of the block band Cholesky A = R^T R: R[r, r]^-1, R[r, r+1] =
+    R[r, r]^-T E, R[r, r+2] = R[r, r]^-T F and the eliminated right-hand side R[r, r]^-T y are
+    stored (``factor`` = 0: the assembled row itself) and (R[r, r+1], R[r, r+2], R^-T y) returned
+    for the Schur complement of the two rows after it."""
+    P, E, F, y = finish_row(mass, base, stride, r, P, E, F, y)
+    if factor == 0:
+        store_row(pinv, up1, up2, rhs, slot + r, P, E, F, y)
+        return wp.mat44d(), wp.mat44d(), wp.vec4d()
+    Ri = cholesky_inverse(P)
+    RiT = wp.transpose(Ri)
+    E = RiT * E
+    F = RiT * F
+    y = RiT * y
+    store_row(pinv, up1, up2, rhs, slot + r, Ri, E, F, y)
+    return E, F, y
 
 
 @wp.func
@@ -297,28 +249,6 @@ def back_substitute(
         x_out[base + v] = wp.vec3(xyz(x))
         x2 = x1
         x1 = x
-
-
-@wp.func
-def init_diagonal(q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), f: wp.array(dtype=wp.vec3),
-                  mass: wp.array(dtype=float), base: int, slot: int, stride: int, air_drag: float,
-                  drag_particle: int, drag_stiffness: float, drag_damping: float, hd: wp.float64,
-                  pinv: wp.array(dtype=wp.mat44d), up1: wp.array(dtype=wp.mat44d), up2: wp.array(dtype=wp.mat44d),
-                  rhs: wp.array(dtype=wp.vec4d)):
-    """M + h c_air (+ the drag spring's h c + h^2 k) on the diagonal, h f (- h^2 k v0) on the right."""
-    h2 = hd * hd
-    eye = wp.identity(n=3, dtype=wp.float64)
-    for v in range(stride):
-        i = base + v
-        diag = (wp.float64(mass[i]) + hd * wp.float64(air_drag)) * eye
-        r = hd * wp.vec3d(f[i])
-        if i == drag_particle:
-            diag = diag + (hd * wp.float64(drag_damping) + h2 * wp.float64(drag_stiffness)) * eye
-            r = r - (h2 * wp.float64(drag_stiffness)) * wp.vec3d(qd[i])
-        rhs[slot + v] = four(r, wp.float64(0.0))
-        pinv[slot + v] = embed3(diag)  # the diagonal until factored
-        up1[slot + v] = wp.mat44d()
-        up2[slot + v] = wp.mat44d()
 
 
 @wp.func
@@ -368,9 +298,9 @@ def strand_implicit_solve(
     dv_out: wp.array(dtype=wp.vec3),
 ):
     """Assemble (M + h C + h^2 K) and h f - h^2 K v0 of strand ``s`` at (q, qd) over its positions
-    and twists (module docstring), factor it in place (pinv, up1, up2) and write the velocity
-    change of its free vertices to dv_out [m/s] (``factor`` = 0: assemble only, pinv holding the
-    diagonal blocks). f: the full force at (q, qd) [N]; mass [kg] per particle; air_drag: linear
+    and twists (module docstring), factor it row by row into (pinv, up1, up2, rhs) and write the
+    velocity change of its free vertices to dv_out [m/s] (``factor`` = 0: assemble only, the
+    blocks of the upper band in pinv, up1, up2). f: the full force at (q, qd) [N]; mass [kg] per particle; air_drag: linear
     drag [kg/s] on every free vertex; drag_particle (-1: none) held by a spring of drag_stiffness
     [N/m] and drag_damping [N s/m]; h [s]. The matrix is assembled and factored in float64 (its
     condition number reaches 1e5-1e6 at 32 segments and a frame step: float32 elimination feeds
@@ -384,8 +314,20 @@ def strand_implicit_solve(
     one = wp.float64(1.0)
     two = wp.float64(2.0)
     eye = wp.identity(n=3, dtype=wp.float64)
-    init_diagonal(q, qd, f, mass, base, slot, stride, air_drag, drag_particle, drag_stiffness, drag_damping, hd,
-                  pinv, up1, up2, rhs)
+    damp = embed3((hd * wp.float64(bend_damping[s])) * eye)  # h k_b,d [1, -2, 1]^T [1, -2, 1] (x) I
+    zero = wp.mat44d()
+    # rows are assembled in a window and each written once: at vertex v the elements touch rows
+    # v-2 (A, the twist penalty), v-1 (B), v (C) and v+1 (D, started here); row A is then complete
+    PA = zero
+    EA = zero
+    FA = zero
+    yA = wp.vec4d()
+    PB, yB = row_diagonal(qd, f, mass, base, air_drag, drag_particle, drag_stiffness, drag_damping, hd)
+    EB = zero
+    FB = zero
+    PC, yC = row_diagonal(qd, f, mass, base + 1, air_drag, drag_particle, drag_stiffness, drag_damping, hd)
+    EC = zero
+    FC = zero
     t = wp.vec3d(safe_normalize(q[base + 1] - q[base]))
     n_prev = wp.vec3d(root_normal[s])
     n = wp.vec3d(transport_normal(root_normal[s], wp.vec3(t)))
@@ -395,6 +337,9 @@ def strand_implicit_solve(
     phi_prev = wp.float64(0.0)  # twist rate of the previous frame at v0 [1/s]
     for v in range(1, stride - 1):
         i = base + v
+        PD, yD = row_diagonal(qd, f, mass, i + 1, air_drag, drag_particle, drag_stiffness, drag_damping, hd)
+        ED = zero
+        FD = zero
         l = wp.length(wp.vec3d(q[i]) - wp.vec3d(q[i - 1]))
         inv_l = one / wp.max(l, wp.float64(1.0e-12))
         if v >= 2:
@@ -413,27 +358,85 @@ def strand_implicit_solve(
         vb = wp.vec3d(qd[i])
         vc = wp.vec3d(qd[i + 1])
         phi = tw[0] * phi_prev + wp.dot(a2, vb - va)
-        vpp = wp.vec3d()
         if v >= 2:
-            vpp = wp.vec3d(qd[i - 2])
-            phi = phi + wp.dot(a1, va - vpp)
-        # linearised residual dr_v = (I + QP) dx_(v-1) - (2 I + QP) dx_v + dx_(v+1) - u phi_v
+            phi = phi + wp.dot(a1, va - wp.vec3d(qd[i - 2]))
+        # bending, Gauss-Newton: dr_v = (I + QP) dx_(v-1) - (2 I + QP) dx_v + dx_(v+1) - u phi_v on
+        # rows B, C, D (h^2 k_b J^T J, and -h^2 k_b J^T J z0 on the right), and its damper
         QP = (c[0] * eye - c[1] * wp.outer(t, n) - c[2] * cross_matrix(n)) * ((eye - wp.outer(t, t)) * inv_l)
         u = tw[3] * (c[1] * b - c[2] * n)
-        add_bending(pinv, up1, up2, rhs, slot, v, jac34(eye + QP, wp.vec3d()), jac34(-two * eye - QP, -u),
-                    jac34(eye, wp.vec3d()), h2 * kb, four(va, phi_prev), four(vb, phi), four(vc, wp.float64(0.0)))
-        penalty = h2 * TWIST_PENALTY * kb * l * l
-        add_twist_penalty(pinv, up1, up2, slot, v, four(a1, wp.float64(0.0)), four(a2 - a1, -tw[0]),
-                          four(-a2, one), penalty)
-        add_bend_damping(pinv, up1, up2, slot, v, hd * wp.float64(bend_damping[s]))
-        add_stretch(pinv, up1, rhs, slot, v, q[i], q[i + 1], vb, vc, wp.float64(rest_length[slot + v]),
-                    wp.float64(stretch_stiffness[s]), wp.float64(stretch_damping[s]), hd)
+        j0 = jac34(eye + QP, wp.vec3d())
+        j1 = jac34(-two * eye - QP, -u)
+        j2 = jac34(eye, wp.vec3d())
+        w = h2 * kb
+        rho = j0 * four(va, phi_prev) + j1 * four(vb, phi) + j2 * four(vc, wp.float64(0.0))
+        t0 = wp.transpose(j0)
+        t1 = wp.transpose(j1)
+        t2 = wp.transpose(j2)
+        PB = PB + w * (t0 * j0) + damp
+        EB = EB + w * (t0 * j1) - two * damp
+        FB = FB + w * (t0 * j2) + damp
+        PC = PC + w * (t1 * j1) + (two * two) * damp
+        EC = EC + w * (t1 * j2) - two * damp
+        PD = PD + w * (t2 * j2) + damp
+        yB = yB - w * (t0 * rho)
+        yC = yC - w * (t1 * rho)
+        yD = yD - w * (t2 * rho)
+        # the twist recurrence's penalty on rows A, B, C (its right-hand side is 0: z0 satisfies it)
+        pw = h2 * TWIST_PENALTY * kb * l * l
+        c0 = four(a1, wp.float64(0.0))
+        c1 = four(a2 - a1, -tw[0])
+        c2 = four(-a2, one)
+        if v >= 2:
+            PA = PA + pw * wp.outer(c0, c0)
+            EA = EA + pw * wp.outer(c0, c1)
+            FA = FA + pw * wp.outer(c0, c2)
+        PB = PB + pw * wp.outer(c1, c1)
+        EB = EB + pw * wp.outer(c1, c2)
+        PC = PC + pw * wp.outer(c2, c2)
+        # stretch spring (v, v + 1) on rows C, D
+        Ae, kv = stretch_element(q[i], q[i + 1], vb, vc, wp.float64(rest_length[slot + v]),
+                                 wp.float64(stretch_stiffness[s]), wp.float64(stretch_damping[s]), hd)
+        PC = PC + Ae
+        PD = PD + Ae
+        EC = EC - Ae
+        yC = yC - kv
+        yD = yD + kv
+        if v >= 2:  # row A is complete: factor it, its Schur complement goes to rows B and C
+            E2, F2, y2 = complete_row(mass, base, slot, stride, v - 2, factor, pinv, up1, up2, rhs, PA, EA, FA, yA)
+            E2T = wp.transpose(E2)
+            F2T = wp.transpose(F2)
+            PB = PB - E2T * E2
+            EB = EB - E2T * F2
+            yB = yB - E2T * y2
+            PC = PC - F2T * F2
+            yC = yC - F2T * y2
+        PA = PB
+        EA = EB
+        FA = FB
+        yA = yB
+        PB = PC
+        EB = EC
+        FB = FC
+        yB = yC
+        PC = PD
+        EC = ED
+        FC = FD
+        yC = yD
         phi_prev = phi
         inv_l_prev = inv_l
-    pin_vertices(mass, base, slot, stride, pinv, up1, up2, rhs)
+    E2, F2, y2 = complete_row(mass, base, slot, stride, stride - 3, factor, pinv, up1, up2, rhs, PA, EA, FA, yA)
+    E2T = wp.transpose(E2)
+    PB = PB - E2T * E2
+    EB = EB - E2T * F2
+    yB = yB - E2T * y2
+    PC = PC - wp.transpose(F2) * F2
+    yC = yC - wp.transpose(F2) * y2
+    E2, F2, y2 = complete_row(mass, base, slot, stride, stride - 2, factor, pinv, up1, up2, rhs, PB, EB, FB, yB)
+    PC = PC - wp.transpose(E2) * E2
+    yC = yC - wp.transpose(E2) * y2
+    E2, F2, y2 = complete_row(mass, base, slot, stride, stride - 1, factor, pinv, up1, up2, rhs, PC, EC, FC, yC)
     if factor == 0:  # assembly only (tests read the matrix)
         return
-    factor_band(slot, stride, pinv, up1, up2, rhs)
     back_substitute(slot, base, stride, pinv, up1, up2, rhs, dv_out)
 
 
