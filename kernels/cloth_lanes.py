@@ -132,9 +132,29 @@ def step_lane(i: int, x: wp.vec3, v: wp.vec3, f: wp.vec3, f_ext: wp.array(dtype=
     q_out[i] = x + h * v
 
 
+@wp.func
+def load_state_run(px: wp.array(dtype=float), py: wp.array(dtype=float), pz: wp.array(dtype=float),
+                   pvx: wp.array(dtype=float), pvy: wp.array(dtype=float), pvz: wp.array(dtype=float),
+                   pp: lane8i, delta: int):
+    """Planar positions and velocities of particles pp[0] + delta + c, c = 0 .. 7 (contiguous)."""
+    base = wp.max(pp[0] + delta, 0)
+    return (load_run(px, base), load_run(py, base), load_run(pz, base), load_run(pvx, base), load_run(pvy, base),
+            load_run(pvz, base))
+
+
+@wp.func
+def load_state_lanes(px: wp.array(dtype=float), py: wp.array(dtype=float), pz: wp.array(dtype=float),
+                     pvx: wp.array(dtype=float), pvy: wp.array(dtype=float), pvz: wp.array(dtype=float),
+                     pp: lane8i, delta: int):
+    """Planar positions and velocities of particles pp[c] + delta, c = 0 .. 7."""
+    return (load_lanes(px, pp, delta), load_lanes(py, pp, delta), load_lanes(pz, pp, delta),
+            load_lanes(pvx, pp, delta), load_lanes(pvy, pp, delta), load_lanes(pvz, pp, delta))
+
+
 def _step_kernel(run: bool):
     """The lanes step over blocks of consecutive particles (``run``: contiguous loads) or of any
     eight particles (per-lane loads); the loads are chosen at code generation."""
+    load_state = load_state_run if run else load_state_lanes
 
     def step_cloth_lanes(
         px: wp.array(dtype=float), py: wp.array(dtype=float), pz: wp.array(dtype=float),
@@ -159,21 +179,7 @@ def _step_kernel(run: bool):
         b = first_block + wp.tid()
         pp = block_particles[b]
         info = block_info[b]
-        p = wp.max(pp[0], 0)
-        if wp.static(run):
-            ox = load_run(px, p)
-            oy = load_run(py, p)
-            oz = load_run(pz, p)
-            ovx = load_run(pvx, p)
-            ovy = load_run(pvy, p)
-            ovz = load_run(pvz, p)
-        else:
-            ox = load_lanes(px, pp, 0)
-            oy = load_lanes(py, pp, 0)
-            oz = load_lanes(pz, pp, 0)
-            ovx = load_lanes(pvx, pp, 0)
-            ovy = load_lanes(pvy, pp, 0)
-            ovz = load_lanes(pvz, pp, 0)
+        ox, oy, oz, ovx, ovy, ovz = wp.static(load_state)(px, py, pz, pvx, pvy, pvz, pp, 0)
         fx = lane8()
         fy = lane8()
         fz = lane8()
@@ -181,21 +187,7 @@ def _step_kernel(run: bool):
             if k < info[1]:
                 dk = pattern_deltas[info[0] + k]
                 a3 = 3 * (info[2] + k)
-                if wp.static(run):
-                    jb = wp.max(p + dk, 0)
-                    xx = load_run(px, jb)
-                    xy = load_run(py, jb)
-                    xz = load_run(pz, jb)
-                    vx = load_run(pvx, jb)
-                    vy = load_run(pvy, jb)
-                    vz = load_run(pvz, jb)
-                else:
-                    xx = load_lanes(px, pp, dk)
-                    xy = load_lanes(py, pp, dk)
-                    xz = load_lanes(pz, pp, dk)
-                    vx = load_lanes(pvx, pp, dk)
-                    vy = load_lanes(pvy, pp, dk)
-                    vz = load_lanes(pvz, pp, dk)
+                xx, xy, xz, vx, vy, vz = wp.static(load_state)(px, py, pz, pvx, pvy, pvz, pp, dk)
                 gx, gy, gz = lane_spring_forces(ox - xx, oy - xy, oz - xz, ovx - vx, ovy - vy, ovz - vz,
                                                 slot_params[a3], slot_params[a3 + 1], slot_params[a3 + 2])
                 fx = fx + gx
