@@ -48,7 +48,7 @@ class HeadPoses:
             host[2 * k + 1] = np.asarray(now, np.float32)
         if self._host is not self.poses:
             wp.copy(self.poses, self._host, count=2 * n)
-            self._copied = wp.record_event()
+            self._copied = self.device.stream.record_event()
         self.steps = n
         for user in self.users:
             user.step_index = 0
