@@ -132,53 +132,99 @@ def run(args, out, err):
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from ..core.errors import SimulationError
     from ..distributed.devices import DeviceSweepError
-    from ..distributed.ray_sweep import RaySweepError, ray_usage_error
+    from ..distributed.ray_sweep import RaySweepError
     from ..scenes import get_scene
-    from .metrics import BUILTIN, format_cell, parse_rank, parse_where, print_picked, select
-    from ..browse.query import apply_regions, region_columns
-    from .sweep import run_batch, sample_worlds, write_table
-    from ..browse.roots import LAYOUTS, write_sweep_root
 
-    usage = UsageError
     try:
         cls = get_scene(args.scene)
     except ValueError as exc:
-        raise usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
+    devices = _checked_flags(args)
+    path, table = _checked_outputs(args, cls)
+    world_params, base, timing, track = _sampled_worlds(args, cls)
+    regions, occupancy, rank, where = _picking(args, world_params, timing.fps, track)
+    device = device_arg(args.device) if devices is None else ",".join(devices)
+    if args.rerun is not None:
+        from .rerun import rerun_in_sweep
+
+        return rerun_in_sweep(args, cls, world_params, path, device, out, err)
+    import warnings
+
+    from ..core.stability import StabilityWarning
+
+    warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
+    if timing.note:  # --substeps N overriding the scene's dt (--strict: refused)
+        _stability_warning(timing.note, args.strict, err)
+    _check_resources(args, cls, base, len(world_params), path, device, devices, timing.fps, err)
+    try:
+        rows, root, layers = _execute(args, cls, world_params, (path, table), (device, devices), track, occupancy,
+                                      err)
+    except (SimulationError, ValueError, RaySweepError, DeviceSweepError) as exc:
+        if isinstance(exc, ValueError) and not isinstance(exc, SimulationError) and _is_usage(exc):
+            raise UsageError(str(exc).splitlines()[0]) from None
+        print(f"warpsim: sweep failed: {str(exc).splitlines()[0]}", file=err)
+        return 1
+    blown = sum(1 for r in rows if r.get("blown_up"))
+    unstable = sum(1 for r in rows if r.get("unstable"))
+    note = f"{blown - unstable} blew up and were frozen" if blown > unstable else ""
+    if unstable:
+        note += f"{', ' if note else ''}{unstable} went unstable (column unstable)"
+    print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {timing.fps:g} fps on {device}"
+          f"{f' ({note})' if note else ''}", file=out)
+    print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
+    thumbs_device = device if getattr(args, "ray", None) is None and devices is None else \
+        devices[0] if devices is not None else "cpu"
+    return _answer(args, rows, (root, layers, path), list(world_params[0]), (regions, rank, where), thumbs_device,
+                   out, err)
+
+
+def _checked_flags(args):
+    """The devices of ``--devices`` (None: one device) once the flags that need no scene agree;
+    UsageError (exit 2) otherwise."""
+    from ..browse.roots import LAYOUTS
+    from ..distributed.ray_sweep import ray_usage_error
+
     if args.frames < 0:
-        raise usage(f"--frames {args.frames}: it must be >= 0")
+        raise UsageError(f"--frames {args.frames}: it must be >= 0")
     if args.layout not in LAYOUTS:
-        raise usage(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
+        raise UsageError(f"--layout {args.layout!r}: use one of {', '.join(LAYOUTS)}")
     if ray_usage_error(args):
-        raise usage(ray_usage_error(args))
+        raise UsageError(ray_usage_error(args))
     devices = None
     if getattr(args, "devices", None) is not None:
         from ..distributed.devices import parse_devices
 
         if args.device is not None:
-            raise usage(f"--devices {args.devices} and --device {args.device}: give one of them")
+            raise UsageError(f"--devices {args.devices} and --device {args.device}: give one of them")
         if getattr(args, "ray", None) is not None:
-            raise usage("--devices splits a sweep over this machine's devices in one process; with --ray each batch "
-                        "is a Ray task with one GPU (--device cuda): drop one of them")
+            raise UsageError("--devices splits a sweep over this machine's devices in one process; with --ray each "
+                             "batch is a Ray task with one GPU (--device cuda): drop one of them")
         if args.rerun is not None:
-            raise usage("--rerun runs one world on one device: give --device instead of --devices")
+            raise UsageError("--rerun runs one world on one device: give --device instead of --devices")
         try:
             devices = parse_devices(args.devices)
         except ValueError as exc:
-            raise usage(str(exc)) from None
+            raise UsageError(str(exc)) from None
     if args.chunk < 1:
-        raise usage(f"--chunk {args.chunk}: it must be >= 1 (frames per chunk file)")
+        raise UsageError(f"--chunk {args.chunk}: it must be >= 1 (frames per chunk file)")
     if getattr(args, "ray", None) is not None:
         from ..extras import require_extra
 
         require_extra("ray", "warpsim sweep --ray")
     if args.top is not None and args.top < 1:
-        raise usage(f"--top {args.top}: it must be >= 1")
+        raise UsageError(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:
-        raise usage("--top needs --rank METRIC (the order to take the top worlds from)")
+        raise UsageError("--top needs --rank METRIC (the order to take the top worlds from)")
+    return devices
+
+
+def _checked_outputs(args, cls):
+    """(root path, table path) once the seed, world count and ``--ray`` address pass and both
+    outputs can be written and are held by this command; UsageError otherwise."""
     path = args.out or os.path.join("usd_out", f"{cls.name}_sweep.usda")
     stem, ext = os.path.splitext(path)
     if ext not in (".usd", ".usda", ".usdc"):
-        raise usage(f"--out {path!r} must end in .usd, .usda or .usdc")
+        raise UsageError(f"--out {path!r} must end in .usd, .usda or .usdc")
     table = args.table or stem + ".csv"
     try:  # seed, world count, --ray address: before anything is sampled
         preflight.check_seed(args.seed)
@@ -186,13 +232,22 @@ def run(args, out, err):
             preflight.check_worlds(args.worlds)
         preflight.check_ray_address(getattr(args, "ray", None))
     except ValueError as exc:
-        raise usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     check_output_path(path, "--out")
     if os.path.splitext(table)[1].lower() != ".csv":
-        raise usage(f"--table {table!r} must end in .csv")
+        raise UsageError(f"--table {table!r} must end in .csv")
     check_output_path(table, "--table")
     hold_output(path, "--out")  # one writer per sweep root, table and record; never another's files
     hold_output(table, "--table", own=path)
+    return path, table
+
+
+def _sampled_worlds(args, cls):
+    """(world parameters, world 0's resolved parameters, the one FrameTiming of every world,
+    tracked particles or None) from ``--set``, ``--vary``, ``--worlds``, ``--sample`` and
+    ``--track``; UsageError for a bad value."""
+    from .sweep import sample_worlds
+
     fixed = parse_sets(cls, args.sets, None)
     worlds = args.worlds
     try:
@@ -207,10 +262,18 @@ def run(args, out, err):
         world_params = sample_worlds(cls.name, fixed, args.vary, worlds, args.sample, args.seed)
         base = cls.resolve_params(world_params[0])
         timing = _timing(cls, world_params, args.fps, args.substeps)  # the one FrameTiming of every world
-        fps = timing.fps
         track = resolve_track(cls, base, args.track, "cpu") if args.track else None
     except ValueError as exc:
-        raise usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
+    return world_params, base, timing, track
+
+
+def _picking(args, world_params, fps, track):
+    """(regions, occupancy options, rank, where) of ``--inside`` / ``--outside`` / ``--rank`` /
+    ``--where``, checked against the table's columns before anything runs; UsageError otherwise."""
+    from ..browse.query import region_columns
+    from .metrics import BUILTIN, format_cell, parse_rank, parse_where
+
     names = [k for k in world_params[0]] + list(BUILTIN)
     for name in track or {}:
         names += [f"{name}_x", f"{name}_y", f"{name}_z", f"{name}_peak_y"]
@@ -224,139 +287,161 @@ def run(args, out, err):
             if metric in world_params[0] and metric not in numeric:
                 value = world_params[0][metric]
                 kind = "a vector" if isinstance(value, (tuple, list)) else f"a {type(value).__name__}"
-                raise ValueError(f"{flag} {metric}: parameter {metric} is {kind} ({format_cell(value)}), not one number; "
-                                 f"{flag} compares numbers: a metric ({', '.join(BUILTIN[:3])}, ...) or a numeric "
-                                 f"parameter ({', '.join(sorted(numeric)) or 'none here'})")
+                raise ValueError(f"{flag} {metric}: parameter {metric} is {kind} ({format_cell(value)}), not one "
+                                 f"number; {flag} compares numbers: a metric ({', '.join(BUILTIN[:3])}, ...) or a "
+                                 f"numeric parameter ({', '.join(sorted(numeric)) or 'none here'})")
     except ValueError as exc:
-        raise usage(str(exc)) from None
-    device = device_arg(args.device) if devices is None else ",".join(devices)
-    if args.rerun is not None:
-        from .rerun import rerun_in_sweep
+        raise UsageError(str(exc)) from None
+    return regions, occupancy, rank, where
 
-        return rerun_in_sweep(args, cls, world_params, path, device, out, err)
-    import warnings
 
-    from ..core.stability import StabilityWarning
-
-    warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
-    if timing.note:  # --substeps N overriding the scene's dt (--strict: refused)
-        _stability_warning(timing.note, args.strict, err)
+def _check_resources(args, cls, base, worlds, path, device, devices, fps, err):
+    """Refuse a sweep whose memory (one device) or output (the disk of ``path``) does not fit,
+    from world 0 built on the CPU; a large sweep's size is said on ``err`` before it starts."""
     try:
         scene = cls(base, device="cpu")  # world 0: the memory and output estimates
         if getattr(args, "ray", None) is None and devices is None:  # several devices: checked per block
-            _check_memory(cls, scene, len(world_params), device)
-        size_note = _check_disk(scene, path, len(world_params), args.frames + 1, fps,
+            _check_memory(cls, scene, worlds, device)
+        size_note = _check_disk(scene, path, worlds, args.frames + 1, fps,
                                 resume=bool(getattr(args, "resume", False)))
     except ValueError as exc:
-        raise usage(str(exc)) from None
+        raise UsageError(str(exc)) from None
     if size_note:
         print(size_note, file=err)
-    layer = f"{stem}.batch_0000{LAYER_EXT}"
-    progress = None
+
+
+def _execute(args, cls, world_params, outputs, devices, track, occupancy, err):
+    """Run the sweep (on Ray, over ``--devices`` or here) and write its manifest: (rows, root,
+    batch layers). ``outputs``: (root path, table path); ``devices``: (device, ``--devices`` list
+    or None)."""
+    from .rerun import write_manifest  # what re-running one world exactly needs
+
+    device, several = devices
     run_timing = {}  # steps per frame the single-process batch took (a Ray sweep: the driver's count)
+    if getattr(args, "ray", None) is not None:
+        rows, root, layers = _run_on_ray(args, cls, world_params, outputs, device, track, occupancy, run_timing, err)
+    elif several is not None:
+        rows, root, layers = _run_on_devices(args, cls, world_params, outputs, several, track, occupancy,
+                                             run_timing, err)
+    else:
+        rows, root, layers = _run_here(args, cls, world_params, outputs, device, track, occupancy, run_timing, err)
+    write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
+                   device=args.device if getattr(args, "ray", None) is not None else
+                   device if several is None else several[0], fused=args.fused,
+                   frame_steps=run_timing.get("frame_steps"))
+    return rows, root, layers
+
+
+def _run_on_ray(args, cls, world_params, outputs, device, track, occupancy, run_timing, err):
+    """``--ray``: batches as Ray tasks (:func:`warpsim.distributed.ray_sweep.run_ray_sweep`)."""
+    from ..distributed.ray_sweep import default_batch_size, run_ray_sweep
+    from .rerun import sweep_frame_steps
+
+    path, table = outputs
+    # automatic sub-steps resolve over the whole sweep, not per batch (its stiffest world)
+    steps = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps, device=device,
+                              fused=bool(args.fused))
+    if steps is not None:
+        run_timing["frame_steps"] = steps
+    result = run_ray_sweep(cls.name, world_params, frames=args.frames, out_path=path, table_path=table,
+                           fps=args.fps, substeps=args.substeps, device=args.device,
+                           batch_size=args.batch_size or default_batch_size(len(world_params), args.device,
+                                                                             args.ray), address=args.ray,
+                           num_cpus=args.ray_cpus, resume=args.resume, layout=args.layout,
+                           batch_options={**({"track": track} if track else {}),
+                                          **({"fused": True} if args.fused else {}),
+                                          **({"frame_steps": steps} if steps is not None else {})} or None,
+                           log=err, occupancy=occupancy)
+    return result["rows"], result["root"], result["layers"]
+
+
+def _run_on_devices(args, cls, world_params, outputs, devices, track, occupancy, run_timing, err):
+    """``--devices``: one block of worlds per device (:func:`warpsim.distributed.devices.run_device_sweep`)."""
+    from ..distributed.devices import run_device_sweep
+    from .staging import settings_digest
+
+    path, table = outputs
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=args.frames, unit="frame", dynamic_ncols=True, file=err,
+                        desc=f"{cls.name} x{len(world_params)} on {len(devices)} devices")
+    done = [0]
+
+    def advanced(frames_done):
+        progress.update(frames_done - done[0])
+        done[0] = frames_done
+
     try:
-        if getattr(args, "ray", None) is not None:
-            from ..distributed.ray_sweep import default_batch_size, run_ray_sweep
-            from .rerun import sweep_frame_steps
-
-            # automatic sub-steps resolve over the whole sweep, not per batch (its stiffest world)
-            steps = sweep_frame_steps(cls.name, world_params, fps=args.fps, substeps=args.substeps, device=device,
-                                      fused=bool(args.fused))
-            if steps is not None:
-                run_timing["frame_steps"] = steps
-            result = run_ray_sweep(cls.name, world_params, frames=args.frames, out_path=path, table_path=table,
-                                   fps=args.fps, substeps=args.substeps, device=args.device,
-                                   batch_size=args.batch_size or default_batch_size(len(world_params), args.device,
-                                                                                     args.ray), address=args.ray,
-                                   num_cpus=args.ray_cpus, resume=args.resume, layout=args.layout,
-                                   batch_options={**({"track": track} if track else {}),
-                                                  **({"fused": True} if args.fused else {}),
-                                                  **({"frame_steps": steps} if steps is not None else {})} or None,
-                                   log=err, occupancy=occupancy)
-            rows, root = result["rows"], result["root"]
-            layers = result["layers"]
-        elif devices is not None:
-            from ..distributed.devices import run_device_sweep
-            from .staging import settings_digest
-
-            if not args.no_progress:
-                from tqdm import tqdm
-
-                progress = tqdm(total=args.frames, unit="frame", dynamic_ncols=True, file=err,
-                                desc=f"{cls.name} x{len(world_params)} on {len(devices)} devices")
-            done = [0]
-
-            def advanced(frames_done):
-                progress.update(frames_done - done[0])
-                done[0] = frames_done
-
-            result = run_device_sweep(
-                cls.name, world_params, devices=devices, frames=args.frames, out_path=path, table_path=table,
-                settings={"scene": cls.name, "frames": args.frames, "fps": args.fps, "substeps": args.substeps,
-                          "chunk": args.chunk, "fused": bool(args.fused), "track": track or {},
-                          "worlds": settings_digest(world_params)},
-                fps=args.fps, substeps=args.substeps, layout=args.layout, track=track, fused=bool(args.fused),
-                occupancy=occupancy, chunk_size=args.chunk, resume=bool(getattr(args, "resume", False)),
-                warn=lambda line: _stability_warning(line, args.strict, err), progress=advanced if progress else None,
-                log=err)
-            if progress:
-                progress.close()
-                progress = None
-            rows, root, layers = result["rows"], result["root"], result["layers"]
-            if result["frame_steps"] is not None:
-                run_timing["frame_steps"] = result["frame_steps"]
-        else:
-            from .staging import SweepStaging, settings_digest
-
-            staging = SweepStaging(path, {"scene": cls.name, "frames": args.frames, "fps": args.fps,
-                                          "substeps": args.substeps, "chunk": args.chunk, "fused": bool(args.fused),
-                                          "track": track or {}, "worlds": settings_digest(world_params)},
-                                   resume=bool(getattr(args, "resume", False)))
-            first = staging.resume_frame()
-            if first:
-                print(f"resuming: frames 0..{first - 1} are in {os.path.relpath(staging.layer)}; re-simulating them "
-                      "without writing, then writing on", file=err)
-            if not args.no_progress:
-                from tqdm import tqdm
-
-                progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
-                                dynamic_ncols=True)
-            record = _record_path(path)
-            rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                             device=device, layer_path=staging.layer, first_world=0, track=track,
-                             progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
-                             occupancy={**occupancy, "path": staging.partial(record)},
-                             warn=lambda line: _stability_warning(line, args.strict, err), chunk_size=args.chunk,
-                             resume_frame=first, timing=run_timing)
-            if progress:
-                progress.close()
-                progress = None
-            layer = staging.publish([(staging.partial(record), record)])  # the old sweep stays whole until here
-            write_table(table, rows)
-            layers = [layer]
-            root = write_sweep_root(path, layers, len(world_params), layout=args.layout)
-            staging.finish()
-        from .rerun import write_manifest  # what re-running one world exactly needs
-
-        write_manifest(root, cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                       device=args.device if getattr(args, "ray", None) is not None else
-                       device if devices is None else devices[0], fused=args.fused,
-                       frame_steps=run_timing.get("frame_steps"))
-    except (SimulationError, ValueError, RaySweepError, DeviceSweepError) as exc:
+        result = run_device_sweep(
+            cls.name, world_params, devices=devices, frames=args.frames, out_path=path, table_path=table,
+            settings={"scene": cls.name, "frames": args.frames, "fps": args.fps, "substeps": args.substeps,
+                      "chunk": args.chunk, "fused": bool(args.fused), "track": track or {},
+                      "worlds": settings_digest(world_params)},
+            fps=args.fps, substeps=args.substeps, layout=args.layout, track=track, fused=bool(args.fused),
+            occupancy=occupancy, chunk_size=args.chunk, resume=bool(getattr(args, "resume", False)),
+            warn=lambda line: _stability_warning(line, args.strict, err), progress=advanced if progress else None,
+            log=err)
+    finally:
         if progress:
             progress.close()
-        if isinstance(exc, ValueError) and not isinstance(exc, SimulationError) and _is_usage(exc):
-            raise usage(str(exc).splitlines()[0]) from None
-        print(f"warpsim: sweep failed: {str(exc).splitlines()[0]}", file=err)
-        return 1
-    blown = sum(1 for r in rows if r.get("blown_up"))
-    unstable = sum(1 for r in rows if r.get("unstable"))
-    note = f"{blown - unstable} blew up and were frozen" if blown > unstable else ""
-    if unstable:
-        note += f"{', ' if note else ''}{unstable} went unstable (column unstable)"
-    print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {fps:g} fps on {device}"
-          f"{f' ({note})' if note else ''}", file=out)
-    print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
+    if result["frame_steps"] is not None:
+        run_timing["frame_steps"] = result["frame_steps"]
+    return result["rows"], result["root"], result["layers"]
+
+
+def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_timing, err):
+    """One batch in this process, staged (:class:`warpsim.sweeps.staging.SweepStaging`: written
+    under a temporary name, ``--resume`` goes on) and published whole with its table and root."""
+    from ..browse.roots import write_sweep_root
+    from .staging import SweepStaging, settings_digest
+    from .sweep import run_batch, write_table
+
+    path, table = outputs
+    staging = SweepStaging(path, {"scene": cls.name, "frames": args.frames, "fps": args.fps,
+                                  "substeps": args.substeps, "chunk": args.chunk, "fused": bool(args.fused),
+                                  "track": track or {}, "worlds": settings_digest(world_params)},
+                           resume=bool(getattr(args, "resume", False)))
+    first = staging.resume_frame()
+    if first:
+        print(f"resuming: frames 0..{first - 1} are in {os.path.relpath(staging.layer)}; re-simulating them "
+              "without writing, then writing on", file=err)
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
+                        dynamic_ncols=True)
+    record = _record_path(path)
+    try:
+        rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
+                         device=device, layer_path=staging.layer, first_world=0, track=track,
+                         progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
+                         occupancy={**occupancy, "path": staging.partial(record)},
+                         warn=lambda line: _stability_warning(line, args.strict, err), chunk_size=args.chunk,
+                         resume_frame=first, timing=run_timing)
+    finally:
+        if progress:
+            progress.close()
+    layer = staging.publish([(staging.partial(record), record)])  # the old sweep stays whole until here
+    write_table(table, rows)
+    root = write_sweep_root(path, [layer], len(world_params), layout=args.layout)
+    staging.finish()
+    return rows, root, [layer]
+
+
+def _answer(args, rows, written, params, picking, device, out, err):
+    """After the run: the occupancy record's summary, the gallery's thumbnails, the answers to
+    ``--inside`` / ``--outside`` and the picked worlds (listed, and written as
+    ``<stem>.picked<ext>``). ``written``: (root, batch layers, ``--out``); ``picking``: (regions,
+    rank, where). The exit status."""
+    from ..browse.query import apply_regions, region_columns
+    from ..browse.roots import write_sweep_root
+    from .metrics import print_picked, select
+
+    root, layers, path = written
+    regions, rank, where = picking
     candidates = rows
     if regions and not os.path.exists(_record_path(path)):  # a Ray sweep whose batch failed keeps none
         print("warpsim: sweep failed: no occupancy record to answer --inside/--outside (a batch failed); run the "
@@ -364,15 +449,12 @@ def run(args, out, err):
         return 1
     if getattr(args, "ray", None) is None or os.path.exists(_record_path(path)):
         from ..browse.occupancy import OccupancyRecord
+        from ..browse.panel import thumbnails_after_sweep
         from ..browse.query import answer_region, answers_note, cached_positions
 
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
-        from ..browse.panel import thumbnails_after_sweep
-
-        print(thumbnails_after_sweep(root, layers, record, enabled=not args.no_thumbnails,
-                                     device=device if getattr(args, "ray", None) is None and devices is None else
-                                     devices[0] if devices is not None else "cpu"), file=out)
+        print(thumbnails_after_sweep(root, layers, record, enabled=not args.no_thumbnails, device=device), file=out)
         positions = cached_positions(root, record) if regions else None
         answers = [answer_region(record, r, positions) for r in regions]
         candidates = apply_regions(rows, record, regions, answers=answers)
@@ -380,9 +462,9 @@ def run(args, out, err):
             print(answers_note(record, regions, answers), file=out)
     if args.rank or args.where or regions:
         picked = select(candidates, rank=rank, top=args.top, where=where)
-        print_picked(picked, len(rows), list(world_params[0]), rank=rank, where=where, extra=region_columns(regions),
-                     out=out)
+        print_picked(picked, len(rows), params, rank=rank, where=where, extra=region_columns(regions), out=out)
         if picked:
+            stem, ext = os.path.splitext(path)
             pick_path = write_sweep_root(stem + ".picked" + ext, layers, len(rows), layout=args.layout,
                                          worlds=[r["world"] for r in picked])
             print(f"picked worlds: {os.path.relpath(pick_path)}", file=out)
