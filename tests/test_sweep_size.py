@@ -155,7 +155,7 @@ def test_a_sweep_larger_than_the_free_disk_is_refused_before_it_runs(tmp_path, m
     from warpsim.sweeps import preflight
 
     monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 100 << 10)  # the sweep writes ~0.8 MB
-    code, out, err = run(*SWEEP, "--out", tmp_path / "big" / "t.usda")
+    code, _, err = run(*SWEEP, "--out", tmp_path / "big" / "t.usda")
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
     assert "writes about" in lines[0] and "100 KiB free" in lines[0] and "--worlds" in lines[0], lines[0]
