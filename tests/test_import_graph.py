@@ -37,7 +37,8 @@ FLOORS = (
 UPWARD = {
     ("warpsim.core.simulator", "warpsim.diff"): "Simulator(differentiable=True) builds a diff.Rollout, "
                                                 "imported only then (the rollout steps the simulator)",
-    ("warpsim.render.gallery", "warpsim.cli"): "until the cli split moves its helpers to cli_common",
+    ("warpsim.render.gallery", "warpsim.cli"): "a script (python -m warpsim.render.gallery) that makes the README's "
+                                               "previews by running 'warpsim run' through the dispatcher",
     ("warpsim.scenes.hair", "warpsim.sweeps.preflight"): "check_strand_memory belongs one floor down",
     ("warpsim.scenes.hair", "warpsim.viewer.geometry"): "the head's display mesh belongs one floor down",
 }
