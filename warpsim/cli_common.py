@@ -13,7 +13,8 @@ import os
 import sys
 
 __all__ = ["DefaultsHelpFormatter", "UsageError", "check_output_path", "device_arg", "hold_output", "one_line",
-           "parse_sets", "run_script", "stability_check", "substeps_arg", "timing_from_flags", "timing_note"]
+           "parse_sets", "run_script", "stability_check", "substeps_arg", "timing_from_flags", "timing_note",
+           "warn_or_refuse"]
 
 
 class UsageError(Exception):
@@ -88,14 +89,19 @@ def timing_from_flags(cls, params, given, fps, substeps):
     return timing, timing.scene_params(params)
 
 
+def warn_or_refuse(line, strict, err) -> None:
+    """``line`` as one ``warpsim: warning:`` line on ``err``, or with ``strict`` (``--strict``) a
+    :class:`UsageError` ``--strict: line`` (exit 2)."""
+    if strict:
+        raise UsageError(f"--strict: {line}")
+    print(f"warpsim: warning: {line}", file=err)
+
+
 def timing_note(timing, strict, err) -> None:
     """The timing's note (``--substeps N`` overriding a scene's dt) as one ``warpsim: warning:``
     line on ``err``, or with ``strict`` a :class:`UsageError` (exit 2)."""
-    if not timing.note:
-        return
-    if strict:
-        raise UsageError(f"--strict: {timing.note}")
-    print(f"warpsim: warning: {timing.note}", file=err)
+    if timing.note:
+        warn_or_refuse(timing.note, strict, err)
 
 
 def stability_check(scene, frame_dt, substeps, strict, err) -> None:
@@ -103,11 +109,8 @@ def stability_check(scene, frame_dt, substeps, strict, err) -> None:
     above its stability limit (naming the limiter and the remedies), or with ``strict`` a
     :class:`UsageError` (exit 2)."""
     line = scene.stability_warning(frame_dt, substeps)
-    if line is None:
-        return
-    if strict:
-        raise UsageError(f"--strict: {line}")
-    print(f"warpsim: warning: {line}", file=err)
+    if line is not None:
+        warn_or_refuse(line, strict, err)
 
 
 def check_output_path(path, flag="--out"):

@@ -19,7 +19,9 @@ from __future__ import annotations
 import os
 import sys
 
-from ..cli_common import UsageError, check_output_path, device_arg, hold_output, parse_sets, substeps_arg
+from ..cli_common import (
+    UsageError, check_output_path, device_arg, hold_output, parse_sets, substeps_arg, warn_or_refuse,
+)
 from . import preflight
 
 LAYER_EXT = ".usdc"
@@ -95,14 +97,6 @@ def add_parser(sub):
     return s
 
 
-def _stability_warning(line, strict, err):
-    """Before the first frame: one warning line on ``err`` (``--strict``: a usage error, exit 2)."""
-
-    if strict:
-        raise UsageError(f"--strict: {line}")
-    print(f"warpsim: warning: {line}", file=err)
-
-
 def resolve_track(cls, params, items, device):
     """{name: particle index within a world} from ``--track NAME=INDEX`` / ``INDEX`` / an anchor name."""
     out = {}
@@ -154,7 +148,7 @@ def run(args, out, err):
 
     warnings.simplefilter("ignore", StabilityWarning)  # run_batch's warn() says it once, per world
     if timing.note:  # --substeps N overriding the scene's dt (--strict: refused)
-        _stability_warning(timing.note, args.strict, err)
+        warn_or_refuse(timing.note, args.strict, err)
     _check_resources(args, cls, base, len(world_params), path, device, devices, timing.fps, err)
     try:
         rows, root, layers = _execute(args, cls, world_params, (path, table), (device, devices), track, occupancy,
@@ -381,7 +375,7 @@ def _run_on_devices(args, cls, world_params, outputs, devices, track, occupancy,
                       "worlds": settings_digest(world_params)},
             fps=args.fps, substeps=args.substeps, layout=args.layout, track=track, fused=bool(args.fused),
             occupancy=occupancy, chunk_size=args.chunk, resume=bool(getattr(args, "resume", False)),
-            warn=lambda line: _stability_warning(line, args.strict, err), progress=advanced if progress else None,
+            warn=lambda line: warn_or_refuse(line, args.strict, err), progress=advanced if progress else None,
             log=err)
     finally:
         if progress:
@@ -419,7 +413,7 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
                          device=device, layer_path=staging.layer, first_world=0, track=track,
                          progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
                          occupancy={**occupancy, "path": staging.partial(record)},
-                         warn=lambda line: _stability_warning(line, args.strict, err), chunk_size=args.chunk,
+                         warn=lambda line: warn_or_refuse(line, args.strict, err), chunk_size=args.chunk,
                          resume_frame=first, timing=run_timing)
     finally:
         if progress:
