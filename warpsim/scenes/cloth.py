@@ -6,11 +6,10 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import warpsim as ws
-
 from ..cloth.builder import add_cloth_grid
 from ..cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
-from ..bodies.colliders import Sphere
+from ..bodies.colliders import Plane, Sphere
+from ..core import Gravity, ModelBuilder, Wind
 from . import SimulatorScene, register_scene
 from .live import drop_graphs, set_contact, set_springs
 
@@ -51,7 +50,7 @@ class ClothScene(SimulatorScene):
         for key in ("size", "density", "sphere_radius"):
             if not p[key] > 0.0:
                 raise ValueError(f"{key}={p[key]}: it must be > 0")
-        b = ws.ModelBuilder()
+        b = ModelBuilder()
         self.cloth = self.make_cloth(b, p)
         model = b.finalize(self.device)
         if p["integrator"] == "implicit_euler":
@@ -60,11 +59,11 @@ class ClothScene(SimulatorScene):
             integrator = ClothSemiImplicitEuler()
         self.sphere = Sphere(self.sphere_center, p["sphere_radius"], restitution=0.0, friction=p["friction"],
                              thickness=p["thickness"])
-        self.floor = ws.Plane((0.0, 1.0, 0.0), 0.0, restitution=0.0, friction=p["friction"], mode="project")
+        self.floor = Plane((0.0, 1.0, 0.0), 0.0, restitution=0.0, friction=p["friction"], mode="project")
         mass = model.particle_mass.numpy()
         self.wind_coefficient = 2.0 * float(mass[mass > 0].mean()) if (mass > 0).any() else 0.0  # [kg/s]
-        self.wind = ws.Wind((0.0, 0.0, 1.0), speed=p["wind"], coefficient=self.wind_coefficient if p["wind"] else 0.0)
-        self.sim = ClothSimulator(model, integrator, forces=[ws.Gravity(), self.wind],
+        self.wind = Wind((0.0, 0.0, 1.0), speed=p["wind"], coefficient=self.wind_coefficient if p["wind"] else 0.0)
+        self.sim = ClothSimulator(model, integrator, forces=[Gravity(), self.wind],
                                   colliders=[self.sphere, self.floor])
         self.steps_per_substep = 1 if p["integrator"] == "implicit_euler" else p["explicit_substeps"]
 
