@@ -10,6 +10,8 @@ Modules:
             keyed by world (``kernels/worlds.py: world_key``)
   shared    the shared-topology path of a batch (the default for mass-spring scenes): springs stored
             once, one fused kernel per sub-step (``kernels/world_step.py``)
+  passes    per-world step counts on the paths without a masked kernel (tiled, cloth): one pass per
+            distinct count, each world keeping the pass of its own count
   plan      how a varied parameter enters one world's arrays, found by building the scene a few times
   agents    :class:`AgentWorldBatch`: flocks (``flock``, ``school``) as one Flock with world-keyed
             neighbours and per-world food
