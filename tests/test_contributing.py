@@ -1,8 +1,8 @@
 """CONTRIBUTING.md cannot rot: every command in its ```bash blocks is in ``COMMANDS`` and runs here
 (``run``) or is run by CI or needs a GPU (``skip`` with the reason, checked where it can be); its
-```python blocks run (the smallest solver steps through the protocol; the smallest scene runs from
-the command line); and its floors table, like the docs page's, is ``FLOORS`` of
-tests/test_import_graph.py."""
+```python blocks run (the smallest solver steps through the protocol; the smallest scene and
+the smallest command run from the command line); and its floors table, like the docs page's, is
+``FLOORS`` of tests/test_import_graph.py."""
 
 import io
 import re
@@ -57,7 +57,7 @@ def guide_blocks(text):
 
 def test_every_command_is_in_the_table():
     commands, python = guide_blocks(GUIDE.read_text())
-    assert len(commands) >= 8 and len(python) == 2
+    assert len(commands) >= 8 and len(python) == 3
     assert not [c for c in commands if c not in COMMANDS], "add a row to COMMANDS for each new command"
     assert not set(COMMANDS) - set(commands), "COMMANDS has rows the guide no longer shows"
 
@@ -113,6 +113,22 @@ def test_the_smallest_scene_runs_from_the_command_line(tmp_path, monkeypatch):
     points = stage.GetPrimAtPath("/World/particles").GetAttribute("points")
     y0, y1 = (np.asarray(points.Get(f))[:, 1] for f in (0, 30))
     assert (y1 < y0).all() and (y1 > -0.011).all()  # they fell and the floor held them
+
+
+def test_the_smallest_command_runs_through_the_dispatcher(tmp_path, monkeypatch):
+    from warpsim import cli
+
+    _, python = guide_blocks(GUIDE.read_text())
+    (tmp_path / "hello_command.py").write_text(python[2])
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(cli.COMMANDS, "hello", "hello_command")  # the one line in COMMANDS
+    for argv, status, text in ((["hello", "--name", "floors"], 0, "hello, floors"),
+                               (["hello", "--name", " "], 2, "warpsim: error: --name is empty"),
+                               (["hello", "--shout"], 2, "unrecognized arguments: --shout")):
+        out, err = io.StringIO(), io.StringIO()
+        assert cli.main(argv, out, err) == status, err.getvalue()
+        assert text in out.getvalue() + err.getvalue()
+        assert len(err.getvalue().splitlines()) == (status != 0)  # a mistake is one line
 
 
 def _floors_of(text, row):
