@@ -94,6 +94,27 @@ def _layer_info(path):
     return layer, info
 
 
+def _layers_summary(layer_paths):
+    """(owner {world: its batch layer}, fps, first and last time codes (None: none), span [m]: the
+    largest extent of a world, or of the union of the layers' extents when they all record one)."""
+    owner, fps, start, end, span = {}, None, None, None, 0.0
+    corners = []  # the layers' extents: the union's span, as one layer of every world would have
+    for p in layer_paths:
+        layer, info = _layer_info(p)
+        for g in range(int(info["firstWorld"]), int(info["firstWorld"]) + int(info["worldCount"])):
+            owner[g] = os.path.abspath(os.fspath(p))
+        fps = fps or layer.timeCodesPerSecond
+        if layer.HasStartTimeCode():
+            start = layer.startTimeCode if start is None else min(start, layer.startTimeCode)
+            end = layer.endTimeCode if end is None else max(end, layer.endTimeCode)
+        span = max(span, float(info.get("span", 1.0)))
+        corners.append(np.array([list(info["lo"]), list(info["hi"])]) if "lo" in info and "hi" in info else None)
+    known = [c for c in corners if c is not None]
+    if known and len(known) == len(corners):
+        span = float(np.max(np.max([c[1] for c in known], axis=0) - np.min([c[0] for c in known], axis=0)))
+    return owner, fps, start, end, span
+
+
 def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, worlds=None, spacing=None) -> str:
     """Write the root USD of a sweep and return its path.
 
@@ -115,21 +136,7 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
     if out_path in layer_paths:
         raise ValueError(f"root {out_path!r} is also one of the batch layers it would reference; writing it would "
                          "overwrite that layer's worlds: give the root another name")
-    owner, fps, start, end, span = {}, None, None, None, 0.0
-    corners = []  # the layers' extents: the union's span, as one layer of every world would have
-    for p in layer_paths:
-        layer, info = _layer_info(p)
-        for g in range(int(info["firstWorld"]), int(info["firstWorld"]) + int(info["worldCount"])):
-            owner[g] = os.path.abspath(os.fspath(p))
-        fps = fps or layer.timeCodesPerSecond
-        if layer.HasStartTimeCode():
-            start = layer.startTimeCode if start is None else min(start, layer.startTimeCode)
-            end = layer.endTimeCode if end is None else max(end, layer.endTimeCode)
-        span = max(span, float(info.get("span", 1.0)))
-        corners.append(np.array([list(info["lo"]), list(info["hi"])]) if "lo" in info and "hi" in info else None)
-    known = [c for c in corners if c is not None]
-    if known and len(known) == len(corners):
-        span = float(np.max(np.max([c[1] for c in known], axis=0) - np.min([c[0] for c in known], axis=0)))
+    owner, fps, start, end, span = _layers_summary(layer_paths)
     missing = [g for g in range(int(world_count)) if g not in owner]
     if missing and worlds is None:  # a chosen subset (``worlds``) may skip batches without a layer
         raise ValueError(f"world {missing[0]} is in none of the {len(layer_paths)} batch layers; run its batch")
