@@ -212,3 +212,16 @@ def test_a_pendulum_lengthened_in_place_swings_at_its_new_period():
     angle = pendulum.state.angle.numpy()
     assert angle[1] == pytest.approx(-amplitude, abs=1e-4)  # half its period: at the far side
     assert angle[0] == pytest.approx(amplitude, abs=1e-4)  # T(1 m) = T(4 m) / 2: back where it started
+
+
+def test_a_pendulum_restored_from_its_checkpoint_continues_bit_for_bit():
+    full, part = (ws.Pendulum([0.3, 1.0], integrator="rk4", device=CPU) for _ in range(2))
+    for p in (full, part):
+        p.frame(0.1, 10)
+    resumed = ws.Pendulum([0.0, 0.0], integrator="rk4", device=CPU)
+    resumed.restore(part.checkpoint())
+    for p in (full, resumed):
+        p.frame(0.1, 10)
+    assert resumed.angle.numpy().tobytes() == full.angle.numpy().tobytes() and resumed.time == full.time
+    with pytest.raises(ValueError, match="angle has 2 values for 1"):
+        ws.Pendulum([0.0], device=CPU).restore(part.checkpoint())

@@ -107,6 +107,23 @@ class Pendulum(SolverBase):
                              "> 0 [m]")
         self.system.g_over_l.assign(self.gravity / length)
 
+    def checkpoint(self) -> dict:
+        """Everything needed to continue bit for bit (host copies): angles, angular velocities,
+        the device clock and ``time``."""
+        return {"angle": self.angle.numpy(), "angular_velocity": self.angular_velocity.numpy(),
+                "device_time": self._time.numpy(), "time": np.float64(self.time)}
+
+    def restore(self, data) -> None:
+        """Inverse of :meth:`checkpoint` (the same number of pendulums)."""
+        for name, arr in (("angle", self.angle), ("angular_velocity", self.angular_velocity),
+                          ("device_time", self._time)):
+            values = np.asarray(data[name], dtype=np.float32).reshape(-1)
+            if values.shape != (arr.shape[0],):
+                raise ValueError(f"Pendulum restore: {name} has {values.size} values for {arr.shape[0]}; "
+                                 "restore a checkpoint of the same pendulums")
+            arr.assign(values)
+        self.time = float(data["time"])
+
     def step(self, dt: float) -> None:
         dt = check_dt(dt)
         self.integrator.step(self.system, self.angle, self.angular_velocity, self._time, dt)

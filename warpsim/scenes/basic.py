@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import numpy as np
-import warp as wp
 
 import warpsim as ws
 
@@ -119,16 +118,10 @@ class PendulumScene(Scene):
                 "rod": {"points": np.stack([self.pivot, bob])}}
 
     def checkpoint(self):
-        p = self.pendulum
-        return {"angle": p.angle.numpy(), "angular_velocity": p.angular_velocity.numpy(),
-                "device_time": p._time.numpy(), "time": np.float64(p.time)}
+        return self.pendulum.checkpoint()
 
     def restore(self, data):
-        p = self.pendulum
-        for name in ("angle", "angular_velocity"):
-            wp.copy(getattr(p, name), wp.array(data[name], dtype=float, device=p.device))
-        wp.copy(p._time, wp.array(data["device_time"], dtype=float, device=p.device))
-        p.time = float(data["time"])
+        self.pendulum.restore(data)
 
 
 @register_scene("springs", "masses on damped springs hanging from pinned particles: a chain or a lattice", params={
