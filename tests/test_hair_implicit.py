@@ -281,8 +281,9 @@ def test_curled_grooms_at_32_segments_hold_4_steps_a_frame(style):
     assert np.diff(energies).max() <= 1e-5 * dissipated, (np.diff(energies).max(), dissipated)
 
 
-def test_hair_tips_follow_the_explicit_step():
-    """The hair scene with the head turning and nodding from t = 0: tips of the implicit step (4
+@pytest.mark.parametrize("style", ["straight", "curly"])
+def test_hair_tips_follow_the_explicit_step(style):
+    """The hair scene (straight and curly grooms) with the head turning and nodding from t = 0: tips of the implicit step (4
     steps per 1/60 s frame) against the explicit step at half its stable step over 2 s. Backward
     Euler damps a mode of frequency omega by exp(-omega^2 h t / 2) in amplitude (per step
     1 / sqrt(1 + omega^2 h^2)) and lags its phase by about omega^3 h^2 t / 3; for the strands'
@@ -292,7 +293,7 @@ def test_hair_tips_follow_the_explicit_step():
     the gap below the free decay)."""
     from warpsim.scenes import get_scene
 
-    params = {"strands": 6, "segments": 8, "still": 0.0, "motion": "turn_nod"}
+    params = {"strands": 6, "segments": 8, "still": 0.0, "motion": "turn_nod", "style": style}
     implicit = get_scene("hair")(params, device=DEVICE)
     explicit = get_scene("hair")({**params, "solver": "explicit"}, device=DEVICE)
     assert implicit.strand_steps(1.0 / 60.0) == 4
