@@ -11,8 +11,9 @@ transported frames; head, kinematic roots, floor; air drag), stepped two ways in
   measured stable step (``StrandForce``, one thread per strand).
 Prints for each the steps per second, the steps per 1/60 s frame and the frames per second
 (simulation only, no drawing or writing), their ratio, and the one-time costs (build, stable-step
-measurement, sag-free solve). ``--style wavy`` / ``curly``: the curled grooms. ``--reference`` adds the plain mass-spring stand-in of the earlier
-version of this script (``ws.Simulator`` with ``ws.Springs``).
+measurement, sag-free solve). ``--style wavy`` / ``curly``: the curled grooms. ``--reference`` adds
+the plain mass-spring stand-in of the earlier version of this script (``ws.Simulator`` with
+``ws.Springs``).
 
     python benchmarks/bench_hair.py --device cpu --strands 2000 --segments 16 --steps 10
     python benchmarks/bench_hair.py --device cuda:0 --strands 15000 --segments 32

@@ -152,10 +152,11 @@ def finish_row(mass: wp.array(dtype=float), base: int, stride: int, r: int, P: w
         y = keep * y
         E = keep * E
         F = keep * F
-    if r + 1 < stride:
+    # nested, not `and`: the mass of the next strand's particles (or past the array) is not read
+    if r + 1 < stride:  # noqa: SIM102
         if mass[base + r + 1] <= 0.0:
             E = E * keep
-    if r + 2 < stride:
+    if r + 2 < stride:  # noqa: SIM102
         if mass[base + r + 2] <= 0.0:
             F = F * keep
     return P, E, F, y
@@ -300,8 +301,8 @@ def strand_implicit_solve(
     """Assemble (M + h C + h^2 K) and h f - h^2 K v0 of strand ``s`` at (q, qd) over its positions
     and twists (module docstring), factor it row by row into (pinv, up1, up2, rhs) and write the
     velocity change of its free vertices to dv_out [m/s] (``factor`` = 0: assemble only, the
-    blocks of the upper band in pinv, up1, up2). f: the full force at (q, qd) [N]; mass [kg] per particle; air_drag: linear
-    drag [kg/s] on every free vertex; drag_particle (-1: none) held by a spring of drag_stiffness
+    blocks of the upper band in pinv, up1, up2). f: the full force at (q, qd) [N]; mass [kg] per
+    particle; air_drag: linear drag [kg/s] on every free vertex; drag_particle (-1: none) held by a spring of drag_stiffness
     [N/m] and drag_damping [N s/m]; h [s]. The matrix is assembled and factored in float64 (its
     condition number reaches 1e5-1e6 at 32 segments and a frame step: float32 elimination feeds
     rounding errors of the stiff modes into the soft ones, measured as a growing tip oscillation)."""

@@ -283,8 +283,8 @@ def test_curled_grooms_at_32_segments_hold_4_steps_a_frame(style):
 
 @pytest.mark.parametrize("style", ["straight", "curly"])
 def test_hair_tips_follow_the_explicit_step(style):
-    """The hair scene (straight and curly grooms) with the head turning and nodding from t = 0: tips of the implicit step (4
-    steps per 1/60 s frame) against the explicit step at half its stable step over 2 s. Backward
+    """The hair scene (straight and curly grooms) with the head turning and nodding from t = 0:
+    tips of the implicit step (4 steps per 1/60 s frame) against the explicit step at half its stable step over 2 s. Backward
     Euler damps a mode of frequency omega by exp(-omega^2 h t / 2) in amplitude (per step
     1 / sqrt(1 + omega^2 h^2)) and lags its phase by about omega^3 h^2 t / 3; for the strands'
     slowest mode (omega_1 from the linearised strand) over t = 2 s and a tip excursion A (the

@@ -14,5 +14,5 @@ from .frame import HairFrame, HeadPoses, PosedSphere
 from .implicit import StrandImplicitEuler
 from .sag_free import SagFreeReport, sag_free
 
-__all__ = ["HairFrame", "HeadPoses", "PosedSphere", "SagFreeReport", "StrandForce", "StrandImplicitEuler", "StrandRoots", "Strands", "add_strands", "head_signed_distance",
-           "sag_free", "strand_stable_dt"]
+__all__ = ["HairFrame", "HeadPoses", "PosedSphere", "SagFreeReport", "StrandForce", "StrandImplicitEuler",
+           "StrandRoots", "Strands", "add_strands", "head_signed_distance", "sag_free", "strand_stable_dt"]

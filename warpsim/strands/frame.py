@@ -100,8 +100,8 @@ class HairFrame:
             return None
         if any(hasattr(f, "target_at") for f in sim.forces):
             return None
-        contact = tuple(tuple(getattr(c, a, None) for a in ("restitution", "friction", "mode", "thickness", "stiffness"))
-                        for c in sim.colliders)
+        keys = ("restitution", "friction", "mode", "thickness", "stiffness")
+        contact = tuple(tuple(getattr(c, a, None) for a in keys) for c in sim.colliders)
         return n, h, tuple(map(id, sim.forces)), contact
 
     def advance(self, frame_dt: float, n: int) -> None:

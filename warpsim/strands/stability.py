@@ -25,7 +25,8 @@ import warp as wp
 from ..core import stability as stab
 from ..kernels import strands as K
 
-__all__ = ["assembled_stiffness", "band_matrix", "band_to_dense", "implicit_limit", "strand_eigenvalues", "strand_jacobians", "strand_limit"]
+__all__ = ["assembled_stiffness", "band_matrix", "band_to_dense", "implicit_limit", "strand_eigenvalues",
+           "strand_jacobians", "strand_limit"]
 
 SAMPLE = 48
 """Strands examined at most."""
