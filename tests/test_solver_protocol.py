@@ -178,6 +178,8 @@ def test_a_collider_clock_set_places_a_moving_shape_at_its_pose():
     assert np.allclose(sphere.world_pose()[0], [0.0, 0.5, 0.0])
     with pytest.raises(ValueError, match="clock"):
         sphere.set_clock(float("nan"))
+    before, after = sphere.advance_pose(0.25)  # what a step of apply does to the pose and clock
+    assert sphere.clock == 0.5 and np.allclose(before.p, [0.0, 0.5, 0.0]) and np.allclose(after.p, [0.0, 1.0, 0.0])
 
 
 def test_a_restored_teapot_paddle_continues_bit_for_bit():

@@ -376,6 +376,12 @@ class _Kinematic(_Contact):
         speed, self._peak_speed = getattr(self, "_peak_speed", 0.0), 0.0
         return speed
 
+    def advance_pose(self, dt: float):
+        """Advance the clock by ``dt`` [s] as a step of ``apply`` does and return the step's poses
+        (before, after) as wp.transforms: for code that steps the pose outside ``apply`` (a frame
+        whose poses are copied to the device once, ``warpsim.strands.frame.HeadPoses``)."""
+        return self._advance(dt)
+
     def _advance(self, dt):
         """Poses (prev, now) as wp.transforms for this step."""
         self._clock += dt

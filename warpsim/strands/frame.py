@@ -5,7 +5,7 @@ Kinematic colliders pass their pose to their kernels as launch parameters, which
 freeze. ``PosedSphere`` (a ``ws.Sphere``) and ``StrandRoots`` with ``poses=`` read the pose of the
 frame's step k from a small device array instead (``HeadPoses``: 2 transforms a step, before and
 after it), which the host fills once a frame (one copy) by advancing the head exactly as the
-eager steps would (``Sphere._advance``: its clock, pose and surface speed stay the same). Stepping
+eager steps would (``Sphere.advance_pose``: its clock, pose and surface speed stay the same). Stepping
 allocates nothing and reads nothing back inside a frame; the blow-up test reads one int after it.
 """
 
@@ -43,7 +43,7 @@ class HeadPoses:
             wp.synchronize_event(self._copied)  # the previous frame's copy has read the buffer
         host = self._host.numpy()
         for k in range(n):
-            prev, now = self.head._advance(h)
+            prev, now = self.head.advance_pose(h)
             host[2 * k] = np.asarray(prev, np.float32)
             host[2 * k + 1] = np.asarray(now, np.float32)
         if self._host is not self.poses:
