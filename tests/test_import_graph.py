@@ -114,14 +114,30 @@ def upward_imports(graph, allowed=UPWARD):
                   for b in targets if floor(b) > floor(a) and (a, b) not in allowed)
 
 
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
 def private_imports(package=PACKAGE):
-    """[(module, line, imported module, name)] of every ``from <warpsim module> import _name``
-    naming another module's private name (dunder names aside)."""
-    found = []
-    for mod, (path, is_package) in _modules(package).items():
+    """[(module, line, imported module, name)] of every ``from <warpsim module> import _name`` and
+    every ``module._name`` read through a warpsim module imported under a name (``from . import
+    stability as stab``: ``stab._reason``) that names another module's private name (dunder names
+    aside)."""
+    mods, found = _modules(package), []
+    for mod, (path, is_package) in mods.items():
+        aliases = {}
         for node, base, names in _imports(mod, path, is_package):
-            if base.split(".")[0] == package.name and base != mod:
-                found += [(mod, node.lineno, base, n) for n in names if n.startswith("_") and not n.startswith("__")]
+            if base.split(".")[0] != package.name or base == mod:
+                continue
+            found += [(mod, node.lineno, base, n) for n in names if _private(n)]
+            for a in node.names:
+                full = f"{base}.{a.name}" if isinstance(node, ast.ImportFrom) else a.name
+                if full in mods and full != mod and (a.asname or isinstance(node, ast.ImportFrom)):
+                    aliases[a.asname or a.name] = full
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and \
+                    node.value.id in aliases and _private(node.attr):
+                found.append((mod, node.lineno, aliases[node.value.id], node.attr))
     return sorted(found)
 
 
@@ -238,6 +254,8 @@ def test_the_private_import_check_reports_one(tmp_path):
         "__init__.py": "", "core/__init__.py": "", "core/builder.py": "def _vec3():\n    pass\n",
         "core/forces.py": "from .builder import _vec3\nfrom .builder import __doc__\n",
         "bodies/__init__.py": "", "bodies/drag.py": "def f():\n    from ..core.builder import _vec3\n",
+        "bodies/mesh.py": "from ..core import builder as b\n\nX = b._vec3, b.public, b.__name__\n",
     })
     assert private_imports(package) == [("warpsim.bodies.drag", 2, "warpsim.core.builder", "_vec3"),
+                                        ("warpsim.bodies.mesh", 3, "warpsim.core.builder", "_vec3"),
                                         ("warpsim.core.forces", 1, "warpsim.core.builder", "_vec3")]

@@ -269,7 +269,9 @@ class StabilityLimit:
         return int(min(AUTO_MAX_SUBSTEPS, max(minimum, n)))
 
 
-def _reason(method, omega, zeta, dt, who):
+def limit_reason(method, omega, zeta, dt, who):
+    """Why the step limit ``dt`` [s] of integrator ``method`` is what it is, for the stiffest mode
+    ``omega`` [rad/s] with damping ratio ``zeta`` that ``who`` names (one sentence for warnings)."""
     if omega == 0.0:
         return "no spring, penalty contact or other stiff force: no step restriction"
     head = f"stiffest mode omega = {omega:.4g} rad/s, zeta = {zeta:.3g} ({who})"
@@ -321,7 +323,7 @@ def pendulum_limit(g_over_l, integrator) -> StabilityLimit:
     dt = stable_step(method, omega, 0.0)
     return StabilityLimit(dt=dt, integrator=method, omega_max=omega, limiting="pendulum", index=k,
                           stiffness=float(g_over_l[k]), omega_bound=omega, particle=k,
-                          reason=_reason(method, omega, 0.0, dt, f"pendulum {k}, omega = sqrt(g/l)"),
+                          reason=limit_reason(method, omega, 0.0, dt, f"pendulum {k}, omega = sqrt(g/l)"),
                           particle_dt=per)
 
 
@@ -535,7 +537,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
             kind, index, stiffness, damping = "spring", s, float(k[s]), float(c[s])
             m = float(min(mass[e] for e in ends)) if ends else 0.0
         who = "none" if kind == "none" else f"{kind} {index}: k = {stiffness:.4g} N/m, m = {m:.4g} kg"
-        reason = _reason(method, omega, zeta, dt, who)
+        reason = limit_reason(method, omega, zeta, dt, who)
         if k_c > 0.0 and moving[in_world].any():
             lightest = int(in_world[moving[in_world]][np.argmin(mass[in_world][moving[in_world]])])
             omega_c = math.sqrt(k_c / mass[lightest])
@@ -556,8 +558,8 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
             if dt_d < dt:
                 dt, omega, zeta = dt_d, omega_d, zeta_d
                 kind, index, stiffness, m, damping, particle = "particle", p, k_d, float(mass[p]), c_d, p
-                reason = _reason(method, omega_d, zeta_d, dt_d, f"particle {p} held by a drag spring: k = {k_d:.4g} "
-                                                               f"N/m, m = {m:.4g} kg")
+                reason = limit_reason(method, omega_d, zeta_d, dt_d,
+                                      f"particle {p} held by a drag spring: k = {k_d:.4g} N/m, m = {m:.4g} kg")
         if len(in_world) and np.isfinite(collider_dt[in_world]).any():
             p = int(in_world[np.argmin(collider_dt[in_world])])
             if collider_dt[p] < dt:

@@ -233,7 +233,7 @@ def strand_limit(strands, data, positions, integrator, drag: float = 0.0,
     w, z = float(omega[k]), float(zeta[k])
     m = float(strands.mass[s] / strands.segments)
     who = f"strand {s}: k_stretch = {strands.stretch_stiffness[s]:.4g} N/m, m = {m:.4g} kg per vertex"
-    reason = stab._reason(method, w, z, dt, who) if math.isfinite(dt) else ""
+    reason = stab.limit_reason(method, w, z, dt, who) if math.isfinite(dt) else ""
     return stab.StabilityLimit(dt=dt, integrator=method, omega_max=w, damping_ratio=z,
                                limiting="strand", index=s, stiffness=float(strands.stretch_stiffness[s]), mass=m,
                                damping=float(strands.stretch_damping[s]),
