@@ -36,7 +36,8 @@ class Nozzle:
         self.start, self.stop = float(start), float(stop)
         if not self.stop > self.start:
             raise ValueError(f"Nozzle stop {stop} must be after start {start}")
-        self._travel = 0.0
+        self.travel = 0.0
+        """Distance [m] the fluid has moved out of the nozzle since its last layer (checkpointed)."""
         self.emitted = 0
         """Particles emitted so far."""
 
@@ -59,12 +60,12 @@ class Nozzle:
         t0, t1 = max(time, self.start), min(time + dt, self.stop)
         if t1 <= t0:
             return []
-        self._travel += self.speed * (t1 - t0)
+        self.travel += self.speed * (t1 - t0)
         shifts = []
-        while self._travel >= spacing * (1.0 - 1e-9):
-            self._travel = max(self._travel, spacing)
-            self._travel -= spacing
-            shifts.append(self._travel)
+        while self.travel >= spacing * (1.0 - 1e-9):
+            self.travel = max(self.travel, spacing)
+            self.travel -= spacing
+            shifts.append(self.travel)
         return shifts
 
 

@@ -635,7 +635,7 @@ class ParticleFluid(SolverBase):
         out = {"positions": self._x.numpy()[:n].copy(), "velocities": self._v.numpy()[:n].copy(),
                "ids": self._ids.numpy()[:n].copy(), "time": self.time, "step_count": self.step_count,
                "frame_count": self.frame_count, "next_id": self.next_id, "dropped": self.dropped}
-        out["emitters"] = np.array([[e._travel, e.emitted] for e in self.emitters], np.float64).reshape(-1, 2)
+        out["emitters"] = np.array([[e.travel, e.emitted] for e in self.emitters], np.float64).reshape(-1, 2)
         out["sinks"] = np.array([s.removed for s in self.sinks], np.int64)
         return out
 
@@ -655,7 +655,7 @@ class ParticleFluid(SolverBase):
         self.step_count, self.frame_count = int(data["step_count"]), int(data["frame_count"])
         self.next_id, self.dropped = int(data["next_id"]), int(data["dropped"])
         for e, (travel, emitted) in zip(self.emitters, np.asarray(data["emitters"]).reshape(-1, 2)):
-            e._travel, e.emitted = float(travel), int(emitted)
+            e.travel, e.emitted = float(travel), int(emitted)
         for s, removed in zip(self.sinks, np.asarray(data["sinks"]).reshape(-1)):
             s.removed = int(removed)
 
