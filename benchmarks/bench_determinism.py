@@ -101,7 +101,7 @@ def main(argv=None):
         P.count_cells(g, det.cell_count)
         for axis, f in enumerate(g.faces):
             wp.launch(KF.gather_face_velocity, f.shape, inputs=[det.cell_count, P.octant_start, P.octant_count,
-                                                                P.sorted_ids, P["x"], P["v"], axis, g._wp_origin,
+                                                                P.sorted_ids, P["x"], P["v"], axis, g.wp_origin,
                                                                 g.dx], outputs=[f],
                       device=device)
 
@@ -112,7 +112,7 @@ def main(argv=None):
         for s, w in zip(atomic._sums, atomic._weights):
             s.zero_()
             w.zero_()
-        wp.launch(KF.particles_to_grid, Pa.capacity, inputs=[Pa.count, Pa["x"], Pa["v"], Pa["alive"], ga._wp_origin,
+        wp.launch(KF.particles_to_grid, Pa.capacity, inputs=[Pa.count, Pa["x"], Pa["v"], Pa["alive"], ga.wp_origin,
                                                              ga.dx],
                   outputs=[atomic._sums[0], atomic._weights[0], atomic._sums[1], atomic._weights[1], atomic._sums[2],
                            atomic._weights[2]], device=device)

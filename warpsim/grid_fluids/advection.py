@@ -37,7 +37,7 @@ class Advector:
     def _sl(self, f_in, offset, vel, dt, f_out):
         g = self.grid
         wp.launch(K.advect_semi_lagrangian, f_in.shape,
-                  inputs=[f_in, offset, *vel, g._wp_origin, g.dx, dt], outputs=[f_out], device=self.device)
+                  inputs=[f_in, offset, *vel, g.wp_origin, g.dx, dt], outputs=[f_out], device=self.device)
 
     def advect(self, f_in, f_out, dt, where="center", velocity=None):
         """f_out = f_in carried by the velocity over ``dt`` [s]. ``where``: ``"center"``, ``"u"``,
@@ -66,7 +66,7 @@ class Advector:
             wp.launch(K.bfecc_midpoint, shape, inputs=[f_in, b], outputs=[c], device=self.device)
             src = c
         wp.launch(K.advect_limited, shape,
-                  inputs=[src, f_in, a, b, _SCHEME_ID[self.scheme], offset, *vel, g._wp_origin, g.dx, dt],
+                  inputs=[src, f_in, a, b, _SCHEME_ID[self.scheme], offset, *vel, g.wp_origin, g.dx, dt],
                   outputs=[f_out], device=self.device)
         return f_out
 

@@ -134,7 +134,7 @@ class FlipLiquid(SolverBase):
         ``velocity`` [m/s]; cells inside solids are skipped."""
         g = self.grid
         n = len(self._pending)
-        lo, hi = g._point(lower, f"liquid block {n} lower"), g._point(upper, f"liquid block {n} upper")
+        lo, hi = g.point(lower, f"liquid block {n} lower"), g.point(upper, f"liquid block {n} upper")
         centres = g.positions("center")
         inside = np.all((centres >= np.asarray(lo) - 1e-9 * g.dx) & (centres <= np.asarray(hi) + 1e-9 * g.dx), axis=-1)
         if g.dim == 2:
@@ -151,7 +151,7 @@ class FlipLiquid(SolverBase):
         (shape (nx, ny, nz)) is True. Returns the number of particles added."""
         g = self.grid
         mask = np.asarray(mask, dtype=bool).reshape(g.shape) & (g.solid_phi.numpy() >= 0.0)
-        vel = g._point(velocity, f"{what} velocity") if g.dim == 3 else [*map(float, list(velocity)[:2]), 0.0]
+        vel = g.point(velocity, f"{what} velocity") if g.dim == 3 else [*map(float, list(velocity)[:2]), 0.0]
         if not all(math.isfinite(c) for c in vel):
             raise ValueError(f"{what} velocity must be finite, got {velocity!r}")
         cells = np.argwhere(mask)
@@ -195,13 +195,13 @@ class FlipLiquid(SolverBase):
             for axis, f in enumerate(g.faces):
                 wp.launch(K.gather_face_velocity, f.shape,
                           inputs=[self.cell_count, P.octant_start, P.octant_count, P.sorted_ids, P["x"], P["v"], axis,
-                                  g._wp_origin, g.dx], outputs=[f], device=d)
+                                  g.wp_origin, g.dx], outputs=[f], device=d)
         else:
             for s, w in zip(self._sums, self._weights):
                 s.zero_()
                 w.zero_()
             wp.launch(K.particles_to_grid, P.capacity,
-                      inputs=[P.count, P["x"], P["v"], P["alive"], g._wp_origin, g.dx],
+                      inputs=[P.count, P["x"], P["v"], P["alive"], g.wp_origin, g.dx],
                       outputs=[self._sums[0], self._weights[0], self._sums[1], self._weights[1], self._sums[2],
                                self._weights[2]], device=d)
             for f, s, w in zip(g.faces, self._sums, self._weights):
@@ -225,13 +225,13 @@ class FlipLiquid(SolverBase):
         self.pressure.project()
         g.extrapolate_velocity(self.extrapolation_layers)
         wp.launch(K.grid_to_particles, P.capacity,
-                  inputs=[P.count, P["x"], P["alive"], self.flip_ratio, *g.faces, *self._old, g._wp_origin, g.dx],
+                  inputs=[P.count, P["x"], P["alive"], self.flip_ratio, *g.faces, *self._old, g.wp_origin, g.dx],
                   outputs=[P["v"]], device=d)
         wp.launch(KA.advect_particles_rk2, P.capacity,
-                  inputs=[*g.faces, g._wp_origin, g.dx, dt, self._lower, self._upper, P.count], outputs=[P["x"]],
+                  inputs=[*g.faces, g.wp_origin, g.dx, dt, self._lower, self._upper, P.count], outputs=[P["x"]],
                   device=d)
         if g.solids:
-            wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g._wp_origin, g.dx],
+            wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g.wp_origin, g.dx],
                       outputs=[P["x"]], device=d)
         if self.correction is not None:
             self.correct_density()
@@ -254,11 +254,11 @@ class FlipLiquid(SolverBase):
         g, P = self.grid, self.particles
         if self.deterministic:
             wp.launch(K.gather_particle_density, g.shape,
-                      inputs=[P.octant_start, P.octant_count, P.sorted_ids, P["x"], g._wp_origin, g.dx],
+                      inputs=[P.octant_start, P.octant_count, P.sorted_ids, P["x"], g.wp_origin, g.dx],
                       outputs=[self.density], device=self.device)
         else:
             self.density.zero_()
-            wp.launch(K.particle_density, P.capacity, inputs=[P.count, P["x"], P["alive"], g._wp_origin, g.dx],
+            wp.launch(K.particle_density, P.capacity, inputs=[P.count, P["x"], P["alive"], g.wp_origin, g.dx],
                       outputs=[self.density], device=self.device)
         return self.density
 
@@ -276,10 +276,10 @@ class FlipLiquid(SolverBase):
         self.correction.project(target=self._target)
         # the displacement [m] is a field like a velocity over a unit time: move along it (RK2 midpoint)
         wp.launch(KA.advect_particles_rk2, P.capacity,
-                  inputs=[*twin.faces, g._wp_origin, g.dx, 1.0, self._lower, self._upper, P.count], outputs=[P["x"]],
+                  inputs=[*twin.faces, g.wp_origin, g.dx, 1.0, self._lower, self._upper, P.count], outputs=[P["x"]],
                   device=d)
         if g.solids:
-            wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g._wp_origin, g.dx],
+            wp.launch(K.push_out_of_solids, P.capacity, inputs=[P.count, g.solid_phi, g.wp_origin, g.dx],
                       outputs=[P["x"]], device=d)
 
     def reseed(self) -> None:
@@ -305,7 +305,7 @@ class FlipLiquid(SolverBase):
         # on every run and device
         emitted, offsets = P.begin_append(g.cell_count)
         inputs = [self.cell_count, g.labels, g.open_mask, self.min_per_cell, self.density, min_density,
-                  self.seed + 104729 * self.steps, g.dim, *g.faces, g._wp_origin, g.dx, P.count, self.next_id]
+                  self.seed + 104729 * self.steps, g.dim, *g.faces, g.wp_origin, g.dx, P.count, self.next_id]
         for write in (0, 1):
             wp.launch(K.reseed_interior, g.shape, inputs=[*inputs, write, emitted, offsets],
                       outputs=[P["x"], P["v"], P["alive"], P["id"]], device=d)
@@ -320,7 +320,7 @@ class FlipLiquid(SolverBase):
         g, P = self.grid, self.particles
         r = 0.6 * g.dx if radius is None else check_positive(radius, "surface radius")
         self.phi.fill_(3.0 * g.dx)
-        wp.launch(K.particle_sdf, P.capacity, inputs=[P.count, P["x"], P["alive"], r, g._wp_origin, g.dx],
+        wp.launch(K.particle_sdf, P.capacity, inputs=[P.count, P["x"], P["alive"], r, g.wp_origin, g.dx],
                   outputs=[self.phi], device=self.device)
         return self.phi
 

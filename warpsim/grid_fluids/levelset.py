@@ -118,7 +118,7 @@ class LevelSet:
         P.compact()
         # append in cell order (count, prefix sum, write): the same slots on every run and device
         emitted, offsets = P.begin_append(g.cell_count)
-        inputs = [self.phi, g._wp_origin, g.dx, g.dim, self.band * g.dx, self.particles_per_cell,
+        inputs = [self.phi, g.wp_origin, g.dx, g.dim, self.band * g.dx, self.particles_per_cell,
                   self.seed + 7919 * self._steps, self.r_min, self.r_max, self._cell_count, P.count]
         for write in (0, 1):
             wp.launch(K.pls_seed, g.shape, inputs=[*inputs, write, emitted, offsets],
@@ -133,14 +133,14 @@ class LevelSet:
         wp.copy(self._phi_tmp, self.phi)
         wp.copy(self._phi_minus, self.phi)
         wp.launch(K.pls_scatter_escaped, self.capacity,
-                  inputs=[self.phi, g._wp_origin, g.dx, self.particle_count, self.particle_q, self.particle_radius,
+                  inputs=[self.phi, g.wp_origin, g.dx, self.particle_count, self.particle_q, self.particle_radius,
                           self.particle_sign, self.max_escape], outputs=[self._phi_tmp, self._phi_minus], device=d)
         wp.launch(K.pls_merge, g.shape, inputs=[self._phi_tmp, self._phi_minus], outputs=[self.phi], device=d)
 
     def adjust_radii(self) -> None:
         g = self.grid
         wp.launch(K.pls_adjust_radii, self.capacity,
-                  inputs=[self.phi, g._wp_origin, g.dx, self.r_min, self.r_max, 1.5 * self.band * g.dx,
+                  inputs=[self.phi, g.wp_origin, g.dx, self.r_min, self.r_max, 1.5 * self.band * g.dx,
                           self.max_escape, self.particle_count],
                   outputs=[self.particle_q, self.particle_radius, self.particle_sign], device=self.device)
 
@@ -154,7 +154,7 @@ class LevelSet:
         wp.copy(self.phi, self._phi_tmp)
         if self.use_particles:
             wp.launch(KA.advect_particles_rk2, self.capacity,
-                      inputs=[*g.faces, g._wp_origin, g.dx, dt, wp.vec3(*g.lower), wp.vec3(*g.upper),
+                      inputs=[*g.faces, g.wp_origin, g.dx, dt, wp.vec3(*g.lower), wp.vec3(*g.upper),
                               self.particle_count], outputs=[self.particle_q], device=d)
             self.correct()
         self.redistance()

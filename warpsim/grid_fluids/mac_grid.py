@@ -100,10 +100,12 @@ class MacGrid:
         self.w = wp.zeros((nx, ny, nz + 1), dtype=float, device=d)
         self.labels = wp.full(self.shape, FLUID, dtype=int, device=d)
         self.solid_phi = wp.full(self.shape, 1.0e6, dtype=float, device=d)
-        self._no_phi = wp.zeros((1, 1, 1), dtype=float, device=d)
+        self.no_phi = wp.zeros((1, 1, 1), dtype=float, device=d)
+        """A (1, 1, 1) placeholder for a kernel's level-set input when there is none."""
         self._valid = [[wp.zeros(f.shape, dtype=int, device=d) for _ in range(2)] for f in self.faces]
         self._scratch = [wp.zeros(f.shape, dtype=float, device=d) for f in self.faces]
-        self._wp_origin = wp.vec3(*self.origin)
+        self.wp_origin = wp.vec3(*self.origin)
+        """``origin`` [m] as a wp.vec3 (a launch argument)."""
         self.solids: list[tuple] = []
 
     # ------------------------------------------------------------------ geometry
@@ -133,7 +135,9 @@ class MacGrid:
         idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).astype(np.float64)
         return np.asarray(self.origin) + (idx + np.asarray(OFFSETS[where])) * self.dx
 
-    def _point(self, p, what):
+    def point(self, p, what):
+        """``p`` as 3 finite coordinates [m] (2D grids: 2 numbers, z set to the middle of the cell
+        layer); ValueError naming ``what``."""
         try:
             c = [float(x) for x in p]
         except (TypeError, ValueError) as exc:
@@ -148,7 +152,7 @@ class MacGrid:
     def add_sphere(self, center, radius) -> None:
         """A static solid sphere (2D: a disk) of ``radius`` [m] at ``center`` [m]."""
         n = len(self.solids)
-        c = self._point(center, f"solid {n} (sphere) center")
+        c = self.point(center, f"solid {n} (sphere) center")
         r = check_positive(radius, f"solid {n} (sphere) radius")
         self.solids.append(("sphere", c, r))
         self._voxelize()
@@ -156,7 +160,7 @@ class MacGrid:
     def add_box(self, lower, upper) -> None:
         """A static solid axis-aligned box [lower, upper] [m] (2D: a rectangle)."""
         n = len(self.solids)
-        lo, hi = self._point(lower, f"solid {n} (box) lower"), self._point(upper, f"solid {n} (box) upper")
+        lo, hi = self.point(lower, f"solid {n} (box) lower"), self.point(upper, f"solid {n} (box) upper")
         if self.dim == 2:
             lo[2], hi[2] = self.origin[2] - 1.0, self.origin[2] + 1.0 + self.dx
         if any(h <= l for l, h in zip(lo, hi)):
@@ -202,7 +206,7 @@ class MacGrid:
 
     def _voxelize(self):
         self.solid_phi.fill_(1.0e6)
-        d, o, dx = self.device, self._wp_origin, self.dx
+        d, o, dx = self.device, self.wp_origin, self.dx
         spheres = [s for s in self.solids if s[0] == "sphere"]
         boxes = [s for s in self.solids if s[0] == "box"]
         if spheres:
@@ -224,7 +228,7 @@ class MacGrid:
         """Relabel cells: SOLID inside solids, else FLUID where ``phi`` < 0 (every non-solid cell
         when ``phi`` is None, as for smoke), else AIR."""
         use = phi is not None
-        wp.launch(K.label_cells, self.shape, inputs=[self.solid_phi, phi if use else self._no_phi, int(use)],
+        wp.launch(K.label_cells, self.shape, inputs=[self.solid_phi, phi if use else self.no_phi, int(use)],
                   outputs=[self.labels], device=self.device)
 
     def enforce_boundaries(self) -> None:

@@ -84,7 +84,7 @@ class Multigrid:
         for fine, coarse in zip(self.levels[:-1], self.levels[1:]):
             wp.launch(KM.coarsen_labels, coarse.shape, inputs=[fine.labels, self.coarsen, self.air_first],
                       outputs=[coarse.labels], device=d)
-            wp.launch(K.pressure_coefficients, coarse.shape, inputs=[coarse.labels, g._no_phi, 0, g.open_mask],
+            wp.launch(K.pressure_coefficients, coarse.shape, inputs=[coarse.labels, g.no_phi, 0, g.open_mask],
                       outputs=[coarse.diag, *coarse.plus], device=d)
 
     # ------------------------------------------------------------------ the cycle

@@ -70,7 +70,7 @@ class GridParticles:
             self.octant_count = wp.zeros(octants, dtype=int, device=d)
         cell_count.zero_()
         self.octant_count.zero_()
-        wp.launch(K.count_per_cell, n, inputs=[self.count, self.fields[position], self.alive, grid._wp_origin, grid.dx],
+        wp.launch(K.count_per_cell, n, inputs=[self.count, self.fields[position], self.alive, grid.wp_origin, grid.dx],
                   outputs=[cell_count, self.octant_count, self._keys, self._ids], device=d)
         wp.utils.radix_sort_pairs(self._keys, self._ids, n)
         wp.utils.array_scan(self.octant_count, self.octant_start, inclusive=False)

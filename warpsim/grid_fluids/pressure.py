@@ -145,7 +145,7 @@ class PressureSolver:
         ``phi``, the liquid's signed distance at cell centres [m], when given)."""
         g = self.grid
         use = phi is not None
-        wp.launch(K.pressure_coefficients, g.shape, inputs=[g.labels, phi if use else g._no_phi, int(use),
+        wp.launch(K.pressure_coefficients, g.shape, inputs=[g.labels, phi if use else g.no_phi, int(use),
                                                             g.open_mask], outputs=[self.diag, *self.plus],
                   device=self.device)
         if self.multigrid is not None:
@@ -172,7 +172,7 @@ class PressureSolver:
         self.assemble(phi)
         wp.launch(K.compute_divergence, g.shape, inputs=[g.u, g.v, g.w, g.labels, g.dx], outputs=[self.div],
                   device=d)
-        wp.launch(K.pressure_rhs, g.shape, inputs=[self.div, g.labels, target if use else g._no_phi, int(use), g.dx],
+        wp.launch(K.pressure_rhs, g.shape, inputs=[self.div, g.labels, target if use else g.no_phi, int(use), g.dx],
                   outputs=[self.rhs], device=d)
         reduction = self._domain_reduction
         wp.launch(K.fluid_sums, reduction.slots, inputs=[g.labels, g.open_mask, self.rhs],
@@ -196,7 +196,7 @@ class PressureSolver:
         use = phi is not None
         for axis, f in enumerate(g.faces):
             wp.launch(K.subtract_pressure_gradient, f.shape,
-                      inputs=[self.q, g.labels, phi if use else g._no_phi, int(use), g.open_mask, axis], outputs=[f],
+                      inputs=[self.q, g.labels, phi if use else g.no_phi, int(use), g.open_mask, axis], outputs=[f],
                       device=d)
         return self.last_iterations
 

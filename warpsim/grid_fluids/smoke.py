@@ -74,8 +74,8 @@ class Smoke(SolverBase):
         """Emit smoke in the box [lower, upper] [m]: every step the cells inside are raised to at
         least ``density`` and ``temperature`` [K]."""
         n = len(self.sources)
-        lo = self.grid._point(lower, f"smoke source {n} lower")
-        hi = self.grid._point(upper, f"smoke source {n} upper")
+        lo = self.grid.point(lower, f"smoke source {n} lower")
+        hi = self.grid.point(upper, f"smoke source {n} upper")
         if self.grid.dim == 2:
             lo[2], hi[2] = self.grid.origin[2], self.grid.origin[2] + self.grid.dx
         if any(h < l for l, h in zip(lo, hi)):
@@ -111,9 +111,9 @@ class Smoke(SolverBase):
     def _step_kernels(self, dt):
         g, d = self.grid, self.device
         for lo, hi, rho, temp in self.sources:
-            wp.launch(KF.source_in_box, g.shape, inputs=[lo, hi, rho, g._wp_origin, g.dx], outputs=[self.density],
+            wp.launch(KF.source_in_box, g.shape, inputs=[lo, hi, rho, g.wp_origin, g.dx], outputs=[self.density],
                       device=d)
-            wp.launch(KF.source_in_box, g.shape, inputs=[lo, hi, temp, g._wp_origin, g.dx],
+            wp.launch(KF.source_in_box, g.shape, inputs=[lo, hi, temp, g.wp_origin, g.dx],
                       outputs=[self.temperature], device=d)
         self._advect_scalar(self.density, dt)
         self._advect_scalar(self.temperature, dt)
