@@ -227,3 +227,23 @@ def test_a_pendulum_restored_from_its_checkpoint_continues_bit_for_bit():
     assert resumed.angle.numpy().tobytes() == full.angle.numpy().tobytes() and resumed.time == full.time
     with pytest.raises(ValueError, match="angle has 2 values for 1"):
         ws.Pendulum([0.0], device=CPU).restore(part.checkpoint())
+
+
+def test_the_hair_frame_follows_the_protocol():
+    """The hair scene's frame driver (``HairFrame``): a frame through the protocol equals the
+    scene's own frame bit for bit, with the head turning."""
+    from warpsim.scenes import get_scene
+
+    params = {"strands": 4, "segments": 6, "still": 0.0, "motion": "turn", "sag_free": False}
+    a, b = (get_scene("hair")(params, device=CPU) for _ in range(2))
+    assert isinstance(a.frame, Solver)
+    n = a.frame_steps(1.0 / 60.0, 1)
+    for _ in range(3):
+        a.frame.frame(1.0 / 60.0, n)
+        b.advance(1.0 / 60.0, 1)
+    a.frame.notify_changed("parameters")
+    a.frame.frame(1.0 / 60.0, n)
+    b.advance(1.0 / 60.0, 1)
+    assert a.frame.state.positions.numpy().tobytes() == b.sim.state.positions.numpy().tobytes()
+    assert np.array_equal(np.concatenate(a.head.world_pose()), np.concatenate(b.head.world_pose()))
+    assert a.sim.step_count == 4 * n

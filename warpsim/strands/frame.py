@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from ..bodies.colliders import Plane, Sphere
+from ..core.solver import SolverBase
 from ..kernels import strands as K
 
 __all__ = ["HairFrame", "HeadPoses", "PosedSphere"]
@@ -74,12 +75,13 @@ class PosedSphere(Sphere):
                   device=model.device)
 
 
-class HairFrame:
+class HairFrame(SolverBase):
     """Steps a hair ``Simulator`` one frame of n equal steps with a ``PosedSphere`` head and its
     ``StrandRoots`` reading the head's poses from the device; on CUDA (``use_graph``) the frame is
     captured once per (n, h) as a CUDA graph (after one eager frame: every module loaded) and
     replayed. The host keeps the simulator's clock and step count as ``Simulator.step`` would and
-    runs its blow-up test after the frame when due (one int read back)."""
+    runs its blow-up test after the frame when due (one int read back). A
+    ``warpsim.core.solver.Solver``: ``frame`` is ``advance``, ``step`` and ``state`` the simulator's."""
 
     def __init__(self, sim, head: PosedSphere, roots, use_graph=None):
         self.sim, self.head, self.roots = sim, head, roots
@@ -103,6 +105,25 @@ class HairFrame:
         keys = ("restitution", "friction", "mode", "thickness", "stiffness")
         contact = tuple(tuple(getattr(c, a, None) for a in keys) for c in sim.colliders)
         return n, h, tuple(map(id, sim.forces)), contact
+
+    @property
+    def state(self):
+        """The simulator's state."""
+        return self.sim.state
+
+    def step(self, dt: float) -> int:
+        """One eager step of the simulator (the head's pose as a launch parameter)."""
+        return self.sim.step(dt)
+
+    def frame(self, frame_dt: float, steps: int = 1) -> None:
+        """As :meth:`advance`."""
+        self.advance(frame_dt, steps)
+
+    def notify_changed(self, what: str) -> None:
+        """As ``Simulator.notify_changed``; the captured frame graphs are dropped too (re-captured
+        with the new values)."""
+        self.sim.notify_changed(what)
+        self._graphs.clear()
 
     def advance(self, frame_dt: float, n: int) -> None:
         h = frame_dt / n
