@@ -36,8 +36,7 @@ def test_track_takes_the_scenes_anchors_and_indices():
     params = cls.resolve_params({"resolution": 3, "springs": False})
     scene = cls(params, device="cpu")
     assert cls.track_anchors == ANCHORS
-    surface = scene.model.particle_q.numpy()[: scene.body.surface_count]
-    expected = {name: anchor_vertex(surface, name) for name in ANCHORS}
+    expected = {name: anchor_vertex(scene.rest_points, name) for name in ANCHORS}
     assert resolve_track(cls, params, [*ANCHORS, "tip=7", "12"], "cpu") == {**expected, "tip": 7, "p12": 12}
     with pytest.raises(ValueError, match="not an index or one of spout, handle, knob, bottom"):
         resolve_track(cls, params, ["lid"], "cpu")

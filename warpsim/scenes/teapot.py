@@ -21,7 +21,9 @@ ANCHORS = ("spout", "handle", "knob", "bottom")
 
 def anchor_vertex(points, who: str) -> int:
     """Surface vertex for a named anchor: spout tip (largest x), handle (smallest x), knob
-    (highest), bottom (lowest, nearest the axis), or a vertex index given as text."""
+    (highest), bottom (lowest, nearest the axis), or a vertex index given as text. ``points``:
+    (N, 3) [m], the teapot as modelled (y up, axis at x = z = 0, before the scene's tilt: on the
+    tilted teapot the spout's tip is higher than the knob)."""
     p = np.asarray(points)
     if who == "spout":
         return int(np.argmax(p[:, 0]))
@@ -77,7 +79,7 @@ class TeapotScene(SimulatorScene):
 
     def anchor_particle(self, name) -> int:
         """The surface vertex of anchor ``name`` (``spout``, ``handle``, ``knob``, ``bottom``)."""
-        return anchor_vertex(self.model.particle_q.numpy()[: self.body.surface_count], name)
+        return anchor_vertex(self.rest_points, name)
 
     def build(self, p):
         for key in ("mass", "size", "box", "gravity"):
@@ -87,6 +89,7 @@ class TeapotScene(SimulatorScene):
             if not p[key] >= 0:
                 raise ValueError(f"{key}={p[key]}: it must be >= 0")
         mesh = teapot_mesh(p["resolution"], scale=p["size"])
+        self.rest_points = mesh.points  # the surface vertices untilted: where the anchors are named
         b = ws.ModelBuilder()
         tilt = math.radians(p["tilt"])
         rotation = (0.0, 0.0, math.sin(tilt / 2), math.cos(tilt / 2))
@@ -109,7 +112,7 @@ class TeapotScene(SimulatorScene):
         forces = [ws.Gravity((0.0, -p["gravity"], 0.0))]
         self.drags, self.drag_vertices = [], []
         for who, points, t0, t1 in parse_drag_spec(p["drag"]):
-            vertex = anchor_vertex(q0[: self.body.surface_count], who)
+            vertex = anchor_vertex(self.rest_points, who)
             self.drags.append(scripted_drag(vertex, points, t0, t1, p["drag_stiffness"], p["drag_damping"]))
             self.drag_vertices.append(vertex)
         # a teapot dropped from a metre moves at a few m/s; 100 m/s means it has blown up (the walls
