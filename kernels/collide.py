@@ -212,12 +212,19 @@ def collide_particle_planes(
     if w == 0.0:
         return
     x = q_io[i]
+    d = radius[i] + thickness
+    touching = int(0)  # noqa: RUF046 (a Warp dynamic variable)
+    for p in range(normals.shape[0]):
+        if d - (wp.dot(normals[p], x) - offsets[p]) > 0.0:  # resolve_plane's test on the unmoved x
+            touching = 1
+    if touching == 0:  # no plane moves x, so every plane sees this x: nothing changes
+        return
     v = qd_io[i]
     x0 = q_prev[i]
     a = w * forces[i]
     for p in range(normals.shape[0]):
-        x, v = resolve_plane(x, v, x0, a, normals[p], offsets[p], radius[i] + thickness, mode, restitution,
-                             friction, stiffness, damping_ratio, w, dt)
+        x, v = resolve_plane(x, v, x0, a, normals[p], offsets[p], d, mode, restitution, friction, stiffness,
+                             damping_ratio, w, dt)
     q_io[i] = x
     qd_io[i] = v
 
@@ -507,6 +514,29 @@ def apply_local_contact(
 # --------------------------------------------------------------------------------------
 # Finite shapes
 # --------------------------------------------------------------------------------------
+@wp.func
+def l1_norm(u: wp.vec3) -> float:
+    """|u_x| + |u_y| + |u_z| (>= the length of u, no square root)."""
+    return wp.abs(u[0]) + wp.abs(u[1]) + wp.abs(u[2])
+
+
+@wp.func
+def out_of_reach(x: wp.vec3, x0: wp.vec3, center: wp.vec3, half: float, r: float) -> bool:
+    """True when every point of the step's path [x0, x] [m] is farther than r [m] (the inflated
+    radius) from every point of a segment of half length ``half`` [m] around ``center`` (all
+    world, the shape static), by a margin that covers the rounding of the local test
+    (``capsule_contact``: the pose transforms, ~1e-7 of the coordinates, and the ray-sphere
+    discriminant's cancellation, ~1e-7 |o - c|^2 / r, |o - c|^2 <= 2 (dist^2 + reach^2)): no
+    contact then, whatever the mode. Cheap: no transform, no square root (the path's length is
+    bounded by its L1 norm). NaN gives False (the full test runs)."""
+    e = x - center
+    dist2 = wp.dot(e, e)
+    reach = l1_norm(x - x0) + half + r
+    margin = 1.0e-5 * (l1_norm(x) + l1_norm(center) + reach) + 2.0e-5 * (dist2 + reach * reach) / r
+    bound = reach + margin
+    return dist2 > bound * bound
+
+
 @wp.kernel
 def collide_capsule(
     inv_mass: wp.array(dtype=float),
@@ -519,6 +549,8 @@ def collide_capsule(
     inside: int,
     pose_prev: wp.transform,
     pose: wp.transform,
+    far_center: wp.vec3,
+    far_half: float,
     restitution: float,
     friction: float,
     mode: int,
@@ -532,17 +564,23 @@ def collide_capsule(
 ):
     """A solid capsule (segment [a, b], local) or sphere (a == b), or a spherical container
     (inside = 1, particles kept within shape_radius of a); continuous = 0 tests the end point
-    alone (q_prev still gives reflect mode its start distance)."""
+    alone (q_prev still gives reflect mode its start distance). far_half >= 0: the shape did not
+    move over the step (pose == pose_prev), is solid, and far_center [m] (world) is the middle of
+    its segment, far_half [m] half the segment's length; a particle whose whole step stays out of
+    reach (``out_of_reach``) is left as it is without the local test (the same bits)."""
     i = wp.tid()
     w = inv_mass[i]
     if w == 0.0:
         return
     x = q_io[i]
+    d = radius[i] + thickness
+    r = shape_radius + d
+    if far_half >= 0.0:
+        if out_of_reach(x, q_prev[i], far_center, far_half, r):
+            return
     v = qd_io[i]
     xl = wp.transform_point(wp.transform_inverse(pose), x)
     x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])
-    d = radius[i] + thickness
-    r = shape_radius + d
     if inside == 1:
         r = shape_radius - d
     x_from = x0l

@@ -4,10 +4,12 @@ bits."""
 
 import numpy as np
 import pytest
+import warp as wp
+from warpsim.kernels import collide as KC
 from warpsim.kernels.cloth_lanes import LANES, ROW_MAX
 
 import warpsim as ws
-from warpsim.bodies.colliders import Sphere
+from warpsim.bodies.colliders import Capsule, Sphere
 from warpsim.cloth.builder import add_cloth_grid
 from warpsim.cloth.lanes import build_lane_blocks
 from warpsim.cloth.solver import ClothSemiImplicitEuler, ClothSimulator
@@ -59,7 +61,7 @@ def run_frames(mode, resolution, frames=20):
     sim = ClothSimulator(b.finalize(DEVICE), ClothSemiImplicitEuler(mode),
                          forces=[ws.Gravity(), ws.Wind(coefficient=0.02)],
                          colliders=[ws.Plane(offset=0.9, restitution=0.0, friction=0.3),
-                                    Sphere((0.15, 0.95, 0.15), 0.04, restitution=0.0, friction=0.3)])
+                                    Sphere((0.15, 0.95, -0.15), 0.04, restitution=0.0, friction=0.3)])
     for frame in range(frames):
         if frame == frames // 2:  # changed in place: read again at the next frame
             sim.model.spring_stiffness.assign(0.5 * sim.model.spring_stiffness.numpy())
@@ -113,3 +115,59 @@ def test_rows_longer_than_the_lanes_take_fall_back_to_owner():
     sim = ws.Simulator(model, ClothSemiImplicitEuler())
     sim.step(1e-3)
     assert sim.integrator.mode == "owner"
+
+
+def test_a_static_spheres_early_out_gives_the_full_tests_bits(monkeypatch):
+    """The lanes frames with floor and sphere: the sphere's early-out (particles out of reach
+    skip the local test) gives the bits of the full test on every particle, and the cloth does
+    lie on the sphere (the comparison covers contacts)."""
+    x_fast, v_fast, _ = run_frames(None, (20, 12))
+    monkeypatch.setattr(Capsule, "_reach", lambda self, prev, now: (wp.vec3(0.0, 0.0, 0.0), -1.0))
+    x_full, v_full, _ = run_frames(None, (20, 12))
+    assert x_fast.tobytes() == x_full.tobytes() and v_fast.tobytes() == v_full.tobytes()
+    on_sphere = np.linalg.norm(x_fast - (0.15, 0.95, -0.15), axis=1)
+    assert np.sum(np.abs(on_sphere - 0.04) < 1e-3) >= 3  # particles of radius 0 resting on it
+
+
+@pytest.mark.parametrize("mode", ["reflect", "project", "penalty", "seed"])
+def test_early_out_equals_the_full_test_on_grazing_paths(mode):
+    """Particles whose 0.1 m step passes a static, moved and turned sphere at 0.9 to 1.01 of its
+    inflated radius r from its centre (and some far away), launched with and without the
+    early-out: the same bytes; some were pushed out (contacts, found by the path test where the
+    end point is outside), some grazed past untouched (penalty: velocity only)."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    cap = Sphere((0.3, 1.0, -0.2), 0.05, mode=mode, restitution=0.3, friction=0.2)
+    cap.set_transform((0.4, 0.1, -0.3), (0.0, 0.0, np.sin(0.3), np.cos(0.3)))
+    r = cap.radius + 0.01  # particle radius 0.01
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1)[:, None]
+    along = np.cross(axis, rng.normal(size=(n, 3)))
+    along /= np.linalg.norm(along, axis=1)[:, None]
+    gap = np.where(rng.uniform(size=n) < 0.9, r * rng.uniform(0.9, 1.01, n), rng.uniform(0.5, 3.0, n))
+    closest = cap.center + gap[:, None] * axis  # the path's point nearest the centre
+    t = rng.uniform(-1.0, 1.0, (n, 1)) * 0.05  # paths of 0.1 m, many crossing the sphere's edge
+    x0 = closest - (0.05 + t) * along
+    x1 = closest + (0.05 - t) * along
+    v = (x1 - x0) * 100.0  # 10 m/s over dt = 0.01 s
+
+    def collide(early_out: bool):
+        q = wp.array(x1.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+        qd = wp.array(v.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+        prev, now = cap.advance_pose(0.01)  # static: the second pose equals the first
+        prev, now = cap.advance_pose(0.01)
+        reach = cap._reach(prev, now) if early_out else (wp.vec3(0.0, 0.0, 0.0), -1.0)
+        assert (reach[1] >= 0.0) == early_out
+        wp.launch(KC.collide_capsule, n,
+                  inputs=[wp.full(n, 1.0, dtype=float, device=DEVICE), wp.full(n, 0.01, dtype=float, device=DEVICE),
+                          wp.array(x0.astype(np.float32), dtype=wp.vec3, device=DEVICE), 1,
+                          wp.vec3(*cap.a_local), wp.vec3(*cap.b_local), cap.radius, 0, prev, now, *reach,
+                          *cap._contact_args(0.01), wp.zeros(n, dtype=wp.vec3, device=DEVICE), q, qd],
+                  device=DEVICE)
+        return q.numpy(), qd.numpy()
+
+    q_fast, qd_fast = collide(True)
+    q_full, qd_full = collide(False)
+    assert q_fast.tobytes() == q_full.tobytes() and qd_fast.tobytes() == qd_full.tobytes()
+    touched = np.any(q_full != x1.astype(np.float32), axis=1) | np.any(qd_full != v.astype(np.float32), axis=1)
+    assert 100 < touched[gap < r].sum() and 100 < (~touched[gap < 1.01 * r]).sum()  # contacts, grazes

@@ -441,9 +441,20 @@ class Capsule(_Kinematic):
             K.collide_capsule, model.particle_count,
             inputs=[model.particle_inv_mass, model.particle_radius, q_prev, int(self.continuous),
                     wp.vec3(*self.a_local), wp.vec3(*self.b_local), self.radius, self.inside, prev, now,
-                    *self._contact_args(dt), state.forces, state.positions, state.velocities],
+                    *self._reach(prev, now), *self._contact_args(dt), state.forces, state.positions,
+                    state.velocities],
             device=model.device,
         )
+
+    def _reach(self, prev, now):
+        """(world middle of the segment [m], half its length [m]) for the kernel's early-out when
+        the shape is solid and did not move over the step (the poses' float32 values equal);
+        (0, -1): no early-out."""
+        if self.inside or tuple(prev) != tuple(now):
+            return wp.vec3(0.0, 0.0, 0.0), -1.0
+        p, q = self.world_pose()
+        half = 0.5 * float(np.linalg.norm(self.b_local - self.a_local))
+        return wp.vec3(*(p + quat_rotate(q, 0.5 * (self.a_local + self.b_local)))), half
 
     def apply_out(self, model, q, qd, q_out, qd_out, dt, q_start=None, forces=None) -> None:
         """Differentiable runs (``warpsim.diff``): discrete detection, out of place
