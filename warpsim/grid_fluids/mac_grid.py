@@ -135,7 +135,7 @@ class MacGrid:
         idx = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).astype(np.float64)
         return np.asarray(self.origin) + (idx + np.asarray(OFFSETS[where])) * self.dx
 
-    def point(self, p, what):
+    def point(self, p, what: str) -> list[float]:
         """``p`` as 3 finite coordinates [m] (2D grids: 2 numbers, z set to the middle of the cell
         layer); ValueError naming ``what``."""
         try:
