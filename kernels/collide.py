@@ -213,7 +213,7 @@ def collide_particle_planes(
         return
     x = q_io[i]
     d = radius[i] + thickness
-    touching = int(0)  # noqa: RUF046 (a Warp dynamic variable)
+    touching = int(0)
     for p in range(normals.shape[0]):
         if d - (wp.dot(normals[p], x) - offsets[p]) > 0.0:  # resolve_plane's test on the unmoved x
             touching = 1
@@ -568,16 +568,47 @@ def collide_capsule(
     move over the step (pose == pose_prev), is solid, and far_center [m] (world) is the middle of
     its segment, far_half [m] half the segment's length; a particle whose whole step stays out of
     reach (``out_of_reach``) is left as it is without the local test (the same bits)."""
-    i = wp.tid()
+    collide_particle_capsule(wp.tid(), inv_mass, radius, q_prev, continuous, a, b, shape_radius, inside, pose_prev,
+                             pose, far_center, far_half, restitution, friction, mode, thickness, stiffness,
+                             damping_ratio, dt, forces, q_io, qd_io)
+
+
+@wp.func
+def collide_particle_capsule(
+    i: int,
+    inv_mass: wp.array(dtype=float),
+    radius: wp.array(dtype=float),
+    q_prev: wp.array(dtype=wp.vec3),
+    continuous: int,
+    a: wp.vec3,
+    b: wp.vec3,
+    shape_radius: float,
+    inside: int,
+    pose_prev: wp.transform,
+    pose: wp.transform,
+    far_center: wp.vec3,
+    far_half: float,
+    restitution: float,
+    friction: float,
+    mode: int,
+    thickness: float,
+    stiffness: float,
+    damping_ratio: float,
+    dt: float,
+    forces: wp.array(dtype=wp.vec3),
+    q_io: wp.array(dtype=wp.vec3),
+    qd_io: wp.array(dtype=wp.vec3),
+):
+    """Particle i against the capsule (the body of ``collide_capsule``, whose docstring says the
+    arguments; ``kernels/collide_lanes.py`` calls it for the lanes its filter keeps)."""
     w = inv_mass[i]
     if w == 0.0:
         return
     x = q_io[i]
     d = radius[i] + thickness
     r = shape_radius + d
-    if far_half >= 0.0:
-        if out_of_reach(x, q_prev[i], far_center, far_half, r):
-            return
+    if far_half >= 0.0 and out_of_reach(x, q_prev[i], far_center, far_half, r):
+        return
     v = qd_io[i]
     xl = wp.transform_point(wp.transform_inverse(pose), x)
     x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])

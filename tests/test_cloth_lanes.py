@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 from warpsim.kernels import collide as KC
+from warpsim.kernels import collide_lanes as KL
 from warpsim.kernels.cloth_lanes import LANES, ROW_MAX
 
 import warpsim as ws
@@ -132,11 +133,12 @@ def test_a_static_spheres_early_out_gives_the_full_tests_bits(monkeypatch):
 @pytest.mark.parametrize("mode", ["reflect", "project", "penalty", "seed"])
 def test_early_out_equals_the_full_test_on_grazing_paths(mode):
     """Particles whose 0.1 m step passes a static, moved and turned sphere at 0.9 to 1.01 of its
-    inflated radius r from its centre (and some far away), launched with and without the
-    early-out: the same bytes; some were pushed out (contacts, found by the path test where the
-    end point is outside), some grazed past untouched (penalty: velocity only)."""
+    inflated radius r from its centre (and some far away), launched without the early-out, with
+    it, and as the CPU's lanes kernel (eight a thread, 4003 particles: a padded last block): the
+    same bytes; some were pushed out (contacts, found by the path test where the end point is
+    outside), some grazed past untouched (penalty: velocity only)."""
     rng = np.random.default_rng(7)
-    n = 4000
+    n = 4003
     cap = Sphere((0.3, 1.0, -0.2), 0.05, mode=mode, restitution=0.3, friction=0.2)
     cap.set_transform((0.4, 0.1, -0.3), (0.0, 0.0, np.sin(0.3), np.cos(0.3)))
     r = cap.radius + 0.01  # particle radius 0.01
@@ -151,23 +153,58 @@ def test_early_out_equals_the_full_test_on_grazing_paths(mode):
     x1 = closest + (0.05 - t) * along
     v = (x1 - x0) * 100.0  # 10 m/s over dt = 0.01 s
 
-    def collide(early_out: bool):
+    def collide(early_out: bool, lanes: bool = False):
         q = wp.array(x1.astype(np.float32), dtype=wp.vec3, device=DEVICE)
         qd = wp.array(v.astype(np.float32), dtype=wp.vec3, device=DEVICE)
         prev, now = cap.advance_pose(0.01)  # static: the second pose equals the first
         prev, now = cap.advance_pose(0.01)
         reach = cap._reach(prev, now) if early_out else (wp.vec3(0.0, 0.0, 0.0), -1.0)
         assert (reach[1] >= 0.0) == early_out
-        wp.launch(KC.collide_capsule, n,
-                  inputs=[wp.full(n, 1.0, dtype=float, device=DEVICE), wp.full(n, 0.01, dtype=float, device=DEVICE),
+        kernel, dim, head = (KL.collide_capsule_lanes, (n + LANES - 1) // LANES, [n]) if lanes else (
+            KC.collide_capsule, n, [])
+        wp.launch(kernel, dim,
+                  inputs=[*head, wp.full(n, 1.0, dtype=float, device=DEVICE),
+                          wp.full(n, 0.01, dtype=float, device=DEVICE),
                           wp.array(x0.astype(np.float32), dtype=wp.vec3, device=DEVICE), 1,
                           wp.vec3(*cap.a_local), wp.vec3(*cap.b_local), cap.radius, 0, prev, now, *reach,
                           *cap._contact_args(0.01), wp.zeros(n, dtype=wp.vec3, device=DEVICE), q, qd],
                   device=DEVICE)
-        return q.numpy(), qd.numpy()
+        return q.numpy().tobytes() + qd.numpy().tobytes(), q.numpy(), qd.numpy()
 
-    q_fast, qd_fast = collide(True)
-    q_full, qd_full = collide(False)
-    assert q_fast.tobytes() == q_full.tobytes() and qd_fast.tobytes() == qd_full.tobytes()
+    full, q_full, qd_full = collide(False)
+    assert collide(True)[0] == full and collide(True, lanes=True)[0] == full
     touched = np.any(q_full != x1.astype(np.float32), axis=1) | np.any(qd_full != v.astype(np.float32), axis=1)
     assert 100 < touched[gap < r].sum() and 100 < (~touched[gap < 1.01 * r]).sum()  # contacts, grazes
+
+
+@pytest.mark.parametrize("mode", ["reflect", "penalty"])
+def test_planes_lanes_kernel_equals_the_per_particle_kernel(mode):
+    """A box of six walls and 1003 particles ending within +-2 cm of them (steps of up to 5 cm,
+    mass 0 for some): the CPU's lanes kernel gives collide_planes' bytes, some particles touched,
+    some not."""
+    rng = np.random.default_rng(3)
+    n = 1003
+    box = ws.Box((-0.5, 0.0, -0.5), (0.5, 1.0, 0.5), restitution=0.4, friction=0.3, mode=mode, thickness=0.003)
+    box.bind(grid((3, 3)).finalize(DEVICE))
+    x1 = rng.uniform(-0.52, 0.52, (n, 3)) + (0.0, 0.5, 0.0)
+    x0 = x1 - rng.uniform(-0.05, 0.05, (n, 3))
+    inv_mass = np.where(rng.uniform(size=n) < 0.1, 0.0, 1.0)
+
+    def collide(lanes: bool):
+        q = wp.array(x1.astype(np.float32), dtype=wp.vec3, device=DEVICE)
+        qd = wp.array(((x1 - x0) * 50.0).astype(np.float32), dtype=wp.vec3, device=DEVICE)
+        kernel, dim, head = (KL.collide_planes_lanes, (n + LANES - 1) // LANES, [n]) if lanes else (
+            KC.collide_planes, n, [])
+        wp.launch(kernel, dim,
+                  inputs=[*head, wp.array(inv_mass.astype(np.float32), dtype=float, device=DEVICE),
+                          wp.full(n, 0.01, dtype=float, device=DEVICE), box._normals, box._offsets,
+                          *box._contact_args(0.02), wp.array(x0.astype(np.float32), dtype=wp.vec3, device=DEVICE),
+                          wp.zeros(n, dtype=wp.vec3, device=DEVICE), q, qd],
+                  device=DEVICE)
+        return q.numpy(), qd.numpy()
+
+    q_full, qd_full = collide(False)
+    q_lanes, qd_lanes = collide(True)
+    assert q_lanes.tobytes() == q_full.tobytes() and qd_lanes.tobytes() == qd_full.tobytes()
+    touched = np.any(qd_full != ((x1 - x0) * 50.0).astype(np.float32), axis=1)
+    assert 50 < touched.sum() < n - 50

@@ -36,6 +36,7 @@ import warp as wp
 from ..core import checks
 from ..core.collider import Collider
 from ..kernels import collide as K
+from ..kernels import collide_lanes as KL
 from ..kernels import worlds as KW
 from .mesh_io import load_mesh
 
@@ -66,6 +67,16 @@ def _coefficients(owner: str, restitution, friction, mode):
 def _start_of_step(q, q_start, forces):
     """(q_start, forces) for the out-of-place kernels: missing ones become q and zeros."""
     return (q if q_start is None else q_start), (wp.zeros_like(q) if forces is None else forces)
+
+
+def _per_particle(kernel, lanes_name: str, model):
+    """(kernel, launch dim, leading inputs) of a per-particle collider: on the CPU its lanes
+    variant (``kernels/collide_lanes.py``: eight particles a thread, a vector filter before the same
+    per-particle code, so the same bits), elsewhere one thread per particle."""
+    n = model.particle_count
+    if wp.get_device(model.device).is_cpu:
+        return getattr(KL, lanes_name), (n + KL.LANES - 1) // KL.LANES, [n]
+    return kernel, n, []
 
 
 class _Contact(Collider):
@@ -118,9 +129,10 @@ class Planes(_Contact):
         self._offsets = wp.array(self.offsets.astype(np.float32), dtype=float, device=model.device)
 
     def apply(self, model, state, q_prev, dt) -> None:
+        kernel, dim, head = _per_particle(K.collide_planes, "collide_planes_lanes", model)
         wp.launch(
-            K.collide_planes, model.particle_count,
-            inputs=[model.particle_inv_mass, model.particle_radius, self._normals, self._offsets,
+            kernel, dim,
+            inputs=[*head, model.particle_inv_mass, model.particle_radius, self._normals, self._offsets,
                     *self._contact_args(dt), q_prev, state.forces, state.positions, state.velocities],
             device=model.device,
         )
@@ -437,9 +449,10 @@ class Capsule(_Kinematic):
 
     def apply(self, model, state, q_prev, dt) -> None:
         prev, now = self._advance(dt)
+        kernel, dim, head = _per_particle(K.collide_capsule, "collide_capsule_lanes", model)
         wp.launch(
-            K.collide_capsule, model.particle_count,
-            inputs=[model.particle_inv_mass, model.particle_radius, q_prev, int(self.continuous),
+            kernel, dim,
+            inputs=[*head, model.particle_inv_mass, model.particle_radius, q_prev, int(self.continuous),
                     wp.vec3(*self.a_local), wp.vec3(*self.b_local), self.radius, self.inside, prev, now,
                     *self._reach(prev, now), *self._contact_args(dt), state.forces, state.positions,
                     state.velocities],
