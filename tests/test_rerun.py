@@ -59,7 +59,7 @@ def test_the_python_and_sweep_rerun_equivalents(tmp_path):
                          SWEEPS["bounce"][1], "--device", "cpu", "--out", root, "--no-progress", "--rerun", 0)
     assert code == 0, err
     assert first_difference(root, 0, tmp_path / "bounce.world_000000.usda") is None
-    # a scene with automatic sub-steps: the re-run takes the step count of the whole sweep
+    # a scene with automatic sub-steps: each world takes its own count, the one its re-run takes
     args, frames = SWEEPS["cloth"]
     root = sweep(tmp_path, "cloth")
     code, out, err = cli("sweep", "cloth", *args, "--worlds", 3, "--sample", "lhs", "--frames", frames, "--device",

@@ -206,6 +206,9 @@ class ModelBuilder:
         model.particle_count = n
         model.particle_q = wp.array(np.array(self.particle_q, dtype=np.float32).reshape(n, 3), dtype=wp.vec3, device=d)
         model.particle_qd = wp.array(np.array(self.particle_qd, dtype=np.float32).reshape(n, 3), dtype=wp.vec3, device=d)
+        # as given (float64): batched worlds shift these and cast once, as a scene built there would
+        model.particle_q_host = np.array(self.particle_q, dtype=np.float64).reshape(n, 3)
+        model.particle_qd_host = np.array(self.particle_qd, dtype=np.float64).reshape(n, 3)
         model.particle_mass = wp.array(mass, dtype=float, device=d)
         model.particle_inv_mass = wp.array(inv_mass, dtype=float, device=d)
         model.particle_radius = wp.array(np.array(self.particle_radius, dtype=np.float32).reshape(n), dtype=float, device=d)

@@ -44,6 +44,8 @@ class Model:
       particle_springs: int, (2 * spring_count,), the springs touching each particle, ascending
         (each spring appears twice, once per end): spring forces and Jacobians are gathered per
         particle in this fixed order, so every run sums them alike (bit-reproducible)
+      particle_q_host, particle_qd_host: the builder's float64 values before their float32 cast,
+        numpy (particle_count, 3), or None; batched worlds shift them and cast once, as the scene does
     """
 
     particle_q: wp.array
@@ -60,9 +62,12 @@ class Model:
     spring_broken: wp.array
     particle_spring_offsets: wp.array  # CSR adjacency (warpsim.core.builder.ensure_spring_adjacency)
     particle_springs: wp.array
+    particle_q_host: np.ndarray | None
+    particle_qd_host: np.ndarray | None
 
     def __init__(self, device):
         self.device = wp.get_device(device)
+        self.particle_q_host = self.particle_qd_host = None
         self.particle_count = 0
         self.spring_count = 0
         self.breakable_spring_count = 0

@@ -28,7 +28,7 @@ from ..core.forces import Springs
 from ..core.model import Model, ensure_spring_adjacency
 from ..kernels import worlds as KW
 from .forces import WorldGravity, WorldPlanes
-from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, make_plan
+from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, host_values, make_plan
 from .shared import SPRING_PARAMS, SharedStepper, eligibility, world_walls
 
 __all__ = ["WorldBatch"]
@@ -161,30 +161,26 @@ class WorldBatch:
         mb.particle_world = wp.empty(n * P, dtype=int, device=d)
         wp.launch(KW.tile_world_index, n * P, inputs=[max(P, 1), mb.particle_world], device=d)
         for name in VEC3_ARRAYS:
-            mask = np.zeros(P, dtype=np.float32)
+            mask = np.zeros(P, dtype=bool)
             shift = np.zeros((n, 3))
-            base = getattr(m0, name)
+            origin = None
             movers = [e for e in self.plan.values() if name in e.vec3]
             if len(movers) == 1 and name in movers[0].origin:  # canonical: origin + C p_w
                 effect = movers[0]
                 changed, C = effect.vec3[name]
-                mask[changed] = 1.0
-                base = wp.array(effect.origin[name], dtype=wp.vec3, device=d)
+                mask[changed] = True
+                origin = effect.origin[name]
                 shift = (self._deltas(effect) + effect.p0) @ C.T
                 movers = []
             for effect in movers:
                 if name in effect.vec3:
                     changed, C = effect.vec3[name]
-                    if mask.any() and not np.array_equal(mask > 0, changed):
+                    if mask.any() and not np.array_equal(mask, changed):
                         raise StructuralError(f"{effect.key} and another varied key shift different particles' "
                                               f"{name}; vary one of them")
-                    mask[changed] = 1.0
+                    mask[changed] = True
                     shift += self._deltas(effect) @ C.T
-            out = wp.empty(n * P, dtype=wp.vec3, device=d)
-            wp.launch(KW.tile_vec3, n * P, inputs=[base, wp.array(mask, dtype=float, device=d),
-                                                    wp.array(shift.astype(np.float32), dtype=wp.vec3, device=d), out],
-                      device=d)
-            setattr(mb, name, out)
+            setattr(mb, name, self._shifted(m0, name, origin, mask, shift))
         keys = [k for k, e in self.plan.items() if e.scale]
         values = np.array([[p[k] for k in keys] for p in self.params], dtype=np.float32).reshape(-1)
         world_values = wp.array(values if len(values) else np.zeros(1, np.float32), dtype=float, device=d)
@@ -251,6 +247,27 @@ class WorldBatch:
             wp.launch(KW.tile_spring_indices, 2 * n * S, inputs=[m0.spring_indices, P, mb.spring_indices], device=d)
         self._tile_adjacency(m0, mb)
         return mb
+
+    def _shifted(self, m0, name, origin, mask, shift):
+        """World w's ``name`` (vec3, (n P,) on the device): ``origin[e] + shift[w]`` for the particles
+        in ``mask`` (P,), ``origin[e]`` for the others; summed in float64 from the values the builder
+        was given and cast to float32 once, as a scene built with world w's values casts them (origin
+        None: ``m0``'s, :func:`host_values`; ``shift`` (n, 3) float64). Nothing shifted: tiled on
+        the device."""
+        n, P, d = len(shift), len(mask), self.device
+        out = wp.empty(n * P, dtype=wp.vec3, device=d)
+        if not mask.any():
+            wp.launch(KW.tile_vec3, n * P, inputs=[getattr(m0, name), wp.zeros(P, dtype=float, device=d),
+                                                    wp.zeros(n, dtype=wp.vec3, device=d), out], device=d)
+            return out
+        base = host_values(m0, name) if origin is None else origin
+        chunk = max(1, (1 << 20) // P)  # worlds per host block (~24 MB of float64)
+        for w0 in range(0, n, chunk):
+            w1 = min(n, w0 + chunk)
+            block = np.where(mask[None, :, None], base[None] + shift[w0:w1, None, :], base[None]).astype(np.float32)
+            wp.copy(out, wp.array(block.reshape(-1, 3), dtype=wp.vec3, device="cpu"), dest_offset=w0 * P,
+                    count=(w1 - w0) * P)
+        return out
 
     def _tile_adjacency(self, m0, mb):
         """World w's CSR spring adjacency = world 0's with springs + w S and offsets + 2 w S: each

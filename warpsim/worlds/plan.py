@@ -6,7 +6,8 @@ at world 0's value and at up to two other sampled values of each varied key (the
 the scene's own checks also validate them) and compares what changed:
 
 - ``particle_q`` / ``particle_qd`` (vec3 per particle): a uniform shift of the changed particles,
-  ``x_w = x_0 + C (p_w - p_0)`` (e.g. a drop height or an initial velocity);
+  ``x_w = x_0 + C (p_w - p_0)`` (e.g. a drop height or an initial velocity), summed in float64 from
+  the builder's values and cast to float32 once, as a scene built with p_w casts them;
 - ``particle_mass`` / ``particle_radius`` / ``spring_*`` (float per element): proportional to the
   parameter, ``a_w[e] = (a_0[e] / p_0) p_w`` (stiffness, damping, mass, density);
 - gravity (``ws.Gravity.g``) and plane / box walls (``ws.Planes`` restitution and friction):
@@ -61,7 +62,20 @@ def signature(scene) -> dict:
            "colliders": [(type(c).__name__, _simple_attrs(c)) for c in sim.colliders]}
     for name in VEC3_ARRAYS + FLOAT_ARRAYS:
         sig[name] = getattr(m, name).numpy().astype(np.float64)
+    for name in VEC3_ARRAYS:
+        sig[name + "_host"] = host_values(m, name)
     return sig
+
+
+def host_values(model, name) -> np.ndarray:
+    """``model.<name>`` (a vec3 array) as its builder was given it: float64 (P, 3), before the one
+    cast to float32 (``<name>_host``), where that still casts to the array on the device bit for
+    bit (not edited since); else the device array's float32 values."""
+    values = getattr(model, name).numpy()
+    host = getattr(model, name + "_host", None)
+    if host is not None and host.shape == values.shape and host.astype(np.float32).tobytes() == values.tobytes():
+        return host
+    return values.astype(np.float64)
 
 
 def _equal(a, b):
@@ -81,7 +95,7 @@ class KeyEffect:
     scale: dict = field(default_factory=dict)    # array -> coefficient (E,) float64, nan where unchanged
     gravity: dict = field(default_factory=dict)  # force index -> C (3, d)
     planes: dict = field(default_factory=dict)   # collider index -> {attr: c (d,)}
-    origin: dict = field(default_factory=dict)   # vec3 array -> its values at p = 0 (float32), when buildable
+    origin: dict = field(default_factory=dict)   # vec3 array -> its values at p = 0 (float64), when buildable
 
 
 def _diff_effect(key, base, probe, p0, p1, effect, column):
@@ -276,7 +290,7 @@ def _canonical(plan, sig):
     for effect in plan.values():
         movers = [e for e in plan.values() if set(e.vec3) & set(effect.vec3)]
         if effect.vec3 and len(movers) == 1:
-            effect.origin = {n: sig[n].astype(np.float32) for n in effect.vec3}
+            effect.origin = {n: sig[n + "_host"] for n in effect.vec3}  # as the builder got them there
         for name, c in effect.scale.items() if not effect.vec3 else ():  # built at p = 1
             changed = ~np.isnan(c)
             c[changed] = sig[name][changed]
