@@ -22,8 +22,9 @@ step time to the first one's (linear in the number of tori would be M / count).
     python benchmarks/bench_donuts.py --device cuda:0 --count 1000 --settle 3000 --steps 200
     python benchmarks/bench_donuts.py --device cuda:0 --settle 1000 --steps 50 --profile  # kernel table
 
-``--broad-phase list`` (the scene's default on CUDA) uses SoftContact's candidate list (``--pad``,
-``--search-every``), ``--broad-phase bvh`` (its default on the CPU) the two-level BVH search every step.
+``--broad-phase list`` uses SoftContact's candidate list (``--pad``, ``--search-every``), ``--broad-phase
+bvh`` (the scene's default) the two-level BVH search every step; ``--settle-broad-phase bvh`` settles with
+the BVH search and then switches (the list is slow while tori fall).
 
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
 and synchronisations per step, and the contact search's candidates per query
@@ -42,7 +43,8 @@ from warpsim.scenes import get_scene
 def build(args, count, device):
     cls = get_scene("donuts")
     params = cls.resolve_params({"count": count, "segments": args.segments, "sides": args.sides,
-                                 "lattice_cells": args.lattice_cells, "dt": args.dt, "broad_phase": args.broad_phase})
+                                 "lattice_cells": args.lattice_cells, "dt": args.dt,
+                                 "broad_phase": args.settle_broad_phase or args.broad_phase})
     scene = cls(params, device=device)
     if scene.contact is not None:
         if args.search_every:
@@ -72,6 +74,11 @@ def settle(args, count, device):
         sim.step(h)
     wp.synchronize_device(device)
     sim.check_every = 0  # blow-ups were checked every settling step; no host read-back while timing
+    if contact is not None and contact.broad_phase != args.broad_phase:
+        contact.set_broad_phase(args.broad_phase)
+        sim.step(h)
+        wp.synchronize_device(device)
+        print(f"search switched to {args.broad_phase!r} after settling")
     print(f"settled {args.settle} steps ({args.settle * h:.3f} s simulated) in {time.perf_counter() - t0:.1f} s; "
           f"{contact.contact_count} vertex and {contact.edge_contact_count} edge contacts, kinetic energy "
           f"{scene.kinetic_energy():.3g} J")
@@ -167,9 +174,12 @@ def main():
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
     parser.add_argument("--rebuild-every", type=int, default=None, help="SoftContact BVH rebuild period in steps "
                         "(refits between; 0: refit only; default: the contact's own)")
-    parser.add_argument("--broad-phase", default="auto", choices=["auto", "list", "bvh", "all_pairs"],
-                        help="SoftContact search (list: candidate list; bvh: two-level BVH search every step; auto: "
-                        "the scene's, list on CUDA and bvh on the CPU)")
+    parser.add_argument("--broad-phase", default="bvh", choices=["list", "bvh", "all_pairs"],
+                        help="SoftContact search while timed (list: candidate list; bvh: two-level BVH search every "
+                        "step)")
+    parser.add_argument("--settle-broad-phase", default=None, choices=["list", "bvh", "all_pairs"],
+                        help="SoftContact search while settling (default: --broad-phase); the timed steps switch "
+                        "to --broad-phase (SoftContact.set_broad_phase)")
     parser.add_argument("--search-every", type=int, default=0, help="list: steps between refit-and-search "
                         "(0: the contact's default)")
     parser.add_argument("--pad", type=float, default=0.0, help="list: motion pad [m] (0: the contact's default)")

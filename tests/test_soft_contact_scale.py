@@ -226,6 +226,22 @@ def test_candidate_list_keeps_edges_that_cross_within_one_step():
     assert found["list"] == found["all_pairs"]
 
 
+def test_switching_to_the_candidate_list_mid_run_keeps_the_bits():
+    """Pressed tori stepped 40 steps with the BVH search, then switched to the list
+    (``set_broad_phase``, as ``bench_donuts --settle-broad-phase bvh``): the next 40 steps give the
+    bits of a run that kept the BVH search."""
+    finals = []
+    for switch in (False, True):
+        sim, contact = pressed_tori("bvh")
+        for k in range(80):
+            if switch and k == 40:
+                contact.set_broad_phase("list")
+            sim.step(1.0 / 1200.0)
+        assert contact.contact_count > 5
+        finals.append(sim.state.positions.numpy())
+    assert np.array_equal(finals[0], finals[1])
+
+
 def test_candidate_list_counts_an_overflow():
     """Capacity 1 candidate per query on pressed tori: queries with more count an overflow;
     the default capacity has none."""

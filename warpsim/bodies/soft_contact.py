@@ -110,8 +110,9 @@ class SoftContact(Collider):
     LIST_THREADS = 65536
     """Threads of the list's push-and-impulse passes (each takes every LIST_THREADS-th contact or
     particle: the launches stay this small however many contact slots there are)."""
-    DEFAULT_CAPACITY = 64
-    """Default candidates kept per query of ``broad_phase="list"``."""
+    DEFAULT_CAPACITY = 256
+    """Default candidates kept per query of ``broad_phase="list"`` (64 overflowed on a settled heap of
+    tori of 2,000 vertices: 9.7 candidates a vertex query on average, many at 64)."""
 
     def __init__(self, bodies, *, thickness: float = 0.005, restitution: float = 0.0, friction: float = 0.5,
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
@@ -159,7 +160,7 @@ class SoftContact(Collider):
         self.search_every = self.SEARCH_EVERY if search_every is None else checks.integer(
             search_every, "SoftContact search_every", lo=1, hi=1_000_000, fix="e.g. 20 (steps between refits)")
         self.capacity = checks.integer(self.DEFAULT_CAPACITY if capacity is None else capacity, "SoftContact capacity",
-                                       lo=1, hi=4096, fix="e.g. 64")
+                                       lo=1, hi=4096, fix="e.g. 256")
         self.broad_phase = broad_phase
         if rebuild_every is not None and (isinstance(rebuild_every, bool) or not isinstance(rebuild_every, int)
                                           or rebuild_every < 0):
@@ -387,6 +388,17 @@ class SoftContact(Collider):
         """The BVHs at the last step: over the bodies' bounds (grouped by world), over the contact
         triangles (grouped by body) and, with edge contact, over the surface edges (grouped by body)."""
         return [self._body_bvh, self._tri_bvh] + ([self._edge_bvh] if self.edge_contact else [])
+
+    def set_broad_phase(self, name: str) -> None:
+        """Switch the search after binding ("bvh", "list" or "all_pairs"; the list's buffers are
+        allocated here, outside a step); the next step searches afresh."""
+        if name not in ("bvh", "list", "all_pairs"):
+            raise ValueError(f"SoftContact broad_phase is {name!r}; use 'bvh', 'list' or 'all_pairs'")
+        self.broad_phase = name
+        if name == "list" and not hasattr(self, "_cand"):
+            self._bind_list(self.model.particle_count, self.vertex_count + self.edge_count)
+        self._recorded_key: tuple | None = None
+        self._steps = 0
 
     @property
     def schedule_period(self) -> int:

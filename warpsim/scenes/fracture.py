@@ -380,11 +380,10 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "box": (0.0, "half width of the box the tori fall into [m]; 0: sized to the count (0.35 m for 12 tori)"),
     "self_contact": (False, "also collide each torus with itself"),
     "edge_contact": (True, "edge-edge contact beside vertex-triangle contact"),
-    "broad_phase": ("auto", ("contact search: 'list' (a candidate list searched again only when a vertex moved "
-                             "more than the pad, or every search_every steps), 'bvh' (search every step), "
-                             "'all_pairs' (reference), 'auto' (list on CUDA, bvh on the CPU, where a falling heap "
-                             "searched every other step and stepped 2.4x slower with the list); all find the same "
-                             "contacts"), ("auto", "list", "bvh", "all_pairs")),
+    "broad_phase": ("bvh", ("contact search: 'bvh' (search every step), 'list' (a candidate list searched again "
+                            "only when a vertex moved more than the pad, or every search_every steps: faster on a "
+                            "settled heap, much slower while tori fall; benchmarks/RESULTS.md), 'all_pairs' "
+                            "(reference); all find the same contacts"), ("bvh", "list", "all_pairs")),
     "seed": (1, "random orientations"),
     "gravity": (9.81, "gravitational acceleration [m/s^2]"),
     "dt": (1.0 / 1200.0, "time step [s] (split further where the springs' stability limit needs it)"),
@@ -422,8 +421,6 @@ class DonutsScene(SimulatorScene):
                                  stiffness=p["stiffness"], damping=p["damping"], lattice_cells=p["lattice_cells"],
                                  name="torus")
         broad_phase = p["broad_phase"]
-        if broad_phase == "auto":
-            broad_phase = "list" if wp.get_device(self.device).is_cuda else "bvh"
         check_donut_memory(p["count"], template, wp.get_device(self.device),
                            SoftContact.DEFAULT_CAPACITY if broad_phase == "list" else 0)
         reach = p["major_radius"] + p["minor_radius"]
