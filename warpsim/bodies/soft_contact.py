@@ -397,6 +397,7 @@ class SoftContact(Collider):
         self.broad_phase = name
         if name == "list" and not hasattr(self, "_cand"):
             self._bind_list(self.model.particle_count, self.vertex_count + self.edge_count)
+        self._particle_contacts.zero_()  # the list's steps start from zero counts (the BVH search leaves them)
         self._recorded_key: tuple | None = None
         self._steps = 0
 
