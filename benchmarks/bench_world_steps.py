@@ -14,13 +14,18 @@ world, whose blocks end at their own count). Reported: seconds per frame (median
 ``--repeats``), the ratio own / max against the ideal, world-steps per second.
 
 ``--check``: on the device, small sweeps whose worlds take different counts (teapot on the shared
-path, teapot with a sphere obstacle on the tiled path, cloth), their frames captured as CUDA graphs
+path, teapot with a sphere obstacle on the tiled path, cloth; and a teapot height sweep, whose
+worlds start at shifted positions), their frames captured as CUDA graphs
 where a sweep captures them, and each world compared bit for bit with its own run (a scene built
 with its parameters and stepped as ``warpsim run`` steps it).
 
     python benchmarks/bench_world_steps.py --device cuda:0 --worlds 10000
     python benchmarks/bench_world_steps.py --device cuda:0 --check
     python benchmarks/bench_world_steps.py --device cpu --worlds 8 --frames 2 --repeats 1   # check
+
+``--fuse-fp``: turn floating-point contraction (FMA fusion, Warp's default) back on in the modules
+of the mass-spring step (``CONTRACTION_MODULES``; the library turns it off there so that the fused
+shared step and a lone Simulator round alike on GPUs): the cost of that choice, in another process.
 """
 
 import argparse
@@ -35,6 +40,18 @@ from warpsim.sweeps import sample_worlds
 from warpsim.sweeps.sweep import sweep_timing
 from warpsim.verbosity import set_warp_verbosity
 from warpsim.worlds import WorldBatch
+
+
+CONTRACTION_MODULES = ("world_step", "forces", "integrate", "collide")  # kernels/ modules with fuse_fp off
+
+
+def contraction(on):
+    """Set ``fuse_fp`` of CONTRACTION_MODULES (before their first launch) and return the setting."""
+    import importlib
+
+    for name in CONTRACTION_MODULES:
+        wp.set_module_options({"fuse_fp": bool(on)}, module=importlib.import_module(f"warpsim.kernels.{name}"))
+    return bool(on)
 
 
 def frames_seconds(batch, frame_dt, steps, frames, repeats):
@@ -70,6 +87,7 @@ CHECKS = {  # name: (scene, fixed parameters, varied key and values)
     "teapot (shared path)": ("teapot", {"resolution": "low"}, "stiffness", (40.0, 160.0, 640.0)),
     "teapot + sphere (tiled)": ("teapot", {"resolution": "low", "obstacle": "sphere"}, "stiffness",
                                 (40.0, 160.0, 640.0)),
+    "teapot height (shared path)": ("teapot", {"resolution": "low"}, "height", (0.6, 0.45, 0.8)),
     "cloth (passes)": ("cloth", {"integrator": "semi_implicit_euler", "resolution": "16", "explicit_substeps": "1"},
                        "structural", (400.0, 1600.0, 6400.0)),
 }
@@ -122,10 +140,12 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5, help="timed runs (the median is reported)")
     ap.add_argument("--path", choices=("step", "block"), default="step", help="the shared path's launch shape")
     ap.add_argument("--check", action="store_true", help="compare small sweeps' worlds with their own runs only")
+    ap.add_argument("--fuse-fp", action="store_true", help="FMA contraction on in the mass-spring step's modules")
     args = ap.parse_args(argv)
     set_warp_verbosity(False)
     wp.init()
     device = wp.get_device(args.device)
+    print(f"FMA contraction in {', '.join(CONTRACTION_MODULES)}: {'on' if contraction(args.fuse_fp) else 'off'}")
     if args.check:
         return 0 if check(device, max(args.frames, 3)) else 1
     cls = get_scene("teapot")

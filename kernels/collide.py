@@ -46,7 +46,7 @@ import warp as wp
 
 from .worlds import world_key
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # no FMA contraction: see world_step.py
 
 COLLIDE_REFLECT = wp.constant(0)
 COLLIDE_PROJECT = wp.constant(1)

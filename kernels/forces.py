@@ -17,7 +17,7 @@ correctly as time advances.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # no FMA contraction: see world_step.py
 # The force kernels a differentiable run records on its wp.Tape (gravity, constant, wind, drag,
 # magnets, springs) compile their adjoints too (``enable_backward=True`` per kernel); the rest of
 # the module stays forward only.

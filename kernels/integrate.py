@@ -13,7 +13,7 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # no FMA contraction: see world_step.py
 
 
 @wp.kernel

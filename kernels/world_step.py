@@ -12,6 +12,11 @@ same arithmetic in the same order, so the results are bit-identical to it:
   v = v + (h / m) f, x = x + h v               (``kernels/integrate.py: step_particles_semi_implicit``)
   every plane of every wall collider in order  (``kernels/collide.py: resolve_plane``)
 
+No floating-point contraction (``fuse_fp`` off here and in forces.py, integrate.py and collide.py):
+CUDA builds contract a * b + c into one fused multiply-add by default, and where they do depends
+on how a kernel is composed, so this fused step and the Simulator's separate passes would round
+differently on GPUs (Warp's CPU builds do not contract).
+
 Reads (q, qd), writes (q_out, qd_out): other threads read this step's positions of the
 neighbours, so the stepper ping-pongs two buffers.
 
@@ -34,7 +39,7 @@ from .collide import resolve_plane
 from .forces import damped_spring_force
 from .occupancy import CellMarks, fold_world_marks, mark_cell
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # no FMA contraction: see the module doc
 
 
 @wp.func

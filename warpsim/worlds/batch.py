@@ -62,10 +62,9 @@ class WorldBatch:
     Step counts (:meth:`world_steps`): each world takes the steps a frame its scene takes run
     alone with its parameters (with automatic timing, from its own stability limit, estimated as
     its own run estimates it), so world N of a sweep equals ``warpsim run SCENE --set ...`` with
-    its parameters, bit for bit on the same device, whichever worlds share its batch (on CUDA the
-    shared path's fused kernel and a lone run's Simulator kernels were seen to round differently,
-    1.8e-7 m after a few frames: benchmarks/RESULTS.md; a batch's worlds still equal their re-runs,
-    which step through the same kernel). The shared
+    its parameters, bit for bit on the same device, whichever worlds share its batch (on CUDA too:
+    the mass-spring step's kernel modules build without FMA contraction, so the shared path's fused
+    kernel and a lone run's Simulator kernels round alike; ``kernels/world_step.py``). The shared
     path masks per world (worlds past their count idle); the other paths run one pass per distinct
     count (:mod:`warpsim.worlds.passes`). Scenes whose stepping the passes cannot repeat (breaking
     springs, colliders following a host ``motion``, a scene's own sub-stepping) take the largest
