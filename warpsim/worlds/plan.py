@@ -101,9 +101,13 @@ class KeyEffect:
 def _diff_effect(key, base, probe, p0, p1, effect, column):
     """Fill ``effect`` with what changed between base (p0) and probe (p1), for component ``column``."""
     dp = float(p1 - p0)
-    if base["counts"] != probe["counts"] or not _equal(base["spring_indices"], probe["spring_indices"]):
+    if base["counts"] != probe["counts"]:
         raise StructuralError(f"{key} changes the number of particles or springs ({base['counts']} -> "
                               f"{probe['counts']}); it cannot differ between worlds of one batch: set it with --set")
+    if not _equal(base["spring_indices"], probe["spring_indices"]):
+        s = int(np.flatnonzero(base["spring_indices"] != probe["spring_indices"])[0]) // 2
+        raise StructuralError(f"{key} changes which particles the springs join (spring {s} at {key}={p0:g} and "
+                              f"{key}={p1:g}); it cannot differ between worlds of one batch: set it with --set")
     for part in ("integrator",):
         if base[part] != probe[part]:
             raise StructuralError(f"{key} changes the {part}; set it with --set")
