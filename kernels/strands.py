@@ -26,7 +26,7 @@ sums are bit-reproducible and need no atomics.
 
 import warp as wp
 
-from .collide import apply_local_contact, capsule_contact
+from .collide import collide_particle_capsule
 
 wp.set_module_options({"enable_backward": False})
 
@@ -283,21 +283,12 @@ def collide_sphere_posed(
     q_io: wp.array(dtype=wp.vec3),
     qd_io: wp.array(dtype=wp.vec3),
 ):
-    """A solid sphere (continuous detection, ``ws.Sphere``'s contact funcs) between the poses
-    poses[2 step] and poses[2 step + 1] read from the device (``set_strand_roots_posed``)."""
-    i = wp.tid()
-    w = inv_mass[i]
-    if w == 0.0:
-        return
-    pose_prev = poses[2 * step]
-    pose = poses[2 * step + 1]
-    xl = wp.transform_point(wp.transform_inverse(pose), q_io[i])
-    x0l = wp.transform_point(wp.transform_inverse(pose_prev), q_prev[i])
-    h, nl, pl = capsule_contact(x0l, xl, wp.vec3(), wp.vec3(), shape_radius + (radius[i] + thickness), 0)
-    x, v = apply_local_contact(h, nl, pl, x0l, xl, w * forces[i], q_io[i], qd_io[i], pose_prev, pose, mode,
-                               restitution, friction, stiffness, damping_ratio, w, dt)
-    q_io[i] = x
-    qd_io[i] = v
+    """A solid sphere (``collide_particle_capsule`` with a = b = 0, continuous detection) between
+    the poses poses[2 step] and poses[2 step + 1] read from the device (``set_strand_roots_posed``);
+    the head moves, so there is no early-out (far_half < 0)."""
+    collide_particle_capsule(wp.tid(), inv_mass, radius, q_prev, 1, wp.vec3(), wp.vec3(), shape_radius, 0,
+                             poses[2 * step], poses[2 * step + 1], wp.vec3(), -1.0, restitution, friction, mode,
+                             thickness, stiffness, damping_ratio, dt, forces, q_io, qd_io)
 
 
 @wp.kernel
