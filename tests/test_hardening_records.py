@@ -267,6 +267,23 @@ def test_strand_memory_estimate_refuses_only_what_does_not_fit():
         check_strand_memory(2000, 16, "cpu", available=need["host"] + need["device"] - 1)
 
 
+
+def test_strand_memory_estimate_counts_the_implicit_steps_scratch_exactly():
+    """The device estimate holds the implicit strand step's arrays: their bytes, summed from the
+    solver the hair scene builds, equal the estimate's per-particle figure times the particles (the
+    vertices and one ghost a strand)."""
+    import warp as wp
+
+    from warpsim.scenes import get_scene
+    from warpsim.sweeps.preflight import STRAND_SOLVER_PARTICLE_BYTES
+
+    for strands, segments in ((12, 8), (5, 32)):
+        scene = get_scene("hair")({"strands": strands, "segments": segments, "sag_free": False}, device="cpu")
+        arrays = [a for a in vars(scene.sim.integrator).values() if isinstance(a, wp.array)]
+        used = sum(a.size * wp.types.type_size_in_bytes(a.dtype) for a in arrays)
+        assert scene.model.particle_count == strands * (segments + 2)
+        assert used == scene.model.particle_count * STRAND_SOLVER_PARTICLE_BYTES
+
 def test_many_steps_and_the_automatic_cap_are_said_before_the_first_frame(tmp_path):
     from warpsim.core.stability import AUTO_MAX_SUBSTEPS
 

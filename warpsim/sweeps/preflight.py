@@ -13,7 +13,7 @@ import re
 
 from ..core.memory import available_host_bytes
 
-__all__ = ["HOST_BYTES_PER_WORLD", "LARGE_OUTPUT_BYTES", "available_host_bytes", "check_disk", "check_ray_address",
+__all__ = ["HOST_BYTES_PER_WORLD", "LARGE_OUTPUT_BYTES", "STRAND_SOLVER_PARTICLE_BYTES", "available_host_bytes", "check_disk", "check_ray_address",
            "check_seed", "check_strand_memory", "check_worlds", "estimate_strand_bytes", "estimate_sweep_bytes",
            "format_bytes", "frame_time_note", "free_disk_bytes", "numeric_columns", "steps_note"]
 
@@ -140,12 +140,20 @@ lists, spring and bending arrays, the model's host copies and the sag-free solve
 measured: 660 B building, about 1,150 B with the sag-free solve."""
 
 
+STRAND_SOLVER_PARTICLE_BYTES = 3 * 128 + 32 + 2 * 12
+"""Device memory per strand particle (the vertices and a ghost a strand) of the implicit strand
+step's scratch [bytes] (``warpsim.strands.implicit.StrandImplicitEuler``'s arrays: three 4x4 float64
+factor blocks and a float64 right-hand side a slot, two vec3 a particle; summed: 440 B a particle)."""
+
+
 def estimate_strand_bytes(strands, segments) -> dict:
     """Estimated memory of a groom of ``strands`` strands of ``segments`` segments:
-    ``{"host", "device", "vertices"}`` (bytes, bytes, count)."""
+    ``{"host", "device", "vertices"}`` (bytes, bytes, count); the device figure includes the
+    implicit strand step's scratch (the scene's default solver)."""
     vertices = int(strands) * (int(segments) + 1)
     host = int(strands) * STRAND_HOST_BYTES + vertices * STRAND_VERTEX_HOST_BYTES
-    device = vertices * (DEVICE_BYTES_PER_PARTICLE + 2 * DEVICE_BYTES_PER_SPRING)
+    device = (vertices * (DEVICE_BYTES_PER_PARTICLE + 2 * DEVICE_BYTES_PER_SPRING)
+              + int(strands) * (int(segments) + 2) * STRAND_SOLVER_PARTICLE_BYTES)
     return {"host": host, "device": device, "vertices": vertices}
 
 
