@@ -13,9 +13,10 @@ import re
 
 from ..core.memory import available_host_bytes
 
-__all__ = ["HOST_BYTES_PER_WORLD", "LARGE_OUTPUT_BYTES", "STRAND_SOLVER_PARTICLE_BYTES", "available_host_bytes", "check_disk", "check_ray_address",
-           "check_seed", "check_strand_memory", "check_worlds", "estimate_strand_bytes", "estimate_sweep_bytes",
-           "format_bytes", "frame_time_note", "free_disk_bytes", "numeric_columns", "steps_note"]
+__all__ = ["HOST_BYTES_PER_WORLD", "LARGE_OUTPUT_BYTES", "STRAND_SOLVER_PARTICLE_BYTES", "available_host_bytes",
+           "check_disk", "check_ray_address", "check_seed", "check_strand_memory", "check_worlds",
+           "estimate_strand_bytes", "estimate_sweep_bytes", "format_bytes", "frame_time_note", "free_disk_bytes",
+           "numeric_columns", "steps_note"]
 
 HOST_BYTES_PER_WORLD = 4096
 """Host memory a world costs besides its particles [bytes]: its parameter dict, its table row,
