@@ -141,9 +141,9 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     page.mouse.down()
     page.mouse.move(tb["x"] + 0.2 * tb["width"], kb["y"] + kb["height"] / 2, steps=4)
     page.mouse.up()
-    _wait(lambda: abs(s.params["restitution"] - 0.5) > 0.1, what="the restitution change")
+    # the drag moves in 4 steps, each an update: wait for the last (CI once read 0.27 on the way to 0.2)
+    _wait(lambda: abs(s.params["restitution"] - 0.2) <= 0.05, what="the restitution change to about 0.2")
     wall = s.scene.sim.colliders[0]
-    assert s.params["restitution"] == pytest.approx(0.2, abs=0.05)
     assert wall.restitution == pytest.approx(s.params["restitution"])  # the running collider's
     assert s.frame > 60  # applied live: no rebuild back to frame 0
 
