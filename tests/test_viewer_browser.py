@@ -158,12 +158,16 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     page.mouse.move(sx, sy - 30, steps=3)
     page.mouse.move(sx, sy - 90, steps=6)
     grabbed = _wait(lambda: s.status()["grabbed"], what="the grab")
-    _wait(lambda: np.linalg.norm(s.status()["grabbed"]["target"] - grabbed["start"]) > 0.05, what="the target")
+
+    def under_pointer():  # the pointer moves in 9 steps, each an update: wait for the last
+        tx, ty = _project(cam, s.status()["grabbed"]["target"])
+        return abs(tx - sx) < 12 and abs(ty - (sy - 90)) < 12
+
+    _wait(under_pointer, what="the target to lie under the pointer")  # within 12 px of it
     g = s.status()["grabbed"]
     target, start = g["target"], g["start"]
+    assert np.linalg.norm(target - grabbed["start"]) > 0.05  # the target moved with the pointer
     assert np.linalg.norm(verts[g["vertex"]] - verts[front]) < 0.08  # the vertex under the pointer
-    tx, ty = _project(cam, target)
-    assert abs(tx - sx) < 12 and abs(ty - (sy - 90)) < 12  # the target lies under the pointer
     assert target[1] > start[1] + 0.05  # pulled up
     _wait(lambda: np.linalg.norm(s.grabbed_position() - target) < 0.6 * np.linalg.norm(start - target),
           what="the vertex to follow the pointer")
