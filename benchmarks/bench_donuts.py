@@ -44,8 +44,19 @@ def build(args, count, device):
     cls = get_scene("donuts")
     params = cls.resolve_params({"count": count, "segments": args.segments, "sides": args.sides,
                                  "lattice_cells": args.lattice_cells, "dt": args.dt,
-                                 "broad_phase": args.settle_broad_phase or args.broad_phase})
+                                 "broad_phase": args.settle_broad_phase or args.broad_phase,
+                                 "integrator": args.integrator,
+                                 **{key: value for key, value in (
+                                     ("contact_stiffness", args.contact_stiffness),
+                                     ("contact_damping", args.contact_damping),
+                                     ("newton_iterations", args.newton_iterations),
+                                     ("contact_reach", args.contact_reach),
+                                     ("contact_iterations", args.contact_iterations)) if value is not None}})
     scene = cls(params, device=device)
+    if args.cg_tol:
+        scene.sim.integrator.cg_tol = args.cg_tol  # before the first step allocates the solver
+    if args.linear_solver:
+        scene.sim.integrator.linear_solver = args.linear_solver
     if scene.contact is not None:
         if args.search_every:
             scene.contact.search_every = args.search_every
@@ -170,6 +181,23 @@ def main():
     parser.add_argument("--lattice-cells", type=int, default=10, help="interior lattice cells across a torus")
     parser.add_argument("--dt", type=float, default=1.0 / 1200.0, help="the scene's step [s] (split into inner "
                         "steps from the springs' stability limit)")
+    parser.add_argument("--integrator", default="semi_implicit_euler", help="the scene's integrator "
+                        "(implicit_euler: no spring limit on the step)")
+    parser.add_argument("--contact-stiffness", type=float, default=None, help="implicit_euler: contact penalty "
+                        "stiffness inside the solve [N/m] (the scene's contact_stiffness)")
+    parser.add_argument("--contact-damping", type=float, default=None, help="implicit_euler: contact damping inside "
+                        "the solve [N s/m]")
+    parser.add_argument("--newton-iterations", type=int, default=None, help="implicit_euler: Newton iterations a "
+                        "step (default: the scene's)")
+    parser.add_argument("--contact-iterations", type=int, default=None, help="implicit_euler: contact passes after a "
+                        "step (default: the scene's)")
+    parser.add_argument("--cg-tol", type=float, default=0.0, help="implicit_euler: CG tolerance relative to |rhs| "
+                        "(0: the integrator's default)")
+    parser.add_argument("--linear-solver", default=None, choices=["warp_cg", "block_cg"],
+                        help="implicit_euler: the CG (default: the integrator's auto choice; block_cg: no host "
+                        "read-back with --newton-iterations 1, so the step records in a CUDA graph)")
+    parser.add_argument("--contact-reach", type=float, default=None, help="implicit_euler: speculative contact "
+                        "distance beyond the thickness [m] (the scene's contact_reach)")
     parser.add_argument("--settle", type=int, default=1000, help="integration steps before timing (tori touching)")
     parser.add_argument("--steps", type=int, default=50, help="timed steps")
     parser.add_argument("--rebuild-every", type=int, default=None, help="SoftContact BVH rebuild period in steps "

@@ -685,13 +685,17 @@ def resolve_one(
     fraction: float,
     restitution: float,
     friction: float,
+    inv_dt: float,
     dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
 ):
     """One pass of contact slot c (module docstring): the position push removing ``fraction`` of the
     depth thickness - (sum a_k x_k) . n at the current positions (mass-weighted: the centre of mass
     does not move; no pull when the pair is already apart) and the normal impulse with restitution
-    and Coulomb friction from the current velocities."""
+    and Coulomb friction from the current velocities. A speculative contact (``inv_dt`` = 1 / step
+    > 0: found within ``reach`` beyond the thickness) may still approach by its gap beyond the
+    thickness in one step; only faster approach is removed (no restitution: no impact yet).
+    ``inv_dt`` 0: every approach is an impact."""
     particles = contact_particles[c]
     if particles[0] < 0:
         return
@@ -710,9 +714,12 @@ def resolve_one(
     if depth > 0.0:
         scatter_contact(particles, weights, inv_mass, (fraction * scale * depth / W) * n, dx_io)
     un = wp.dot(rel, n)
-    if un >= 0.0:
+    slack = wp.max(-depth, 0.0) * inv_dt  # approach speed [m/s] that closes the gap to the thickness in one step
+    if un >= -slack:
         return
     jn = -(1.0 + restitution) * un / W
+    if slack > 0.0:
+        jn = -(un + slack) / W
     impulse = jn * n
     vt = rel - un * n
     vt_len = wp.length(vt)
@@ -735,12 +742,13 @@ def resolve_contacts(
     fraction: float,
     restitution: float,
     friction: float,
+    inv_dt: float,
     dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
 ):
     """``resolve_one`` for every contact slot c."""
     resolve_one(wp.tid(), q, qd, inv_mass, contact_particles, contact_weights, contact_normal, particle_contacts,
-                thickness, fraction, restitution, friction, dx_io, dv_io)
+                thickness, fraction, restitution, friction, inv_dt, dx_io, dv_io)
 
 
 @wp.func

@@ -350,6 +350,7 @@ def resolve_listed(
     fraction: float,
     restitution: float,
     friction: float,
+    inv_dt: float,
     dx_io: wp.array2d(dtype=wp.int64),
     dv_io: wp.array2d(dtype=wp.int64),
 ):
@@ -357,7 +358,7 @@ def resolve_listed(
     t + stride, ... (the launch does not grow with the contact slots)."""
     for i in range(wp.tid(), listed[0], stride):
         resolve_one(active[i], q, qd, inv_mass, contact_particles, contact_weights, contact_normal,
-                    particle_contacts, thickness, fraction, restitution, friction, dx_io, dv_io)
+                    particle_contacts, thickness, fraction, restitution, friction, inv_dt, dx_io, dv_io)
 
 
 @wp.kernel

@@ -84,6 +84,12 @@ class SoftContact(Collider):
         search_every: "list" only: steps between the host's BVH refits, each followed by a search
             (between them the device searches when a vertex moved more than ``pad``; default
             ``SEARCH_EVERY``).
+        reach: speculative contact distance [m] beyond the thickness (default 0): pairs closer than
+            thickness + reach are kept as contacts, so a penalty in an implicit solve
+            (:meth:`implicit_force`) sees pairs that close during a large step before they touch;
+            after the step such a pair may still approach by its gap beyond the thickness in one
+            step, only faster approach is removed. Give at least the relative distance two bodies
+            travel in one step (the donuts scene: 2 x thickness at 1/240 s).
         capacity: "list" only: candidates kept per vertex or edge query; a query with more counts
             an overflow (``candidate_overflow``) and may miss contacts.
         rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
@@ -118,7 +124,7 @@ class SoftContact(Collider):
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
                  broad_phase: str = "bvh", rebuild_every: int | None = None, pad: float | None = None,
-                 search_every: int | None = None, capacity: int | None = None):
+                 search_every: int | None = None, capacity: int | None = None, reach: float = 0.0):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -138,6 +144,8 @@ class SoftContact(Collider):
                 checks.nonnegative(value, f"SoftContact {name}", unit="m", fix="or None for the default")
         push = checks.in_range(push, "SoftContact push", 0.0, 1.0, fix="a fraction of the depth removed per step")
         self.thickness = float(thickness)
+        self.reach = float(checks.nonnegative(reach, "SoftContact reach", unit="m",
+                                              fix="e.g. 2 x the thickness for steps of 1/240 s, or 0"))
         self.friction = float(friction)
         self.restitution = restitution
         self.self_contact = bool(self_contact)
@@ -204,8 +212,9 @@ class SoftContact(Collider):
 
     def step_distances(self, model, positions) -> np.ndarray | None:
         """Per particle, the most it may move in one step [m] (``warpsim.core.stability``): the contact
-        thickness, so that no vertex crosses it, and the surfaces it keeps apart, within one step."""
-        return np.full(model.particle_count, self.thickness)
+        thickness plus the speculative ``reach``, so that no vertex crosses it, and the surfaces it
+        keeps apart, within one step."""
+        return np.full(model.particle_count, self.thickness + self.reach)
 
     def tile(self, world_count: int, world_particle_count: int) -> SoftContact:
         """The same contact for ``world_count`` copies of the model laid end to end (world w owns
@@ -469,14 +478,14 @@ class SoftContact(Collider):
         all_pairs = self.broad_phase == "all_pairs"
         self._steps += 1
         if self.broad_phase == "list":
-            self._apply_listed(model, state, q_prev)
+            self._apply_listed(model, state, q_prev, dt)
             return
         self._particle_contacts.zero_()
         self._total.zero_()
         contact = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts,
                    self._total]
-        common = [model.particle_q, model.particle_inv_mass, self.thickness, self.search, int(self.self_contact),
-                  self.self_rest_distance]
+        common = [model.particle_q, model.particle_inv_mass, self.detect_distance, self.search,
+                  int(self.self_contact), self.self_rest_distance]
         vertex = [self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, state.positions]
         if all_pairs:
             wp.launch(K.find_vertex_contacts_all_pairs, v, inputs=[self._world_tri_start, *vertex, *common, *contact],
@@ -502,10 +511,20 @@ class SoftContact(Collider):
         for _ in range(self.iterations):
             wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
                                                          *slots, self.thickness, self.push, self.restitution,
-                                                         self.friction, self._dx, self._dv], device=d)
+                                                         self.friction, self._inv_dt(dt), self._dx, self._dv],
+                      device=d)
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)
 
+
+    @property
+    def detect_distance(self) -> float:
+        """Distance [m] within which pairs are kept as contacts: thickness + reach."""
+        return self.thickness + self.reach
+
+    def _inv_dt(self, dt) -> float:
+        """1 / dt [1/s] for speculative contacts (``reach`` > 0), else 0 (``resolve_one``)."""
+        return 1.0 / float(dt) if self.reach > 0.0 else 0.0
 
     def _refit_listed(self, q) -> None:
         """Host cadence (every ``search_every`` steps): rebuild the BVHs at the current positions and
@@ -520,7 +539,7 @@ class SoftContact(Collider):
         wp.launch(L.begin_search, self.vertex_count, inputs=[self._vertex, q, self._x_tree, self._flags, self._motion],
                   device=d)
 
-    def _record_listed(self, model, state, q_prev) -> list:
+    def _record_listed(self, model, state, q_prev, dt) -> list:
         """The launches of every step of ``broad_phase="list"``, recorded once (``record_cmd``: a
         replayed launch skips most of ``wp.launch``'s host work): check the motion, search if the flag
         is up (both pair kinds, one launch), lower it and clear the counts (``end_search``), the nearest
@@ -539,7 +558,7 @@ class SoftContact(Collider):
             record(L.check_motion, v, [self._vertex, q, q_prev, self._x_search, self._x_tree, self.pad,
                                        0.5 * self.thickness, self._flags, self._motion]),
             record(L.search_candidates, v + e, [
-                self._flags, self._motion, self.thickness, self.search, self.pad, self._body_bvh.id,
+                self._flags, self._motion, self.detect_distance, self.search, self.pad, self._body_bvh.id,
                 self._world_root, self._tri_bvh.id, self._body_tri_root, edge_tree[0], edge_tree[1],
                 self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, *edge_tree[2:], q,
                 model.particle_q, model.particle_inv_mass, int(self.self_contact), self.self_rest_distance,
@@ -547,27 +566,28 @@ class SoftContact(Collider):
             record(L.end_search, 1, [self._flags, self._motion, self._total, self._listed]),
             record(L.narrow_candidates, v + e, [
                 self._cand, self._cand_count, self.capacity, self._vertex, self._tri, edge_tree[3], q, q_prev,
-                self.thickness, self.search, *contact, self._particle_contacts, self._total, self._active,
+                self.detect_distance, self.search, *contact, self._particle_contacts, self._total, self._active,
                 self._touched, self._listed]),
         ]
         threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
         for k in range(self.iterations):
             launches.append(record(L.resolve_listed, threads[0], [
                 threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
-                self.thickness, self.push, self.restitution, self.friction, self._dx, self._dv]))
+                self.thickness, self.push, self.restitution, self.friction, self._inv_dt(dt), self._dx, self._dv]))
             launches.append(record(L.apply_listed, threads[1], [threads[1], self._listed, self._touched, self._dx, self._dv, q, qd,
                                                        int(k == self.iterations - 1), self._particle_contacts]))
         return launches
 
-    def _apply_listed(self, model, state, q_prev) -> None:
+    def _apply_listed(self, model, state, q_prev, dt) -> None:
         """``broad_phase="list"``: the host's refit cadence, then the recorded launches of a step
         (recorded again when an array or a setting they take changed)."""
         if (self._steps - 1) % self.search_every == 0:
             self._refit_listed(state.positions)
         key = (state.positions.ptr, state.velocities.ptr, q_prev.ptr, self.pad, self.thickness, self.search,
-               self.iterations, self.push, self.restitution, self.friction, self._bvh_ids())
+               self.iterations, self.push, self.restitution, self.friction, self.reach, self._inv_dt(dt),
+               self._bvh_ids())
         if getattr(self, "_recorded_key", None) != key:
-            self._recorded = self._record_listed(model, state, q_prev)
+            self._recorded = self._record_listed(model, state, q_prev, dt)
             self._recorded_key = key
         for launch in self._recorded:
             launch.launch()
@@ -585,10 +605,15 @@ class SoftContactForce(Force):
     By default the solve gets diagonal blocks m a_k^2 n n^T that bound the true stiffness (also for
     solvers without coupling blocks, ``ClothImplicitEuler``); with ``coupling`` the exact Jacobian
     -(k_c + c_c / h) (a a^T) (x) n n^T (diagonal blocks and 12 coupling blocks a contact:
-    ``ws.ImplicitEuler``). Either keeps implicit Euler stable at any step. Measured (CPU, 4 tori of
-    14 x 7 vertices, implicit Euler, k_c = 2,000 N/m, 40 frames): at 1/240 s the deepest vertex
-    2.6 mm with the bound, 29.0 mm exact; at 1/480 s 1.0 and 3.0 mm; edges crossed with both. The collider still runs after the step: new contacts, friction and any depth
-    left are resolved there. Momentum is conserved, sums are fixed point (bit-identical runs).
+    ``ws.ImplicitEuler``). Either keeps implicit Euler stable at any step. The penalty only sees
+    pairs the last search kept, so at large steps give the SoftContact a speculative ``reach``
+    (pairs that close during the step are in the solve before they touch). Measured (CPU, 4 tori of
+    14 x 7 vertices, implicit Euler, k_c = 2,000 N/m, 1/240 s, 30 frames): without reach the first
+    impact went 27 mm deep (thickness 6 mm) with 17-31 edges through the other torus, with
+    ``reach=0.012`` none deeper than the thickness and no edge through (later, while the squashed
+    stack sprang back, 6-22 edges crossed at frames 31-39; ``benchmarks/check_heap.py``). The
+    collider still runs after the step: new contacts, friction and any depth left are resolved
+    there. Momentum is conserved, sums are fixed point (bit-identical runs).
 
     Args:
         contact: the SoftContact (also in the Simulator's colliders).
