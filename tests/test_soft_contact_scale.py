@@ -83,7 +83,7 @@ def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, dt, 
     # 4 tori stacked one above the other; 24 in two layers of 16 + 8 (the second lands on the first);
     # semi-implicit Euler at the scene's step 1/1200 s (split by the springs' limit), implicit Euler
     # at 1/240 s (4 steps a frame) with the scene's speculative reach, contact penalty and 16
-    # contact passes (without the reach the first impact went 27 mm deep; with edge contact only
+    # contact passes (without the reach, edges passed through from frame 19; with edge contact only
     # for edges over 11.5 degrees from parallel, 6-22 edges crossed while the squashed stack of 4
     # sprang back, frames 31-39). Not yet held, so not tested: tori of 2,000 vertices at 1/240 s.
     params = cls.resolve_params({"count": count, **HEAP, "integrator": integrator, "box": 0.16 if count == 4 else 0.65,
