@@ -85,7 +85,8 @@ def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, dt, 
     # at 1/240 s (4 steps a frame) with the scene's speculative reach, contact penalty and 16
     # contact passes (without the reach, edges passed through from frame 19; with edge contact only
     # for edges over 11.5 degrees from parallel, 6-22 edges crossed while the squashed stack of 4
-    # sprang back, frames 31-39). Not yet held, so not tested: tori of 2,000 vertices at 1/240 s.
+    # sprang back, frames 31-39). Not yet held, so not tested: 12 tori of 24 x 12 vertices at 1/240 s
+    # (6-12 edges through at frames 29 and 44) and 12 of 2,000 vertices (benchmarks/check_heap.py).
     params = cls.resolve_params({"count": count, **HEAP, "integrator": integrator, "box": 0.16 if count == 4 else 0.65,
                                  "dt": dt})
     scene = cls(params, device=DEVICE)
