@@ -38,6 +38,7 @@ from .soft_contact import (
     BODY_BATCH,
     apply_one,
     collect_bodies,
+    counts_toward_scale,
     edge_edge_candidate,
     edge_edge_test,
     nearer,
@@ -247,20 +248,26 @@ def search_candidates(
 
 @wp.func
 def list_contact(
-    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, kind: int,
+    slot: int, particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, kind: int, q: wp.array(dtype=wp.vec3),
+    count_within: float,
     contact_particles_out: wp.array(dtype=wp.vec4i), contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3), particle_contacts_io: wp.array(dtype=int),
+    seen_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int), active_out: wp.array(dtype=int), touched_out: wp.array(dtype=int),
     listed_io: wp.array(dtype=int),
 ):
     """Store contact ``slot``, append it to ``active`` and each of its particles seen for the
-    first time to ``touched`` (listed[0], listed[1]: their lengths)."""
+    first time to ``touched`` (listed[0], listed[1]: their lengths); the particles' contact
+    counts (the Jacobi scale) take it only within ``count_within`` (``counts_toward_scale``)."""
     contact_particles_out[slot] = particles
     contact_weights_out[slot] = weights
     contact_normal_out[slot] = normal
+    counted = counts_toward_scale(particles, weights, normal, q, count_within)
     for k in range(4):
-        if wp.atomic_add(particle_contacts_io, particles[k], 1) == 0:
+        if wp.atomic_add(seen_io, particles[k], 1) == 0:
             touched_out[wp.atomic_add(listed_io, 1, 1)] = particles[k]
+        if counted:
+            wp.atomic_add(particle_contacts_io, particles[k], 1)
     wp.atomic_add(contact_total_io, kind, 1)
     active_out[wp.atomic_add(listed_io, 0, 1)] = slot
 
@@ -277,10 +284,12 @@ def narrow_candidates(
     q_prev: wp.array(dtype=wp.vec3),
     thickness: float,
     search: float,
+    count_within: float,
     contact_particles_out: wp.array(dtype=wp.vec4i),
     contact_weights_out: wp.array(dtype=wp.vec4),
     contact_normal_out: wp.array(dtype=wp.vec3),
     particle_contacts_io: wp.array(dtype=int),
+    seen_io: wp.array(dtype=int),
     contact_total_io: wp.array(dtype=int),
     active_out: wp.array(dtype=int),
     touched_out: wp.array(dtype=int),
@@ -309,9 +318,9 @@ def narrow_candidates(
                 best_normal = n
         if best >= 0:
             list_contact(i, wp.vec4i(p, tri[3 * best], tri[3 * best + 1], tri[3 * best + 2]),
-                         wp.vec4(1.0, -best_w[0], -best_w[1], -best_w[2]), best_normal, 0, contact_particles_out,
-                         contact_weights_out, contact_normal_out, particle_contacts_io, contact_total_io,
-                         active_out, touched_out, listed_io)
+                         wp.vec4(1.0, -best_w[0], -best_w[1], -best_w[2]), best_normal, 0, q, count_within,
+                         contact_particles_out, contact_weights_out, contact_normal_out, particle_contacts_io,
+                         seen_io, contact_total_io, active_out, touched_out, listed_io)
         return
     e = i - V
     xa = q[edges[2 * e]]
@@ -330,8 +339,9 @@ def narrow_candidates(
         u = best_w[0]
         s = best_w[1]
         list_contact(i, wp.vec4i(edges[2 * e], edges[2 * e + 1], edges[2 * best], edges[2 * best + 1]),
-                     wp.vec4(1.0 - u, u, s - 1.0, -s), best_normal, 1, contact_particles_out, contact_weights_out,
-                     contact_normal_out, particle_contacts_io, contact_total_io, active_out, touched_out, listed_io)
+                     wp.vec4(1.0 - u, u, s - 1.0, -s), best_normal, 1, q, count_within, contact_particles_out,
+                     contact_weights_out, contact_normal_out, particle_contacts_io, seen_io, contact_total_io,
+                     active_out, touched_out, listed_io)
 
 
 @wp.kernel
@@ -372,11 +382,13 @@ def apply_listed(
     qd_io: wp.array(dtype=wp.vec3),
     last: int,
     particle_contacts_io: wp.array(dtype=int),
+    seen_io: wp.array(dtype=int),
 ):
     """``apply_one`` for every particle in a contact (``stride`` threads, as ``resolve_listed``);
-    after the last pass (``last`` 1) also zero its contact count for the next step."""
+    after the last pass (``last`` 1) also zero its contact count and seen mark for the next step."""
     for i in range(wp.tid(), listed[1], stride):
         p = touched[i]
         apply_one(p, dx_io, dv_io, q_io, qd_io)
         if last != 0:
             particle_contacts_io[p] = 0
+            seen_io[p] = 0

@@ -85,3 +85,24 @@ def test_without_reach_the_same_pair_is_no_contact_until_it_touches():
 def test_reach_must_be_a_distance():
     with pytest.raises(ValueError, match="reach"):
         ws.SoftContact([np.array([[0, 1, 2]]), np.array([[3, 4, 5]])], reach=-0.01)
+
+
+def test_speculative_contacts_do_not_weaken_a_touching_one():
+    # one vertex 3 mm over a pinned triangle (inside the 6 mm thickness) and three more 14 mm over it
+    # (within the reach, at rest): the touching contact is resolved as if alone; when the three counted
+    # in the triangle's contact counts (the Jacobi scale) it was pushed a quarter of the way
+    thickness = 0.006
+    b = ws.ModelBuilder()
+    for x, z, h in ((0.1, 0.1, 0.003), (0.3, 0.1, 0.014), (0.1, 0.3, 0.014), (0.25, 0.25, 0.014)):
+        b.add_particle((x, h, z), mass=0.01)
+    for p in ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0)):
+        b.add_particle(p, mass=0.0)
+    bodies = [np.array([[i, i, i]]) for i in range(4)] + [np.array([[4, 5, 6]])]
+    contact = ws.SoftContact(bodies, thickness=thickness, reach=0.012, friction=0.0, iterations=1, push=1.0,
+                             broad_phase="all_pairs")
+    sim = ws.Simulator(b.finalize(DEVICE), forces=[], colliders=[contact])
+    sim.step(1.0 / 240.0)
+    y = sim.state.positions.numpy()[:, 1]
+    assert contact.contact_count == 4
+    assert y[0] == pytest.approx(thickness, abs=1e-6)  # pushed out to the thickness in one pass
+    np.testing.assert_allclose(y[1:4], 0.014, atol=1e-7)  # the speculative ones did not move

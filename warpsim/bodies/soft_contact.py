@@ -345,6 +345,7 @@ class SoftContact(Collider):
         self._motion = wp.zeros(2, dtype=float, device=d)  # moved since the refit, in this step (max)
         self._active = wp.zeros(slots, dtype=int, device=d)
         self._touched = wp.zeros(n, dtype=int, device=d)
+        self._seen = wp.zeros(n, dtype=int, device=d)  # a particle's contacts this step (the touched list's marks)
         self._listed = wp.zeros(2, dtype=int, device=d)
 
     def record_candidates(self, on: bool = True) -> None:
@@ -407,6 +408,8 @@ class SoftContact(Collider):
         if name == "list" and not hasattr(self, "_cand"):
             self._bind_list(self.model.particle_count, self.vertex_count + self.edge_count)
         self._particle_contacts.zero_()  # the list's steps start from zero counts (the BVH search leaves them)
+        if hasattr(self, "_seen"):
+            self._seen.zero_()
         self._recorded_key: tuple | None = None
         self._steps = 0
 
@@ -484,7 +487,7 @@ class SoftContact(Collider):
         self._total.zero_()
         contact = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts,
                    self._total]
-        common = [model.particle_q, model.particle_inv_mass, self.detect_distance, self.search,
+        common = [model.particle_q, model.particle_inv_mass, self.detect_distance, self.search, self.thickness,
                   int(self.self_contact), self.self_rest_distance]
         vertex = [self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, state.positions]
         if all_pairs:
@@ -566,8 +569,8 @@ class SoftContact(Collider):
             record(L.end_search, 1, [self._flags, self._motion, self._total, self._listed]),
             record(L.narrow_candidates, v + e, [
                 self._cand, self._cand_count, self.capacity, self._vertex, self._tri, edge_tree[3], q, q_prev,
-                self.detect_distance, self.search, *contact, self._particle_contacts, self._total, self._active,
-                self._touched, self._listed]),
+                self.detect_distance, self.search, self.thickness, *contact, self._particle_contacts, self._seen,
+                self._total, self._active, self._touched, self._listed]),
         ]
         threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
         for k in range(self.iterations):
@@ -575,7 +578,8 @@ class SoftContact(Collider):
                 threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
                 self.thickness, self.push, self.restitution, self.friction, self._inv_dt(dt), self._dx, self._dv]))
             launches.append(record(L.apply_listed, threads[1], [threads[1], self._listed, self._touched, self._dx, self._dv, q, qd,
-                                                       int(k == self.iterations - 1), self._particle_contacts]))
+                                                       int(k == self.iterations - 1), self._particle_contacts,
+                                                       self._seen]))
         return launches
 
     def _apply_listed(self, model, state, q_prev, dt) -> None:
