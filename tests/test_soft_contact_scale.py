@@ -74,28 +74,31 @@ def test_segment_triangle_oracle():
     assert segments_cross_triangles(p0, p1, tri).tolist() == [True, False, False]
 
 
-@pytest.mark.parametrize("count, integrator, dt, frames", [(4, "semi_implicit_euler", 1.0 / 1200.0, 30),
-                                                           (4, "implicit_euler", 1.0 / 240.0, 40),
-                                                           (24, "semi_implicit_euler", 1.0 / 1200.0, 18),
-                                                           (24, "implicit_euler", 1.0 / 240.0, 24)])
-def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, dt, frames):
+@pytest.mark.parametrize("count, integrator, dt, frames, tori", [(4, "semi_implicit_euler", 1.0 / 1200.0, 30, "heap"),
+                                                                 (4, "implicit_euler", 1.0 / 240.0, 40, "heap"),
+                                                                 (24, "semi_implicit_euler", 1.0 / 1200.0, 18, "heap"),
+                                                                 (12, "implicit_euler", 1.0 / 240.0, 45, "default")])
+def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, dt, frames, tori):
     cls = get_scene("donuts")
     # 4 tori stacked one above the other; 24 in two layers of 16 + 8 (the second lands on the first);
+    # the scene's own heap (12 tori of 24 x 12 vertices in 3 layers) until it has settled (checked
+    # every 5 frames: the oracles cost more than the steps);
     # semi-implicit Euler at the scene's step 1/1200 s (split by the springs' limit), implicit Euler
     # at 1/240 s (4 steps a frame) with the scene's speculative reach, contact penalty and 16
-    # contact passes (without the reach, edges passed through from frame 19; with edge contact only
+    # contact passes. Without the reach, edges passed through from frame 19; with edge contact only
     # for edges over 11.5 degrees from parallel, 6-22 edges crossed while the squashed stack of 4
-    # sprang back, frames 31-39). Not yet held, so not tested: 12 tori of 24 x 12 vertices at 1/240 s
-    # (6-12 edges through at frames 29 and 44) and 12 of 2,000 vertices (benchmarks/check_heap.py).
-    params = cls.resolve_params({"count": count, **HEAP, "integrator": integrator, "box": 0.16 if count == 4 else 0.65,
-                                 "dt": dt})
+    # sprang back (frames 31-39); with the speculative pairs in the Jacobi scale, 12 and 6 edges of
+    # the scene's heap at frames 29 and 44. Not yet held, so not tested: 12 tori of 2,000 vertices.
+    shape, every = (HEAP, 3) if tori == "heap" else ({}, 5)
+    params = cls.resolve_params({"count": count, **shape, "integrator": integrator, "dt": dt,
+                                 "box": {4: 0.16, 24: 0.65}.get(count, 0.0)})
     scene = cls(params, device=DEVICE)
     substeps = round(1.0 / 60.0 / params["dt"])
     most, worst = 0, 0.0
     for frame in range(frames):
         scene.advance(1.0 / 60.0, substeps)
         most = max(most, scene.contact.contact_count)
-        if frame % 3 == 2 or frame == frames - 1:
+        if frame % every == every - 1 or frame == frames - 1:
             x = scene.sim.state.positions.numpy()
             worst = max(worst, deepest_vertex(x, scene.bodies))
             assert edges_through_other_bodies(x, scene.bodies) == [], frame

@@ -20,10 +20,9 @@ the springs' stability limit needs (:func:`stable_inner_steps`). With ``integrat
 the springs set no limit and a frame can take 4 steps (``warpsim run donuts --set
 integrator=implicit_euler --fps 60 --substeps 4``: 1/240 s); the contacts then enter the implicit solve
 as a penalty (``contact_stiffness``) with a speculative ``contact_reach`` and 16 passes after each
-step. Held at 1/240 s (no vertex deeper than the thickness, no edge through a triangle) for 14 x 7
-tori (4 stacked, 24 landing: tests) and 2 tori of 2,000 vertices; not yet for every heap: 12 default
-tori let 6-12 edges through at frames 29 and 44 (none with ``contact_reach=0.018``, which lets the
-stack of 4 cross), 12 tori of 2,000 vertices 336 at frame 29 (benchmarks/RESULTS.md). Prims:
+step. Held at 1/240 s (no vertex deeper than the thickness, no edge through a triangle) for this
+scene's 12 tori over 45 frames, 14 x 7 tori (4 stacked, 24 landing) and 2 tori of 2,000 vertices; not
+yet for 12 tori of 2,000 vertices (benchmarks/RESULTS.md). Prims:
 ``donuts`` (one mesh, all tori; custom ``warpsim:kineticEnergy`` [J])
 and ``walls`` (the box).
 """
