@@ -35,8 +35,8 @@ def test_compressed_spring_landing_on_an_inelastic_plane_gains_no_energy_with_im
         x, v = sim.state.positions.numpy().astype(np.float64), sim.state.velocities.numpy().astype(np.float64)
         assert x[0, 1] >= -1e-6  # the plane holds
         # backward Euler only dissipates and an inelastic plane takes energy: it never rises (with
-        # the start force's parabola the velocity was handed back staggered by -a_n dt / 2: the
-        # particle left the plane at 4.2 m/s at 1/240 s)
+        # the start force's parabola the velocity was handed back staggered by -a_n dt / 2, 4.2 m/s
+        # at 1/240 s for the start acceleration of -2,000 m/s^2)
         assert spring_energy(x, v, m, k, 0.02, g) <= before * (1.0 + 1e-4) + 1e-9
     assert np.abs(sim.state.forces.numpy()).max() == 0.0  # the step's path acceleration: none
 
