@@ -171,14 +171,19 @@ def profile(scene, h, steps, device, top=14):
         contact.record_candidates(False)
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_heap_arguments(parser) -> None:
+    """The heap's device, torus count and torus resolution (also ``check_heap.py``'s)."""
     parser.add_argument("--device", default=None, help="Warp device (cpu, cuda:0); default: Warp's preferred")
     parser.add_argument("--count", type=int, default=12, help="number of tori")
-    parser.add_argument("--compare-count", type=int, default=0, help="also time a heap of this many tori")
     parser.add_argument("--segments", type=int, default=50, help="torus segments around its axis")
     parser.add_argument("--sides", type=int, default=40, help="torus segments around its tube")
     parser.add_argument("--lattice-cells", type=int, default=10, help="interior lattice cells across a torus")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_heap_arguments(parser)
+    parser.add_argument("--compare-count", type=int, default=0, help="also time a heap of this many tori")
     parser.add_argument("--dt", type=float, default=1.0 / 1200.0, help="the scene's step [s] (split into inner "
                         "steps from the springs' stability limit)")
     parser.add_argument("--integrator", default="semi_implicit_euler", help="the scene's integrator "

@@ -24,6 +24,7 @@ from fractions import Fraction
 
 import numpy as np
 import warp as wp
+from bench_donuts import add_heap_arguments
 
 from warpsim.scenes import get_scene
 
@@ -34,11 +35,7 @@ from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default=None, help="Warp device (cpu, cuda:0); default: Warp's preferred")
-    parser.add_argument("--count", type=int, default=12, help="number of tori")
-    parser.add_argument("--segments", type=int, default=50, help="torus segments around its axis")
-    parser.add_argument("--sides", type=int, default=40, help="torus segments around its tube")
-    parser.add_argument("--lattice-cells", type=int, default=10, help="interior lattice cells across a torus")
+    add_heap_arguments(parser)
     parser.add_argument("--integrator", default="implicit_euler", help="the scene's integrator")
     parser.add_argument("--dt", default="1/240", help="step [s], e.g. 1/240 (a frame of 1/60 s is split into steps)")
     parser.add_argument("--frames", type=int, default=40, help="frames of 1/60 s")

@@ -281,16 +281,23 @@ def nearer(d: float, index: int, best_d: float, best: int) -> bool:
 
 
 @wp.func
+def contact_depth(particles: wp.vec4i, weights: wp.vec4, n: wp.vec3, q: wp.array(dtype=wp.vec3),
+                  thickness: float) -> float:
+    """Depth [m] of a contact at positions q: thickness - (sum a_k x_k) . n (> 0: closer than the thickness)."""
+    gap = wp.vec3()
+    for k in range(4):
+        gap += weights[k] * q[particles[k]]
+    return thickness - wp.dot(gap, n)
+
+
+@wp.func
 def counts_toward_scale(particles: wp.vec4i, weights: wp.vec4, normal: wp.vec3, q: wp.array(dtype=wp.vec3),
                         count_within: float) -> bool:
     """Whether a contact counts in its particles' contact counts (the Jacobi scale of
     ``contact_scale``): its gap (sum a_k x_k) . n is under ``count_within`` (the thickness).
     Speculative contacts further apart (``reach``) do not: they act only when approaching fast,
     and counting them divided a dense patch's corrections by up to 37 (11 on average)."""
-    gap = wp.vec3()
-    for k in range(4):
-        gap += weights[k] * q[particles[k]]
-    return wp.dot(gap, normal) < count_within
+    return contact_depth(particles, weights, normal, q, count_within) > 0.0
 
 
 @wp.func
@@ -813,15 +820,6 @@ def apply_contact_deltas(
 # Cauchy-Schwarz (sum a_k x_k)^2 <= m sum a_k^2 x_k^2, so the diagonal stiffness is at least the
 # true one in every direction and the linearly implicit step stays stable at any step size (with
 # a softer diagonal, z = h^2 k / m past 4/3 of its inverse scale, it would not). Sums in fixed point.
-@wp.func
-def contact_depth(particles: wp.vec4i, weights: wp.vec4, n: wp.vec3, q: wp.array(dtype=wp.vec3),
-                  thickness: float) -> float:
-    gap = wp.vec3()
-    for k in range(4):
-        gap += weights[k] * q[particles[k]]
-    return thickness - wp.dot(gap, n)
-
-
 @wp.kernel
 def eval_contact_forces(
     q: wp.array(dtype=wp.vec3),
