@@ -50,6 +50,7 @@ def build(args, count, device):
                                      ("contact_stiffness", args.contact_stiffness),
                                      ("contact_damping", args.contact_damping),
                                      ("newton_iterations", args.newton_iterations),
+                                     ("solver_iterations", getattr(args, "solver_iterations", None)),
                                      ("contact_reach", args.contact_reach),
                                      ("contact_iterations", args.contact_iterations)) if value is not None}})
     scene = cls(params, device=device)
@@ -187,7 +188,9 @@ def main():
     parser.add_argument("--dt", type=float, default=1.0 / 1200.0, help="the scene's step [s] (split into inner "
                         "steps from the springs' stability limit)")
     parser.add_argument("--integrator", default="semi_implicit_euler", help="the scene's integrator "
-                        "(implicit_euler: no spring limit on the step)")
+                        "(implicit_euler, fast_mass_spring: no spring limit on the step)")
+    parser.add_argument("--solver-iterations", type=int, default=None, help="fast_mass_spring: local-global "
+                        "iterations a step (default: the scene's)")
     parser.add_argument("--contact-stiffness", type=float, default=None, help="implicit_euler: contact penalty "
                         "stiffness inside the solve [N/m] (the scene's contact_stiffness)")
     parser.add_argument("--contact-damping", type=float, default=None, help="implicit_euler: contact damping inside "

@@ -33,7 +33,8 @@ if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and 
         cloth_energy,
     )
     from .core import (
-        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity,
+        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, FastMassSpring, Force, ForceField,
+        Gravity,
         ImplicitEuler, Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem,
         SemiImplicitEuler, SimulationError, Simulator, Springs, State, Wind, exact_period,
     )
@@ -63,7 +64,8 @@ def _load_all():
         cloth_energy,
     )
     from .core import (
-        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, Force, ForceField, Gravity,
+        INTEGRATORS, RK2, RK4, ConstantForce, Drag, DynamicSystem, ExplicitEuler, FastMassSpring, Force, ForceField,
+        Gravity,
         ImplicitEuler, Integrator, Magnets, Model, ModelBuilder, ParticleSystem, Pendulum, PendulumSystem,
         SemiImplicitEuler, SimulationError, Simulator, Springs, State, Wind, exact_period,
     )
@@ -84,7 +86,7 @@ __all__ = [
     "ParticleCollisions", "keyframe_motion", "DragSpring", "pick_particle", "SoftBody", "add_soft_body", "load_mesh",
     "teapot_mesh", "Cloth", "add_cloth_grid", "add_cloth_mesh", "cloth_energy", "ClothImplicitEuler",
     "ClothSemiImplicitEuler", "ClothSimulator",
-    "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS",
+    "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler", "RK2", "RK4", "INTEGRATORS", "FastMassSpring",
     "MarchingCubes", "MarchingCubesResult", "marching_cubes", "topology_changed", "Metaballs",
     "AgentState", "BoidParams", "Crowd", "Flock", "FoodSources", "Obstacles", "Terrain", "WalkerParams",
     "MacGrid", "PressureSolver", "Advector", "LevelSet", "LevelSetLiquid", "Smoke", "FlipLiquid", "Viscosity",

@@ -328,6 +328,7 @@ class SoftContact(Collider):
         self._total = wp.zeros(2, dtype=int, device=d)
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
+        self._still: wp.array | None = None  # zero velocities of ``project_positions`` (made on first use)
         if self.broad_phase == "list":
             self._bind_list(n, slots)
         self.record_candidates(False)
@@ -519,6 +520,28 @@ class SoftContact(Collider):
             wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
                       device=d)
 
+
+    def project_positions(self, q, passes: int = 1) -> None:
+        """Push the pairs found by the last step's search apart at the positions ``q`` (``passes``
+        Jacobi passes of the position push alone: no velocity changes, no search), for a solver that
+        iterates on positions within a step (``ws.FastMassSpring(contacts=...)``: between its
+        iterations the springs then adapt to the pushed vertices). The pairs are those within
+        thickness + reach at the end of the last step; the push uses their stored normals and weights."""
+        d, n = self.model.device, self.model.particle_count
+        if self._still is None:
+            self._still = wp.zeros(n, dtype=wp.vec3, device=d)  # allocated once, at the first step
+        slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
+        for _ in range(passes):
+            # zero velocities: resolve_one's impulse is zero (u_n = 0, no slack at inv_dt 0)
+            wp.launch(K.resolve_contacts, self.vertex_count + self.edge_count,
+                      inputs=[q, self._still, self.model.particle_inv_mass, *slots, self.thickness, self.push, 0.0, 0.0,
+                              0.0, self._dx, self._dv], device=d)
+            wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, q, self._still], device=d)
+
+    @property
+    def vertex_particles(self) -> np.ndarray:
+        """Particle index of each contact vertex (surface vertices of the bodies), shape (V,) (reads back)."""
+        return self._vertex.numpy()
 
     @property
     def detect_distance(self) -> float:

@@ -11,6 +11,7 @@ Entry classes: ModelBuilder, Simulator, Gravity, Springs, SemiImplicitEuler, Pen
 
 from .builder import ModelBuilder
 from .errors import SimulationError
+from .fast_mass_spring import FastMassSpring
 from .forces import ConstantForce, Drag, Force, ForceField, Gravity, Magnets, Springs, Wind
 from .fracture import BreakReport, SpringFracture, spring_segments
 from .integrators import INTEGRATORS, RK2, RK4, ExplicitEuler, ImplicitEuler, Integrator, SemiImplicitEuler
@@ -23,6 +24,6 @@ from .system import DynamicSystem, ParticleSystem, PendulumSystem
 __all__ = [
     "ModelBuilder", "Model", "State", "Simulator", "SimulationError", "Force", "Gravity", "ConstantForce", "Wind",
     "Magnets", "Drag", "Springs", "ForceField", "Integrator", "ExplicitEuler", "SemiImplicitEuler", "ImplicitEuler",
-    "RK2", "RK4", "INTEGRATORS", "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
+    "RK2", "RK4", "INTEGRATORS", "FastMassSpring", "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem",
     "SpringFracture", "BreakReport", "spring_segments", "StabilityLimit", "StabilityWarning",
 ]

@@ -91,6 +91,7 @@ METHODS = {
     "cloth_semi_implicit_euler": "semi_implicit_euler",
     "cloth_implicit_euler": "implicit_euler",
     "strand_implicit_euler": "implicit_euler",
+    "fast_mass_spring": "implicit_euler",  # backward Euler's springs (other forces explicit: gravity, drag)
 }
 """Integrator name -> the method whose stability region it has."""
 

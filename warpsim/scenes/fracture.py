@@ -394,7 +394,9 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "seed": (1, "random orientations"),
     "gravity": (9.81, "gravitational acceleration [m/s^2]"),
     "dt": (1.0 / 1200.0, "time step [s] (split further where the springs' stability limit needs it)"),
-    "integrator": ("semi_implicit_euler", "time integrator", INTEGRATORS),
+    "integrator": ("semi_implicit_euler", ("time integrator; fast_mass_spring: backward Euler by local-global "
+                                           "iterations with one prefactored matrix for all tori (ws.FastMassSpring)"),
+                   INTEGRATORS + ("fast_mass_spring",)),
     "contact_stiffness": (2000.0, ("implicit_euler only: penalty stiffness of the contacts inside the implicit solve "
                                    "[N/m] (SoftContact.implicit_force; 0: off, contact only after the step)")),
     "contact_damping": (0.0, "implicit_euler only: damping of the contacts inside the implicit solve [N s/m]"),
@@ -404,6 +406,7 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "contact_iterations": (16, ("implicit_euler only: contact passes after each step (SoftContact iterations; "
                                 "4 with semi_implicit_euler)")),
     "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
+    "solver_iterations": (10, "fast_mass_spring only: local-global iterations per step"),
 }, substeps=20)
 class DonutsScene(SimulatorScene):
     """See the module docstring; ``self.torus`` is the first torus's SoftBody record and
@@ -417,7 +420,7 @@ class DonutsScene(SimulatorScene):
 
     def build(self, p):
         _positive(p, "count", "segments", "sides", "major_radius", "minor_radius", "mass", "stiffness",
-                  "lattice_cells", "thickness", "gravity", "newton_iterations", "contact_iterations")
+                  "lattice_cells", "thickness", "gravity", "newton_iterations", "contact_iterations", "solver_iterations")
         for key, unit in (("contact_stiffness", "N/m"), ("contact_damping", "N s/m"), ("contact_reach", "m")):
             if not (math.isfinite(p[key]) and p[key] >= 0.0):
                 raise ValueError(f"{key}={p[key]}: give a number >= 0 [{unit}] (contact_stiffness 0: no contact "
@@ -470,7 +473,7 @@ class DonutsScene(SimulatorScene):
         # at implicit Euler's large steps: speculative pairs in the solve and more passes after it
         # (measured: 2 tori of 2,000 vertices at 1/240 s cross with 4 passes, not with 8 or 16)
         implicit_contact = ({"reach": p["contact_reach"], "iterations": int(p["contact_iterations"])}
-                            if p["integrator"] == "implicit_euler" else {})
+                            if p["integrator"] in ("implicit_euler", "fast_mass_spring") else {})
         if count > 1 or p["self_contact"]:
             self.contact = SoftContact.copies(template.faces, self.offsets, thickness=p["thickness"],
                                               self_contact=p["self_contact"], edge_contact=p["edge_contact"],
@@ -478,7 +481,12 @@ class DonutsScene(SimulatorScene):
         colliders = [ws.Box(self.lower, self.upper, **kw)] + ([self.contact] if self.contact else [])
         forces: list = [ws.Gravity((0.0, -p["gravity"], 0.0))]
         integrator = p["integrator"]
-        if integrator == "implicit_euler":
+        if integrator == "fast_mass_spring":
+            # the springs implicit, contact after the step (a penalty would enter explicitly: unstable)
+            integrator = ws.FastMassSpring(iterations=int(p["solver_iterations"]), body_size=template.particle_count,
+                                           contacts=[self.contact] if self.contact is not None else [],
+                                           contact_stiffness=p["contact_stiffness"])
+        elif integrator == "implicit_euler":
             integrator = ws.ImplicitEuler(newton_iterations=p["newton_iterations"])
             if self.contact is not None and p["contact_stiffness"] > 0.0:
                 forces.append(self.contact.implicit_force(p["contact_stiffness"], p["contact_damping"]))
