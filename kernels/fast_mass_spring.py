@@ -27,14 +27,8 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-TILE_M = wp.constant(32)
-"""Rows (copy coordinates) of an output tile."""
-TILE_N = wp.constant(32)
-"""Columns (particles of a copy) of an output tile."""
-TILE_K = wp.constant(32)
-"""Inner dimension of a tile product."""
-TILE_THREADS = 128
-"""Threads of a tile block (CUDA); the CPU runs a tile block on one thread."""
+TILE_THREADS = 256
+"""Threads of a tile block on CUDA (the CPU runs a tile block on one thread)."""
 
 
 @wp.kernel
@@ -84,18 +78,28 @@ def local_rhs(q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), y: wp.arr
     rhs_out[3 * t + 2, col] = b[2]
 
 
-@wp.kernel
-def global_solve(rhs: wp.array2d(dtype=float), inverse: wp.array2d(dtype=float), x_out: wp.array2d(dtype=float)):
-    """X = B A^-1 for one (TILE_M x TILE_N) output tile: B (3T x P), A^-1 (P x P, symmetric),
-    the inner dimension in TILE_K steps in a fixed order (tiles past the edges read zeros)."""
-    i, j = wp.tid()
-    acc = wp.tile_zeros(shape=(TILE_M, TILE_N), dtype=float)
-    steps = (inverse.shape[0] + TILE_K - 1) / TILE_K
-    for k in range(steps):
-        a = wp.tile_load(rhs, shape=(TILE_M, TILE_K), offset=(i * TILE_M, k * TILE_K))
-        b = wp.tile_load(inverse, shape=(TILE_K, TILE_N), offset=(k * TILE_K, j * TILE_N))
-        wp.tile_matmul(a, b, acc)
-    wp.tile_store(x_out, acc, offset=(i * TILE_M, j * TILE_N))
+def tile_product(tile: int):
+    """The global step's kernel with square tiles of ``tile``: X = B A^-1 for one (tile x tile)
+    output block, B (3T x P), A^-1 (P x P, symmetric), the inner dimension in tile steps in a fixed
+    order (tiles past the edges read zeros). Made at import for the sizes in ``GLOBAL_SOLVE``."""
+    size = wp.constant(tile)
+
+    def global_solve(rhs: wp.array2d(dtype=float), inverse: wp.array2d(dtype=float), x_out: wp.array2d(dtype=float)):
+        i, j = wp.tid()
+        acc = wp.tile_zeros(shape=(size, size), dtype=float)
+        steps = (inverse.shape[0] + size - 1) / size
+        for k in range(steps):
+            a = wp.tile_load(rhs, shape=(size, size), offset=(i * size, k * size))
+            b = wp.tile_load(inverse, shape=(size, size), offset=(k * size, j * size))
+            wp.tile_matmul(a, b, acc)
+        wp.tile_store(x_out, acc, offset=(i * size, j * size))
+
+    return wp.Kernel(global_solve, key=f"global_solve_{tile}")
+
+
+GLOBAL_SOLVE = {tile: tile_product(tile) for tile in (32, 64)}
+"""Tile size -> global-step kernel: 32 on the CPU (less padding of small batches), 64 on CUDA (twice
+the arithmetic per byte loaded; ``benchmarks/RESULTS.md``)."""
 
 
 @wp.kernel

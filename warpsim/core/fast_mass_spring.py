@@ -175,12 +175,13 @@ class FastMassSpring(Integrator):
             force.eval(q, qd, time, 0.0, self.f_ext)
         wp.launch(K.predict, n, inputs=[q, qd, self.f_ext, system.inv_mass, h, self.q0, self.y], device=d)
         springs = [self._entry_offsets, self._entry_other, self._entry_rest, self._entry_stiffness, self._entry_damping]
-        tiles = ((3 * self.T + K.TILE_M - 1) // K.TILE_M, (self.P + K.TILE_N - 1) // K.TILE_N)
+        tile = 32 if d.is_cpu else 64
+        tiles = ((3 * self.T + tile - 1) // tile, (self.P + tile - 1) // tile)
         for _ in range(self.iterations):
             wp.launch(K.local_rhs, n, inputs=[q, self.q0, self.y, system.mass, *springs, self.proximal, self.P,
                                               self.rhs],
                       device=d)
-            wp.launch_tiled(K.global_solve, dim=tiles, inputs=[self.rhs, self.inverse, self.x], block_dim=K.TILE_THREADS,
+            wp.launch_tiled(K.GLOBAL_SOLVE[tile], dim=tiles, inputs=[self.rhs, self.inverse, self.x], block_dim=K.TILE_THREADS,
                             device=d)
             wp.launch(K.scatter_positions, n, inputs=[self.x, self.P, q], device=d)
             for contact in self.contacts:
