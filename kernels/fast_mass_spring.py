@@ -98,8 +98,8 @@ def tile_product(tile: int):
 
 
 GLOBAL_SOLVE = {tile: tile_product(tile) for tile in (32, 64)}
-"""Tile size -> global-step kernel: 32 on the CPU (less padding of small batches), 64 on CUDA (twice
-the arithmetic per byte loaded; ``benchmarks/RESULTS.md``)."""
+"""Tile size -> global-step kernel: 32 on the CPU and for small batches (less padding), 64 on CUDA
+for large ones (twice the arithmetic per byte loaded; ``benchmarks/RESULTS.md``)."""
 
 
 @wp.kernel

@@ -811,6 +811,78 @@ def apply_contact_deltas(
     apply_one(wp.tid(), dx_io, dv_io, q_io, qd_io)
 
 
+@wp.kernel
+def push_contacts(
+    q: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    particle_contacts: wp.array(dtype=int),
+    thickness: float,
+    fraction: float,
+    max_depth: float,
+    dx_io: wp.array2d(dtype=wp.int64),
+):
+    """The position push of ``resolve_one`` alone, for every contact slot c, at positions q (no
+    velocities: ``SoftContact.project_positions`` inside a solver's iterations). A pair deeper than
+    ``max_depth`` [m] is left alone: its vertex has passed the plane stored at the search (or slid
+    off its triangle), and pushing it along the stored normal would throw it (the collider's next
+    search sees it afresh)."""
+    c = wp.tid()
+    particles = contact_particles[c]
+    if particles[0] < 0:
+        return
+    weights = contact_weights[c]
+    W = effective_inv_mass(particles, weights, inv_mass)
+    n = contact_normal[c]
+    depth = contact_depth(particles, weights, n, q, thickness)
+    if W <= 0.0 or depth <= 0.0 or depth > max_depth:
+        return
+    scale = contact_scale(particles, particle_contacts)
+    scatter_contact(particles, weights, inv_mass, (fraction * scale * depth / W) * n, dx_io)
+
+
+@wp.kernel
+def list_touched(contact_particles: wp.array(dtype=wp.vec4i), mark_io: wp.array(dtype=int),
+                 touched_out: wp.array(dtype=int), count_io: wp.array(dtype=int)):
+    """Append every particle of contact slot c to ``touched`` once (the thread that raises its mark
+    from 0 appends it; the list's order varies on a GPU, the fixed-point deltas applied from it do not)."""
+    particles = contact_particles[wp.tid()]
+    if particles[0] < 0:
+        return
+    for k in range(4):
+        p = particles[k]
+        if p >= 0:
+            if wp.atomic_add(mark_io, p, 1) == 0:
+                touched_out[wp.atomic_add(count_io, 0, 1)] = p
+
+
+@wp.kernel
+def apply_touched(stride: int, count: wp.array(dtype=int), touched: wp.array(dtype=int),
+                  dx_io: wp.array2d(dtype=wp.int64), dv_io: wp.array2d(dtype=wp.int64), q_io: wp.array(dtype=wp.vec3),
+                  qd_io: wp.array(dtype=wp.vec3), positions_only: int):
+    """``apply_one`` for the listed particles (``stride`` threads, each every stride-th), or with
+    ``positions_only`` q += dx alone (``push_contacts``' passes; dv is untouched)."""
+    for i in range(wp.tid(), count[0], stride):
+        p = touched[i]
+        if positions_only != 0:
+            dx = wp.vec3()
+            for c in range(3):
+                dx[c] = float(wp.float64(dx_io[p, c]) * wp.float64(FIXED_INV_SCALE))
+                dx_io[p, c] = wp.int64(0)
+            q_io[p] = q_io[p] + dx
+        else:
+            apply_one(p, dx_io, dv_io, q_io, qd_io)
+
+
+@wp.kernel
+def clear_touched(stride: int, count: wp.array(dtype=int), touched: wp.array(dtype=int), mark_io: wp.array(dtype=int)):
+    """Lower the marks of the listed particles (the count is zeroed after, by a memset)."""
+    for i in range(wp.tid(), count[0], stride):
+        mark_io[touched[i]] = 0
+
+
 # ------------------------------------------------------------------------------ implicit contact
 # Contact as a penalty force inside implicit Euler (``SoftContactForce``): for each contact slot
 # (particles k, weights a_k, normal n) found by the last search, depth d = thickness - (sum a_k x_k) . n;

@@ -328,7 +328,12 @@ class SoftContact(Collider):
         self._total = wp.zeros(2, dtype=int, device=d)
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
-        self._still: wp.array | None = None  # zero velocities of ``project_positions`` (made on first use)
+        # the particles of the last search's contacts, listed once (``kernels.soft_contact.list_touched``):
+        # the passes apply their deltas to these only
+        self._touch_mark = wp.zeros(n, dtype=int, device=d)
+        self._touch_list = wp.zeros(n, dtype=int, device=d)
+        self._touch_count = wp.zeros(1, dtype=int, device=d)
+        self._touch_listed = False
         if self.broad_phase == "list":
             self._bind_list(n, slots)
         self.record_candidates(False)
@@ -481,6 +486,7 @@ class SoftContact(Collider):
                              "ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
         all_pairs = self.broad_phase == "all_pairs"
         self._steps += 1
+        self._clear_touched()
         if self.broad_phase == "list":
             self._apply_listed(model, state, q_prev, dt)
             return
@@ -512,31 +518,51 @@ class SoftContact(Collider):
                                                            state.positions, q_prev, *common, v, *contact,
                                                            self._candidates_edge], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
+        self._list_touched()
         for _ in range(self.iterations):
             wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
                                                          *slots, self.thickness, self.push, self.restitution,
                                                          self.friction, self._inv_dt(dt), self._dx, self._dv],
                       device=d)
-            wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, state.positions, state.velocities],
-                      device=d)
+            self._apply_touched(state.positions, state.velocities, positions_only=False)
+
+    def _list_touched(self) -> None:
+        """List the particles of the stored contacts (once per search)."""
+        wp.launch(K.list_touched, self.vertex_count + self.edge_count,
+                  inputs=[self._contact_particles, self._touch_mark, self._touch_list, self._touch_count],
+                  device=self.model.device)
+        self._touch_listed = True
+
+    def _apply_touched(self, q, qd, positions_only: bool) -> None:
+        stride = min(self.model.particle_count, self.LIST_THREADS)
+        wp.launch(K.apply_touched, stride, inputs=[stride, self._touch_count, self._touch_list, self._dx, self._dv, q,
+                                                   qd, int(positions_only)], device=self.model.device)
+
+    def _clear_touched(self) -> None:
+        """Lower the marks of the listed particles and empty the list (before the next search)."""
+        if self._touch_listed:
+            stride = min(self.model.particle_count, self.LIST_THREADS)
+            wp.launch(K.clear_touched, stride, inputs=[stride, self._touch_count, self._touch_list, self._touch_mark],
+                      device=self.model.device)
+            self._touch_count.zero_()
+            self._touch_listed = False
 
 
     def project_positions(self, q, passes: int = 1) -> None:
         """Push the pairs found by the last step's search apart at the positions ``q`` (``passes``
-        Jacobi passes of the position push alone: no velocity changes, no search), for a solver that
-        iterates on positions within a step (``ws.FastMassSpring(contacts=...)``: between its
-        iterations the springs then adapt to the pushed vertices). The pairs are those within
-        thickness + reach at the end of the last step; the push uses their stored normals and weights."""
-        d, n = self.model.device, self.model.particle_count
-        if self._still is None:
-            self._still = wp.zeros(n, dtype=wp.vec3, device=d)  # allocated once, at the first step
+        Jacobi passes of the position push alone, ``kernels.soft_contact.push_contacts``: no velocity
+        changes, no search), for a solver that iterates on positions within a step
+        (``ws.FastMassSpring(contacts=...)``: between its iterations the springs then adapt to the
+        pushed vertices). The pairs are those within thickness + reach at the end of the last step;
+        the push uses their stored normals and weights, and skips pairs deeper than ``search``."""
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
+        if not self._touch_listed:  # the candidate list's steps leave no list of touched particles
+            self._list_touched()
         for _ in range(passes):
-            # zero velocities: resolve_one's impulse is zero (u_n = 0, no slack at inv_dt 0)
-            wp.launch(K.resolve_contacts, self.vertex_count + self.edge_count,
-                      inputs=[q, self._still, self.model.particle_inv_mass, *slots, self.thickness, self.push, 0.0, 0.0,
-                              0.0, self._dx, self._dv], device=d)
-            wp.launch(K.apply_contact_deltas, n, inputs=[self._dx, self._dv, q, self._still], device=d)
+            wp.launch(K.push_contacts, self.vertex_count + self.edge_count,
+                      inputs=[q, self.model.particle_inv_mass, *slots, self.thickness, self.push, self.search,
+                              self._dx], device=self.model.device)
+            self._apply_touched(q, q, positions_only=True)
 
     @property
     def vertex_particles(self) -> np.ndarray:

@@ -175,7 +175,9 @@ class FastMassSpring(Integrator):
             force.eval(q, qd, time, 0.0, self.f_ext)
         wp.launch(K.predict, n, inputs=[q, qd, self.f_ext, system.inv_mass, h, self.q0, self.y], device=d)
         springs = [self._entry_offsets, self._entry_other, self._entry_rest, self._entry_stiffness, self._entry_damping]
-        tile = 32 if d.is_cpu else 64
+        # 64-wide tiles on CUDA once the batch fills them (H100, 1,000 tori: 1.08 ms a product against 1.45;
+        # 12 tori, 36 rows: 0.16 against 0.12 ms); 32 on the CPU
+        tile = 64 if d.is_cuda and 3 * self.T >= 128 else 32
         tiles = ((3 * self.T + tile - 1) // tile, (self.P + tile - 1) // tile)
         for _ in range(self.iterations):
             wp.launch(K.local_rhs, n, inputs=[q, self.q0, self.y, system.mass, *springs, self.proximal, self.P,
