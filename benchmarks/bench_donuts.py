@@ -26,6 +26,9 @@ step time to the first one's (linear in the number of tori would be M / count).
 bvh`` (the scene's default) the two-level BVH search every step; ``--settle-broad-phase bvh`` settles with
 the BVH search and then switches (the list is slow while tori fall).
 
+``--integrator fast_mass_spring --dt 0.0041666667`` steps the heap by ``ws.FastMassSpring`` at 1/240 s
+(``--solver-iterations N``, default the scene's 10); ``--integrator implicit_euler`` by Newton and CG.
+
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
 and synchronisations per step, and the contact search's candidates per query
 (``SoftContact.record_candidates``); ``--rebuild-every N`` sets the contact's BVH rebuild period.
