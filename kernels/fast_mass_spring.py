@@ -11,8 +11,9 @@ with each spring's direction d_s (length L_s) free: fixing x, the best d_s is L_
 
     A = M + h C_L + h^2 K_L    (K_L, C_L the springs' stiffness and damping Laplacians)
 
-(the global step: x = A^-1 b). Each iteration lowers g (block coordinate descent), so a step never
-gains energy from the iterations. Springs are damped isotropically, c_s (v_j - v_i), not only along
+(the global step: x = A^-1 b). Each iteration lowers g (block coordinate descent, tested); stopped
+early, the step is not backward Euler's, and where h^2 k / m is large the energy can rise (measured in
+``tests/test_fast_mass_spring.py``). Springs are damped isotropically, c_s (v_j - v_i), not only along
 the spring as ``Springs`` damps: the damping stays in the constant matrix.
 
 The particles are copies of one body of P particles (copy t holds particles t P .. t P + P - 1), all

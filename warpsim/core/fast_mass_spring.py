@@ -29,7 +29,9 @@ class FastMassSpring(Integrator):
 
     Args:
         iterations: local-global iterations a step (default 10, as Liu et al.; more come closer to
-            backward Euler's solution, none adds energy).
+            backward Euler's solution; each lowers the step's incremental potential, but a step stopped
+            far from converged can gain energy: a torus of 1e5 N/m springs at 1/60 s went from 0.34
+            to 46 J in its first step with 10 iterations; at 150 N/m, rises under 1 %).
         body_size: particles of one copy (P): copy t holds particles t P .. t P + P - 1, with the
             same springs, masses, stiffnesses and damping as copy 0 (checked at the first step).
             None: the whole model is one body.
