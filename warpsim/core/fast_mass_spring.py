@@ -63,7 +63,7 @@ class FastMassSpring(Integrator):
         self.iterations = checks.integer(iterations, "FastMassSpring iterations", lo=1, hi=10_000, fix="e.g. 10")
         self.body_size = None if body_size is None else checks.integer(
             body_size, "FastMassSpring body_size", lo=1, hi=1 << 40, fix="the particles of one copy, or None")
-        self._h = None
+        self._h: float | None = None  # the step of the stored inverse [s]
 
     def _allocate(self, system):
         model = getattr(system, "model", None)
