@@ -165,7 +165,7 @@ class FastMassSpring(Integrator):
         self.inverse.assign(0.5 * (inverse + inverse.T))  # symmetric to the last bit: X = B A^-1 = (A^-1 B^T)^T
         self._h = h
 
-    def step(self, system, q, qd, time, dt, f_out=None):
+    def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)
         h = float(dt)
         self._set_step(h)
