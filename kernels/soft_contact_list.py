@@ -38,6 +38,7 @@ from .soft_contact import (
     BODY_BATCH,
     apply_one,
     collect_bodies,
+    count_one_impulse,
     counts_toward_scale,
     edge_edge_candidate,
     edge_edge_test,
@@ -356,6 +357,7 @@ def resolve_listed(
     contact_weights: wp.array(dtype=wp.vec4),
     contact_normal: wp.array(dtype=wp.vec3),
     particle_contacts: wp.array(dtype=int),
+    impulse_counts: wp.array(dtype=int),
     thickness: float,
     fraction: float,
     restitution: float,
@@ -368,7 +370,20 @@ def resolve_listed(
     t + stride, ... (the launch does not grow with the contact slots)."""
     for i in range(wp.tid(), listed[0], stride):
         resolve_one(active[i], q, qd, inv_mass, contact_particles, contact_weights, contact_normal,
-                    particle_contacts, thickness, fraction, restitution, friction, inv_dt, dx_io, dv_io)
+                    particle_contacts, impulse_counts, thickness, fraction, restitution, friction, inv_dt, dx_io, dv_io)
+
+
+@wp.kernel
+def count_listed_impulses(
+    stride: int, listed: wp.array(dtype=int), active: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
+    qd: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4), contact_normal: wp.array(dtype=wp.vec3), thickness: float,
+    inv_dt: float, impulse_counts_io: wp.array(dtype=int),
+):
+    """``count_one_impulse`` for every found contact (``stride`` threads, as ``resolve_listed``)."""
+    for i in range(wp.tid(), listed[0], stride):
+        count_one_impulse(active[i], q, qd, inv_mass, contact_particles, contact_weights, contact_normal, thickness,
+                          inv_dt, impulse_counts_io)
 
 
 @wp.kernel
@@ -383,12 +398,15 @@ def apply_listed(
     last: int,
     particle_contacts_io: wp.array(dtype=int),
     seen_io: wp.array(dtype=int),
+    impulse_counts_io: wp.array(dtype=int),
 ):
-    """``apply_one`` for every particle in a contact (``stride`` threads, as ``resolve_listed``);
-    after the last pass (``last`` 1) also zero its contact count and seen mark for the next step."""
+    """``apply_one`` for every particle in a contact (``stride`` threads, as ``resolve_listed``), and
+    zero its impulse count for the next pass; after the last pass (``last`` 1) also zero its contact
+    count and seen mark for the next step."""
     for i in range(wp.tid(), listed[1], stride):
         p = touched[i]
         apply_one(p, dx_io, dv_io, q_io, qd_io)
+        impulse_counts_io[p] = 0
         if last != 0:
             particle_contacts_io[p] = 0
             seen_io[p] = 0

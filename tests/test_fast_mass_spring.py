@@ -158,20 +158,24 @@ def test_the_scene_heap_at_1_240_s_keeps_vertices_out():
     """The donuts scene's 12 tori with ``integrator=fast_mass_spring`` at 1/240 s (4 steps a frame;
     contact pushes and the proximal pull inside the iterations, 16 contact passes after each step):
     over 45 frames no vertex goes deeper than the thickness into another torus (checked every 5
-    frames) and the tori come to rest on one another. Edges through triangles are not asserted:
-    6 crossed at frame 29 of this heap before its passes undid them (benchmarks/RESULTS.md)."""
+    frames), no vertex is thrown faster than the tori fall, and the tori come to rest on one another.
+    Edges through triangles are not asserted: 4-10 cross at frames 24, 39 and 44 (benchmarks/RESULTS.md)."""
     cls = get_scene("donuts")
     params = cls.resolve_params({"count": 12, "integrator": "fast_mass_spring", "dt": 1.0 / 240.0})
     scene = cls(params, device=DEVICE)
-    worst, most = 0.0, 0
+    worst, most, fastest = 0.0, 0, 0.0
     for frame in range(45):
         scene.advance(1.0 / 60.0, 4)
         most = max(most, scene.contact.contact_count)
+        fastest = max(fastest, float(np.linalg.norm(scene.sim.state.velocities.numpy(), axis=1).max()))
         if frame % 5 == 4:
             worst = max(worst, deepest_vertex(scene.sim.state.positions.numpy(), scene.bodies))
     assert most > 500  # a heap in contact ...
     assert worst <= params["thickness"], worst  # ... with no vertex deeper than the thickness
-    assert scene.kinetic_energy() < 1.0  # settling (24 J at the first impacts)
+    # no vertex thrown faster than the tori fall (3.7 m/s): when each contact's impulse was scaled by
+    # the pairs within the thickness only, a vertex in 20 speculative pairs got 20 impulses (26 m/s)
+    assert fastest < 5.0, fastest
+    assert scene.kinetic_energy() < 1.5  # settling (27 J at the first impacts)
     x = scene.sim.state.positions.numpy()
     assert max(x[b.surface_indices, 1].mean() for b in scene.bodies) > 0.1  # tori lie on tori
 

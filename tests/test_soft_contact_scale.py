@@ -94,16 +94,21 @@ def test_heap_keeps_vertices_and_edges_out_of_other_tori(count, integrator, dt, 
                                  "box": {4: 0.16, 24: 0.65}.get(count, 0.0)})
     scene = cls(params, device=DEVICE)
     substeps = round(1.0 / 60.0 / params["dt"])
-    most, worst = 0, 0.0
+    most, worst, fastest = 0, 0.0, 0.0
     for frame in range(frames):
         scene.advance(1.0 / 60.0, substeps)
         most = max(most, scene.contact.contact_count)
+        fastest = max(fastest, float(np.linalg.norm(scene.sim.state.velocities.numpy(), axis=1).max()))
         if frame % every == every - 1 or frame == frames - 1:
             x = scene.sim.state.positions.numpy()
             worst = max(worst, deepest_vertex(x, scene.bodies))
             assert edges_through_other_bodies(x, scene.bodies) == [], frame
     assert most >= count // 2  # tori touched (the floor alone makes no soft contact) ...
     assert worst <= params["thickness"], worst  # ... and no vertex went deeper than the thickness into another torus
+    # ... and none was thrown: the tori fall at up to 3.6 m/s; with each impulse scaled by the pairs
+    # within the thickness only, a vertex in many speculative pairs got them all at once (27 m/s at
+    # 1/240 s in the scene's heap; ``count_impulses``)
+    assert fastest < 5.0, fastest
     heights = [x[b.surface_indices, 1].mean() for b in scene.bodies]
     assert max(heights) > 0.1  # tori lie on tori
 

@@ -334,6 +334,7 @@ class SoftContact(Collider):
         self._touch_list = wp.zeros(n, dtype=int, device=d)
         self._touch_count = wp.zeros(1, dtype=int, device=d)
         self._touch_listed = False
+        self._impulse_counts = wp.zeros(n, dtype=int, device=d)  # per pass: contacts giving a particle an impulse
         if self.broad_phase == "list":
             self._bind_list(n, slots)
         self.record_candidates(False)
@@ -519,12 +520,14 @@ class SoftContact(Collider):
                                                            self._candidates_edge], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         self._list_touched()
+        q, qd, inv_dt = state.positions, state.velocities, self._inv_dt(dt)
         for _ in range(self.iterations):
-            wp.launch(K.resolve_contacts, v + e, inputs=[state.positions, state.velocities, model.particle_inv_mass,
-                                                         *slots, self.thickness, self.push, self.restitution,
-                                                         self.friction, self._inv_dt(dt), self._dx, self._dv],
-                      device=d)
-            self._apply_touched(state.positions, state.velocities, positions_only=False)
+            wp.launch(K.count_impulses, v + e, inputs=[q, qd, model.particle_inv_mass, *slots[:3], self.thickness,
+                                                       inv_dt, self._impulse_counts], device=d)
+            wp.launch(K.resolve_contacts, v + e, inputs=[q, qd, model.particle_inv_mass, *slots, self._impulse_counts,
+                                                         self.thickness, self.push, self.restitution, self.friction,
+                                                         inv_dt, self._dx, self._dv], device=d)
+            self._apply_touched(q, qd, positions_only=False)
 
     def _list_touched(self) -> None:
         """List the particles of the stored contacts (once per search)."""
@@ -536,7 +539,8 @@ class SoftContact(Collider):
     def _apply_touched(self, q, qd, positions_only: bool) -> None:
         stride = min(self.model.particle_count, self.LIST_THREADS)
         wp.launch(K.apply_touched, stride, inputs=[stride, self._touch_count, self._touch_list, self._dx, self._dv, q,
-                                                   qd, int(positions_only)], device=self.model.device)
+                                                   qd, int(positions_only), self._impulse_counts],
+                  device=self.model.device)
 
     def _clear_touched(self) -> None:
         """Lower the marks of the listed particles and empty the list (before the next search)."""
@@ -623,12 +627,16 @@ class SoftContact(Collider):
         ]
         threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
         for k in range(self.iterations):
+            launches.append(record(L.count_listed_impulses, threads[0], [
+                threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self.thickness,
+                self._inv_dt(dt), self._impulse_counts]))
             launches.append(record(L.resolve_listed, threads[0], [
                 threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
-                self.thickness, self.push, self.restitution, self.friction, self._inv_dt(dt), self._dx, self._dv]))
+                self._impulse_counts, self.thickness, self.push, self.restitution, self.friction, self._inv_dt(dt),
+                self._dx, self._dv]))
             launches.append(record(L.apply_listed, threads[1], [threads[1], self._listed, self._touched, self._dx, self._dv, q, qd,
                                                        int(k == self.iterations - 1), self._particle_contacts,
-                                                       self._seen]))
+                                                       self._seen, self._impulse_counts]))
         return launches
 
     def _apply_listed(self, model, state, q_prev, dt) -> None:
