@@ -833,6 +833,16 @@ def resolve_contacts(
 
 
 @wp.func
+def take_delta(i: int, delta_io: wp.array2d(dtype=wp.int64)) -> wp.vec3:
+    """Row i of a fixed-point delta buffer as a vec3, clearing the row."""
+    d = wp.vec3()
+    for c in range(3):
+        d[c] = float(wp.float64(delta_io[i, c]) * wp.float64(FIXED_INV_SCALE))
+        delta_io[i, c] = wp.int64(0)
+    return d
+
+
+@wp.func
 def apply_one(
     i: int,
     dx_io: wp.array2d(dtype=wp.int64),
@@ -841,15 +851,8 @@ def apply_one(
     qd_io: wp.array(dtype=wp.vec3),
 ):
     """q[i] += dx[i], qd[i] += dv[i] (from fixed point), then clear both."""
-    dx = wp.vec3()
-    dv = wp.vec3()
-    for c in range(3):
-        dx[c] = float(wp.float64(dx_io[i, c]) * wp.float64(FIXED_INV_SCALE))
-        dv[c] = float(wp.float64(dv_io[i, c]) * wp.float64(FIXED_INV_SCALE))
-        dx_io[i, c] = wp.int64(0)
-        dv_io[i, c] = wp.int64(0)
-    q_io[i] = q_io[i] + dx
-    qd_io[i] = qd_io[i] + dv
+    q_io[i] = q_io[i] + take_delta(i, dx_io)
+    qd_io[i] = qd_io[i] + take_delta(i, dv_io)
 
 
 @wp.kernel
@@ -910,11 +913,7 @@ def apply_touched(stride: int, count: wp.array(dtype=int), touched: wp.array(dty
         p = touched[i]
         impulse_counts_io[p] = 0
         if positions_only != 0:
-            dx = wp.vec3()
-            for c in range(3):
-                dx[c] = float(wp.float64(dx_io[p, c]) * wp.float64(FIXED_INV_SCALE))
-                dx_io[p, c] = wp.int64(0)
-            q_io[p] = q_io[p] + dx
+            q_io[p] = q_io[p] + take_delta(p, dx_io)
         else:
             apply_one(p, dx_io, dv_io, q_io, qd_io)
 
