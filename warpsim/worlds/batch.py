@@ -306,7 +306,7 @@ class WorldBatch:
                                       "worlds do not tile it (remove it, e.g. --set drag=)")
             else:
                 forces.append(copy.copy(f))
-        colliders = []
+        colliders, tiled = [], {}
         for j, c in enumerate(sim0.colliders):
             if isinstance(c, Planes):
                 coeff = {a: [(e, e.planes[j][a]) for e in self.plan.values() if j in e.planes and a in e.planes[j]]
@@ -315,9 +315,18 @@ class WorldBatch:
                 mu = self._affine([c.friction], None, coeff["friction"])[:, 0]
                 colliders.append(WorldPlanes(c, r, mu))
             elif hasattr(c, "tile"):  # per-world contact between bodies (ws.SoftContact): each world's own
-                colliders.append(c.tile(self.world_count, self.model.world_particle_count))
+                tiled[id(c)] = c.tile(self.world_count, self.model.world_particle_count)
+                colliders.append(tiled[id(c)])
             else:  # shared shapes (each world meets its own copy); particle pairs keyed by world
                 colliders.append(copy.copy(c))
+        if getattr(integrator, "contacts", None):
+            # an integrator that pushes contacts inside its iterations (ws.FastMassSpring) pushes the
+            # batch's tiled contacts, not the single world's
+            missing = [type(c).__name__ for c in integrator.contacts if id(c) not in tiled]
+            if missing:
+                raise StructuralError(f"the integrator's contacts ({', '.join(missing)}) are not among the scene's "
+                                      "colliders; batched worlds tile only those")
+            integrator.contacts = [tiled[id(c)] for c in integrator.contacts]
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
         if self.fused and not hasattr(sim0, "use_graph"):
             from ..cloth.solver import ClothSemiImplicitEuler, ClothSimulator
