@@ -10,7 +10,11 @@ import pytest
 from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies
 
 import warpsim as ws
+from warpsim.core.stability import StabilityWarning
 from warpsim.scenes import get_scene
+
+UNCONVERGED = pytest.mark.filterwarnings("ignore:FastMassSpring:warpsim.core.stability.StabilityWarning")
+"""Tests that run too few iterations on purpose (the warning itself is tested below)."""
 
 DEVICE = "cpu"
 
@@ -46,6 +50,7 @@ def incremental_potential(x, y, mass, springs, rest, k, h):
     return 0.5 * (mass[:, None] * (x - y) ** 2).sum() / h**2 + 0.5 * (k * stretch**2).sum()
 
 
+@UNCONVERGED
 def test_converged_iterations_are_backward_euler():
     """300 iterations a step give ImplicitEuler's Newton solution (tolerances 1e-9 / 1e-10) to
     within float rounding over 3 large steps (1/60 s, h^2 k / m = 2.6 a spring, random velocities
@@ -62,6 +67,7 @@ def test_converged_iterations_are_backward_euler():
     assert 1e-4 < np.abs(few.state.positions.numpy() - x_ref).max() < 0.01
 
 
+@UNCONVERGED
 def test_every_iteration_lowers_the_incremental_potential():
     """One step at 1/60 s from a kicked torus, stopped after 1, 2, ..., 12 iterations: the step's
     incremental potential (with the true spring energy) never rises, and each iterate is below the
@@ -108,6 +114,7 @@ def free_torus_energies(stiffness, iterations, h=1.0 / 60.0, seconds=2.0):
     return np.array(energies)
 
 
+@UNCONVERGED
 def test_energy_at_large_steps():
     """A kicked, undamped torus without gravity at 1/60 s for 2 s (h^2 k / m = 2.8 a spring): with
     50 iterations a step the energy never rises (backward Euler dissipates); with the default 10,
@@ -123,6 +130,7 @@ def test_energy_at_large_steps():
     assert stiff[-1] < stiff[0]
 
 
+@UNCONVERGED
 def test_a_copy_among_many_steps_as_if_alone():
     """Three copies of a torus (one inverse, one matrix product for all): copy 0 has the lone
     torus's bits, copy 2 its motion shifted by its offset; two runs give the same bits."""
@@ -240,3 +248,38 @@ def test_batched_worlds_step_as_the_scene_alone():
     x, _ = batch.world_slices()
     assert touched > 10
     assert np.array_equal(x[0], x[1]) and np.array_equal(x[0], alone.sim.state.positions.numpy())
+
+
+def test_contraction_of_one_spring_is_analytic():
+    """Two 1 kg particles on a 100 N/m spring at h = 0.1 s: the local step leaves the transverse
+    stiffness 2k of the relative mode to the next iteration, so one iteration shrinks the error by
+    rho = 2 h^2 k / (m + 2 h^2 k) = 2/3."""
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 0.0, 0.0), mass=1.0)
+    b.add_particle((1.0, 0.0, 0.0), mass=1.0)
+    b.add_spring(0, 1, 100.0, 0.0)
+    integrator = ws.FastMassSpring()
+    sim = ws.Simulator(b.finalize(DEVICE), integrator=integrator, forces=[])
+    integrator.prepare(sim.system)
+    assert integrator.contraction(0.1) == pytest.approx(2.0 / 3.0, rel=1e-9)
+    assert integrator.contraction(0.01) == pytest.approx(2.0 / 102.0, rel=1e-9)
+
+
+def test_too_few_iterations_are_flagged_before_the_first_step():
+    """The scene's heap at 1/240 s: 10 iterations leave 0.40 of a step's error (the heap lets edges
+    through), 20 leave 0.16 (it holds): a StabilityWarning with the count that would do comes
+    before the first step with 10, none with 20."""
+    import warnings
+
+    cls = get_scene("donuts")
+    for iterations, warned in ((10, True), (20, False)):
+        params = cls.resolve_params({"count": 12, "integrator": "fast_mass_spring", "dt": 1.0 / 240.0,
+                                     "solver_iterations": iterations})
+        scene = cls(params, device=DEVICE)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            scene.sim.step(1.0 / 240.0)
+        messages = [str(w.message) for w in caught if issubclass(w.category, StabilityWarning)]
+        assert bool(messages) == warned, messages
+        if warned:
+            assert "10 iterations a step leave 0.4" in messages[0] and "takes 18" in messages[0]

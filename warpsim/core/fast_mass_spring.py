@@ -11,6 +11,9 @@ iteration lowers the step's incremental potential.
 
 from __future__ import annotations
 
+import math
+import warnings
+
 import numpy as np
 import warp as wp
 
@@ -18,7 +21,15 @@ from . import checks
 from .forces import Springs
 from .integrators import Integrator
 from .model import ensure_spring_adjacency
+from .stability import StabilityWarning
 from ..kernels import fast_mass_spring as K
+
+ERROR_LEFT = 0.2
+"""FastMassSpring warns (``StabilityWarning``, before the first step of a step size) when its iterations
+leave more than this fraction of a step's error, ``contraction() ** iterations``. Measured on the donuts'
+heaps at 1/240 s (CPU and H100, ``benchmarks/RESULTS.md``): tori of 344 particles (rho 0.911) held with 20
+iterations (0.16 left) and let edges through with 10 (0.40); tori of 2,124 (rho 0.980) let 7 edges through
+with 40 (0.44) and 33 with 20 (0.66), and squashed with 10 (0.81)."""
 
 MAX_BODY_PARTICLES = 8192
 """Largest body (particles of one copy) whose dense inverse is stored: 8192^2 float32 = 256 MiB."""
@@ -124,6 +135,7 @@ class FastMassSpring(Integrator):
         if S and (local.min() < 0 or local.max() >= P):
             raise ValueError(f"FastMassSpring: a spring of copy 0 joins particle {int(local.max())} outside the copy "
                              f"of {P} particles; give the body_size of one copy")
+        self._x_first = model.particle_q.numpy()[:P].astype(np.float64)  # copy 0 where the run starts
         self._template = (local[0].reshape(-1, 2), per_spring[1][: S // T].astype(np.float64),
                           per_spring[2][: S // T].astype(np.float64),
                           model.particle_mass.numpy()[:P].astype(np.float64))
@@ -152,13 +164,58 @@ class FastMassSpring(Integrator):
         np.add.at(A, (j, i), -w)
         return A
 
+    def _step_inverse(self, h: float) -> np.ndarray:
+        """(A + W)^-1 for the step h (float64, P x P), W the contact vertices' proximal pull h^2 k_c."""
+        w = h * h * self.contact_stiffness * self._contact_columns
+        return np.linalg.inv(self.system_matrix(h) + np.diag(w))
+
+    def contraction(self, h: float, iterations: int = 60, inverse: np.ndarray | None = None) -> float:
+        """rho: the factor by which one iteration shrinks the error of a step of h [s], linearised at
+        copy 0's positions at the first step: the largest eigenvalue (power iteration) of
+        A^-1 (h^2 L_perp + W), L_perp the springs' stiffness across their directions (the part the
+        local step leaves to the next iteration) and W the contact vertices' proximal pull. A spring
+        of stiffness k between two particles of mass m: rho = 2 h^2 k / (m + 2 h^2 k) (tested)."""
+        ends, k, _, _ = self._template
+        x = self._x_first
+        d = x[ends[:, 0]] - x[ends[:, 1]]
+        d /= np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+        w = h * h * self.contact_stiffness * self._contact_columns
+        inverse = self._step_inverse(h) if inverse is None else inverse
+        v = np.random.default_rng(0).normal(size=x.shape)
+        rho = 0.0
+        for _ in range(iterations):
+            u = v[ends[:, 0]] - v[ends[:, 1]]
+            u = (h * h * k)[:, None] * (u - (u * d).sum(1)[:, None] * d)
+            f = w[:, None] * v
+            for c in range(3):
+                f[:, c] += np.bincount(ends[:, 0], u[:, c], len(x)) - np.bincount(ends[:, 1], u[:, c], len(x))
+            v_next = inverse @ f
+            size = float(np.linalg.norm(v_next))
+            rho = size / float(np.linalg.norm(v))
+            if size == 0.0:
+                return 0.0
+            v = v_next / size
+        return rho
+
+    def _warn_if_unconverged(self, h: float, inverse: np.ndarray) -> None:
+        rho = self.contraction(h, inverse=inverse)
+        left = rho ** self.iterations
+        if left > ERROR_LEFT:
+            needed = math.ceil(math.log(ERROR_LEFT) / math.log(rho)) if rho < 1.0 else None
+            warnings.warn(f"FastMassSpring: {self.iterations} iterations a step leave {left:.2g} of a step's error at "
+                          f"dt = {h:.4g} s (each iteration shrinks it by {rho:.3f}, linearised); under {ERROR_LEFT} "
+                          + (f"takes {needed}" if needed else "is out of reach") + ": with fewer the bodies come "
+                          "out softer than backward Euler and the energy can rise; remedies: more iterations, a "
+                          "smaller step, or implicit_euler", StabilityWarning, stacklevel=4)
+
     def _set_step(self, h: float) -> None:
-        """Invert the matrix for the step h (host, float64; only when h changes)."""
+        """Invert the matrix for the step h (host, float64; only when h changes) and warn when the
+        iterations leave more than ``ERROR_LEFT`` of a step's error."""
         if self._h == h:
             return
-        w = h * h * self.contact_stiffness * self._contact_columns
-        inverse = np.linalg.inv(self.system_matrix(h) + np.diag(w))
-        self.proximal.assign(w)
+        inverse = self._step_inverse(h)
+        self._warn_if_unconverged(h, inverse)
+        self.proximal.assign(h * h * self.contact_stiffness * self._contact_columns)
         _, k, c, _ = self._template
         self._entry_stiffness.assign(h * h * k[self._entry_springs])
         self._entry_damping.assign(h * c[self._entry_springs])
