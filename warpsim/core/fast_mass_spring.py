@@ -46,6 +46,12 @@ class FastMassSpring(Integrator):
         body_size: particles of one copy (P): copy t holds particles t P .. t P + P - 1, with the
             same springs, masses, stiffnesses and damping as copy 0 (checked at the first step).
             None: the whole model is one body.
+        contacts: SoftContact objects (also among the Simulator's colliders) whose stored pairs are
+            pushed apart inside the iterations; their contact vertices get the proximal pull.
+        contact_passes: position passes of those pushes after each global step (default 4).
+        contact_stiffness: k_c [N/m] of the proximal pull h^2 k_c that draws each contact vertex toward
+            its pushed position in the next global step (default 2,000; stiffer slows the iterations:
+            measured in ``benchmarks/RESULTS.md``).
 
     Springs enter implicitly, with isotropic damping c_s (v_j - v_i); every other force of the
     system (gravity, drag, ...) at the start of the step, explicitly. ``contacts`` (SoftContact
