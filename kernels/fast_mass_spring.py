@@ -113,6 +113,19 @@ def scatter_positions(x: wp.array2d(dtype=float), body_size: int, q_out: wp.arra
 
 
 @wp.kernel
+def chebyshev_step(q: wp.array(dtype=wp.vec3), omega: float, older_io: wp.array(dtype=wp.vec3),
+                   old_io: wp.array(dtype=wp.vec3)):
+    """Chebyshev semi-iterative acceleration (Wang, "A Chebyshev Semi-Iterative Approach for
+    Accelerating Projective and Position-based Dynamics", 2015): x_{k+1} = x_{k-1} + omega_{k+1}
+    (x_hat_{k+1} - x_{k-1}), x_hat the plain iterate in q; keeps the last two iterates."""
+    i = wp.tid()
+    x = older_io[i] + omega * (q[i] - older_io[i])
+    older_io[i] = old_io[i]
+    old_io[i] = x
+    q[i] = x
+
+
+@wp.kernel
 def finish_step(q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), inv_h: float, qd_out: wp.array(dtype=wp.vec3)):
     """Backward Euler's velocity v1 = (x1 - x0) / h [m/s]."""
     i = wp.tid()

@@ -406,6 +406,9 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "contact_iterations": (16, ("implicit_euler only: contact passes after each step (SoftContact iterations; "
                                 "4 with semi_implicit_euler)")),
     "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
+    "solver_chebyshev": (False, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "
+                                 "the scene's heap at 1/240 s held with 6 and 10 accelerated iterations, let 8 edges "
+                                 "through with 8; benchmarks/RESULTS.md)")),
     "solver_iterations": (20, ("fast_mass_spring only: local-global iterations per step (the scene's heap at 1/240 s: "
                                "10 let edges through and squash the tori, 20 hold it; benchmarks/RESULTS.md)")),
 }, substeps=20)
@@ -486,7 +489,8 @@ class DonutsScene(SimulatorScene):
             # the springs implicit, contact after the step (a penalty would enter explicitly: unstable)
             integrator = ws.FastMassSpring(iterations=int(p["solver_iterations"]), body_size=template.particle_count,
                                            contacts=[self.contact] if self.contact is not None else [],
-                                           contact_stiffness=p["contact_stiffness"])
+                                           contact_stiffness=p["contact_stiffness"],
+                                           chebyshev=bool(p["solver_chebyshev"]))
         elif integrator == "implicit_euler":
             integrator = ws.ImplicitEuler(newton_iterations=p["newton_iterations"])
             if self.contact is not None and p["contact_stiffness"] > 0.0:
