@@ -701,11 +701,27 @@ def scatter_contact(
 
 
 @wp.func
+def relative_velocity(particles: wp.vec4i, weights: wp.vec4, qd: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    """Relative velocity [m/s] of a contact's two sides: sum a_k v_k."""
+    rel = wp.vec3()
+    for k in range(4):
+        rel += weights[k] * qd[particles[k]]
+    return rel
+
+
+@wp.func
+def approach_slack(depth: float, inv_dt: float) -> float:
+    """Approach speed [m/s] that closes a speculative contact's gap to the thickness in one step
+    (0 within the thickness, and for every contact when ``inv_dt`` is 0)."""
+    return wp.max(-depth, 0.0) * inv_dt
+
+
+@wp.func
 def needs_impulse(c: int, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
                   contact_particles: wp.array(dtype=wp.vec4i), contact_weights: wp.array(dtype=wp.vec4),
                   contact_normal: wp.array(dtype=wp.vec3), thickness: float, inv_dt: float) -> bool:
     """Whether ``resolve_one`` gives contact slot c a normal impulse at (q, qd): a stored pair of
-    movable particles approaching faster than its slack (the same sums, in the same order)."""
+    movable particles approaching faster than its slack (the same functions, so the same bits)."""
     particles = contact_particles[c]
     if particles[0] < 0:
         return False
@@ -713,13 +729,8 @@ def needs_impulse(c: int, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3
     if effective_inv_mass(particles, weights, inv_mass) <= 0.0:
         return False
     n = contact_normal[c]
-    gap = wp.vec3()
-    rel = wp.vec3()
-    for k in range(4):
-        gap += weights[k] * q[particles[k]]
-        rel += weights[k] * qd[particles[k]]
-    depth = thickness - wp.dot(gap, n)
-    return wp.dot(rel, n) < -wp.max(-depth, 0.0) * inv_dt
+    depth = contact_depth(particles, weights, n, q, thickness)
+    return wp.dot(relative_velocity(particles, weights, qd), n) < -approach_slack(depth, inv_dt)
 
 
 @wp.func
@@ -784,17 +795,13 @@ def resolve_one(
     if W <= 0.0:
         return
     n = contact_normal[c]
-    scale = contact_scale(particles, particle_contacts)
-    gap = wp.vec3()
-    rel = wp.vec3()
-    for k in range(4):
-        gap += weights[k] * q[particles[k]]
-        rel += weights[k] * qd[particles[k]]
-    depth = thickness - wp.dot(gap, n)
+    depth = contact_depth(particles, weights, n, q, thickness)
     if depth > 0.0:
-        scatter_contact(particles, weights, inv_mass, (fraction * scale * depth / W) * n, dx_io)
+        scatter_contact(particles, weights, inv_mass,
+                        (fraction * contact_scale(particles, particle_contacts) * depth / W) * n, dx_io)
+    rel = relative_velocity(particles, weights, qd)
     un = wp.dot(rel, n)
-    slack = wp.max(-depth, 0.0) * inv_dt  # approach speed [m/s] that closes the gap to the thickness in one step
+    slack = approach_slack(depth, inv_dt)
     if un >= -slack:
         return
     jn = -(1.0 + restitution) * un / W

@@ -65,7 +65,7 @@ class FastMassSpring(Integrator):
     as usual. Before the first step of a step size it warns (``StabilityWarning``) when the
     iterations leave more than ``ERROR_LEFT`` of a step's error (:meth:`contraction`). Pinned particles and
     breakable springs are refused (the matrix is constant). ``A^-1`` is computed on the host in
-    float64 (about 0.3 s for P = 2,000) when the step size changes.
+    float64 when the step size changes (0.40 s for P = 2,124 on the 2-core development machine).
     """
 
     name = "fast_mass_spring"
@@ -223,14 +223,15 @@ class FastMassSpring(Integrator):
             return 1.0
         return 1.0 / math.cosh(min(iterations * math.acosh(1.0 / rho), 700.0))
 
-    def _warn_if_unconverged(self, h: float, inverse: np.ndarray) -> None:
-        rho = self.contraction(h, inverse=inverse)
-        # Chebyshev weights for this step size: omega_1 = 1, omega_2 = 2 / (2 - rho^2),
-        # omega_{k+1} = 4 / (4 - rho^2 omega_k) (Wang 2015, eq. 12)
+    def chebyshev_weights(self, rho: float) -> list:
+        """Weights omega_k of the ``iterations`` accelerated iterations for contraction rho:
+        omega_1 = 1, omega_2 = 2 / (2 - rho^2), omega_{k+1} = 4 / (4 - rho^2 omega_k) (Wang 2015)."""
         omegas = [1.0]
         for k in range(1, self.iterations):
             omegas.append(2.0 / (2.0 - rho * rho) if k == 1 else 4.0 / (4.0 - rho * rho * omegas[-1]))
-        self._omegas = omegas
+        return omegas
+
+    def _warn_if_unconverged(self, h: float, rho: float) -> None:
         left = self.error_left(rho, self.iterations)
         if left > ERROR_LEFT:
             needed = next((n for n in range(1, 100_000) if self.error_left(rho, n) <= ERROR_LEFT), None) \
@@ -247,7 +248,9 @@ class FastMassSpring(Integrator):
         if self._h == h:
             return
         inverse = self._step_inverse(h)
-        self._warn_if_unconverged(h, inverse)
+        rho = self.contraction(h, inverse=inverse)
+        self._omegas = self.chebyshev_weights(rho) if self.chebyshev else []
+        self._warn_if_unconverged(h, rho)
         self.proximal.assign(h * h * self.contact_stiffness * self._contact_columns)
         _, k, c, _ = self._template
         self._entry_stiffness.assign(h * h * k[self._entry_springs])
