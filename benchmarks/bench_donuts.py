@@ -55,7 +55,8 @@ def build(args, count, device):
                                      ("newton_iterations", args.newton_iterations),
                                      ("solver_iterations", getattr(args, "solver_iterations", None)),
                                      ("contact_reach", args.contact_reach),
-                                     ("contact_iterations", args.contact_iterations)) if value is not None}})
+                                     ("contact_iterations", args.contact_iterations)) if value is not None},
+                                 **dict(item.split("=", 1) for item in getattr(args, "set", []))})
     scene = cls(params, device=device)
     if args.cg_tol:
         scene.sim.integrator.cg_tol = args.cg_tol  # before the first step allocates the solver
@@ -222,6 +223,8 @@ def main():
     parser.add_argument("--search-every", type=int, default=0, help="list: steps between refit-and-search "
                         "(0: the contact's default)")
     parser.add_argument("--pad", type=float, default=0.0, help="list: motion pad [m] (0: the contact's default)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="another donuts parameter (repeatable), e.g. solver_chebyshev=true")
     parser.add_argument("--profile", action="store_true", help="print the kernel table (wp.timing_begin/end), host "
                         "read-backs per step and the contact search's candidates per query first")
     args = parser.parse_args()

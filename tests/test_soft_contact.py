@@ -41,6 +41,11 @@ def distance_to_triangles(p, tri):
 def penetration(x, a, b):
     """Deepest penetration [m] of body a's surface vertices inside closed body b (0 if none)."""
     p = x[a.surface_indices].astype(np.float64)
+    # only vertices inside b's bounding box can be inside b (a filter: the result is the same)
+    corners = x[b.surface_indices].astype(np.float64)
+    p = p[((p >= corners.min(0)) & (p <= corners.max(0))).all(1)]
+    if not len(p):
+        return 0.0
     inside = meshtools.winding_number(x.astype(np.float64), b.faces, p) > 0.5
     if not inside.any():
         return 0.0

@@ -56,7 +56,17 @@ def edges_through_other_bodies(x, bodies):
     x = x.astype(np.float64)
     for ia, ib in touching_pairs(x, bodies, 0.0):
         edges, _, _ = meshtools.edge_topology(bodies[ia].faces)
-        n = int(segments_cross_triangles(x[edges[:, 0]], x[edges[:, 1]], x[bodies[ib].faces]).sum())
+        p0, p1, tri = x[edges[:, 0]], x[edges[:, 1]], x[bodies[ib].faces]
+        # filters (the count is the same): only a's edges whose boxes meet b's box, and b's
+        # triangles whose boxes meet the box of those edges, can cross
+        lo, hi = tri.min((0, 1)), tri.max((0, 1))
+        keep = ((np.maximum(p0, p1) >= lo) & (np.minimum(p0, p1) <= hi)).all(1)
+        if not keep.any():
+            continue
+        p0, p1 = p0[keep], p1[keep]
+        lo, hi = np.minimum(p0, p1).min(0), np.maximum(p0, p1).max(0)
+        tri = tri[((tri.max(1) >= lo) & (tri.min(1) <= hi)).all(1)]
+        n = int(segments_cross_triangles(p0, p1, tri).sum())
         if n:
             out.append((ia, ib, n))
     return out
