@@ -296,3 +296,37 @@ def test_too_few_iterations_are_flagged_before_the_first_step():
             assert "10 iterations a step leave 0.4" in messages[0] and "takes 18" in messages[0]
     with pytest.warns(StabilityWarning, match="10 iterations a step leave 0.9"):
         ws.Simulator(torus_model(stiffness=1.0e5), integrator=ws.FastMassSpring(chebyshev=True), forces=[]).step(1.0 / 60.0)
+
+
+def test_a_drag_spring_gets_the_explicit_limit():
+    """FastMassSpring takes forces other than the springs at the step's start, so a particle held by
+    a stiff drag spring (k = 1e4 N/m on m = 1/68 kg, undamped) is a semi-implicit Euler oscillator:
+    stable for dt <= 2 / omega, omega = sqrt(k / m). The stability check says so (under implicit
+    Euler, which solves the drag spring too, it stays unlimited), and a step above the limit gains
+    energy without bound while one below it does not (the target 1 mm from the particle)."""
+    model = torus_model()
+    target = tuple(float(c) for c in model.particle_q.numpy()[0] + np.array([0.0, 1.0e-3, 0.0]))
+    m = float(model.particle_mass.numpy()[0])
+    omega = np.sqrt(1.0e4 / m)
+
+    def sim_with(integrator):
+        drag = ws.DragSpring(stiffness=1.0e4, damping=0.0, particle=0, target=target)
+        return ws.Simulator(torus_model(), integrator=integrator, forces=[drag])
+
+    limit = sim_with(ws.FastMassSpring(iterations=30)).stability()
+    assert limit.limiting == "particle" and limit.particle == 0
+    assert limit.dt == pytest.approx(2.0 / omega, rel=1e-6)
+    assert np.isinf(sim_with(ws.ImplicitEuler()).stability().dt)
+
+    def peak_speed(dt, steps=200):
+        sim = sim_with(ws.FastMassSpring(iterations=30))
+        sim.check_every = 0
+        peak = 0.0
+        for _ in range(steps):
+            sim.step(dt)
+            peak = max(peak, float(np.linalg.norm(sim.state.velocities.numpy(), axis=1).max()))
+        return peak
+
+    # omega x 1 mm = 0.77 m/s; semi-implicit Euler near its limit swings the speed up to 1 / sqrt(1 - (h omega / 2)^2)
+    assert peak_speed(0.8 * limit.dt) < 0.77 / 0.6 * 1.2
+    assert not peak_speed(1.3 * limit.dt) < 1.0e3

@@ -69,6 +69,9 @@ class FastMassSpring(Integrator):
     """
 
     name = "fast_mass_spring"
+    explicit_forces = True
+    """Forces other than the springs are taken at the step's start: the stability check gives a
+    drag spring semi-implicit Euler's limit (``warpsim.core.stability.force_method_of``)."""
 
     def __init__(self, iterations: int = 10, body_size: int | None = None, contacts=(), contact_passes: int = 4,
                  contact_stiffness: float = 2000.0, chebyshev: bool = False):

@@ -100,6 +100,13 @@ class StabilityWarning(UserWarning):
     """A time step above the model's stability limit (see ``Simulator.stability()``)."""
 
 
+def force_method_of(integrator) -> str:
+    """The stability region of the forces an integrator takes explicitly (drag springs, ...):
+    semi-implicit Euler's for integrators that set ``explicit_forces`` (ws.FastMassSpring: springs
+    implicit, other forces at the step's start), else the integrator's own (:func:`method_of`)."""
+    return "semi_implicit_euler" if getattr(integrator, "explicit_forces", False) else method_of(integrator)
+
+
 def method_of(integrator) -> str:
     """The stability-region name of an integrator (name or instance); ValueError if unknown."""
     name = integrator if isinstance(integrator, str) else getattr(integrator, "name", "")
@@ -427,6 +434,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     ``velocities``: (particle_count, 3) [m/s] for the colliders' distance limits (None: the model's
     initial velocities)."""
     method = method_of(integrator)
+    force_method = force_method_of(integrator)
     n, S, d = model.particle_count, model.spring_count, model.device
     host_q = positions.numpy() if hasattr(positions, "numpy") else np.asarray(positions, dtype=np.float64)
     bad = np.flatnonzero(~np.isfinite(np.asarray(host_q, dtype=np.float64).reshape(-1, 3)).all(axis=1))
@@ -528,6 +536,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         zeta = damp[w] / (2.0 * omega) if omega > 0 else 0.0
         dt = stable_step(method, omega, zeta)
         kind, index, stiffness, m, damping, particle = "none", -1, 0.0, 0.0, 0.0, -1
+        region = method  # the stability region of what sets the limit
         in_world = p_order[p_start[w]:p_start[w + 1]]
         if len(in_world) and amplitude[in_world].max() > 0:
             particle = int(in_world[np.argmax(amplitude[in_world])])
@@ -555,11 +564,12 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
                 continue
             omega_d = math.sqrt(k_d * inv_mass[p])
             zeta_d = c_d * inv_mass[p] / (2.0 * omega_d)
-            dt_d = stable_step(method, omega_d, zeta_d)
+            dt_d = stable_step(force_method, omega_d, zeta_d)
             if dt_d < dt:
                 dt, omega, zeta = dt_d, omega_d, zeta_d
                 kind, index, stiffness, m, damping, particle = "particle", p, k_d, float(mass[p]), c_d, p
-                reason = limit_reason(method, omega_d, zeta_d, dt_d,
+                region = force_method
+                reason = limit_reason(force_method, omega_d, zeta_d, dt_d,
                                       f"particle {p} held by a drag spring: k = {k_d:.4g} N/m, m = {m:.4g} kg")
         if len(in_world) and np.isfinite(collider_dt[in_world]).any():
             p = int(in_world[np.argmin(collider_dt[in_world])])
@@ -572,7 +582,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
                           f"{collider_L[p]:.4g} m per step (its collision thickness or fall height) and covers "
                           f"|v| dt + |g| dt^2 per step, so dt <= {dt:.4g} s")
         limits.append(StabilityLimit(
-            dt=dt, integrator=method, omega_max=omega, damping_ratio=zeta, limiting=kind, index=index,
+            dt=dt, integrator=region, omega_max=omega, damping_ratio=zeta, limiting=kind, index=index,
             stiffness=stiffness, mass=m, damping=damping, particle=particle, omega_bound=math.sqrt(bound[w]),
             reason=reason, spring_dt=spring_dt if W == 1 else spring_dt[s_order[s_start[w]:s_start[w + 1]]],
             particle_dt=particle_dt if W == 1 else particle_dt[in_world]))
