@@ -95,3 +95,18 @@ def test_sweep_grid_gallery_and_random_sampling(tmp_path):
     offsets = [UsdGeom.Xformable(stage.GetPrimAtPath(f"/World/{p}")).ComputeLocalToWorldTransform(0)
                .ExtractTranslation() for p in prims]
     assert len({tuple(np.round(o, 6)) for o in offsets}) == 4
+
+
+def test_a_fast_mass_spring_sweep_of_stiffness_is_refused_and_leaves_nothing(tmp_path):
+    """FastMassSpring shares one matrix among the tori of all worlds: a sweep that varies their
+    stiffness exits 2 with one line naming the key and the remedy, before any frame, and leaves no
+    progress file behind (``--resume`` would have nothing to go on from); one that varies gravity runs."""
+    common = ["sweep", "donuts", "--set", "integrator=fast_mass_spring", "--set", "count=2", "--set",
+              "dt=0.0041666667", "--frames", "1", "--no-progress", "--no-thumbnails"]
+    code, _, err = run(*common, "--vary", "stiffness=100,200", "--out", str(tmp_path / "a.usda"))
+    assert code == 2, err
+    assert err.count("\n") == 1 and "stiffness changes the springs" in err and "integrator=implicit_euler" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    code, _, err = run(*common, "--vary", "gravity=5,9.81", "--out", str(tmp_path / "b.usda"))
+    assert code == 0, err
+    assert not (tmp_path / "b.sweep-partial.json").exists() and (tmp_path / "b.batch_0000.usdc").exists()

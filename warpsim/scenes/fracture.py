@@ -397,13 +397,15 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "integrator": ("semi_implicit_euler", ("time integrator; fast_mass_spring: backward Euler by local-global "
                                            "iterations with one prefactored matrix for all tori (ws.FastMassSpring)"),
                    INTEGRATORS + ("fast_mass_spring",)),
-    "contact_stiffness": (2000.0, ("implicit_euler only: penalty stiffness of the contacts inside the implicit solve "
-                                   "[N/m] (SoftContact.implicit_force; 0: off, contact only after the step)")),
+    "contact_stiffness": (2000.0, ("implicit_euler: penalty stiffness of the contacts inside the implicit solve "
+                                   "[N/m] (SoftContact.implicit_force; 0: off, contact only after the step); "
+                                   "fast_mass_spring: stiffness of the proximal pull toward the pushed contact "
+                                   "vertices (FastMassSpring contact_stiffness)")),
     "contact_damping": (0.0, "implicit_euler only: damping of the contacts inside the implicit solve [N s/m]"),
-    "contact_reach": (0.012, ("implicit_euler only: speculative contact distance beyond the thickness [m] "
+    "contact_reach": (0.012, ("implicit_euler and fast_mass_spring: speculative contact distance beyond the thickness [m] "
                               "(SoftContact reach): pairs that close during a large step are in the implicit "
                               "solve before they touch")),
-    "contact_iterations": (16, ("implicit_euler only: contact passes after each step (SoftContact iterations; "
+    "contact_iterations": (16, ("implicit_euler and fast_mass_spring: contact passes after each step (SoftContact iterations; "
                                 "4 with semi_implicit_euler)")),
     "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
     "solver_chebyshev": (False, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "

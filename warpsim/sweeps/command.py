@@ -415,6 +415,9 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
                          occupancy={**occupancy, "path": staging.partial(record)},
                          warn=lambda line: warn_or_refuse(line, args.strict, err), chunk_size=args.chunk,
                          resume_frame=first, timing=run_timing)
+    except BaseException:
+        staging.abandon()  # refused before any frame (e.g. a batch that cannot be built): no progress file
+        raise
     finally:
         if progress:
             progress.close()

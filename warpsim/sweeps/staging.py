@@ -96,6 +96,7 @@ class SweepStaging:
         self.stem = os.path.splitext(self.root)[0]
         self.progress_path = self.stem + ".sweep-partial.json"
         self.settings = json.loads(json.dumps(settings, sort_keys=True, default=str))
+        self.resumed = bool(resume)
         if resume:
             self.token = self._load_progress()
         else:
@@ -179,6 +180,14 @@ class SweepStaging:
             raise ValueError(f"--resume: the interrupted sweep's layer {layer} does not open ("
                              f"{pxr_reason(exc, 120)}); run the sweep without --resume") from None
         return chunks[-1][1] + 1 if chunks else 0
+
+    def abandon(self):
+        """After a run that failed before writing anything: remove the progress file this run
+        made (a ``--resume`` would find nothing to go on from); a run that wrote frames keeps it."""
+        if self.resumed or any(token == self.token for _, token in self._run_files()):
+            return
+        if os.path.exists(self.progress_path):
+            os.remove(self.progress_path)
 
     def partial(self, path):
         """A staging name for a file published whole at the end (e.g. the occupancy record)."""

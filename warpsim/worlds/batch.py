@@ -327,6 +327,13 @@ class WorldBatch:
                 raise StructuralError(f"the integrator's contacts ({', '.join(missing)}) are not among the scene's "
                                       "colliders; batched worlds tile only those")
             integrator.contacts = [tiled[id(c)] for c in integrator.contacts]
+        if getattr(integrator, "body_size", None) is not None:
+            # ws.FastMassSpring: one matrix for every copy of every world
+            varied = sorted({e.key for e in self.plan.values() for name in e.scale if name != "particle_radius"})
+            if varied:
+                raise StructuralError(f"{varied[0]} changes the springs or masses between worlds, but integrator "
+                                      f"{integrator.name} shares one matrix among the bodies of all worlds; set it "
+                                      "with --set (one sweep per value) or vary it with --set integrator=implicit_euler")
         kwargs = {"forces": forces, "colliders": colliders, "max_speed": sim0.max_speed, "check_every": 0}
         if self.fused and not hasattr(sim0, "use_graph"):
             from ..cloth.solver import ClothSemiImplicitEuler, ClothSimulator
