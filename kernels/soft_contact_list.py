@@ -197,6 +197,7 @@ def search_candidates(
     flags_io: wp.array(dtype=int),
     motion: wp.array(dtype=float),
     thickness: float,
+    edge_thickness: float,
     search: float,
     pad: float,
     body_bvh: wp.uint64,
@@ -225,8 +226,9 @@ def search_candidates(
 ):
     """Candidates of query i (vertex i < V, else edge i - V) when the search flag is up; both pair
     kinds in one launch and one buffer (``capacity`` slots a query). Kept within
-    max(thickness, search) + 2 pad of a vertex, max(thickness, min(search, 2 motion[1])) + 2 pad of an
-    edge (module docstring); query boxes grow by the tree's staleness motion[0]."""
+    max(thickness, search) + 2 pad of a vertex, max(edge_thickness, min(search, 2 motion[1])) + 2 pad of
+    an edge (module docstring; the detection distances of the two kinds, thickness + reach and
+    thickness + edge reach); query boxes grow by the tree's staleness motion[0]."""
     i = wp.tid()
     if flags_io[FLAG_SEARCH] == 0:
         return
@@ -239,7 +241,7 @@ def search_candidates(
                               vertex_particle, vertex_body, tri, tri_body, q, rest, inv_mass, self_contact,
                               self_rest_distance, capacity, cand_out)
     else:
-        keep = wp.max(thickness, wp.min(search, 2.0 * motion[1])) + 2.0 * pad
+        keep = wp.max(edge_thickness, wp.min(search, 2.0 * motion[1])) + 2.0 * pad
         found = search_edge(i - V, i, keep + motion[0], keep, body_bvh, world_root, edge_bvh, body_edge_root, edge_world, edges,
                             edge_body, q, rest, inv_mass, self_contact, self_rest_distance, capacity, cand_out)
     if found > capacity:
@@ -284,6 +286,7 @@ def narrow_candidates(
     q: wp.array(dtype=wp.vec3),
     q_prev: wp.array(dtype=wp.vec3),
     thickness: float,
+    edge_thickness: float,
     search: float,
     count_within: float,
     contact_particles_out: wp.array(dtype=wp.vec4i),
@@ -330,7 +333,7 @@ def narrow_candidates(
     pb = q_prev[edges[2 * e + 1]]
     for k in range(cand_count[i]):
         f = cand[i * capacity + k]
-        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, edge_thickness, search)
         if d >= 0.0 and nearer(d, f, best_d, best):
             best_d = d
             best = f

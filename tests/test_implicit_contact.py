@@ -106,3 +106,30 @@ def test_speculative_contacts_do_not_weaken_a_touching_one():
     assert contact.contact_count == 4
     assert y[0] == pytest.approx(thickness, abs=1e-6)  # pushed out to the thickness in one pass
     np.testing.assert_allclose(y[1:4], 0.014, atol=1e-7)  # the speculative ones did not move
+
+
+@pytest.mark.parametrize("broad_phase", ["all_pairs", "bvh", "list"])
+def test_edge_reach_sets_the_speculative_edge_pairs_apart_from_the_vertex_ones(broad_phase):
+    """Two box rods crossed at right angles, 10 mm apart (beyond the 6 mm thickness, within the 12 mm
+    reach), at rest: only their long edges are near each other. With ``edge_reach`` None (the reach)
+    their edge pairs are speculative contacts; with ``edge_reach=0`` there are none, and still none
+    of the vertex kind in both cases; every broad phase agrees."""
+    from test_soft_contact_scale import box_mesh
+
+    counts = {}
+    for edge_reach in (None, 0.0):
+        b = ws.ModelBuilder()
+        rods = []
+        for k, size in enumerate(((0.3, 0.02, 0.02), (0.02, 0.02, 0.3))):
+            points, faces = box_mesh(size)
+            rods.append(ws.add_soft_body(b, points, faces, position=(0.0, k * 0.030, 0.0), total_mass=0.1,
+                                         stiffness=2000.0, interior="none"))
+        contact = ws.SoftContact(rods, thickness=0.006, reach=0.012, edge_reach=edge_reach, broad_phase=broad_phase)
+        sim = ws.Simulator(b.finalize(DEVICE), forces=[], colliders=[contact])
+        sim.step(1.0 / 240.0)
+        counts[edge_reach] = (contact.contact_count, contact.edge_contact_count)
+        assert contact.edge_detect_distance == pytest.approx(0.006 + (0.012 if edge_reach is None else 0.0))
+    assert counts[None][0] == 0 and counts[None][1] > 0
+    assert counts[0.0] == (0, 0)
+    with pytest.raises(ValueError, match="edge_reach"):
+        ws.SoftContact([np.array([[0, 1, 2]]), np.array([[3, 4, 5]])], reach=0.01, edge_reach=-0.01)

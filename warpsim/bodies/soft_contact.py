@@ -90,6 +90,10 @@ class SoftContact(Collider):
             after the step such a pair may still approach by its gap beyond the thickness in one
             step, only faster approach is removed. Give at least the relative distance two bodies
             travel in one step (the donuts scene: 2 x thickness at 1/240 s).
+        edge_reach: the same for edge-edge pairs [m] (None: ``reach``). Edges that pass through each
+            other during a step are found after it anyway (the crossing test), so speculative edge
+            pairs matter less, and each edge's query box grows by twice this. The donuts scene gives
+            0: its heaps held as well or better, with fewer candidates (``benchmarks/RESULTS.md``).
         capacity: "list" only: candidates kept per vertex or edge query; a query with more counts
             an overflow (``candidate_overflow``) and may miss contacts.
         rebuild_every: rebuild the BVHs every this many steps and refit them in between (0: refit
@@ -124,7 +128,8 @@ class SoftContact(Collider):
                  self_contact: bool = False, iterations: int = 4, search: float | None = None,
                  self_rest_distance: float | None = None, push: float = 0.5, edge_contact: bool = True,
                  broad_phase: str = "bvh", rebuild_every: int | None = None, pad: float | None = None,
-                 search_every: int | None = None, capacity: int | None = None, reach: float = 0.0):
+                 search_every: int | None = None, capacity: int | None = None, reach: float = 0.0,
+                 edge_reach: float | None = None):
         bodies = list(bodies) if not isinstance(bodies, np.ndarray) else [bodies]
         if not bodies:
             raise ValueError("SoftContact needs at least one body (a SoftBody or an (F, 3) triangle array)")
@@ -146,6 +151,8 @@ class SoftContact(Collider):
         self.thickness = float(thickness)
         self.reach = float(checks.nonnegative(reach, "SoftContact reach", unit="m",
                                               fix="e.g. 2 x the thickness for steps of 1/240 s, or 0"))
+        self.edge_reach = self.reach if edge_reach is None else float(checks.nonnegative(
+            edge_reach, "SoftContact edge_reach", unit="m", fix="e.g. 0, or None for the reach"))
         self.friction = float(friction)
         self.restitution = restitution
         self.self_contact = bool(self_contact)
@@ -497,6 +504,7 @@ class SoftContact(Collider):
                    self._total]
         common = [model.particle_q, model.particle_inv_mass, self.detect_distance, self.search, self.thickness,
                   int(self.self_contact), self.self_rest_distance]
+        edge_common = [*common[:2], self.edge_detect_distance, *common[3:]]
         vertex = [self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, state.positions]
         if all_pairs:
             wp.launch(K.find_vertex_contacts_all_pairs, v, inputs=[self._world_tri_start, *vertex, *common, *contact],
@@ -504,7 +512,7 @@ class SoftContact(Collider):
             if e:
                 wp.launch(K.find_edge_contacts_all_pairs, e, inputs=[self._world_edge_start, self._edge_world,
                                                                      self._edges, self._edge_body, state.positions,
-                                                                     q_prev, *common, v, *contact], device=d)
+                                                                     q_prev, *edge_common, v, *contact], device=d)
         else:
             self._launch_bounds(state.positions, q_prev)
             if e:
@@ -516,7 +524,7 @@ class SoftContact(Collider):
             if e:
                 wp.launch(K.find_edge_contacts, e, inputs=[*body, self._edge_bvh.id, self._body_edge_root,
                                                            self._edge_world, self._edges, self._edge_body,
-                                                           state.positions, q_prev, *common, v, *contact,
+                                                           state.positions, q_prev, *edge_common, v, *contact,
                                                            self._candidates_edge], device=d)
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         self._list_touched()
@@ -575,8 +583,13 @@ class SoftContact(Collider):
 
     @property
     def detect_distance(self) -> float:
-        """Distance [m] within which pairs are kept as contacts: thickness + reach."""
+        """Distance [m] within which vertex-triangle pairs are kept as contacts: thickness + reach."""
         return self.thickness + self.reach
+
+    @property
+    def edge_detect_distance(self) -> float:
+        """Distance [m] within which edge-edge pairs are kept as contacts: thickness + edge_reach."""
+        return self.thickness + self.edge_reach
 
     def _inv_dt(self, dt) -> float:
         """1 / dt [1/s] for speculative contacts (``reach`` > 0), else 0 (``resolve_one``)."""
@@ -614,7 +627,8 @@ class SoftContact(Collider):
             record(L.check_motion, v, [self._vertex, q, q_prev, self._x_search, self._x_tree, self.pad,
                                        0.5 * self.thickness, self._flags, self._motion]),
             record(L.search_candidates, v + e, [
-                self._flags, self._motion, self.detect_distance, self.search, self.pad, self._body_bvh.id,
+                self._flags, self._motion, self.detect_distance, self.edge_detect_distance, self.search, self.pad,
+                self._body_bvh.id,
                 self._world_root, self._tri_bvh.id, self._body_tri_root, edge_tree[0], edge_tree[1],
                 self._vertex_world, self._vertex, self._vertex_body, self._tri, self._tri_body, *edge_tree[2:], q,
                 model.particle_q, model.particle_inv_mass, int(self.self_contact), self.self_rest_distance,
@@ -622,7 +636,8 @@ class SoftContact(Collider):
             record(L.end_search, 1, [self._flags, self._motion, self._total, self._listed]),
             record(L.narrow_candidates, v + e, [
                 self._cand, self._cand_count, self.capacity, self._vertex, self._tri, edge_tree[3], q, q_prev,
-                self.detect_distance, self.search, self.thickness, *contact, self._particle_contacts, self._seen,
+                self.detect_distance, self.edge_detect_distance, self.search, self.thickness, *contact,
+                self._particle_contacts, self._seen,
                 self._total, self._active, self._touched, self._listed]),
         ]
         threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
@@ -645,7 +660,8 @@ class SoftContact(Collider):
         if (self._steps - 1) % self.search_every == 0:
             self._refit_listed(state.positions)
         key = (state.positions.ptr, state.velocities.ptr, q_prev.ptr, self.pad, self.thickness, self.search,
-               self.iterations, self.push, self.restitution, self.friction, self.reach, self._inv_dt(dt),
+               self.iterations, self.push, self.restitution, self.friction, self.reach, self.edge_reach,
+               self._inv_dt(dt),
                self._bvh_ids())
         if getattr(self, "_recorded_key", None) != key:
             self._recorded = self._record_listed(model, state, q_prev, dt)

@@ -405,12 +405,17 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "contact_reach": (0.012, ("implicit_euler and fast_mass_spring: speculative contact distance beyond the thickness [m] "
                               "(SoftContact reach): pairs that close during a large step are in the implicit "
                               "solve before they touch")),
+    "contact_edge_reach": (0.0, ("implicit_euler and fast_mass_spring: speculative distance of edge-edge pairs [m] "
+                                 "(SoftContact edge_reach; edges that pass through each other are found after the "
+                                 "step anyway): 0 held the heaps as well as the reach and cuts the edge search")),
     "contact_iterations": (16, ("implicit_euler and fast_mass_spring: contact passes after each step (SoftContact iterations; "
                                 "4 with semi_implicit_euler)")),
     "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
     "solver_chebyshev": (False, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "
                                  "the scene's heap at 1/240 s held with 6 and 10 accelerated iterations, let 8 edges "
                                  "through with 8; benchmarks/RESULTS.md)")),
+    "solver_tf32": (False, ("fast_mass_spring only: solve each global step for the iteration's correction and, on "
+                            "CUDA, multiply on TF32 tensor cores (ws.FastMassSpring tf32)")),
     "solver_iterations": (20, ("fast_mass_spring only: local-global iterations per step (the scene's heap at 1/240 s: "
                                "10 let edges through and squash the tori, 20 hold it; benchmarks/RESULTS.md)")),
 }, substeps=20)
@@ -427,7 +432,8 @@ class DonutsScene(SimulatorScene):
     def build(self, p):
         _positive(p, "count", "segments", "sides", "major_radius", "minor_radius", "mass", "stiffness",
                   "lattice_cells", "thickness", "gravity", "newton_iterations", "contact_iterations", "solver_iterations")
-        for key, unit in (("contact_stiffness", "N/m"), ("contact_damping", "N s/m"), ("contact_reach", "m")):
+        for key, unit in (("contact_stiffness", "N/m"), ("contact_damping", "N s/m"), ("contact_reach", "m"),
+                          ("contact_edge_reach", "m")):
             if not (math.isfinite(p[key]) and p[key] >= 0.0):
                 raise ValueError(f"{key}={p[key]}: give a number >= 0 [{unit}] (contact_stiffness 0: no contact "
                                  "force in the implicit solve)")
@@ -478,7 +484,8 @@ class DonutsScene(SimulatorScene):
         self.contact = None  # one torus without self contact touches nothing but the box
         # at implicit Euler's large steps: speculative pairs in the solve and more passes after it
         # (measured: 2 tori of 2,000 vertices at 1/240 s cross with 4 passes, not with 8 or 16)
-        implicit_contact = ({"reach": p["contact_reach"], "iterations": int(p["contact_iterations"])}
+        implicit_contact = ({"reach": p["contact_reach"], "edge_reach": p["contact_edge_reach"],
+                             "iterations": int(p["contact_iterations"])}
                             if p["integrator"] in ("implicit_euler", "fast_mass_spring") else {})
         if count > 1 or p["self_contact"]:
             self.contact = SoftContact.copies(template.faces, self.offsets, thickness=p["thickness"],
@@ -492,7 +499,7 @@ class DonutsScene(SimulatorScene):
             integrator = ws.FastMassSpring(iterations=int(p["solver_iterations"]), body_size=template.particle_count,
                                            contacts=[self.contact] if self.contact is not None else [],
                                            contact_stiffness=p["contact_stiffness"],
-                                           chebyshev=bool(p["solver_chebyshev"]))
+                                           chebyshev=bool(p["solver_chebyshev"]), tf32=bool(p["solver_tf32"]))
         elif integrator == "implicit_euler":
             integrator = ws.ImplicitEuler(newton_iterations=p["newton_iterations"])
             if self.contact is not None and p["contact_stiffness"] > 0.0:
