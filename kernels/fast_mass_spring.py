@@ -11,8 +11,7 @@ with each spring's direction d_s (length L_s) free: fixing x, the best d_s is L_
 
     A = M + h C_L + h^2 K_L    (K_L, C_L the springs' stiffness and damping Laplacians)
 
-(the global step: x = A^-1 b, or with ``FastMassSpring(tf32=True)`` x = q + A^-1 (b - A q) from the
-iterate q, whose rounding is relative to the correction, not to the positions). Each iteration lowers g (block coordinate descent, tested); stopped
+(the global step: x = A^-1 b). Each iteration lowers g (block coordinate descent, tested); stopped
 early, the step is not backward Euler's, and where h^2 k / m is large the energy can rise (measured in
 ``tests/test_fast_mass_spring.py``). Springs are damped isotropically, c_s (v_j - v_i), not only along
 the spring as ``Springs`` damps: the damping stays in the constant matrix.
@@ -51,16 +50,13 @@ def predict(q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), f_ext: wp.a
 def local_rhs(q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3),
               mass: wp.array(dtype=float), entry_offsets: wp.array(dtype=int), entry_other: wp.array(dtype=int),
               entry_rest: wp.array(dtype=float), entry_stiffness: wp.array(dtype=float),
-              entry_damping: wp.array(dtype=float), proximal: wp.array(dtype=float), body_size: int, residual: int,
+              entry_damping: wp.array(dtype=float), proximal: wp.array(dtype=float), body_size: int,
               rhs_out: wp.array2d(dtype=float)):
     """Local step and right-hand side for particle i (copy t, column c = i - t P): b_i = m_i y_i +
     w_c q_i + sum over the springs of column c (the copy's CSR row, in its fixed order) of h^2 k_s d_s
-    + h c_s u0, with u = q_i - q_j, u0 = q0_i - q0_j, j = t P + the spring's other end, d_s = L_s u / |u|
+    + h c_s (q0_i - q0_j), with j = t P + the spring's other end, d_s = L_s (q_i - q_j) / |q_i - q_j|
     the spring's best direction at the current iterate and w_c = ``proximal`` (contact vertices:
     h^2 k_c, the pull toward the contact-projected iterate; A holds w on its diagonal) [kg m].
-    With ``residual`` 1 it writes r_i = b_i - (A q)_i = m_i (y_i - q_i) + sum of h^2 k_s (d_s - u) +
-    h c_s (u0 - u) instead (w_c q_i cancels): the global step then solves for the correction
-    A^-1 r, small next to the positions, so a lower-precision product (TF32) errs only on it.
     ``entry_stiffness`` and ``entry_damping`` hold h^2 k_s and h c_s. The spring tables are one
     copy's (small: they stay in cache). Written to B (3T x P, row major): row 3 t + coordinate."""
     i = wp.tid()
@@ -70,8 +66,6 @@ def local_rhs(q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), y: wp.arr
     xi = q[i]
     x0 = q0[i]
     b = mass[i] * y[i] + proximal[col] * xi
-    if residual != 0:
-        b = mass[i] * (y[i] - xi)
     for a in range(entry_offsets[col], entry_offsets[col + 1]):
         j = base + entry_other[a]
         u = xi - q[j]
@@ -79,25 +73,17 @@ def local_rhs(q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), y: wp.arr
         d = wp.vec3()
         if l > 1.0e-12:
             d = u * (entry_rest[a] / l)
-        u0 = x0 - q0[j]
-        if residual != 0:
-            if l <= 1.0e-12:
-                d = u
-            b = b + entry_stiffness[a] * (d - u) + entry_damping[a] * (u0 - u)
-        else:
-            b = b + entry_stiffness[a] * d + entry_damping[a] * u0
+        b = b + entry_stiffness[a] * d + entry_damping[a] * (x0 - q0[j])
     rhs_out[3 * t, col] = b[0]
     rhs_out[3 * t + 1, col] = b[1]
     rhs_out[3 * t + 2, col] = b[2]
 
 
-def tile_product(tile: int, precision: str = "default"):
+def tile_product(tile: int):
     """The global step's kernel with square tiles of ``tile``: X = B A^-1 for one (tile x tile)
     output block, B (3T x P), A^-1 (P x P, symmetric), the inner dimension in tile steps in a fixed
-    order (tiles past the edges read zeros); ``precision`` "tf32" multiplies on tensor cores with
-    float32 sums (CUDA only). Made at import for the sizes in ``GLOBAL_SOLVE``."""
+    order (tiles past the edges read zeros). Made at import for the sizes in ``GLOBAL_SOLVE``."""
     size = wp.constant(tile)
-    tf32 = wp.constant(1 if precision == "tf32" else 0)
 
     def global_solve(rhs: wp.array2d(dtype=float), inverse: wp.array2d(dtype=float), x_out: wp.array2d(dtype=float)):
         i, j = wp.tid()
@@ -106,38 +92,24 @@ def tile_product(tile: int, precision: str = "default"):
         for k in range(steps):
             a = wp.tile_load(rhs, shape=(size, size), offset=(i * size, k * size))
             b = wp.tile_load(inverse, shape=(size, size), offset=(k * size, j * size))
-            if wp.static(tf32 == 1):
-                wp.tile_matmul(a, b, acc, precision="tf32")
-            else:
-                wp.tile_matmul(a, b, acc)
+            wp.tile_matmul(a, b, acc)
         wp.tile_store(x_out, acc, offset=(i * size, j * size))
 
-    if precision == "default":
-        return wp.Kernel(global_solve, key=f"global_solve_{tile}")
-    # a module of their own: compiled only where launched (CUDA), not with this module on the CPU
-    module = wp.get_module(f"{__name__}_{precision}")
-    module.options["enable_backward"] = False
-    return wp.Kernel(global_solve, key=f"global_solve_{tile}_{precision}", module=module)
+    return wp.Kernel(global_solve, key=f"global_solve_{tile}")
 
 
 GLOBAL_SOLVE = {tile: tile_product(tile) for tile in (32, 64)}
 """Tile size -> global-step kernel: 32 on the CPU and for small batches (less padding), 64 on CUDA
 for large ones (twice the arithmetic per byte loaded; ``benchmarks/RESULTS.md``)."""
-GLOBAL_SOLVE_TF32 = {tile: tile_product(tile, "tf32") for tile in (32, 64)}
-"""The same with TF32 tensor-core products (CUDA; ``FastMassSpring(tf32=True)``)."""
 
 
 @wp.kernel
-def scatter_positions(x: wp.array2d(dtype=float), body_size: int, residual: int, q_io: wp.array(dtype=wp.vec3)):
-    """q_i = the global step's solution for particle i (rows 3 t .. 3 t + 2, column i - t P of X), or
-    with ``residual`` 1 q_i += it (the correction)."""
+def scatter_positions(x: wp.array2d(dtype=float), body_size: int, q_out: wp.array(dtype=wp.vec3)):
+    """q_i = the global step's solution for particle i (rows 3 t .. 3 t + 2, column i - t P of X)."""
     i = wp.tid()
     t = i / body_size
     col = i - t * body_size
-    x_i = wp.vec3(x[3 * t, col], x[3 * t + 1, col], x[3 * t + 2, col])
-    if residual != 0:
-        x_i = q_io[i] + x_i
-    q_io[i] = x_i
+    q_out[i] = wp.vec3(x[3 * t, col], x[3 * t + 1, col], x[3 * t + 2, col])
 
 
 @wp.kernel

@@ -36,7 +36,7 @@ which the BVH returns candidates.
 A contact joins four particles k with weights a_k (vertex-triangle: 1, -b_0, -b_1, -b_2; edge-edge:
 1 - u, u, -(1 - t), -t): the relative velocity is sum a_k v_k, the effective inverse mass
 W = sum a_k^2 w_k. Each of ``iterations`` passes (Jacobi: deltas from the same state, then
-applied) lets ``resolve_contacts`` remove ``fraction`` of the depth thickness - (sum a_k x_k) . n
+applied) lets ``resolve_one`` remove ``fraction`` of the depth thickness - (sum a_k x_k) . n
 at the current positions (at detection, thickness - s) and apply J = -(1 + e) u_n / W when
 u_n < 0 and Coulomb friction up to mu J; particle k receives
 a_k w_k (impulse): sum m dv = J sum a_k = 0, momentum is conserved (pinned particles, w = 0, never
@@ -738,25 +738,16 @@ def count_one_impulse(c: int, q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.
                       inv_mass: wp.array(dtype=float), contact_particles: wp.array(dtype=wp.vec4i),
                       contact_weights: wp.array(dtype=wp.vec4), contact_normal: wp.array(dtype=wp.vec3),
                       thickness: float, inv_dt: float, impulse_counts_io: wp.array(dtype=int)):
-    """Add 1 to the impulse counts of slot c's particles if it gets an impulse in this pass."""
+    """Add 1 to the impulse counts of slot c's particles if it gets an impulse in this pass: before each
+    pass every particle's number of contacts that ``resolve_one`` gives an impulse in it (the
+    impulses' Jacobi scale). Counting every stored pair instead diluted the few that act (a dense
+    heap's pairs are mostly speculative and still); counting only pairs within the thickness gave a
+    vertex in 20 speculative pairs, all approaching, 20 full impulses in one pass (19.9 m/s after a
+    3.4 m/s approach: the donuts heap at 1/240 s)."""
     if needs_impulse(c, q, qd, inv_mass, contact_particles, contact_weights, contact_normal, thickness, inv_dt):
         particles = contact_particles[c]
         for k in range(4):
             wp.atomic_add(impulse_counts_io, particles[k], 1)
-
-
-@wp.kernel
-def count_impulses(q: wp.array(dtype=wp.vec3), qd: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
-                   contact_particles: wp.array(dtype=wp.vec4i), contact_weights: wp.array(dtype=wp.vec4),
-                   contact_normal: wp.array(dtype=wp.vec3), thickness: float, inv_dt: float,
-                   impulse_counts_io: wp.array(dtype=int)):
-    """Before each pass: every particle's number of contacts that ``resolve_one`` gives an impulse in
-    it (the impulses' Jacobi scale). Counting every stored pair instead diluted the few that act (a
-    dense heap's pairs are mostly speculative and still); counting only pairs within the thickness
-    gave a vertex in 20 speculative pairs, all approaching, 20 full impulses in one pass (19.9 m/s
-    after a 3.4 m/s approach: the donuts heap at 1/240 s)."""
-    count_one_impulse(wp.tid(), q, qd, inv_mass, contact_particles, contact_weights, contact_normal, thickness, inv_dt,
-                      impulse_counts_io)
 
 
 @wp.func
@@ -786,7 +777,7 @@ def resolve_one(
     thickness in one step; only faster approach is removed (no restitution: no impact yet).
     ``inv_dt`` 0: every approach is an impact. The push is scaled by 1 / the particles' largest count
     of pairs within the thickness (``particle_contacts``), the impulse by 1 / their largest count of
-    pairs given an impulse in this pass (``impulse_counts``, from ``count_impulses``)."""
+    pairs given an impulse in this pass (``impulse_counts``, from ``count_one_impulse``)."""
     particles = contact_particles[c]
     if particles[0] < 0:
         return
@@ -816,29 +807,6 @@ def resolve_one(
     scatter_contact(particles, weights, inv_mass, contact_scale(particles, impulse_counts) * impulse, dv_io)
 
 
-@wp.kernel
-def resolve_contacts(
-    q: wp.array(dtype=wp.vec3),
-    qd: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    contact_particles: wp.array(dtype=wp.vec4i),
-    contact_weights: wp.array(dtype=wp.vec4),
-    contact_normal: wp.array(dtype=wp.vec3),
-    particle_contacts: wp.array(dtype=int),
-    impulse_counts: wp.array(dtype=int),
-    thickness: float,
-    fraction: float,
-    restitution: float,
-    friction: float,
-    inv_dt: float,
-    dx_io: wp.array2d(dtype=wp.int64),
-    dv_io: wp.array2d(dtype=wp.int64),
-):
-    """``resolve_one`` for every contact slot c."""
-    resolve_one(wp.tid(), q, qd, inv_mass, contact_particles, contact_weights, contact_normal, particle_contacts,
-                impulse_counts, thickness, fraction, restitution, friction, inv_dt, dx_io, dv_io)
-
-
 @wp.func
 def take_delta(i: int, delta_io: wp.array2d(dtype=wp.int64)) -> wp.vec3:
     """Row i of a fixed-point delta buffer as a vec3, clearing the row."""
@@ -862,8 +830,9 @@ def apply_one(
     qd_io[i] = qd_io[i] + take_delta(i, dv_io)
 
 
-@wp.kernel
-def push_contacts(
+@wp.func
+def push_one(
+    c: int,
     q: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     contact_particles: wp.array(dtype=wp.vec4i),
@@ -875,12 +844,11 @@ def push_contacts(
     max_depth: float,
     dx_io: wp.array2d(dtype=wp.int64),
 ):
-    """The position push of ``resolve_one`` alone, for every contact slot c, at positions q (no
+    """The position push of ``resolve_one`` alone, for contact slot c, at positions q (no
     velocities: ``SoftContact.project_positions`` inside a solver's iterations). A pair deeper than
     ``max_depth`` [m] is left alone: its vertex has passed the plane stored at the search (or slid
     off its triangle), and pushing it along the stored normal would throw it (the collider's next
     search sees it afresh)."""
-    c = wp.tid()
     particles = contact_particles[c]
     if particles[0] < 0:
         return
@@ -895,13 +863,40 @@ def push_contacts(
 
 
 @wp.kernel
+def push_listed(
+    stride: int,
+    listed: wp.array(dtype=int),
+    slots: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    contact_particles: wp.array(dtype=wp.vec4i),
+    contact_weights: wp.array(dtype=wp.vec4),
+    contact_normal: wp.array(dtype=wp.vec3),
+    particle_contacts: wp.array(dtype=int),
+    thickness: float,
+    fraction: float,
+    max_depth: float,
+    dx_io: wp.array2d(dtype=wp.int64),
+):
+    """``push_one`` for the listed contact slots (``list_touched``; ``stride`` threads, each every
+    stride-th of the listed[0] slots)."""
+    for i in range(wp.tid(), listed[0], stride):
+        push_one(slots[i], q, inv_mass, contact_particles, contact_weights, contact_normal, particle_contacts,
+                 thickness, fraction, max_depth, dx_io)
+
+
+@wp.kernel
 def list_touched(contact_particles: wp.array(dtype=wp.vec4i), mark_io: wp.array(dtype=int),
-                 touched_out: wp.array(dtype=int), count_io: wp.array(dtype=int)):
-    """Append every particle of contact slot c to ``touched`` once (the thread that raises its mark
-    from 0 appends it; the list's order varies on a GPU, the fixed-point deltas applied from it do not)."""
-    particles = contact_particles[wp.tid()]
+                 touched_out: wp.array(dtype=int), count_io: wp.array(dtype=int), slots_out: wp.array(dtype=int),
+                 slot_count_io: wp.array(dtype=int)):
+    """Append contact slot c to ``slots`` if it holds a contact, and each of its particles to
+    ``touched`` once (the thread that raises its mark from 0 appends it). The lists' order varies on
+    a GPU; the passes over them sum fixed-point deltas, which do not depend on it."""
+    c = wp.tid()
+    particles = contact_particles[c]
     if particles[0] < 0:
         return
+    slots_out[wp.atomic_add(slot_count_io, 0, 1)] = c
     for k in range(4):
         p = particles[k]
         if p >= 0:

@@ -117,9 +117,11 @@ class SoftContact(Collider):
     """Default BVH rebuild period on the CPU, where a SAH rebuild costs about 1.2 us per item."""
     SEARCH_EVERY = 20
     """Default refit-and-search period of ``broad_phase="list"`` (steps)."""
-    LIST_THREADS = 65536
-    """Threads of the list's push-and-impulse passes (each takes every LIST_THREADS-th contact or
-    particle: the launches stay this small however many contact slots there are)."""
+    LIST_THREADS = 1 << 20
+    """Most threads of the passes over listed contacts and particles (each takes every
+    LIST_THREADS-th one; fewer when there are fewer slots or particles). Results do not depend on
+    it (each item is taken by one thread; fixed-point sums). 65,536 left the landed heap of 1,000
+    tori (2 M touched particles) at 0.78 ms a particle pass on the H100, 50 ms of a 162 ms step."""
     DEFAULT_CAPACITY = 256
     """Default candidates kept per query of ``broad_phase="list"`` (64 overflowed on a settled heap of
     tori of 2,000 vertices: 9.7 candidates a vertex query on average, many at 64)."""
@@ -335,11 +337,13 @@ class SoftContact(Collider):
         self._total = wp.zeros(2, dtype=int, device=d)
         self._dx = wp.zeros((n, 3), dtype=wp.int64, device=d)
         self._dv = wp.zeros((n, 3), dtype=wp.int64, device=d)
-        # the particles of the last search's contacts, listed once (``kernels.soft_contact.list_touched``):
-        # the passes apply their deltas to these only
+        # the last search's contact slots and their particles, listed once (``kernels.soft_contact.list_touched``):
+        # the passes run over these only (at 1,000 tori 2.7 M of 8 M slots held a contact)
         self._touch_mark = wp.zeros(n, dtype=int, device=d)
         self._touch_list = wp.zeros(n, dtype=int, device=d)
         self._touch_count = wp.zeros(1, dtype=int, device=d)
+        self._slot_list = wp.zeros(slots, dtype=int, device=d)
+        self._slot_count = wp.zeros(1, dtype=int, device=d)
         self._touch_listed = False
         self._impulse_counts = wp.zeros(n, dtype=int, device=d)  # per pass: contacts giving a particle an impulse
         if self.broad_phase == "list":
@@ -488,7 +492,7 @@ class SoftContact(Collider):
         return int(self._total.numpy()[1])
 
     def apply(self, model, state, q_prev, dt) -> None:
-        d, n, v, e = model.device, model.particle_count, self.vertex_count, self.edge_count
+        d, v, e = model.device, self.vertex_count, self.edge_count
         if d.is_cpu and d.is_capturing:
             raise ValueError("SoftContact does not run inside a graph captured on the CPU; use "
                              "ws.ClothSimulator(..., use_graph=False) or ws.Simulator")
@@ -529,19 +533,21 @@ class SoftContact(Collider):
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         self._list_touched()
         q, qd, inv_dt = state.positions, state.velocities, self._inv_dt(dt)
+        stride = min(v + e, self.LIST_THREADS)
+        listed = [stride, self._slot_count, self._slot_list, q, qd, model.particle_inv_mass]
         for _ in range(self.iterations):
-            wp.launch(K.count_impulses, v + e, inputs=[q, qd, model.particle_inv_mass, *slots[:3], self.thickness,
-                                                       inv_dt, self._impulse_counts], device=d)
-            wp.launch(K.resolve_contacts, v + e, inputs=[q, qd, model.particle_inv_mass, *slots, self._impulse_counts,
-                                                         self.thickness, self.push, self.restitution, self.friction,
-                                                         inv_dt, self._dx, self._dv], device=d)
+            wp.launch(L.count_listed_impulses, stride, inputs=[*listed, *slots[:3], self.thickness, inv_dt,
+                                                               self._impulse_counts], device=d)
+            wp.launch(L.resolve_listed, stride, inputs=[*listed, *slots, self._impulse_counts, self.thickness,
+                                                        self.push, self.restitution, self.friction, inv_dt, self._dx,
+                                                        self._dv], device=d)
             self._apply_touched(q, qd, positions_only=False)
 
     def _list_touched(self) -> None:
         """List the particles of the stored contacts (once per search)."""
         wp.launch(K.list_touched, self.vertex_count + self.edge_count,
-                  inputs=[self._contact_particles, self._touch_mark, self._touch_list, self._touch_count],
-                  device=self.model.device)
+                  inputs=[self._contact_particles, self._touch_mark, self._touch_list, self._touch_count,
+                          self._slot_list, self._slot_count], device=self.model.device)
         self._touch_listed = True
 
     def _apply_touched(self, q, qd, positions_only: bool) -> None:
@@ -557,12 +563,13 @@ class SoftContact(Collider):
             wp.launch(K.clear_touched, stride, inputs=[stride, self._touch_count, self._touch_list, self._touch_mark],
                       device=self.model.device)
             self._touch_count.zero_()
+            self._slot_count.zero_()
             self._touch_listed = False
 
 
     def project_positions(self, q, passes: int = 1) -> None:
         """Push the pairs found by the last step's search apart at the positions ``q`` (``passes``
-        Jacobi passes of the position push alone, ``kernels.soft_contact.push_contacts``: no velocity
+        Jacobi passes of the position push alone, ``kernels.soft_contact.push_listed``: no velocity
         changes, no search), for a solver that iterates on positions within a step
         (``ws.FastMassSpring(contacts=...)``: between its iterations the springs then adapt to the
         pushed vertices). The pairs are those within thickness + reach at the end of the last step;
@@ -570,10 +577,11 @@ class SoftContact(Collider):
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
         if not self._touch_listed:  # the candidate list's steps leave no list of touched particles
             self._list_touched()
+        stride = min(self.vertex_count + self.edge_count, self.LIST_THREADS)
         for _ in range(passes):
-            wp.launch(K.push_contacts, self.vertex_count + self.edge_count,
-                      inputs=[q, self.model.particle_inv_mass, *slots, self.thickness, self.push, self.search,
-                              self._dx], device=self.model.device)
+            wp.launch(K.push_listed, stride, inputs=[stride, self._slot_count, self._slot_list, q,
+                                                     self.model.particle_inv_mass, *slots, self.thickness, self.push,
+                                                     self.search, self._dx], device=self.model.device)
             self._apply_touched(q, q, positions_only=True)
 
     @property

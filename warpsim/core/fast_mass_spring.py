@@ -56,11 +56,6 @@ class FastMassSpring(Integrator):
             linear theory leaves 1 / T_N(1 / rho) of the error after N iterations instead of rho^N
             (T_N the Chebyshev polynomial); the same fixed point (tested), but the incremental
             potential no longer falls at every iteration. Off by default.
-        tf32: solve the global step for the iteration's correction A^-1 (b - A q) instead of the
-            positions A^-1 b, and on CUDA multiply on TF32 tensor cores (float32 sums; the CPU
-            multiplies in float32): the product's rounding (10-bit inputs) then falls on the correction
-            (millimetres), not on positions metres from the origin. Off by default (the same step in
-            exact arithmetic; rounding differs, so a heap's chaotic path does too).
 
     Springs enter implicitly, with isotropic damping c_s (v_j - v_i); every other force of the
     system (gravity, drag, ...) at the start of the step, explicitly. ``contacts`` (SoftContact
@@ -79,10 +74,9 @@ class FastMassSpring(Integrator):
     drag spring semi-implicit Euler's limit (``warpsim.core.stability.force_method_of``)."""
 
     def __init__(self, iterations: int = 10, body_size: int | None = None, contacts=(), contact_passes: int = 4,
-                 contact_stiffness: float = 2000.0, chebyshev: bool = False, tf32: bool = False):
+                 contact_stiffness: float = 2000.0, chebyshev: bool = False):
         super().__init__()
         self.chebyshev = bool(chebyshev)
-        self.tf32 = bool(tf32)
         self.contacts = list(contacts)
         for k, c in enumerate(self.contacts):
             if not hasattr(c, "project_positions"):
@@ -259,8 +253,8 @@ class FastMassSpring(Integrator):
         inverse = self._step_inverse(h)
         rho = self.contraction(h, inverse=inverse)
         self._omegas = self.chebyshev_weights(rho) if self.chebyshev else []
-        self.proximal.assign(h * h * self.contact_stiffness * self._contact_columns)
         self._warn_if_unconverged(h, rho)
+        self.proximal.assign(h * h * self.contact_stiffness * self._contact_columns)
         _, k, c, _ = self._template
         self._entry_stiffness.assign(h * h * k[self._entry_springs])
         self._entry_damping.assign(h * c[self._entry_springs])
@@ -282,17 +276,17 @@ class FastMassSpring(Integrator):
         # 64-wide tiles on CUDA once the batch fills them (H100, 1,000 tori: 1.08 ms a product against 1.45;
         # 12 tori, 36 rows: 0.16 against 0.12 ms); 32 on the CPU
         tile = 64 if d.is_cuda and 3 * self.T >= 128 else 32
-        product = (K.GLOBAL_SOLVE_TF32 if self.tf32 and d.is_cuda else K.GLOBAL_SOLVE)[tile]
         tiles = ((3 * self.T + tile - 1) // tile, (self.P + tile - 1) // tile)
         if self.chebyshev:
             wp.copy(self._older, q)
             wp.copy(self._old, q)
         for k in range(self.iterations):
             wp.launch(K.local_rhs, n, inputs=[q, self.q0, self.y, system.mass, *springs, self.proximal, self.P,
-                                              int(self.tf32), self.rhs], device=d)
-            wp.launch_tiled(product, dim=tiles, inputs=[self.rhs, self.inverse, self.x], block_dim=K.TILE_THREADS,
+                                              self.rhs],
+                      device=d)
+            wp.launch_tiled(K.GLOBAL_SOLVE[tile], dim=tiles, inputs=[self.rhs, self.inverse, self.x], block_dim=K.TILE_THREADS,
                             device=d)
-            wp.launch(K.scatter_positions, n, inputs=[self.x, self.P, int(self.tf32), q], device=d)
+            wp.launch(K.scatter_positions, n, inputs=[self.x, self.P, q], device=d)
             if self.chebyshev:
                 wp.launch(K.chebyshev_step, n, inputs=[q, self._omegas[k], self._older, self._old], device=d)
             for contact in self.contacts:

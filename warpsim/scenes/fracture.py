@@ -414,8 +414,6 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "solver_chebyshev": (False, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "
                                  "the scene's heap at 1/240 s held with 6 and 10 accelerated iterations, let 8 edges "
                                  "through with 8; benchmarks/RESULTS.md)")),
-    "solver_tf32": (False, ("fast_mass_spring only: solve each global step for the iteration's correction and, on "
-                            "CUDA, multiply on TF32 tensor cores (ws.FastMassSpring tf32)")),
     "solver_iterations": (20, ("fast_mass_spring only: local-global iterations per step (the scene's heap at 1/240 s: "
                                "10 let edges through and squash the tori, 20 hold it; benchmarks/RESULTS.md)")),
 }, substeps=20)
@@ -499,7 +497,7 @@ class DonutsScene(SimulatorScene):
             integrator = ws.FastMassSpring(iterations=int(p["solver_iterations"]), body_size=template.particle_count,
                                            contacts=[self.contact] if self.contact is not None else [],
                                            contact_stiffness=p["contact_stiffness"],
-                                           chebyshev=bool(p["solver_chebyshev"]), tf32=bool(p["solver_tf32"]))
+                                           chebyshev=bool(p["solver_chebyshev"]))
         elif integrator == "implicit_euler":
             integrator = ws.ImplicitEuler(newton_iterations=p["newton_iterations"])
             if self.contact is not None and p["contact_stiffness"] > 0.0:
