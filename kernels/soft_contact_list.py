@@ -398,18 +398,24 @@ def apply_listed(
     dv_io: wp.array2d(dtype=wp.int64),
     q_io: wp.array(dtype=wp.vec3),
     qd_io: wp.array(dtype=wp.vec3),
-    last: int,
-    particle_contacts_io: wp.array(dtype=int),
-    seen_io: wp.array(dtype=int),
     impulse_counts_io: wp.array(dtype=int),
 ):
     """``apply_one`` for every particle in a contact (``stride`` threads, as ``resolve_listed``), and
-    zero its impulse count for the next pass; after the last pass (``last`` 1) also zero its contact
-    count and seen mark for the next step."""
+    zero its impulse count for the next pass."""
     for i in range(wp.tid(), listed[1], stride):
         p = touched[i]
         apply_one(p, dx_io, dv_io, q_io, qd_io)
         impulse_counts_io[p] = 0
-        if last != 0:
-            particle_contacts_io[p] = 0
-            seen_io[p] = 0
+
+
+@wp.kernel
+def forget_listed(stride: int, listed: wp.array(dtype=int), touched: wp.array(dtype=int),
+                  particle_contacts_io: wp.array(dtype=int), seen_io: wp.array(dtype=int)):
+    """At a step's start, before ``narrow_candidates`` counts afresh: zero the contact counts and seen
+    marks of the last step's particles. They stay set between steps, so a solver that pushes the
+    stored contacts inside its iterations (``SoftContact.project_positions``) scales them as the
+    BVH search's steps do (zeroed after the last pass, they left those pushes unscaled)."""
+    for i in range(wp.tid(), listed[1], stride):
+        p = touched[i]
+        particle_contacts_io[p] = 0
+        seen_io[p] = 0

@@ -618,10 +618,10 @@ class SoftContact(Collider):
 
     def _record_listed(self, model, state, q_prev, dt) -> list:
         """The launches of every step of ``broad_phase="list"``, recorded once (``record_cmd``: a
-        replayed launch skips most of ``wp.launch``'s host work): check the motion, search if the flag
-        is up (both pair kinds, one launch), lower it and clear the counts (``end_search``), the nearest
-        contact per query among its candidates, then ``iterations`` passes over the found contacts and
-        their particles only (the last also zeroes the particles' contact counts)."""
+        replayed launch skips most of ``wp.launch``'s host work): zero the last step's particles' contact
+        counts (``forget_listed``), check the motion, search if the flag is up (both pair kinds, one
+        launch), lower it and clear the list lengths (``end_search``), the nearest contact per query among
+        its candidates, then ``iterations`` passes over the found contacts and their particles only."""
         d, n, v, e = model.device, model.particle_count, self.vertex_count, self.edge_count
         q, qd = state.positions, state.velocities
         edge_tree = [self._edge_bvh.id, self._body_edge_root, self._edge_world, self._edges, self._edge_body] if e \
@@ -631,7 +631,10 @@ class SoftContact(Collider):
         def record(kernel, dim, inputs):
             return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True)
 
+        threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
         launches = [
+            record(L.forget_listed, threads[1], [threads[1], self._listed, self._touched, self._particle_contacts,
+                                                 self._seen]),
             record(L.check_motion, v, [self._vertex, q, q_prev, self._x_search, self._x_tree, self.pad,
                                        0.5 * self.thickness, self._flags, self._motion]),
             record(L.search_candidates, v + e, [
@@ -648,8 +651,7 @@ class SoftContact(Collider):
                 self._particle_contacts, self._seen,
                 self._total, self._active, self._touched, self._listed]),
         ]
-        threads = [min(v + e, self.LIST_THREADS), min(n, self.LIST_THREADS)]
-        for k in range(self.iterations):
+        for _ in range(self.iterations):
             launches.append(record(L.count_listed_impulses, threads[0], [
                 threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self.thickness,
                 self._inv_dt(dt), self._impulse_counts]))
@@ -657,9 +659,8 @@ class SoftContact(Collider):
                 threads[0], self._listed, self._active, q, qd, model.particle_inv_mass, *contact, self._particle_contacts,
                 self._impulse_counts, self.thickness, self.push, self.restitution, self.friction, self._inv_dt(dt),
                 self._dx, self._dv]))
-            launches.append(record(L.apply_listed, threads[1], [threads[1], self._listed, self._touched, self._dx, self._dv, q, qd,
-                                                       int(k == self.iterations - 1), self._particle_contacts,
-                                                       self._seen, self._impulse_counts]))
+            launches.append(record(L.apply_listed, threads[1], [threads[1], self._listed, self._touched, self._dx,
+                                                                self._dv, q, qd, self._impulse_counts]))
         return launches
 
     def _apply_listed(self, model, state, q_prev, dt) -> None:
