@@ -701,6 +701,16 @@ def scatter_contact(
 
 
 @wp.func
+def scatter_push(particles: wp.vec4i, weights: wp.vec4, inv_mass: wp.array(dtype=float),
+                 particle_contacts: wp.array(dtype=int), n: wp.vec3, depth: float, W: float, fraction: float,
+                 dx_io: wp.array2d(dtype=wp.int64)):
+    """A contact's position push: ``fraction`` of its depth [m] along n, Jacobi-scaled by its
+    particles' contact counts (``contact_scale``), shared by ``resolve_one`` and ``push_one``."""
+    scatter_contact(particles, weights, inv_mass, (fraction * contact_scale(particles, particle_contacts) * depth / W) * n,
+                    dx_io)
+
+
+@wp.func
 def relative_velocity(particles: wp.vec4i, weights: wp.vec4, qd: wp.array(dtype=wp.vec3)) -> wp.vec3:
     """Relative velocity [m/s] of a contact's two sides: sum a_k v_k."""
     rel = wp.vec3()
@@ -788,8 +798,7 @@ def resolve_one(
     n = contact_normal[c]
     depth = contact_depth(particles, weights, n, q, thickness)
     if depth > 0.0:
-        scatter_contact(particles, weights, inv_mass,
-                        (fraction * contact_scale(particles, particle_contacts) * depth / W) * n, dx_io)
+        scatter_push(particles, weights, inv_mass, particle_contacts, n, depth, W, fraction, dx_io)
     rel = relative_velocity(particles, weights, qd)
     un = wp.dot(rel, n)
     slack = approach_slack(depth, inv_dt)
@@ -858,8 +867,7 @@ def push_one(
     depth = contact_depth(particles, weights, n, q, thickness)
     if W <= 0.0 or depth <= 0.0 or depth > max_depth:
         return
-    scale = contact_scale(particles, particle_contacts)
-    scatter_contact(particles, weights, inv_mass, (fraction * scale * depth / W) * n, dx_io)
+    scatter_push(particles, weights, inv_mass, particle_contacts, n, depth, W, fraction, dx_io)
 
 
 @wp.kernel
@@ -909,7 +917,7 @@ def apply_touched(stride: int, count: wp.array(dtype=int), touched: wp.array(dty
                   dx_io: wp.array2d(dtype=wp.int64), dv_io: wp.array2d(dtype=wp.int64), q_io: wp.array(dtype=wp.vec3),
                   qd_io: wp.array(dtype=wp.vec3), positions_only: int, impulse_counts_io: wp.array(dtype=int)):
     """``apply_one`` for the listed particles (``stride`` threads, each every stride-th), or with
-    ``positions_only`` q += dx alone (``push_contacts``' passes; dv is untouched); their impulse
+    ``positions_only`` q += dx alone (``push_listed``'s passes; dv is untouched); their impulse
     counts are zeroed for the next pass."""
     for i in range(wp.tid(), count[0], stride):
         p = touched[i]

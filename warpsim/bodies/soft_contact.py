@@ -550,10 +550,14 @@ class SoftContact(Collider):
                           self._slot_list, self._slot_count], device=self.model.device)
         self._touch_listed = True
 
-    def _apply_touched(self, q, qd, positions_only: bool) -> None:
+    def _apply_touched(self, q, qd, positions_only: bool, count=None, touched=None) -> None:
+        """Apply the deltas of the listed particles (``count[0]`` of ``touched``; default the list of
+        ``_list_touched``)."""
         stride = min(self.model.particle_count, self.LIST_THREADS)
-        wp.launch(K.apply_touched, stride, inputs=[stride, self._touch_count, self._touch_list, self._dx, self._dv, q,
-                                                   qd, int(positions_only), self._impulse_counts],
+        count = self._touch_count if count is None else count
+        touched = self._touch_list if touched is None else touched
+        wp.launch(K.apply_touched, stride, inputs=[stride, count, touched, self._dx, self._dv, q, qd,
+                                                   int(positions_only), self._impulse_counts],
                   device=self.model.device)
 
     def _clear_touched(self) -> None:
@@ -566,7 +570,6 @@ class SoftContact(Collider):
             self._slot_count.zero_()
             self._touch_listed = False
 
-
     def project_positions(self, q, passes: int = 1) -> None:
         """Push the pairs found by the last step's search apart at the positions ``q`` (``passes``
         Jacobi passes of the position push alone, ``kernels.soft_contact.push_listed``: no velocity
@@ -575,14 +578,18 @@ class SoftContact(Collider):
         pushed vertices). The pairs are those within thickness + reach at the end of the last step;
         the push uses their stored normals and weights, and skips pairs deeper than ``search``."""
         slots = [self._contact_particles, self._contact_weights, self._contact_normal, self._particle_contacts]
-        if not self._touch_listed:  # the candidate list's steps leave no list of touched particles
-            self._list_touched()
+        if self.broad_phase == "list":  # its narrow phase listed the contacts and their particles already
+            listed, particles = (self._listed, self._active), (self._listed[1:], self._touched)
+        else:
+            if not self._touch_listed:
+                self._list_touched()
+            listed, particles = (self._slot_count, self._slot_list), (self._touch_count, self._touch_list)
         stride = min(self.vertex_count + self.edge_count, self.LIST_THREADS)
         for _ in range(passes):
-            wp.launch(K.push_listed, stride, inputs=[stride, self._slot_count, self._slot_list, q,
-                                                     self.model.particle_inv_mass, *slots, self.thickness, self.push,
-                                                     self.search, self._dx], device=self.model.device)
-            self._apply_touched(q, q, positions_only=True)
+            wp.launch(K.push_listed, stride, inputs=[stride, *listed, q, self.model.particle_inv_mass, *slots,
+                                                     self.thickness, self.push, self.search, self._dx],
+                      device=self.model.device)
+            self._apply_touched(q, q, True, *particles)
 
     @property
     def vertex_particles(self) -> np.ndarray:

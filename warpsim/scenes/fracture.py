@@ -494,7 +494,7 @@ class DonutsScene(SimulatorScene):
         forces: list = [ws.Gravity((0.0, -p["gravity"], 0.0))]
         integrator = p["integrator"]
         if integrator == "fast_mass_spring":
-            # the springs implicit, contact after the step (a penalty would enter explicitly: unstable)
+            # the springs implicit; the contacts pushed apart inside the iterations, then resolved after the step
             integrator = ws.FastMassSpring(iterations=int(p["solver_iterations"]), body_size=template.particle_count,
                                            contacts=[self.contact] if self.contact is not None else [],
                                            contact_stiffness=p["contact_stiffness"],
