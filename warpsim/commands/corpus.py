@@ -1,0 +1,539 @@
+"""The full-length corpus: every scene run as a user runs it, and the blow-ups the alarm must catch.
+
+One case list and one runner, shared by ``benchmarks/check_scenes.py`` (full size, e.g. on a GPU)
+and ``tests/test_full_length.py`` (the CPU, resolution lowered, never frames):
+
+- ``default``: every scene of ``warpsim list`` at its default parameters for its default length
+  (``warpsim run``'s 120 frames: no scene has a length of its own);
+- ``KEY=END``: each end of the physical sliders the viewer gives a scene (damping, restitution,
+  stiffnesses, wind, masses and densities: :func:`slider_ends`), for ``slider_frames`` frames;
+- ``README``: every ``warpsim run`` command of README.md at its README length (a re-run of a sweep's
+  world, ``--from-sweep``, is left out: it is the sweep's world, not a run of its own);
+- ``blowup INTEGRATOR``: each explicit integrator at ``BLOWUP`` (1.2) x its stability limit in
+  springs, teapot, cloth (semi_implicit_euler, its only explicit one) and hair (its explicit
+  solver): the alarm must stop the run within ``GRACE`` (2) frames of the frame where the
+  energy of an unchecked twin run started to grow (:func:`growth_frame`).
+
+A case runs through ``warpsim run``'s own code (:func:`run_case`): its command line is parsed by
+the command's parser, the parameters and the timing resolved by the functions the command uses
+(``parse_sets``, ``timing_from_flags``, ``stability_check``), the scene built, given its timing and
+advanced frame by frame with ``frame_data()`` read as the cache writer reads it; only the USD
+cache is not written. A ``SimulationError`` is the alarm (the command's exit 1), and the
+simulator's ``energy_gain`` is read after every frame.
+
+``small=True`` lowers only resolution-type parameters (``SMALL``: cells, particles, strands,
+agents, tori), never frames, fps or steps."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import shlex
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+__all__ = ["BLOWUP", "BLOWUP_SCENES", "DEFAULT_FRAMES", "GRACE", "SLIDER_FRAMES", "SMALL", "Case", "Result",
+           "blowup_cases", "cases", "default_cases", "format_table", "growth_frame", "readme_cases", "run_case",
+           "slider_cases", "slider_ends"]
+
+DEFAULT_FRAMES = 120
+"""The default length of every scene: ``warpsim run``'s ``--frames`` default (no scene has its own)."""
+
+SLIDER_FRAMES = 600
+"""Frames of a slider end (the issue's 600; capped by a scene length when one is given)."""
+
+BLOWUP = 1.2
+"""A blow-up case's step against its stability limit."""
+
+GRACE = 2
+"""Frames after the growth by which a blow-up must be stopped."""
+
+EXPLICIT = ("explicit_euler", "semi_implicit_euler", "rk2", "rk4")
+
+BLOWUP_SCENES = {"springs": EXPLICIT, "teapot": EXPLICIT, "cloth": ("semi_implicit_euler",),
+                 "hair": ("explicit",)}
+"""Scenes and the explicit integrators (hair: its ``solver=explicit``) run at ``BLOWUP`` x the limit."""
+
+WIND_END = 10.0
+"""The right end of the cloth's wind [m/s]: a number box from 0 in the viewer (no slider range); a
+strong gale."""
+
+SMALL = {
+    "cloth": {"resolution": 12},
+    "drape": {"resolution": 12},
+    "teapot": {"resolution": "3"},
+    "donuts": {"count": 2, "segments": 10, "sides": 6, "lattice_cells": 5},
+    "wall": {"bricks": "2,2"},
+    "hair": {"strands": 12, "segments": 4},
+    "crowd": {"people": 10},
+    "flock": {"birds": 20, "geese": 4},
+    "school": {"fish": 8},
+    "zombies": {"zombies": 8},
+    "dam_break": {"spacing": 0.06},
+    "pour": {"spacing": 0.06},
+    "flip_splash": {"resolution": 8, "particles_per_cell": 2},
+    "liquid": {"resolution": 10, "particles_per_cell": 4},
+    "smoke": {"resolution": 8},
+    "metaballs": {"resolution": 16},
+}
+"""Resolution-type parameters the CPU lowers (cells, particle spacing, counts of strands, agents,
+tori, bricks): the scene's dynamics and its frames stay; a README command's own value of one of
+them is lowered too (e.g. the donuts heap's count=1000 -> 2)."""
+
+SLIDER_KEYS = re.compile(r"^(damping|restitution|wind|mass|ball_mass|density|structural|shear|bend|"
+                         r"stretch_rigidity|bend_rigidity|stiffness|ball_stiffness|mortar_stiffness|"
+                         r"brick_stiffness|contact_stiffness)$")
+"""The physical sliders whose ends the corpus runs: damping (0 is the undamped end), restitution (1),
+stiffnesses and rigidities (the largest), wind (the largest) and masses and densities (the smallest).
+Left out: sizes and counts (resolution), gravity and friction (a driving force the balance books,
+a dissipation), and the drag spring's and the penalty wall's sliders, which act only with a drag or
+``collision=penalty`` (off by default)."""
+
+
+@dataclass(frozen=True)
+class Case:
+    """One run of the corpus: ``warpsim run SCENE`` with ``sets`` (``KEY=VALUE`` texts), ``fps``,
+    ``substeps`` and ``integrator``, for ``frames`` frames; ``expect`` "clean" (no alarm) or
+    "flagged" (stopped within ``GRACE`` frames of the growth). ``blowup``: the step as a multiple
+    of the stability limit (resolved by :func:`resolve_blowup` against the built scene).
+    ``attrs``: attributes set on the built scene (only where no command-line option reaches: the
+    hair's explicit solver sub-steps itself inside half its limit, ``safety``)."""
+
+    scene: str
+    case: str
+    frames: int
+    sets: tuple = ()
+    fps: Optional[float] = None
+    substeps: Any = None
+    integrator: Optional[str] = None
+    expect: str = "clean"
+    kind: str = "default"
+    blowup: Optional[float] = None
+    attrs: tuple = ()
+    command: str = ""
+
+    @property
+    def name(self) -> str:
+        """``scene/case``, the id of a test."""
+        return f"{self.scene}/{self.case}"
+
+    def argv(self, out="corpus.usda") -> list:
+        """The ``warpsim`` arguments of this run (``run SCENE ...``)."""
+        argv = ["run", self.scene, "--frames", str(self.frames), "--out", out, "--no-progress"]
+        if self.fps is not None:
+            argv += ["--fps", repr(float(self.fps))]
+        if self.substeps is not None:
+            argv += ["--substeps", str(self.substeps)]
+        if self.integrator is not None:
+            argv += ["--integrator", self.integrator]
+        for item in self.sets:
+            argv += ["--set", item]
+        return argv
+
+    def shell(self) -> str:
+        """This run as a shell command (without ``--out``/``--no-progress``)."""
+        argv = self.argv()
+        i = argv.index("--out")
+        del argv[i:i + 3]
+        return "warpsim " + " ".join(shlex.quote(a) for a in argv)
+
+    def sized(self, small: bool) -> "Case":
+        """This case with the CPU's ``SMALL`` sizes (``small``) in place of the scene's and its own."""
+        if not small or self.scene not in SMALL:
+            return self
+        keys = SMALL[self.scene]
+        kept = tuple(s for s in self.sets if s.split("=", 1)[0] not in keys)
+        return replace(self, sets=tuple(f"{k}={v}" for k, v in keys.items()) + kept)
+
+
+@dataclass
+class Result:
+    """What a case did: frames run of frames asked, the exit ("ok", "alarm at frame N",
+    "error: ..."), the largest energy gain (None: the scene has no energy balance), the message,
+    and for a blow-up the growth frame of its unchecked twin."""
+
+    case: Case
+    device: str
+    frames_run: int = 0
+    exit: str = "ok"
+    alarm_frame: Optional[int] = None
+    energy_gain: Optional[float] = None
+    message: str = ""
+    growth: Optional[int] = None
+    seconds: float = 0.0
+    step: Optional[float] = None
+    limit: Optional[float] = None
+    warnings: list = field(default_factory=list)
+
+    @property
+    def passed(self) -> bool:
+        """Clean cases: no alarm and no error. Blow-ups: stopped by the alarm, within ``GRACE``
+        frames of the twin's growth (a twin that never grew within the frames: the alarm must not
+        come before it either, so it is an error to flag it then)."""
+        if self.exit.startswith("error"):
+            return False
+        if self.case.expect == "clean":
+            return self.alarm_frame is None
+        if self.alarm_frame is None:
+            return False
+        return self.growth is None or self.alarm_frame <= self.growth + GRACE
+
+    @property
+    def verdict(self) -> str:
+        if self.passed:
+            return "PASS"
+        if self.exit.startswith("error"):
+            return "FAIL (error)"
+        return "FAIL (false alarm)" if self.case.expect == "clean" else "FAIL (missed)"
+
+    def summary(self) -> str:
+        """One line: the case, its command, what it did and the message."""
+        gain = "-" if self.energy_gain is None else f"{self.energy_gain:.3g}"
+        growth = "" if self.growth is None else f", growth at frame {self.growth}"
+        step = "" if self.step is None or self.limit is None else \
+            f", step {self.step:.4g} s = {self.step / self.limit:.3g}x the limit {self.limit:.4g} s"
+        return (f"{self.case.name}: {self.verdict}: {self.exit} ({self.frames_run} of {self.case.frames} frames, "
+                f"energy gain {gain}{growth}{step})\n  {self.case.shell()}\n  {self.message}").rstrip()
+
+
+# ---------------------------------------------------------------------------------------- cases
+def _scenes():
+    from ..scenes import scenes
+
+    return {name: cls for name, cls in scenes().items() if cls.__module__.startswith("warpsim.")}
+
+
+def default_cases(names=None) -> list:
+    """Every scene at its defaults for its default length."""
+    return [Case(name, "default", DEFAULT_FRAMES, kind="default") for name in _scenes() if not names or name in names]
+
+
+def _number(value) -> str:
+    return f"{float(value):.6g}" if isinstance(value, float) else str(value)
+
+
+def slider_ends(cls) -> list:
+    """(key, value) of each end of the scene's physical sliders (``SLIDER_KEYS``), as the viewer's
+    parameter panel makes them (``warpsim.viewer.params.widget_spec``): a linear slider's
+    [min, max] (restitution [0, 1], damping [0, 4 x default]); a decade slider (masses,
+    stiffnesses) from its lowest allowed value to the right end it opens with (the next power of
+    ten above the default; a drag there widens it by a decade, not chased here). The cloth's wind
+    and the donuts' restitution are number boxes from 0: their other ends are ``WIND_END`` and 1.
+    Ends equal to the default are left out (the default case runs them)."""
+    from ..viewer.params import widget_spec
+
+    ends = []
+    for key, param in cls.params.items():
+        if not SLIDER_KEYS.match(key):
+            continue
+        kind, o = widget_spec(key, param)
+        if kind in ("slider", "log_slider"):
+            pair = (o["min"], o["max"])
+        elif key == "wind":
+            pair = (0.0, WIND_END)
+        elif key == "restitution":
+            pair = (0.0, 1.0)
+        else:
+            continue
+        for value in pair:
+            value = type(param.default)(value) if isinstance(param.default, (int, float)) else value
+            if value != param.default:
+                ends.append((key, value))
+    return ends
+
+
+def slider_cases(names=None, frames=SLIDER_FRAMES) -> list:
+    """Each slider end of each scene (:func:`slider_ends`) for ``frames`` frames."""
+    out = []
+    for name, cls in _scenes().items():
+        if names and name not in names:
+            continue
+        for key, value in slider_ends(cls):
+            text = f"{key}={_number(value)}"
+            out.append(Case(name, text, frames, sets=(text,), kind="slider"))
+    return out
+
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+_RUN = re.compile(r"warpsim run [^`\n#]*")
+
+
+def readme_commands(text=None) -> list:
+    """The ``warpsim run`` commands of README.md (indented blocks and inline code; backslash
+    continuations joined), in README order, each once."""
+    if text is None:
+        if not README.exists():
+            return []
+        text = README.read_text()
+    text = re.sub(r"\\\n\s*", " ", text)
+    found = []
+    for match in _RUN.finditer(text):
+        command = " ".join(match.group(0).split())
+        if command not in found:
+            found.append(command)
+    return found
+
+
+def _run_parser():
+    from .run import add_parser
+
+    parser = argparse.ArgumentParser(prog="warpsim")
+    add_parser(parser.add_subparsers(dest="command"))
+    return parser
+
+
+def readme_cases(text=None, names=None) -> list:
+    """A case per README ``warpsim run`` command at its README length (``--frames``, else the
+    default 120), with its --fps, --substeps, --integrator and --set; options that do not change
+    the simulation (--out, --flatten, --preview, --checkpoint-every) are left out, and so are the
+    re-runs of a sweep's world (``--from-sweep``)."""
+    parser = _run_parser()
+    out = []
+    for command in readme_commands(text):
+        argv = shlex.split(command)[1:]
+        if "--from-sweep" in argv:
+            continue
+        args = parser.parse_args(argv)
+        if names and args.scene not in names:
+            continue
+        frames = DEFAULT_FRAMES if args.frames is None else args.frames
+        label = " ".join(argv[2:]) or "(defaults)"
+        out.append(Case(args.scene, f"README {label}", frames, sets=tuple(args.sets), fps=args.fps, substeps=args.substeps,
+                        integrator=args.integrator, kind="readme", command=command))
+    return out
+
+
+def blowup_cases(names=None, frames=DEFAULT_FRAMES, factor=BLOWUP) -> list:
+    """Each explicit integrator at ``factor`` x its limit in ``BLOWUP_SCENES`` (expected: flagged)."""
+    out = []
+    for name, integrators in BLOWUP_SCENES.items():
+        if names and name not in names or name not in _scenes():
+            continue
+        for integrator in integrators:
+            if name == "hair":
+                out.append(Case(name, f"blowup {integrator}", frames, sets=("solver=explicit",), expect="flagged",
+                                kind="blowup", blowup=factor))
+            else:
+                out.append(Case(name, f"blowup {integrator}", frames, integrator=integrator, expect="flagged",
+                                kind="blowup", blowup=factor))
+    return out
+
+
+def cases(names=None, kinds=("default", "slider", "readme", "blowup"), slider_frames=SLIDER_FRAMES) -> list:
+    """The corpus (``names``: only these scenes; ``kinds``: of these kinds)."""
+    out = []
+    if "default" in kinds:
+        out += default_cases(names)
+    if "slider" in kinds:
+        out += slider_cases(names, slider_frames)
+    if "readme" in kinds:
+        out += readme_cases(names=names)
+    if "blowup" in kinds:
+        out += blowup_cases(names)
+    return out
+
+
+# ---------------------------------------------------------------------------------------- runs
+def _limit_of(scene) -> Optional[float]:
+    if hasattr(scene, "stable_dt") and getattr(scene, "implicit", True) is False:
+        return float(scene.stable_dt)  # the hair's explicit strands: their measured limit
+    limit = scene.stability()
+    return None if limit is None else float(limit.dt)
+
+
+def resolve_blowup(case: Case, device) -> Case:
+    """The blow-up ``case`` with the flags that put its step at ``case.blowup`` x the stability
+    limit of the scene it builds (its own sizes): a scene with a ``dt`` parameter gets ``--set
+    dt``; the cloth ``--fps`` with ``--substeps 1`` (its explicit_substeps steps a frame); the hair
+    ``--fps`` with ``--substeps 1`` and its scene's ``safety`` (the fraction of its limit it
+    sub-steps at) set to the factor, a frame of 8 strand steps."""
+    if case.blowup is None:
+        return case
+    from ..cli_common import parse_sets
+    from ..scenes import get_scene
+
+    cls = get_scene(case.scene)
+    probe = cls(cls.resolve_params(parse_sets(cls, list(case.sets), case.integrator)), device=device)
+    limit = _limit_of(probe)
+    if limit is None or not math.isfinite(limit) or limit <= 0.0:
+        raise ValueError(f"{case.name}: no finite stability limit to exceed ({limit})")
+    h = case.blowup * limit
+    if case.scene == "hair":
+        steps = 8
+        return replace(case, fps=1.0 / (steps * h), substeps=1, attrs=(("safety", case.blowup),))
+    if "dt" in cls.params:
+        return replace(case, sets=case.sets + (f"dt={h!r}",))
+    per_frame = int(getattr(probe, "steps_per_substep", 1))
+    return replace(case, fps=1.0 / (per_frame * h), substeps=1)
+
+
+def _mechanical_energy(sim) -> float:
+    """K + U of the springs (the model's) + U of gravity [J] of a simulator's state, on the host in
+    float64: the twin's own measure, apart from the balance's."""
+    m = sim.model
+    x = sim.state.positions.numpy().astype(np.float64)
+    v = sim.state.velocities.numpy().astype(np.float64)
+    mass = m.particle_mass.numpy().astype(np.float64)
+    energy = 0.5 * float((mass * (v * v).sum(axis=1)).sum())
+    for f in sim.forces:
+        g = getattr(f, "g", None)
+        if g is not None and type(f).__name__ == "Gravity":
+            energy -= float((mass * (x @ np.asarray(g, np.float64).reshape(3))).sum())
+    if getattr(m, "spring_count", 0):
+        ij = m.spring_indices.numpy().reshape(-1, 2)
+        k = m.spring_stiffness.numpy().astype(np.float64)
+        rest = m.spring_rest_length.numpy().astype(np.float64)
+        stretch = np.linalg.norm(x[ij[:, 0]] - x[ij[:, 1]], axis=1) - rest
+        energy += 0.5 * float((k * stretch * stretch).sum())
+    return energy
+
+
+def growth_frame(case: Case, device, frames=None, rise=0.01) -> Optional[int]:
+    """The first frame at which an unchecked twin of the (resolved) blow-up ``case`` has gained
+    energy: its mechanical energy (:func:`_mechanical_energy`) above its lowest so far by more than
+    ``rise`` of its scale (the largest of |E| at frame 0 and the kinetic plus spring energy seen),
+    or non-finite; None when it never did within ``frames`` (the case's)."""
+    scene, timing = _build(case, device, None)[:2]
+    sim = scene.sim
+    sim.check_every = 0  # no speed bound, no energy balance: the twin runs on as the physics goes
+    sim.max_speed = float("inf")
+    for key, value in case.attrs:
+        setattr(scene, key, value)
+    e0 = _mechanical_energy(sim)
+    low, scale = e0, abs(e0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for frame in range(1, (frames or case.frames) + 1):
+            try:
+                scene.advance(timing.frame_dt, timing.steps)
+            except Exception:  # noqa: BLE001  (a twin that failed has blown up)
+                return frame
+            e = _mechanical_energy(sim)
+            if not math.isfinite(e):
+                return frame
+            scale = max(scale, abs(e - low))
+            if e - low > rise * max(scale, 1e-12):
+                return frame
+            low = min(low, e)
+    return None
+
+
+def _build(case: Case, device, err):
+    """(scene, timing, args) of ``case`` built as ``warpsim run`` builds it."""
+    from ..cli_common import UsageError, parse_sets, stability_check, timing_from_flags, timing_note
+    from ..scenes import get_scene
+
+    args = _run_parser().parse_args(case.argv())
+    cls = get_scene(args.scene)
+    given = parse_sets(cls, args.sets, args.integrator)
+    params = cls.resolve_params(given)
+    timing, params = timing_from_flags(cls, params, given, args.fps, args.substeps)
+    if err is not None:
+        timing_note(timing, False, err)
+    try:  # as warpsim run builds it (commands.run._built_scene)
+        scene = cls(params, device=str(device))
+    except ValueError as exc:
+        raise UsageError(f"scene {cls.name!r}: {exc}") from None
+    scene.use_timing(timing)
+    if err is not None:
+        stability_check(scene, timing.frame_dt, timing.steps, False, err)
+    return scene, timing, args
+
+
+class _Sink:
+    """A stand-in for the cache writer: takes every declaration (``scene.declare``) and keeps
+    nothing, so ``frame_data()`` returns what the writer would write."""
+
+    def __getattr__(self, name):
+        return lambda *args, **kwargs: _Sink()
+
+
+def _gain(scene) -> Optional[float]:
+    sim = getattr(scene, "sim", None)
+    gain = getattr(sim, "energy_gain", None)
+    return None if gain is None else float(gain)
+
+
+def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
+    """Run ``case`` (sized by ``small``; a blow-up resolved against its built scene) as ``warpsim
+    run`` does and return its :class:`Result`. ``twin``: for a blow-up also run the unchecked twin
+    for its growth frame."""
+    import io
+
+    from ..core.errors import SimulationError
+    from ..core.stability import StabilityWarning
+
+    t0 = time.perf_counter()
+    case = case.sized(small)
+    result = Result(case, str(device))
+    err = io.StringIO()
+    try:
+        case = resolve_blowup(case, device)
+        result.case = case
+        scene, timing, _ = _build(case, device, err)
+    except Exception as exc:  # noqa: BLE001  (a usage mistake: the command's exit 2)
+        result.exit, result.message = f"error: {type(exc).__name__}", " ".join(str(exc).split())
+        result.seconds = time.perf_counter() - t0
+        return result
+    scene.declare(_Sink())
+    for key, value in case.attrs:
+        setattr(scene, key, value)
+    if case.attrs and hasattr(scene, "strand_steps") and getattr(scene.sim, "check_every", 0):
+        scene.sim.check_every = scene.strand_steps(timing.frame_dt)  # the check once a frame, as built
+    result.warnings = [line for line in err.getvalue().splitlines() if line.strip()]
+    if case.blowup is not None:
+        result.limit = _limit_of(scene)
+        result.step = timing.frame_dt / scene.frame_steps(timing.frame_dt, timing.steps)
+    frame = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StabilityWarning)  # said once above, as one line (warpsim run)
+        try:
+            scene.frame_data()
+            for frame in range(1, case.frames + 1):
+                scene.advance(timing.frame_dt, timing.steps)
+                scene.frame_data()
+                result.frames_run = frame
+                gain = _gain(scene)
+                if gain is not None:
+                    result.energy_gain = max(result.energy_gain or 0.0, gain)
+        except SimulationError as exc:
+            result.exit, result.alarm_frame = f"alarm at frame {frame}", frame
+            result.message = " ".join(str(exc).split())
+            gain = _gain(scene)
+            if gain is not None:
+                result.energy_gain = max(result.energy_gain or 0.0, gain)
+        except Exception as exc:  # noqa: BLE001
+            result.exit = f"error at frame {frame}: {type(exc).__name__}"
+            result.message = " ".join(str(exc).split())
+    if case.blowup is not None and twin:
+        result.growth = growth_frame(case, device, frames=case.frames)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def format_table(results) -> str:
+    """The results as a fixed-width table, one row a case."""
+    head = ("scene", "case", "device", "frames", "exit", "energy_gain", "expected", "result", "s")
+    rows = [head]
+    for r in results:
+        gain = "" if r.energy_gain is None else f"{r.energy_gain:.3g}"
+        exit_ = r.exit + ("" if r.growth is None else f" (growth {r.growth})")
+        rows.append((r.case.scene, r.case.case, r.device, f"{r.frames_run}/{r.case.frames}", exit_, gain,
+                     r.case.expect if r.case.expect == "clean" else "flagged", r.verdict, f"{r.seconds:.1f}"))
+    widths = [max(len(str(row[i])) for row in rows) for i in range(len(head))]
+    return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(row, widths)).rstrip() for row in rows)
+
+
+def environment_note() -> str:  # pragma: no cover - a line for the benchmark's header
+    import platform
+
+    import warp as wp
+
+    return f"warp {wp.config.version}, Python {platform.python_version()}, {os.cpu_count()} CPUs"
