@@ -220,8 +220,10 @@ def judge_worlds(
     world_bad: wp.array(dtype=int),
     reference: wp.array2d(dtype=float),
     scale: wp.array(dtype=float),
+    motion: wp.array(dtype=float),
     work_io: wp.array(dtype=float),
     abs_work_io: wp.array(dtype=float),
+    released_io: wp.array(dtype=float),
     allowance: wp.array(dtype=float),
     energy_out: wp.array(dtype=float),
     gain_io: wp.array(dtype=float),
@@ -229,28 +231,41 @@ def judge_worlds(
     unstable_frame_io: wp.array(dtype=int),
 ):
     """Per world: the modified energy E = sums[w, 0] + sums[w, 1] [J]; the work W of the driving forces
-    accumulates (and |W| frame by frame). gain = (E - E_ref - W) / (scale + sum |W| + allowance) is the
-    energy that appeared from nowhere, relative; gain_io keeps its maximum. A world is unstable from this
-    frame (unstable_frame_io, set once; -1 otherwise) when gain > ``margin``, when the plain energy
-    K + U (reference[w, 1]) grew by more than ``runaway[w]`` x that scale (past the stability limit the
-    modified energy stays put or falls while the motion grows), when one particle alone holds more
-    kinetic energy than max(runaway[w], 1) x the world's whole budget (that scale plus the gravity
-    energy released since frame 0, reference[w, 2]: a local blow-up that losses elsewhere hide), or
-    when a value is non-finite. Frozen worlds (world_bad = 1) are skipped."""
+    accumulates (and |W| frame by frame), and released_io keeps the most gravity energy released since
+    frame 0 (reference[w, 2] - sums[w, 3] [J]). The run's energy scale is the larger of ``scale[w]``
+    (frame 0's kinetic and elastic energy plus the potential above the floor or lowest particle) and
+    ``motion[w]`` (frame 0's kinetic and elastic energy) plus that released energy: the most energy the
+    world has had in motion, so a chain released horizontally with no floor under it is judged against
+    the energy its fall put into its swing, not against the 1 mm floor of the scale.
+    gain = (E - E_ref - W) / (energy scale + sum |W| + allowance) is the energy that appeared from
+    nowhere, relative; gain_io keeps its maximum. A world is unstable from this frame (unstable_frame_io,
+    set once; -1 otherwise) when gain > ``margin``, when the plain energy K + U (reference[w, 1]) grew by
+    more than ``runaway[w]`` x that budget (past the stability limit the modified energy stays put or
+    falls while the motion grows), when one particle alone holds more kinetic energy than
+    max(runaway[w], 1) x the world's budget plus the gravity energy released by now (a local blow-up that
+    losses elsewhere hide), or when a value is non-finite. A world keeps the figures of the frame it was
+    flagged at (where a lone run stops), and frozen worlds (world_bad = 1) are skipped."""
     w = wp.tid()
     if world_bad.shape[0] > 0:  # nested: no read of world_bad[w] when it is empty
         if world_bad[w] == 1:
             return
+    if unstable_frame_io[w] >= 0:
+        return
     energy = sums[w, 0] + sums[w, 1]
     work = work_io[w] + sums[w, 2]
     abs_work = abs_work_io[w] + wp.abs(sums[w, 2])
+    released_now = reference[w, 2] - sums[w, 3]
+    released = released_io[w]
+    if released_now > released:  # NaN-safe: a non-finite sum leaves the kept maximum
+        released = released_now
     work_io[w] = work
     abs_work_io[w] = abs_work
+    released_io[w] = released
     energy_out[w] = energy
-    budget = scale[w] + abs_work + allowance[w]
+    budget = wp.max(scale[w], motion[w] + released) + abs_work + allowance[w]
     gain = (energy - reference[w, 0] - work) / budget
     plain = (sums[w, 0] - reference[w, 1] - work) / budget
-    local = sums[w, 5] / (budget + wp.max(reference[w, 2] - sums[w, 3], 0.0))
+    local = sums[w, 5] / (budget + wp.max(released_now, 0.0))
     if sums[w, 4] > 0.0 or not wp.isfinite(gain) or not wp.isfinite(plain) or not wp.isfinite(local):
         gain = 1.0e30
         plain = 1.0e30

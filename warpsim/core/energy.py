@@ -7,12 +7,20 @@ world):
     W = work of the driving forces so far (trapezoid rule over each frame)        [J]
     gain = (E - E_0 - W) / (scale + sum |W| + allowance)                            relative
 
-``scale`` is the world's initial kinetic and elastic energy plus the potential energy of its
-particles above the lowest floor under them (or above its lowest particle), so a dropped ball's
-scale is m g h. ``allowance`` is the energy moving colliders can hand the world (2 M v_s^2 per
-frame, v_s the shape's surface speed bound). A world whose gain exceeds ``margin`` (``MARGIN``), or
-whose energy is non-finite, is unstable from that frame; its largest gain is the sweep table's
-``energy_gain``.
+``scale`` is the world's energy scale: its initial kinetic and elastic energy plus the potential
+energy of its particles above the lowest floor under them (or above its lowest particle), so a
+dropped ball's scale is m g h; or, when larger, that initial kinetic and elastic energy plus the most
+gravity energy released since frame 0, so a structure that hangs from pins with no floor under it (the
+``springs`` chain starts horizontal: its lowest particle is as high as the rest) is judged against the
+energy its fall has put into motion. Measured (issue 49): the chain at damping 0 had a scale of
+0.0044 J (the 1 mm floor) while its swing moved 2.7 J, so K + U's ordinary 0.006 J swing read 2.16x
+at frame 42 (7 mJ at --fps 24: 2.98x at frame 12); against the released energy both read below 0.005.
+``allowance`` is the energy moving colliders can hand the world (2 M v_s^2 per
+frame, v_s the shape's surface speed bound). A world whose gain exceeds ``margin`` (``MARGIN``), whose
+plain energy K + U grew past its runaway threshold, or whose energy is non-finite, is unstable from
+that frame; :meth:`EnergyBalance.gains` (the sweep table's ``energy_gain``, ``Simulator.energy_gain``,
+the figure of the blow-up message) is the largest gain up to that frame, or K + U's growth where that
+tripped the check, ``inf`` when non-finite: unstable exactly when it passes ``margin``.
 
 What is counted where (``Force.energy_role``): ``"potential"`` forces (gravity, the model's springs)
 are inside E; ``"dissipative"`` ones (still-air drag, the springs' dampers) only remove energy and
@@ -142,6 +150,8 @@ class EnergyBalance:
         self._reduction = FixedOrderReduction(6, first_max_column=4, device=d) if lone else None
         self.reference = wp.zeros((n, 3), dtype=float, device=d)  # modified, plain and gravity energy at frame 0
         self.scale = wp.ones(n, dtype=float, device=d)
+        self.motion = wp.zeros(n, dtype=float, device=d)  # frame 0's kinetic and elastic energy [J]
+        self.released = wp.zeros(n, dtype=float, device=d)  # the most gravity energy released since frame 0 [J]
         self.work = wp.zeros(n, dtype=float, device=d)
         self.abs_work = wp.zeros(n, dtype=float, device=d)
         self.allowance = wp.zeros(n, dtype=float, device=d)
@@ -238,6 +248,8 @@ class EnergyBalance:
         offset = total_mass * g_norm**2 * step**2 / 8.0 if self.synchronise else 0.0
         scale = np.maximum(kinetic_elastic + np.maximum(potential, 0.0) + offset, floor)
         self.scale.assign(scale.astype(np.float32))
+        self.motion.assign(np.maximum(kinetic_elastic + offset, 0.0).astype(np.float32))
+        self.released.zero_()
         self.reference.assign(np.stack([sums[:, 0] + sums[:, 1], sums[:, 0], sums[:, 3]], axis=1).astype(np.float32))
         self.work.zero_()
         self.abs_work.zero_()
@@ -267,7 +279,8 @@ class EnergyBalance:
         wp.launch(K.judge_worlds, self.world_count,
                   inputs=[sums, self.frame_counter, self.margin, self.runaway,
                           self._no_int if world_bad is None else world_bad,
-                          self.reference, self.scale, self.work, self.abs_work, self.allowance],
+                          self.reference, self.scale, self.motion, self.work, self.abs_work, self.released,
+                          self.allowance],
                   outputs=[self.energy, self.gain, self.plain_gain, self.unstable_frame], device=d)
         wp.copy(self.q_start, state.positions)
         if self.driving:
@@ -287,6 +300,26 @@ class EnergyBalance:
         """Largest growth of the plain energy K + U so far per world, relative (the runaway guard)."""
         return np.maximum(self.plain_gain.numpy().astype(np.float64), 0.0) if self.frame else np.zeros(self.world_count)
 
-    def gains(self) -> np.ndarray:
-        """Largest relative gain so far per world (0 before any frame)."""
+    def modified_gains(self) -> np.ndarray:
+        """Largest gain of the balanced energy (semi-implicit Euler's modified energy) so far per world,
+        relative (0 before any frame)."""
         return np.maximum(self.gain.numpy().astype(np.float64), 0.0) if self.frame else np.zeros(self.world_count)
+
+    def gains(self) -> np.ndarray:
+        """The energy gain per world, relative to its energy scale (0 before any frame): the largest gain
+        of the balanced energy, or the plain energy's growth where that passed its runaway threshold
+        (past the stability limit K + U grows while the modified energy stays put), up to the frame the
+        world was flagged at; ``inf`` for a non-finite energy. One definition for the sweep table's
+        ``energy_gain``, ``Simulator.energy_gain`` and the blow-up message: a world is unstable exactly
+        when this passes ``margin`` (every runaway threshold is at least ``MARGIN``)."""
+        if not self.frame:
+            return np.zeros(self.world_count)
+        gain = self.modified_gains()
+        plain = self.plain_gains()
+        runaway = self.runaway.numpy().astype(np.float64)
+        out = np.where(plain > runaway, np.maximum(gain, plain), gain)
+        return np.where(out >= 1.0e29, np.inf, out)
+
+    def unstable(self) -> np.ndarray:
+        """Whether each world was flagged (its gain passed ``margin``, or its energy became non-finite)."""
+        return self.unstable_frame.numpy() >= 0

@@ -158,9 +158,9 @@ def run(args, out, err):
             raise UsageError(str(exc).splitlines()[0]) from None
         print(f"warpsim: sweep failed: {str(exc).splitlines()[0]}", file=err)
         return 1
-    blown = sum(1 for r in rows if r.get("blown_up"))
     unstable = sum(1 for r in rows if r.get("unstable"))
-    note = f"{blown - unstable} blew up and were frozen" if blown > unstable else ""
+    blown = sum(1 for r in rows if r.get("blown_up") and not r.get("unstable"))  # the unstable ones are said below
+    note = f"{blown} blew up and were frozen" if blown else ""
     if unstable:
         note += f"{', ' if note else ''}{unstable} went unstable (column unstable)"
     print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {timing.fps:g} fps on {device}"

@@ -6,14 +6,21 @@ Built-in metrics (one value per world):
   peak_speed                     highest particle speed over the frames [m/s]
   kinetic_energy                 kinetic energy at the last frame [J]
   blown_up, blown_frame          1 if the world blew up (then frozen at its last good frame) or is unstable,
-                                 the frame
+                                 the first frame of either (where ``warpsim run`` of that world stops)
   energy_gain                    the largest energy gain beyond the work of its driving forces, relative to
-                                 its energy scale (``frame_dt`` given; ``warpsim.core.energy``): 0 for a
-                                 world that only lost energy
-  unstable                       1 if energy_gain passed ``warpsim.core.energy.MARGIN`` or the energy became
-                                 non-finite while the world ran on (a world frozen by a NaN or the speed bound
-                                 counts as blown up): a step above the stability limit (or a force that adds
-                                 energy) that NaN and the speed bound miss, even where walls stop the velocities
+                                 its energy scale (``warpsim.core.energy.EnergyBalance.gains``): the balanced
+                                 energy's gain, or the plain energy's growth where that tripped the check;
+                                 0 for a world that only lost energy, inf for a non-finite energy; up to
+                                 the frame the world was flagged (later frames do not change it) or frozen.
+                                 The same figure as ``Simulator.energy_gain`` and the blow-up message of
+                                 the world run alone, in one-process, ``--devices`` and Ray sweeps alike.
+                                 Empty for solvers outside the energy balance (agents: boids, crowds;
+                                 position-based and grid fluids cannot be swept)
+  unstable                       1 exactly when energy_gain passed ``warpsim.core.energy.MARGIN`` (or is
+                                 inf): a step above the stability limit (or a force that adds energy), even
+                                 where walls stop the velocities; a world frozen by a NaN or the speed bound
+                                 is blown up, and unstable too when its gain passed the margin before; empty
+                                 where energy_gain is
 Tracked particles (``track={"spout": 12}``, indices within one world): NAME_x, NAME_y, NAME_z (final
 position [m]) and NAME_peak_y. A user metric :class:`UserMetric` sums a ``@wp.func`` of
 (x [m], v [m/s], m [kg]) -> float over a world's particles: NAME (last frame) and NAME_peak.
@@ -62,7 +69,7 @@ class WorldMetrics:
     """Device accumulators for one :class:`warpsim.worlds.batch.WorldBatch` (allocated once;
     ``update`` launches kernels only, so it can sit in a captured graph). ``frame_dt`` [s]: the
     frame length, for the energy balance (``energy_gain`` and ``unstable``; None: not tested, the
-    columns stay 0); ``step_dt`` [s]: the step the frames take, one for all worlds or one per world
+    cells stay empty); ``step_dt`` [s]: the step the frames take, one for all worlds or one per world
     (semi-implicit Euler's synchronised velocity; None: ``frame_dt``)."""
 
     def __init__(self, batch, track=None, user=(), frame_dt=None, step_dt=None):
@@ -173,8 +180,9 @@ class WorldMetrics:
         ke = self.final_kinetic.numpy()
         bad = b.world_bad.numpy()
         blown = b.world_blown_frame.numpy()
-        unstable = self.energy.unstable_frame.numpy() if self.energy is not None else np.full(n, -1)
-        gains = self.energy.gains() if self.energy is not None and self._energy_started else np.zeros(n)
+        judged = self.energy is not None
+        unstable = self.energy.unstable_frame.numpy() if judged else np.full(n, -1)
+        gains = self.energy.gains() if judged and self._energy_started else np.zeros(n)
         rows = []
         t = len(self.track)
         tf = self.tracked_final.numpy().reshape(n, -1, 3)
@@ -184,8 +192,9 @@ class WorldMetrics:
             row = {"center_x": float(center[w, 0]), "center_y": float(center[w, 1]), "center_z": float(center[w, 2]),
                    "peak_center_y": float(peak[w, 1]), "peak_speed": float(speed[w]),
                    "kinetic_energy": float(ke[w]), "blown_up": int(bad[w] or unstable[w] >= 0),
-                   "blown_frame": int(blown[w] if blown[w] >= 0 else unstable[w]),
-                   "energy_gain": float(gains[w]), "unstable": int(unstable[w] >= 0 and not bad[w])}
+                   "blown_frame": int(min((f for f in (blown[w], unstable[w]) if f >= 0), default=-1)),
+                   "energy_gain": float(gains[w]) if judged else None,  # None: an empty cell
+                   "unstable": int(unstable[w] >= 0) if judged else None}
             for k, name in enumerate(self.track):
                 if k < t:
                     row.update({f"{name}_x": float(tf[w, k, 0]), f"{name}_y": float(tf[w, k, 1]),
@@ -249,7 +258,7 @@ def select(rows, *, rank=None, top=None, where=()):
         ok = True
         for name, op, value in where:
             v = row.get(name)
-            if v is None or not bool(_OPS[op](float(v), value)):
+            if v is None or v == "" or not bool(_OPS[op](float(v), value)):  # an empty cell passes no test
                 ok = False
                 break
         if ok:
@@ -258,7 +267,8 @@ def select(rows, *, rank=None, top=None, where=()):
         name, descending = rank
 
         def key(row):
-            v = float(row.get(name, float("nan")))
+            v = row.get(name)
+            v = float("nan") if v is None or v == "" else float(v)  # empty cells sort last
             bad = bool(row.get("blown_up")) or not math.isfinite(v)
             return (bad, -v if descending and not bad else v if not bad else 0.0, row["world"])
 
@@ -270,7 +280,9 @@ def select(rows, *, rank=None, top=None, where=()):
 
 def format_cell(value) -> str:
     """A table value as the picked-worlds listing prints it: floats to 6 significant digits,
-    vectors as comma-separated numbers."""
+    vectors as comma-separated numbers, None (a column a solver does not have) as an empty cell."""
+    if value is None:
+        return ""
     if isinstance(value, float):
         return f"{value:.6g}"
     if isinstance(value, (tuple, list)):

@@ -249,6 +249,8 @@ def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, wri
 
 
 def _cell(value):
+    if value is None:  # a column this solver does not have (energy_gain of agents): an empty cell, not 0
+        return ""
     if isinstance(value, (tuple, list, np.ndarray)):
         return ",".join(f"{float(v):.9g}" for v in value)
     if isinstance(value, float):
