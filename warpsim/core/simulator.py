@@ -39,6 +39,30 @@ def check_dt(dt) -> float:
     return value
 
 
+def _idle(force) -> bool:
+    """Whether a driving force can add no energy as set now, so the advice never blames it: a zero
+    coefficient or stiffness (``Wind`` with coefficient 0, the cloth scene's default; a ``DragSpring``
+    of stiffness 0), still air (``Wind`` of speed 0 is a drag), a zero ``ConstantForce``, ``Magnets``
+    of zero strength, a ``DragSpring`` holding no particle."""
+    def zero(name):
+        value = getattr(force, name, None)
+        if value is None or callable(value):
+            return False
+        try:
+            return bool(np.all(np.asarray(value, dtype=np.float64) == 0.0))
+        except (TypeError, ValueError):
+            return False
+
+    if any(zero(name) for name in ("coefficient", "stiffness", "strengths")):
+        return True
+    if type(force).__name__ == "Wind" and zero("speed"):
+        return True
+    if type(force).__name__ == "ConstantForce" and zero("force"):
+        return True
+    grabbed = getattr(force, "particle", None)
+    return type(force).__name__ == "DragSpring" and isinstance(grabbed, (int, np.integer)) and grabbed < 0
+
+
 def _ratio(gain: float) -> str:
     return "a non-finite amount" if gain >= 1.0e29 else f"{gain:.3g}x"
 
@@ -376,7 +400,8 @@ class Simulator(SolverBase):
             return (f"Cause: not the step (within its stability limit of {limit.dt:.4g} s). Remedy: if such speeds "
                     f"are expected, raise max_speed (now {self.max_speed:g} m/s); else look for a force or collider "
                     f"that adds energy.")
-        driving = sorted({type(f).__name__ for f in self.forces if getattr(f, "energy_role", "driving") == "driving"})
+        driving = sorted({type(f).__name__ for f in self.forces
+                          if getattr(f, "energy_role", "driving") == "driving" and not _idle(f)})
         step = "" if h is None else f"the step of {h:.4g} s is within its stability limit of {limit.dt:.4g} s, so "
         what = f"forces {', '.join(driving)}" if driving else "the colliders or an external edit of the state"
         return (f"Cause: {step}the energy came from elsewhere: check {what} (coefficients, moving shapes). Remedy: "

@@ -26,12 +26,18 @@ from .picking import camera_plane_target, pick_mesh_vertex, pick_point
 from .record import Recorder, default_recording_path
 from .sink import ViewerSink
 
-__all__ = ["EXPLOSION_FRAMES", "STABLE_FRAMES", "Session", "frame_timing"]
+__all__ = ["EXPLOSION_FRAMES", "EXPLOSION_SECONDS", "STABLE_FRAMES", "Session", "frame_timing"]
 
 EXPLOSION_FRAMES = 45
 """Frames drawn past a blow-up, one simulation step each (slow motion; checks off, positions
 clamped for drawing) before the session pauses with the explanation: the lecture's explosion, for
 a bounded moment."""
+
+EXPLOSION_SECONDS = 2.0
+"""Wall seconds the blow-up is shown at most: the explosion pauses after EXPLOSION_FRAMES frames or
+this long, whichever comes first, so "shown for a moment, then paused" holds where a step is slow
+(the implicit cloth's step is a whole frame's Newton solve: 45 of them went on draping for many
+seconds under the toast)."""
 
 STABLE_FRAMES = 60
 """Frames a parameter set must run without a failure to count as the last stable one (Reset
@@ -247,7 +253,8 @@ class Session:
         if self.grabbed is not None:  # let go: no drag line left pointing at a run that stopped
             self.drag.release()
             self.grabbed = None
-        self.exploding = {"error": exc, "frame": frame, "left": EXPLOSION_FRAMES}
+        self.exploding = {"error": exc, "frame": frame, "left": EXPLOSION_FRAMES,
+                          "until": time.perf_counter() + EXPLOSION_SECONDS}
         self._last_drawn = {name: it.points.reshape(-1, 3).astype(np.float64) for name, it in self._items.items()
                             if it.kind in ("points", "mesh") and it.shown is None}  # the last good picture
         self._clamping = True
@@ -267,7 +274,7 @@ class Session:
         self.time += self.frame_dt
         self._stale = True
         ex["left"] -= 1
-        if ex["left"] <= 0:
+        if ex["left"] <= 0 or time.perf_counter() >= ex["until"]:  # a moment: frames or wall time, the first
             self._fail(ex["error"], ex["frame"])
         return True
 
