@@ -39,9 +39,11 @@ from ..kernels import cloth_lanes as KL
 from ..kernels import forces as KF
 from ..kernels import integrate as KI
 from ..kernels.cloth_lanes import ROW_MAX as LANE_ROW_MAX
+from .contact import ContactConstraints
 from .lanes import build_lane_blocks
 
 GEOMETRIC_MODES = {"clamped": 0, "full": 1}
+CONTACT_MODES = ("constrain", "after")
 LINEAR_SOLVERS = ("block_cg", "warp_cg")
 GATHER_MAX_PARTICLES = 1 << 24
 
@@ -322,6 +324,12 @@ class ClothImplicitEuler(Integrator):
             spring adjacency in a fixed order (no float atomics; BlockCG's dot products are
             fixed-order too), so runs are bit-reproducible on every device. False: the former
             per-spring assembly with float atomics (order varies run to run on GPUs).
+        contact: "constrain" (default): particles resting on the simulator's static planes,
+            spheres and capsules are constrained inside the solve (``warpsim.cloth.contact``: zero
+            normal velocity, friction from the constraint impulse, released when it pulls), so the
+            solve cannot pull them into the shape for the collider to push back out, stretching
+            the springs (energy from nowhere at large steps); "after": the colliders act after
+            the step only. ``ClothSimulator`` hands the integrator its colliders.
 
     After each step: ``last_newton_iterations``, ``last_cg_iterations`` (summed over Newton
     iterations), ``last_cg_residual`` (final |b - A dv| of the last solve, CG's recursive
@@ -333,8 +341,14 @@ class ClothImplicitEuler(Integrator):
     def __init__(self, newton_iterations: int = 1, newton_tol: float = 1.0e-5, cg_tol: float = 1.0e-5,
                  cg_atol: float = 1.0e-12, cg_max_iterations: int = 200, geometric: str = "clamped",
                  linear_solver: str = "block_cg", check_every: int | None = None, record_history: bool = False,
-                 deterministic: bool = True):
+                 deterministic: bool = True, contact: str = "constrain"):
         super().__init__()
+        if contact not in CONTACT_MODES:
+            raise ValueError(f"contact = {contact!r}; use one of {CONTACT_MODES} ('constrain': contacts with static "
+                             "planes and spheres are constraints inside the solve; 'after': colliders act after it only)")
+        self.contact = contact
+        self._colliders = None
+        self._contact = None
         if not isinstance(deterministic, (bool, np.bool_)):
             raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.deterministic = bool(deterministic)
@@ -385,6 +399,8 @@ class ClothImplicitEuler(Integrator):
         self.inverse = wp.zeros(n, dtype=wp.mat33, device=d)
         self.max_dv = wp.zeros(1, dtype=float, device=d)
         self._build_matrix(model)
+        if self.contact == "constrain" and self._colliders is not None:
+            self._contact = ContactConstraints(self._colliders, model, self.A, self.diagonal_slots)
         inverse = self.inverse
 
         def block_jacobi(x, y, z, alpha, beta):
@@ -401,6 +417,13 @@ class ClothImplicitEuler(Integrator):
                 self._cg[every] = wpl.cg(self.A, self.rhs, self.dv, tol=self.cg_tol, atol=self.cg_atol,
                                          maxiter=self.cg_max_iterations, M=self.preconditioner, check_every=every,
                                          use_cuda_graph=True, run=False)
+
+    def bind_colliders(self, colliders) -> None:
+        """Constrain contacts with ``colliders`` (the simulator's list, read again between frames)
+        inside the solve (``contact="constrain"``); call before the first step."""
+        self._colliders = colliders
+        if self.contact == "constrain" and self._system is not None:
+            self._contact = ContactConstraints(colliders, self._system.model, self.A, self.diagonal_slots)
 
     def _build_matrix(self, model):
         """Fixed BSR topology: diagonal blocks plus (i, j), (j, i) for every spring; slots map each
@@ -495,11 +518,19 @@ class ClothImplicitEuler(Integrator):
         capturing = system.device.is_capturing
         iterations, known = 0, True
         self._cg_host = None
+        contact = self._contact
+        if contact is not None:
+            contact.refresh()
+            contact = contact if contact.active else None
         for it in range(self.newton_iterations):
             first = it == 0
             # iteration 1 at (x0, v0) with b = h (f0 + h K v0); later ones at (x0 + h v, v)
             self.assemble(q, qd, self.v0, time, 0.0 if first else h, -h * h, -h, h, h * h if first else 0.0)
+            if contact is not None:
+                contact.filter(self.x0, qd, h, self.rhs, self.inverse)
             result = self._solve()
+            if contact is not None:
+                contact.finish(self.dv)
             if result is None and not capturing and (self.record_history or self.newton_iterations > 1):
                 result = self._device_stats()
             if result is None:
@@ -586,6 +617,9 @@ class ClothSimulator(Simulator):
                  check_every=1, **kwargs):
         super().__init__(model, make_cloth_integrator(integrator), forces, colliders, check_every=check_every,
                          **kwargs)
+        bind = getattr(self.integrator, "bind_colliders", None)
+        if bind is not None:
+            bind(self.colliders)  # contact constraints inside the implicit solve
         if use_graph is None:
             use_graph = True
         self.use_graph = bool(use_graph) and not self.adaptive

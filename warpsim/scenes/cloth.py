@@ -29,6 +29,8 @@ COMMON = {
     "integrator": ("implicit_euler", "implicit_euler (Baraff-Witkin) or semi_implicit_euler", CLOTH_INTEGRATORS),
     "explicit_substeps": (40, "semi_implicit_euler only: steps per frame sub-step (~40 for stability)"),
     "cg_tol": (1.0e-4, "implicit_euler: CG tolerance relative to |b|"),
+    "newton_iterations": (2, "implicit_euler: Newton iterations a step (1 = Baraff-Witkin's linearised step, which "
+                             "can gain energy when the cloth folds fast; 2 holds the energy balance)"),
     "wind": (0.0, "gusting wind speed along +z [m/s]; air drag 2 x particle mass [kg/s] while it blows"),
 }
 
@@ -44,7 +46,7 @@ class ClothScene(SimulatorScene):
         raise NotImplementedError
 
     def build(self, p):
-        for key in ("resolution", "explicit_substeps"):
+        for key in ("resolution", "explicit_substeps", "newton_iterations"):
             if p[key] < 1:
                 raise ValueError(f"{key}={p[key]}: it must be >= 1")
         for key in ("size", "density", "sphere_radius"):
@@ -54,7 +56,7 @@ class ClothScene(SimulatorScene):
         self.cloth = self.make_cloth(b, p)
         model = b.finalize(self.device)
         if p["integrator"] == "implicit_euler":
-            integrator = ClothImplicitEuler(cg_tol=p["cg_tol"])
+            integrator = ClothImplicitEuler(cg_tol=p["cg_tol"], newton_iterations=p["newton_iterations"])
         else:
             integrator = ClothSemiImplicitEuler()
         self.sphere = Sphere(self.sphere_center, p["sphere_radius"], restitution=0.0, friction=p["friction"],
