@@ -6,7 +6,7 @@ Built-in metrics (one value per world):
   peak_speed                     highest particle speed over the frames [m/s]
   kinetic_energy                 kinetic energy at the last frame [J]
   blown_up, blown_frame          1 if the world blew up (then frozen at its last good frame) or is unstable,
-                                 the first frame of either (where ``warpsim run`` of that world stops)
+                                 the frame it was frozen from (else the frame it was flagged unstable)
   energy_gain                    the largest energy gain beyond the work of its driving forces, relative to
                                  its energy scale (``warpsim.core.energy.EnergyBalance.gains``): the balanced
                                  energy's gain, or the plain energy's growth where that tripped the check;
@@ -192,7 +192,7 @@ class WorldMetrics:
             row = {"center_x": float(center[w, 0]), "center_y": float(center[w, 1]), "center_z": float(center[w, 2]),
                    "peak_center_y": float(peak[w, 1]), "peak_speed": float(speed[w]),
                    "kinetic_energy": float(ke[w]), "blown_up": int(bad[w] or unstable[w] >= 0),
-                   "blown_frame": int(min((f for f in (blown[w], unstable[w]) if f >= 0), default=-1)),
+                   "blown_frame": int(blown[w] if blown[w] >= 0 else unstable[w]),
                    "energy_gain": float(gains[w]) if judged else None,  # None: an empty cell
                    "unstable": int(unstable[w] >= 0) if judged else None}
             for k, name in enumerate(self.track):
