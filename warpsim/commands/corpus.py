@@ -173,10 +173,18 @@ class Result:
     warnings: list = field(default_factory=list)
 
     @property
+    def refused(self) -> bool:
+        """Whether the command refused the case before simulating (a usage mistake, exit 2: a
+        slider end the scene does not take, such as the hair's stretch_rigidity=0)."""
+        return self.exit.startswith("refused")
+
+    @property
     def passed(self) -> bool:
-        """Clean cases: no alarm and no error. Blow-ups: stopped by the alarm, within ``GRACE``
-        frames of the twin's growth (a twin that never grew within the frames: the alarm must not
-        come before it either, so it is an error to flag it then)."""
+        """Clean cases: no alarm and no error (a slider end the scene refuses, before any frame,
+        is no alarm: it passes, counted apart). Blow-ups: stopped by the alarm within ``GRACE``
+        frames of the unchecked twin's growth."""
+        if self.refused:
+            return self.case.kind == "slider"
         if self.exit.startswith("error"):
             return False
         if self.case.expect == "clean":
@@ -187,6 +195,8 @@ class Result:
 
     @property
     def verdict(self) -> str:
+        if self.refused:
+            return "REFUSED" if self.passed else "FAIL (refused)"
         if self.passed:
             return "PASS"
         if self.exit.startswith("error"):
@@ -350,78 +360,97 @@ def _limit_of(scene) -> Optional[float]:
 
 def resolve_blowup(case: Case, device) -> Case:
     """The blow-up ``case`` with the flags that put its step at ``case.blowup`` x the stability
-    limit of the scene it builds (its own sizes): a scene with a ``dt`` parameter gets ``--set
-    dt``; the cloth ``--fps`` with ``--substeps 1`` (its explicit_substeps steps a frame); the hair
-    ``--fps`` with ``--substeps 1`` and its scene's ``safety`` (the fraction of its limit it
-    sub-steps at) set to the factor, a frame of 8 strand steps."""
+    limit of the scene it builds (its own sizes), frames about as far apart as the scene's own:
+    ``--fps F --substeps N`` with N steps a frame (the cloth: N x its explicit_substeps), so the
+    step 1 / (F x N) is the factor times the limit (a scene with a ``dt`` parameter takes it as
+    its dt). The hair sub-steps itself inside ``safety`` (0.5) x its measured limit whatever the
+    flags: its ``safety`` is set to the factor (no command-line option reaches it), N strand
+    steps a frame."""
     if case.blowup is None:
         return case
     from ..cli_common import parse_sets
-    from ..scenes import get_scene
+    from ..scenes import get_scene, resolve_timing
 
     cls = get_scene(case.scene)
-    probe = cls(cls.resolve_params(parse_sets(cls, list(case.sets), case.integrator)), device=device)
+    params = cls.resolve_params(parse_sets(cls, list(case.sets), case.integrator))
+    probe = cls(params, device=device)
     limit = _limit_of(probe)
     if limit is None or not math.isfinite(limit) or limit <= 0.0:
         raise ValueError(f"{case.name}: no finite stability limit to exceed ({limit})")
     h = case.blowup * limit
+    per = int(getattr(probe, "steps_per_substep", 1))  # the cloth's explicit_substeps a sub-step
+    frame_dt = resolve_timing(cls, params).frame_dt  # the scene's own frame
+    steps = max(1, round(frame_dt / (per * h)))
+    fps = 1.0 / (steps * per * h)
     if case.scene == "hair":
-        steps = 8
-        return replace(case, fps=1.0 / (steps * h), substeps=1, attrs=(("safety", case.blowup),))
-    if "dt" in cls.params:
-        return replace(case, sets=case.sets + (f"dt={h!r}",))
-    per_frame = int(getattr(probe, "steps_per_substep", 1))
-    return replace(case, fps=1.0 / (per_frame * h), substeps=1)
+        return replace(case, fps=fps, substeps=1, attrs=(("safety", case.blowup),))
+    return replace(case, fps=fps, substeps=steps)
 
 
-def _mechanical_energy(sim) -> float:
-    """K + U of the springs (the model's) + U of gravity [J] of a simulator's state, on the host in
-    float64: the twin's own measure, apart from the balance's."""
+def _mechanical_energy(sim) -> tuple:
+    """(K + U of the springs (the model's) + U of gravity, K + U of the springs) [J] of a
+    simulator's state, on the host in float64: the twin's own measure, apart from the balance's."""
     m = sim.model
     x = sim.state.positions.numpy().astype(np.float64)
     v = sim.state.velocities.numpy().astype(np.float64)
     mass = m.particle_mass.numpy().astype(np.float64)
-    energy = 0.5 * float((mass * (v * v).sum(axis=1)).sum())
+    moving = 0.5 * float((mass * (v * v).sum(axis=1)).sum())
+    gravity = 0.0
     for f in sim.forces:
         g = getattr(f, "g", None)
         if g is not None and type(f).__name__ == "Gravity":
-            energy -= float((mass * (x @ np.asarray(g, np.float64).reshape(3))).sum())
+            gravity -= float((mass * (x @ np.asarray(g, np.float64).reshape(3))).sum())
     if getattr(m, "spring_count", 0):
         ij = m.spring_indices.numpy().reshape(-1, 2)
         k = m.spring_stiffness.numpy().astype(np.float64)
         rest = m.spring_rest_length.numpy().astype(np.float64)
         stretch = np.linalg.norm(x[ij[:, 0]] - x[ij[:, 1]], axis=1) - rest
-        energy += 0.5 * float((k * stretch * stretch).sum())
-    return energy
+        moving += 0.5 * float((k * stretch * stretch).sum())
+    return moving + gravity, moving
+
+
+def _unchecked(case: Case, device):
+    scene, timing = _build(case, device, None)[:2]
+    scene.sim.check_every = 0  # no speed bound, no energy balance: it runs on as the physics goes
+    scene.sim.max_speed = float("inf")
+    for key, value in case.attrs:
+        setattr(scene, key, value)
+    return scene, timing
 
 
 def growth_frame(case: Case, device, frames=None, rise=0.01) -> Optional[int]:
-    """The first frame at which an unchecked twin of the (resolved) blow-up ``case`` has gained
-    energy: its mechanical energy (:func:`_mechanical_energy`) above its lowest so far by more than
-    ``rise`` of its scale (the largest of |E| at frame 0 and the kinetic plus spring energy seen),
-    or non-finite; None when it never did within ``frames`` (the case's)."""
-    scene, timing = _build(case, device, None)[:2]
-    sim = scene.sim
-    sim.check_every = 0  # no speed bound, no energy balance: the twin runs on as the physics goes
-    sim.max_speed = float("inf")
-    for key, value in case.attrs:
-        setattr(scene, key, value)
-    e0 = _mechanical_energy(sim)
-    low, scale = e0, abs(e0)
+    """The first frame at which an unchecked twin of the (resolved) blow-up ``case`` holds more
+    energy than the same scene stepped inside its limit: its mechanical energy
+    (:func:`_mechanical_energy`, not the balance's) above the reference's by more than ``rise`` of
+    the scale (the larger of |E| at frame 0 and the most kinetic plus spring energy the reference
+    held), or non-finite. The reference is the case with ``--substeps auto`` (steps within half the
+    limit at the same frame rate; the hair at its own ``safety``), also unchecked, so damping and
+    contacts take the same energy from both. None when the twin never grew within ``frames``."""
+    twin, timing = _unchecked(case, device)
+    if case.scene == "hair":
+        ref, ref_timing = _unchecked(replace(case, attrs=()), device)
+    else:
+        ref, ref_timing = _unchecked(replace(case, substeps="auto"), device)
+    e0 = _mechanical_energy(twin.sim)[0]
+    scale = abs(e0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for frame in range(1, (frames or case.frames) + 1):
             try:
-                scene.advance(timing.frame_dt, timing.steps)
+                twin.advance(timing.frame_dt, timing.steps)
             except Exception:  # noqa: BLE001  (a twin that failed has blown up)
                 return frame
-            e = _mechanical_energy(sim)
+            try:
+                ref.advance(ref_timing.frame_dt, ref_timing.steps)
+            except Exception:  # noqa: BLE001  (the reference failed: no measure from here on)
+                return None
+            e, _ = _mechanical_energy(twin.sim)
+            e_ref, moving_ref = _mechanical_energy(ref.sim)
             if not math.isfinite(e):
                 return frame
-            scale = max(scale, abs(e - low))
-            if e - low > rise * max(scale, 1e-12):
+            scale = max(scale, moving_ref)
+            if e - e_ref > rise * max(scale, 1e-12):
                 return frame
-            low = min(low, e)
     return None
 
 
@@ -467,6 +496,7 @@ def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
     for its growth frame."""
     import io
 
+    from ..cli_common import UsageError
     from ..core.errors import SimulationError
     from ..core.stability import StabilityWarning
 
@@ -478,7 +508,11 @@ def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
         case = resolve_blowup(case, device)
         result.case = case
         scene, timing, _ = _build(case, device, err)
-    except Exception as exc:  # noqa: BLE001  (a usage mistake: the command's exit 2)
+    except UsageError as exc:  # the command's exit 2, before any frame
+        result.exit, result.message = "refused", " ".join(str(exc).split())
+        result.seconds = time.perf_counter() - t0
+        return result
+    except Exception as exc:  # noqa: BLE001
         result.exit, result.message = f"error: {type(exc).__name__}", " ".join(str(exc).split())
         result.seconds = time.perf_counter() - t0
         return result
@@ -504,8 +538,10 @@ def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
                 if gain is not None:
                     result.energy_gain = max(result.energy_gain or 0.0, gain)
         except SimulationError as exc:
-            result.exit, result.alarm_frame = f"alarm at frame {frame}", frame
+            result.alarm_frame = frame
             result.message = " ".join(str(exc).split())
+            figure = re.search(r"grew (?:by|to) ([0-9.eE+-]+)x", result.message)
+            result.exit = f"alarm at frame {frame}" + (f" ({figure.group(0)})" if figure else "")
             gain = _gain(scene)
             if gain is not None:
                 result.energy_gain = max(result.energy_gain or 0.0, gain)
