@@ -173,6 +173,11 @@ class Result:
     warnings: list = field(default_factory=list)
 
     @property
+    def stopped(self) -> bool:
+        """Whether the run was stopped at its time budget before its last frame, without an alarm."""
+        return self.exit.startswith("stopped")
+
+    @property
     def refused(self) -> bool:
         """Whether the command refused the case before simulating (a usage mistake, exit 2: a
         slider end the scene does not take, such as the hair's stretch_rigidity=0)."""
@@ -185,6 +190,8 @@ class Result:
         frames of the unchecked twin's growth."""
         if self.refused:
             return self.case.kind == "slider"
+        if self.stopped:
+            return False
         if self.exit.startswith("error"):
             return False
         if self.case.expect == "clean":
@@ -197,6 +204,8 @@ class Result:
     def verdict(self) -> str:
         if self.refused:
             return "REFUSED" if self.passed else "FAIL (refused)"
+        if self.stopped:
+            return "INCOMPLETE"
         if self.passed:
             return "PASS"
         if self.exit.startswith("error"):
@@ -490,10 +499,11 @@ def _gain(scene) -> Optional[float]:
     return None if gain is None else float(gain)
 
 
-def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
+def run_case(case: Case, device="cpu", small=False, twin=True, seconds=None) -> Result:
     """Run ``case`` (sized by ``small``; a blow-up resolved against its built scene) as ``warpsim
     run`` does and return its :class:`Result`. ``twin``: for a blow-up also run the unchecked twin
-    for its growth frame."""
+    for its growth frame. ``seconds``: stop after the frame that passes this wall time (the result
+    is then "stopped", neither passed nor failed: its frames run say how far it got)."""
     import io
 
     from ..cli_common import UsageError
@@ -537,6 +547,9 @@ def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
                 gain = _gain(scene)
                 if gain is not None:
                     result.energy_gain = max(result.energy_gain or 0.0, gain)
+                if seconds is not None and frame < case.frames and time.perf_counter() - t0 > seconds:
+                    result.exit = f"stopped at {seconds:g} s"
+                    break
         except SimulationError as exc:
             result.alarm_frame = frame
             result.message = " ".join(str(exc).split())
@@ -548,7 +561,7 @@ def run_case(case: Case, device="cpu", small=False, twin=True) -> Result:
         except Exception as exc:  # noqa: BLE001
             result.exit = f"error at frame {frame}: {type(exc).__name__}"
             result.message = " ".join(str(exc).split())
-    if case.blowup is not None and twin:
+    if case.blowup is not None and twin and not result.stopped:
         result.growth = growth_frame(case, device, frames=case.frames)
     result.seconds = time.perf_counter() - t0
     return result
