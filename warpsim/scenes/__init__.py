@@ -267,6 +267,14 @@ class Scene:
         """The current frame as ``{prim name: {key: array}}`` for ``writer.write_frame``."""
         raise NotImplementedError
 
+    def frame_arrays(self):
+        """The frame data as arrays derived from the simulator's particle arrays
+        (:mod:`warpsim.usd.frame_arrays`: ``{prim: {key: Particles(...) | PerWorld(...) |
+        Shared(...)}}``), from which :meth:`frame_data` is made, so a batch of worlds makes every
+        world's samples at once; None (the default) when the frame data is not a function of the
+        particle arrays (agents, fluids, broken springs): a batch then asks each world in turn."""
+        return None
+
     def advance(self, frame_dt, substeps):
         """Simulate one frame of ``frame_dt`` [s] in ``substeps`` equal steps."""
         raise NotImplementedError
@@ -332,9 +340,19 @@ class SimulatorScene(Scene):
         # bound misses)
         self.sim.frame(frame_dt, self.frame_steps(frame_dt, substeps))
 
+    def frame_arrays(self):
+        """Each points prim declared with :meth:`declare_state` holds every particle's position and
+        velocity."""
+        from ..usd.frame_arrays import Particles
+
+        return {name: {"points": Particles("positions"), "velocities": Particles("velocities")}
+                for name in self._state_prims or ()}
+
     def frame_data(self):
+        from ..usd.frame_arrays import frame_data_from
+
         state = self.sim.state
-        return {name: {"points": state.positions, "velocities": state.velocities} for name in self._state_prims}
+        return frame_data_from(self.frame_arrays(), state.positions, state.velocities)
 
     def drag_map(self):
         return {name: None for name in self._state_prims or ()}

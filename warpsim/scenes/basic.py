@@ -185,7 +185,9 @@ class Springs(SimulatorScene):
         self.declare_state(writer, "masses", radius=0.015, color=(0.2, 0.5, 0.9))
         writer.add_curves("springs", self.model.spring_indices.numpy(), width=0.005, color=(0.8, 0.8, 0.8))
 
-    def frame_data(self):
-        data = super().frame_data()
-        data["springs"] = {"points": self.sim.state.positions}
+    def frame_arrays(self):
+        from ..usd.frame_arrays import Particles
+
+        data = super().frame_arrays()
+        data["springs"] = {"points": Particles("positions")}
         return data

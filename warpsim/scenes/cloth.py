@@ -99,9 +99,10 @@ class ClothScene(SimulatorScene):
         writer.add_sphere("sphere", self.sphere_center, self.params["sphere_radius"], color=(0.7, 0.7, 0.7))
         writer.add_plane("floor", size=3.0 * self.params["size"])
 
-    def frame_data(self):
-        st = self.sim.state
-        return {"cloth": {"points": st.positions, "velocities": st.velocities}}
+    def frame_arrays(self):
+        from ..usd.frame_arrays import Particles
+
+        return {"cloth": {"points": Particles("positions"), "velocities": Particles("velocities")}}
 
     def advance(self, frame_dt, substeps):
         self.sim.frame(frame_dt, self.frame_steps(frame_dt, substeps))

@@ -172,6 +172,11 @@ class FractureScene(SimulatorScene):
         writer.add_attribute("springs", "warpsim:brokenCount", "int")
         writer.add_attribute("springs", "warpsim:brokenThisFrame", "int[]")
 
+    def frame_arrays(self):
+        """None: the springs drawn are each world's unbroken ones, not a function of the particle
+        arrays alone, so a batch asks each world in turn (``WorldBatch.world_frame_data``)."""
+        return None
+
     def springs_frame(self, x):
         model = self.sim.model
         broken = model.spring_broken.numpy()
@@ -531,9 +536,9 @@ class DonutsScene(SimulatorScene):
     def device_capturing(self) -> bool:
         return bool(wp.get_device(self.sim.model.device).is_capturing)
 
-    def kinetic_energy(self) -> float:
-        """Kinetic energy of every particle [J] (reads the state back)."""
-        v = self.sim.state.velocities.numpy().astype(np.float64)
+    def kinetic_energy(self, velocities=None) -> float:
+        """Kinetic energy of every particle [J] (``velocities`` (P, 3); None: the state's, read back)."""
+        v = (self.sim.state.velocities.numpy() if velocities is None else velocities).astype(np.float64)
         return float(0.5 * (self.sim.model.particle_mass.numpy() * (v * v).sum(1)).sum())
 
     def declare(self, writer):
@@ -542,8 +547,16 @@ class DonutsScene(SimulatorScene):
         writer.add_box("walls", self.lower, self.upper, **CONTAINER)  # see-through walls
         add_floor(writer, self.lower, self.upper)
 
+    def frame_arrays(self):
+        """The donuts' surface vertices from the particle arrays and each world's kinetic energy."""
+        from ..usd.frame_arrays import Particles, PerWorld
+
+        return {"donuts": {"points": Particles("positions", self.surface),
+                           "velocities": Particles("velocities", self.surface),
+                           "warpsim:kineticEnergy": PerWorld(lambda x, v: self.kinetic_energy(v))}}
+
     def frame_data(self):
+        from ..usd.frame_arrays import frame_data_from
+
         st = self.sim.state
-        return {"donuts": {"points": st.positions.numpy()[self.surface],
-                           "velocities": st.velocities.numpy()[self.surface],
-                           "warpsim:kineticEnergy": self.kinetic_energy()}}
+        return frame_data_from(self.frame_arrays(), st.positions, st.velocities)

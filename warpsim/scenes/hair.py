@@ -292,10 +292,20 @@ class Hair(SimulatorScene):
         v = self._head_local
         return p + v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
+    def frame_arrays(self):
+        """The strands' curve vertices and free vertices from the particle arrays; the head's
+        points (moved by the head's clock) shared by every world of a batch."""
+        from ..usd.frame_arrays import Particles, Shared
+
+        return {"hair": {"points": Particles("positions", self._curve_particles)},
+                "head": {"points": Shared(self.head_points)},
+                "hair_vertices": {"points": Particles("positions", self._free_particles)}}
+
     def frame_data(self):
-        x = self.sim.state.positions.numpy()
-        return {"hair": {"points": x[self._curve_particles]}, "head": {"points": self.head_points()},
-                "hair_vertices": {"points": x[self._free_particles]}}
+        from ..usd.frame_arrays import frame_data_from
+
+        st = self.sim.state
+        return frame_data_from(self.frame_arrays(), st.positions, st.velocities)
 
     def checkpoint(self):
         data = super().checkpoint()

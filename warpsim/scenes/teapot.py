@@ -178,16 +178,31 @@ class TeapotScene(SimulatorScene):
         if self.drags:
             writer.add_curves("drag", curve_vertex_counts=[2] * len(self.drags), width=0.004, color=(0.9, 0.2, 0.1))
 
-    def frame_data(self):
-        state = self.sim.state
+    def _described(self):
+        from ..usd.frame_arrays import Particles, Shared
+
         n = self.body.surface_count
-        x = state.positions.numpy()
-        data = {"teapot": {"points": x[:n], "velocities": state.velocities.numpy()[:n]}}
+        data = {"teapot": {"points": Particles("positions", slice(0, n)),
+                           "velocities": Particles("velocities", slice(0, n))}}
         if self.params["springs"]:
-            data["springs"] = {"points": x}
+            data["springs"] = {"points": Particles("positions", slice(None))}
         if isinstance(self.obstacle, Quad):
-            data["obstacle"] = {"points": self.obstacle.corners()}
+            data["obstacle"] = {"points": Shared(self.obstacle.corners)}
+        return data
+
+    def frame_arrays(self):
+        """The teapot's surface and springs from the particle arrays, a moving quad's corners
+        shared by every world; None with drags (their lines end at targets on the simulator's
+        clock: a batch asks each world in turn)."""
+        return None if self.drags else self._described()
+
+    def frame_data(self):
+        from ..usd.frame_arrays import frame_data_from
+
+        state = self.sim.state
+        data = frame_data_from(self._described(), state.positions, state.velocities)
         if self.drags:
+            x = state.positions.numpy()
             segs = []
             for drag, p in zip(self.drags, self.drag_vertices):
                 end = drag.target_at(self.sim.time) if drag.active_at(self.sim.time) else x[p]

@@ -184,6 +184,13 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
 
     def write(frame):
         x, v = batch.world_slices()
+        batched = batch.batch_frame_data(x, v) if hasattr(batch, "batch_frame_data") else None
+        if batched is not None:  # every world's samples at once (the scene's frame_arrays)
+            if frame < first_written:
+                writer.observe_batch(batched)
+            else:
+                writer.write_batch(frame, batched)
+            return
         datas = [batch.world_frame_data(x[w], v[w], w) for w in range(batch.world_count)]
         if frame < first_written:
             writer.observe(datas)

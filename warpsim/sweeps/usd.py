@@ -129,6 +129,112 @@ class BatchLayerWriter(UsdCacheWriter):
         self._write_samples(frame, samples)
         self.last_frame = frame
 
+    def observe_batch(self, batched):
+        """:meth:`observe` for every world at once (``batched``: as :meth:`write_batch` takes it)."""
+        for name in self.dynamic:
+            value = (batched.get(name) or {}).get("points")
+            if value is None:
+                continue
+            if isinstance(value, np.ndarray) and value.ndim == 3:
+                self._grow_worlds(value)
+            else:
+                for v in value:
+                    self._grow_bounds(getattr(v, "numpy", lambda: v)())
+
+    def write_batch(self, frame, batched):
+        """One frame of every world from arrays with a leading world axis: ``batched[prim][key]``
+        (N, ...) (``WorldBatch.batch_frame_data``, from the scene's ``frame_arrays()``). The same
+        samples, chunks and bytes as :meth:`write_worlds` given each world's ``frame_data()``,
+        made with vectorised operations (:func:`warpsim.usd.frame_arrays.world_samples`) and
+        authored in one Sdf change block with Vt arrays made from NumPy buffers."""
+        from ..usd.frame_arrays import world_samples
+
+        if self._closed:
+            raise ValueError("the writer is closed")
+        frame = operator.index(frame)
+        if not self._sealed:
+            self._seal()
+        if self.last_frame is not None and frame <= self.last_frame:
+            raise ValueError(f"frames must increase: got frame {frame} after {self.last_frame}")
+        n = self.world_count
+        samples = {name: world_samples(decl, batched.get(name), frame, n) for name, decl in self.dynamic.items()}
+        if self._chunk is not None and frame // self.chunk_size != self._chunk.start // self.chunk_size:
+            self._finish_chunk()
+        if self._chunk is None:
+            self._open_chunk(frame)
+        self._write_batch_samples(frame, samples)
+        self.last_frame = frame
+
+    def _batch_paths(self, name, attr_name):
+        """(Sdf paths, path strings) of attribute ``name.attr_name`` of every world (made once)."""
+        cache = self.__dict__.setdefault("_paths", {})
+        key = (name, attr_name)
+        if key not in cache:
+            from pxr import Sdf
+
+            text = [f"{self._world_path(k)}/{name}.{attr_name}" for k in range(self.world_count)]
+            cache[key] = ([Sdf.Path(t) for t in text], text)
+        return cache[key]
+
+    def _write_batch_samples(self, frame, samples):
+        from pxr import Sdf
+
+        from ..usd.writer import vt_maker
+
+        chunk, n, t = self._chunk, self.world_count, float(frame)
+        plan = []
+        for name, attrs in samples.items():
+            decl = self.prims[name]
+            for attr_name, values in attrs.items():
+                attr = decl.attrs[attr_name]
+                paths, text = self._batch_paths(name, attr_name)
+                plan.append((attr, values, paths, text, vt_maker(attr.type_name)))
+        layer, last, pending = chunk.layer, chunk.last, 0
+        with Sdf.ChangeBlock():
+            for w in range(n):  # world by world, attribute by attribute: the order write_worlds authors in
+                for attr, values, paths, text, make in plan:
+                    value = values[w]
+                    if attr.on_change:
+                        prev = last.get(text[w])
+                        if prev is not None and np.array_equal(prev, value):
+                            continue
+                        last[text[w]] = np.array(value, copy=True)
+                        self._authored(attr.name, value)
+                    layer.SetTimeSample(paths[w], t, make(value))
+                    pending += getattr(value, "nbytes", 8)
+        chunk.pending_bytes += pending
+        for attr, values, paths, text, make in plan:  # the worlds' extent, grown once a frame
+            if attr.name == "points" and not attr.on_change:
+                if isinstance(values, np.ndarray):
+                    self._grow_worlds(values)
+                else:
+                    for v in values:
+                        self._grow_bounds(v)
+        for name, attrs in samples.items():  # the chunk index's counts and bounds
+            pts = attrs["points"] if "points" in attrs else attrs.get("positions")
+            extent = attrs.get("extent")
+            if isinstance(pts, np.ndarray) and (extent is None or isinstance(extent, np.ndarray)):
+                union = None if extent is None else np.stack([extent[:, 0].min(0), extent[:, 1].max(0)])
+                chunk.stats.add(name, pts.shape[1], union)
+            else:
+                for w in range(n):
+                    chunk.stats.add(name, None if pts is None else len(pts[w]), None if extent is None else extent[w])
+        self._end_frame_samples(frame)
+
+    def _grow_worlds(self, points):
+        """:meth:`_grow_bounds` of each world's points (N, k, 3), vectorised (non-finite worlds skipped)."""
+        pts = np.asarray(points)
+        if pts.shape[1] == 0:
+            return
+        finite = np.isfinite(pts).all(axis=(1, 2))
+        if not finite.all():
+            pts = pts[finite]
+            if not len(pts):
+                return
+        lo = pts.min(axis=(0, 1)).astype(np.float64)
+        hi = pts.max(axis=(0, 1)).astype(np.float64)
+        self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
+
     def _write_samples(self, frame, samples):
         for local, world in enumerate(samples):
             self._set_prim_samples(frame, self._world_path(local), world)

@@ -62,13 +62,28 @@ def _pxr():
     return Sdf, Vt, Gf
 
 
+_VT_ARRAY = {}
+
+
+def vt_maker(type_name):
+    """A function turning a value already coerced to ``type_name`` into its USD value: for array
+    types the Vt array class's ``FromNumpy`` (looked up once), else :func:`to_vt`."""
+    if type_name in ARRAY_TYPES:
+        make = _VT_ARRAY.get(type_name)
+        if make is None:
+            Sdf, _, _ = _pxr()
+            make = _VT_ARRAY[type_name] = Sdf.ValueTypeNames.Find(type_name).type.pythonClass.FromNumpy
+        return make
+    return lambda value: to_vt(type_name, value)
+
+
 def to_vt(type_name, value):
     """USD value for NumPy/python ``value`` already coerced to ``type_name`` (see usd_prims.coerce)."""
     Sdf, Vt, Gf = _pxr()
     if type_name == "token[]":
         return Vt.TokenArray(value)
     if type_name in ARRAY_TYPES:
-        return Sdf.ValueTypeNames.Find(type_name).type.pythonClass.FromNumpy(value)
+        return vt_maker(type_name)(value)
     wrap = {"float": Vt.Float, "double": Vt.Double, "int": Vt.Int, "int64": Vt.Int64, "bool": Vt.Bool,
             "token": Vt.Token, "float3": Gf.Vec3f, "color3f": Gf.Vec3f, "double3": Gf.Vec3d}
     if type_name in ("float3", "color3f", "double3"):

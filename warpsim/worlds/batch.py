@@ -518,6 +518,16 @@ class WorldBatch:
         self._frame_broken = None if broken is None else broken.numpy().reshape(n, -1)
         return st.positions.numpy().reshape(n, P, 3), st.velocities.numpy().reshape(n, P, 3)
 
+    def batch_frame_data(self, x, v):
+        """Every world's frame data at once from the host copies ``x``, ``v`` (N, P, 3) of
+        :meth:`world_slices`: ``{prim: {key: (N, ...) array or list}}`` from the scene's
+        :meth:`~warpsim.scenes.Scene.frame_arrays` (the description its own ``frame_data()`` is
+        made from), or None when the scene gives none (:meth:`world_frame_data` per world then)."""
+        from ..usd.frame_arrays import batch_frame_data, described
+
+        description = described(self.scene)
+        return None if description is None else batch_frame_data(description, x, v)
+
     def world_frame_data(self, x, v, world=None):
         """The scene's frame data for one world whose positions / velocities are ``x``, ``v`` (P, 3)
         (``world``: its index in the batch, needed when springs can break: the frame data then
