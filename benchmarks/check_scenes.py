@@ -15,7 +15,7 @@ any, else 0.
     python benchmarks/check_scenes.py --list                                 # the cases, as commands
 
 The cases (``--kinds``): ``default`` (every scene of ``warpsim list`` at its defaults for its default
-length, ``warpsim run``'s 120 frames), ``slider`` (each end of the physical sliders the viewer
+length, ``warpsim run``'s 120 frames), ``long`` (the same for ``--slider-frames``, 600), ``slider`` (each end of the physical sliders the viewer
 gives a scene: damping 0, restitution 1, the largest stiffness and wind, the smallest mass, and the
 other ends, for ``--slider-frames`` frames, 600 by default), ``readme`` (every ``warpsim run`` of
 README.md at its README length) and ``blowup`` (each explicit integrator at 1.2x its stability limit
@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from warpsim.cli_common import DefaultsHelpFormatter, run_script  # noqa: E402
 
-KINDS = ("default", "slider", "readme", "blowup")
+KINDS = ("default", "long", "slider", "readme", "blowup")
 
 
 def parse(argv=None):

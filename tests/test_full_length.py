@@ -20,7 +20,10 @@ from warpsim.commands import corpus
 SLIDER_FRAMES = corpus.DEFAULT_FRAMES
 """The CPU runs each slider end for the scenes' default length (``check_scenes.py`` for 600)."""
 
-CASES = corpus.cases(slider_frames=SLIDER_FRAMES)
+CASES = corpus.cases(kinds=("default", "slider", "readme", "blowup"), slider_frames=SLIDER_FRAMES)
+LONG = corpus.long_cases(["cloth", "drape"])
+"""The issue's goal: the default cloth and drape for 600 frames (the other scenes' long runs are
+check_scenes.py's)."""
 
 
 def _id(case):
@@ -32,6 +35,13 @@ def test_default_runs_its_length_clean(case):
     result = corpus.run_case(case, "cpu", small=True)
     assert result.passed, result.summary()
     assert result.frames_run == case.frames == corpus.DEFAULT_FRAMES
+
+
+@pytest.mark.parametrize("case", LONG, ids=_id)
+def test_default_cloth_and_drape_run_600_frames_clean(case):
+    result = corpus.run_case(case, "cpu", small=True)
+    assert result.passed, result.summary()
+    assert result.frames_run == case.frames == 600
 
 
 @pytest.mark.parametrize("case", [c for c in CASES if c.kind == "readme"], ids=_id)

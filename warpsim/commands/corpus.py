@@ -4,7 +4,8 @@ One case list and one runner, shared by ``benchmarks/check_scenes.py`` (full siz
 and ``tests/test_full_length.py`` (the CPU, resolution lowered, never frames):
 
 - ``default``: every scene of ``warpsim list`` at its default parameters for its default length
-  (``warpsim run``'s 120 frames: no scene has a length of its own);
+  (``warpsim run``'s 120 frames: no scene has a length of its own); ``long``: the same for
+  ``slider_frames`` (600);
 - ``KEY=END``: each end of the physical sliders the viewer gives a scene (damping, restitution,
   stiffnesses, wind, masses and densities: :func:`slider_ends`), for ``slider_frames`` frames;
 - ``README``: every ``warpsim run`` command of README.md at its README length (a re-run of a sweep's
@@ -39,9 +40,9 @@ from typing import Any, Optional
 
 import numpy as np
 
-__all__ = ["BLOWUP", "BLOWUP_SCENES", "DEFAULT_FRAMES", "GRACE", "SLIDER_FRAMES", "SMALL", "Case", "Result",
-           "blowup_cases", "cases", "default_cases", "format_table", "growth_frame", "readme_cases", "run_case",
-           "slider_cases", "slider_ends"]
+__all__ = ["BLOWUP", "BLOWUP_SCENES", "DEFAULT_FRAMES", "GRACE", "KINDS", "SLIDER_FRAMES", "SMALL", "Case", "Result",
+           "blowup_cases", "cases", "default_cases", "format_table", "growth_frame", "long_cases", "readme_cases",
+           "resolve_blowup", "run_case", "slider_cases", "slider_ends"]
 
 DEFAULT_FRAMES = 120
 """The default length of every scene: ``warpsim run``'s ``--frames`` default (no scene has its own)."""
@@ -234,6 +235,12 @@ def default_cases(names=None) -> list:
     return [Case(name, "default", DEFAULT_FRAMES, kind="default") for name in _scenes() if not names or name in names]
 
 
+def long_cases(names=None, frames=SLIDER_FRAMES) -> list:
+    """Every scene at its defaults for ``frames`` (600: the issue's goal for the cloth and the drape)."""
+    return [Case(name, f"default {frames} frames", frames, kind="long") for name in _scenes()
+            if not names or name in names]
+
+
 def _number(value) -> str:
     return f"{float(value):.6g}" if isinstance(value, float) else str(value)
 
@@ -345,11 +352,18 @@ def blowup_cases(names=None, frames=DEFAULT_FRAMES, factor=BLOWUP) -> list:
     return out
 
 
-def cases(names=None, kinds=("default", "slider", "readme", "blowup"), slider_frames=SLIDER_FRAMES) -> list:
-    """The corpus (``names``: only these scenes; ``kinds``: of these kinds)."""
+KINDS = ("default", "long", "slider", "readme", "blowup")
+"""The kinds of case, in the corpus's order."""
+
+
+def cases(names=None, kinds=KINDS, slider_frames=SLIDER_FRAMES) -> list:
+    """The corpus (``names``: only these scenes; ``kinds``: of these kinds; ``slider_frames``: the
+    length of the slider ends and the long defaults)."""
     out = []
     if "default" in kinds:
         out += default_cases(names)
+    if "long" in kinds:
+        out += long_cases(names, slider_frames)
     if "slider" in kinds:
         out += slider_cases(names, slider_frames)
     if "readme" in kinds:
