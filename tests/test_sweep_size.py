@@ -155,11 +155,14 @@ def test_a_sweep_larger_than_the_free_disk_is_refused_before_it_runs(tmp_path, m
     from warpsim.sweeps import preflight
 
     monkeypatch.setattr(preflight, "free_disk_bytes", lambda path: 100 << 10)  # the sweep writes ~0.8 MB
-    code, _, err = run(*SWEEP, "--out", tmp_path / "big" / "t.usda")
+    code, _, err = run(*SWEEP, "--out", tmp_path / "big" / "t.usda", "--store", "all")  # asked for: refused
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
     assert "writes about" in lines[0] and "100 KiB free" in lines[0] and "--worlds" in lines[0], lines[0]
     assert not os.path.exists(tmp_path / "big" / "t.batch_0000.usdc")
+    code, out, err = run(*SWEEP, "--out", tmp_path / "fits" / "t.usda", "--no-thumbnails")  # issue 50: by default
+    assert code == 0 and "store: none" in out and "half the free disk" in out, out + err  # it keeps what fits
+    assert not [f for f in os.listdir(tmp_path / "fits") if ".batch_" in f]
     assert preflight.check_disk(tmp_path / "t.usda", 5 << 20, free=6 << 20) is None  # small: nothing to say
     line = preflight.check_disk(tmp_path / "t.usda", 50 << 20, free=60 << 20)
     assert line.startswith("writing about 50 MiB to ") and "60 MiB free" in line

@@ -78,3 +78,61 @@ def test_a_subclass_overriding_frame_data_alone_is_asked_per_world():
     scene = Odd(cls.resolve_params({}), device="cpu")
     assert described(scene) is None
     assert described(cls(cls.resolve_params({}), device="cpu")) is not None
+
+
+def _sweep(tmp_path, name, *extra):
+    from warpsim.cli import main
+
+    root = tmp_path / name / "s.usda"
+    code = main(["sweep", "bounce", "--worlds", "4", "--frames", "9", "--device", "cpu", "--vary",
+                 "restitution=0.2:0.9", "--out", str(root), "--no-progress", *extra])
+    assert code == 0
+    return root
+
+
+def _chunk_bytes(folder):
+    return {f: open(os.path.join(folder, f), "rb").read() for f in sorted(os.listdir(folder)) if ".chunk0" in f}
+
+
+def test_store_modes_keep_the_table_and_record_and_pick_re_runs_a_none_sweep(tmp_path, capsys):
+    """--store none writes no batch layer but the same table, record and thumbnails; preview keeps
+    every 4th frame and the last; a world picked (or re-run) from a none sweep equals the same world
+    re-run from an all sweep, chunk for chunk, and its samples equal the all sweep's world."""
+    from pxr import Sdf
+
+    from warpsim.browse.pick import pick_world
+    from warpsim.sweeps.rerun import first_difference, rerun_world
+
+    roots = {m: _sweep(tmp_path, m, "--store", m) for m in ("all", "preview", "none")}
+    said = capsys.readouterr().out
+    assert "store: none, no frames" in said and "store: preview, every 4th frame and the last" in said
+    folder = {m: os.path.dirname(r) for m, r in roots.items()}
+    assert not [f for f in os.listdir(folder["none"]) if ".batch_" in f]
+    for m in ("preview", "none"):
+        for f in ("s.csv", "s.occupancy.npz"):
+            assert open(os.path.join(folder[m], f), "rb").read() == open(os.path.join(folder["all"], f), "rb").read()
+        for f in os.listdir(os.path.join(folder["all"], "s.thumbs")):
+            assert open(os.path.join(folder[m], "s.thumbs", f), "rb").read() == \
+                open(os.path.join(folder["all"], "s.thumbs", f), "rb").read()
+    preview = Sdf.Layer.FindOrOpen(os.path.join(folder["preview"], "s.batch_0000.usdc"))
+    assert list(preview.customLayerData["warpsim"]["chunkEnds"]) == [9]
+    chunk = Sdf.Layer.FindOrOpen(os.path.join(folder["preview"], [f for f in os.listdir(folder["preview"])
+                                                                 if ".chunk0" in f][0]))
+    assert list(chunk.ListTimeSamplesForPath("/Worlds/world_000001/ball.points")) == [0.0, 4.0, 8.0, 9.0]
+    picked = pick_world(roots["none"], 2, tmp_path / "pick_none" / "w.usda")
+    again = rerun_world(roots["all"], 2, out=tmp_path / "rerun_all" / "w.usda")
+    assert _chunk_bytes(os.path.dirname(picked)) == _chunk_bytes(os.path.dirname(again)) != {}
+    assert first_difference(roots["all"], 2, picked) is None
+    with pytest.raises(ValueError, match="out of range"):
+        pick_world(roots["none"], 4, tmp_path / "x.usda")
+
+
+def test_store_estimate_covers_each_mode():
+    from warpsim.sweeps.usd import estimate_sweep_bytes, stored_frames
+
+    assert [stored_frames(10, k) for k in (1, 4, 0)] == [10, 4, 0]  # 0, 4, 8 and the last, 9
+    assert stored_frames(9, 4) == 3  # 0, 4, 8 (the last)
+    cls = get_scene("bounce")
+    scene = cls(cls.resolve_params({}), device="cpu")
+    sizes = [estimate_sweep_bytes(scene, "/tmp/never_written.usdc", 100, 121, 25.0, k)["bytes"] for k in (1, 4, 0)]
+    assert sizes[0] > 3 * sizes[1] > 0 and sizes[2] == 0

@@ -46,6 +46,10 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
     for name, value in (("root", root), ("out_path", out_path)):
         if not isinstance(value, (str, os.PathLike)):
             raise TypeError(f"{name} {value!r} is not a path; give a .usda/.usdc file name")
+    from .roots import unstored_sweep
+
+    if os.path.isfile(os.fspath(root)) and unstored_sweep(root) is not None:
+        return _rerun_pick(root, world, out_path, flatten)
     files = sweep_root_files(root)
     owner = dict(files["worlds"])
     world = int(world)
@@ -79,6 +83,24 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
                                    f"open in USD: {why}); run the sweep again") from None
     with OutputLock(out_path, "--out"):
         return _write_pick(root, world, owner, out_path, flatten)
+
+
+def _rerun_pick(root, world, out_path, flatten) -> str:
+    """A world of a sweep run with ``--store none``: re-run alone from the sweep's manifest, bit for
+    bit as in the sweep (:func:`warpsim.sweeps.rerun.rerun_world`), into the full cache
+    ``out_path`` (chunks beside it; ``flatten``: one self-contained ``.usdc``)."""
+    from ..sweeps.rerun import read_manifest, rerun_world
+
+    world = int(world)
+    count = len(read_manifest(root)["worlds"])
+    if not 0 <= world < count:
+        raise ValueError(f"--world {world} is out of range: {root} holds worlds 0..{count - 1} ({count} worlds)")
+    out_path = os.path.abspath(os.fspath(out_path))
+    if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
+        raise ValueError(f"--out {out_path!r} must end in .usd, .usda or .usdc")
+    if os.path.isdir(out_path):
+        raise ValueError(f"--out {out_path!r} is a folder; name a file in it")
+    return rerun_world(root, world, out=out_path, flatten=flatten)
 
 
 def _write_pick(root, world, owner, out_path, flatten) -> str:

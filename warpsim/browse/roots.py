@@ -12,7 +12,8 @@ import os
 
 import numpy as np
 
-__all__ = ["LAYOUTS", "root_worlds", "sweep_root_files", "world_prim_name", "write_sweep_root"]
+__all__ = ["LAYOUTS", "root_worlds", "sweep_root_files", "unstored_sweep", "world_prim_name", "write_sweep_root",
+           "write_unstored_root"]
 
 LAYOUTS = ("variants", "grid")
 
@@ -71,6 +72,11 @@ def sweep_root_files(root, table=None):
         why = pxr_reason(exc, 100) if str(exc).strip() else "USD gave no reason"
         raise ValueError(f"{root} is not a readable USD file ({why}); give the root of 'warpsim sweep'") from None
     if found is None:
+        unstored = unstored_sweep(root)
+        if unstored is not None:
+            raise ValueError(f"{root} is a sweep run with --store none: it holds no frames; every world re-runs "
+                             f"exactly: warpsim pick {root} --world N --out FILE (or warpsim run "
+                             f"{unstored.get('scene') or 'SCENE'} --from-sweep {root} --world N)")
         raise ValueError(f"{root} is not a sweep root (no 'world' variant set or world_ prims under /World); give "
                          "the --out of 'warpsim sweep'")
     stem = os.path.splitext(os.path.abspath(root))[0]
@@ -183,6 +189,51 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
             op.default = Gf.Vec3d((k % columns) * step, 0.0, (k // columns) * step)
             order = Sdf.AttributeSpec(spec, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
             order.default = ["xformOp:translate"]
+    tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
+    if not layer.Export(tmp):
+        raise PermissionError(f"could not write {out_path}; check the folder is writable")
+    os.replace(tmp, out_path)
+    return out_path
+
+
+def unstored_sweep(path):
+    """The ``customLayerData["warpsim"]`` of a sweep root written with ``--store none``
+    (:func:`write_unstored_root`: ``store``, ``worldCount``, ``scene``, ``frames``), or None for any
+    other file."""
+    from pxr import Sdf
+
+    try:
+        layer = Sdf.Layer.FindOrOpen(os.fspath(path))
+    except Exception:  # noqa: BLE001  (not USD)
+        return None
+    data = dict(layer.customLayerData.get("warpsim", {})) if layer is not None else {}
+    return data if data.get("store") == "none" else None
+
+
+def write_unstored_root(out_path, world_count, *, scene, frames, fps) -> str:
+    """The root of a sweep run with ``--store none`` (no batch layer: the table, the occupancy
+    record, the manifest and the thumbnails are beside it): ``/World`` an empty Xform, the stage
+    settings and frame range of the sweep, and ``customLayerData["warpsim"]`` saying ``store`` =
+    "none", ``worldCount``, ``scene`` and ``frames``, so ``warpsim pick`` re-runs a world instead
+    of reading it. Returns its path."""
+    from pxr import Sdf
+
+    out_path = os.path.abspath(os.fspath(out_path))
+    if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
+        raise ValueError(f"root {out_path!r} must end in .usd, .usda or .usdc")
+    os.makedirs(os.path.dirname(out_path), exist_ok=True)
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.defaultPrim = "World"
+    layer.timeCodesPerSecond = float(fps)
+    layer.framesPerSecond = float(fps)
+    layer.pseudoRoot.SetInfo("upAxis", "Y")
+    layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
+    layer.startTimeCode, layer.endTimeCode = 0.0, float(frames)
+    root = Sdf.CreatePrimInLayer(layer, "/World")
+    root.specifier = Sdf.SpecifierDef
+    root.typeName = "Xform"
+    layer.customLayerData = {"warpsim": {"store": "none", "worldCount": int(world_count), "scene": str(scene),
+                                         "frames": int(frames)}}
     tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
     if not layer.Export(tmp):
         raise PermissionError(f"could not write {out_path}; check the folder is writable")

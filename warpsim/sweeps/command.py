@@ -25,6 +25,12 @@ from ..cli_common import (
 from . import preflight
 
 LAYER_EXT = ".usdc"
+STORE_MODES = ("all", "preview", "none")
+PREVIEW_EVERY = 4
+"""``--store preview`` keeps every 4th frame and the last (the thumbnails' frame): a quarter of the
+bytes; USD tools hold or interpolate between the kept samples, at the sweep's frame times."""
+AUTO_STORE_BYTES = 2 << 30
+"""Largest batch layer the default ``--store`` keeps every frame of (and preview frames of) [bytes]."""
 
 
 def add_parser(sub):
@@ -85,6 +91,13 @@ def add_parser(sub):
     s.add_argument("--chunk", type=int, default=24, metavar="K",
                    help="frames per chunk file of the batch layer (default 24; completed chunks survive a kill)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.add_argument("--store", default=None, choices=STORE_MODES,
+                   help="what the batch layer keeps: all (every frame), preview (every "
+                        f"{PREVIEW_EVERY}th frame and the last: the gallery and a DCC glance) or none (the table, "
+                        "occupancy record, manifest and thumbnails only); every world re-runs bit-exactly, so "
+                        "'warpsim pick' and --rerun make any world's full cache later (default: all when every "
+                        f"frame fits in {AUTO_STORE_BYTES >> 30} GiB and half the free disk, else preview, else none; "
+                        "the sweep says which and why)")
     s.add_argument("--rerun", type=int, default=None, metavar="N",
                    help="run only world N of this sweep, alone, exactly as in the whole sweep (writes "
                         "<stem>.world_NNNNNN.usda)")
@@ -166,6 +179,7 @@ def run(args, out, err):
     print(f"ran {len(rows)} worlds of scene {cls.name!r} x {args.frames} frames at {timing.fps:g} fps on {device}"
           f"{f' ({note})' if note else ''}", file=out)
     print(f"open: {os.path.relpath(root)}   table: {os.path.relpath(table)}", file=out)
+    print(args.store_note, file=out)
     thumbs_device = device if getattr(args, "ray", None) is None and devices is None else \
         devices[0] if devices is not None else "cpu"
     return _answer(args, rows, (root, layers, path), list(world_params[0]), (regions, rank, where), thumbs_device,
@@ -291,17 +305,63 @@ def _picking(args, world_params, fps, track):
 
 def _check_resources(args, cls, base, worlds, path, device, devices, fps, err):
     """Refuse a sweep whose memory (one device) or output (the disk of ``path``) does not fit,
-    from world 0 built on the CPU; a large sweep's size is said on ``err`` before it starts."""
+    from world 0 built on the CPU; choose ``--store`` when not given (:func:`_choose_store`:
+    ``args.store``, ``args.store_every`` and ``args.store_note``, the line said with the result);
+    a large sweep's size is said on ``err`` before it starts."""
     try:
         scene = cls(base, device="cpu")  # world 0: the memory and output estimates
         if getattr(args, "ray", None) is None and devices is None:  # several devices: checked per block
             _check_memory(cls, scene, worlds, device)
-        size_note = _check_disk(scene, path, worlds, args.frames + 1, fps,
-                                resume=bool(getattr(args, "resume", False)))
+        resume = bool(getattr(args, "resume", False))
+        args.store_note = _choose_store(args, scene, path, worlds, args.frames + 1, fps, devices, resume)
+        size_note = _check_disk(scene, path, worlds, args.frames + 1, fps, resume=resume,
+                                store_every=args.store_every)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     if size_note:
         print(size_note, file=err)
+
+
+def store_every(mode) -> int:
+    """``run_batch``'s ``store_every`` of a ``--store`` mode: all 1, preview PREVIEW_EVERY, none 0."""
+    return {"all": 1, "preview": PREVIEW_EVERY, "none": 0}[mode]
+
+
+def _choose_store(args, scene, path, worlds, frames, fps, devices, resume) -> str:
+    """Set ``args.store`` (given, or by size: all when every frame fits in ``AUTO_STORE_BYTES`` and
+    half the free disk, else preview when that fits, else none) and ``args.store_every``; returns
+    the line saying which and why. ValueError for preview / none with ``--ray`` or ``--devices``."""
+    from .usd import estimate_sweep_bytes
+
+    several = getattr(args, "ray", None) is not None or devices is not None
+    layer = f"{os.path.splitext(path)[0]}.batch_0000{LAYER_EXT}"
+    size = {m: estimate_sweep_bytes(scene, layer, worlds, frames, fps, store_every(m))["bytes"]
+            for m in ("all", "preview")}
+    fmt = preflight.format_bytes
+    if args.store is not None:
+        if args.store != "all" and several:
+            raise ValueError(f"--store {args.store} runs on one device for now; drop --ray / --devices or use "
+                             "--store all")
+        why = "as given"
+    elif several or resume:
+        args.store, why = "all", "the default with --ray / --devices / --resume"
+    else:
+        free = preflight.free_disk_bytes(path)
+        room = min(AUTO_STORE_BYTES, free // 2)
+        if size["all"] <= room:
+            args.store, why = "all", f"the default: every frame is {fmt(size['all'])}"
+        elif size["preview"] <= room:
+            args.store, why = "preview", (f"every frame would be {fmt(size['all'])}, over {fmt(room)} (the most a "
+                                          "default sweep writes: 2 GiB or half the free disk)")
+        else:
+            args.store, why = "none", (f"even every {PREVIEW_EVERY}th frame would be {fmt(size['preview'])}, over "
+                                       f"{fmt(room)} (2 GiB or half the free disk)")
+    args.store_every = store_every(args.store)
+    what = {"all": "every frame", "preview": f"every {PREVIEW_EVERY}th frame and the last "
+                                             f"({fmt(size['preview'])})",
+            "none": "no frames: table, occupancy record and thumbnails"}[args.store]
+    return (f"store: {args.store}, {what} ({why}); every world re-runs exactly: warpsim pick ROOT --world N "
+            "makes its full cache")
 
 
 def _execute(args, cls, world_params, outputs, devices, track, occupancy, err):
@@ -393,10 +453,18 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
     from .sweep import run_batch, write_table
 
     path, table = outputs
-    staging = SweepStaging(path, {"scene": cls.name, "frames": args.frames, "fps": args.fps,
-                                  "substeps": args.substeps, "chunk": args.chunk, "fused": bool(args.fused),
-                                  "track": track or {}, "worlds": settings_digest(world_params)},
-                           resume=bool(getattr(args, "resume", False)))
+    every = getattr(args, "store_every", 1)
+    settings = {"scene": cls.name, "frames": args.frames, "fps": args.fps, "substeps": args.substeps,
+                "chunk": args.chunk, "fused": bool(args.fused), "track": track or {},
+                "worlds": settings_digest(world_params)}
+    if every != 1:  # (an all sweep's settings, and so its run id, stay as before --store)
+        settings["store"] = args.store
+    staging = SweepStaging(path, settings, resume=bool(getattr(args, "resume", False)), stored=every != 0)
+    layer_path = staging.layer
+    if every == 0:  # --store none: the last frame goes to a scratch layer the thumbnails are drawn from
+        import tempfile
+
+        layer_path = os.path.join(tempfile.mkdtemp(prefix="warpsim_sweep_last_"), "last.usdc")
     first = staging.resume_frame()
     if first:
         print(f"resuming: frames 0..{first - 1} are in {os.path.relpath(staging.layer)}; re-simulating them "
@@ -410,19 +478,31 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
     record = _record_path(path)
     try:
         rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
-                         device=device, layer_path=staging.layer, first_world=0, track=track,
+                         device=device, layer_path=layer_path, first_world=0, track=track, store_every=every,
                          progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
                          occupancy={**occupancy, "path": staging.partial(record)},
                          warn=lambda line: warn_or_refuse(line, args.strict, err), chunk_size=args.chunk,
                          resume_frame=first, timing=run_timing)
     except BaseException:
         staging.abandon()  # refused before any frame (e.g. a batch that cannot be built): no progress file
+        if every == 0:
+            import shutil
+
+            shutil.rmtree(os.path.dirname(layer_path), ignore_errors=True)
         raise
     finally:
         if progress:
             progress.close()
     layer = staging.publish([(staging.partial(record), record)])  # the old sweep stays whole until here
     write_table(table, rows)
+    if every == 0:
+        from ..browse.roots import write_unstored_root
+        from .sweep import sweep_timing
+
+        root = write_unstored_root(path, len(world_params), scene=cls.name, frames=args.frames,
+                                   fps=sweep_timing(cls, world_params, args.fps, args.substeps).fps)
+        staging.finish()
+        return rows, root, [layer_path]  # (the scratch layer: thumbnails, then removed)
     root = write_sweep_root(path, [layer], len(world_params), layout=args.layout)
     staging.finish()
     return rows, root, [layer]
@@ -452,7 +532,13 @@ def _answer(args, rows, written, params, picking, device, out, err):
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
         print(thumbnails_after_sweep(root, layers, record, enabled=not args.no_thumbnails, device=device), file=out)
-        positions = cached_positions(root, record) if regions else None
+        store = getattr(args, "store", None) or "all"
+        if store == "none":  # the scratch layer of the last frame has served the thumbnails
+            import shutil
+
+            shutil.rmtree(os.path.dirname(layers[0]), ignore_errors=True)
+        # a preview's cache lacks most frames: its answers come from the record alone
+        positions = cached_positions(root, record) if regions and store == "all" else None
         answers = [answer_region(record, r, positions) for r in regions]
         candidates = apply_regions(rows, record, regions, answers=answers)
         if regions:
@@ -460,7 +546,10 @@ def _answer(args, rows, written, params, picking, device, out, err):
     if args.rank or args.where or regions:
         picked = select(candidates, rank=rank, top=args.top, where=where)
         print_picked(picked, len(rows), params, rank=rank, where=where, extra=region_columns(regions), out=out)
-        if picked:
+        if picked and (getattr(args, "store", None) or "all") == "none":
+            print(f"picked worlds: none written (--store none keeps no frames); warpsim pick {os.path.relpath(root)} "
+                  "--world N --out FILE re-runs one", file=out)
+        elif picked:
             stem, ext = os.path.splitext(path)
             pick_path = write_sweep_root(stem + ".picked" + ext, layers, len(rows), layout=args.layout,
                                          worlds=[r["world"] for r in picked])
@@ -476,14 +565,16 @@ def _check_memory(cls, scene, worlds, device):
     preflight.check_sweep_memory(cls.name, int(model.particle_count), int(model.spring_count), worlds, device)
 
 
-def _check_disk(scene, path, worlds, frames, fps, resume=False):
+def _check_disk(scene, path, worlds, frames, fps, resume=False, store_every=1):
     """The line saying how much a large sweep writes (None: a small one), from world 0's
-    ``scene`` and the prims its batch layers write; ValueError when the disk holding ``path``
-    has less free (not when resuming: the chunks written so far are kept)."""
+    ``scene`` and the prims its batch layers write (``store_every``: of ``--store``); ValueError
+    when the disk holding ``path`` has less free (not when resuming: the chunks written so far are
+    kept)."""
     from .usd import estimate_sweep_bytes
 
     stem = os.path.splitext(path)[0]
-    need = estimate_sweep_bytes(scene, f"{stem}.batch_0000{LAYER_EXT}", worlds, frames, fps)
+    need = estimate_sweep_bytes(scene, f"{stem}.batch_0000{LAYER_EXT}", worlds, frames, fps, store_every)
+    frames = need["frames"]
     detail = f" ({worlds} worlds x {frames} frames of {preflight.format_bytes(need['frame_bytes'])})"
     return preflight.check_disk(path, need["bytes"], detail, free=None if not resume else 1 << 62)
 

@@ -262,7 +262,7 @@ def sweep_frame_steps(scene_name, world_params, *, fps=None, substeps=None, devi
 
 
 def run_world(scene_name, world_params, world, *, out, frames, fps=None, substeps=None, device=None, fused=False,
-              progress=None, frame_steps=None) -> str:
+              progress=None, frame_steps=None, flatten=False) -> str:
     """Run world ``world`` of the sweep whose worlds are ``world_params`` (as given to
     :func:`warpsim.sweeps.sweep.run_batch`, with the same ``fps``/``substeps``/``fused``) alone
     and write its frames 0 .. ``frames`` to the cache ``out`` (a ``warpsim run`` cache). Returns
@@ -284,7 +284,7 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     world_params = timed_params(cls, world_params, timing)
     batch = WorldBatch(cls, [world_params[world]], device=device, fused=fused, reference_params=world_params)
     batch.use_timing(timing if frame_steps is None else timing.with_steps(int(frame_steps)))
-    writer = UsdCacheWriter(out, fps=fps)
+    writer = UsdCacheWriter(out, fps=fps, flatten=flatten)
     batch.scene.declare(writer)
     writer.begin()
 
@@ -303,7 +303,7 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
 
 
 def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, device=None, warn=None,
-                progress=None) -> str:
+                progress=None, flatten=False) -> str:
     """Re-run world ``world`` of the sweep at ``root`` alone, with its parameters, on the sweep's
     device (``device``: another one), and write it to the cache ``out`` (default beside the root,
     ``<stem>.world_NNNNNN.usda``); ``frames`` defaults to the sweep's. On the same device, fps
@@ -334,7 +334,8 @@ def rerun_world(root, world, *, out=None, frames=None, fps=None, substeps=None, 
     run_device = device if device is not None else manifest["device"]
     return run_world(manifest["scene"], manifest["worlds"], world, out=out,
                      frames=frames, fps=run_fps, substeps=run_substeps, device=run_device,
-                     fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps))
+                     fused=manifest["fused"], progress=progress, frame_steps=_frame_steps(manifest, fps, substeps),
+                     flatten=flatten)
 
 
 def _check_api_args(root, frames, fps, substeps, out) -> None:

@@ -91,7 +91,7 @@ class SweepStaging:
     layers of the run (one per device of a sweep over several devices: ``layers[k]``, published as
     ``final_layers[k]``; ``layer`` / ``final_layer`` are block 0's)."""
 
-    def __init__(self, root_path, settings, resume=False, blocks=1):
+    def __init__(self, root_path, settings, resume=False, blocks=1, stored=True):
         self.root = os.path.abspath(os.fspath(root_path))
         self.stem = os.path.splitext(self.root)[0]
         self.progress_path = self.stem + ".sweep-partial.json"
@@ -107,6 +107,9 @@ class SweepStaging:
         self.layers = [f"{self.stem}.batch_{k:04d}.run{self.token}.usdc" for k in range(int(blocks))]
         self.final_layers = [f"{self.stem}.batch_{k:04d}.usdc" for k in range(int(blocks))]
         self.layer, self.final_layer = self.layers[0], self.final_layers[0]
+        self.stored = bool(stored)
+        """False (``--store none``): the run keeps no batch layer; :meth:`publish` moves none and
+        :meth:`finish` removes an older sweep's layers of this root."""
 
     def _run_files(self):
         """Chunk files, indexes and staged layers of any run of this root: ``(path, token)``."""
@@ -168,7 +171,7 @@ class SweepStaging:
         """First frame to write: after the last completed chunk of block ``block``'s staged layer
         (0: none)."""
         layer = self.layers[block]
-        if not os.path.exists(layer):
+        if not self.stored or not os.path.exists(layer):
             return 0
         from pxr import Sdf
 
@@ -199,7 +202,8 @@ class SweepStaging:
         order), then ``moves`` [(staged path, final path)]; returns block 0's final layer path.
         Call :meth:`finish` after writing the table and root."""
         for staged, final in zip(self.layers, self.final_layers):
-            os.replace(staged, final)
+            if self.stored:
+                os.replace(staged, final)
         for src, dst in moves:
             if os.path.exists(src):
                 os.replace(src, dst)
@@ -212,7 +216,7 @@ class SweepStaging:
             if token != self.token:
                 os.remove(f)
         for f in glob.glob(glob.escape(self.stem) + ".batch_[0-9][0-9][0-9][0-9].usdc"):
-            if f not in self.final_layers:
+            if f not in self.final_layers or not self.stored:
                 os.remove(f)
         if os.path.exists(self.progress_path):
             os.remove(self.progress_path)

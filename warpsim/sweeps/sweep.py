@@ -99,7 +99,7 @@ def make_batch(cls, world_params, device=None, fused=False, reference_params=Non
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
               warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None,
-              reference_params=None) -> list:
+              reference_params=None, store_every=1) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -129,6 +129,9 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     ignore it: each world takes its own);
     ``reference_params``: the whole sweep's parameter list when these worlds are one block of it
     (:class:`WorldBatch`: each world then gets the arrays it gets in the whole sweep, bit for bit);
+    ``store_every``: which frames the layer holds (``--store``): 1 every frame; k > 1 every k-th
+    frame and the last (a preview: the layer's extent still covers every frame); 0 only the last
+    (the frame the thumbnails show; ``layer_path`` is then a scratch layer);
     ``occupancy["agree"]``: ``agree(points (M, 3) [m], resolution) -> (bounds, resolution)``, called
     with the frame-0 points the default grid would cover, so that the blocks of one sweep on
     several devices record on one grid (:mod:`warpsim.distributed.devices`)."""
@@ -181,18 +184,24 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         writer.set_world_params(i, p)
     writer.begin()  # adopts the kept chunks of a resumed layer (ValueError when one is damaged)
     first_written = int(resume_frame or 0)
+    store_every = int(store_every)
+    if store_every < 0:
+        raise ValueError(f"store_every {store_every}: give 1 (every frame), k > 1 (every k-th) or 0 (the last only)")
+
+    def stored(frame):
+        return frame == int(frames) or (frame % store_every == 0 if store_every else False)
 
     def write(frame):
         x, v = batch.world_slices()
         batched = batch.batch_frame_data(x, v) if hasattr(batch, "batch_frame_data") else None
         if batched is not None:  # every world's samples at once (the scene's frame_arrays)
-            if frame < first_written:
+            if frame < first_written or not stored(frame):
                 writer.observe_batch(batched)
             else:
                 writer.write_batch(frame, batched)
             return
         datas = [batch.world_frame_data(x[w], v[w], w) for w in range(batch.world_count)]
-        if frame < first_written:
+        if frame < first_written or not stored(frame):
             writer.observe(datas)
         else:
             writer.write_worlds(frame, datas)

@@ -28,7 +28,7 @@ from ..browse.roots import world_prim_name
 from ..usd.prims import joined_form
 from ..usd.writer import UsdCacheWriter
 
-__all__ = ["BatchLayerWriter", "estimate_sweep_bytes"]
+__all__ = ["BatchLayerWriter", "estimate_sweep_bytes", "stored_frames"]
 
 SHARED = "/WorldShared"
 """Class prim of a batch layer holding the declarations every world's prims inherit."""
@@ -39,14 +39,27 @@ WORLD_SPEC_BYTES = 1024
 """Bytes a world costs in the layer besides its samples: its prim specs, parameters and clip list."""
 
 
-def estimate_sweep_bytes(scene, layer_path, worlds, frames, fps=60.0) -> dict:
+def stored_frames(frames, store_every=1) -> int:
+    """How many of ``frames`` frames (frame 0 included) a sweep's layers hold with ``store_every``
+    (``run_batch``: 1 every frame, k > 1 every k-th and the last, 0 none kept)."""
+    frames, k = int(frames), int(store_every)
+    if frames <= 0 or k == 0:
+        return 0
+    return len(range(0, frames, k)) + (1 if (frames - 1) % k else 0)
+
+
+def estimate_sweep_bytes(scene, layer_path, worlds, frames, fps=60.0, store_every=1) -> dict:
     """Bytes a sweep of ``worlds`` worlds like ``scene`` (world 0, built) writes over ``frames``
-    frames (frame 0 included) into its batch layers: ``{"bytes", "frame_bytes"}`` (the whole
-    sweep, one world's frame), from the prims the layer writes and world 0's first frame
-    (counts that change later, as fluids', make it an estimate of the first frame's rate)."""
+    frames (frame 0 included) into its batch layers: ``{"bytes", "frame_bytes", "frames"}`` (the
+    whole sweep, one world's frame, the frames kept), from the prims the layer writes and world 0's
+    first frame (counts that change later, as fluids', make it an estimate of the first frame's
+    rate). ``store_every``: as ``run_batch`` takes it (``--store``: 1 all, k preview, 0 none: no
+    layer is kept)."""
     writer = BatchLayerWriter(layer_path, scene, 0, int(worlds), fps)  # declares only: nothing is written
     per = writer.frame_bytes(scene.frame_data())
-    return {"bytes": int(worlds) * int(frames) * per + writer.static_bytes(), "frame_bytes": per}
+    kept = stored_frames(frames, store_every)
+    static = writer.static_bytes() if int(store_every) else 0
+    return {"bytes": int(worlds) * kept * per + static, "frame_bytes": per, "frames": kept}
 
 
 class BatchLayerWriter(UsdCacheWriter):
