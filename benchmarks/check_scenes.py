@@ -14,15 +14,15 @@ any, else 0.
     python benchmarks/check_scenes.py --device cuda:0 --case "springs/damping=0"   # one case (repeatable)
     python benchmarks/check_scenes.py --list                                 # the cases, as commands
 
-The cases (``--kinds``): ``default`` (every scene of ``warpsim list`` at its defaults for its default
-length, ``warpsim run``'s 120 frames), ``long`` (the same for ``--slider-frames``, 600), ``slider`` (each end of the physical sliders the viewer
-gives a scene: damping 0, restitution 1, the largest stiffness and wind, the smallest mass, and the
-other ends, for ``--slider-frames`` frames, 600 by default), ``readme`` (every ``warpsim run`` of
-README.md at its README length) and ``blowup`` (each explicit integrator at 1.2x its stability limit
-in springs, teapot, cloth and hair: flagged, within two frames of the growth of an unchecked twin).
-Each runs through ``warpsim run``'s own parsing, timing and checks in this process (the cache is
-not written). ``--small`` lowers only resolution-type parameters (cells, spacing, counts), never
-frames.
+The cases (``--kinds``): ``default`` (every scene of ``warpsim list`` at its defaults for its
+default length, ``warpsim run``'s 120 frames), ``long`` (the same for ``--slider-frames``, 600),
+``slider`` (each end of the physical sliders the viewer gives a scene: damping 0, restitution 1, the
+largest stiffness and wind, the smallest mass, and the other ends, for ``--slider-frames`` frames),
+``readme`` (every ``warpsim run`` of README.md at its README length) and ``blowup`` (each explicit
+integrator at 1.2x its stability limit in springs, teapot, cloth and hair: flagged, within two frames
+of the growth of an unchecked twin over the same scene stepped inside its limit). Each runs through
+``warpsim run``'s own parsing, timing and checks in this process (the cache is not written).
+``--small`` lowers only resolution-type parameters (cells, spacing, counts), never frames.
 """
 
 from __future__ import annotations
@@ -98,7 +98,8 @@ def main(argv=None):
     errors = sum(r.exit.startswith("error") or r.refused for r in failed)
     refused = [r for r in results if r.refused and r.passed]
     if refused:
-        print("\nslider ends the scene refuses before any frame (no alarm; the viewer's slider reaches them):")
+        print("\nslider ends the scene refuses before any frame (no alarm; the viewer's slider reaches "
+              "them):")
         for r in refused:
             print(f"  {r.case.name}: {r.message}")
     passed = len(results) - len(failed) - len(refused) - len(stopped)

@@ -40,9 +40,9 @@ from typing import Any, Optional
 
 import numpy as np
 
-__all__ = ["BLOWUP", "BLOWUP_SCENES", "DEFAULT_FRAMES", "GRACE", "KINDS", "SLIDER_FRAMES", "SMALL", "Case", "Result",
-           "blowup_cases", "cases", "default_cases", "format_table", "growth_frame", "long_cases", "readme_cases",
-           "resolve_blowup", "run_case", "slider_cases", "slider_ends"]
+__all__ = ["BLOWUP", "BLOWUP_SCENES", "DEFAULT_FRAMES", "GRACE", "KINDS", "SLIDER_FRAMES", "SMALL", "Case",
+           "Result", "blowup_cases", "cases", "default_cases", "format_table", "growth_frame", "long_cases",
+           "readme_cases", "resolve_blowup", "run_case", "slider_cases", "slider_ends"]
 
 DEFAULT_FRAMES = 120
 """The default length of every scene: ``warpsim run``'s ``--frames`` default (no scene has its own)."""
@@ -66,7 +66,7 @@ WIND_END = 10.0
 """The right end of the cloth's wind [m/s]: a number box from 0 in the viewer (no slider range); a
 strong gale."""
 
-SMALL = {
+SMALL: dict[str, dict[str, Any]] = {
     "cloth": {"resolution": 12},
     "drape": {"resolution": 12},
     "teapot": {"resolution": "3"},
@@ -219,8 +219,9 @@ class Result:
         growth = "" if self.growth is None else f", growth at frame {self.growth}"
         step = "" if self.step is None or self.limit is None else \
             f", step {self.step:.4g} s = {self.step / self.limit:.3g}x the limit {self.limit:.4g} s"
-        return (f"{self.case.name}: {self.verdict}: {self.exit} ({self.frames_run} of {self.case.frames} frames, "
-                f"energy gain {gain}{growth}{step})\n  {self.case.shell()}\n  {self.message}").rstrip()
+        head = f"{self.case.name}: {self.verdict}: {self.exit} ({self.frames_run} of {self.case.frames} " \
+               "frames, "
+        return f"{head}energy gain {gain}{growth}{step})\n  {self.case.shell()}\n  {self.message}".rstrip()
 
 
 # ---------------------------------------------------------------------------------------- cases
@@ -232,7 +233,8 @@ def _scenes():
 
 def default_cases(names=None) -> list:
     """Every scene at its defaults for its default length."""
-    return [Case(name, "default", DEFAULT_FRAMES, kind="default") for name in _scenes() if not names or name in names]
+    return [Case(name, "default", DEFAULT_FRAMES, kind="default") for name in _scenes()
+            if not names or name in names]
 
 
 def long_cases(names=None, frames=SLIDER_FRAMES) -> list:
@@ -331,8 +333,8 @@ def readme_cases(text=None, names=None) -> list:
             continue
         frames = DEFAULT_FRAMES if args.frames is None else args.frames
         label = " ".join(argv[2:]) or "(defaults)"
-        out.append(Case(args.scene, f"README {label}", frames, sets=tuple(args.sets), fps=args.fps, substeps=args.substeps,
-                        integrator=args.integrator, kind="readme", command=command))
+        out.append(Case(args.scene, f"README {label}", frames, sets=tuple(args.sets), fps=args.fps,
+                        substeps=args.substeps, integrator=args.integrator, kind="readme", command=command))
     return out
 
 
@@ -344,8 +346,8 @@ def blowup_cases(names=None, frames=DEFAULT_FRAMES, factor=BLOWUP) -> list:
             continue
         for integrator in integrators:
             if name == "hair":
-                out.append(Case(name, f"blowup {integrator}", frames, sets=("solver=explicit",), expect="flagged",
-                                kind="blowup", blowup=factor))
+                out.append(Case(name, f"blowup {integrator}", frames, sets=("solver=explicit",),
+                                expect="flagged", kind="blowup", blowup=factor))
             else:
                 out.append(Case(name, f"blowup {integrator}", frames, integrator=integrator, expect="flagged",
                                 kind="blowup", blowup=factor))
@@ -543,8 +545,9 @@ def run_case(case: Case, device="cpu", small=False, twin=True, seconds=None) -> 
     scene.declare(_Sink())
     for key, value in case.attrs:
         setattr(scene, key, value)
-    if case.attrs and hasattr(scene, "strand_steps") and getattr(scene.sim, "check_every", 0):
-        scene.sim.check_every = scene.strand_steps(timing.frame_dt)  # the check once a frame, as built
+    sim: Any = getattr(scene, "sim", None)
+    if case.attrs and hasattr(scene, "strand_steps") and sim is not None and sim.check_every:
+        sim.check_every = scene.strand_steps(timing.frame_dt)  # the check once a frame, as built
     result.warnings = [line for line in err.getvalue().splitlines() if line.strip()]
     if case.blowup is not None:
         result.limit = _limit_of(scene)
