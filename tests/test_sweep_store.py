@@ -136,3 +136,17 @@ def test_store_estimate_covers_each_mode():
     scene = cls(cls.resolve_params({}), device="cpu")
     sizes = [estimate_sweep_bytes(scene, "/tmp/never_written.usdc", 100, 121, 25.0, k)["bytes"] for k in (1, 4, 0)]
     assert sizes[0] > 3 * sizes[1] > 0 and sizes[2] == 0
+
+
+def test_thumbnails_past_the_opt_in_count_are_off_unless_asked(tmp_path, capsys, monkeypatch):
+    from warpsim.browse import panel
+
+    monkeypatch.setattr(panel, "OPT_IN_WORLDS", 3)
+    root = _sweep(tmp_path, "many", "--no-thumbnails")
+    assert not os.path.exists(os.path.join(os.path.dirname(root), "s.thumbs"))
+    root = _sweep(tmp_path, "many")
+    said = capsys.readouterr().out
+    assert "thumbnails: none (4 worlds, over 3" in said and "--thumbnails draws them" in said
+    assert not os.path.exists(os.path.join(os.path.dirname(root), "s.thumbs"))
+    root = _sweep(tmp_path, "many", "--thumbnails")
+    assert len(os.listdir(os.path.join(os.path.dirname(root), "s.thumbs"))) == 4

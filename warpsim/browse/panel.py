@@ -78,12 +78,12 @@ def thumbnails_folder(root) -> str:
     return os.path.splitext(os.path.abspath(os.fspath(root)))[0] + ".thumbs"
 
 
-def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None) -> dict:
+def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None, progress=None) -> dict:
     """Every world's picture of the sweep ``root`` (its last frame, as :func:`thumbnail` draws it,
     with :func:`thumbnail_camera`), rendered by warpsim's renderer straight from the batch
     ``layers`` (each opened once, its worlds drawn one after another) into
-    ``<stem>.thumbs/world_GGGGGG.png``, so the gallery finds them made. Returns {"count",
-    "seconds", "folder"}."""
+    ``<stem>.thumbs/world_GGGGGG.png``, so the gallery finds them made (``progress()``: called
+    after each picture). Returns {"count", "seconds", "folder"}."""
     from PIL import Image
 
     from ..render.cache import ground_height
@@ -112,22 +112,35 @@ def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None) -> d
             Image.fromarray(image).save(path + ".tmp.png")
             os.replace(path + ".tmp.png", path)
             count += 1
+            if progress is not None:
+                progress()
         scene.prims = prims
     return {"count": count, "seconds": time.perf_counter() - t0, "folder": folder}
 
 
-def thumbnails_after_sweep(root, layers, record, device=None, enabled=True) -> str:
+OPT_IN_WORLDS = 10_000
+"""Past this many worlds a sweep draws no thumbnails unless asked (``--thumbnails``): about 10 ms
+a picture on a CPU, 100,000 worlds would add a quarter of an hour."""
+
+
+def thumbnails_after_sweep(root, layers, record, device=None, enabled=True, progress=None) -> str:
     """What ``warpsim sweep`` does for the gallery's pictures: draw them all
-    (:func:`sweep_thumbnails`), or with ``enabled=False`` (``--no-thumbnails``) remove an older
-    sweep's pictures of this root, so the gallery draws fresh ones on first show. Returns the
-    line to print."""
+    (:func:`sweep_thumbnails`), or with ``enabled=False`` (``--no-thumbnails``, or past
+    ``OPT_IN_WORLDS`` worlds without ``--thumbnails``: ``enabled="many"``) remove an older sweep's
+    pictures of this root, so the gallery draws fresh ones on first show. ``progress()``: after
+    each picture. Returns the line to print."""
     import shutil
 
+    if enabled == "many":
+        shutil.rmtree(thumbnails_folder(root), ignore_errors=True)
+        return (f"thumbnails: none ({record.world_count:,} worlds, over {OPT_IN_WORLDS:,}: about "
+                f"{record.world_count * 0.01 / 60:.0f} min of pictures on a CPU; --thumbnails draws them, or the "
+                "gallery draws each on first show)")
     if not enabled:
         shutil.rmtree(thumbnails_folder(root), ignore_errors=True)
         return "thumbnails: none (--no-thumbnails; the gallery draws them on first show)"
     try:
-        made = sweep_thumbnails(root, layers, record, device=device)
+        made = sweep_thumbnails(root, layers, record, device=device, progress=progress)
     except Exception as exc:  # noqa: BLE001  (a finished sweep stands; the gallery draws them on first show)
         return f"thumbnails: not drawn ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
     return (f"thumbnails: {made['count']} pictures of {THUMB_SIZE[0]}x{THUMB_SIZE[1]} in {made['seconds']:.2f} s "

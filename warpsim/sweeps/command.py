@@ -79,6 +79,9 @@ def add_parser(sub):
                    help="cells along the longest side of the occupancy record's grid (default 16)")
     s.add_argument("--occupancy-bounds", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="box [m] the occupancy grid covers (default: frame 0's extent, padded)")
+    s.add_argument("--thumbnails", action="store_true",
+                   help="draw every world's picture for the gallery after the sweep also past 10,000 worlds (there "
+                        "they are off by default: about 10 ms each on a CPU)")
     s.add_argument("--no-thumbnails", action="store_true",
                    help="draw no picture of each world for the gallery after the sweep (it then draws them on "
                         "first show)")
@@ -219,6 +222,8 @@ def _checked_flags(args):
         from ..extras import require_extra
 
         require_extra("ray", "warpsim sweep --ray")
+    if getattr(args, "thumbnails", False) and args.no_thumbnails:
+        raise UsageError("--thumbnails and --no-thumbnails: give one of them")
     if args.top is not None and args.top < 1:
         raise UsageError(f"--top {args.top}: it must be >= 1")
     if args.top is not None and args.rank is None:
@@ -531,7 +536,20 @@ def _answer(args, rows, written, params, picking, device, out, err):
 
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
-        print(thumbnails_after_sweep(root, layers, record, enabled=not args.no_thumbnails, device=device), file=out)
+        from ..browse.panel import OPT_IN_WORLDS
+
+        enabled = not args.no_thumbnails and ("many" if len(rows) > OPT_IN_WORLDS and not args.thumbnails else True)
+        bar = None
+        if enabled is True and not args.no_progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(rows), unit="world", desc="thumbnails", file=err, dynamic_ncols=True)
+        try:
+            print(thumbnails_after_sweep(root, layers, record, enabled=enabled, device=device,
+                                         progress=bar.update if bar else None), file=out)
+        finally:
+            if bar:
+                bar.close()
         store = getattr(args, "store", None) or "all"
         if store == "none":  # the scratch layer of the last frame has served the thumbnails
             import shutil
