@@ -107,6 +107,7 @@ class BatchLayerWriter(UsdCacheWriter):
         ``world`` (the global index) and ``params`` {name: value}, so a root or a picked file that
         references the prim carries them (not only the CSV)."""
         self.world_params[int(local)] = dict(params)
+        self.__dict__.pop("_templates", None)  # the root's declarations carry them
 
     def _world_path(self, local):
         return f"/Worlds/{world_prim_name(self.first_world + local)}"
@@ -286,6 +287,23 @@ class BatchLayerWriter(UsdCacheWriter):
         return layer.GetPrimAtPath(self._world_path(0))
 
     def _declare_specs(self, layer, manifest):
+        """:meth:`_author_specs` into ``layer``; the root layer's copied from a template authored
+        once (it is rewritten after every chunk: with many worlds, authoring its specs each time
+        cost seconds a chunk)."""
+        from pxr import Sdf
+
+        if manifest:  # a chunk: authored as it is (a copied template saves its crate file otherwise)
+            return self._author_specs(layer, manifest)
+        templates = self.__dict__.setdefault("_templates", {})
+        template = templates.get(bool(manifest))
+        if template is None:
+            template = Sdf.Layer.CreateAnonymous(".usda")
+            self._author_specs(template, manifest)
+            templates[bool(manifest)] = template
+        layer.TransferContent(template)
+        return layer.GetPrimAtPath("/Worlds")
+
+    def _author_specs(self, layer, manifest):
         """The root layer: every prim declared once in the class ``/WorldShared`` (static
         attributes, topology, materials) and inherited by each world's prim of that name, which
         holds nothing itself (its samples come from the chunks); a chunk (``manifest``): each
