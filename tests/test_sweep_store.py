@@ -150,3 +150,21 @@ def test_thumbnails_past_the_opt_in_count_are_off_unless_asked(tmp_path, capsys,
     assert not os.path.exists(os.path.join(os.path.dirname(root), "s.thumbs"))
     root = _sweep(tmp_path, "many", "--thumbnails")
     assert len(os.listdir(os.path.join(os.path.dirname(root), "s.thumbs"))) == 4
+
+
+def test_view_of_a_sweep_that_stored_nothing_re_runs_the_world_on_demand(tmp_path):
+    from warpsim.cli_common import UsageError
+    from warpsim.sweeps.rerun import first_difference
+    from warpsim.viewer.command import on_demand_world
+
+    none = _sweep(tmp_path, "none", "--store", "none", "--no-thumbnails")
+    every = _sweep(tmp_path, "all", "--store", "all", "--no-thumbnails")
+    assert on_demand_world(str(every), 1) is None  # stored frames: played as they are
+    got = on_demand_world(str(none), 1)
+    try:
+        assert got.world == 1 and os.path.isfile(got.path)
+        assert first_difference(every, 1, got.path) is None  # the sweep's world, bit for bit
+    finally:
+        got.folder.cleanup()
+    with pytest.raises(UsageError, match="out of range"):
+        on_demand_world(str(none), 9)

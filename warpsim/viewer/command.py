@@ -40,6 +40,9 @@ def add_parser(sub):
     v.add_argument("--paused", action="store_true", help="start paused")
     v.add_argument("--environment", action="store_true",
                    help="image-based lighting (prettier; slow where the browser has no GPU)")
+    v.add_argument("--world", type=int, default=0, metavar="N",
+                   help="a sweep run with --store none keeps no frames: world N (default 0) is re-run exactly, on "
+                        "demand, and played")
     v.add_argument("--record-dir", default="usd_out", help="folder for recordings; a relative path is taken from the "
                    "current folder (default usd_out)")
     return v
@@ -72,6 +75,14 @@ def build(args):
         from ..browse.gallery import GalleryViewer, is_sweep_root
         from .playback import PlaybackViewer
 
+        rerun = on_demand_world(args.scene, getattr(args, "world", 0))
+        if rerun is not None:  # a sweep that stored no frames: its world re-run now, then played
+            print(f"{args.scene} stored no frames (--store none): world {rerun.world} re-ran exactly in "
+                  f"{rerun.seconds:.2f} s; playing it", file=sys.stderr)
+            viewer = PlaybackViewer(rerun.path, host=args.host, port=args.port, max_points=args.max_points)
+            viewer.rerun_folder = rerun.folder  # removed with the viewer
+            return viewer
+
         player = GalleryViewer if is_sweep_root(args.scene) else PlaybackViewer  # a sweep: its worlds side by side
         try:
             bad = check_damage(args.scene, getattr(args, "allow_damaged", False), what="play")
@@ -102,6 +113,31 @@ def build(args):
                       environment=args.environment)
     except ValueError as exc:
         raise UsageError(f"scene {cls.name!r}: {exc}") from None
+
+
+def on_demand_world(root, world=0):
+    """For the root of a sweep run with ``--store none``: world ``world`` re-run exactly from the
+    sweep's manifest into a scratch folder (``.path`` the cache, ``.folder`` its
+    ``TemporaryDirectory``, ``.world``, ``.seconds``); None for any other file. UsageError (one
+    line) for a world out of range or a root without its manifest."""
+    import tempfile
+    import time
+    import types
+
+    from ..browse.roots import unstored_sweep
+
+    if not os.path.isfile(root) or unstored_sweep(root) is None:
+        return None
+    from ..browse.pick import pick_world
+
+    folder = tempfile.TemporaryDirectory(prefix="warpsim_view_world_")
+    t0 = time.perf_counter()
+    try:
+        path = pick_world(root, int(world), os.path.join(folder.name, f"world_{int(world):06d}.usda"))
+    except (OSError, ValueError) as exc:
+        folder.cleanup()
+        raise UsageError(str(exc).splitlines()[0]) from None
+    return types.SimpleNamespace(path=path, folder=folder, world=int(world), seconds=time.perf_counter() - t0)
 
 
 def threading_is_main():
