@@ -42,7 +42,7 @@ import numpy as np
 
 __all__ = ["BLOWUP", "BLOWUP_SCENES", "DEFAULT_FRAMES", "GRACE", "KINDS", "SLIDER_FRAMES", "SMALL", "Case",
            "Result", "blowup_cases", "cases", "default_cases", "format_table", "growth_frame", "long_cases",
-           "readme_cases", "resolve_blowup", "run_case", "slider_cases", "slider_ends"]
+           "issue_cases", "readme_cases", "resolve_blowup", "run_case", "slider_cases", "slider_ends"]
 
 DEFAULT_FRAMES = 120
 """The default length of every scene: ``warpsim run``'s ``--frames`` default (no scene has its own)."""
@@ -88,7 +88,7 @@ SMALL: dict[str, dict[str, Any]] = {
 tori, bricks): the scene's dynamics and its frames stay; a README command's own value of one of
 them is lowered too (e.g. the donuts heap's count=1000 -> 2)."""
 
-SLIDER_KEYS = re.compile(r"^(damping|restitution|wind|mass|ball_mass|density|structural|shear|bend|"
+SLIDER_KEYS = re.compile(r"^(dt|damping|restitution|wind|mass|ball_mass|density|structural|shear|bend|"
                          r"stretch_rigidity|bend_rigidity|stiffness|ball_stiffness|mortar_stiffness|"
                          r"brick_stiffness|contact_stiffness)$")
 """The physical sliders whose ends the corpus runs: damping (0 is the undamped end), restitution (1),
@@ -197,9 +197,9 @@ class Result:
             return False
         if self.case.expect == "clean":
             return self.alarm_frame is None
-        if self.alarm_frame is None:
-            return False
-        return self.growth is None or self.alarm_frame <= self.growth + GRACE
+        if self.growth is None:  # the unchecked twin never grew within the frames: nothing to flag
+            return self.case.kind != "blowup" or self.alarm_frame is not None
+        return self.alarm_frame is not None and self.alarm_frame <= self.growth + GRACE
 
     @property
     def verdict(self) -> str:
@@ -264,6 +264,8 @@ def slider_ends(cls) -> list:
         kind, o = widget_spec(key, param)
         if kind in ("slider", "log_slider"):
             pair = (o["min"], o["max"])
+        elif kind == "dt_slider":  # [ms] on the slider
+            pair = (1e-3 * o["min"], 1e-3 * o["max"])
         elif key == "wind":
             pair = (0.0, WIND_END)
         elif key == "restitution":
@@ -285,7 +287,10 @@ def slider_cases(names=None, frames=SLIDER_FRAMES) -> list:
             continue
         for key, value in slider_ends(cls):
             text = f"{key}={_number(value)}"
-            out.append(Case(name, text, frames, sets=(text,), kind="slider"))
+            # a step past the stability limit (the time-step slider's right end) is to be flagged:
+            # decided against the built scene (run_case)
+            expect = "auto" if key == "dt" else "clean"
+            out.append(Case(name, text, frames, sets=(text,), kind="slider", expect=expect))
     return out
 
 
@@ -354,7 +359,25 @@ def blowup_cases(names=None, frames=DEFAULT_FRAMES, factor=BLOWUP) -> list:
     return out
 
 
-KINDS = ("default", "long", "slider", "readme", "blowup")
+ISSUE = (("springs", ("--set", "damping=0"), 600), ("springs", ("--fps", "24"), 48))
+"""The issue's own reproductions that no other kind holds (``warpsim run springs --set damping=0 --frames
+600``, ``warpsim run springs --frames 48 --fps 24``)."""
+
+
+def issue_cases(names=None) -> list:
+    """The ``ISSUE`` runs, parsed by ``warpsim run``'s parser."""
+    parser = _run_parser()
+    out = []
+    for scene, extra, frames in ISSUE:
+        if names and scene not in names:
+            continue
+        args = parser.parse_args(["run", scene, *extra])
+        out.append(Case(scene, "issue " + " ".join(extra), frames, sets=tuple(args.sets), fps=args.fps,
+                        substeps=args.substeps, kind="issue"))
+    return out
+
+
+KINDS = ("default", "long", "slider", "readme", "issue", "blowup")
 """The kinds of case, in the corpus's order."""
 
 
@@ -370,6 +393,8 @@ def cases(names=None, kinds=KINDS, slider_frames=SLIDER_FRAMES) -> list:
         out += slider_cases(names, slider_frames)
     if "readme" in kinds:
         out += readme_cases(names=names)
+    if "issue" in kinds:
+        out += issue_cases(names)
     if "blowup" in kinds:
         out += blowup_cases(names)
     return out
@@ -549,9 +574,13 @@ def run_case(case: Case, device="cpu", small=False, twin=True, seconds=None) -> 
     if case.attrs and hasattr(scene, "strand_steps") and sim is not None and sim.check_every:
         sim.check_every = scene.strand_steps(timing.frame_dt)  # the check once a frame, as built
     result.warnings = [line for line in err.getvalue().splitlines() if line.strip()]
-    if case.blowup is not None:
+    if case.blowup is not None or case.expect == "auto":
         result.limit = _limit_of(scene)
         result.step = timing.frame_dt / scene.frame_steps(timing.frame_dt, timing.steps)
+    if case.expect == "auto":  # a time step past the limit is to be flagged (after the twin's growth)
+        past = result.limit is not None and result.step > result.limit
+        case = replace(case, expect="flagged" if past else "clean")
+        result.case = case
     frame = 0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", StabilityWarning)  # said once above, as one line (warpsim run)
@@ -578,7 +607,7 @@ def run_case(case: Case, device="cpu", small=False, twin=True, seconds=None) -> 
         except Exception as exc:  # noqa: BLE001
             result.exit = f"error at frame {frame}: {type(exc).__name__}"
             result.message = " ".join(str(exc).split())
-    if case.blowup is not None and twin and not result.stopped:
+    if case.expect == "flagged" and twin and not result.stopped:
         result.growth = growth_frame(case, device, frames=case.frames)
     result.seconds = time.perf_counter() - t0
     return result
