@@ -578,7 +578,7 @@ def run_case(case: Case, device="cpu", small=False, twin=True, seconds=None) -> 
         result.limit = _limit_of(scene)
         result.step = timing.frame_dt / scene.frame_steps(timing.frame_dt, timing.steps)
     if case.expect == "auto":  # a time step past the limit is to be flagged (after the twin's growth)
-        past = result.limit is not None and result.step > result.limit
+        past = result.limit is not None and result.step is not None and result.step > result.limit
         case = replace(case, expect="flagged" if past else "clean")
         result.case = case
     frame = 0
