@@ -487,7 +487,9 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
                          progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
                          occupancy={**occupancy, "path": staging.partial(record)},
                          warn=lambda line: warn_or_refuse(line, args.strict, err), chunk_size=args.chunk,
-                         resume_frame=first, timing=run_timing)
+                         resume_frame=first, timing=run_timing,
+                         on_stage=(lambda name: progress.set_description_str(
+                             f"{cls.name} x{len(world_params)}: {name}")) if progress else None)
     except BaseException:
         staging.abandon()  # refused before any frame (e.g. a batch that cannot be built): no progress file
         if every == 0:
@@ -499,6 +501,8 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
         if progress:
             progress.close()
     layer = staging.publish([(staging.partial(record), record)])  # the old sweep stays whole until here
+    if len(rows) > 10_000 and not args.no_progress:
+        print(f"writing the table and the root of {len(rows):,} worlds", file=err)
     write_table(table, rows)
     if every == 0:
         from ..browse.roots import write_unstored_root

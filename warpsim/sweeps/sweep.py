@@ -99,7 +99,7 @@ def make_batch(cls, world_params, device=None, fused=False, reference_params=Non
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
               warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None,
-              reference_params=None, store_every=1) -> list:
+              reference_params=None, store_every=1, on_stage=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -129,6 +129,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     ignore it: each world takes its own);
     ``reference_params``: the whole sweep's parameter list when these worlds are one block of it
     (:class:`WorldBatch`: each world then gets the arrays it gets in the whole sweep, bit for bit);
+    ``on_stage(name)``: called as a stage after the frames starts ("closing the layer", "saving
+    the occupancy record"), for a progress bar's label;
     ``store_every``: which frames the layer holds (``--store``): 1 every frame; k > 1 every k-th
     frame and the last (a preview: the layer's extent still covers every frame); 0 only the last
     (the frame the thumbnails show; ``layer_path`` is then a scratch layer);
@@ -235,8 +237,12 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         write(frame)
         if progress is not None:
             progress(frame)
+    if on_stage is not None:
+        on_stage("closing the layer")
     writer.close(scene_name)
     if recorder is not None:
+        if on_stage is not None:
+            on_stage("saving the occupancy record")
         recorder.finish().save(occupancy["path"])
     return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
 

@@ -365,8 +365,10 @@ class BatchLayerWriter(UsdCacheWriter):
             return self.path
         if not self._sealed:
             self._seal()
+        chunks = len(self.chunks)
         self.flush()
-        self._write_root()  # the final extent (span) even when the last chunk came before it
+        if len(self.chunks) == chunks:  # (a chunk just completed wrote the root with the final extent)
+            self._write_root()  # the final extent (span) even when the last chunk came before it
         self._closed = True
         self._release_lock()  # the layer's lock file (warpsim.usd.lock) goes with the writer
         return self.path
