@@ -168,3 +168,19 @@ def test_view_of_a_sweep_that_stored_nothing_re_runs_the_world_on_demand(tmp_pat
         got.folder.cleanup()
     with pytest.raises(UsageError, match="out of range"):
         on_demand_world(str(none), 9)
+
+
+def test_a_preview_layer_resumes_to_the_same_chunks(tmp_path):
+    """--store preview with --resume: a layer resumed after its last completed chunk (frames 4..4
+    of chunk 4: resumed at 5, as SweepStaging.resume_frame says; the frames before re-simulated
+    without writing) holds the same chunk files as one run straight."""
+    from warpsim.sweeps.sweep import run_batch
+
+    worlds = [{"restitution": 0.3}, {"restitution": 0.8}]
+    kw = dict(frames=13, device="cpu", chunk_size=4, store_every=4)
+    run_batch("bounce", worlds, layer_path=tmp_path / "a" / "l.usdc", **kw)
+    run_batch("bounce", worlds, layer_path=tmp_path / "b" / "l.usdc", **kw)
+    run_batch("bounce", worlds, layer_path=tmp_path / "b" / "l.usdc", resume_frame=5, **kw)
+    a, b = _chunk_bytes(tmp_path / "a"), _chunk_bytes(tmp_path / "b")
+    assert a == b and sorted(a) == ["l.chunk000000.usdc", "l.chunk000004.usdc", "l.chunk000008.usdc",
+                                    "l.chunk000012.usdc"]
