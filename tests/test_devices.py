@@ -148,21 +148,21 @@ def test_a_failing_device_stops_the_sweep_naming_it_and_resume_completes_it(tmp_
     from warpsim.sweeps.usd import BatchLayerWriter
 
     folder, expected, samples = one_device["bounce"]
-    write = BatchLayerWriter.write_worlds
+    write = BatchLayerWriter.write_batch  # every world's frame at once (the scene's frame_arrays)
 
-    def failing(self, frame, datas):  # the second block's device "fails" at frame 20
+    def failing(self, frame, batched):  # the second block's device "fails" at frame 20
         if self.first_world == 3 and frame == 20:
             raise RuntimeError("CUDA error 700: an illegal memory access was encountered")
-        return write(self, frame, datas)
+        return write(self, frame, batched)
 
-    monkeypatch.setattr(BatchLayerWriter, "write_worlds", failing)
+    monkeypatch.setattr(BatchLayerWriter, "write_batch", failing)
     code, err = sweep(tmp_path / "s.usda", "bounce", "--devices", "cpu,cpu")
     assert code == 1
     line = err.strip().splitlines()[-1]
     assert line.startswith("warpsim: sweep failed: device cpu (block 1, worlds 3..4) failed after frame 19: "
                            "RuntimeError: CUDA error 700") and "--resume" in line, err
     assert not (tmp_path / "s.usda").exists() and not (tmp_path / "s.csv").exists()  # nothing half-published
-    monkeypatch.setattr(BatchLayerWriter, "write_worlds", write)
+    monkeypatch.setattr(BatchLayerWriter, "write_batch", write)
     code, err = sweep(tmp_path / "s.usda", "bounce", "--devices", "cpu,cpu", "--resume")
     assert code == 0, err
     assert "resuming: " in err and "block 1 on cpu: frames 0..15" in err  # chunks 0..7 and 8..15 were kept
