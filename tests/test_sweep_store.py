@@ -184,3 +184,17 @@ def test_a_preview_layer_resumes_to_the_same_chunks(tmp_path):
     a, b = _chunk_bytes(tmp_path / "a"), _chunk_bytes(tmp_path / "b")
     assert a == b and sorted(a) == ["l.chunk000000.usdc", "l.chunk000004.usdc", "l.chunk000008.usdc",
                                     "l.chunk000012.usdc"]
+
+
+def test_query_of_a_sweep_that_stored_nothing_answers_from_its_record(tmp_path, capsys):
+    from warpsim.cli import main
+
+    box = "--inside=-0.2,-0.1,-0.2,0.2,0.2,0.2@0:0.3"
+    answers = {}
+    for mode in ("all", "none"):
+        root = _sweep(tmp_path, mode, "--store", mode, "--no-thumbnails")
+        capsys.readouterr()
+        assert main(["query", str(root), box]) == 0
+        answers[mode] = capsys.readouterr().out
+    assert "picked worlds: none written" in answers["none"] and "re-runs one" in answers["none"]
+    assert answers["all"].split("picked worlds:")[0] == answers["none"].split("picked worlds:")[0]

@@ -12,8 +12,8 @@ import os
 
 import numpy as np
 
-__all__ = ["LAYOUTS", "root_worlds", "sweep_root_files", "unstored_sweep", "world_prim_name", "write_sweep_root",
-           "write_unstored_root"]
+__all__ = ["LAYOUTS", "root_worlds", "sweep_root_files", "unstored_root_files", "unstored_sweep", "world_prim_name",
+           "write_sweep_root", "write_unstored_root"]
 
 LAYOUTS = ("variants", "grid")
 
@@ -208,6 +208,19 @@ def unstored_sweep(path):
         return None
     data = dict(layer.customLayerData.get("warpsim", {})) if layer is not None else {}
     return data if data.get("store") == "none" else None
+
+
+def unstored_root_files(root, table=None):
+    """:func:`sweep_root_files` of a root written with ``--store none`` (``"worlds"`` empty: no
+    batch layer holds them; the table and record beside it as usual), None for any other file."""
+    from .occupancy import occupancy_path
+
+    root = os.fspath(root)
+    if not os.path.isfile(root) or unstored_sweep(root) is None:
+        return None
+    stem = os.path.splitext(os.path.abspath(root))[0]
+    return {"layout": None, "worlds": [], "table": os.fspath(table) if table else stem + ".csv",
+            "record": occupancy_path(root)}
 
 
 def write_unstored_root(out_path, world_count, *, scene, frames, fps) -> str:

@@ -79,7 +79,7 @@ def read_table(path):
 def run(args, out, err):
     from ..browse.occupancy import OccupancyRecord
     from ..browse.query import answer_region, answers_note, apply_regions, cached_positions, parse_region, region_columns
-    from ..browse.roots import sweep_root_files, write_sweep_root
+    from ..browse.roots import sweep_root_files, unstored_root_files, write_sweep_root
     from .metrics import parse_rank, parse_where, print_picked, select
 
     usage = UsageError
@@ -88,14 +88,15 @@ def run(args, out, err):
     if args.top is not None and args.rank is None:
         raise usage("--top needs --rank METRIC (the order to take the top worlds from)")
     try:
-        files = sweep_root_files(args.root, args.table)
+        unstored = unstored_root_files(args.root, args.table)  # --store none: the record and table alone
+        files = unstored or sweep_root_files(args.root, args.table)
         regions = [parse_region(t, True) for t in args.inside] + [parse_region(t, False) for t in args.outside]
         record = OccupancyRecord.load(files["record"])
         rows = read_table(files["table"])
         names = list(rows[0]) + region_columns(regions)
         rank = parse_rank(args.rank, names) if args.rank else None
         where = [parse_where(w, names) for w in args.where]
-        positions = cached_positions(args.root, record) if regions else None
+        positions = cached_positions(args.root, record) if regions and not unstored else None
         answers = [answer_region(record, r, positions) for r in regions]  # windows checked here
         candidates = apply_regions(rows, record, regions, answers=answers)
     except (OSError, ValueError) as exc:
@@ -110,7 +111,10 @@ def run(args, out, err):
         print(answers_note(record, regions, answers), file=out)
     picked = select(candidates, rank=rank, top=args.top, where=where)
     print_picked(picked, len(rows), params, rank=rank, where=where, extra=region_columns(regions), out=out)
-    if picked:
+    if picked and unstored:
+        print(f"picked worlds: none written ({args.root} stored no frames, --store none); warpsim pick "
+              f"{args.root} --world N --out FILE re-runs one", file=out)
+    elif picked:
         root = os.path.abspath(args.root)
         stem, ext = os.path.splitext(root)
         layers = sorted({layer for _, layer in files["worlds"]})
