@@ -403,6 +403,27 @@ def finish_cloth_system(
 
 
 @wp.kernel
+def newton_continue(
+    max_dv: wp.array(dtype=float),
+    tol: float,
+    max_iterations: int,
+    first: int,
+    count_io: wp.array(dtype=int),
+    condition_out: wp.array(dtype=wp.int32),
+):
+    """After a Newton iteration: count = 1 (first) or count + 1; condition = 1 while max |dv| [m/s]
+    is above tol and fewer than max_iterations ran (the loop of ``wp.capture_while``)."""
+    c = count_io[0] + 1
+    if first != 0:
+        c = 1
+    count_io[0] = c
+    go = wp.int32(0)
+    if max_dv[0] > tol and c < max_iterations:
+        go = wp.int32(1)
+    condition_out[0] = go
+
+
+@wp.kernel
 def eval_cloth_spring_energy(
     q: wp.array(dtype=wp.vec3),
     spring_indices: wp.array(dtype=int),

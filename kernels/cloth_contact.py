@@ -3,7 +3,9 @@ filtering; the pre-filtered form of Ascher & Boxerman / Tamstorf et al. 2015).
 
 A particle touching a static shape (gap <= tolerance at the step's start and at its end at its
 velocity, not released by the previous step) is constrained along the shape's normal n: its new normal
-velocity is 0 (an inelastic resting contact), its tangential motion is free. With S_i = I - n_i n_i^T
+velocity is 0 (an inelastic resting contact), its tangential motion is free; one that would reach an
+inelastic shape (restitution 0) within the step is constrained to arrive at its surface at the step's
+end (normal velocity -gap / h: a speculative contact). With S_i = I - n_i n_i^T
 (S_i = I for a free particle: n_i = 0) and z_i = -(v_i . n_i) n_i the prescribed part of the
 velocity change, the solve for dv = z + y, y_i perpendicular to n_i, is
 
@@ -40,7 +42,7 @@ SHAPE_CONTAINER = wp.constant(2)
 class ContactShape:
     """A static shape in world space: ``kind`` (module docstring); plane ``normal`` and ``offset``
     [m]; capsule ends ``a``, ``b`` [m] and ``radius`` [m]; the collider's ``thickness`` [m],
-    Coulomb ``friction`` and ``tolerance`` [m] (the gap that counts as touching)."""
+    Coulomb ``friction``, ``restitution`` and ``tolerance`` [m] (the gap that counts as touching)."""
 
     kind: int
     normal: wp.vec3
@@ -50,6 +52,7 @@ class ContactShape:
     radius: float
     thickness: float
     friction: float
+    restitution: float
     tolerance: float
 
 
@@ -88,10 +91,13 @@ def find_contact_constraints(
     z_out: wp.array(dtype=wp.vec3),
 ):
     """Per particle: the constraint normal (0 when free), its friction and the prescribed
-    velocity change z = -(v . n) n [m/s] (the closest touching shape, in shape order on ties). A
-    particle touches a shape when it would still be within the shape's tolerance at the end of a
-    step of h [s] at its velocity (so one resting on it, whose normal velocity is 0 up to
-    rounding, stays constrained, and one leaving faster than that is free)."""
+    velocity change z = (u - v . n) n [m/s] (the closest shape, in shape order on ties). A particle
+    touching a shape (gap within its tolerance, and still within it at the end of a step of h [s]
+    at its velocity: one resting on it, whose normal velocity is 0 up to rounding, stays
+    constrained, one leaving faster is free) gets u = 0; one that would reach an inelastic shape
+    (restitution 0) within the step gets u = -gap / h: it arrives at the surface at the step's end
+    inside the solve, with its neighbours, instead of being placed there by the collider after a
+    step that moved its neighbours without it."""
     i = wp.tid()
     normal_out[i] = wp.vec3()
     friction_out[i] = 0.0
@@ -103,17 +109,25 @@ def find_contact_constraints(
     best = float(1.0e30)
     best_n = wp.vec3()
     best_mu = float(0.0)
+    best_u = float(0.0)
     for k in range(shapes.shape[0]):
         s = shapes[k]
         gap, n = shape_gap(s, x, radius[i])
-        if gap + h * wp.max(wp.dot(v, n), 0.0) <= s.tolerance and gap < best:
+        vn = wp.dot(v, n)
+        u = float(0.0)
+        ok = gap + h * wp.max(vn, 0.0) <= s.tolerance  # touching, not leaving within the step
+        if not ok and s.restitution == 0.0 and gap + h * vn <= s.tolerance:
+            ok = True  # reaches the shape within the step: arrive at its surface at the step's end
+            u = -gap / h
+        if ok and gap < best:
             best = gap
             best_n = n
             best_mu = s.friction
+            best_u = u
     if best < 1.0e30:
         normal_out[i] = best_n
         friction_out[i] = best_mu
-        z_out[i] = -wp.dot(v, best_n) * best_n
+        z_out[i] = (best_u - wp.dot(v, best_n)) * best_n
 
 
 @wp.func

@@ -156,11 +156,13 @@ def test_momentum_is_conserved_across_a_break(integrator):
     np.testing.assert_allclose(third, np.broadcast_to(third[0], third.shape), atol=1e-5)
 
 
-def _wall(speed, frames):
+def _wall(speed, frames, ball_velocities=None):
     cls = get_scene("wall")
     scene = cls(cls.resolve_params({"ball_speed": speed, "bricks": (3.0, 3.0)}), device=DEVICE)
     for _ in range(frames):
         scene.advance(1.0 / 60.0, scene.substeps)
+        if ball_velocities is not None:
+            ball_velocities.append(scene.sim.state.velocities.numpy()[scene.ball].mean(0))
     model = scene.sim.model
     broken = model.spring_broken.numpy()
     labels = pieces(model.spring_indices.numpy(), broken, scene.wall.nodes)
@@ -168,10 +170,11 @@ def _wall(speed, frames):
 
 
 def test_wall_stays_whole_under_a_slow_ball_and_breaks_under_a_fast_one():
-    slow, broken, labels = _wall(1.0, 24)
-    v_ball = slow.sim.state.velocities.numpy()[slow.ball].mean(0)
+    v_ball = []
+    slow, broken, labels = _wall(1.0, 24, v_ball)
     assert broken.sum() == 0 and labels.max() == 0
-    assert v_ball[2] < -0.2  # it bounced off
+    # it bounced off (the ball, raised clear of the floor on a wall this low, then rocks against it)
+    assert min(v[2] for v in v_ball) < -0.2
     assert all(r.count == 0 for r in slow.sim.fracture.history)
 
     fast, broken, labels = _wall(12.0, 24)

@@ -42,7 +42,7 @@ def constraint_shapes(colliders, model) -> list:
             for n, o in zip(np.asarray(normals, float).reshape(-1, 3), np.atleast_1d(np.asarray(offsets, float))):
                 s = KCC.ContactShape()
                 s.kind, s.normal, s.offset = int(KCC.SHAPE_PLANE), wp.vec3(*n), float(o)
-                s.thickness, s.friction = float(c.thickness), float(c.friction)
+                s.thickness, s.friction, s.restitution = float(c.thickness), float(c.friction), float(c.restitution)
                 s.tolerance = _tolerance(model, float(c.thickness))
                 out.append(s)
             continue
@@ -50,7 +50,7 @@ def constraint_shapes(colliders, model) -> list:
             s = KCC.ContactShape()
             s.kind = int(KCC.SHAPE_CONTAINER if getattr(c, "inside", 0) else KCC.SHAPE_CAPSULE)
             s.a, s.b, s.radius = wp.vec3(*np.asarray(c.a, float)), wp.vec3(*np.asarray(c.b, float)), float(c.radius)
-            s.thickness, s.friction = float(c.thickness), float(c.friction)
+            s.thickness, s.friction, s.restitution = float(c.thickness), float(c.friction), float(c.restitution)
             s.tolerance = _tolerance(model, float(c.thickness))
             out.append(s)
     return out
@@ -58,7 +58,7 @@ def constraint_shapes(colliders, model) -> list:
 
 def _signature(shapes) -> tuple:
     return tuple((s.kind, tuple(s.normal), s.offset, tuple(s.a), tuple(s.b), s.radius, s.thickness, s.friction,
-                  s.tolerance) for s in shapes)
+                  s.restitution, s.tolerance) for s in shapes)
 
 
 class ContactConstraints:

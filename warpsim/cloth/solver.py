@@ -305,8 +305,9 @@ class ClothImplicitEuler(Integrator):
     Args:
         newton_iterations: 1 = Baraff-Witkin exactly (one linear solve per step, forces
             linearised at the start of the step); more continue with Newton iterations on
-            backward Euler M (v1 - v0) = h f(x0 + h v1, v1), stopping early once
-            max |dv| <= newton_tol [m/s] (a host read-back, so not inside captured frames).
+            backward Euler M (v1 - v0) = h f(x0 + h v1, v1) while max |dv| > newton_tol [m/s], at
+            most this many: a device-side loop (``wp.capture_while``), so a captured frame stops
+            where an eager one does, with no host read-back.
         cg_tol: CG tolerance relative to |b|; cg_atol: absolute floor [kg m/s].
         cg_max_iterations: CG iteration cap.
         geometric: "clamped" (default; (1 - L/l) clamped at 0 under compression, A stays
@@ -374,7 +375,7 @@ class ClothImplicitEuler(Integrator):
         self.check_every = check_every
         self.record_history = bool(record_history)
         self.history = []
-        self.last_newton_iterations = 0
+        self._last_newton_host = 0
         self._block_cg = None
         self._cg_host = None
         self._cg_device = None
@@ -398,6 +399,8 @@ class ClothImplicitEuler(Integrator):
         self.position_diag = wp.zeros(n, dtype=wp.mat33, device=d)
         self.inverse = wp.zeros(n, dtype=wp.mat33, device=d)
         self.max_dv = wp.zeros(1, dtype=float, device=d)
+        self.newton_count = wp.zeros(1, dtype=int, device=d)
+        self.newton_condition = wp.zeros(1, dtype=wp.int32, device=d)
         self._build_matrix(model)
         if self.contact == "constrain" and self._colliders is not None:
             self._contact = ContactConstraints(self._colliders, model, self.A, self.diagonal_slots)
@@ -515,23 +518,52 @@ class ClothImplicitEuler(Integrator):
             system.eval_forces(q, qd, time, 0.0, f_out)
         wp.copy(self.x0, q)
         wp.copy(self.v0, qd)
-        capturing = system.device.is_capturing
-        iterations, known = 0, True
         self._cg_host = None
         contact = self._contact
         if contact is not None:
             contact.refresh()
             contact = contact if contact.active else None
+        if self.record_history:
+            self._step_host_checked(system, q, qd, time, h, contact)
+            return
+        self._last_newton_host = None  # counted on the device (``last_newton_iterations`` reads it)
+        self._iterate(system, q, qd, time, h, contact, True)
+        if self.newton_iterations > 1:  # later iterations while max |dv| > newton_tol: a device-side loop
+            wp.capture_while(self.newton_condition, self._iterate, system=system, q=q, qd=qd, time=time, h=h,
+                             contact=contact, first=False)
+
+    def _iterate(self, system, q, qd, time, h, contact, first):
+        """One Newton iteration: iteration 1 at (x0, v0) with b = h (f0 + h K v0), later ones at
+        (x0 + h v, v); contact filtered in and out of the solve; then v += dv, x = x0 + h v and (more
+        iterations allowed) the device-side test max |dv| > newton_tol that continues the loop."""
+        d = system.device
+        self.assemble(q, qd, self.v0, time, 0.0 if first else h, -h * h, -h, h, h * h if first else 0.0)
+        if contact is not None:
+            contact.filter(self.x0, qd, h, self.rhs, self.inverse)
+        self._solve()
+        if contact is not None:
+            contact.finish(self.dv)
+        wp.launch(KI.implicit_update, system.count, inputs=[self.x0, self.dv, h, qd, q], device=d)
+        if self.newton_iterations > 1:
+            self.max_dv.zero_()
+            wp.launch(KI.max_abs_difference, system.count, inputs=[self.dv, self.max_dv], device=d)
+        wp.launch(KC.newton_continue, 1, inputs=[self.max_dv, self.newton_tol, self.newton_iterations, int(first)],
+                  outputs=[self.newton_count, self.newton_condition], device=d)
+
+    def _step_host_checked(self, system, q, qd, time, h, contact):
+        """``record_history``: the same iterations with the convergence test and the CG statistics
+        read on the host after each (not inside a captured frame), kept in ``history``."""
+        iterations, known = 0, True
+        capturing = system.device.is_capturing
         for it in range(self.newton_iterations):
             first = it == 0
-            # iteration 1 at (x0, v0) with b = h (f0 + h K v0); later ones at (x0 + h v, v)
             self.assemble(q, qd, self.v0, time, 0.0 if first else h, -h * h, -h, h, h * h if first else 0.0)
             if contact is not None:
                 contact.filter(self.x0, qd, h, self.rhs, self.inverse)
             result = self._solve()
             if contact is not None:
                 contact.finish(self.dv)
-            if result is None and not capturing and (self.record_history or self.newton_iterations > 1):
+            if result is None and not capturing:
                 result = self._device_stats()
             if result is None:
                 known = False
@@ -539,7 +571,7 @@ class ClothImplicitEuler(Integrator):
                 iterations += result[0]
                 self._cg_host = (iterations, result[1], result[2])
             wp.launch(KI.implicit_update, system.count, inputs=[self.x0, self.dv, h, qd, q], device=system.device)
-            self.last_newton_iterations = it + 1
+            self._last_newton_host = it + 1
             if self.newton_iterations > 1 and not capturing:
                 self.max_dv.zero_()
                 wp.launch(KI.max_abs_difference, system.count, inputs=[self.dv, self.max_dv], device=system.device)
@@ -547,8 +579,16 @@ class ClothImplicitEuler(Integrator):
                     break
         if not known:
             self._cg_host = None
-        elif self.record_history:
+        else:
             self.history.append((self.last_newton_iterations, *self._cg_host))
+
+    @property
+    def last_newton_iterations(self) -> int:
+        """Newton iterations of the last step (a host read-back of the device count, except after a
+        ``record_history`` step)."""
+        if self._last_newton_host is not None:
+            return self._last_newton_host
+        return int(self.newton_count.numpy()[0]) if self._system is not None else 0
 
     # ----------------------------------------------------------------------------------
     def _device_stats(self):

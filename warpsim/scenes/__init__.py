@@ -80,11 +80,14 @@ def add_floor(writer, lower, upper, *, margin=0.5, color=(0.55, 0.55, 0.55)):
 
 @dataclass(frozen=True)
 class Param:
-    """A settable scene parameter: default value (its type is the parameter's), help, choices."""
+    """A settable scene parameter: default value (its type is the parameter's), help, choices, and
+    ``lowest``: the smallest value the viewer's slider offers (None: its usual range), where the
+    scene's model stops holding below it."""
 
     default: object
     help: str = ""
     choices: Optional[tuple] = None
+    lowest: Optional[float] = None
 
     @property
     def type_name(self):
@@ -392,7 +395,7 @@ def register_scene(name, description, params=None, *, fps=None, substeps=None):
         for key, value in (params or {}).items():
             spec[key] = value if isinstance(value, Param) else Param(*value) if isinstance(value, tuple) else Param(value)
             if spec[key].choices is not None:
-                spec[key] = Param(spec[key].default, spec[key].help, tuple(spec[key].choices))
+                spec[key] = Param(spec[key].default, spec[key].help, tuple(spec[key].choices), spec[key].lowest)
         cls.name, cls.description, cls.params = name, description, spec
         if fps is not None:
             cls.fps = float(fps)

@@ -209,7 +209,8 @@ class FractureScene(SimulatorScene):
     "bricks": ((5.0, 6.0), "bricks per row, rows"),
     "brick_size": ((0.2, 0.1, 0.1), "brick length, height, depth [m] (multiples of spacing)"),
     "spacing": (0.05, "lattice spacing [m]"),
-    "density": (2000.0, "brick density [kg/m^3]"),
+    "density": (2000.0, "brick density [kg/m^3] (the viewer's slider stops at 20, foam: at 1 the ball's contact "
+                        "throws brick nodes past the 500 m/s speed bound)", None, 20.0),
     "anchored": (True, "pin the bottom layer of nodes (a foundation)"),
     "restitution": (0.2, "restitution of particle-particle and floor contacts"),
     "friction": (0.5, "Coulomb friction of contacts"),
@@ -239,7 +240,14 @@ class WallScene(FractureScene):
         self.wall = BrickWall(b, (columns, rows), nodes, h, p["density"], p["brick_stiffness"], p["mortar_stiffness"],
                               p["damping"], p["mortar_strength"], p["anchored"])
         size = self.wall.size
-        height = p["ball_height"] or 0.5 * size[1]
+        lowest = p["ball_radius"] + 0.45 * h  # the ball's lowest node clears the floor by its collision radius
+        if p["ball_height"] and p["ball_height"] < lowest:
+            raise ValueError(f"ball_height={p['ball_height']:g}: a ball of radius {p['ball_radius']:g} m would start in "
+                             f"the floor (its springs stretched by the floor's push: energy from nowhere); give "
+                             f"ball_height >= {lowest:g} or 0 (the wall's middle)")
+        # the wall's middle, or just above the floor for a wall lower than the ball (bricks=2,2: the ball's
+        # bottom node started at y = 0 and the floor's push put 747 J into its springs in the first step)
+        height = p["ball_height"] or max(0.5 * size[1], lowest)
         start = (0.5 * size[0], height, -p["ball_radius"] - 0.05)
         self.ball = add_ball(b, start, p["ball_radius"], h, p["ball_mass"], (0.0, 0.0, p["ball_speed"]),
                              p["ball_stiffness"], p["damping"])

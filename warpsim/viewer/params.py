@@ -114,6 +114,8 @@ def widget_spec(key, param):
 
             decade = math.floor(math.log10(d))
             lo, hi = 10.0 ** (decade - 3), 10.0 ** (decade + 4)
+            if param.lowest is not None:  # the scene's model stops holding below it
+                lo = max(lo, float(param.lowest))
             lo_w, hi_w = log_window(d, lo, hi)
             return "log_slider", {"min": lo_w, "max": hi_w, "step": float(f"{lo / 100.0:.1g}"), "initial": d,
                                   "lo": lo, "hi": hi}
