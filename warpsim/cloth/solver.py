@@ -349,7 +349,7 @@ class ClothImplicitEuler(Integrator):
                              "planes and spheres are constraints inside the solve; 'after': colliders act after it only)")
         self.contact = contact
         self._colliders = None
-        self._contact = None
+        self._contact: ContactConstraints | None = None
         if not isinstance(deterministic, (bool, np.bool_)):
             raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.deterministic = bool(deterministic)

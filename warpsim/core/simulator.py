@@ -60,7 +60,7 @@ def _idle(force) -> bool:
     if type(force).__name__ == "ConstantForce" and zero("force"):
         return True
     grabbed = getattr(force, "particle", None)
-    return type(force).__name__ == "DragSpring" and isinstance(grabbed, (int, np.integer)) and grabbed < 0
+    return bool(type(force).__name__ == "DragSpring" and isinstance(grabbed, (int, np.integer)) and grabbed < 0)
 
 
 def _ratio(gain: float) -> str:

@@ -183,7 +183,7 @@ def world_samples(decl, values, frame, n) -> dict:
     dynamic = [a for a in decl.dynamic_attrs() if not a.derived]
     if pad is None or set(names) != {a.name for a in dynamic} or len(names) != len(values):
         return _per_world(decl, values, frame, n)
-    out = {}
+    out: dict = {}
     for attr in dynamic:
         value = values[names[attr.name]]
         if attr.type_name in ("point3f[]", "vector3f[]"):
