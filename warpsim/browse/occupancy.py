@@ -36,6 +36,7 @@ import time
 import numpy as np
 import warp as wp
 
+from ..core.safe_files import open_temporary
 from ..kernels import occupancy as KO
 
 __all__ = ["DEFAULT_RESOLUTION", "OccupancyGrid", "OccupancyRecord", "OccupancyRecorder", "occupancy_path",
@@ -233,7 +234,8 @@ class OccupancyRecord:
             arrays["samples"] = self.samples
         tmp = path + ".tmp.npz"
         try:
-            np.savez(tmp, **arrays)
+            with open_temporary(tmp, "wb") as f:  # never through a planted link
+                np.savez(f, **arrays)
         except OSError as exc:
             raise PermissionError(f"could not write the occupancy record {path}: {exc.strerror or exc}; choose a "
                                   "writable --out") from None

@@ -30,6 +30,7 @@ import time
 
 import numpy as np
 
+from ..core.safe_files import clear_temporary, open_temporary
 from .occupancy import OccupancyRecord, occupancy_path
 from .query import Region, answer_region, cached_positions
 
@@ -62,6 +63,7 @@ def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None
     os.makedirs(folder, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="warpsim_thumb_") as tmp:
         picked = pick_world(root, world, os.path.join(tmp, "world.usda"))
+        clear_temporary(path + ".tmp.png")
         render_cache(picked, path + ".tmp.png", frame=frame, size=size, camera=camera, device=device)
     os.replace(path + ".tmp.png", path)
     return path
@@ -109,7 +111,8 @@ def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None, prog
             scene.prims = own
             image = renderer.render(scene.geometry(frame), camera, ground_y=ground_height(scene, [frame]))
             path = os.path.join(folder, world + ".png")
-            Image.fromarray(image).save(path + ".tmp.png")
+            with open_temporary(path + ".tmp.png", "wb") as f:  # never through a planted link
+                Image.fromarray(image).save(f, format="PNG")
             os.replace(path + ".tmp.png", path)
             count += 1
             if progress is not None:

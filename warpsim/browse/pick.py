@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 
 from ..cli_common import UsageError
+from ..core.safe_files import clear_temporary
 
 __all__ = ["add_parser", "pick_world", "run"]
 
@@ -147,6 +148,7 @@ def _write_pick(root, world, owner, out_path, flatten) -> str:
             result.customLayerData = dict(layer.customLayerData)
         else:
             result = layer
+        clear_temporary(tmp)  # never through a link planted at the temporary name
         written = result.Export(tmp)
     except Exception as exc:  # noqa: BLE001  (Tf.ErrorException, often with an empty message)
         why = pxr_reason(exc, 120) if str(exc).strip() else "USD gave no reason"

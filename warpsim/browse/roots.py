@@ -12,6 +12,8 @@ import os
 
 import numpy as np
 
+from ..core.safe_files import clear_temporary
+
 __all__ = ["LAYOUTS", "root_worlds", "sweep_root_files", "unstored_root_files", "unstored_sweep", "world_prim_name",
            "write_sweep_root", "write_unstored_root"]
 
@@ -190,6 +192,7 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
             order = Sdf.AttributeSpec(spec, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)
             order.default = ["xformOp:translate"]
     tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
+    clear_temporary(tmp)  # never through a link planted at the temporary name
     if not layer.Export(tmp):
         raise PermissionError(f"could not write {out_path}; check the folder is writable")
     os.replace(tmp, out_path)
@@ -248,6 +251,7 @@ def write_unstored_root(out_path, world_count, *, scene, frames, fps) -> str:
     layer.customLayerData = {"warpsim": {"store": "none", "worldCount": int(world_count), "scene": str(scene),
                                          "frames": int(frames)}}
     tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
+    clear_temporary(tmp)  # never through a link planted at the temporary name
     if not layer.Export(tmp):
         raise PermissionError(f"could not write {out_path}; check the folder is writable")
     os.replace(tmp, out_path)

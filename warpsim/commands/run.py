@@ -267,7 +267,15 @@ def _simulate(args, cls, scene, writer, timing, start, checkpoint, device, err):
                 if progress:
                     progress.close()
                     progress = None
-                writer.close()
+                from ..core.safe_files import disk_full
+
+                if disk_full(exc) is None:
+                    writer.close()
+                else:  # the disk takes no more: closing writes nothing new, and may fail the same way
+                    try:
+                        writer.close()
+                    except OSError:
+                        pass
                 _failed(writer, frame, exc, err)
                 return 1
     finally:
@@ -278,12 +286,20 @@ def _simulate(args, cls, scene, writer, timing, start, checkpoint, device, err):
 
 def _failed(writer, frame, exc, err):
     """The two lines of a run that failed at ``frame``: why, and the frames kept in the cache."""
+    from ..core.safe_files import disk_full
     from ..usd.pxr_errors import error_line
+    from ..usd.writer import CacheWriteError
 
+    if isinstance(exc, CacheWriteError):  # one line: the file, why, the frames kept
+        print(f"warpsim: error: frame {frame} could not be written: {exc}", file=err)
+        return
     kept = f"frames {writer.chunks[0][0]}..{writer.chunks[-1][1]}" if writer.chunks else "no frames"
     msg = error_line(exc) if isinstance(exc, OSError) else str(exc)  # no bare "[Errno 28]"
     if not msg.startswith("frame"):
         msg = f"frame {frame}: {msg}"
+    if disk_full(exc) is not None:  # e.g. the checkpoint beside the cache: one line
+        print(f"warpsim: error: {msg}; kept {kept} in {os.path.relpath(writer.output_path)} (readable)", file=err)
+        return
     print(f"warpsim: simulation failed at {msg}\nwarpsim: kept {kept} in {writer.output_path}", file=err)
 
 

@@ -20,6 +20,8 @@ import hashlib
 import json
 import os
 
+from ..core.safe_files import open_temporary
+
 from .batches import tree_checksum
 
 __all__ = ["SweepManifest", "manifest_path", "worlds_digest"]
@@ -133,7 +135,7 @@ class SweepManifest:
         if self.batches_root:
             data["batches_root"] = self.batches_root
         tmp = f"{self.path}.tmp-{os.getpid()}"
-        with open(tmp, "w") as fh:
+        with open_temporary(tmp) as fh:
             json.dump(data, fh, indent=1, allow_nan=True)
             fh.flush()
             os.fsync(fh.fileno())

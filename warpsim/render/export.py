@@ -38,6 +38,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..core.safe_files import open_temporary
 from ..usd.prims import segment_pairs
 from ..usd.validate import frame_codes, open_stage
 from .geometry import cone_mesh, cube_mesh, triangulate
@@ -374,18 +375,18 @@ def _write_one(parts, path, suffix):
     tmp = f"{path}.tmp-{os.getpid()}{suffix}"
     try:
         if suffix == ".obj":
-            with open(tmp, "w") as f:
+            with open_temporary(tmp) as f:
                 f.write(_obj_text(parts))
         elif suffix == ".glb":
             scene = trimesh.Scene()
             for part in parts:
                 scene.add_geometry(_trimesh_geometry(part), node_name=part.name, geom_name=part.name)
-            with open(tmp, "wb") as f:
+            with open_temporary(tmp, "wb") as f:
                 f.write(scene.export(file_type="glb"))
         else:
             (part,) = parts
             data = _trimesh_geometry(part).export(file_type=suffix[1:])
-            with open(tmp, "wb" if isinstance(data, bytes) else "w") as f:
+            with open_temporary(tmp, "wb" if isinstance(data, bytes) else "w") as f:
                 f.write(data)
         os.replace(tmp, path)
     finally:

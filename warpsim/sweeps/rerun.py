@@ -22,6 +22,7 @@ import math
 import os
 
 from ..cli_common import UsageError, device_arg, one_line
+from ..core.safe_files import open_temporary
 
 __all__ = ["manifest_path", "read_manifest", "rerun_world", "run_world", "write_manifest"]
 
@@ -86,7 +87,7 @@ def write_manifest(root, scene_name, world_params, *, frames, fps=None, substeps
             "worlds": [{k: _json_value(v) for k, v in p.items()} for p in world_params]}
     path = manifest_path(root)
     tmp = path + ".tmp"
-    with open(tmp, "w") as f:
+    with open_temporary(tmp) as f:
         json.dump(data, f, indent=1)
     os.replace(tmp, path)
     return path

@@ -26,6 +26,8 @@ import os
 import re
 import secrets
 
+from ..core.safe_files import open_temporary
+
 __all__ = ["SweepStaging", "settings_digest", "staged_sweep"]
 
 VERSION = 1
@@ -40,7 +42,7 @@ def settings_digest(world_params) -> str:
 
 def _atomic_json(path, data):
     tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w") as f:
+    with open_temporary(tmp) as f:
         json.dump(data, f, indent=1)
         f.flush()
         os.fsync(f.fileno())

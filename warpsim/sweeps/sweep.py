@@ -8,6 +8,8 @@ import os
 import numpy as np
 import warp as wp
 
+from ..core.safe_files import open_temporary
+
 from ..scenes.timing import resolve_timing
 from ..worlds.batch import WorldBatch
 from .metrics import WorldMetrics
@@ -296,7 +298,7 @@ def write_table(csv_path, rows) -> str:
                 columns.append(k)
     tmp = csv_path + ".tmp"
     try:
-        with open(tmp, "w", newline="") as f:
+        with open_temporary(tmp, newline="") as f:
             out = csv.writer(f)
             out.writerow(columns)
             for row in rows:

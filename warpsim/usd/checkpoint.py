@@ -7,6 +7,8 @@ import zipfile
 
 import numpy as np
 
+from ..core.safe_files import open_temporary
+
 __all__ = ["load_checkpoint", "restore_simulator", "save_checkpoint", "simulator_checkpoint"]
 
 
@@ -17,11 +19,16 @@ def save_checkpoint(path, arrays, meta):
     tmp = f"{path.removesuffix('.npz')}.tmp-{os.getpid()}.npz"
     payload = {f"state/{k}": np.asarray(v) for k, v in arrays.items()}
     payload["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    with open(tmp, "wb") as f:
-        np.savez(f, **payload)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open_temporary(tmp, "wb") as f:
+            np.savez(f, **payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:  # a full disk, a kill signal: no half-written temporary is left
+        if os.path.lexists(tmp) and not os.path.isdir(tmp):
+            os.remove(tmp)
+        raise
 
 
 META_KEYS = ("scene", "frame", "fps", "substeps", "params")

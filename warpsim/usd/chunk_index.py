@@ -24,6 +24,8 @@ import zlib
 
 import numpy as np
 
+from ..core.safe_files import open_for_write, open_temporary
+
 __all__ = [
     "ChunkStats",
     "chunk_problem",
@@ -132,7 +134,7 @@ def record_problem(rec) -> str | None:
 
 def append_record(index_file, rec, durable=True):
     """Append one line to the index (flushed and, with ``durable``, synced)."""
-    with open(index_file, "a", encoding="utf-8") as f:
+    with open_for_write(index_file, "a", what="chunk index") as f:
         f.write(json.dumps(rec, separators=(",", ":")) + "\n")
         f.flush()
         if durable:
@@ -142,7 +144,7 @@ def append_record(index_file, rec, durable=True):
 def write_index(index_file, records, durable=True):
     """Replace the index with ``records`` (atomic: temporary file + rename)."""
     tmp = f"{index_file}.tmp-{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as f:
+    with open_temporary(tmp) as f:
         for rec in records:
             f.write(json.dumps(rec, separators=(",", ":")) + "\n")
         f.flush()

@@ -30,6 +30,8 @@ import socket
 import sys
 import threading
 
+from ..core.safe_files import UnsafePathError, check_regular, open_fd
+
 try:
     import fcntl
 except ImportError:  # pragma: no cover - Windows: the pid decides
@@ -56,7 +58,13 @@ def lock_path(out) -> str:
 
 
 def lock_info(path) -> dict | None:
-    """The holder recorded in lock file ``path`` (None when it is missing or unreadable)."""
+    """The holder recorded in lock file ``path`` (None when it is missing, unreadable or not a
+    regular file: a planted link or FIFO is never followed)."""
+    try:
+        if not check_regular(path, "lock file"):
+            return None
+    except UnsafePathError:
+        return None
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             data = json.loads(f.read() or "null")
@@ -105,7 +113,7 @@ def _record(command) -> bytes:
 def _acquire_flock(out, path, command, flag):
     """The fd of ``path`` locked by this process (or None where flock is unsupported: pid rule)."""
     for _ in range(20):
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        fd = open_fd(path, what="lock file", read=True)  # never through a planted link, FIFO or folder
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -117,7 +125,7 @@ def _acquire_flock(out, path, command, flag):
                 return _acquire_pid(out, path, command, flag)
             raise
         try:  # the file we locked must still be the one at ``path`` (a holder may have removed it)
-            same = os.path.samestat(os.fstat(fd), os.stat(path))
+            same = os.path.samestat(os.fstat(fd), os.lstat(path))
         except FileNotFoundError:
             same = False
         if not same:
@@ -134,8 +142,9 @@ def _acquire_pid(out, path, command, flag):
     """Lock without flock: create the file exclusively; take over one whose pid is dead here."""
     for _ in range(5):
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            fd = open_fd(path, what="lock file", exclusive=True)
         except FileExistsError:
+            check_regular(path, "lock file")  # a planted link or folder is named, never followed or removed
             info = lock_info(path)
             if info and info.get("host") == socket.gethostname() and pid_alive(info.get("pid")) \
                     and int(info.get("pid")) != os.getpid():
@@ -187,7 +196,7 @@ def release(path) -> None:
         del _held[path]
         fd = entry["fd"]
         try:
-            if fd is None or os.path.samestat(os.fstat(fd), os.stat(path)):
+            if fd is None or os.path.samestat(os.fstat(fd), os.lstat(path)):
                 os.remove(path)  # before unlocking: a waiter then finds the file gone and retries
         except OSError:
             pass

@@ -36,6 +36,7 @@ Example::
 """
 from __future__ import annotations
 
+import functools
 import glob
 import operator
 import os
@@ -43,13 +44,14 @@ import secrets
 
 import numpy as np
 
+from ..core.safe_files import clear_temporary, disk_full, disk_reason
 from . import chunk_index
 from .lock import OutputLock
 from ..core.names import close_matches
 from .prims import ARRAY_TYPES
 from .sink import PrimSink, state_frame_data
 
-__all__ = ["ROOT_EXTENSIONS", "UsdCacheWriter", "settings_run_id"]
+__all__ = ["ROOT_EXTENSIONS", "CacheWriteError", "UsdCacheWriter", "settings_run_id"]
 
 ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -116,6 +118,32 @@ def _tmp_name(path):
     """Temporary sibling of ``path`` with the same extension (USD picks the format from it)."""
     stem, ext = os.path.splitext(path)
     return f"{stem}.tmp-{os.getpid()}{ext}"
+
+
+class CacheWriteError(OSError):
+    """The disk took no more (full, read-only, over quota) while a cache was written: the message
+    is one line naming the file and the frames kept (readable); the temporaries were removed."""
+
+
+def _disk_guard(method):
+    """Run a writing method; a full, read-only or over-quota disk (an ``OSError`` or a ``pxr``
+    error saying so) removes this process's temporary files and becomes :class:`CacheWriteError`."""
+
+    @functools.wraps(method)
+    def guarded(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except CacheWriteError:
+            raise
+        except Exception as exc:  # noqa: BLE001  (pxr's Tf.ErrorException is no OSError)
+            code = disk_full(exc)
+            if code is None:
+                raise
+            self._drop_temporaries()
+            raise CacheWriteError(code, f"cannot write {os.path.relpath(self._target or self.path)}: "
+                                        f"{disk_reason(code)}; {self._kept_text()}") from None
+
+    return guarded
 
 
 class _Chunk:
@@ -190,6 +218,7 @@ class UsdCacheWriter(PrimSink):
         self._sealed = False
         self._closed = False
         self._lock = None  # the output's lock (warpsim.usd.lock), held from begin() to close()
+        self._target = None  # the file being written now (named when the disk takes no more)
         if run_id is not None and not (isinstance(run_id, str) and run_id.isalnum()):
             raise ValueError(f"run_id {run_id!r} must be letters and digits, e.g. settings_run_id(settings)")
         self.run_id = run_id or secrets.token_hex(6)  # names this run in the root layer and every index line
@@ -202,6 +231,7 @@ class UsdCacheWriter(PrimSink):
         return Sdf.Path.IsValidIdentifier(name)
 
     # ------------------------------------------------------------------ frames
+    @_disk_guard
     def begin(self):
         """Freeze the declarations and write the manifest and root layer now (adopting the
         existing chunks when resuming); otherwise the first frame does it. ValueError when a
@@ -210,6 +240,7 @@ class UsdCacheWriter(PrimSink):
             self._seal()
         return self
 
+    @_disk_guard
     def write_frame(self, frame, data):
         """Write one frame. ``data``: ``{prim name: {key: array}}`` for every time-varying prim."""
         if self._closed:
@@ -250,6 +281,7 @@ class UsdCacheWriter(PrimSink):
 
     __call__ = write
 
+    @_disk_guard
     def flush(self):
         """Complete the current chunk now (e.g. before saving a checkpoint): every frame written so
         far is then in the root layer. Returns the last completed frame (None if none)."""
@@ -257,6 +289,7 @@ class UsdCacheWriter(PrimSink):
             self._finish_chunk()
         return self.chunks[-1][1] if self.chunks else None
 
+    @_disk_guard
     def close(self):
         """Complete the last (partial) chunk, flatten if asked; returns the path to open."""
         if self._closed:
@@ -272,6 +305,25 @@ class UsdCacheWriter(PrimSink):
             if self._closed:
                 self._release_lock()
         return self.output_path
+
+    def _kept_text(self) -> str:
+        """What a failed write kept: the completed chunks the root layer lists (readable)."""
+        if not self.chunks or not os.path.exists(self.path):
+            return "no frames were kept"
+        return (f"kept frames {self.chunks[0][0]}..{self.chunks[-1][1]} in {os.path.relpath(self.path)} "
+                "(readable)")
+
+    def _drop_temporaries(self) -> None:
+        """After a failed write: forget the open chunk and remove this process's temporary files
+        (``<name>.tmp-PID.*`` and usd-core's own ``<name>.tmp-PID.usdc.XXXXXX``)."""
+        chunk, self._chunk = self._chunk, None
+        if chunk is not None:
+            chunk.layer = None  # release the layer (and its file) before removing it
+        for tmp in glob.glob(self._abs(glob.escape(self.stem) + f".*tmp-{os.getpid()}*")):
+            try:
+                os.remove(tmp)
+            except OSError:
+                pass
 
     def _release_lock(self) -> None:
         """Give the output's lock back (once the writer is closed; subclasses' ``close`` call it)."""
@@ -315,6 +367,8 @@ class UsdCacheWriter(PrimSink):
 
     def _export_atomic(self, layer, final):
         tmp = _tmp_name(final)
+        self._target = final
+        clear_temporary(tmp)  # never through a link planted at the temporary name
         if not layer.Export(tmp):
             raise OSError(f"could not write {tmp}")
         self._replace(tmp, final)
@@ -351,8 +405,8 @@ class UsdCacheWriter(PrimSink):
     def _open_chunk(self, frame):
         Sdf, _, _ = _pxr()
         chunk = _Chunk(frame, self._abs(self._file("chunk", frame)))
-        if os.path.exists(chunk.tmp_path):
-            os.remove(chunk.tmp_path)
+        self._target = chunk.final_path
+        clear_temporary(chunk.tmp_path)  # a leftover, or a planted link: removed, never followed
         layer = Sdf.Layer.CreateNew(chunk.tmp_path)
         if layer is None:
             raise OSError(f"could not create {chunk.tmp_path}")
@@ -386,6 +440,7 @@ class UsdCacheWriter(PrimSink):
         """The frame's samples are authored: note its end; save the chunk once enough is pending."""
         chunk = self._chunk
         chunk.end = frame
+        self._target = chunk.final_path
         if chunk.pending_bytes >= self.save_bytes:
             chunk.layer.Save()  # crate saves append: memory holds only the unsaved samples
             chunk.pending_bytes = 0
@@ -398,14 +453,20 @@ class UsdCacheWriter(PrimSink):
     def _finish_chunk(self):
         chunk = self._chunk
         self._chunk = None
+        self._target = chunk.final_path
         if not chunk.layer.Save():
             raise OSError(f"could not save {chunk.tmp_path}")
         chunk.layer = None  # release the layer (and its file mapping) before renaming
         self._replace(chunk.tmp_path, chunk.final_path)
+        self._target = self._index_file
         chunk_index.append_record(self._index_file, chunk_index.record(chunk.final_path, chunk.start, chunk.end,
                                                                         chunk.stats, self.run_id), self.durable)
         self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
-        self._write_root()
+        try:
+            self._write_root()
+        except BaseException:
+            self.chunks.pop()  # the root on disk still lists the chunks before this one
+            raise
 
     # ------------------------------------------------------------------ layers
     def _declare_specs(self, layer, manifest):
@@ -538,6 +599,9 @@ class UsdCacheWriter(PrimSink):
         Sdf, _, _ = _pxr()
         src = Sdf.Layer.OpenAsAnonymous(self._abs(chunk[2]))
         tmp = _tmp_name(dest)
+        if dest is not None:
+            self._target = dest
+            clear_temporary(tmp)
         out = None if dest is None else Sdf.Layer.CreateNew(tmp)
         if out is not None:
             self._declare_specs(out, manifest=True)
@@ -569,6 +633,8 @@ class UsdCacheWriter(PrimSink):
         ext = os.path.splitext(self.path)[1]
         final = self.path if ext in (".usd", ".usdc") else self._abs(self.stem + ".usdc")
         tmp = f"{os.path.splitext(final)[0]}.tmp-{os.getpid()}.usdc"
+        self._target = final
+        clear_temporary(tmp)
         out = Sdf.Layer.CreateNew(tmp)
         chunks, self.chunks = self.chunks, []
         out.TransferContent(self._build_layer(manifest=False))  # declarations, metadata, no clips
