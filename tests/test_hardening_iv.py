@@ -7,6 +7,7 @@ import glob
 import io
 import os
 
+import numpy as np
 import pytest
 
 pytest.importorskip("pxr")
@@ -144,3 +145,61 @@ def test_full_disk_while_saving_a_chunk(tmp_path, monkeypatch):
     assert "kept frames 0..4" in err and "no space left" in err
     assert _leftovers(tmp_path) == []
     assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 4
+
+
+# ---------------------------------------------------------------- part 3: booleans, indices, backward
+def _spring_model():
+    import warpsim as ws
+
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 0.0, 0.0), mass=1.0)
+    b.add_particle((0.1, 0.0, 0.0), mass=1.0)
+    b.add_spring(0, 1, stiffness=100.0, damping=0.0)
+    return b.finalize(device="cpu")
+
+
+@pytest.mark.parametrize("value", ["no", "false", "0", 2, None, 0.5])
+def test_booleans_are_parsed_strictly(value):
+    import warpsim as ws
+
+    model = _spring_model()
+    with pytest.raises(ValueError, match=r"FastMassSpring chebyshev must be True or False, got"):
+        ws.FastMassSpring(model, chebyshev=value)
+    with pytest.raises(ValueError, match=r"Simulator adaptive must be True or False"):
+        ws.Simulator(model, adaptive=value)
+    with pytest.raises(ValueError, match=r"UsdCacheWriter flatten must be True or False"):
+        UsdCacheWriter("x.usda", flatten=value)
+
+
+def test_strict_booleans_keep_true_false_and_numpy():
+    import numpy as np
+
+    from warpsim.core import checks
+
+    assert checks.flag(True, "x") is True and checks.flag(np.bool_(False), "x") is False and checks.flag(1, "x")
+    with pytest.raises(ValueError, match="'no' would count as True"):
+        checks.flag("no", "Thing option")
+
+
+def test_float_triangle_indices_are_refused_not_truncated():
+    import warpsim as ws
+    from warpsim.agents.world import _mesh_arrays
+    from warpsim.core import checks
+
+    assert checks.index_array([[0.0, 1.0, 2.0]], "faces").tolist() == [[0, 1, 2]]
+    pts = [[0, 0, 0], [1, 0, 0], [0, 0, 1], [1, 0, 1]]
+    with pytest.raises(ValueError, match=r"terrain faces holds the non-integer index 1.5"):
+        _mesh_arrays(pts, [[0, 1.5, 2]], "terrain")
+    from warpsim.bodies.soft_contact import _body_faces
+
+    with pytest.raises(ValueError, match=r"SoftContact bodies\[0\] triangles holds the non-integer index 1.7"):
+        _body_faces(np.array([[0.0, 1.7, 2.0]]), 0)
+    assert ws is not None
+
+
+def test_backward_of_none_is_refused():
+    import warpsim as ws
+
+    sim = ws.Simulator(_spring_model(), differentiable=True)
+    with pytest.raises(TypeError, match="backward needs the loss as a Warp array"):
+        sim.rollout.backward(None)

@@ -29,8 +29,9 @@ def as_points(value, what, width=3):
 
 def _mesh_arrays(points, faces, what):
     pts = as_points(points, f"{what} points")
+    tri = checks.index_array(faces, f"{what} faces")  # 2.5 is refused, never truncated
     try:
-        tri = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        tri = tri.reshape(-1, 3)
     except ValueError:
         raise ValueError(f"{what} faces must be triangles: an int array of shape (m, 3)") from None
     if len(tri) == 0:

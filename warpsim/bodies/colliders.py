@@ -424,7 +424,7 @@ class Capsule(_Kinematic):
 
     def __init__(self, a=(0.0, 0.0, 0.0), b=(0.0, 1.0, 0.0), radius=0.25, *, restitution=0.5, friction=0.0,
                  mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="Capsule", continuous=True):
-        self.continuous = bool(continuous)
+        self.continuous = checks.flag(continuous, f"{type(self).__name__} continuous")
         a, b = np.array(checks.vec3(a, f"{name} a")), np.array(checks.vec3(b, f"{name} b"))
         radius = checks.number(radius, f"{name} radius", "m", "give a number > 0")
         if not (math.isfinite(radius) and radius > 0.0):
@@ -492,7 +492,7 @@ class Sphere(Capsule):
         c = checks.vec3(center, "Sphere center")
         super().__init__(c, c, radius, restitution=restitution, friction=friction, mode=mode, thickness=thickness,
                          stiffness=stiffness, motion=motion, name="Sphere", continuous=continuous)
-        self.inside = int(bool(inside))
+        self.inside = int(checks.flag(inside, "Sphere inside"))
 
     @property
     def center(self):
@@ -587,7 +587,7 @@ class TriangleMesh(_Kinematic):
     def __init__(self, points, faces, *, solid=False, position=(0.0, 0.0, 0.0), rotation=None, restitution=0.5,
                  friction=0.0, mode="reflect", thickness=0.0, stiffness=1.0e4, motion=None, name="TriangleMesh"):
         self.points, self.faces = check_triangles(points, faces, name)
-        self.solid = int(bool(solid))
+        self.solid = int(checks.flag(solid, "TriangleMesh solid"))
         if self.solid:
             from . import meshtools
 
@@ -652,7 +652,7 @@ class ParticleCollisions(Collider):
 
     def __init__(self, restitution=1.0, friction=0.0, separate=True, grid_dim=128):
         self.restitution, self.friction, _ = _coefficients("ParticleCollisions", restitution, friction, "reflect")
-        self.separate = int(bool(separate))
+        self.separate = int(checks.flag(separate, "ParticleCollisions separate"))
         self.grid_dim = checks.count(grid_dim, "ParticleCollisions grid_dim", fix="hash grid cells per axis, e.g. 128")
 
     def bind(self, model) -> None:

@@ -32,6 +32,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core import checks
 from ..core.collider import Collider
 from ..core.forces import Force
 from ..kernels import soft_contact as K
@@ -42,8 +43,13 @@ from . import meshtools
 def _body_faces(body, k: int) -> np.ndarray:
     faces = getattr(body, "faces", body)
     try:
+        faces = np.asarray(faces)
+        if faces.dtype.kind == "f":  # a float index is refused, never truncated
+            faces = checks.index_array(faces, f"SoftContact bodies[{k}] triangles")
         faces = np.asarray(faces, dtype=np.int64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError) as exc:
+        if "non-integer" in str(exc):
+            raise
         raise ValueError(f"SoftContact bodies[{k}] is {type(body).__name__}; give a SoftBody (ws.add_soft_body) "
                          "or an (F, 3) array of triangles in particle indices") from None
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -157,7 +163,7 @@ class SoftContact(Collider):
             edge_reach, "SoftContact edge_reach", unit="m", fix="e.g. 0, or None for the reach"))
         self.friction = float(friction)
         self.restitution = restitution
-        self.self_contact = bool(self_contact)
+        self.self_contact = checks.flag(self_contact, "SoftContact self_contact")
         self.iterations = int(iterations)
         self.search = 3.0 * self.thickness if search is None else float(search)
         self.self_rest_distance = 2.0 * self.thickness if self_rest_distance is None else float(self_rest_distance)
@@ -185,7 +191,7 @@ class SoftContact(Collider):
                              "rebuilds; 0: refit only)")
         self.rebuild_every = rebuild_every
         self._rebuild = rebuild_every
-        self.edge_contact = bool(edge_contact)
+        self.edge_contact = checks.flag(edge_contact, "SoftContact edge_contact")
         self.body_world: np.ndarray | None = None  # (faces,) world of each body's faces, batches only
 
     @classmethod
@@ -732,7 +738,7 @@ class SoftContactForce(Force):
         self.contact = contact
         self.stiffness = float(checks.positive(stiffness, "SoftContactForce stiffness", unit="N/m", fix="e.g. 500"))
         self.damping = float(checks.nonnegative(damping, "SoftContactForce damping", unit="N s/m", fix="e.g. 0"))
-        self.coupling = bool(coupling)
+        self.coupling = checks.flag(coupling, "SoftContactForce coupling")
 
     def jacobian_triplet_count(self) -> int:
         """12 coupling blocks per contact slot with ``coupling`` (zero blocks where no contact pushes);

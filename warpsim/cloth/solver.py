@@ -29,6 +29,7 @@ import warp as wp
 import warp.optim.linear as wpl
 import warp.sparse as wps
 
+from ..core import checks
 from ..core.block_cg import BlockCG
 from ..core.forces import Force, Gravity, Springs
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
@@ -96,7 +97,7 @@ class ClothSemiImplicitEuler(Integrator):
         if not isinstance(deterministic, (bool, np.bool_)):
             raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
         self.requested_mode = mode
-        self.deterministic = bool(deterministic)
+        self.deterministic = checks.flag(deterministic, f"{type(self).__name__} deterministic")
 
     def _allocate(self, system):
         model, d = system.model, system.device
@@ -352,7 +353,7 @@ class ClothImplicitEuler(Integrator):
         self._contact: ContactConstraints | None = None
         if not isinstance(deterministic, (bool, np.bool_)):
             raise TypeError(f"deterministic = {deterministic!r}; give True (fixed-order sums) or False")
-        self.deterministic = bool(deterministic)
+        self.deterministic = checks.flag(deterministic, f"{type(self).__name__} deterministic")
         if int(newton_iterations) < 1:
             raise ValueError(f"newton_iterations = {newton_iterations}; it must be >= 1")
         if not (cg_tol > 0.0 and cg_atol >= 0.0):
@@ -373,7 +374,7 @@ class ClothImplicitEuler(Integrator):
         self.geometric = geometric
         self.linear_solver = linear_solver
         self.check_every = check_every
-        self.record_history = bool(record_history)
+        self.record_history = checks.flag(record_history, "ClothImplicitEuler record_history")
         self.history = []
         self._last_newton_host = 0
         self._block_cg = None
@@ -662,7 +663,7 @@ class ClothSimulator(Simulator):
             bind(self.colliders)  # contact constraints inside the implicit solve
         if use_graph is None:
             use_graph = True
-        self.use_graph = bool(use_graph) and not self.adaptive
+        self.use_graph = checks.flag(use_graph, "ClothSimulator use_graph") and not self.adaptive
         self._needs_time = any(not isinstance(f, (Gravity, Springs)) for f in self.forces)
         self._graphs = {}
         self._captured_poses = ()

@@ -28,7 +28,9 @@ __all__ = [
     "count",
     "existing_file",
     "finite",
+    "flag",
     "in_range",
+    "index_array",
     "integer",
     "mesh_vertices",
     "nonnegative",
@@ -187,6 +189,48 @@ def choice(value, what: str, choices, fix: str = ""):
             f"{what} {show(value)} is unknown; use one of {', '.join(map(repr, choices))}{hint}{_fix(fix)}"
         )
     return value
+
+
+def index_array(values, what: str, fix: str = "") -> np.ndarray:
+    """``values`` (vertex or particle indices, any shape) as int64; a non-integer index (2.5) is
+    refused naming ``what`` and the first such entry, never truncated. ValueError for values that
+    are not numbers."""
+    try:
+        a = np.asarray(values)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be an array of integer indices, got {show(values)}{_fix(fix)}") from None
+    if a.dtype.kind in "iu":
+        return a.astype(np.int64)
+    if a.dtype.kind == "b" or a.dtype.kind not in "f" and a.size:
+        raise ValueError(f"{what} must be integer indices, got dtype {a.dtype}{_fix(fix)}")
+    a = a.astype(np.float64)
+    bad = np.flatnonzero(~np.isfinite(a.reshape(-1)) | (a.reshape(-1) != np.round(a.reshape(-1))))
+    if len(bad):
+        k = int(bad[0])
+        raise ValueError(f"{what} holds the non-integer index {float(a.reshape(-1)[k])!r} (entry {k}); indices are "
+                         f"counted in whole vertices and are not rounded: give integers{_fix(fix)}")
+    return a.astype(np.int64)
+
+
+class FlagError(TypeError, ValueError):
+    """A True/False option given something else (``'no'`` is truthy in Python: never a mode turned
+    on by accident). Both a TypeError and a ValueError, so either ``except`` catches it."""
+
+
+def flag(value, what: str, fix: str = "") -> bool:
+    """``value`` as a bool when it is ``True``/``False`` (NumPy's too, or the integers 0 and 1);
+    anything else, strings such as ``'no'`` included, is refused naming ``what``.
+    The one parser of True/False options in the API (the command line parses ``--set`` text with
+    :func:`warpsim.scenes.parse_value`: true/false, yes/no, on/off, 1/0)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, numbers.Integral) and value in (0, 1):
+        return bool(value)
+    name = what.split()[-1]
+    hint = ""
+    if isinstance(value, str) and value.strip().lower() in ("1", "0", "true", "false", "yes", "no", "on", "off"):
+        hint = f" (the text {value!r} is not a bool in Python: 'no' would count as True)"
+    raise FlagError(f"{what} must be True or False, got {show(value)}{hint}; e.g. {name}=False{_fix(fix)}")
 
 
 def vec3(value, what: str, *, nonzero: bool = False, unit: str = "", fix: str = "") -> tuple:

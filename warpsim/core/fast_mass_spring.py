@@ -76,7 +76,7 @@ class FastMassSpring(Integrator):
     def __init__(self, iterations: int = 10, body_size: int | None = None, contacts=(), contact_passes: int = 4,
                  contact_stiffness: float = 2000.0, chebyshev: bool = False):
         super().__init__()
-        self.chebyshev = bool(chebyshev)
+        self.chebyshev = checks.flag(chebyshev, "FastMassSpring chebyshev")
         self.contacts = list(contacts)
         for k, c in enumerate(self.contacts):
             if not hasattr(c, "project_positions"):

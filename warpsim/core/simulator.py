@@ -99,10 +99,8 @@ class Simulator(SolverBase):
                  warn_unstable=True):
         if not (isinstance(model, Model) or (hasattr(model, "particle_count") and hasattr(model, "state"))):
             raise ValueError(f"Simulator model must be a ws.Model (builder.finalize()), got {checks.show(model)}")
-        for flag, value in (("differentiable", differentiable), ("adaptive", adaptive)):
-            if not isinstance(value, (bool, np.bool_)):  # 'no' is truthy: never turn a mode on by accident
-                raise TypeError(f"Simulator {flag} must be True or False, got {checks.show(value)}; e.g. "
-                                f"{flag}=True")
+        differentiable = checks.flag(differentiable, "Simulator differentiable")  # 'no' is truthy: refused
+        adaptive = checks.flag(adaptive, "Simulator adaptive")
         self.model = model
         self.device = model.device
         self.integrator = make_integrator(integrator)

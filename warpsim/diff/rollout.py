@@ -242,7 +242,16 @@ class Rollout:
 
     def backward(self, loss: wp.array) -> None:
         """Propagate d loss / d (everything recorded); ``loss`` is a (1,) float array computed
-        under ``with rollout.tape:`` (e.g. by :meth:`trajectory_loss`)."""
+        under ``with rollout.tape:`` (e.g. by :meth:`trajectory_loss`). Anything else (None, a
+        number, a NumPy array) is refused: Warp would do nothing and say nothing."""
+        if not isinstance(loss, wp.array):
+            raise TypeError(f"backward needs the loss as a Warp array of shape (1,) recorded on the tape, got "
+                            f"{type(loss).__name__}; e.g. loss = rollout.trajectory_loss([target]) then "
+                            "rollout.backward(loss)")
+        if loss.size != 1 or not getattr(loss, "requires_grad", False):
+            raise ValueError(f"backward needs a loss array of one element with requires_grad=True (made under "
+                             f"'with rollout.tape:'), got shape {loss.shape}, requires_grad="
+                             f"{getattr(loss, 'requires_grad', False)}; e.g. loss = rollout.trajectory_loss([target])")
         self.tape.backward(loss)
 
     def trajectory_loss(self, targets, weight: float = 1.0, loss=None, steps=None) -> wp.array:

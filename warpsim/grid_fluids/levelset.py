@@ -9,6 +9,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core import checks
 from .advection import Advector
 from ..core.reduction import FixedOrderReduction
 from .particles import GridParticles
@@ -57,7 +58,7 @@ class LevelSet:
         if int(reseed_every) != reseed_every or reseed_every < 0:
             raise ValueError(f"reseed_every must be an integer >= 0, got {reseed_every!r}")
         self.reseed_every = int(reseed_every)
-        self.use_particles = bool(particle_level_set)
+        self.use_particles = checks.flag(particle_level_set, "LevelSet particle_level_set")
         self.max_escape = grid.dx  # escaped markers deeper than one cell are not used, then deleted
         self.seed = int(seed)
         self.advector = advector if advector is not None else Advector(grid, scheme)

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import warp as wp
 
+from ..core import checks
 from ..kernels import grid_forces as KF
 from .mac_grid import SIDES, check_positive
 
@@ -27,7 +28,7 @@ class Viscosity:
     def __init__(self, grid, nu, no_slip=True, wall_velocity=None):
         self.grid, self.device = grid, grid.device
         self.nu = check_positive(nu, "viscosity nu [m^2/s]")
-        self.no_slip = bool(no_slip)
+        self.no_slip = checks.flag(no_slip, "Viscosity no_slip")
         walls = np.zeros((6, 3), np.float32)
         for side, vel in (wall_velocity or {}).items():
             if side not in SIDES:

@@ -44,6 +44,7 @@ import secrets
 
 import numpy as np
 
+from ..core import checks
 from ..core.safe_files import clear_temporary, disk_full, disk_reason
 from . import chunk_index
 from .lock import OutputLock
@@ -205,10 +206,10 @@ class UsdCacheWriter(PrimSink):
         self.path = path
         self.fps = fps
         self.chunk_size = int(chunk_size)
-        self.flatten = bool(flatten)
+        self.flatten = checks.flag(flatten, "UsdCacheWriter flatten")
         self.resume_frame = None if resume_frame is None else int(resume_frame)
         self.root_prim = root_prim
-        self.durable = bool(durable)
+        self.durable = checks.flag(durable, "UsdCacheWriter durable")
         self.save_bytes = int(save_bytes)
         self.prims = {}  # name -> PrimDecl, in declaration order
         self.chunks = []  # completed chunks: [start frame, end frame, file name]
