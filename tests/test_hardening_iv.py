@@ -203,3 +203,93 @@ def test_backward_of_none_is_refused():
     sim = ws.Simulator(_spring_model(), differentiable=True)
     with pytest.raises(TypeError, match="backward needs the loss as a Warp array"):
         sim.rollout.backward(None)
+
+
+# ---------------------------------------------------------------- part 4: messages that named nothing
+def test_render_max_frames_zero_is_named(tmp_path):
+    from warpsim.render.cache import render_cache
+
+    with pytest.raises(ValueError, match=r"render_cache max_frames must be an integer >= 1, got 0"):
+        render_cache(str(tmp_path / "none.usda"), str(tmp_path / "p.gif"), max_frames=0)
+
+
+def test_surface_too_fine_names_spacing():
+    from warpsim.render.export import surface_from_points
+
+    pts = np.array([[0.0, 0.0, 0.0], [1000.0, 1000.0, 1000.0]])
+    with pytest.raises(ValueError, match=r"give a coarser --spacing \(e.g. --spacing [0-9.]+\)"):
+        surface_from_points(pts, spacing=0.01)
+
+
+def test_empty_pxr_error_on_the_command_line_is_one_line(monkeypatch):
+    import warpsim.commands.listing as listing
+
+    def broken(args, out, err):
+        raise Tf.ErrorException("")
+
+    monkeypatch.setattr(listing, "run", broken)
+    code, _, err = run("list")
+    assert code == 1 and len(err.strip().splitlines()) == 1 and "USD could not read or write a file" in err
+
+
+def test_table_writer_full_disk_in_words(tmp_path, monkeypatch):
+    import warpsim.sweeps.sweep as sweep
+
+    real = sweep.csv.writer
+
+    class Full:
+        def __init__(self, f):
+            pass
+
+        def writerow(self, row):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(sweep.csv, "writer", Full)
+    with pytest.raises(OSError) as info:
+        sweep.write_table(str(tmp_path / "s.csv"), [{"world": 0}])
+    assert "[Errno" not in str(info.value) and "s.csv" in str(info.value) and "no space left" in str(info.value)
+    assert _leftovers(tmp_path) == [] and real is not Full
+
+
+def test_empty_sweep_table_is_said_as_empty(tmp_path):
+    from warpsim.sweeps import query_command
+
+    table = tmp_path / "s.csv"
+    table.write_text("world,blown_up\n")
+    reader = next(getattr(query_command, n) for n in dir(query_command) if n in ("read_table", "_read_table",
+                                                                                  "load_table"))
+    with pytest.raises(ValueError, match="has its header and no rows"):
+        reader(str(table))
+
+
+def test_resume_on_other_blocks_says_devices(tmp_path):
+    from warpsim.sweeps.staging import SweepStaging
+
+    root = str(tmp_path / "S.usda")
+    SweepStaging(root, {"scene": "bounce", "blocks": [[0, 20], [20, 20]]}, blocks=2)
+    with pytest.raises(ValueError, match=r"give --devices with 2 devices again \(e.g. --devices cpu,cpu\)"):
+        SweepStaging(root, {"scene": "bounce", "blocks": None}, resume=True)
+
+
+def test_substeps_auto_at_its_cap_says_so():
+    from warpsim.core.stability import AUTO_MAX_SUBSTEPS, StabilityLimit, SubstepCapWarning
+
+    limit = StabilityLimit(dt=1e-9, integrator="semi_implicit_euler", reason="spring 3")
+    with pytest.warns(SubstepCapWarning, match=r"stops at its cap of 100000.*implicit_euler"):
+        assert limit.substeps_for(1 / 60) == AUTO_MAX_SUBSTEPS
+
+
+def test_damaged_index_line_names_the_index_and_the_intact_chunk(tmp_path):
+    import json
+
+    with UsdCacheWriter(tmp_path / "c.usda", chunk_size=2) as w:
+        w.add_points("p")
+        for frame in range(3):
+            w.write_frame(frame, {"p": {"points": [[0.0, frame, 0.0]], "velocities": [[0.0, 0.0, 0.0]]}})
+    index = tmp_path / "c.chunks.jsonl"
+    lines = index.read_text().splitlines()
+    rec = json.loads(lines[0])
+    rec["bytes"] = "abc"
+    index.write_text("\n".join([json.dumps(rec), *lines[1:]]) + "\n")
+    why = chunk_index.chunk_problem(str(tmp_path), rec["file"], chunk_index.read_index(str(index))[rec["file"]])
+    assert "in c.chunks.jsonl" in why and "the chunk itself opens in USD" in why

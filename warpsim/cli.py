@@ -140,6 +140,13 @@ def main(argv=None, out=None, err=None):
 
         print(f"warpsim: error: {error_line(exc)}", file=err)
         return int(getattr(exc, "exit_status", 2))  # a damaged record or manifest: 1
+    except Exception as exc:  # noqa: BLE001  (a USD library error that escaped: one line, never a bare type name)
+        if not (type(exc).__module__.startswith("pxr") or "pxrInternal" in str(exc)):
+            raise
+        from .usd.pxr_errors import error_line
+
+        print(f"warpsim: error: {error_line(exc)}", file=err)
+        return 1
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else 0
     except KeyboardInterrupt:  # 130 = 128 + SIGINT, as shells report it (Ctrl-C while serving: view exits 0)

@@ -61,7 +61,7 @@ import warp as wp
 from ..kernels import stability as K
 from .energy import gravity_of
 
-__all__ = ["AUTO_SAFETY", "StabilityLimit", "StabilityWarning", "method_of", "particle_limits", "pendulum_limit",
+__all__ = ["AUTO_SAFETY", "StabilityLimit", "StabilityWarning", "SubstepCapWarning", "method_of", "particle_limits", "pendulum_limit",
            "stable_step", "stable_steps", "worlds_warning"]
 
 AUTO_SAFETY = 0.5
@@ -193,6 +193,11 @@ def stable_steps(method: str, omega, zeta) -> np.ndarray:
     return out
 
 
+class SubstepCapWarning(UserWarning):
+    """substeps='auto' needs more sub-steps than its cap (:data:`AUTO_MAX_SUBSTEPS`): the run is
+    not made stable by sub-stepping; the warning names the figure and the other remedies."""
+
+
 # ----------------------------------------------------------------------------- the limit
 @dataclass
 class StabilityLimit:
@@ -274,6 +279,13 @@ class StabilityLimit:
         if self.dt <= 0.0:
             return int(minimum)  # nothing helps; the warning says so
         n = math.ceil(float(frame_dt) / (safety * self.dt) - 1.0e-9)
+        if n > AUTO_MAX_SUBSTEPS:  # said, not silent: more sub-steps cannot help at this cost
+            import warnings
+
+            warnings.warn(f"substeps='auto' (--substeps auto) needs {n} sub-steps per frame of {float(frame_dt):.4g} s "
+                          f"(stable step {self.dt:.3g} s, {self.reason or 'set by the model'}) but stops at its cap of "
+                          f"{AUTO_MAX_SUBSTEPS}, so the run will blow up; use integrator implicit_euler, a shorter frame "
+                          "(higher fps) or a softer/heavier model", SubstepCapWarning, stacklevel=2)
         return int(min(AUTO_MAX_SUBSTEPS, max(minimum, n)))
 
 

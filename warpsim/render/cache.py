@@ -78,6 +78,11 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     Returns ``{"path", "frames", "seconds", "camera"}``."""
     width, height = parse_size(size) if isinstance(size, str) else check_size(*size)
     ext = check_out(out)
+    if max_frames is not None:
+        from ..core import checks
+
+        max_frames = checks.integer(max_frames, "render_cache max_frames", lo=1,
+                                    fix="the most frames to draw, e.g. max_frames=300 (None: every frame)")
     if isinstance(camera, str):
         camera = parse_camera(camera)
     elif camera is not None and not isinstance(camera, Camera):

@@ -311,7 +311,8 @@ def surface_from_points(points, spacing=None, device=None, widths=None) -> tuple
     cells = np.prod(np.ceil((hi - lo) / s) + 1)
     if cells > 256 ** 3:
         raise ValueError(f"a surface grid of spacing {s:g} m over the particles' bounds {np.round(hi - lo, 3)} m "
-                         f"needs {cells:.3g} nodes; the particles are too spread out for --surface")
+                         f"needs {cells:.3g} nodes (at most {256 ** 3:.3g}); give a coarser --spacing (e.g. "
+                         f"--spacing {s * (cells / 256 ** 3) ** (1 / 3) * 1.05:.3g}) or export without --surface")
     dev = wp.get_device(device)
     fluid = types.SimpleNamespace(spacing=s, domain=(lo, hi), device=dev,
                                   positions=wp.array(points.astype(np.float32), dtype=wp.vec3, device=dev))
@@ -504,6 +505,12 @@ def _without_curves(parts, suffix):
 
 def _export(cache, out, frame, surface, merge, guides, spacing, device, up="y", prims=None) -> dict:
     frame, parts = read_frame(cache, frame, guides, up)
+    if prims is not None and not guides and any(n not in {p.name for p in parts} for n in prims):
+        _, every = read_frame(cache, frame, True, up)  # a guide prim named without --guides: say so
+        guide = [n for n in prims if n in {p.name for p in every} - {p.name for p in parts}]
+        if guide:
+            raise ValueError(f"--prims {','.join(guide)}: {'it is a guide prim' if len(guide) == 1 else 'they are guide prims'}"
+                             f" (a helper, left out by default); add --guides to export it")
     parts, notes = _without_curves(_chosen(parts, prims, frame), os.path.splitext(str(out))[1].lower())
     if surface:
         meshed = []

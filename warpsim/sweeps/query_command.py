@@ -66,6 +66,12 @@ def read_table(path):
     except csv.Error as exc:
         raise DamagedFileError(f"sweep table {path} is not a readable CSV table ({exc}); run the sweep again") \
             from None
+    if not rows:
+        with open(path, newline="", encoding="utf-8") as f:
+            header = next(csv.reader(f), [])
+        if "world" in header:
+            raise ValueError(f"sweep table {path} has its header and no rows (a sweep of no worlds, or one "
+                             "interrupted before its table was written); run the sweep again or give another --table")
     if not rows or "world" not in rows[0]:
         raise ValueError(f"{path} is not a sweep table (no 'world' column); give --table CSV")
     for i, row in enumerate(rows):

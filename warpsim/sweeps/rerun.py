@@ -122,13 +122,15 @@ def read_manifest(root, scene=None) -> dict:
     if data.get("warpsim") != __version__:
         raise ValueError(f"the sweep {root} was made by warpsim {data.get('warpsim')}, this is {__version__}: "
                          "its worlds would not re-run exactly; run the sweep again with this version")
+    try:  # before any advice to run it: a manifest naming no known scene is damaged (or from another install)
+        cls = get_scene(data["scene"])
+    except ValueError:
+        raise DamagedFileError(f"sweep manifest {path}: field 'scene' is {data.get('scene')!r}, a scene this warpsim "
+                               "does not have ('warpsim list' shows them); the manifest is damaged or from another "
+                               "installation: run the sweep again") from None
     if scene is not None and scene != data.get("scene"):
         raise ValueError(f"the sweep {root} is of scene {data.get('scene')!r}, not {scene!r}; give "
                          f"'warpsim run {data.get('scene')} --from-sweep ...'")
-    try:
-        cls = get_scene(data["scene"])
-    except ValueError as exc:
-        raise ValueError(f"the sweep {root}: {exc}") from None
     now, then = scene_defaults(cls), data.get("defaults", {})
     if now != then:
         keys = [k for k in sorted(set(now["params"]) | set(then.get("params", {})))

@@ -143,6 +143,15 @@ class SweepStaging:
                     raise ValueError("--resume: the sampled worlds differ from the ones the interrupted sweep started "
                                      "with (--vary, --set, --worlds, --sample or --seed changed); give its options, "
                                      f"or {fix}")
+                if key == "blocks":  # the interrupted sweep ran on several devices (or on one)
+                    old, new = saved.get(key), self.settings.get(key)
+                    if old:
+                        raise ValueError(f"--resume: the interrupted sweep ran its worlds in {len(old)} blocks "
+                                         f"{old} on {len(old)} devices; give --devices with {len(old)} devices "
+                                         f"again (e.g. --devices {','.join(['cpu'] * len(old))}) to resume it, "
+                                         f"or {fix}")
+                    raise ValueError(f"--resume: the interrupted sweep ran on one device, this one on {len(new)} "
+                                     f"blocks of --devices; leave --devices out to resume it, or {fix}")
                 raise ValueError(f"--resume: {key}={self.settings.get(key)!r} differs from the interrupted sweep's "
                                  f"{key}={saved.get(key)!r}; a resumed sweep keeps the settings it started with, or "
                                  f"{fix}")

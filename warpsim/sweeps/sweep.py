@@ -303,8 +303,12 @@ def write_table(csv_path, rows) -> str:
             out.writerow(columns)
             for row in rows:
                 out.writerow([_cell(row[k]) if k in row else "" for k in columns])
-    except PermissionError as exc:
-        raise PermissionError(f"could not write the table {csv_path}: {exc.strerror}; choose a writable --out") \
-            from None
+    except OSError as exc:  # in words, never a bare "[Errno N]"; no temporary is left (open_temporary)
+        from ..core.safe_files import disk_full, disk_reason
+
+        code = disk_full(exc)
+        why = disk_reason(code) if code is not None else \
+            f"{(exc.strerror or str(exc)).lower()}; choose a writable --out"
+        raise OSError(f"could not write the table {csv_path}: {why}") from None
     os.replace(tmp, csv_path)
     return csv_path

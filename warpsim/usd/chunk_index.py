@@ -178,7 +178,7 @@ def read_index(index_file):
         if not isinstance(name, str):
             continue
         why = record_problem(rec)
-        out[name] = rec if why is None else {"file": name, "damaged": why}
+        out[name] = rec if why is None else {"file": name, "damaged": why, "index": os.path.basename(index_file)}
     return out
 
 
@@ -193,8 +193,12 @@ def chunk_problem(dirname, fname, rec, verify=True):
         return "missing"
     except OSError as exc:
         return f"unreadable ({exc.strerror})"
-    if rec is not None and "damaged" in rec:
-        return f"listed by a damaged chunk index line ({rec['damaged']})"
+    if rec is not None and "damaged" in rec:  # the index line is at fault: name it, and say whether the chunk opens
+        index = rec.get("index") or "the chunk index"
+        opens = chunk_problem(dirname, fname, None, verify) is None
+        return (f"listed by a damaged chunk index line ({rec['damaged']}) in {index}; "
+                + ("the chunk itself opens in USD, so the index is at fault: restore " + index
+                   + " or write the cache again" if opens else "the chunk does not open in USD either"))
     if rec is None:
         from pxr import Sdf
 
