@@ -100,8 +100,8 @@ def test_store_modes_keep_the_table_and_record_and_pick_re_runs_a_none_sweep(tmp
     re-run from an all sweep, chunk for chunk, and its samples equal the all sweep's world."""
     from pxr import Sdf
 
-    from warpsim.browse.pick import pick_world
-    from warpsim.sweeps.rerun import first_difference, rerun_world
+    from warpsim.browse.pick import UnstoredWorldError, pick_world
+    from warpsim.sweeps.rerun import first_difference, pick_or_rerun, rerun_world
 
     roots = {m: _sweep(tmp_path, m, "--store", m) for m in ("all", "preview", "none")}
     said = capsys.readouterr().out
@@ -119,12 +119,14 @@ def test_store_modes_keep_the_table_and_record_and_pick_re_runs_a_none_sweep(tmp
     chunk = Sdf.Layer.FindOrOpen(os.path.join(folder["preview"], [f for f in os.listdir(folder["preview"])
                                                                  if ".chunk0" in f][0]))
     assert list(chunk.ListTimeSamplesForPath("/Worlds/world_000001/ball.points")) == [0.0, 4.0, 8.0, 9.0]
-    picked = pick_world(roots["none"], 2, tmp_path / "pick_none" / "w.usda")
+    with pytest.raises(UnstoredWorldError, match="--store none"):  # nothing stored to pick from
+        pick_world(roots["none"], 2, tmp_path / "pick_none" / "w.usda")
+    picked = pick_or_rerun(roots["none"], 2, tmp_path / "pick_none" / "w.usda")
     again = rerun_world(roots["all"], 2, out=tmp_path / "rerun_all" / "w.usda")
     assert _chunk_bytes(os.path.dirname(picked)) == _chunk_bytes(os.path.dirname(again)) != {}
     assert first_difference(roots["all"], 2, picked) is None
     with pytest.raises(ValueError, match="out of range"):
-        pick_world(roots["none"], 4, tmp_path / "x.usda")
+        pick_or_rerun(roots["none"], 4, tmp_path / "x.usda")
 
 
 def test_store_estimate_covers_each_mode():

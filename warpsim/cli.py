@@ -32,7 +32,7 @@ COMMANDS = {
     "plot": "warpsim.render.plot",
     "sweep": "warpsim.sweeps.command",
     "query": "warpsim.sweeps.query_command",
-    "pick": "warpsim.browse.pick",
+    "pick": "warpsim.sweeps.pick_command",
     "export": "warpsim.render.export_command",
 }
 """Every sub-command, by name -> module path (in the order ``--help`` lists them). A command

@@ -18,7 +18,12 @@ import os
 from ..cli_common import UsageError
 from ..core.safe_files import clear_temporary
 
-__all__ = ["add_parser", "pick_world", "run"]
+__all__ = ["UnstoredWorldError", "add_parser", "pick_world", "run"]
+
+
+class UnstoredWorldError(ValueError):
+    """The sweep was run with ``--store none``: the world has no stored frames to pick; re-run it
+    (:func:`warpsim.sweeps.rerun.pick_or_rerun`, which ``warpsim pick`` uses)."""
 
 
 def add_parser(sub):
@@ -50,7 +55,8 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
     from .roots import unstored_sweep
 
     if os.path.isfile(os.fspath(root)) and unstored_sweep(root) is not None:
-        return _rerun_pick(root, world, out_path, flatten)
+        raise UnstoredWorldError(f"{root} was swept with --store none: world {int(world)} has no stored frames; "
+                                 "warpsim pick re-runs it (warpsim.sweeps.rerun.pick_or_rerun in Python)")
     files = sweep_root_files(root)
     owner = dict(files["worlds"])
     world = int(world)
@@ -84,24 +90,6 @@ def pick_world(root, world, out_path, flatten=False, allow_damaged=False) -> str
                                    f"open in USD: {why}); run the sweep again") from None
     with OutputLock(out_path, "--out"):
         return _write_pick(root, world, owner, out_path, flatten)
-
-
-def _rerun_pick(root, world, out_path, flatten) -> str:
-    """A world of a sweep run with ``--store none``: re-run alone from the sweep's manifest, bit for
-    bit as in the sweep (:func:`warpsim.sweeps.rerun.rerun_world`), into the full cache
-    ``out_path`` (chunks beside it; ``flatten``: one self-contained ``.usdc``)."""
-    from ..sweeps.rerun import read_manifest, rerun_world
-
-    world = int(world)
-    count = len(read_manifest(root)["worlds"])
-    if not 0 <= world < count:
-        raise ValueError(f"--world {world} is out of range: {root} holds worlds 0..{count - 1} ({count} worlds)")
-    out_path = os.path.abspath(os.fspath(out_path))
-    if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
-        raise ValueError(f"--out {out_path!r} must end in .usd, .usda or .usdc")
-    if os.path.isdir(out_path):
-        raise ValueError(f"--out {out_path!r} is a folder; name a file in it")
-    return rerun_world(root, world, out=out_path, flatten=flatten)
 
 
 def _write_pick(root, world, owner, out_path, flatten) -> str:
@@ -164,8 +152,17 @@ def run(args, out, err):
 
     from ..usd.pxr_errors import error_line
 
+    return report(args, out, lambda: pick_world(args.root, args.world, args.out, flatten=args.flatten,
+                                                allow_damaged=args.allow_damaged))
+
+
+def report(args, out, pick):
+    """Run ``pick()`` (a path) for ``warpsim pick``'s ``args``: one line for bad input (exit 2), a
+    damaged sweep raised (exit 1), else the line naming the file written."""
+    from ..usd.pxr_errors import error_line
+
     try:
-        path = pick_world(args.root, args.world, args.out, flatten=args.flatten, allow_damaged=args.allow_damaged)
+        path = pick()
     except (OSError, ValueError) as exc:
         if getattr(exc, "exit_status", 2) != 2:
             raise  # a damaged sweep: exit 1

@@ -24,7 +24,7 @@ import os
 from ..cli_common import UsageError, device_arg, one_line
 from ..core.safe_files import open_temporary
 
-__all__ = ["manifest_path", "read_manifest", "rerun_world", "run_world", "write_manifest"]
+__all__ = ["manifest_path", "pick_or_rerun", "read_manifest", "rerun_world", "run_world", "write_manifest"]
 
 FORMAT = "warpsim-sweep"
 MANIFEST_VERSION = 1
@@ -534,3 +534,26 @@ def first_difference(root, world, cache):
             if x.dtype != y.dtype or x.shape != y.shape or x.tobytes() != y.tobytes():
                 return f"{key[0]}.{key[1]} differs at time {t:g}"
     return None
+
+
+def pick_or_rerun(root, world, out_path, flatten=False, allow_damaged=False) -> str:
+    """``warpsim pick``: world ``world`` of the sweep ``root`` into ``out_path``: its stored frames
+    (:func:`warpsim.browse.pick.pick_world`), or for a sweep run with ``--store none`` the world
+    re-run alone from the sweep's manifest, bit for bit as in the sweep (:func:`rerun_world`), into
+    the full cache ``out_path`` (chunks beside it; ``flatten``: one self-contained ``.usdc``)."""
+    from ..browse.pick import UnstoredWorldError, pick_world
+
+    try:
+        return pick_world(root, world, out_path, flatten=flatten, allow_damaged=allow_damaged)
+    except UnstoredWorldError:
+        pass
+    world = int(world)
+    count = len(read_manifest(root)["worlds"])
+    if not 0 <= world < count:
+        raise ValueError(f"--world {world} is out of range: {root} holds worlds 0..{count - 1} ({count} worlds)")
+    out_path = os.path.abspath(os.fspath(out_path))
+    if os.path.splitext(out_path)[1] not in (".usd", ".usda", ".usdc"):
+        raise ValueError(f"--out {out_path!r} must end in .usd, .usda or .usdc")
+    if os.path.isdir(out_path):
+        raise ValueError(f"--out {out_path!r} is a folder; name a file in it")
+    return rerun_world(root, world, out=out_path, flatten=flatten)

@@ -128,12 +128,12 @@ def on_demand_world(root, world=0):
 
     if not os.path.isfile(root) or unstored_sweep(root) is None:
         return None
-    from ..browse.pick import pick_world
+    from ..sweeps.rerun import pick_or_rerun
 
     folder = tempfile.TemporaryDirectory(prefix="warpsim_view_world_")
     t0 = time.perf_counter()
     try:
-        path = pick_world(root, int(world), os.path.join(folder.name, f"world_{int(world):06d}.usda"))
+        path = pick_or_rerun(root, int(world), os.path.join(folder.name, f"world_{int(world):06d}.usda"))
     except (OSError, ValueError) as exc:
         folder.cleanup()
         raise UsageError(str(exc).splitlines()[0]) from None
