@@ -191,7 +191,7 @@ def test_ray_without_an_address_starts_a_local_cluster_and_matches_the_single_pr
                        capture_output=True, text=True, timeout=300, check=False)
     assert r.returncode == 0, r.stderr
     assert re.findall(r"^batch (\d)/2 ", r.stderr, re.MULTILINE) in (["1", "2"], ["2", "1"])
-    assert "2 blew up" in r.stdout
+    assert "2 went unstable" in r.stdout  # the two stiffest worlds: the energy balance flags them (issue 49)
     assert "occupancy record: 8 worlds x 41 frames" in r.stdout
     _assert_same(reference, tmp_path / "s.csv", out)
 
