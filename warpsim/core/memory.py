@@ -10,8 +10,71 @@ UNKNOWN = 1 << 62
 
 
 def available_host_bytes(unknown: int = UNKNOWN) -> int:
-    """Memory the system can still give [bytes]: ``MemAvailable`` from /proc/meminfo, else the
-    available pages (``os.sysconf``), else ``unknown``."""
+    """Memory this process can still get [bytes]: the least of the system's (``MemAvailable``
+    from /proc/meminfo, else the available pages, else ``unknown``), what an address-space limit
+    leaves (``ulimit -v``: RLIMIT_AS less the process's current size) and what a cgroup's memory
+    limit leaves (v2 ``memory.max`` less ``memory.current``; v1 ``memory.limit_in_bytes`` less
+    its usage)."""
+    return min(_system_bytes(unknown), _rlimit_bytes(), _cgroup_bytes())
+
+
+def _rlimit_bytes() -> int:
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    except (ImportError, OSError, ValueError, AttributeError):  # pragma: no cover - no resource module
+        return UNKNOWN
+    if soft == resource.RLIM_INFINITY or soft < 0:
+        return UNKNOWN
+    used = 0
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    used = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(int(soft) - used, 0)
+
+
+def _read_int(path):
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _cgroup_bytes() -> int:
+    """What this process's cgroup memory limit leaves (UNKNOWN without one)."""
+    try:
+        with open("/proc/self/cgroup") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return UNKNOWN
+    best = UNKNOWN
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, path = parts
+        if controllers == "":  # v2
+            limit = _read_int(f"/sys/fs/cgroup{path}/memory.max") or _read_int("/sys/fs/cgroup/memory.max")
+            used = _read_int(f"/sys/fs/cgroup{path}/memory.current") or _read_int("/sys/fs/cgroup/memory.current")
+        elif "memory" in controllers.split(","):
+            limit = _read_int("/sys/fs/cgroup/memory/memory.limit_in_bytes")
+            used = _read_int("/sys/fs/cgroup/memory/memory.usage_in_bytes")
+        else:
+            continue
+        if limit is not None and limit < UNKNOWN:
+            best = min(best, max(limit - (used or 0), 0))
+    return best
+
+
+def _system_bytes(unknown: int) -> int:
     try:
         with open("/proc/meminfo") as f:
             for line in f:

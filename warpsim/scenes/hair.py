@@ -19,6 +19,7 @@ import warpsim as ws
 from ..bodies.colliders import ParticleCollisions, quat_multiply, quat_rotate
 from ..strands import StrandForce, StrandImplicitEuler, StrandRoots, add_strands, sag_free, strand_stable_dt
 from ..strands.frame import HairFrame, PosedSphere
+from ..strands.preflight import FRAME_SECONDS_LIMIT, check_hair_params, format_seconds, frame_seconds
 from ..usd.sink import display_hints
 from . import SimulatorScene, register_scene
 from .live import set_contact
@@ -156,9 +157,9 @@ class Hair(SimulatorScene):
         for key in ("damping", "air_drag", "friction", "strand_friction", "still"):
             if not p[key] >= 0.0:
                 raise ValueError(f"{key}={p[key]}: it must be >= 0")
-        from ..sweeps.preflight import check_strand_memory
-
-        check_strand_memory(p["strands"], p["segments"], self.device)  # refused with the figure, before allocating
+        # every size (strands, segments, steps, the dense stability check, sag-free's minimum) refused
+        # with the figure before anything is allocated
+        check_hair_params(p, self.device)
         self.head = PosedSphere(HEAD_CENTER, HEAD_RADIUS, restitution=0.0, friction=p["friction"], mode="project",
                            motion=head_motion(p["motion"], p["still"], HEAD_CENTER, HEAD_RADIUS))
         roots, normals = scalp_roots(p["strands"], HEAD_CENTER, HEAD_RADIUS)
@@ -191,6 +192,13 @@ class Hair(SimulatorScene):
             self.stable_dt = self.sim.stable_dt()
         else:
             self.stable_dt = strand_stable_dt(self.hair, self.model)
+            # the measured step sets a frame's steps: refused now when a frame would take hours
+            seconds = frame_seconds(self.strand_steps(1.0 / 60.0), self.model.particle_count, "explicit", self.device)
+            if seconds > FRAME_SECONDS_LIMIT:
+                raise ValueError(f"solver=explicit: at segments={p['segments']} the strands' stable step is "
+                                 f"{self.stable_dt:.3g} s, {self.strand_steps(1.0 / 60.0):,} steps a frame of "
+                                 f"{self.model.particle_count:,} particles take about {format_seconds(seconds)} a "
+                                 "frame; use solver=implicit, or fewer segments or strands")
             self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0)
         # the blow-up test (a device read-back) once per frame, not once per strand step
         self.sim.check_every = self.strand_steps(1.0 / self.fps)
@@ -229,7 +237,12 @@ class Hair(SimulatorScene):
                   f"segments on {device} (about {estimate:.0f} s; --set sag_free=false skips it) ...",
                   file=sys.stderr, flush=True)
         t0 = time.perf_counter()
-        report = sag_free(self.sim, rtol=self.SAG_FREE_RTOL)
+        try:
+            report = sag_free(self.sim, rtol=self.SAG_FREE_RTOL)
+        except ValueError as exc:  # the scene's parameters that set the load and the bound, named
+            raise ValueError(f"{exc} (scene parameters: segments={p['segments']}, mass={p['mass']:g}, "
+                             f"bend_rigidity={p['bend_rigidity']:g}; more segments, a lighter mass, a stiffer bend "
+                             "or sag_free=false)") from None
         if loud:
             print(f"warpsim: hair: sag-free done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
         return report
@@ -241,6 +254,11 @@ class Hair(SimulatorScene):
         if self.implicit:
             return max(1, n, math.ceil(h * 60.0 * self.steps_per_frame - 1e-9))
         return max(1, n)
+
+    def frame_seconds(self, frame_dt, substeps):
+        """Estimated seconds of one frame on this scene's device (said before the first step when long)."""
+        solver = "implicit" if self.implicit else "explicit"
+        return frame_seconds(self.frame_steps(frame_dt, substeps), self.model.particle_count, solver, self.device)
 
     def frame_steps(self, frame_dt, substeps):
         """Steps a frame takes: ``substeps`` sub-steps, each split into strand steps."""

@@ -12,8 +12,11 @@ import os
 import re
 
 from ..core.memory import available_host_bytes
+from ..strands.preflight import (STRAND_HOST_BYTES, STRAND_SOLVER_PARTICLE_BYTES, STRAND_VERTEX_HOST_BYTES,
+                                 check_strand_memory, estimate_strand_bytes, format_bytes)
 
-__all__ = ["HOST_BYTES_PER_WORLD", "LARGE_OUTPUT_BYTES", "STRAND_SOLVER_PARTICLE_BYTES", "available_host_bytes",
+__all__ = ["HOST_BYTES_PER_WORLD", "LARGE_OUTPUT_BYTES", "STRAND_HOST_BYTES", "STRAND_SOLVER_PARTICLE_BYTES",
+           "STRAND_VERTEX_HOST_BYTES", "available_host_bytes",
            "check_disk", "check_ray_address", "check_seed", "check_strand_memory", "check_worlds",
            "estimate_strand_bytes", "estimate_sweep_bytes", "format_bytes", "frame_time_note", "free_disk_bytes",
            "numeric_columns", "steps_note"]
@@ -33,16 +36,6 @@ DEVICE_BYTES_PER_SPRING = 48
 HOST_BYTES_PER_PARTICLE = 96
 """Host memory per particle while frames are written [bytes]: the (N, P, 3) position and
 velocity copies of a frame and the samples held until a chunk is saved."""
-
-
-def format_bytes(n) -> str:
-    """``1.5 GiB``-style text for a byte count."""
-    n = float(n)
-    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if n < 1024 or unit == "PiB":
-            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
-        n /= 1024
-    return f"{n:.3g} EiB"  # pragma: no cover
 
 
 def check_seed(seed) -> int:
@@ -131,56 +124,6 @@ def check_disk(out, need, detail="", free=None) -> str | None:
     return f"writing about {format_bytes(need)} to {where}{detail}; the disk has {format_bytes(free)} free"
 
 
-STRAND_HOST_BYTES = 10 << 10
-"""Host memory per strand while a groom is built [bytes]: its scalp lattice entries and the
-polyline it is resampled from (160 samples of 3 doubles, a few copies); measured: 8.6 KiB."""
-
-STRAND_VERTEX_HOST_BYTES = 1280
-"""Host memory per strand vertex while a groom is built and solved sag-free [bytes]: builder
-lists, spring and bending arrays, the model's host copies and the sag-free solve's unknowns;
-measured: 660 B building, about 1,150 B with the sag-free solve."""
-
-
-STRAND_SOLVER_PARTICLE_BYTES = 3 * 128 + 32 + 2 * 12
-"""Device memory per strand particle (the vertices and a ghost a strand) of the implicit strand
-step's scratch [bytes] (``warpsim.strands.implicit.StrandImplicitEuler``'s arrays: three 4x4 float64
-factor blocks and a float64 right-hand side a slot, two vec3 a particle; summed: 440 B a particle)."""
-
-
-def estimate_strand_bytes(strands, segments) -> dict:
-    """Estimated memory of a groom of ``strands`` strands of ``segments`` segments:
-    ``{"host", "device", "vertices"}`` (bytes, bytes, count); the device figure includes the
-    implicit strand step's scratch (the scene's default solver)."""
-    vertices = int(strands) * (int(segments) + 1)
-    host = int(strands) * STRAND_HOST_BYTES + vertices * STRAND_VERTEX_HOST_BYTES
-    device = (vertices * (DEVICE_BYTES_PER_PARTICLE + 2 * DEVICE_BYTES_PER_SPRING)
-              + int(strands) * (int(segments) + 2) * STRAND_SOLVER_PARTICLE_BYTES)
-    return {"host": host, "device": device, "vertices": vertices}
-
-
-def check_strand_memory(strands, segments, device=None, available=None) -> dict:
-    """Refuse (ValueError with the figures, before anything is allocated) a groom whose memory
-    estimate exceeds the host's available memory (or, on CUDA, the device's free memory)."""
-    need = estimate_strand_bytes(strands, segments)
-    available = available_host_bytes() if available is None else int(available)
-    what = f"strands={strands} x segments={segments} ({need['vertices']:,} vertices)"
-    host = need["host"] + (0 if device is not None and str(device).startswith("cuda") else need["device"])
-    if host > available:
-        per = STRAND_HOST_BYTES + (int(segments) + 1) * STRAND_VERTEX_HOST_BYTES
-        fit = max(1, int(0.8 * available) // per)
-        raise ValueError(f"{what} needs about {format_bytes(host)} of memory to build, this machine has "
-                         f"{format_bytes(available)} free; use at most about strands={fit:,} at segments={segments}, "
-                         "or fewer segments")
-    if device is not None and str(device).startswith("cuda"):
-        import warp as wp
-
-        free = int(getattr(wp.get_device(device), "free_memory", 0) or 0)
-        if free and need["device"] > free:
-            raise ValueError(f"{what} needs about {format_bytes(need['device'])} on {device}, which has "
-                             f"{format_bytes(free)} free; use fewer strands or segments")
-    return need
-
-
 STEPS_NOTE = 1000
 """Steps a frame above which a run says how many before the first frame."""
 
@@ -207,10 +150,31 @@ def steps_note(scene, frame_dt, substeps, frames) -> str | None:
                 f"{frame_dt / steps:.3g} s); the stability limit {limit.dt:.3g} s of {limit.who()} wants {wanted:,}: "
                 "the step stays above it and the run may blow up; lower the stiffness or use integrator "
                 "implicit_euler")
+    seconds = _frame_seconds(scene, frame_dt, substeps)
     if steps > STEPS_NOTE:
         run = f": {frames} frames take {total:,} steps" if frames >= 1 else ""
+        if seconds is not None and frames >= 1:
+            run += f", about {_when(seconds * frames)}"
         return f"{steps:,} steps a frame (step {frame_dt / steps:.3g} s{by}){run}; lower the stiffness (or --fps) for fewer"
+    if seconds is not None and frames >= 1 and seconds * frames > FRAME_TIME_NOTE:
+        return (f"{frames} frames of {steps:,} steps each take about {_when(seconds * frames)} ({_when(seconds)} a "
+                "frame, estimated); fewer frames or a smaller scene is faster (Ctrl-C keeps the frames written)")
     return None
+
+
+def _frame_seconds(scene, frame_dt, substeps):
+    """The scene's own estimate of a frame's seconds (``scene.frame_seconds``), None without one."""
+    try:
+        seconds = float(scene.frame_seconds(frame_dt, substeps))
+    except (AttributeError, TypeError, ValueError, NotImplementedError):
+        return None
+    return seconds if math.isfinite(seconds) else None
+
+
+def _when(seconds):
+    from ..strands.preflight import format_seconds
+
+    return format_seconds(seconds)
 
 
 FRAME_TIME_NOTE = 10.0
