@@ -39,7 +39,6 @@ UPWARD = {
                                                 "imported only then (the rollout steps the simulator)",
     ("warpsim.render.gallery", "warpsim.cli"): "a script (python -m warpsim.render.gallery) that makes the README's "
                                                "previews by running 'warpsim run' through the dispatcher",
-    ("warpsim.scenes.hair", "warpsim.sweeps.preflight"): "check_strand_memory belongs one floor down",
     ("warpsim.scenes.hair", "warpsim.viewer.geometry"): "the head's display mesh belongs one floor down",
 }
 """Known upward imports and why: this list only shrinks."""

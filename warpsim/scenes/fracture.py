@@ -357,6 +357,19 @@ def replicate_model(template, count: int, positions, device) -> Model:
     return model
 
 
+def check_donut_box(box: float, major_radius: float, minor_radius: float) -> float:
+    """ValueError naming ``box`` and the smallest box that fits when a torus (turned any way: it
+    reaches major_radius + minor_radius from its centre) would start through the walls of a box
+    of half width ``box`` [m] (0: sized to the count, always wide enough); returns the smallest."""
+    reach = major_radius + minor_radius
+    smallest = reach + 0.01  # a torus and a centimetre of room on each side
+    if box and box < smallest - 1.0e-9:
+        raise ValueError(f"box={box:g}: a torus reaches {reach:g} m from its centre (major_radius {major_radius:g} + "
+                         f"minor_radius {minor_radius:g}, {2 * reach:g} m across), so in a box of half width {box:g} m "
+                         f"it starts through the walls; give box>={smallest:.3g}, or box=0 to size the box to the count")
+    return smallest
+
+
 def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> None:
     """ValueError (with the figures) when ``count`` copies of ``torus`` (a SoftBody) would not fit
     in the device's free memory, or the host's for the build. Per torus: about 300 B per particle
@@ -451,6 +464,7 @@ class DonutsScene(SimulatorScene):
                                  "force in the implicit solve)")
         if not (math.isfinite(p["box"]) and p["box"] >= 0.0):
             raise ValueError(f"box={p['box']}: give a half width > 0 [m], or 0 to size the box to the count")
+        check_donut_box(p["box"], p["major_radius"], p["minor_radius"])  # before anything is built
         points, faces = torus_mesh(p["major_radius"], p["minor_radius"], p["segments"], p["sides"])
         # one torus at the origin, copied (rotated, moved) count times: the lattice and springs are
         # built once, so 1,000 tori build in seconds
@@ -462,7 +476,7 @@ class DonutsScene(SimulatorScene):
         check_donut_memory(p["count"], template, wp.get_device(self.device),
                            SoftContact.DEFAULT_CAPACITY if broad_phase == "list" else 0)
         reach = p["major_radius"] + p["minor_radius"]
-        box = p["box"] or 0.35 * p["major_radius"] / 0.1 * (p["count"] / 12.0) ** (1.0 / 3.0)
+        box = p["box"] or max(0.35 * p["major_radius"] / 0.1 * (p["count"] / 12.0) ** (1.0 / 3.0), reach + 0.01)
         per_side = max(1, int((2.0 * box) // (2.0 * reach + 0.02)))
         per_layer = per_side * per_side
         pitch = 2.0 * box / per_side
