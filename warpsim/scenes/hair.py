@@ -218,6 +218,10 @@ class Hair(SimulatorScene):
     # kernels whatever the tolerance (150 strands x 32 segments, CPU: rtol 1e-10 13,775 iterations,
     # residual 0.33 %; 1e-4 5,475 iterations, 0.31 %)
     SAG_FREE_RTOL = 1.0e-4
+    # CGLS iterations a round at most: a load the bounds cannot carry (a heavy strand: mass=0.05) never
+    # converges, and the default 50,000 a round ran for over 12 minutes at 2,000 x 16 on the CPU; the
+    # solves that do converge took 5,475 (150 x 32 above)
+    SAG_FREE_MAX_ITERATIONS = 8000
     # seconds per particle of the sag-free solve (the direct per-strand solve): CPU measured (36,000
     # particles in 0.29 s, 2 cores under load; 150 x 32: 0.23 s, tips within 0.009 mm over 2 s);
     # CUDA: a bound until measured (the CGLS solve took 2.6e-5 at 3.4 M particles on an H100)
@@ -238,7 +242,7 @@ class Hair(SimulatorScene):
                   file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         try:
-            report = sag_free(self.sim, rtol=self.SAG_FREE_RTOL)
+            report = sag_free(self.sim, rtol=self.SAG_FREE_RTOL, max_iterations=self.SAG_FREE_MAX_ITERATIONS)
         except ValueError as exc:  # the scene's parameters that set the load and the bound, named
             raise ValueError(f"{exc} (scene parameters: segments={p['segments']}, mass={p['mass']:g}, "
                              f"bend_rigidity={p['bend_rigidity']:g}; more segments, a lighter mass, a stiffer bend "
