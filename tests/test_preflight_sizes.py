@@ -169,3 +169,34 @@ def test_donut_box_check_passes_what_fits():
     assert check_donut_box(0.15, 0.1, 0.04) == pytest.approx(0.15)
     with pytest.raises(ValueError, match="box=0.149"):
         check_donut_box(0.149, 0.1, 0.04)
+
+
+def test_explicit_frame_of_hours_is_refused_before_sag_free_and_the_frame(monkeypatch):
+    """solver=explicit: the measured stable step sets a frame's steps; a frame of hours is refused
+    before the sag-free solve and the frame's arrays (its figures and solver=implicit named)."""
+    import warpsim.scenes.hair as hair
+
+    monkeypatch.setattr(hair, "strand_stable_dt", lambda *a, **k: 1.0e-9)
+    monkeypatch.setattr(hair, "sag_free", lambda *a, **k: pytest.fail("sag-free solved before the refusal"))
+    monkeypatch.setattr(hair, "HairFrame", lambda *a, **k: pytest.fail("the frame was built before the refusal"))
+    from warpsim.scenes import get_scene
+
+    with pytest.raises(ValueError, match=r"solver=explicit: at segments=2 .* 33,333,334 steps a frame .* about "
+                                         r".* h a frame; use solver=implicit"):
+        get_scene("hair")({"strands": 2, "segments": 2, "solver": "explicit"}, device="cpu")
+
+
+def test_sag_free_rounds_are_bounded_and_its_error_names_the_scene_parameters(monkeypatch):
+    import warpsim.scenes.hair as hair
+    from warpsim.scenes import get_scene
+
+    seen = {}
+
+    def failing(sim, **kw):
+        seen.update(kw)
+        raise ValueError("sag_free: the bound max_strain=0.2 cannot be met: strand 0 ...")
+
+    monkeypatch.setattr(hair, "sag_free", failing)
+    with pytest.raises(ValueError, match=r"cannot be met.*segments=2, mass=0\.05.*a lighter mass.*sag_free=false"):
+        get_scene("hair")({"strands": 2, "segments": 2, "mass": 0.05}, device="cpu")
+    assert 5475 < seen["max_iterations"] <= 10000  # above the converging solves' need, far below 50,000

@@ -54,9 +54,9 @@ DENSE_FLOP_SECONDS = 1.0e-8
 (the assembled stiffness misjudges the strands) it is about 25 times more (2 strands x 256
 segments: 188 s)."""
 
-STEP_SECONDS = {"implicit": (2.0e-4, 8.0e-7), "explicit": (2.0e-4, 6.0e-8)}
+STEP_SECONDS = {"implicit": (2.0e-4, 4.5e-7), "explicit": (2.0e-4, 6.0e-8)}
 """CPU seconds of one strand step: (per step, per particle) (measured on 2 cores: implicit 1.5 ms
-a step at 1,632 particles, 3 ms at 3,168, 0.2 ms at 8; explicit 0.30 ms at 1,632, 0.39 ms at
+a step at 1,632 particles, 3 ms at 3,168, 0.2 ms at 8, 16 ms at 36,000; explicit 0.30 ms at 1,632, 0.39 ms at
 3,168). CUDA
 steps are taken as ten times faster (an estimate for notes and refusals only)."""
 

@@ -127,6 +127,10 @@ def check_disk(out, need, detail="", free=None) -> str | None:
 STEPS_NOTE = 1000
 """Steps a frame above which a run says how many before the first frame."""
 
+LONG_RUN_NOTE = 60.0
+"""Seconds a run is estimated to take (by the scene's ``frame_seconds``) above which it says so
+before the first frame."""
+
 
 def steps_note(scene, frame_dt, substeps, frames) -> str | None:
     """One line before the first frame when a frame takes many steps (> ``STEPS_NOTE``) or the
@@ -156,7 +160,7 @@ def steps_note(scene, frame_dt, substeps, frames) -> str | None:
         if seconds is not None and frames >= 1:
             run += f", about {_when(seconds * frames)}"
         return f"{steps:,} steps a frame (step {frame_dt / steps:.3g} s{by}){run}; lower the stiffness (or --fps) for fewer"
-    if seconds is not None and frames >= 1 and seconds * frames > FRAME_TIME_NOTE:
+    if seconds is not None and frames >= 1 and seconds * frames > LONG_RUN_NOTE:
         return (f"{frames} frames of {steps:,} steps each take about {_when(seconds * frames)} ({_when(seconds)} a "
                 "frame, estimated); fewer frames or a smaller scene is faster (Ctrl-C keeps the frames written)")
     return None
