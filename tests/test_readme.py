@@ -83,6 +83,7 @@ COMMANDS = {
     'pip install -e ".[docs]" && python -m sphinx -W -b html docs docs/_build/html':
         skip(".ci/run builds the reference with -W"),
     'pip install -e ".[test,all]" && python -m pytest -q': skip("the suite itself"),
+    "python -m pytest -q -m quick": skip("a subset of the suite itself"),
     "warpsim info usd_out/bounce.usda": run("frames 0..120"),
     "warpsim info ROOT": skip("a sweep killed mid-run: tests/test_hardening_records.py "
                               "test_info_on_a_killed_first_sweep_names_the_staged_frames_and_resume"),
