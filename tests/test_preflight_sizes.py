@@ -200,3 +200,39 @@ def test_sag_free_rounds_are_bounded_and_its_error_names_the_scene_parameters(mo
     with pytest.raises(ValueError, match=r"cannot be met.*segments=2, mass=0\.05.*a lighter mass.*sag_free=false"):
         get_scene("hair")({"strands": 2, "segments": 2, "mass": 0.05}, device="cpu")
     assert 5475 < seen["max_iterations"] <= 10000  # above the converging solves' need, far below 50,000
+
+
+@pytest.mark.parametrize("scene, sets, words", [
+    ("cloth", ["resolution=100000"], ["resolution=100000", "10,000,200,001 particles", "use at most about resolution="]),
+    ("springs", ["count=100000000"], ["count=100000000", "100,000,000 particles", "use at most about count="]),
+    ("springs", ["shape=lattice", "count=100000"], ["count=100000", "10,000,000,000 particles", "use at most about"]),
+    ("wall", ["bricks=10000,10000"], ["bricks=10000,10000", "lattice nodes", "use at most about bricks="]),
+])
+def test_scene_counts_are_refused_before_building(tmp_path, monkeypatch, scene, sets, words):
+    import warpsim
+    import warpsim.scenes.cloth as cloth
+    from warpsim.core import memory
+
+    def built(*_a, **_k):
+        raise AssertionError("the scene was built before its sizes were checked")
+
+    monkeypatch.setattr(memory, "available_host_bytes", lambda *a, **k: 4 * GIB)
+    monkeypatch.setattr(warpsim, "ModelBuilder", built)
+    monkeypatch.setattr(cloth, "ModelBuilder", built)
+    argv = ["run", scene, "--frames", 1, "--no-progress", "--device", "cpu", "--out", tmp_path / "s.usda"]
+    for s in sets:
+        argv += ["--set", s]
+    code, _, err = run(*argv)
+    line = one_error_line(err)
+    assert code == 2
+    for w in words:
+        assert w in line, (w, line)
+    assert "4 GiB free" in line
+
+
+def test_build_memory_check_passes_what_fits_and_its_fix_fits():
+    from warpsim.core.memory import check_build_memory
+
+    assert check_build_memory("count", 10, 10, "particles", 500.0, lambda k: k, available=5000) == 5000
+    with pytest.raises(ValueError, match=r"count=11: 11 particles .* use at most about count=8$"):
+        check_build_memory("count", 11, 11, "particles", 500.0, lambda k: k, available=5000)

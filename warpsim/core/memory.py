@@ -86,3 +86,27 @@ def _system_bytes(unknown: int) -> int:
         return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):  # pragma: no cover - no sysconf
         return int(unknown)
+
+
+def _format_bytes(n: float) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024 or unit == "PiB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n:.3g} EiB"  # pragma: no cover
+
+
+def check_build_memory(param: str, value, count: int, what: str, bytes_each: float, fit_of,
+                       available: int | None = None) -> int:
+    """Refuse (ValueError naming ``param``=``value``, the estimate and a fix) a scene whose
+    ``count`` ``what`` (particles, ...) need more than the memory this process can get to build
+    at ``bytes_each`` [bytes] each (measured per scene); ``fit_of(n)``: the ``param`` value that
+    makes about ``n`` of them. Returns the estimated bytes."""
+    available = available_host_bytes() if available is None else int(available)
+    need = int(count * bytes_each)
+    if need > available:
+        fit = fit_of(max(1, int(0.8 * available / bytes_each)))
+        raise ValueError(f"{param}={value}: {int(count):,} {what} need about {_format_bytes(need)} of memory to build "
+                         f"(about {bytes_each:,.0f} bytes each), this machine has {_format_bytes(available)} free; use "
+                         f"at most about {param}={fit}")
+    return need

@@ -148,6 +148,13 @@ class Springs(SimulatorScene):
             raise ValueError(f"count={n}: the springs scene needs count >= 2")
         if s <= 0 or p["mass"] <= 0:
             raise ValueError("spacing and mass must be > 0")
+        from ..core.memory import check_build_memory
+
+        # measured while building: 408 bytes a particle of the chain, about 2,000 of the lattice (more springs)
+        if p["shape"] == "chain":
+            check_build_memory("count", n, n, "particles", 500.0, lambda k: max(2, k))
+        else:
+            check_build_memory("count", n, n * n, "particles", 2500.0, lambda k: max(2, int(k ** 0.5)))
         b = ws.ModelBuilder()
         top = 1.0 + (n - 1) * s
         if p["shape"] == "chain":
