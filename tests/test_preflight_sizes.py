@@ -236,3 +236,17 @@ def test_build_memory_check_passes_what_fits_and_its_fix_fits():
     assert check_build_memory("count", 10, 10, "particles", 500.0, lambda k: k, available=5000) == 5000
     with pytest.raises(ValueError, match=r"count=11: 11 particles .* use at most about count=8$"):
         check_build_memory("count", 11, 11, "particles", 500.0, lambda k: k, available=5000)
+
+
+def test_an_allocation_failing_while_building_is_one_line(tmp_path, monkeypatch):
+    """A size no check of the scene's caught still ends in one line (exit 2) naming the sizes."""
+    def full(self, p):
+        raise MemoryError("Unable to allocate 74.5 GiB for an array with shape (100001, 100001)")
+
+    from warpsim.scenes import get_scene
+
+    monkeypatch.setattr(get_scene("springs"), "build", full)
+    code, _, err = run("run", "springs", "--set", "count=12", "--frames", 1, "--no-progress", "--device", "cpu",
+                       "--out", tmp_path / "s.usda")
+    line = one_error_line(err)
+    assert code == 2 and "out of memory while building" in line and "74.5 GiB" in line and "count=12" in line, line

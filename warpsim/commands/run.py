@@ -188,6 +188,13 @@ def _built_scene(cls, params, device, ckpt, ckpt_file):
         scene = cls(params, device=device)
     except ValueError as exc:
         raise UsageError(f"scene {cls.name!r}: {exc}") from None
+    except (MemoryError, RuntimeError) as exc:  # a size no check of the scene's caught: one line, not a traceback
+        text = one_line(exc)
+        if not isinstance(exc, MemoryError) and "allocate" not in text:
+            raise
+        sizes = ", ".join(f"{k}={v}" for k, v in params.items() if isinstance(v, int) and not isinstance(v, bool))
+        raise UsageError(f"scene {cls.name!r}: out of memory while building ({text}); lower its sizes"
+                         f"{f' ({sizes})' if sizes else ''}, or free memory") from None
     if ckpt is not None:
         try:
             scene.restore(ckpt[0])
