@@ -28,6 +28,7 @@ capsule (segment [a, b], radius; a sphere when a == b); kind 2 a spherical or ca
 
 import warp as wp
 
+from .collide import closest_point_segment
 from .integrate import block_inverse
 
 wp.set_module_options({"enable_backward": False})
@@ -62,12 +63,7 @@ def shape_gap(s: ContactShape, x: wp.vec3, r: float):
     unit normal pointing to the free side)."""
     if s.kind == SHAPE_PLANE:
         return wp.dot(s.normal, x) - s.offset - r - s.thickness, s.normal
-    ab = s.b - s.a
-    t = float(0.0)
-    L2 = wp.dot(ab, ab)
-    if L2 > 0.0:
-        t = wp.clamp(wp.dot(x - s.a, ab) / L2, 0.0, 1.0)
-    d = x - (s.a + t * ab)
+    d = x - closest_point_segment(x, s.a, s.b)
     dist = wp.length(d)
     n = wp.vec3(0.0, 1.0, 0.0)
     if dist > 0.0:

@@ -24,14 +24,14 @@ TOLERANCE_FLOOR = 1.0e-5
 __all__ = ["TOLERANCE", "TOLERANCE_FLOOR", "ContactConstraints", "constraint_shapes"]
 
 
-def _tolerance(model, thickness: float) -> float:
-    r = model.particle_radius.numpy()
-    return float(TOLERANCE * (float(r.max(initial=0.0)) + thickness) + TOLERANCE_FLOOR)
+def _tolerance(radius: float, thickness: float) -> float:
+    return float(TOLERANCE * (radius + thickness) + TOLERANCE_FLOOR)
 
 
-def constraint_shapes(colliders, model) -> list:
+def constraint_shapes(colliders, radius: float) -> list:
     """The ``kernels.cloth_contact.ContactShape`` values of the colliders that become constraints
-    (static planes and capsules/spheres outside penalty mode), in collider order."""
+    (static planes and capsules/spheres outside penalty mode), in collider order; ``radius`` [m]:
+    the largest particle radius (the touching tolerance's scale)."""
     out = []
     for c in colliders or ():
         mode = getattr(c, "mode_name", None)
@@ -43,7 +43,7 @@ def constraint_shapes(colliders, model) -> list:
                 s = KCC.ContactShape()
                 s.kind, s.normal, s.offset = int(KCC.SHAPE_PLANE), wp.vec3(*n), float(o)
                 s.thickness, s.friction, s.restitution = float(c.thickness), float(c.friction), float(c.restitution)
-                s.tolerance = _tolerance(model, float(c.thickness))
+                s.tolerance = _tolerance(radius, float(c.thickness))
                 out.append(s)
             continue
         if hasattr(c, "a_local") and hasattr(c, "radius") and hasattr(c, "world_pose"):
@@ -51,7 +51,7 @@ def constraint_shapes(colliders, model) -> list:
             s.kind = int(KCC.SHAPE_CONTAINER if getattr(c, "inside", 0) else KCC.SHAPE_CAPSULE)
             s.a, s.b, s.radius = wp.vec3(*np.asarray(c.a, float)), wp.vec3(*np.asarray(c.b, float)), float(c.radius)
             s.thickness, s.friction, s.restitution = float(c.thickness), float(c.friction), float(c.restitution)
-            s.tolerance = _tolerance(model, float(c.thickness))
+            s.tolerance = _tolerance(radius, float(c.thickness))
             out.append(s)
     return out
 
@@ -91,6 +91,7 @@ class ContactConstraints:
         self.impulse = wp.zeros(n, dtype=float, device=d)  # last step's normal impulse [N s] (its friction)
         self._signature = None
         self.shapes = wp.zeros(1, dtype=KCC.ContactShape, device=d)
+        self._radius = float(model.particle_radius.numpy().max(initial=0.0))  # read once: no sync per step
         self.shape_count = 0
         self.refresh()
 
@@ -99,7 +100,7 @@ class ContactConstraints:
         array as it is at replay)."""
         if wp.get_device(self.device).is_capturing:
             return
-        shapes = constraint_shapes(self.colliders, self.model)
+        shapes = constraint_shapes(self.colliders, self._radius)
         sig = _signature(shapes)
         if sig == self._signature:
             return

@@ -536,12 +536,13 @@ class ClothImplicitEuler(Integrator):
     def _iterate(self, system, q, qd, time, h, contact, first):
         """One Newton iteration: iteration 1 at (x0, v0) with b = h (f0 + h K v0), later ones at
         (x0 + h v, v); contact filtered in and out of the solve; then v += dv, x = x0 + h v and (more
-        iterations allowed) the device-side test max |dv| > newton_tol that continues the loop."""
+        iterations allowed) the device-side test max |dv| > newton_tol that continues the loop.
+        Returns the linear solve's (iterations, residual, tolerance) when known on the host, else None."""
         d = system.device
         self.assemble(q, qd, self.v0, time, 0.0 if first else h, -h * h, -h, h, h * h if first else 0.0)
         if contact is not None:
             contact.filter(self.x0, qd, h, self.rhs, self.inverse)
-        self._solve()
+        result = self._solve()
         if contact is not None:
             contact.finish(self.dv)
         wp.launch(KI.implicit_update, system.count, inputs=[self.x0, self.dv, h, qd, q], device=d)
@@ -550,6 +551,7 @@ class ClothImplicitEuler(Integrator):
             wp.launch(KI.max_abs_difference, system.count, inputs=[self.dv, self.max_dv], device=d)
         wp.launch(KC.newton_continue, 1, inputs=[self.max_dv, self.newton_tol, self.newton_iterations, int(first)],
                   outputs=[self.newton_count, self.newton_condition], device=d)
+        return result
 
     def _step_host_checked(self, system, q, qd, time, h, contact):
         """``record_history``: the same iterations with the convergence test and the CG statistics
@@ -557,13 +559,7 @@ class ClothImplicitEuler(Integrator):
         iterations, known = 0, True
         capturing = system.device.is_capturing
         for it in range(self.newton_iterations):
-            first = it == 0
-            self.assemble(q, qd, self.v0, time, 0.0 if first else h, -h * h, -h, h, h * h if first else 0.0)
-            if contact is not None:
-                contact.filter(self.x0, qd, h, self.rhs, self.inverse)
-            result = self._solve()
-            if contact is not None:
-                contact.finish(self.dv)
+            result = self._iterate(system, q, qd, time, h, contact, it == 0)
             if result is None and not capturing:
                 result = self._device_stats()
             if result is None:
@@ -571,13 +567,9 @@ class ClothImplicitEuler(Integrator):
             else:
                 iterations += result[0]
                 self._cg_host = (iterations, result[1], result[2])
-            wp.launch(KI.implicit_update, system.count, inputs=[self.x0, self.dv, h, qd, q], device=system.device)
             self._last_newton_host = it + 1
-            if self.newton_iterations > 1 and not capturing:
-                self.max_dv.zero_()
-                wp.launch(KI.max_abs_difference, system.count, inputs=[self.dv, self.max_dv], device=system.device)
-                if float(self.max_dv.numpy()[0]) <= self.newton_tol:
-                    break
+            if self.newton_iterations > 1 and not capturing and float(self.max_dv.numpy()[0]) <= self.newton_tol:
+                break
         if not known:
             self._cg_host = None
         else:
