@@ -59,13 +59,14 @@ def partial_layer(folder):
     return found[0] if found else None
 
 
-def start_and_kill(out, rng, vary=OLD):
+def start_and_kill(out, rng, vary=OLD, workers="0"):
     """Start a sweep in a subprocess and SIGKILL it at a random moment after a random number of
-    completed chunks; returns the number of chunks the index listed at the kill."""
+    completed chunks; returns the number of chunks the index listed at the kill. ``workers``:
+    processes authoring its chunks (``WARPSIM_WRITE_WORKERS``; "0": the sweep's own process)."""
     pattern = os.path.join(os.path.dirname(out), "s.batch_0000.run*.chunks.jsonl")
     before = set(glob.glob(pattern))  # a finished sweep's own index
     proc = subprocess.Popen([sys.executable, "-m", "warpsim", *argv(out, vary)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+                            stderr=subprocess.DEVNULL, env={**os.environ, "WARPSIM_WRITE_WORKERS": workers})
     want = rng.randint(1, FRAMES // CHUNK // 2)
     deadline = time.time() + 120
     listed = 0
@@ -90,11 +91,13 @@ def reference(tmp_path_factory):
     return {"samples": samples(d / "s.batch_0000.usdc"), "table": table(d / "s.csv"), "dir": d}
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_killed_sweep_keeps_completed_chunks_and_resume_equals_an_uninterrupted_run(tmp_path, reference, seed):
+@pytest.mark.parametrize("seed, workers", [(1, "0"), (2, "2")])
+def test_killed_sweep_keeps_completed_chunks_and_resume_equals_an_uninterrupted_run(tmp_path, reference, seed,
+                                                                                   workers):
+    """Killed while its own process writes the chunks, or while two worker processes do."""
     rng = random.Random(seed)
     out = tmp_path / "s.usda"
-    listed = start_and_kill(out, rng)
+    listed = start_and_kill(out, rng, workers=workers)
     assert listed >= 1
     layer = partial_layer(tmp_path)
     assert layer is not None, os.listdir(tmp_path)

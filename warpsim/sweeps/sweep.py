@@ -14,7 +14,7 @@ from ..scenes.timing import resolve_timing
 from ..worlds.batch import WorldBatch
 from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
-from .usd import BatchLayerWriter
+from .usd import BatchLayerWriter, chunk_writers
 
 __all__ = ["frame_timing", "make_batch", "normalise_params", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
 
@@ -101,7 +101,7 @@ def make_batch(cls, world_params, device=None, fused=False, reference_params=Non
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
               warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None,
-              reference_params=None, store_every=1, on_stage=None) -> list:
+              reference_params=None, store_every=1, on_stage=None, write_workers=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
     Writes every frame of every world into the USD layer ``layer_path`` (world i under
@@ -136,6 +136,9 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     ``store_every``: which frames the layer holds (``--store``): 1 every frame; k > 1 every k-th
     frame and the last (a preview: the layer's extent still covers every frame); 0 only the last
     (the frame the thumbnails show; ``layer_path`` is then a scratch layer);
+    ``write_workers``: processes authoring the layer's chunk files while the worlds step on (None:
+    :func:`warpsim.sweeps.usd.chunk_writers` picks by the chunks' size; 0: this process; the
+    same bytes either way);
     ``occupancy["agree"]``: ``agree(points (M, 3) [m], resolution) -> (bounds, resolution)``, called
     with the frame-0 points the default grid would cover, so that the blocks of one sweep on
     several devices record on one grid (:mod:`warpsim.distributed.devices`)."""
@@ -183,6 +186,10 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps, chunk_size=chunk_size,
                               resume_frame=resume_frame)
     writer.scene_name = scene_name
+    if write_workers is None:
+        write_workers = chunk_writers(writer, batch, frames, store_every)
+    writer.workers = checks.integer(write_workers, "run_batch write_workers", lo=0, hi=64,
+                                    fix="0 (this process writes) or a few processes")
     recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
     for i, p in enumerate(getattr(batch, "params", given)):
         writer.set_world_params(i, p)

@@ -28,7 +28,7 @@ from ..browse.roots import world_prim_name
 from ..usd.prims import joined_form
 from ..usd.writer import UsdCacheWriter
 
-__all__ = ["BatchLayerWriter", "estimate_sweep_bytes", "stored_frames"]
+__all__ = ["BatchLayerWriter", "chunk_writers", "estimate_sweep_bytes", "stored_frames"]
 
 SHARED = "/WorldShared"
 """Class prim of a batch layer holding the declarations every world's prims inherit."""
@@ -62,21 +62,52 @@ def estimate_sweep_bytes(scene, layer_path, worlds, frames, fps=60.0, store_ever
     return {"bytes": int(worlds) * kept * per + static, "frame_bytes": per, "frames": kept}
 
 
+POOL_CHUNK_BYTES = 8 << 20
+"""A sweep whose chunk files hold at least this many bytes [bytes] has worker processes author
+them (:func:`chunk_writers`); smaller ones are written faster than a worker starts."""
+
+
+def chunk_writers(writer, batch, frames, store_every=1) -> int:
+    """Worker processes for ``writer``'s chunk files (:mod:`warpsim.usd.chunk_author`): none when a
+    chunk would hold less than :data:`POOL_CHUNK_BYTES` or nothing is kept, else one per core left
+    beside this process (:func:`warpsim.process_pool.default_workers`), at most one per chunk. The
+    environment variable ``WARPSIM_WRITE_WORKERS=N`` sets the count (0: never)."""
+    from ..process_pool import default_workers
+
+    forced = os.environ.get("WARPSIM_WRITE_WORKERS", "").strip()
+    if forced:
+        if not forced.isdigit() or int(forced) > 64:
+            raise ValueError(f"WARPSIM_WRITE_WORKERS={forced!r}: give a whole number of worker processes in 0..64 "
+                             "(0: the stepping process writes), or unset it to let the sweep choose")
+        return int(forced)
+    kept = stored_frames(int(frames) + 1, store_every)
+    if not kept:
+        return 0
+    x, v = batch.world_slices()
+    per = writer.frame_bytes(batch.world_frame_data(x[0], v[0], 0))
+    frames_a_chunk = min(writer.chunk_size, kept)
+    if per * batch.world_count * frames_a_chunk < POOL_CHUNK_BYTES:
+        return 0
+    return default_workers(jobs=-(-kept // frames_a_chunk))
+
+
 class BatchLayerWriter(UsdCacheWriter):
     """Streams the frames of ``world_count`` worlds (global indices ``first_world ..``) into one
     crash-safe chunked layer (:class:`warpsim.usd.writer.UsdCacheWriter` with root prim
     ``/Worlds``): frames go to chunk files of ``chunk_size`` frames beside ``path``, each world
     prim lists them as value clips (clips do not reach through a reference to a prim below the
     one that carries them), and a process killed at any moment leaves a layer holding every
-    completed chunk. ``resume_frame``: keep the completed chunks before that frame and go on."""
+    completed chunk. ``resume_frame``: keep the completed chunks before that frame and go on.
+    ``workers``: processes authoring the chunk files while the worlds step on
+    (:class:`warpsim.usd.writer.UsdCacheWriter`; the same bytes; 0: this process)."""
 
     def __init__(self, path, scene, first_world, world_count, fps, save_bytes=64 << 20, *, chunk_size=24,
-                 resume_frame=None, durable=True):
+                 resume_frame=None, durable=True, workers=0):
         path = os.path.abspath(os.fspath(path))
         if os.path.splitext(path)[1] not in (".usd", ".usdc", ".usda"):
             raise ValueError(f"batch layer {path!r} must end in .usd, .usdc or .usda")
         super().__init__(path, fps=fps, chunk_size=chunk_size, resume_frame=resume_frame, root_prim="Worlds",
-                         durable=durable, save_bytes=save_bytes)
+                         durable=durable, save_bytes=save_bytes, workers=workers)
         scene.declare(self)
         self.prims = {name: joined_form(decl) for name, decl in self.prims.items()}  # curves: from the points
         self.first_world, self.world_count = int(first_world), int(world_count)
@@ -191,8 +222,6 @@ class BatchLayerWriter(UsdCacheWriter):
         return cache[key]
 
     def _write_batch_samples(self, frame, samples):
-        from pxr import Sdf
-
         from ..usd.writer import vt_maker
 
         chunk, n, t = self._chunk, self.world_count, float(frame)
@@ -203,20 +232,10 @@ class BatchLayerWriter(UsdCacheWriter):
                 attr = decl.attrs[attr_name]
                 paths, text = self._batch_paths(name, attr_name)
                 plan.append((attr, values, paths, text, vt_maker(attr.type_name)))
-        layer, last, pending = chunk.layer, chunk.last, 0
-        with Sdf.ChangeBlock():
-            for w in range(n):  # world by world, attribute by attribute: the order write_worlds authors in
-                for attr, values, paths, text, make in plan:
-                    value = values[w]
-                    if attr.on_change:
-                        prev = last.get(text[w])
-                        if prev is not None and np.array_equal(prev, value):
-                            continue
-                        last[text[w]] = np.array(value, copy=True)
-                        self._authored(attr.name, value)
-                    layer.SetTimeSample(paths[w], t, make(value))
-                    pending += getattr(value, "nbytes", 8)
-        chunk.pending_bytes += pending
+        if chunk.stage is not None:  # a worker authors the chunk (the same order, values and saves)
+            self._stage_batch(t, plan)
+        else:
+            self._author_batch(t, plan)
         for attr, values, paths, text, make in plan:  # the worlds' extent, grown once a frame
             if attr.name == "points" and not attr.on_change:
                 if isinstance(values, np.ndarray):
@@ -234,6 +253,34 @@ class BatchLayerWriter(UsdCacheWriter):
                 for w in range(n):
                     chunk.stats.add(name, None if pts is None else len(pts[w]), None if extent is None else extent[w])
         self._end_frame_samples(frame)
+
+    def _author_batch(self, t, plan):
+        """Author one frame of every world in the open chunk's layer (in one Sdf change block)."""
+        from pxr import Sdf
+
+        chunk = self._chunk
+        layer, last, pending = chunk.layer, chunk.last, 0
+        with Sdf.ChangeBlock():
+            for w in range(self.world_count):  # world by world, attribute by attribute: write_worlds' order
+                for attr, values, paths, text, make in plan:
+                    value = values[w]
+                    if attr.on_change:
+                        prev = last.get(text[w])
+                        if prev is not None and np.array_equal(prev, value):
+                            continue
+                        last[text[w]] = np.array(value, copy=True)
+                        self._authored(attr.name, value)
+                    layer.SetTimeSample(paths[w], t, make(value))
+                    pending += getattr(value, "nbytes", 8)
+        chunk.pending_bytes += pending
+
+    def _stage_batch(self, t, plan):
+        """One frame of every world staged for the chunk's worker (:class:`warpsim.usd.chunk_stage.ChunkStage`)."""
+        for attr, values, paths, text, make in plan:
+            if attr.on_change and attr.name == "points":  # (an unchanged value adds nothing new to the bounds)
+                for value in values:
+                    self._authored(attr.name, value)
+            self._chunk.stage.add(t, text[0], text, attr.type_name, attr.on_change, values)
 
     def _grow_worlds(self, points):
         """:meth:`_grow_bounds` of each world's points (N, k, 3), vectorised (non-finite worlds skipped)."""
@@ -369,6 +416,7 @@ class BatchLayerWriter(UsdCacheWriter):
         self.flush()
         if len(self.chunks) == chunks:  # (a chunk just completed wrote the root with the final extent)
             self._write_root()  # the final extent (span) even when the last chunk came before it
+        self._stop_pool()
         self._closed = True
         self._release_lock()  # the layer's lock file (warpsim.usd.lock) goes with the writer
         return self.path

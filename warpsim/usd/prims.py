@@ -10,38 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.names import close_matches
+from .value_types import ARRAY_TYPES, SCALAR_TYPES
 
-# USD array type name -> (NumPy dtype, components per element; 0 = scalar elements)
-ARRAY_TYPES = {
-    "point3f[]": (np.float32, 3),
-    "vector3f[]": (np.float32, 3),
-    "normal3f[]": (np.float32, 3),
-    "color3f[]": (np.float32, 3),
-    "float3[]": (np.float32, 3),
-    "float2[]": (np.float32, 2),
-    "double3[]": (np.float64, 3),
-    "float[]": (np.float32, 0),
-    "double[]": (np.float64, 0),
-    "int[]": (np.int32, 0),
-    "int64[]": (np.int64, 0),
-    "uint[]": (np.uint32, 0),
-    "bool[]": (np.bool_, 0),
-    "quath[]": (np.float16, 4),
-    "quatf[]": (np.float32, 4),
-}
-# USD scalar type name -> (NumPy dtype, components)
-SCALAR_TYPES = {
-    "float": (np.float32, 0),
-    "double": (np.float64, 0),
-    "int": (np.int32, 0),
-    "int64": (np.int64, 0),
-    "bool": (np.bool_, 0),
-    "float3": (np.float32, 3),
-    "double3": (np.float64, 3),
-    "color3f": (np.float32, 3),
-    "token": (None, 0),
-    "string": (None, 0),
-}
 INTERPOLATIONS = ("constant", "uniform", "varying", "vertex", "faceVarying")
 
 
@@ -159,11 +129,15 @@ class PrimDecl:
             self.static(full, type_name, value, metadata=meta)
         self.aliases[full.split(":", 1)[1]] = full
 
-    def add_attribute(self, name, type_name, value=None):
+    def add_attribute(self, name, type_name, value=None, unit=None):
+        if unit is not None and not (isinstance(unit, str) and unit.strip()):
+            raise ValueError(f"attribute {name!r} of {self.name!r}: unit {unit!r} is not a unit name; give e.g. "
+                             "unit='rad' or leave it out")
+        meta = {"customData": {"unit": unit}} if unit is not None else None
         if value is None:
-            self.dynamic(name, type_name, custom=True)
+            self.dynamic(name, type_name, custom=True, metadata=meta)
         else:
-            self.static(name, type_name, value, custom=True)
+            self.static(name, type_name, value, custom=True, metadata=meta)
 
     @property
     def is_dynamic(self):
@@ -471,6 +445,26 @@ def segment_pairs(prim):
         return None
     pairs = np.asarray(attr.Get(), np.int64)
     return pairs[: len(pairs) // 2 * 2].reshape(-1, 2)
+
+
+def curves_decl(prim):
+    """The :class:`CurvesDecl` a lone run declares for a USD prim a sweep wrote by
+    :class:`JoinedPointsDecl` (the inverse of :func:`joined_form`: the same segments, width,
+    colour and velocities), or None for any other prim. Its ``frame_samples({"points": x}, frame)``
+    with the prim's particle positions ``x`` (n, 3) [m] are the samples a lone run writes, bit for
+    bit: a picked world is written in this full form (BasisCurves, which every USD tool draws)."""
+    pairs = segment_pairs(prim)
+    if pairs is None:
+        return None
+    width = float(np.asarray(prim.GetAttribute("widths").Get(), np.float64).reshape(-1)[0])
+    color = prim.GetAttribute("primvars:displayColor")
+    if color and color.HasValue():
+        color = tuple(np.asarray(color.Get(), np.float64).reshape(-1, 3)[0])
+    else:
+        color = None
+    velocities = prim.GetAttribute("velocities")
+    return CurvesDecl(prim.GetName(), pairs, width=width, color=color,
+                      velocities=bool(velocities and velocities.HasAuthoredValue()))
 
 
 PROTOTYPE_KINDS = ("sphere", "cube", "cone", "capsule", "mesh")

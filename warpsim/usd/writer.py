@@ -36,6 +36,7 @@ Example::
 """
 from __future__ import annotations
 
+import collections
 import functools
 import glob
 import operator
@@ -49,51 +50,13 @@ from ..core.safe_files import clear_temporary, disk_full, disk_reason
 from . import chunk_index
 from .lock import OutputLock
 from ..core.names import close_matches
-from .prims import ARRAY_TYPES
+from .chunk_author import copy_specs
+from .value_types import pxr_modules as _pxr, to_vt, vt_maker
 from .sink import PrimSink, state_frame_data
 
-__all__ = ["ROOT_EXTENSIONS", "CacheWriteError", "UsdCacheWriter", "settings_run_id"]
+__all__ = ["ROOT_EXTENSIONS", "CacheWriteError", "UsdCacheWriter", "declare_prim", "settings_run_id"]
 
 ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
-
-
-def _pxr():
-    try:
-        from pxr import Gf, Sdf, Vt
-    except ImportError as exc:  # pragma: no cover - usd-core is a dependency
-        raise ImportError("warpsim.usd.writer needs usd-core: pip install usd-core") from exc
-    return Sdf, Vt, Gf
-
-
-_VT_ARRAY = {}
-
-
-def vt_maker(type_name):
-    """A function turning a value already coerced to ``type_name`` into its USD value: for array
-    types the Vt array class's ``FromNumpy`` (looked up once), else :func:`to_vt`."""
-    if type_name in ARRAY_TYPES:
-        make = _VT_ARRAY.get(type_name)
-        if make is None:
-            Sdf, _, _ = _pxr()
-            make = _VT_ARRAY[type_name] = Sdf.ValueTypeNames.Find(type_name).type.pythonClass.FromNumpy
-        return make
-    return lambda value: to_vt(type_name, value)
-
-
-def to_vt(type_name, value):
-    """USD value for NumPy/python ``value`` already coerced to ``type_name`` (see usd_prims.coerce)."""
-    Sdf, Vt, Gf = _pxr()
-    if type_name == "token[]":
-        return Vt.TokenArray(value)
-    if type_name in ARRAY_TYPES:
-        return vt_maker(type_name)(value)
-    wrap = {"float": Vt.Float, "double": Vt.Double, "int": Vt.Int, "int64": Vt.Int64, "bool": Vt.Bool,
-            "token": Vt.Token, "float3": Gf.Vec3f, "color3f": Gf.Vec3f, "double3": Gf.Vec3d}
-    if type_name in ("float3", "color3f", "double3"):
-        return wrap[type_name](*value)
-    if type_name == "string":
-        return str(value)
-    return wrap[type_name](value)
 
 
 def settings_run_id(settings) -> str:
@@ -159,6 +122,48 @@ class _Chunk:
         self.pending_bytes = 0
         self.last = {}  # attribute path -> last value written (on-change attributes)
         self.stats = chunk_index.ChunkStats()  # counts and bounds for the chunk index
+        self.stage = None  # warpsim.usd.chunk_stage.ChunkStage when a worker writes the chunk
+
+
+def declare_prim(layer, path, decl, manifest=False) -> None:
+    """Author declaration ``decl`` (:mod:`warpsim.usd.prims`) as a prim spec at ``path`` of the
+    Sdf ``layer``: its type, applied schemas, attributes (static values, metadata, connections),
+    relationships and child prims; ``manifest``: only the time-varying attributes (a clip manifest
+    or chunk). The one way a declaration becomes USD: caches, sweeps and picked worlds."""
+    Sdf, _, _ = _pxr()
+    spec = Sdf.CreatePrimInLayer(layer, path)
+    spec.specifier = Sdf.SpecifierDef
+    spec.typeName = decl.type_name
+    schemas = getattr(decl, "api_schemas", None)
+    if schemas and not manifest:
+        spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=list(schemas)))
+    for attr in decl.attrs.values():
+        if manifest and not attr.dynamic:
+            continue
+        variability = Sdf.VariabilityUniform if attr.uniform else Sdf.VariabilityVarying
+        a = Sdf.AttributeSpec(spec, attr.name, Sdf.ValueTypeNames.Find(attr.type_name), variability,
+                              attr.custom)
+        for key, value in attr.metadata.items():
+            a.SetInfo(key, value)
+        if not attr.dynamic and attr.value is not None:
+            a.default = to_vt(attr.type_name, attr.value)
+        if getattr(attr, "connection", None):
+            a.connectionPathList.explicitItems.append(path.AppendPath(Sdf.Path(attr.connection)))
+    if manifest:
+        return
+    for rel_name, targets in decl.relationships.items():
+        rel = Sdf.RelationshipSpec(spec, rel_name, custom=False)
+        for t in targets:
+            rel.targetPathList.explicitItems.append(path.AppendPath(Sdf.Path(t)))
+    for rel_path, child in decl.children:
+        parent = path
+        for part in rel_path.split("/")[:-1]:  # intermediate scopes
+            parent = parent.AppendChild(part)
+            if not layer.GetPrimAtPath(parent):
+                s = Sdf.CreatePrimInLayer(layer, parent)
+                s.specifier = Sdf.SpecifierDef
+                s.typeName = "Scope"
+        declare_prim(layer, path.AppendPath(Sdf.Path(rel_path)), child, manifest)
 
 
 class UsdCacheWriter(PrimSink):
@@ -178,6 +183,11 @@ class UsdCacheWriter(PrimSink):
         run_id: names this run in the root layer and every chunk index line (letters and digits;
             None: a random one; :func:`settings_run_id` gives one from the run's settings, so two
             runs of the same settings write byte-identical files). A resumed cache keeps its own.
+        workers: worker processes that author the chunk files (:mod:`warpsim.usd.chunk_author`)
+            while this process goes on stepping (0: this process authors them). The files'
+            bytes, the chunk index and the crash-safety rules are the same either way: a chunk is
+            renamed into place, indexed and listed by the root here, in order, once its worker
+            has saved and synced it.
 
     Declare prims (``add_points``, ``add_mesh``, ``add_curves``, ``add_instancer``, static
     ``add_plane``/``add_sphere``/``add_box``/``add_static_mesh``, extra ``add_primvar``/
@@ -187,7 +197,7 @@ class UsdCacheWriter(PrimSink):
     """
 
     def __init__(self, path, fps=60.0, chunk_size=24, flatten=False, *, resume_frame=None, root_prim="World",
-                 durable=True, save_bytes=64 << 20, run_id=None):
+                 durable=True, save_bytes=64 << 20, run_id=None, workers=0):
         path = os.path.abspath(os.fspath(path))
         self.dirname, base = os.path.split(path)
         self.stem, ext = os.path.splitext(base)
@@ -223,6 +233,11 @@ class UsdCacheWriter(PrimSink):
         if run_id is not None and not (isinstance(run_id, str) and run_id.isalnum()):
             raise ValueError(f"run_id {run_id!r} must be letters and digits, e.g. settings_run_id(settings)")
         self.run_id = run_id or secrets.token_hex(6)  # names this run in the root layer and every index line
+        self.workers = checks.integer(workers, "UsdCacheWriter workers", lo=0, hi=64,
+                                      fix="0 (author chunks here) or a few processes, e.g. default_workers()")
+        self._pool = None  # warpsim.process_pool.ProcessPool of the chunk authors (workers > 0)
+        self._inflight = collections.deque()  # chunks handed to workers: (chunk, future), oldest first
+        self._specs_text = None  # a chunk's specs as .usda text (the workers copy them)
 
     # ------------------------------------------------------------------ declarations
     # add_points, add_mesh, add_curves, add_instancer, add_static_mesh, add_plane, add_box,
@@ -288,6 +303,8 @@ class UsdCacheWriter(PrimSink):
         far is then in the root layer. Returns the last completed frame (None if none)."""
         if self._chunk is not None:
             self._finish_chunk()
+        if self._inflight:
+            self._reap(wait_all=True)
         return self.chunks[-1][1] if self.chunks else None
 
     @_disk_guard
@@ -303,6 +320,7 @@ class UsdCacheWriter(PrimSink):
             if self.flatten:
                 self.output_path = self._flatten()
         finally:
+            self._stop_pool(wait=self._closed)
             if self._closed:
                 self._release_lock()
         return self.output_path
@@ -320,6 +338,11 @@ class UsdCacheWriter(PrimSink):
         chunk, self._chunk = self._chunk, None
         if chunk is not None:
             chunk.layer = None  # release the layer (and its file) before removing it
+        self._stop_pool(wait=False)  # (the workers' temporaries carry this process's id too)
+        for c in [chunk, *(c for c, _ in self._inflight)]:
+            if c is not None and getattr(c, "stage", None) is not None:
+                c.stage.release()
+        self._inflight.clear()
         for tmp in glob.glob(self._abs(glob.escape(self.stem) + f".*tmp-{os.getpid()}*")):
             try:
                 os.remove(tmp)
@@ -352,8 +375,8 @@ class UsdCacheWriter(PrimSink):
     def _index_file(self):
         return chunk_index.index_path(self.dirname, self.stem)
 
-    def _replace(self, tmp, final):
-        if self.durable:
+    def _replace(self, tmp, final, synced=False):
+        if self.durable and not synced:
             _fsync(tmp)
         os.replace(tmp, final)
         if self.durable:
@@ -379,6 +402,10 @@ class UsdCacheWriter(PrimSink):
         os.makedirs(self.dirname, exist_ok=True)
         if self._lock is None:  # one writer per cache: another process writing it is refused here
             self._lock = OutputLock(self.path).acquire()
+        if self.workers and self._pool is None:  # started now: they are ready by the first chunk
+            from ..process_pool import ProcessPool
+
+            self._pool = ProcessPool(self.workers)
         try:
             # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
             # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
@@ -407,11 +434,17 @@ class UsdCacheWriter(PrimSink):
         Sdf, _, _ = _pxr()
         chunk = _Chunk(frame, self._abs(self._file("chunk", frame)))
         self._target = chunk.final_path
+        if self._pool is not None:  # staged for a worker (warpsim.usd.chunk_stage): no layer here
+            from .chunk_stage import ChunkStage
+
+            chunk.stage = ChunkStage(self.chunk_size)
+            self._chunk = chunk
+            return
         clear_temporary(chunk.tmp_path)  # a leftover, or a planted link: removed, never followed
         layer = Sdf.Layer.CreateNew(chunk.tmp_path)
         if layer is None:
             raise OSError(f"could not create {chunk.tmp_path}")
-        self._declare_specs(layer, manifest=True)
+        copy_specs(self._chunk_specs(), layer)  # as a worker does (the same bytes whoever writes the chunk)
         chunk.layer = layer
         self._chunk = chunk
 
@@ -420,6 +453,14 @@ class UsdCacheWriter(PrimSink):
         ``base`` in the open chunk, skipping on-change attributes whose value did not change;
         each authored value also goes to :meth:`_authored`."""
         chunk = self._chunk
+        if chunk.stage is not None:
+            for name, values in samples.items():
+                for attr_name, value in values.items():
+                    attr = self.prims[name].attrs[attr_name]
+                    self._authored(attr_name, value)  # (an unchanged on-change value adds nothing new)
+                    chunk.stage.add(float(frame), (base, name, attr_name), [f"{base}/{name}.{attr_name}"],
+                                    attr.type_name, attr.on_change, [value])
+            return
         for name, values in samples.items():
             decl = self.prims[name]
             for attr_name, value in values.items():
@@ -442,6 +483,8 @@ class UsdCacheWriter(PrimSink):
         chunk = self._chunk
         chunk.end = frame
         self._target = chunk.final_path
+        if chunk.stage is not None:  # the worker saves as this process would
+            return
         if chunk.pending_bytes >= self.save_bytes:
             chunk.layer.Save()  # crate saves append: memory holds only the unsaved samples
             chunk.pending_bytes = 0
@@ -455,6 +498,9 @@ class UsdCacheWriter(PrimSink):
         chunk = self._chunk
         self._chunk = None
         self._target = chunk.final_path
+        if chunk.stage is not None:
+            self._submit(chunk)
+            return
         if not chunk.layer.Save():
             raise OSError(f"could not save {chunk.tmp_path}")
         chunk.layer = None  # release the layer (and its file mapping) before renaming
@@ -468,6 +514,70 @@ class UsdCacheWriter(PrimSink):
         except BaseException:
             self.chunks.pop()  # the root on disk still lists the chunks before this one
             raise
+
+    # ------------------------------------------------------------------ chunks in worker processes
+    def _chunk_specs(self) -> str:
+        """A chunk's specs (``_declare_specs(manifest=True)``) as ``.usda`` text, made once."""
+        if self._specs_text is None:
+            Sdf, _, _ = _pxr()
+            layer = Sdf.Layer.CreateAnonymous(".usda")
+            self._declare_specs(layer, manifest=True)
+            self._specs_text = layer.ExportToString()
+        return self._specs_text
+
+    def _submit(self, chunk):
+        """Hand a staged chunk to a worker; complete the chunks already done (in order) and wait
+        for the oldest while more than ``workers`` are out (their samples hold memory)."""
+        clear_temporary(chunk.tmp_path)  # a leftover, or a planted link: removed, never followed
+        job = chunk.stage.job(chunk.tmp_path, self._chunk_specs(), self.save_bytes, self.durable)
+        self._inflight.append((chunk, self._pool.submit("warpsim.usd.chunk_author:author_chunk", job)))
+        self._reap(wait_all=False)
+
+    def _reap(self, wait_all):
+        """Complete the workers' chunks in order: rename each into place, index it, then rewrite
+        the root once listing them all (``wait_all``: every chunk out; else those done, and the
+        oldest while more than ``workers`` are out)."""
+        done = []
+        try:
+            while self._inflight:
+                chunk, future = self._inflight[0]
+                if not (wait_all or future.done() or len(self._inflight) > self.workers):
+                    break
+                self._inflight.popleft()
+                self._complete(chunk, future)
+                done.append(chunk)
+        finally:
+            if done:
+                try:
+                    self._write_root()
+                except BaseException:
+                    del self.chunks[-len(done):]  # the root on disk still lists the chunks before these
+                    raise
+
+    def _complete(self, chunk, future):
+        from ..process_pool import RemoteError
+
+        self._target = chunk.final_path
+        try:
+            future.result()
+        except RemoteError as exc:  # the worker's error, as this process would have raised it
+            code = exc.errno if exc.errno is not None else disk_full(exc)
+            if code is not None or exc.kind in ("OSError", "FileNotFoundError", "PermissionError"):
+                raise OSError(code, f"{exc} ({os.path.basename(chunk.tmp_path)})") from None
+            raise RuntimeError(f"writing {os.path.basename(chunk.final_path)}: {exc.kind}: {exc}") from None
+        finally:
+            chunk.stage.release()
+        self._replace(chunk.tmp_path, chunk.final_path, synced=True)  # (the worker synced it)
+        self._target = self._index_file
+        chunk_index.append_record(self._index_file, chunk_index.record(chunk.final_path, chunk.start, chunk.end,
+                                                                        chunk.stats, self.run_id), self.durable)
+        self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
+
+    def _stop_pool(self, wait=True):
+        """End the chunk workers (after :meth:`flush`, or dropping what is out on a failure)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.close(wait=wait)
 
     # ------------------------------------------------------------------ layers
     def _declare_specs(self, layer, manifest):
@@ -483,40 +593,7 @@ class UsdCacheWriter(PrimSink):
         return world
 
     def _declare_prim(self, layer, path, decl, manifest):
-        Sdf, _, _ = _pxr()
-        spec = Sdf.CreatePrimInLayer(layer, path)
-        spec.specifier = Sdf.SpecifierDef
-        spec.typeName = decl.type_name
-        schemas = getattr(decl, "api_schemas", None)
-        if schemas and not manifest:
-            spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=list(schemas)))
-        for attr in decl.attrs.values():
-            if manifest and not attr.dynamic:
-                continue
-            variability = Sdf.VariabilityUniform if attr.uniform else Sdf.VariabilityVarying
-            a = Sdf.AttributeSpec(spec, attr.name, Sdf.ValueTypeNames.Find(attr.type_name), variability,
-                                  attr.custom)
-            for key, value in attr.metadata.items():
-                a.SetInfo(key, value)
-            if not attr.dynamic and attr.value is not None:
-                a.default = to_vt(attr.type_name, attr.value)
-            if getattr(attr, "connection", None):
-                a.connectionPathList.explicitItems.append(path.AppendPath(Sdf.Path(attr.connection)))
-        if manifest:
-            return
-        for rel_name, targets in decl.relationships.items():
-            rel = Sdf.RelationshipSpec(spec, rel_name, custom=False)
-            for t in targets:
-                rel.targetPathList.explicitItems.append(path.AppendPath(Sdf.Path(t)))
-        for rel_path, child in decl.children:
-            parent = path
-            for part in rel_path.split("/")[:-1]:  # intermediate scopes
-                parent = parent.AppendChild(part)
-                if not layer.GetPrimAtPath(parent):
-                    s = Sdf.CreatePrimInLayer(layer, parent)
-                    s.specifier = Sdf.SpecifierDef
-                    s.typeName = "Scope"
-            self._declare_prim(layer, path.AppendPath(Sdf.Path(rel_path)), child, manifest)
+        declare_prim(layer, path, decl, manifest)
 
     def _build_layer(self, manifest):
         Sdf, Vt, _ = _pxr()

@@ -1,0 +1,137 @@
+"""Chunk files authored in worker processes (issue 50, writing off the critical path): the same
+bytes as the stepping process writes itself, for a sweep's batch layer and a lone run's cache;
+a worker's failure comes back as this process's error; workers die with their parent."""
+
+import filecmp
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+
+from warpsim.process_pool import ProcessPool, RemoteError, SharedBlock, default_workers
+from warpsim.sweeps.sweep import run_batch, sample_worlds
+from warpsim.usd.writer import UsdCacheWriter
+
+
+@pytest.fixture
+def fixed_run_id(monkeypatch):
+    """Both writers name their run alike (the run id is random otherwise)."""
+    import types
+
+    import warpsim.usd.writer as writer
+
+    monkeypatch.setattr(writer, "secrets", types.SimpleNamespace(token_hex=lambda n: "abc123abc123"))
+
+
+def files_equal(a, b):
+    names = sorted(os.listdir(a))
+    assert names == sorted(os.listdir(b))
+    return {n: filecmp.cmp(os.path.join(a, n), os.path.join(b, n), shallow=False) for n in names}
+
+
+def test_batch_layer_from_workers_is_byte_identical(tmp_path, fixed_run_id):
+    """Six teapots x 12 frames in chunks of 5: every file (chunks, index, root, manifest) and every
+    table row are the same written here (0 workers) or by 2 worker processes."""
+    params = sample_worlds("teapot", {}, ["stiffness=20:60"], 6)
+    rows = {}
+    for workers in (0, 2):
+        layer = tmp_path / f"w{workers}" / "s.batch_0000.usdc"
+        rows[workers] = run_batch("teapot", params, frames=12, layer_path=str(layer), device="cpu", chunk_size=5,
+                                  write_workers=workers)
+    same = files_equal(tmp_path / "w0", tmp_path / "w2")
+    assert len(same) == 6 and all(same.values()), same  # 3 chunks, index, manifest, root
+    assert rows[0] == rows[2]
+
+
+def test_lone_cache_from_a_worker_is_byte_identical(tmp_path, fixed_run_id):
+    """A lone run's cache with values whose length changes every frame (kept as copies, not in
+    shared memory) and an attribute written only when it changes: the same bytes either way."""
+    rng = np.random.default_rng(3)
+    frames = [(rng.random((5 + f % 4, 3), dtype=np.float32), np.float32(f // 4)) for f in range(11)]
+    for workers in (0, 1):
+        w = UsdCacheWriter(tmp_path / f"w{workers}" / "c.usda", fps=30, chunk_size=4, run_id="fixed1",
+                           workers=workers)
+        w.add_points("blob", radius=0.01, count_changes=True)
+        w.add_attribute("blob", "warpsim:level", "float")
+        with w:
+            for f, (x, level) in enumerate(frames):
+                w.write_frame(f, {"blob": {"points": x, "velocities": 2 * x, "ids": np.arange(len(x)),
+                                           "warpsim:level": level}})
+    same = files_equal(tmp_path / "w0", tmp_path / "w1")
+    assert len(same) == 6 and all(same.values()), same  # 3 chunks, index, manifest, root
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(tmp_path / "w1" / "c.usda"))
+    got = np.asarray(stage.GetPrimAtPath("/World/blob").GetAttribute("points").Get(7.0))
+    assert np.array_equal(got, frames[7][0])
+
+
+def test_a_workers_error_is_the_callers():
+    with ProcessPool(1) as pool:
+        with pytest.raises(RemoteError, match="invalid literal") as caught:
+            pool.submit("builtins:int", "not a number").result()
+        assert caught.value.kind == "ValueError"
+        assert pool.submit("math:hypot", 3.0, 4.0).result() == 5.0  # the worker serves on
+        with pytest.raises(RemoteError) as caught:
+            pool.submit("os:listdir", "/no/such/folder").result()
+        assert caught.value.kind == "FileNotFoundError" and caught.value.errno == 2
+
+
+def test_shared_memory_reaches_the_worker():
+    block = SharedBlock(4 * 6)
+    try:
+        block.array(0, (2, 3), np.float32)[...] = [[1, 2, 3], [4, 5, 6]]
+        with ProcessPool(1) as pool:
+            total = pool.submit("tests.test_chunk_workers:_sum_shared", block.ref(0, (2, 3), np.float32)).result()
+        assert total == 21.0
+    finally:
+        block.release()
+
+
+def _sum_shared(ref):
+    from warpsim.process_pool import attach
+
+    view, handle = attach(ref)
+    total = float(view.sum())
+    del view
+    handle.close()
+    return total
+
+
+def test_workers_die_with_their_parent(tmp_path):
+    """A parent killed with SIGKILL takes its workers with it (no orphan writes a killed run's
+    temporaries)."""
+    script = ("import sys, time; from warpsim.process_pool import ProcessPool; p = ProcessPool(2); "
+              "print(' '.join(str(q.pid) for q in p._procs), flush=True); time.sleep(60)")
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                              cwd=os.path.dirname(os.path.dirname(__file__)))
+    pids = [int(p) for p in parent.stdout.readline().split()]
+    assert len(pids) == 2
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.time() + 20
+    alive = pids
+    while alive and time.time() < deadline:
+        alive = [p for p in alive if os.path.exists(f"/proc/{p}") and "Z" not in _state(p)]
+        time.sleep(0.05)
+    assert not alive, f"workers {alive} outlived their parent"
+
+
+def _state(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0]
+    except OSError:
+        return "Z"
+
+
+def test_default_workers_leaves_a_core_to_the_stepping_process():
+    cores = len(os.sched_getaffinity(0))
+    assert default_workers() == max(0, min(8, cores - 1))
+    assert default_workers(jobs=1) <= 1
