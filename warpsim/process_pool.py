@@ -29,7 +29,7 @@ import subprocess
 import sys
 import threading
 
-__all__ = ["ProcessPool", "RemoteError", "SharedBlock", "default_workers"]
+__all__ = ["ProcessPool", "RemoteError", "SharedBlock", "default_workers", "forced_workers"]
 
 _HEADER = struct.Struct("<Q")
 
@@ -45,6 +45,18 @@ def default_workers(jobs=None, reserve=1) -> int:
     if jobs is not None:
         n = min(n, int(jobs))
     return max(0, n)
+
+
+def forced_workers():
+    """The worker count the environment sets (``WARPSIM_WRITE_WORKERS=N``; 0: none), or None when
+    it is unset; ValueError naming the value otherwise."""
+    forced = os.environ.get("WARPSIM_WRITE_WORKERS", "").strip()
+    if not forced:
+        return None
+    if not forced.isdigit() or int(forced) > 64:
+        raise ValueError(f"WARPSIM_WRITE_WORKERS={forced!r}: give a whole number of worker processes in 0..64 "
+                         "(0: the stepping process writes), or unset it to let warpsim choose")
+    return int(forced)
 
 
 class RemoteError(RuntimeError):

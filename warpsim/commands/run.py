@@ -204,6 +204,20 @@ def _built_scene(cls, params, device, ckpt, ckpt_file):
     return scene
 
 
+def _write_workers(device) -> int:
+    """Worker processes authoring a run's chunk files: one on a GPU, where writing would otherwise
+    hold up the stepping (the frames are the same bytes either way); none on the CPU, whose
+    cores step (``WARPSIM_WRITE_WORKERS=N`` sets it)."""
+    import warp as wp
+
+    from ..process_pool import default_workers, forced_workers
+
+    forced = forced_workers()
+    if forced is not None:
+        return forced
+    return min(1, default_workers()) if wp.get_device(device).is_cuda else 0
+
+
 def _open_writer(args, cls, scene, path, params, timing, device, start):
     """The cache writer of ``path`` with the scene's prims declared and begun (``--resume``: from
     frame ``start``); UsageError when the cache cannot be written or resumed."""
@@ -215,7 +229,8 @@ def _open_writer(args, cls, scene, path, params, timing, device, start):
                                   "frames": args.frames, "chunk": args.chunk,
                                   "device": str(device)})  # runs that differ tell their chunks apart in 'info'
         writer = UsdCacheWriter(path, fps=timing.fps, chunk_size=args.chunk, flatten=args.flatten,
-                                resume_frame=start if args.resume else None, run_id=run_id)
+                                resume_frame=start if args.resume else None, run_id=run_id,
+                                workers=_write_workers(device))
         scene.declare(writer)
         writer.begin()
     except ValueError as exc:
@@ -261,8 +276,10 @@ def _simulate(args, cls, scene, writer, timing, start, checkpoint, device, err):
                 for frame in range(max(start, 1), args.frames + 1):
                     t_frame = time.perf_counter()
                     scene.advance(timing.frame_dt, timing.steps)
-                    if frame == max(start, 1):  # a slow first frame: the whole run's time, with the figure
-                        note = frame_time_note(time.perf_counter() - t_frame, args.frames - frame, device)
+                    if frame == max(start, 1) + 1:  # a slow frame: the whole run's time (the first frame, which
+                        # compiles and loads the kernels, is left out: it may take minutes where the rest run at
+                        # several frames a second)
+                        note = frame_time_note(time.perf_counter() - t_frame, args.frames - frame, device, frame)
                         if note:
                             (progress.write if progress else lambda s: print(s, file=err))(f"warpsim: note: {note}")
                     writer.write_frame(frame, scene.frame_data())
@@ -310,14 +327,20 @@ def _failed(writer, frame, exc, err):
     print(f"warpsim: simulation failed at {msg}\nwarpsim: kept {kept} in {writer.output_path}", file=err)
 
 
+def open_hint(path) -> str:
+    """How to look at the cache ``path``: ``warpsim view`` (works wherever warpsim does), Blender's
+    importer, and where ``usdview`` comes from (pip's usd-core has no usdview)."""
+    return (f"e.g. warpsim view {os.path.relpath(path)}, or Blender: File > Import > Universal Scene Description; "
+            "usdview comes with NVIDIA's prebuilt USD or a USD build, not with pip's usd-core")
+
+
 def _report(args, cls, writer, start, seconds, device, out, err):
     """The result lines on ``out`` (frames written, speed, the file to open) and the ``--preview``
     rendered from the cache just written (``render.command.preview_target``)."""
     written = args.frames + 1 - start
     print(f"wrote {written} frames ({start}..{args.frames}, {written / max(seconds, 1e-9):.1f} frames/s) "
           f"of scene {cls.name!r} on {device}", file=out)
-    print(f"open: {os.path.relpath(writer.output_path)}   (e.g. usdview {os.path.relpath(writer.output_path)})",
-          file=out)
+    print(f"open: {os.path.relpath(writer.output_path)}   ({open_hint(writer.output_path)})", file=out)
     if args.preview is not None:
         from ..render.command import preview_target, render_to
 

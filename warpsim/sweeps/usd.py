@@ -72,14 +72,11 @@ def chunk_writers(writer, batch, frames, store_every=1) -> int:
     chunk would hold less than :data:`POOL_CHUNK_BYTES` or nothing is kept, else one per core left
     beside this process (:func:`warpsim.process_pool.default_workers`), at most one per chunk. The
     environment variable ``WARPSIM_WRITE_WORKERS=N`` sets the count (0: never)."""
-    from ..process_pool import default_workers
+    from ..process_pool import default_workers, forced_workers
 
-    forced = os.environ.get("WARPSIM_WRITE_WORKERS", "").strip()
-    if forced:
-        if not forced.isdigit() or int(forced) > 64:
-            raise ValueError(f"WARPSIM_WRITE_WORKERS={forced!r}: give a whole number of worker processes in 0..64 "
-                             "(0: the stepping process writes), or unset it to let the sweep choose")
-        return int(forced)
+    forced = forced_workers()
+    if forced is not None:
+        return forced
     kept = stored_frames(int(frames) + 1, store_every)
     if not kept:
         return 0
