@@ -24,7 +24,7 @@ if TYPE_CHECKING:  # the same names, seen statically by IDEs, type checkers and 
         Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody,
         Sphere, TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
     )
-    from .bodies import SoftContact, torus_mesh
+    from .bodies import VBD, SoftContact, VBDContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
     from .core import StabilityLimit, StabilityWarning
     from .strands import SagFreeReport, StrandForce, StrandRoots, Strands, add_strands, sag_free, strand_stable_dt
@@ -56,7 +56,7 @@ def _load_all():
         Box, Capsule, Collider, DragSpring, ParticleCollisions, Plane, Planes, Quad, Rectangle, SoftBody,
         Sphere, TriangleMesh, add_soft_body, keyframe_motion, load_mesh, pick_particle, teapot_mesh,
     )
-    from .bodies import SoftContact, torus_mesh
+    from .bodies import VBD, SoftContact, VBDContact, torus_mesh
     from .core import BreakReport, SpringFracture, spring_segments
     from .core import StabilityLimit, StabilityWarning
     from .cloth import (
@@ -92,7 +92,7 @@ __all__ = [
     "MacGrid", "PressureSolver", "Advector", "LevelSet", "LevelSetLiquid", "Smoke", "FlipLiquid", "Viscosity",
     "ParticleFluid", "Nozzle", "Sink", "fluid_block", "FluidSurface",
     "Pendulum", "exact_period", "DynamicSystem", "ParticleSystem", "PendulumSystem", "Viewer",
-    "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh",
+    "SpringFracture", "BreakReport", "spring_segments", "SoftContact", "torus_mesh", "VBD", "VBDContact",
     "StabilityLimit", "StabilityWarning",
     "Strands", "add_strands", "StrandForce", "StrandRoots", "strand_stable_dt", "sag_free", "SagFreeReport",
     "rerun_world",

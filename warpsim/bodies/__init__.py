@@ -3,9 +3,11 @@ particle-particle contacts, keyframed motion), mass-spring soft bodies from tria
 Utah teapot, dragging a particle with the mouse or a script, and host mesh helpers (``meshtools``).
 
 Drives ``warpsim.kernels.collide``, ``warpsim.kernels.interaction`` and ``warpsim.kernels.soft_contact``
-(soft body against soft body: ``SoftContact``; ``torus_mesh`` makes the lecture's donuts).
+(soft body against soft body: ``SoftContact``; ``torus_mesh`` makes the lecture's donuts), and
+``warpsim.kernels.vbd`` / ``vbd_contact`` (``VBD``: backward Euler by vertex block descent with contact
+inside the descent, ``VBDContact``).
 Entry classes: Plane, Box, Sphere, TriangleMesh, ParticleCollisions, SoftContact, add_soft_body, teapot_mesh,
-DragSpring.
+DragSpring, VBD, VBDContact.
 """
 
 from .colliders import (
@@ -16,9 +18,11 @@ from .shapes import torus_mesh
 from .soft_contact import SoftContact
 from .softbody import SoftBody, add_soft_body, load_mesh
 from .teapot import teapot_mesh
+from .vbd import VBD
+from .vbd_contact import VBDContact
 
 __all__ = [
     "Collider", "Planes", "Plane", "Box", "Sphere", "Capsule", "Quad", "Rectangle", "TriangleMesh",
     "ParticleCollisions", "keyframe_motion", "DragSpring", "pick_particle", "SoftBody", "add_soft_body", "load_mesh",
-    "teapot_mesh", "SoftContact", "torus_mesh",
+    "teapot_mesh", "SoftContact", "torus_mesh", "VBD", "VBDContact",
 ]

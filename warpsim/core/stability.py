@@ -92,8 +92,14 @@ METHODS = {
     "cloth_implicit_euler": "implicit_euler",
     "strand_implicit_euler": "implicit_euler",
     "fast_mass_spring": "implicit_euler",  # backward Euler's springs (other forces explicit: gravity, drag)
+    "vbd": "implicit_euler",  # backward Euler's incremental potential, descended block by block (ws.VBD)
 }
 """Integrator name -> the method whose stability region it has."""
+
+STABILITY_NOTES = {"vbd": "vertex block descent is unconditionally stable, accuracy set by iterations"}
+"""Integrator name -> what the stability report says of it where its region alone says too little
+(``ws.VBD`` stops its descent after a number of iterations: any step is stable, the iterations set
+how close it comes to backward Euler)."""
 
 
 class StabilityWarning(UserWarning):
@@ -289,12 +295,15 @@ class StabilityLimit:
         return int(min(AUTO_MAX_SUBSTEPS, max(minimum, n)))
 
 
-def limit_reason(method, omega, zeta, dt, who):
+def limit_reason(method, omega, zeta, dt, who, note=None):
     """Why the step limit ``dt`` [s] of integrator ``method`` is what it is, for the stiffest mode
-    ``omega`` [rad/s] with damping ratio ``zeta`` that ``who`` names (one sentence for warnings)."""
+    ``omega`` [rad/s] with damping ratio ``zeta`` that ``who`` names (one sentence for warnings);
+    ``note``: the integrator's own words (``STABILITY_NOTES``) in place of the region's."""
     if omega == 0.0:
-        return "no spring, penalty contact or other stiff force: no step restriction"
+        return "no spring, penalty contact or other stiff force: no step restriction" + (f"; {note}" if note else "")
     head = f"stiffest mode omega = {omega:.4g} rad/s, zeta = {zeta:.3g} ({who})"
+    if note:
+        return f"{head}; {note}"
     if method == "implicit_euler":
         return f"{head}; implicit Euler is stable for every step"
     if dt == 0.0:
@@ -559,7 +568,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
             kind, index, stiffness, damping = "spring", s, float(k[s]), float(c[s])
             m = float(min(mass[e] for e in ends)) if ends else 0.0
         who = "none" if kind == "none" else f"{kind} {index}: k = {stiffness:.4g} N/m, m = {m:.4g} kg"
-        reason = limit_reason(method, omega, zeta, dt, who)
+        reason = limit_reason(method, omega, zeta, dt, who, STABILITY_NOTES.get(getattr(integrator, "name", integrator)))
         if k_c > 0.0 and moving[in_world].any():
             lightest = int(in_world[moving[in_world]][np.argmin(mass[in_world][moving[in_world]])])
             omega_c = math.sqrt(k_c / mass[lightest])

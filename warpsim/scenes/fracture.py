@@ -426,12 +426,16 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "gravity": (9.81, "gravitational acceleration [m/s^2]"),
     "dt": (1.0 / 1200.0, "time step [s] (split further where the springs' stability limit needs it)"),
     "integrator": ("semi_implicit_euler", ("time integrator; fast_mass_spring: backward Euler by local-global "
-                                           "iterations with one prefactored matrix for all tori (ws.FastMassSpring)"),
-                   INTEGRATORS + ("fast_mass_spring",)),
+                                           "iterations with one prefactored matrix for all tori (ws.FastMassSpring); "
+                                           "vbd: backward Euler by vertex block descent with the contacts, floor and "
+                                           "walls inside the descent and a step bound that keeps every edge out of "
+                                           "every triangle (ws.VBD; e.g. --substeps 4 for 1/240 s)"),
+                   INTEGRATORS + ("fast_mass_spring", "vbd")),
     "contact_stiffness": (2000.0, ("implicit_euler: penalty stiffness of the contacts inside the implicit solve "
                                    "[N/m] (SoftContact.implicit_force; 0: off, contact only after the step); "
                                    "fast_mass_spring: stiffness of the proximal pull toward the pushed contact "
-                                   "vertices (FastMassSpring contact_stiffness)")),
+                                   "vertices (FastMassSpring contact_stiffness); vbd: k_c of the contact energy "
+                                   "k_c/2 (thickness - d)^2 (VBDContact stiffness)")),
     "contact_damping": (0.0, "implicit_euler only: damping of the contacts inside the implicit solve [N s/m]"),
     "contact_reach": (0.012, ("implicit_euler and fast_mass_spring: speculative contact distance beyond the thickness [m] "
                               "(SoftContact reach): pairs that close during a large step are in the implicit "
@@ -442,10 +446,17 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> Non
     "contact_iterations": (16, ("implicit_euler and fast_mass_spring: contact passes after each step (SoftContact iterations; "
                                 "4 with semi_implicit_euler)")),
     "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
+    "vbd_detect_every": (5, ("vbd only: iterations between contact searches inside a step (a search opens "
+                             "every step; each lets a vertex move at most vbd_max_displacement more)")),
+    "vbd_max_displacement": (0.0, ("vbd only: the most a vertex moves between two contact searches [m] (0: the "
+                                   "thickness); the search radius is thickness + 2 x this")),
+    "vbd_chebyshev_rho": (0.0, ("vbd only: spectral radius estimate of the Chebyshev acceleration in [0, 1) (0: "
+                                "off; 0.9 with 12 iterations gained 13 % energy at the heap's first impacts)")),
     "solver_chebyshev": (True, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "
                                 "12 accelerated iterations leave 0.010 of a step's error in the scene's tori, 20 plain "
                                 "ones 0.16; benchmarks/RESULTS.md)")),
-    "solver_iterations": (12, ("fast_mass_spring only: local-global iterations per step (the scene's heap at 1/240 s "
+    "solver_iterations": (12, ("fast_mass_spring and vbd: iterations per step (vbd: colour sweeps; fast_mass_spring: "
+                               "local-global iterations; the scene's heap at 1/240 s "
                                "held with 12 accelerated or 20 plain ones, let edges through with 10 plain; the "
                                "2,000-vertex tori of bench_donuts.py need 12 accelerated ones; benchmarks/RESULTS.md)")),
 }, substeps=20)
@@ -513,11 +524,15 @@ class DonutsScene(SimulatorScene):
         top = max(2.0 * box, float(model.particle_q.numpy()[:, 1].max()) + reach)
         self.lower, self.upper = (-box, 0.0, -box), (box, top, box)
         self.contact = None  # one torus without self contact touches nothing but the box
+        self.vbd_contact = None  # integrator=vbd: the ws.VBDContact inside the descent
         # at implicit Euler's large steps: speculative pairs in the solve and more passes after it
         # (measured: 2 tori of 2,000 vertices at 1/240 s cross with 4 passes, not with 8 or 16)
         implicit_contact = ({"reach": p["contact_reach"], "edge_reach": p["contact_edge_reach"],
                              "iterations": int(p["contact_iterations"])}
                             if p["integrator"] in ("implicit_euler", "fast_mass_spring") else {})
+        if p["integrator"] == "vbd":
+            self._build_vbd(p, model, template, box)
+            return
         if count > 1 or p["self_contact"]:
             self.contact = SoftContact.copies(template.faces, self.offsets, thickness=p["thickness"],
                                               self_contact=p["self_contact"], edge_contact=p["edge_contact"],
@@ -537,9 +552,38 @@ class DonutsScene(SimulatorScene):
                 forces.append(self.contact.implicit_force(p["contact_stiffness"], p["contact_damping"]))
         self.sim = ws.Simulator(model, integrator=integrator, forces=forces, colliders=colliders, max_speed=100.0)
         self.inner_steps = stable_inner_steps(local, masses, springs, stiffness, damping, p["integrator"], p["dt"])
+        self._finish_build(template, count)
+
+    def _finish_build(self, template, count: int) -> None:
+        """The surface vertices and triangles of all tori (the prims' indices)."""
+        k = np.arange(count)
         surface = template.surface_count
         self.surface = (np.arange(surface)[None, :] + self.offsets[:, None]).reshape(-1)
         self.faces = (template.faces[None] + (k * surface)[:, None, None]).reshape(-1, 3)  # in surface order
+
+    def _build_vbd(self, p, model, template, box) -> None:
+        """``integrator=vbd``: the tori, floor and walls in one ws.VBD (contact energies inside the descent,
+        the step bound; no collider after the step), copies of one torus (one colouring, one CSR)."""
+        for key in ("vbd_detect_every",):
+            if p[key] < 0:
+                raise ValueError(f"{key}={p[key]}: give an integer >= 0 (0: one contact search a step)")
+        if not (math.isfinite(p["vbd_max_displacement"]) and p["vbd_max_displacement"] >= 0.0):
+            raise ValueError(f"vbd_max_displacement={p['vbd_max_displacement']}: give a distance >= 0 [m] (0: the "
+                             "thickness)")
+        planes = [((0.0, 1.0, 0.0), 0.0), ((1.0, 0.0, 0.0), -box), ((-1.0, 0.0, 0.0), -box),
+                  ((0.0, 0.0, 1.0), -box), ((0.0, 0.0, -1.0), -box)]
+        P = template.particle_count
+        self.vbd_contact = ws.VBDContact(
+            template.faces - template.particle_start, body_size=P, thickness=p["thickness"],
+            stiffness=p["contact_stiffness"], friction=p["friction"], self_contact=p["self_contact"],
+            max_displacement=p["vbd_max_displacement"] or None, planes=planes)
+        integrator = ws.VBD(int(p["solver_iterations"]), contact=self.vbd_contact, body_size=P,
+                            chebyshev_rho=p["vbd_chebyshev_rho"],
+                            detect_every=int(p["vbd_detect_every"]))
+        self.sim = ws.Simulator(model, integrator=integrator, forces=[ws.Gravity((0.0, -p["gravity"], 0.0))],
+                                colliders=[], max_speed=100.0)
+        self.inner_steps = 1
+        self._finish_build(template, p["count"])
 
     @property
     def bodies(self) -> list:

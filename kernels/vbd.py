@@ -1,0 +1,132 @@
+"""Vertex block descent (Chen, Macklin, Yang, Sifakis, Kavan, "Vertex Block Descent", SIGGRAPH 2024)
+for mass-spring bodies: ``warpsim.bodies.vbd.VBD`` drives these kernels.
+
+A backward Euler step of size h minimises the incremental potential
+
+    G(x) = sum_i m_i / (2 h^2) |x_i - y_i|^2 + sum_s E_s(x) + sum_c E_c(x),    y = x^t + h v^t + h^2 a_ext,
+
+E_s the springs' energies k_s / 2 (|x_i - x_j| - L_s)^2 (with damping c_s along the spring, c_s / h
+(n n^T) (dx_i - dx_j) for the step displacements dx), E_c the contact energies of
+``warpsim.kernels.vbd_contact``. VBD descends G one vertex at a time: with the others fixed,
+vertex i takes one Newton step on its 3 coordinates,
+
+    H_i dx = f_i,    f_i = m_i / h^2 (y_i - x_i) - dG_rest / dx_i,    H_i = m_i / h^2 I + sum d^2 E / dx_i^2,
+
+each spring's block taken positive semi-definite (k [n n^T + max(0, 1 - L / l) (I - n n^T)]).
+Vertices of one colour share no spring, so ``solve_colour`` updates a colour in parallel; it writes
+to a second buffer and ``commit_colour`` copies back, so no thread of a colour reads a position
+another thread of the same launch writes (contact pairs may join two vertices of one colour: they
+see each other's positions from before the colour, Jacobi between them, and the result does not
+depend on thread order). Every step is clipped to the particle's bound around its reference
+position (``clip_to_bound``), the bound of ``vbd_contact.displacement_bounds``.
+"""
+
+import warp as wp
+
+from .vbd_contact import contact_force_hessian
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def clip_to_bound(x: wp.vec3, reference: wp.vec3, bound: float) -> wp.vec3:
+    """x moved onto the ball of radius ``bound`` [m] around ``reference`` when outside it."""
+    d = x - reference
+    length = wp.length(d)
+    if length > bound:
+        return reference + d * (bound / length)
+    return x
+
+
+@wp.kernel
+def predict(
+    qd: wp.array(dtype=wp.vec3), qd_prev: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float), h: float, adaptive: int, reference: wp.array(dtype=wp.vec3),
+    bound: wp.array(dtype=float), q_io: wp.array(dtype=wp.vec3), q0_out: wp.array(dtype=wp.vec3),
+    y_out: wp.array(dtype=wp.vec3),
+):
+    """Step start q0 = q, inertial target y = q + h v + h^2 a_ext [m] and the initial guess in q:
+    q + h v + h^2 s a_ext with s = clamp(a_prev . a_ext / |a_ext|^2, 0, 1) and a_prev = (v - v_prev) / h
+    (VBD's adaptive guess: a body resting on the floor starts where it rests; ``adaptive`` 0: s = 1),
+    clipped to the bound (``bound[i]`` [m])."""
+    i = wp.tid()
+    x = q_io[i]
+    q0_out[i] = x
+    if inv_mass[i] == 0.0:
+        y_out[i] = x
+        return
+    a = f_ext[i] * inv_mass[i]
+    v = qd[i]
+    y_out[i] = x + h * v + h * h * a
+    s = float(1.0)
+    a2 = wp.dot(a, a)
+    if adaptive != 0:
+        s = 0.0
+        if a2 > 0.0:
+            s = wp.clamp(wp.dot((v - qd_prev[i]) / h, a) / a2, 0.0, 1.0)
+    q_io[i] = clip_to_bound(x + h * v + h * h * s * a, reference[i], bound[i])
+
+
+@wp.kernel
+def solve_colour(
+    colour_particles: wp.array(dtype=int), start: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+    y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
+    spring_offsets: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
+    rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
+    broken: wp.array(dtype=int),
+    slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+    vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
+    tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
+    edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
+    ee_count: wp.array(dtype=int), planes: wp.array(dtype=wp.vec4), radius: float, contact_stiffness: float,
+    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
+    q_out: wp.array(dtype=wp.vec3),
+):
+    """One Newton step of particle ``colour_particles[start + k]`` on G (module docstring), clipped
+    to its bound, into ``q_out``; forces and Hessians summed in the fixed order of its CSR rows."""
+    p = colour_particles[start + wp.tid()]
+    x = q[p]
+    if inv_mass[p] == 0.0:
+        q_out[p] = x
+        return
+    inertia = mass[p] * inv_h * inv_h
+    f = inertia * (y[p] - x)
+    H = inertia * wp.identity(3, dtype=float)
+    dxp = x - q0[p]
+    for a in range(spring_offsets[p], spring_offsets[p + 1]):
+        s = spring_list[a]
+        if broken[s] != 0:
+            continue
+        o = spring_indices[2 * s]
+        if o == p:
+            o = spring_indices[2 * s + 1]
+        u = x - q[o]
+        length = wp.length(u)
+        if length < 1.0e-12:
+            continue
+        n = u / length
+        nn = wp.outer(n, n)
+        c = damping[s] * inv_h
+        f -= stiffness[s] * (length - rest[s]) * n + c * (nn * (dxp - (q[o] - q0[o])))
+        H += stiffness[s] * (nn + wp.max(0.0, 1.0 - rest[s] / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
+    fc, Hc = contact_force_hessian(p, x, q, q0, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
+                                   tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, planes, radius,
+                                   contact_stiffness, friction, friction_eps)
+    f += fc
+    H += Hc
+    q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
+
+
+@wp.kernel
+def commit_colour(colour_particles: wp.array(dtype=int), start: int, q_new: wp.array(dtype=wp.vec3),
+                  q_out: wp.array(dtype=wp.vec3)):
+    """Copy the colour's new positions [m] into the positions the next colour reads."""
+    p = colour_particles[start + wp.tid()]
+    q_out[p] = q_new[p]
+
+
+@wp.kernel
+def clip_positions(reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float), q_io: wp.array(dtype=wp.vec3)):
+    """Every position [m] back inside its bound (after the Chebyshev extrapolation)."""
+    i = wp.tid()
+    q_io[i] = clip_to_bound(q_io[i], reference[i], bound[i])

@@ -1,0 +1,319 @@
+"""Contact search and contact energies of vertex block descent (``warpsim.bodies.vbd.VBD``).
+
+Search (once at the start of a step and again every ``detect_every`` iterations, at the current
+positions x_d): two levels as ``warpsim.kernels.soft_contact`` (the bodies' bounds in a small BVH, then
+the subtree of each body met in a BVH grouped by body, ``collect_bodies``), three queries, each
+writing its own fixed-capacity list in the BVH's traversal order (no atomics on the lists, so the
+lists and everything computed from them are the same bits on every run):
+
+* every surface vertex against the triangles within ``query_radius`` (``vt_list``; the vertex's
+  side of a vertex-triangle pair);
+* every triangle against the surface vertices within the radius (``tv_list``; the triangle's side
+  of the same pairs);
+* every surface edge against the edges within the radius (``ee_list``),
+
+one kernel, ``query_pairs``, with the query's kind as its first argument.
+
+Pairs sharing a particle are skipped; so are pairs of the same body unless self contact is on.
+Each query also keeps the smallest distance it met (``*_min``, [m]); ``displacement_bounds`` turns
+them into each particle's step bound (the proof is in ``warpsim.bodies.vbd``). A pair within the
+radius but beyond a list's ``capacity`` is counted in ``overflow`` (integer atomic) and still lowers
+the smallest distance, so an overflow can miss a contact force but never the bound.
+
+Contact energy of one pair, written with four particles k and weights a_k (vertex-triangle: 1,
+-b_0, -b_1, -b_2 with b the barycentrics of the triangle point nearest the vertex; edge-edge:
+1 - s, s, -(1 - t), -t with s, t the parameters of the nearest points): r = sum a_k x_k, d = |r|,
+n = r / d, and for d < r_c (``radius``)
+
+    E = k_c / 2 (r_c - d)^2,       -dE/dx_k = k_c (r_c - d) a_k n,       H_kk ~ k_c a_k^2 n n^T
+
+(the weights held fixed; the Hessian's curvature term -k_c (r_c - d) / d a_k^2 (I - n n^T) is dropped
+so the block stays positive semi-definite, as in VBD). Friction (VBD's, after IPC): with the
+normal force lambda = k_c (r_c - d) lagged, the tangential relative displacement over the step
+u = (I - n n^T) sum a_k (x_k - x_k^t) and eps = ``friction_eps`` [m],
+
+    f_k = -mu lambda a_k f1(|u|) / |u| u,     H_kk ~ mu lambda a_k^2 f1(|u|) / |u| (I - n n^T),
+
+f1(y) = 2 y / eps - y^2 / eps^2 below eps, 1 above (static friction as a stiff spring up to eps).
+"""
+
+import warp as wp
+
+from .soft_contact import BODY_BATCH, collect_bodies, segment_closest_params, triangle_barycentric
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def pair_force_hessian(r: wp.vec3, u: wp.vec3, a: float, radius: float, stiffness: float, friction: float,
+                       friction_eps: float):
+    """Force [N] and Hessian block [N/m] on a particle of weight ``a`` in a pair with relative
+    position ``r`` = sum a_k x_k [m] and relative step displacement ``u`` [m] (module docstring);
+    zero beyond ``radius``."""
+    d = wp.length(r)
+    if d >= radius or d < 1.0e-12 or a == 0.0:
+        return wp.vec3(), wp.mat33()
+    n = r / d
+    lam = stiffness * (radius - d)
+    nn = wp.outer(n, n)
+    f = lam * a * n
+    H = stiffness * a * a * nn
+    if friction > 0.0:
+        ut = u - wp.dot(u, n) * n
+        y = wp.length(ut)
+        s = float(0.0)
+        if y < friction_eps:
+            s = 2.0 / friction_eps - y / (friction_eps * friction_eps)
+        else:
+            s = 1.0 / y
+        f = f - friction * lam * a * s * ut
+        H = H + friction * lam * a * a * s * (wp.identity(3, dtype=float) - nn)
+    return f, H
+
+
+@wp.func
+def vertex_triangle_rel(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """(r = x - nearest point of triangle abc [m], barycentrics of that point)."""
+    w = triangle_barycentric(x, a, b, c)
+    return x - (w[0] * a + w[1] * b + w[2] * c), w
+
+
+@wp.func
+def edge_edge_rel(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3):
+    """(r = nearest point of edge p1q1 - nearest point of edge p2q2 [m], their parameters (s, t))."""
+    st = segment_closest_params(p1, q1, p2, q2)
+    return (p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)), st
+
+
+@wp.kernel
+def gather_points(particles: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), points_out: wp.array(dtype=wp.vec3)):
+    """Positions [m] of the surface vertices (the vertex BVH's degenerate boxes), shape (V,)."""
+    s = wp.tid()
+    points_out[s] = q[particles[s]]
+
+
+@wp.func
+def vertex_triangle_distance(p: int, x: wp.vec3, t: int, tri: wp.array(dtype=int), body: wp.array(dtype=int),
+                             q: wp.array(dtype=wp.vec3), self_contact: int) -> float:
+    """Distance [m] from particle p at x to triangle t; -1 when the pair is skipped (p a corner of t,
+    or the same body without self contact)."""
+    i = tri[3 * t]
+    j = tri[3 * t + 1]
+    k = tri[3 * t + 2]
+    if i == p or j == p or k == p or (self_contact == 0 and body[i] == body[p]):
+        return -1.0
+    r, w = vertex_triangle_rel(x, q[i], q[j], q[k])
+    return wp.length(r)
+
+
+@wp.func
+def edge_edge_distance(i: int, j: int, f: int, edges: wp.array(dtype=int), body: wp.array(dtype=int),
+                       q: wp.array(dtype=wp.vec3), self_contact: int) -> float:
+    """Distance [m] from edge ij to edge f; -1 when the pair is skipped (a shared particle, or the
+    same body without self contact)."""
+    k = edges[2 * f]
+    m = edges[2 * f + 1]
+    if i == k or i == m or j == k or j == m or (self_contact == 0 and body[i] == body[k]):
+        return -1.0
+    r, st = edge_edge_rel(q[i], q[j], q[k], q[m])
+    return wp.length(r)
+
+
+VERTEX_QUERY = wp.constant(0)
+TRIANGLE_QUERY = wp.constant(1)
+EDGE_QUERY = wp.constant(2)
+
+
+@wp.func
+def query_box(kind: int, item: int, surface: wp.array(dtype=int), tri: wp.array(dtype=int),
+              edges: wp.array(dtype=int), body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), pad: float):
+    """(lower, upper, body) of query ``item``: a surface vertex, a triangle or an edge by ``kind``, its
+    box grown by ``pad`` [m]."""
+    lower = wp.vec3(1.0e30)
+    upper = wp.vec3(-1.0e30)
+    first = int(0)
+    corners = int(3)
+    if kind == VERTEX_QUERY:
+        first = surface[item]
+        corners = 1
+    elif kind == EDGE_QUERY:
+        first = edges[2 * item]
+        corners = 2
+    for c in range(corners):
+        p = first
+        if kind == TRIANGLE_QUERY:
+            p = tri[3 * item + c]
+        elif kind == EDGE_QUERY:
+            p = edges[2 * item + c]
+        lower = wp.min(lower, q[p])
+        upper = wp.max(upper, q[p])
+    return lower - wp.vec3(pad), upper + wp.vec3(pad), body[first]
+
+
+@wp.func
+def query_pair(kind: int, item: int, other: int, surface: wp.array(dtype=int), tri: wp.array(dtype=int),
+               edges: wp.array(dtype=int), body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
+               self_contact: int):
+    """(distance [m] or -1 when skipped, what the list stores) of query ``item`` and BVH item ``other``:
+    vertex against triangle (stores the triangle), triangle against vertex (the vertex's particle), edge
+    against edge (the edge)."""
+    if kind == VERTEX_QUERY:
+        p = surface[item]
+        return vertex_triangle_distance(p, q[p], other, tri, body, q, self_contact), other
+    if kind == TRIANGLE_QUERY:
+        p = surface[other]
+        return vertex_triangle_distance(p, q[p], item, tri, body, q, self_contact), p
+    return edge_edge_distance(edges[2 * item], edges[2 * item + 1], other, edges, body, q, self_contact), other
+
+
+@wp.kernel
+def query_pairs(
+    kind: int, body_bvh: wp.uint64, body_root: wp.array(dtype=int), bvh: wp.uint64, roots: wp.array(dtype=int),
+    surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
+    list_out: wp.array(dtype=int), count_out: wp.array(dtype=int), min_out: wp.array(dtype=float),
+    overflow_io: wp.array(dtype=int),
+):
+    """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
+    triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
+    ``list_out[item capacity ..]`` in traversal order, their count, and the smallest distance met (at
+    most ``query_radius``). Two levels: the bodies whose bounds meet the box (``collect_bodies``), then
+    each one's subtree of the grouped BVH."""
+    item = wp.tid()
+    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
+    n = int(0)
+    dmin = query_radius
+    seen = int(0)
+    more = int(1)
+    while more == 1:
+        found, count = collect_bodies(body_bvh, body_root[0], lower, upper, own, self_contact, seen)
+        seen += count
+        more = wp.where(count == BODY_BATCH, 1, 0)
+        for g in range(count):
+            query = wp.bvh_query_aabb(bvh, lower, upper, roots[found[g]])
+            other = int(0)
+            while wp.bvh_query_next(query, other):
+                d, stored = query_pair(kind, item, other, surface, tri, edges, body, q, self_contact)
+                if d < 0.0:
+                    continue
+                dmin = wp.min(dmin, d)
+                if d < query_radius:
+                    if n < capacity:
+                        list_out[item * capacity + n] = stored
+                        n += 1
+                    else:
+                        wp.atomic_add(overflow_io, kind, 1)
+    count_out[item] = n
+    min_out[item] = dmin
+
+
+@wp.kernel
+def displacement_bounds(
+    q: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int), vertex_min: wp.array(dtype=float),
+    tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tri_min: wp.array(dtype=float),
+    edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), edge_min: wp.array(dtype=float),
+    planes: wp.array(dtype=wp.vec4), fraction: float, max_displacement: float,
+    reference_out: wp.array(dtype=wp.vec3), bound_out: wp.array(dtype=float),
+):
+    """Particle p's step bound [m]: ``fraction`` x the smallest distance from p's primitives (the
+    vertex, its triangles, its edges) to any non-incident primitive met by the queries, or to a
+    plane, at most ``max_displacement``; and its reference position (now)."""
+    p = wp.tid()
+    x = q[p]
+    dmin = max_displacement / fraction
+    s = slot[p]
+    if s >= 0:
+        dmin = wp.min(dmin, vertex_min[s])
+        for k in range(tri_offsets[p], tri_offsets[p + 1]):
+            dmin = wp.min(dmin, tri_min[tris[k]])
+        for k in range(edge_offsets[p], edge_offsets[p + 1]):
+            dmin = wp.min(dmin, edge_min[edge_list[k]])
+    for k in range(planes.shape[0]):
+        plane = planes[k]
+        dmin = wp.min(dmin, wp.max(wp.dot(wp.vec3(plane[0], plane[1], plane[2]), x) - plane[3], 0.0))
+    reference_out[p] = x
+    bound_out[p] = fraction * dmin
+
+
+@wp.func
+def contact_force_hessian(
+    p: int, x: wp.vec3, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int),
+    tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+    vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int),
+    tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tv_list: wp.array(dtype=int),
+    tv_count: wp.array(dtype=int),
+    edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
+    ee_count: wp.array(dtype=int),
+    planes: wp.array(dtype=wp.vec4), radius: float, stiffness: float, friction: float, friction_eps: float,
+):
+    """Sum of the contact forces [N] and Hessian blocks [N/m] on particle p at position ``x`` (the
+    other particles at ``q``; ``q0`` the step's start): its vertex-triangle pairs as the vertex
+    and as a triangle corner, its edges' edge-edge pairs, the planes; fixed order."""
+    f = wp.vec3()
+    H = wp.mat33()
+    s = slot[p]
+    if s >= 0:
+        dx = x - q0[p]
+        for n in range(vt_count[s]):
+            t = vt_list[s * capacity + n]
+            i = tri[3 * t]
+            j = tri[3 * t + 1]
+            k = tri[3 * t + 2]
+            r, w = vertex_triangle_rel(x, q[i], q[j], q[k])
+            u = dx - (w[0] * (q[i] - q0[i]) + w[1] * (q[j] - q0[j]) + w[2] * (q[k] - q0[k]))
+            fc, Hc = pair_force_hessian(r, u, 1.0, radius, stiffness, friction, friction_eps)
+            f += fc
+            H += Hc
+        for a in range(tri_offsets[p], tri_offsets[p + 1]):
+            t = tris[a]
+            corner = int(0)
+            if tri[3 * t + 1] == p:
+                corner = 1
+            elif tri[3 * t + 2] == p:
+                corner = 2
+            xs = wp.mat33()
+            ds = wp.mat33()
+            for m in range(3):
+                v = tri[3 * t + m]
+                xv = q[v]
+                if v == p:
+                    xv = x
+                xs[m] = xv
+                ds[m] = xv - q0[v]
+            for n in range(tv_count[t]):
+                v = tv_list[t * capacity + n]
+                r, w = vertex_triangle_rel(q[v], xs[0], xs[1], xs[2])
+                u = (q[v] - q0[v]) - (w[0] * ds[0] + w[1] * ds[1] + w[2] * ds[2])
+                fc, Hc = pair_force_hessian(r, u, -w[corner], radius, stiffness, friction, friction_eps)
+                f += fc
+                H += Hc
+        for a in range(edge_offsets[p], edge_offsets[p + 1]):
+            e = edge_list[a]
+            i = edges[2 * e]
+            j = edges[2 * e + 1]
+            xi = q[i]
+            xj = q[j]
+            if i == p:
+                xi = x
+            else:
+                xj = x
+            di = xi - q0[i]
+            dj = xj - q0[j]
+            for n in range(ee_count[e]):
+                g = ee_list[e * capacity + n]
+                k = edges[2 * g]
+                m = edges[2 * g + 1]
+                r, st = edge_edge_rel(xi, xj, q[k], q[m])
+                u = (1.0 - st[0]) * di + st[0] * dj - (1.0 - st[1]) * (q[k] - q0[k]) - st[1] * (q[m] - q0[m])
+                weight = wp.where(i == p, 1.0 - st[0], st[0])
+                fc, Hc = pair_force_hessian(r, u, weight, radius, stiffness, friction, friction_eps)
+                f += fc
+                H += Hc
+    for k in range(planes.shape[0]):
+        plane = planes[k]
+        normal = wp.vec3(plane[0], plane[1], plane[2])
+        d = wp.max(wp.dot(normal, x) - plane[3], 1.0e-9)
+        fc, Hc = pair_force_hessian(d * normal, x - q0[p], 1.0, radius, stiffness, friction, friction_eps)
+        f += fc
+        H += Hc
+    return f, H

@@ -1,0 +1,296 @@
+"""Vertex block descent (``ws.VBD``, ``ws.VBDContact``; kernels ``warpsim.kernels.vbd`` and ``vbd_contact``):
+one Newton step on one spring is backward Euler's analytic step; converged VBD is ``ImplicitEuler``'s
+step; the greedy colouring never gives two ends of a spring one colour; runs are bit-identical and a
+step allocates nothing; no edge passes through a triangle (brute force over all non-adjacent pairs,
+every frame) in a two-torus drop with self contact and a small heap; the donuts scene's 12-torus heap
+holds over its 600 frames under three roundings; the stability report and the energy balance know VBD;
+bad input is refused with the item, the value and a fix."""
+import io
+
+import numpy as np
+import pytest
+import warp as wp
+from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies, segments_cross_triangles
+
+import warpsim as ws
+from warpsim.bodies import meshtools
+from warpsim.core.colouring import colour_groups, greedy_colouring, tile_colouring
+from warpsim.core.energy import MARGIN
+from warpsim.scenes import get_scene
+
+DEVICE = "cpu"
+SMALL = {"segments": 10, "sides": 6, "lattice_cells": 5}
+
+
+def crossings(x, faces):
+    """Edges (of all surfaces) passing through triangles they share no vertex with, brute force over
+    every such pair (NumPy oracle ``segments_cross_triangles``; small meshes)."""
+    x = x.astype(np.float64)
+    edges, _, _ = meshtools.edge_topology(faces)
+    count = 0
+    for t, tri in enumerate(faces):
+        keep = ~np.isin(edges, tri).any(1)
+        hit = segments_cross_triangles(x[edges[keep, 0]], x[edges[keep, 1]], x[tri][None])
+        count += int(hit.sum())
+    return count
+
+
+def spring_pair(k=40.0, c=0.0, stretch=0.03, speed=0.5):
+    """Particle 0 pinned at the origin, particle 1 (0.2 kg) at rest length 0.1 m + ``stretch`` on +x moving
+    at ``speed`` [m/s] along x, one spring (k [N/m], damping c [N s/m])."""
+    b = ws.ModelBuilder()
+    b.add_particle((0.0, 0.0, 0.0), mass=0.0)
+    b.add_particle((0.1 + stretch, 0.0, 0.0), vel=(speed, 0.0, 0.0), mass=0.2)
+    b.add_spring(0, 1, k, c, rest_length=0.1)
+    return b.finalize(DEVICE)
+
+
+@pytest.mark.parametrize("damping", [0.0, 1.5])
+def test_one_newton_step_on_one_spring_is_the_backward_euler_step(damping):
+    """Along the spring its energy is quadratic, so VBD's one Newton step from y = x0 + h v0 lands on
+    backward Euler's solution m (x - y) / h^2 = -k (x - L) - c (x - x0) / h."""
+    k, m, L, h = 40.0, 0.2, 0.1, 1.0 / 30.0
+    model = spring_pair(k, damping)
+    sim = ws.Simulator(model, integrator=ws.VBD(iterations=1), forces=[])
+    sim.step(h)
+    x0, v0 = 0.13, 0.5
+    y = x0 + h * v0
+    x = (m / h**2 * y + k * L + damping / h * x0) / (m / h**2 + k + damping / h)
+    got = sim.state.positions.numpy()[1]
+    assert got[0] == pytest.approx(x, rel=1e-6) and np.abs(got[1:]).max() == 0.0
+    assert sim.state.velocities.numpy()[1][0] == pytest.approx((x - x0) / h, rel=1e-4)
+    assert (sim.state.positions.numpy()[0] == 0.0).all()  # pinned
+
+
+def small_torus(position=(0.0, 0.3, 0.0), builder=None, segments=10, sides=6):
+    b = builder or ws.ModelBuilder()
+    points, faces = ws.torus_mesh(0.1, 0.04, segments, sides)
+    body = ws.add_soft_body(b, points, faces, total_mass=1.0, stiffness=150.0, damping=0.05, lattice_cells=5,
+                            position=position)
+    return b, body
+
+
+def test_converged_vbd_is_implicit_euler():
+    """A torus falling and wobbling at 1/60 s: 400 VBD sweeps a step give ImplicitEuler's step (Newton
+    to 1e-9 m/s, CG to 1e-10) over 5 steps, to 1e-5 m; 3 sweeps do not (the test can fail)."""
+    b, _ = small_torus()
+    model = b.finalize(DEVICE)
+    q = model.particle_q.numpy()
+    q[::3] += 0.01  # strain the springs
+    model.particle_q.assign(q)
+
+    def run(integrator):
+        sim = ws.Simulator(model, integrator=integrator, forces=[ws.Gravity()])
+        for _ in range(5):
+            sim.step(1.0 / 60.0)
+        return sim.state.positions.numpy().astype(np.float64)
+
+    reference = run(ws.ImplicitEuler(newton_iterations=30, newton_tol=1e-9, cg_tol=1e-10))
+    assert np.abs(run(ws.VBD(iterations=400)) - reference).max() < 1e-5
+    assert np.abs(run(ws.VBD(iterations=3)) - reference).max() > 1e-4
+
+
+def test_greedy_colouring_separates_every_spring_and_tiles():
+    b, body = small_torus()
+    model = b.finalize(DEVICE)
+    springs = model.spring_indices.numpy().reshape(-1, 2)
+    colours = greedy_colouring(model.particle_count, springs)
+    assert (colours[springs[:, 0]] != colours[springs[:, 1]]).all()
+    assert np.array_equal(colours, greedy_colouring(model.particle_count, springs))  # deterministic
+    degree = np.bincount(springs.reshape(-1), minlength=model.particle_count)
+    assert colours.max() <= degree.max()  # greedy: at most max degree + 1 colours
+    tiled = tile_colouring(colours, 3)
+    P = model.particle_count
+    every = np.concatenate([springs + k * P for k in range(3)])
+    assert (tiled[every[:, 0]] != tiled[every[:, 1]]).all()
+    offsets, particles = colour_groups(tiled)
+    assert sorted(particles.tolist()) == list(range(3 * P))
+    for c in range(len(offsets) - 1):
+        assert (tiled[particles[offsets[c]:offsets[c + 1]]] == c).all()
+    with pytest.raises(ValueError, match=r"pair 1 joins particle 2 to itself"):
+        greedy_colouring(4, [(0, 1), (2, 2)])
+
+
+def two_tori(self_contact=True, gap=0.02):
+    """Two tori of 10 x 6, the upper tilted, dropped on a floor, VBD with contact (self contact on)."""
+    b = ws.ModelBuilder()
+    _, lower = small_torus((0.0, 0.06, 0.0), b)
+    points, faces = ws.torus_mesh(0.1, 0.04, 10, 6)
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(1.2), -np.sin(1.2)], [0.0, np.sin(1.2), np.cos(1.2)]])
+    upper = ws.add_soft_body(b, points @ tilt.T, faces, total_mass=1.0, stiffness=150.0, damping=0.05,
+                             lattice_cells=5, position=(0.05, 0.06 + 0.1 + 0.04 + gap, 0.0))
+    model = b.finalize(DEVICE)
+    # the tilted torus's lattice differs: no copies, one colouring of the whole model, bodies by particle
+    body = np.zeros(model.particle_count, dtype=np.int64)
+    body[upper.particle_start:] = 1
+    faces = np.concatenate([lower.faces, upper.faces])
+    contact = ws.VBDContact(faces, particle_body=body, thickness=0.006, self_contact=self_contact,
+                            planes=[((0.0, 1.0, 0.0), 0.0)])
+    sim = ws.Simulator(model, integrator=ws.VBD(10, contact=contact), forces=[ws.Gravity()])
+    return sim, contact, faces
+
+
+def test_two_torus_drop_keeps_every_edge_out_of_every_triangle_and_repeats_bit_for_bit():
+    """Two tori (one tilted through the other's hole) dropped on the floor at 1/240 s with self contact:
+    at every frame no edge passes through any triangle it shares no vertex with (either torus's own
+    included), no vertex is under the floor, the tori touch; a second run gives the same bits."""
+    runs = []
+    for _ in range(2):
+        sim, contact, faces = two_tori()
+        touched = 0
+        for frame in range(40):
+            sim.frame(1.0 / 60.0, 4)
+            x = sim.state.positions.numpy()
+            if not runs:
+                assert crossings(x, faces) == 0, frame
+                assert x[:, 1].min() > 0.0, frame
+            touched = max(touched, contact.pair_counts()[0])
+        runs.append((sim.state.positions.numpy(), sim.state.velocities.numpy(), touched))
+    assert runs[0][2] > 0  # they met
+    assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
+    assert sim.energy_gain < MARGIN
+
+
+def test_a_step_allocates_nothing(monkeypatch):
+    """After the first step, VBD steps (contact search, sweeps, bounds) allocate no memory on the CPU
+    device (what a CUDA graph needs); on CUDA the steps are also captured and replayed as a graph and give
+    the eager steps' bits."""
+    sim, _, _ = two_tori()
+    sim.step(1.0 / 240.0)
+    allocator = wp.get_device(DEVICE).default_allocator
+    sizes = []
+    allocate = allocator.allocate
+    monkeypatch.setattr(allocator, "allocate", lambda size: sizes.append(size) or allocate(size))
+    wp.zeros(4, dtype=float, device=DEVICE)
+    assert sizes == [16]  # the counter sees allocations
+    sizes.clear()
+    for _ in range(3):
+        sim.integrator.step(sim.system, sim.state.positions, sim.state.velocities, sim._time, 1.0 / 240.0)
+    monkeypatch.undo()
+    assert sizes == []
+    if wp.is_cuda_available():
+        check_graph_capture("cuda:0")
+
+
+def check_graph_capture(device):
+    """Eager steps and the same steps replayed from a CUDA graph give the same bits (CUDA only)."""
+    results = []
+    for graph in (False, True):
+        with wp.ScopedDevice(device):
+            b = ws.ModelBuilder()
+            _, lower = small_torus((0.0, 0.06, 0.0), b)
+            small_torus((0.02, 0.2, 0.0), b)
+            model = b.finalize(device)
+            P = lower.particle_count
+            contact = ws.VBDContact(lower.faces, body_size=P, planes=[((0.0, 1.0, 0.0), 0.0)], rebuild_every=1000)
+            integ = ws.VBD(6, contact=contact, body_size=P)
+            sim = ws.Simulator(model, integrator=integ, forces=[ws.Gravity()], check_every=0)
+            sim.step(1.0 / 240.0)
+            if graph:
+                with wp.ScopedCapture(device) as capture:
+                    integ.step(sim.system, sim.state.positions, sim.state.velocities, sim._time, 1.0 / 240.0)
+                for _ in range(10):
+                    wp.capture_launch(capture.graph)
+            else:
+                for _ in range(10):
+                    integ.step(sim.system, sim.state.positions, sim.state.velocities, sim._time, 1.0 / 240.0)
+            results.append(sim.state.positions.numpy())
+    assert np.array_equal(results[0], results[1])
+
+
+def heap(count, frames, check_every, shape=SMALL, **params):
+    """The donuts scene with integrator=vbd at 1/240 s: (scene, deepest vertex [m], most vertex-triangle
+    pairs, fastest particle [m/s]); asserts no edge through another torus's triangle on checked frames."""
+    cls = get_scene("donuts")
+    p = cls.resolve_params({"count": count, **shape, "integrator": "vbd", **params})
+    scene = cls(p, device=DEVICE)
+    worst, most, fastest = 0.0, 0, 0.0
+    for frame in range(frames):
+        scene.advance(1.0 / 60.0, 4)
+        scene.sim.check_frame(1.0 / 60.0)  # the energy balance: raises on a gain past its margin
+        if frame % check_every == check_every - 1 or frame == frames - 1:
+            x = scene.sim.state.positions.numpy()
+            worst = max(worst, deepest_vertex(x, scene.bodies))
+            assert edges_through_other_bodies(x, scene.bodies) == [], frame
+            most = max(most, scene.vbd_contact.pair_counts()[0])
+            fastest = max(fastest, float(np.linalg.norm(scene.sim.state.velocities.numpy(), axis=1).max()))
+    return scene, p, worst, most, fastest
+
+
+def test_small_heap_keeps_every_edge_out_at_every_frame():
+    """4 tori stacked in a narrow box with self contact: every frame, no edge through any triangle it shares
+    no vertex with (brute force over all pairs), no vertex deeper than the thickness."""
+    cls = get_scene("donuts")
+    p = cls.resolve_params({"count": 4, **SMALL, "box": 0.16, "integrator": "vbd", "self_contact": True})
+    scene = cls(p, device=DEVICE)
+    faces = np.concatenate([b.faces for b in scene.bodies])
+    worst = 0.0
+    for frame in range(45):
+        scene.advance(1.0 / 60.0, 4)
+        x = scene.sim.state.positions.numpy()
+        assert crossings(x, faces) == 0, frame
+        worst = max(worst, deepest_vertex(x, scene.bodies))
+    assert worst <= p["thickness"]
+    assert max(x[b.surface_indices, 1].mean() for b in scene.bodies) > 0.15  # stacked, not side by side
+
+
+@pytest.mark.parametrize("rounding", [{"solver_iterations": 12}, {"solver_iterations": 8},
+                                      {"solver_iterations": 12, "vbd_detect_every": 4}])
+def test_the_scene_heap_holds_over_600_frames(rounding):
+    """The donuts scene's 12 tori (10 x 6 vertices and a 5-cell lattice each, so that 600 frames fit the
+    CPU) at 1/240 s by VBD, under three roundings (12 and 8 sweeps a step; searches every 4 sweeps): over
+    the scene's 600 frames no edge passes through another torus's triangle (every 10 frames), no vertex goes
+    deeper than the thickness, the energy balance never trips (checked every frame), nothing is thrown
+    faster than the tori fall, and the heap comes to rest with tori on tori."""
+    scene, p, worst, most, fastest = heap(12, 600, 10, **rounding)
+    assert most > 100  # a heap in contact ...
+    assert worst <= p["thickness"], worst  # ... with no vertex deeper than the thickness
+    assert fastest < 5.0, fastest
+    assert scene.sim.energy_gain < MARGIN
+    assert scene.kinetic_energy() < 0.05  # at rest (about 30 J at the first impacts)
+    x = scene.sim.state.positions.numpy()
+    assert max(x[b.surface_indices, 1].mean() for b in scene.bodies) > 0.1  # tori lie on tori
+
+
+def test_stability_report_and_scene_options():
+    """The stability report says VBD is unconditionally stable with accuracy set by iterations; the
+    scene refuses bad VBD options with a line naming them."""
+    model = spring_pair()
+    sim = ws.Simulator(model, integrator=ws.VBD(), forces=[])
+    limit = sim.stability()
+    assert limit.dt == float("inf")
+    assert "unconditionally stable, accuracy set by iterations" in limit.reason
+    cls = get_scene("donuts")
+    for key, value, message in (("vbd_detect_every", -1, "vbd_detect_every=-1"),
+                                ("vbd_max_displacement", -0.1, "vbd_max_displacement=-0.1")):
+        with pytest.raises(ValueError, match=message):
+            cls(cls.resolve_params({"count": 2, **SMALL, "integrator": "vbd", key: value}), device=DEVICE)
+
+
+def test_bad_input_names_the_item_and_a_fix():
+    with pytest.raises(ValueError, match="VBD iterations"):
+        ws.VBD(iterations=0)
+    with pytest.raises(ValueError, match="VBDContact bound_fraction"):
+        ws.VBDContact([[0, 1, 2]], bound_fraction=0.6)
+    with pytest.raises(ValueError, match=r"VBDContact faces must have shape \(F, 3\)"):
+        ws.VBDContact([[0, 1]])
+    with pytest.raises(ValueError, match=r"VBDContact planes\[0\] has a zero normal"):
+        ws.VBDContact([[0, 1, 2]], planes=[((0.0, 0.0, 0.0), 0.0)])
+    with pytest.raises(ValueError, match="VBD contact is"):
+        ws.VBD(contact=object())
+    model = spring_pair()
+    with pytest.raises(ValueError, match="VBD body_size = 3 does not divide the model's 2 particles"):
+        ws.Simulator(model, integrator=ws.VBD(body_size=3), forces=[])
+
+
+def test_the_command_line_runs_the_heap_by_vbd(tmp_path):
+    """``warpsim run donuts --set integrator=vbd`` writes a cache (small tori, a few frames)."""
+    from warpsim.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    path = tmp_path / "donuts.usda"
+    code = main(["run", "donuts", "--frames", "3", "--substeps", "4", "--device", DEVICE, "--out", str(path),
+                 "--set", "integrator=vbd", "--set", "count=2", "--set", "segments=10", "--set", "sides=6",
+                 "--set", "lattice_cells=5"], out, err)
+    assert code == 0, err.getvalue()
+    assert path.exists()

@@ -1,0 +1,278 @@
+"""The contact topology and search of vertex block descent (``ws.VBD``): which pairs of primitives
+may push on each particle, and how far each particle may move before the next search.
+
+:class:`VBDContact` holds the surface (triangles, their edges and vertices) of copies of one body or
+of a whole mesh, per-particle CSR rows of the triangles and edges touching each particle (built
+once, fixed order), three BVHs (triangles, surface vertices, edges) and the per-query pair lists of
+``warpsim.kernels.vbd_contact``. :meth:`VBDContact.search` refits the BVHs (a rebuild every
+``rebuild_every`` searches), runs the three queries and turns their smallest distances into each
+particle's displacement bound; it allocates nothing and reads nothing back (a CUDA graph can hold it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..core import checks
+from ..kernels import soft_contact as SK
+from ..kernels import vbd_contact as K
+from . import meshtools
+
+
+def _csr(rows: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets (n + 1,), values sorted by row then value): the fixed-order rows of a CSR."""
+    order = np.lexsort((values, rows))
+    offsets = np.searchsorted(rows[order], np.arange(n + 1))
+    return offsets.astype(np.int32), values[order].astype(np.int32)
+
+
+def _tiled_csr(offsets: np.ndarray, values: np.ndarray, copies: int, value_stride: int):
+    """A template CSR (P rows) repeated for ``copies`` copies, each copy's values shifted by ``value_stride``."""
+    P = len(offsets) - 1
+    counts = np.tile(np.diff(offsets), copies)
+    full = np.zeros(P * copies + 1, dtype=np.int64)
+    np.cumsum(counts, out=full[1:])
+    shift = np.repeat(np.arange(copies, dtype=np.int64) * value_stride, len(values))
+    return full.astype(np.int32), (np.tile(values.astype(np.int64), copies) + shift).astype(np.int32)
+
+
+class VBDContact:
+    """Vertex-triangle and edge-edge contact inside ``ws.VBD`` (and plane contact).
+
+    Args:
+        faces: (F, 3) triangles in particle indices: of one body when ``body_size`` is given (copy k
+            is that body shifted by k body_size particles), else of the whole model.
+        body_size: particles of one copy (P), or None.
+        particle_body: (N,) body of each particle when ``body_size`` is None (default: one body).
+        thickness: contact radius r_c [m]: a pair closer than this pushes (energy k_c/2 (r_c - d)^2).
+        stiffness: k_c [N/m].
+        friction: Coulomb coefficient mu >= 0.
+        friction_eps: displacement [m] below which friction acts as a stiff spring (VBD's eps_v h).
+        self_contact: also pairs within one body (pairs sharing a particle are always skipped).
+        bound_fraction: gamma in (0, 1/2): each search lets a particle move gamma x its distance to the
+            nearest non-incident primitive (``warpsim.bodies.vbd`` proves no pair then closes).
+        max_displacement: b_max [m], the most a particle moves between searches (default: the thickness).
+        capacity: pairs kept per query list (more are counted in :attr:`overflow`).
+        planes: (normal (3,), offset) pairs: half-spaces n . x >= offset (floor and walls).
+        rebuild_every: searches between BVH rebuilds (refits in between).
+    """
+
+    CHUNK = 8
+    """Surface vertices per thread of the body-bounds pass."""
+
+    def __init__(self, faces, *, body_size: int | None = None, particle_body=None, thickness: float = 0.006,
+                 stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
+                 self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,
+                 capacity: int = 32, planes=(), rebuild_every: int = 20):
+        faces = checks.index_array(np.asarray(faces), "VBDContact faces") if np.asarray(faces).dtype.kind == "f" \
+            else np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+            raise ValueError(f"VBDContact faces must have shape (F, 3) with F >= 1, got {faces.shape}; give the "
+                             "surface triangles in particle indices")
+        self.faces = faces.astype(np.int64)
+        self.body_size = None if body_size is None else checks.integer(
+            body_size, "VBDContact body_size", lo=1, hi=1 << 40, fix="the particles of one copy, or None")
+        self.particle_body = None if particle_body is None else np.asarray(particle_body, dtype=np.int64)
+        self.thickness = checks.positive(thickness, "VBDContact thickness", unit="m", fix="e.g. 0.006")
+        self.stiffness = checks.nonnegative(stiffness, "VBDContact stiffness", unit="N/m", fix="e.g. 2000")
+        self.friction = checks.nonnegative(friction, "VBDContact friction", fix="e.g. 0.5")
+        self.friction_eps = 0.1 * self.thickness if friction_eps is None else checks.positive(
+            friction_eps, "VBDContact friction_eps", unit="m", fix="e.g. 1e-4")
+        self.self_contact = checks.flag(self_contact, "VBDContact self_contact")
+        self.bound_fraction = checks.in_range(bound_fraction, "VBDContact bound_fraction", 1.0e-3, 0.499,
+                                              fix="a fraction below 1/2, e.g. 0.4")
+        self.max_displacement = self.thickness if max_displacement is None else checks.positive(
+            max_displacement, "VBDContact max_displacement", unit="m", fix="e.g. the thickness")
+        self.capacity = checks.integer(capacity, "VBDContact capacity", lo=1, hi=4096, fix="e.g. 32")
+        self.rebuild_every = checks.integer(rebuild_every, "VBDContact rebuild_every", lo=1, hi=1 << 30,
+                                            fix="e.g. 20")
+        rows = []
+        for k, plane in enumerate(planes):
+            try:
+                normal, offset = plane
+                normal = np.asarray(checks.vec3(normal, f"VBDContact planes[{k}] normal"), dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"VBDContact planes[{k}] is {plane!r}; give (normal (3,), offset [m]): {exc}") from None
+            length = float(np.linalg.norm(normal))
+            if not length > 0.0:
+                raise ValueError(f"VBDContact planes[{k}] has a zero normal; give e.g. ((0, 1, 0), 0.0)")
+            rows.append([*(normal / length), float(offset) / length])
+        self.planes = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
+        self.searches = 0
+
+    @property
+    def query_radius(self) -> float:
+        """r_q = r_c + 2 b_max [m]: a pair farther apart at a search can close by at most 2 b_max before
+        the next, so it stays beyond r_c (no force missed) and apart (no crossing)."""
+        return self.thickness + 2.0 * self.max_displacement
+
+    def bind(self, model) -> None:
+        """Build the surface, CSR rows, BVHs and lists for ``model`` (host work once; allocates)."""
+        n, d = model.particle_count, model.device
+        self.device = d
+        if self.body_size is not None:
+            P = self.body_size
+            if n % P:
+                raise ValueError(f"VBDContact body_size = {P} does not divide the model's {n} particles; give the "
+                                 "particles of one copy")
+            copies = n // P
+            body = np.repeat(np.arange(copies), P)
+        else:
+            P, copies = n, 1
+            body = np.zeros(n, dtype=np.int64) if self.particle_body is None else self.particle_body
+            if body.shape != (n,):
+                raise ValueError(f"VBDContact particle_body has shape {body.shape}; give one body per particle ({n},)")
+        if self.faces.min() < 0 or self.faces.max() >= P:
+            raise ValueError(f"VBDContact faces index particle {int(self.faces.max())} outside 0..{P - 1}; give "
+                             "triangles of " + ("one copy" if self.body_size else "the model"))
+        F = len(self.faces)
+        edges, _, _ = meshtools.edge_topology(self.faces)
+        E = len(edges)
+        surface = np.unique(self.faces)
+        V = len(surface)
+        tri_off, tri_val = _csr(self.faces.reshape(-1), np.repeat(np.arange(F), 3), P)
+        edge_off, edge_val = _csr(edges.reshape(-1), np.repeat(np.arange(E), 2), P)
+        slot = np.full(P, -1, dtype=np.int64)
+        slot[surface] = np.arange(V)
+        shift = np.arange(copies, dtype=np.int64)
+        tiled = {
+            "tri": (self.faces[None] + (shift * P)[:, None, None]).reshape(-1),
+            "edges": (edges[None] + (shift * P)[:, None, None]).reshape(-1),
+            "surface": (surface[None] + (shift * P)[:, None]).reshape(-1),
+            "slot": np.where(np.tile(slot, copies) >= 0, np.tile(slot, copies) + np.repeat(shift * V, P), -1),
+        }
+        tri_off, tri_val = _tiled_csr(tri_off, tri_val, copies, F)
+        edge_off, edge_val = _tiled_csr(edge_off, edge_val, copies, E)
+
+        def ints(a):
+            return wp.array(np.ascontiguousarray(a).astype(np.int32), dtype=int, device=d)
+
+        self._tri, self._edges, self._surface, self._slot = (ints(tiled[k]) for k in ("tri", "edges", "surface", "slot"))
+        self._body = ints(body)
+        self._tri_offsets, self._tris = ints(tri_off), ints(tri_val)
+        self._edge_offsets, self._edge_list = ints(edge_off), ints(edge_val)
+        self.triangle_count, self.edge_count, self.vertex_count = F * copies, E * copies, V * copies
+        C = self.capacity
+        self._vt = wp.zeros(self.vertex_count * C, dtype=int, device=d)
+        self._vt_count = wp.zeros(self.vertex_count, dtype=int, device=d)
+        self._vt_min = wp.zeros(self.vertex_count, dtype=float, device=d)
+        self._tv = wp.zeros(self.triangle_count * C, dtype=int, device=d)
+        self._tv_count = wp.zeros(self.triangle_count, dtype=int, device=d)
+        self._tv_min = wp.zeros(self.triangle_count, dtype=float, device=d)
+        self._ee = wp.zeros(self.edge_count * C, dtype=int, device=d)
+        self._ee_count = wp.zeros(self.edge_count, dtype=int, device=d)
+        self._ee_min = wp.zeros(self.edge_count, dtype=float, device=d)
+        self._overflow = wp.zeros(3, dtype=int, device=d)
+        self._planes = wp.array(self.planes.astype(np.float32), dtype=wp.vec4, device=d)
+        self.reference = wp.zeros(n, dtype=wp.vec3, device=d)
+        """Positions [m] at the last search, shape (N,)."""
+        self.bound = wp.zeros(n, dtype=float, device=d)
+        """Each particle's displacement bound [m] from ``reference`` until the next search, shape (N,)."""
+        # two levels (``kernels.soft_contact``): a BVH over the bodies' bounds (from chunks of at most
+        # CHUNK surface vertices of one body), then BVHs grouped by body
+        B = int(body.max()) + 1
+        surface_body = body[tiled["surface"]]
+        starts = np.flatnonzero(np.diff(surface_body, prepend=-1) != 0)
+        run = np.arange(len(surface_body)) - np.repeat(starts, np.diff(np.append(starts, len(surface_body))))
+        chunk = np.flatnonzero(run % self.CHUNK == 0)
+        self._chunk_start = ints(np.append(chunk, len(surface_body)))
+        self._chunk_body = ints(surface_body[chunk])
+        self.body_count = B
+        self._groups = [ints(body[tiled["tri"][0::3]]), ints(surface_body), ints(body[tiled["edges"][0::2]]),
+                        ints(np.zeros(B, dtype=np.int64))]  # kept: a BVH holds its groups by pointer
+        self._body_lower = wp.zeros(B, dtype=wp.vec3, device=d)
+        self._body_upper = wp.zeros(B, dtype=wp.vec3, device=d)
+        self._roots = [wp.zeros(B, dtype=int, device=d) for _ in range(3)] + [wp.zeros(1, dtype=int, device=d)]
+        q = model.particle_q
+        self._tri_lower = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
+        self._tri_upper = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
+        self._points = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
+        self._edge_lower = wp.zeros(self.edge_count, dtype=wp.vec3, device=d)
+        self._edge_upper = wp.zeros(self.edge_count, dtype=wp.vec3, device=d)
+        self._recorded_key: tuple | None = None
+        self._record_bounds(q)
+        for launch in self._bounds:
+            launch.launch()
+        self._constructor = "lbvh" if d.is_cuda else "sah"
+        boxes = [(self._tri_lower, self._tri_upper), (self._points, self._points), (self._edge_lower, self._edge_upper),
+                 (self._body_lower, self._body_upper)]
+        self._bvhs = [wp.Bvh(lo, hi, constructor=self._constructor, groups=g) for (lo, hi), g in zip(boxes, self._groups)]
+        self._find_roots = [wp.launch(SK.group_roots, len(root), inputs=[bvh.id, root], device=d, record_cmd=True)
+                            for bvh, root in zip(self._bvhs, self._roots)]
+        for launch in self._find_roots:
+            launch.launch()
+        self.searches = 0
+
+    def _record_bounds(self, q) -> None:
+        """Record the launches that write the BVHs' boxes at positions ``q``."""
+        def record(kernel, dim, inputs):
+            return wp.launch(kernel, dim, inputs=inputs, device=self.device, record_cmd=True)
+
+        self._bounds = [
+            record(SK.triangle_bounds, self.triangle_count, [self._tri, q, self._tri_lower, self._tri_upper]),
+            record(K.gather_points, self.vertex_count, [self._surface, q, self._points]),
+            record(SK.edge_bounds, self.edge_count, [self._edges, q, q, self._edge_lower, self._edge_upper]),
+            record(SK.reset_bounds, self.body_count, [self._body_lower, self._body_upper]),
+            record(SK.body_bounds, self._chunk_body.shape[0], [self._chunk_start, self._chunk_body, self._surface, q, q,
+                                                               self._body_lower, self._body_upper])]
+
+    def _record(self, q) -> None:
+        """Record the search's launches for positions ``q`` (replayed: no argument packing)."""
+        d, C, r, sc = self.device, self.capacity, self.query_radius, int(self.self_contact)
+
+        def record(kernel, dim, inputs):
+            return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True)
+
+        self._record_bounds(q)
+        tri_bvh, point_bvh, edge_bvh, body_bvh = self._bvhs
+        tri_roots, point_roots, edge_roots, body_root = self._roots
+        lists = [(self._vt, self._vt_count, self._vt_min), (self._tv, self._tv_count, self._tv_min),
+                 (self._ee, self._ee_count, self._ee_min)]
+        kinds = [(K.VERTEX_QUERY, self.vertex_count, tri_bvh, tri_roots),
+                 (K.TRIANGLE_QUERY, self.triangle_count, point_bvh, point_roots),
+                 (K.EDGE_QUERY, self.edge_count, edge_bvh, edge_roots)]
+        self._queries = [
+            record(K.query_pairs, count, [int(kind), body_bvh.id, body_root, bvh.id, roots, self._surface, self._tri,
+                                          self._edges, self._body, q, r, sc, C, *out, self._overflow])
+            for (kind, count, bvh, roots), out in zip(kinds, lists)] + [
+            record(K.displacement_bounds, q.shape[0], [
+                q, self._slot, self._vt_min, self._tri_offsets, self._tris, self._tv_min, self._edge_offsets,
+                self._edge_list, self._ee_min, self._planes, self.bound_fraction, self.max_displacement,
+                self.reference, self.bound])]
+        self._recorded_key = (q.ptr, self.thickness, self.max_displacement, self.bound_fraction, self.self_contact,
+                              self.stiffness)
+
+    def search(self, q) -> None:
+        """Pairs within the query radius at positions ``q`` (N,) [m], and each particle's bound and
+        reference (no allocation, no read-back)."""
+        if self._recorded_key != (q.ptr, self.thickness, self.max_displacement, self.bound_fraction,
+                                  self.self_contact, self.stiffness):
+            self._record(q)
+        for launch in self._bounds:
+            launch.launch()
+        rebuild = self.searches % self.rebuild_every == 0
+        for bvh in self._bvhs:
+            bvh.rebuild(self._constructor) if rebuild else bvh.refit()
+        if rebuild:
+            for launch in self._find_roots:
+                launch.launch()
+        self.searches += 1
+        for launch in self._queries:
+            launch.launch()
+
+    def solve_inputs(self) -> list:
+        """The contact arguments of ``kernels.vbd.solve_colour`` (slot .. friction_eps)."""
+        return [self._slot, self._tri, self._edges, self.capacity, self._vt, self._vt_count, self._tri_offsets,
+                self._tris, self._tv, self._tv_count, self._edge_offsets, self._edge_list, self._ee, self._ee_count,
+                self._planes, self.thickness, self.stiffness, self.friction, self.friction_eps]
+
+    @property
+    def overflow(self) -> tuple:
+        """(vertex, triangle, edge) queries' pairs beyond ``capacity`` so far (reads back)."""
+        return tuple(int(x) for x in self._overflow.numpy())
+
+    def pair_counts(self) -> tuple:
+        """(vertex-triangle, edge-edge) pairs listed at the last search (reads back; each pair
+        appears from both sides)."""
+        return int(self._vt_count.numpy().sum()), int(self._ee_count.numpy().sum()) // 2
