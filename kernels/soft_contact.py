@@ -15,6 +15,10 @@ Broad phase, two levels (bodies, then the other bodies' primitives):
   query visited were its own body's (``SoftContact.candidate_stats``).
 * ``find_edge_contacts``: the same for every surface edge, with its bounds over the step padded
   by the thickness, against the grouped edge BVH (``edge_bounds``).
+* Both, and the candidate list's searches (``warpsim.kernels.soft_contact_list``), walk the two
+  levels with one cursor: ``first_candidate`` takes the query's bounds, world, body and primitive
+  BVH, ``next_candidate`` returns the next candidate (bodies in batches of ``BODY_BATCH``, then
+  each one's subtree), in the same order every time, with the counts the diagnostics report.
 * ``find_*_all_pairs``: the same narrow phase over every triangle / edge of the world, no
   broad phase (the reference the tests compare with; O(vertices x triangles)).
 
@@ -274,6 +278,81 @@ def collect_bodies(body_bvh: wp.uint64, root: int, lower: wp.vec3, upper: wp.vec
     return found, count
 
 
+@wp.struct
+class OtherBodies:
+    """A two-level query's cursor (``first_candidate``, ``next_candidate``): the query's box, world
+    and body, the batch of other bodies taken from the body BVH, the current candidate and counts."""
+
+    body_bvh: wp.uint64
+    root: int  # the query's world's root in the body BVH
+    prim_bvh: wp.uint64  # the grouped primitive (triangle or edge) BVH
+    prim_root: wp.array(dtype=int)  # each body's subtree root in it
+    lower: wp.vec3
+    upper: wp.vec3
+    body: int  # the query's own body (visited only with self contact)
+    self_contact: int
+    batch: vec_bodies  # bodies of the current batch (collect_bodies)
+    count: int  # how many
+    next: int  # the batch's next body to open
+    more: int  # 1 while the last batch was full (more bodies may follow)
+    open: int  # 1 while a primitive query is open
+    other: int  # the current candidate's body
+    item: int  # the current candidate (a primitive), -1 after the last
+    bodies: int  # other bodies taken so far
+    visited: int  # candidates returned so far
+    own: int  # of them the query's own body's
+
+
+@wp.func
+def next_candidate(query: wp.BvhQuery, c: OtherBodies):
+    """(query, cursor) at the two-level query's next candidate ``c.item`` of body ``c.other`` (-1
+    after the last): the open primitive query's next primitive, else the next body of the batch
+    (its subtree of the primitive BVH), else the next batch of bodies (``collect_bodies``, run to its
+    end before a primitive query opens). Candidates come in the same order on every call."""
+    t = int(0)
+    while c.item != -1:
+        if c.open == 1:
+            if wp.bvh_query_next(query, t):
+                c.item = t
+                c.visited += 1
+                if c.other == c.body:
+                    c.own += 1
+                return query, c
+            c.open = 0
+        if c.next < c.count:
+            c.other = c.batch[c.next]
+            c.next += 1
+            query = wp.bvh_query_aabb(c.prim_bvh, c.lower, c.upper, c.prim_root[c.other])
+            c.open = 1
+        elif c.more == 1:
+            batch, count = collect_bodies(c.body_bvh, c.root, c.lower, c.upper, c.body, c.self_contact, c.bodies)
+            c.batch = batch
+            c.count = count
+            c.bodies += count
+            c.more = wp.where(count == BODY_BATCH, 1, 0)
+            c.next = 0
+        else:
+            c.item = -1
+    return query, c
+
+
+@wp.func
+def first_candidate(body_bvh: wp.uint64, root: int, prim_bvh: wp.uint64, prim_root: wp.array(dtype=int),
+                    lower: wp.vec3, upper: wp.vec3, body: int, self_contact: int):
+    """(query, cursor) at the first candidate of a two-level query: the primitives whose bounds meet
+    [lower, upper] in the subtrees of the other bodies whose bounds meet it (the query's own body
+    only with self contact), from the world's ``root`` of the body BVH. Visit them as
+    ``while cur.item >= 0: ...; query, cur = next_candidate(query, cur)``; then ``cur.visited``,
+    ``cur.own`` and ``cur.bodies`` count the candidates, the own body's ones and the bodies."""
+    # count, next, more, open, other, item, bodies, visited, own
+    c = OtherBodies(body_bvh, root, prim_bvh, prim_root, lower, upper, body, self_contact, vec_bodies(),
+                    0, 0, 1, 0, -1, 0, 0, 0, 0)
+    # Warp has no unopened query: this one is never advanced (c.open = 0)
+    query = wp.bvh_query_aabb(prim_bvh, lower, upper, prim_root[body])
+    query, c = next_candidate(query, c)
+    return query, c
+
+
 @wp.func
 def nearer(d: float, index: int, best_d: float, best: int) -> bool:
     """Nearest first, ties to the lower index (order independent)."""
@@ -322,6 +401,38 @@ def clear_contact(slot: int, contact_particles_out: wp.array(dtype=wp.vec4i)):
 
 
 # ------------------------------------------------------------------------------ vertex-triangle
+@wp.func
+def nearer_triangle(
+    p: int, body: int, x: wp.vec3, t: int, tri: wp.array(dtype=int), tri_body: wp.array(dtype=int),
+    q: wp.array(dtype=wp.vec3), rest: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), thickness: float,
+    search: float, self_contact: int, self_rest_distance: float, best_d: float, best: int, best_bary: wp.vec3,
+    best_normal: wp.vec3,
+):
+    """(distance, triangle, barycentrics, normal) of vertex p's nearest contact so far after trying
+    triangle t (the best so far when t is no candidate, no contact or not nearer)."""
+    if vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
+        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness, search)
+        if d >= 0.0 and nearer(d, t, best_d, best):
+            return d, t, bary, n
+    return best_d, best, best_bary, best_normal
+
+
+@wp.func
+def nearer_edge(
+    e: int, f: int, xa: wp.vec3, xb: wp.vec3, pa: wp.vec3, pb: wp.vec3, edges: wp.array(dtype=int),
+    edge_body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), q_prev: wp.array(dtype=wp.vec3),
+    rest: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), thickness: float, search: float,
+    self_contact: int, self_rest_distance: float, best_d: float, best: int, best_ut: wp.vec2, best_normal: wp.vec3,
+):
+    """(distance, edge, (u, t), normal) of edge e's nearest contact so far after trying edge f (as
+    ``nearer_triangle``)."""
+    if edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
+        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
+        if d >= 0.0 and nearer(d, f, best_d, best):
+            return d, f, ut, n
+    return best_d, best, best_ut, best_normal
+
+
 @wp.func
 def finish_vertex_contact(
     v: int, p: int, best: int, best_bary: wp.vec3, best_normal: wp.vec3, q: wp.array(dtype=wp.vec3),
@@ -381,38 +492,18 @@ def find_vertex_contacts(
     best_d = float(1.0e30)
     best_bary = wp.vec3()
     best_normal = wp.vec3()
-    visited = int(0)
-    own = int(0)
-    bodies = int(0)
-    root = world_root[vertex_world[v]]
-    more = int(1)
-    while more == 1:
-        found, count = collect_bodies(body_bvh, root, lower, upper, body, self_contact, bodies)
-        bodies += count
-        more = wp.where(count == BODY_BATCH, 1, 0)
-        for i in range(count):
-            other = found[i]
-            query = wp.bvh_query_aabb(tri_bvh, lower, upper, body_tri_root[other])
-            t = int(0)
-            while wp.bvh_query_next(query, t):
-                visited += 1
-                if other == body:
-                    own += 1
-                if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact,
-                                                 self_rest_distance):
-                    continue
-                d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]],
-                                                  thickness, search)
-                if d >= 0.0 and nearer(d, t, best_d, best):
-                    best_d = d
-                    best = t
-                    best_bary = bary
-                    best_normal = n
+    query, cur = first_candidate(body_bvh, world_root[vertex_world[v]], tri_bvh, body_tri_root, lower, upper, body,
+                                 self_contact)
+    while cur.item >= 0:
+        best_d, best, best_bary, best_normal = nearer_triangle(
+            p, body, x, cur.item, tri, tri_body, q, rest, inv_mass, thickness, search, self_contact,
+            self_rest_distance, best_d, best, best_bary, best_normal)
+        query, cur = next_candidate(query, cur)
     finish_vertex_contact(v, p, best, best_bary, best_normal, q, count_within, tri, contact_particles_out,
                           contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
     if candidates_out.shape[0] > 0:
-        candidates_out[v] = wp.vec4i(visited, own, bodies, wp.where(best >= 0, 1, 0))
+        candidates_out[v] = wp.vec4i(cur.visited, cur.own, cur.bodies, wp.where(best >= 0, 1, 0))
 
 
 @wp.kernel
@@ -448,15 +539,9 @@ def find_vertex_contacts_all_pairs(
     best_bary = wp.vec3()
     best_normal = wp.vec3()
     for t in range(world_tri_start[world], world_tri_start[world + 1]):
-        if not vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
-            continue
-        d, bary, n = vertex_triangle_test(x, q[tri[3 * t]], q[tri[3 * t + 1]], q[tri[3 * t + 2]], thickness,
-                                             search)
-        if d >= 0.0 and nearer(d, t, best_d, best):
-            best_d = d
-            best = t
-            best_bary = bary
-            best_normal = n
+        best_d, best, best_bary, best_normal = nearer_triangle(
+            p, body, x, t, tri, tri_body, q, rest, inv_mass, thickness, search, self_contact, self_rest_distance,
+            best_d, best, best_bary, best_normal)
     finish_vertex_contact(v, p, best, best_bary, best_normal, q, count_within, tri, contact_particles_out,
                           contact_weights_out, contact_normal_out, particle_contacts_io,
                           contact_total_io)
@@ -586,37 +671,18 @@ def find_edge_contacts(
     best_normal = wp.vec3()
     lower = wp.min(wp.min(xa, xb), wp.min(pa, pb)) - wp.vec3(thickness)
     upper = wp.max(wp.max(xa, xb), wp.max(pa, pb)) + wp.vec3(thickness)
-    visited = int(0)
-    own = int(0)
-    bodies = int(0)
-    root = world_root[edge_world[e]]
-    more = int(1)
-    while more == 1:
-        found, count = collect_bodies(body_bvh, root, lower, upper, body, self_contact, bodies)
-        bodies += count
-        more = wp.where(count == BODY_BATCH, 1, 0)
-        for i in range(count):
-            other = found[i]
-            query = wp.bvh_query_aabb(edge_bvh, lower, upper, body_edge_root[other])
-            f = int(0)
-            while wp.bvh_query_next(query, f):
-                visited += 1
-                if other == body:
-                    own += 1
-                if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact,
-                                           self_rest_distance):
-                    continue
-                d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
-                if d >= 0.0 and nearer(d, f, best_d, best):
-                    best_d = d
-                    best = f
-                    best_ut = ut
-                    best_normal = n
+    query, cur = first_candidate(body_bvh, world_root[edge_world[e]], edge_bvh, body_edge_root, lower, upper, body,
+                                 self_contact)
+    while cur.item >= 0:
+        best_d, best, best_ut, best_normal = nearer_edge(
+            e, cur.item, xa, xb, pa, pb, edges, edge_body, q, q_prev, rest, inv_mass, thickness, search, self_contact,
+            self_rest_distance, best_d, best, best_ut, best_normal)
+        query, cur = next_candidate(query, cur)
     finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, q, count_within, edges,
                         contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
     if candidates_out.shape[0] > 0:
-        candidates_out[e] = wp.vec4i(visited, own, bodies, wp.where(best >= 0, 1, 0))
+        candidates_out[e] = wp.vec4i(cur.visited, cur.own, cur.bodies, wp.where(best >= 0, 1, 0))
 
 
 @wp.kernel
@@ -653,14 +719,9 @@ def find_edge_contacts_all_pairs(
     best_ut = wp.vec2()
     best_normal = wp.vec3()
     for f in range(world_edge_start[world], world_edge_start[world + 1]):
-        if not edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
-            continue
-        d, ut, n = edge_edge_test(f, xa, xb, pa, pb, edges, q, q_prev, thickness, search)
-        if d >= 0.0 and nearer(d, f, best_d, best):
-            best_d = d
-            best = f
-            best_ut = ut
-            best_normal = n
+        best_d, best, best_ut, best_normal = nearer_edge(
+            e, f, xa, xb, pa, pb, edges, edge_body, q, q_prev, rest, inv_mass, thickness, search, self_contact,
+            self_rest_distance, best_d, best, best_ut, best_normal)
     finish_edge_contact(slot_offset + e, e, best, best_ut, best_normal, q, count_within, edges,
                         contact_particles_out, contact_weights_out, contact_normal_out,
                         particle_contacts_io, contact_total_io)
