@@ -180,3 +180,69 @@ def test_empty_cache_is_one_line(tmp_path):
     assert run_cli([path, "--out", tmp_path / "g.obj", "--guides"])[0] == 0  # the guide box, when asked
     code, _, err = run_cli([tmp_path / "none.usda", "--out", tmp_path / "n.obj"])
     assert code == 2 and "does not exist" in err
+
+
+def glb_json(path):
+    """The JSON chunk of a .glb file (its materials and meshes as written)."""
+    import json
+    import struct
+
+    data = open(path, "rb").read()
+    length = struct.unpack("<I", data[12:16])[0]
+    return json.loads(data[20:20 + length])
+
+
+def test_see_through_walls_keep_their_opacity_in_glb_and_ply(tmp_path):
+    """A container's ``displayOpacity`` (the teapot's walls) becomes a .glb material of that alpha
+    in BLEND mode, its colour the material's (what Blender's glTF importer shows see-through, in
+    its Solid view too), and the .ply vertices' alpha; opaque prims stay opaque."""
+    from pxr import Usd, UsdGeom
+
+    cache = tmp_path / "teapot.usda"
+    assert cli.main(["run", "teapot", "--frames", "1", "--no-progress", "--device", "cpu", "--out", str(cache)],
+                    io.StringIO(), io.StringIO()) == 0
+    stage = Usd.Stage.Open(str(cache))
+    walls = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/World/walls"))
+    opacity = float(walls.GetPrimvar("displayOpacity").Get()[0])
+    color = np.asarray(walls.GetPrimvar("displayColor").Get()[0], np.float64)
+    assert opacity < 1.0
+    code, out, err = run_cli([cache, "--out", tmp_path / "all.glb", "--merge"])
+    assert code == 0, err
+    gltf = glb_json(tmp_path / "all.glb")
+    materials = {m["name"]: gltf["materials"][m["primitives"][0]["material"]] for m in gltf["meshes"]
+                 if "material" in m["primitives"][0]}
+    walls_material = materials["walls"]
+    assert walls_material["alphaMode"] == "BLEND" and walls_material["doubleSided"]
+    assert np.allclose(walls_material["pbrMetallicRoughness"]["baseColorFactor"], [*color, opacity], atol=1 / 255)
+    assert "COLOR_0" not in next(m for m in gltf["meshes"] if m["name"] == "walls")["primitives"][0]["attributes"]
+    assert all(m.get("alphaMode", "OPAQUE") == "OPAQUE" for name, m in materials.items() if name != "walls")
+    assert trimesh.load(tmp_path / "all.glb").geometry["walls"].visual.material.alphaMode == "BLEND"
+    code, out, err = run_cli([cache, "--out", tmp_path / "w.ply", "--prims", "walls,floor"])
+    assert code == 0, err
+    alpha = {name: trimesh.load(tmp_path / f"w_{name}.ply").visual.vertex_colors[:, 3] for name in ("walls", "floor")}
+    assert np.all(alpha["walls"] == round(opacity * 255)) and np.all(alpha["floor"] == 255)
+
+
+def file_vertices(path):
+    """Vertex count a .ply (its header) or .obj (its v lines) holds."""
+    text = open(path, "rb").read()
+    if str(path).endswith(".ply"):
+        return int(text.split(b"element vertex ")[1].split()[0])
+    return sum(line.startswith(b"v ") for line in text.splitlines())
+
+
+def test_the_vertex_count_printed_is_the_files(tmp_path):
+    """A sweep's springs (stored as the particles' points and the segments between them) export
+    as line sets; the vertex count ``export`` prints is the one each file holds (.ply: both ends of
+    every segment; .obj: the points), so it agrees with what another tool reports."""
+    root = tmp_path / "s.usda"
+    code = cli.main(["sweep", "springs", "--worlds", "2", "--vary", "stiffness=30:60", "--frames", "2",
+                     "--no-progress", "--no-thumbnails", "--device", "cpu", "--out", str(root)], io.StringIO(),
+                    io.StringIO())
+    assert code == 0
+    for suffix in (".ply", ".obj"):
+        out_file = tmp_path / f"springs{suffix}"
+        code, out, err = run_cli([root, "--out", out_file, "--prims", "springs"])
+        assert code == 0, err
+        printed = int(out.split("springs: curves, ")[1].split()[0])
+        assert printed == file_vertices(out_file), out

@@ -94,3 +94,50 @@ def test_bad_picks_exit_2_with_one_line(sweep, tmp_path, args, words):
         assert word in lines[0]
     code, _, err = run("pick", tmp_path / "none.usda", "--world", 0, "--out", tmp_path / "w.usda")
     assert code == 2 and "no sweep root" in err and len(err.strip().splitlines()) == 1
+
+
+def authored(stage):
+    """{prim name: (type, {attribute: time-sample count})} of the default prim's children: the
+    authored attributes a USD tool reads (``warpsim:segments`` only where it holds a value)."""
+    return {p.GetName(): (p.GetTypeName(), {a.GetName(): a.GetNumTimeSamples() for a in p.GetAttributes()
+                                            if a.HasAuthoredValue()})
+            for p in stage.GetDefaultPrim().GetChildren()}
+
+
+@pytest.mark.parametrize("scene", ["teapot", "springs"])
+def test_a_picked_world_holds_the_curves_a_lone_run_writes(scene, tmp_path):
+    """Blender reads no ``warpsim:segments`` (a sweep's compact springs): both kinds of pick file
+    hold the world as its lone run writes it, springs as BasisCurves (the same prims, types,
+    attributes, curve count and samples, bit for bit), and ``pick`` lists what the file holds."""
+    from warpsim.sweeps.rerun import rerun_world
+    from warpsim.usd.prims import SEGMENTS_ATTR
+
+    root = tmp_path / "s.usda"
+    code, _, err = run("sweep", scene, "--worlds", 2, "--vary", "stiffness=30:60", "--frames", 3, "--no-progress",
+                       "--no-thumbnails", "--device", "cpu", "--out", root)
+    assert code == 0, err
+    sweep = Usd.Stage.Open(str(root))
+    sweep_springs = sweep.GetPrimAtPath("/World/springs")
+    assert sweep_springs.GetTypeName() == "Points" and sweep_springs.GetAttribute(SEGMENTS_ATTR).HasValue()
+    lone = Usd.Stage.Open(str(rerun_world(root, 1, out=tmp_path / "lone.usda", device="cpu")))
+    curves = lone.GetPrimAtPath("/World/springs")
+    count = len(curves.GetAttribute("curveVertexCounts").Get())
+    assert curves.GetTypeName() == "BasisCurves" and count > 0
+    for flatten in (False, True):
+        out = tmp_path / f"w1{'_flat' if flatten else ''}.usdc"
+        code, text, err = run("pick", root, "--world", 1, "--out", out, *(["--flatten"] if flatten else []))
+        assert code == 0, err
+        stage = Usd.Stage.Open(str(out))
+        assert authored(stage) == authored(lone)
+        springs = stage.GetPrimAtPath("/World/springs")
+        assert len(springs.GetAttribute("curveVertexCounts").Get()) == count
+        assert not springs.GetAttribute(SEGMENTS_ATTR).HasValue()
+        for name in ("points", "extent", "widths", "curveVertexCounts", "type", "primvars:displayColor"):
+            ours, theirs = springs.GetAttribute(name), curves.GetAttribute(name)
+            for t in [Usd.TimeCode.Default()] + [Usd.TimeCode(t) for t in theirs.GetTimeSamples()]:
+                assert np.asarray(ours.Get(t)).tobytes() == np.asarray(theirs.Get(t)).tobytes(), (name, t)
+        listed = {line.split()[0]: line.split(None, 2)[1:] for line in text.splitlines()[2:]}
+        assert listed["springs"][0] == "BasisCurves" and f"{count:,} curves" in listed["springs"][1], text
+        assert set(listed) == {p.GetName() for p in stage.GetDefaultPrim().GetChildren()}
+        if flatten:
+            assert SEGMENTS_ATTR not in springs.GetPropertyNames()

@@ -106,7 +106,8 @@ def test_topology_is_stored_once_and_every_world_inherits_it(sweep):
 def test_readers_draw_the_springs_a_full_cache_holds(sweep, tmp_path):
     """World 2 re-run alone writes its full cache (springs as curves, bit for bit the sweep's
     world); the viewer and the exporter draw the sweep's springs from its points exactly as they
-    draw the full cache's curves; the picked world opens with pxr with the expected prims."""
+    draw the full cache's curves; the picked world opens with pxr with the expected prims, its
+    springs written as the full cache's curves."""
     from pxr import Usd
 
     from warpsim.browse.pick import pick_world
@@ -119,7 +120,7 @@ def test_readers_draw_the_springs_a_full_cache_holds(sweep, tmp_path):
     picked = pick_world(sweep["root"], 2, tmp_path / "w2.usdc", flatten=True)
     stage = Usd.Stage.Open(picked)
     assert {p.GetName(): p.GetTypeName() for p in stage.GetPrimAtPath("/World").GetChildren()} == \
-        {"teapot": "Mesh", "springs": "Points", "walls": "Mesh", "floor": "Mesh"}
+        {"teapot": "Mesh", "springs": "BasisCurves", "walls": "Mesh", "floor": "Mesh"}  # one world: the full form
     cached = Usd.Stage.Open(str(full))
     assert cached.GetPrimAtPath("/World/springs").GetTypeName() == "BasisCurves"
     frame = FRAMES // 2

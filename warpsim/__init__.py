@@ -115,3 +115,9 @@ def __getattr__(name):
         _load_all()
         return globals()[name]
     raise AttributeError(f"module 'warpsim' has no attribute {name!r}")
+
+
+def __dir__():
+    """The public names (``__all__``) with what is already loaded, so ``dir(ws)`` and tab completion
+    show ``ws.Simulator`` and the rest before their first use (they load lazily, see ``__getattr__``)."""
+    return sorted(set(__all__) | {k for k in globals() if not k.startswith("_") and k != "TYPE_CHECKING"})

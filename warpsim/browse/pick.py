@@ -18,7 +18,7 @@ import os
 from ..cli_common import UsageError
 from ..core.safe_files import clear_temporary
 
-__all__ = ["UnstoredWorldError", "add_parser", "pick_world", "run"]
+__all__ = ["UnstoredWorldError", "add_parser", "describe", "full_form", "pick_world", "run"]
 
 
 class UnstoredWorldError(ValueError):
@@ -128,12 +128,18 @@ def _write_pick(root, world, owner, out_path, flatten) -> str:
         asset = "./" + asset
     spec.referenceList.Prepend(Sdf.Reference(asset, f"/Worlds/{world_prim_name(world)}"))
     layer.customLayerData = {"warpsim": {"pickedWorld": world, "sweepRoot": os.path.abspath(os.fspath(root))}}
+    full = full_form(layer, "/World", source, f"/Worlds/{world_prim_name(world)}")
     tmp = out_path + ".tmp" + os.path.splitext(out_path)[1]
     try:
         if flatten:
             result = Usd.Stage.Open(layer).Flatten()
             result.defaultPrim = "World"
             result.customLayerData = dict(layer.customLayerData)
+            from ..usd.prims import SEGMENTS_ATTR
+
+            for path in full:  # a self-contained file keeps no trace of the sweep's compact form
+                spec = result.GetPrimAtPath(path)
+                spec.RemoveProperty(spec.properties[SEGMENTS_ATTR])
         else:
             result = layer
         clear_temporary(tmp)  # never through a link planted at the temporary name
@@ -146,6 +152,79 @@ def _write_pick(root, world, owner, out_path, flatten) -> str:
         raise PermissionError(f"could not write {out_path}; check the folder is writable")
     os.replace(tmp, out_path)
     return out_path
+
+
+def full_form(layer, world_path, batch, batch_world) -> list:
+    """Write the curves a sweep stores as its particles' points (:class:`warpsim.usd.prims.JoinedPointsDecl`,
+    e.g. springs) of the world prim ``batch_world`` of the batch layer file ``batch`` into ``layer``
+    over its prim ``world_path`` (which references that world), in the form a lone run writes them: a ``BasisCurves`` prim declared by the lone run's own declaration
+    (:func:`warpsim.usd.prims.curves_decl`) with its samples at every stored frame (segment ends,
+    extent, velocities), bit for bit, and the sweep's ``warpsim:segments`` blocked. Blender,
+    usdview and Houdini draw curves; they do not read ``warpsim:segments``. Returns the prim paths
+    written (none for a world without such prims)."""
+    import numpy as np
+    from pxr import Sdf, Usd
+
+    from ..usd.prims import SEGMENTS_ATTR, curves_decl
+    from ..usd.writer import declare_prim, to_vt
+
+    stage = Usd.Stage.OpenMasked(os.fspath(batch), Usd.StagePopulationMask([batch_world]))  # this world only
+    found = []
+    for prim in stage.GetPrimAtPath(batch_world).GetChildren():
+        decl = curves_decl(prim)
+        if decl is None:
+            continue
+        keys = ["points"] + (["velocities"] if decl.has_velocities else [])
+        attrs = {key: prim.GetAttribute(key) for key in keys}
+        times = attrs["points"].GetTimeSamples()
+        frames = [(t, {key: np.asarray(attrs[key].Get(t)) for key in keys}) for t in times]
+        found.append((f"{world_path}/{prim.GetName()}", decl, frames))
+    del stage
+    with Sdf.ChangeBlock():
+        for path, decl, frames in found:
+            declare_prim(layer, Sdf.Path(path), decl)
+            spec = layer.GetPrimAtPath(path)
+            Sdf.AttributeSpec(spec, SEGMENTS_ATTR, Sdf.ValueTypeNames.IntArray, Sdf.VariabilityUniform,
+                              True).default = Sdf.ValueBlock()
+            for t, data in frames:
+                for name, value in decl.frame_samples(data, t).items():
+                    layer.SetTimeSample(f"{path}.{name}", t, to_vt(decl.attrs[name].type_name, value))
+    return [path for path, _, _ in found]
+
+
+def describe(path) -> list:
+    """Lines saying what the USD file ``path`` holds under its default prim: its frames, and per
+    prim its type and counts (points, faces, curves) at the last frame, and an opacity below 1."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(os.fspath(path))
+    t = Usd.TimeCode(stage.GetEndTimeCode()) if stage.HasAuthoredTimeCodeRange() else Usd.TimeCode.Default()
+    lines = []
+    if stage.HasAuthoredTimeCodeRange():
+        lines.append(f"frames {stage.GetStartTimeCode():g}..{stage.GetEndTimeCode():g} at "
+                     f"{stage.GetTimeCodesPerSecond():g} fps")
+    rows = []
+    for prim in stage.GetDefaultPrim().GetChildren():
+        kind = prim.GetTypeName()
+        points = prim.GetAttribute("positions" if kind == "PointInstancer" else "points")
+        counts = []
+        if points and points.HasValue():
+            noun = "instances" if kind == "PointInstancer" else "points"
+            counts.append(f"{len(points.Get(t) or []):,} {noun}")
+        faces = prim.GetAttribute("faceVertexCounts") if kind == "Mesh" else None
+        if faces and faces.HasValue():
+            n = len(faces.Get(t) or [])
+            counts.append(f"{n:,} face{'s' if n != 1 else ''}")
+        curves = prim.GetAttribute("curveVertexCounts") if kind == "BasisCurves" else None
+        if curves and curves.HasValue():
+            counts.insert(0, f"{len(curves.Get(t) or []):,} curves")
+        opacity = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayOpacity")
+        if opacity and opacity.HasValue() and len(opacity.Get(t) or []) == 1 and opacity.Get(t)[0] < 1.0:
+            counts.append(f"opacity {opacity.Get(t)[0]:g}")
+        rows.append((prim.GetName(), kind, ", ".join(counts)))
+    width = [max((len(r[k]) for r in rows), default=0) for k in range(2)]
+    lines += [f"{name:<{width[0]}}  {kind:<{width[1]}}  {counts}".rstrip() for name, kind, counts in rows]
+    return lines
 
 
 def run(args, out, err):
@@ -168,5 +247,8 @@ def report(args, out, pick):
             raise  # a damaged sweep: exit 1
         raise UsageError(error_line(exc)) from None
     print(f"world {args.world} of {os.path.relpath(os.path.abspath(args.root))}: {os.path.relpath(path)}"
-          f"{' (flattened)' if args.flatten else ''}", file=out)
+          f"{' (flattened)' if args.flatten else ''}: the world alone, written as a lone run writes it "
+          "(springs as curves):", file=out)
+    for line in describe(path):
+        print(f"  {line}", file=out)
     return 0

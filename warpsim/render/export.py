@@ -43,7 +43,8 @@ from ..usd.prims import segment_pairs
 from ..usd.validate import frame_codes, open_stage
 from .geometry import cone_mesh, cube_mesh, triangulate
 
-__all__ = ["FORMATS", "UP_AXIS", "ExportPart", "export_frame", "read_frame", "surface_from_points", "write_parts"]
+__all__ = ["FORMATS", "UP_AXIS", "ExportPart", "export_frame", "file_vertex_count", "read_frame",
+           "surface_from_points", "write_parts"]
 
 FORMATS = {
     ".obj": ("mesh", "points", "curves"),
@@ -72,6 +73,7 @@ class ExportPart:
         segments: line segments (curves), shape (S, 2), int64 indices into ``vertices``.
         color: display colour in [0, 1]: None, (3,) or per vertex (V, 3).
         widths: point diameters [m] (points), shape (V,) or (1,), or None.
+        opacity: constant opacity in [0, 1] (the prim's ``primvars:displayOpacity``; 1: opaque).
     """
 
     name: str
@@ -81,6 +83,7 @@ class ExportPart:
     segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     color: Optional[np.ndarray] = None
     widths: Optional[np.ndarray] = None
+    opacity: float = 1.0
 
 
 # ---------------------------------------------------------------------------------------- reading
@@ -164,6 +167,15 @@ def _color(prim, t, count):
         return None
     c = np.clip(np.asarray(value, np.float64).reshape(-1, 3), 0.0, 1.0)
     return c[0] if len(c) == 1 else (c if len(c) == count else None)
+
+
+def _opacity(prim, t) -> float:
+    """The constant ``displayOpacity`` of ``prim`` in [0, 1] (e.g. the walls' 0.2), else 1."""
+    from pxr import UsdGeom
+
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayOpacity")
+    value = pv.Get(t) if pv and pv.HasValue() and pv.GetInterpolation() == UsdGeom.Tokens.constant else None
+    return float(np.clip(value[0], 0.0, 1.0)) if value is not None and len(value) == 1 else 1.0
 
 
 def _instancer_mesh(prim, t):
@@ -268,6 +280,7 @@ def read_frame(cache, frame=None, guides=False, up=None) -> tuple:
                 part = ExportPart(prim.GetName(), "mesh", _apply(m, shape[0]), faces=shape[1],
                                   color=_color(prim, t, len(shape[0])) if kind != "PointInstancer" else None)
         if part is not None:
+            part.opacity = _opacity(prim, t)
             if part.name in names:  # two prims of one name (e.g. under different parents): use the path
                 part.name = str(prim.GetPath()).strip("/").replace("/", "_")
             names[part.name] = part
@@ -321,24 +334,52 @@ def surface_from_points(points, spacing=None, device=None, widths=None) -> tuple
 
 
 # ---------------------------------------------------------------------------------------- writing
-def _rgba(color, count):
+def _rgba(color, count, opacity=1.0):
     if color is None:
         return None
     c = np.asarray(color, np.float64).reshape(-1, 3)
     c = np.repeat(c, count, 0) if len(c) == 1 else c
-    return np.hstack([np.round(c * 255), np.full((len(c), 1), 255)]).astype(np.uint8)
+    return np.hstack([np.round(c * 255), np.full((len(c), 1), np.round(opacity * 255))]).astype(np.uint8)
 
 
 def _trimesh_geometry(part):
     import trimesh
 
-    colors = _rgba(part.color, len(part.vertices))
+    colors = _rgba(part.color, len(part.vertices), part.opacity)
     if part.kind == "mesh":
         return trimesh.Trimesh(part.vertices, part.faces, vertex_colors=colors, process=False)
     if part.kind == "points":
         return trimesh.PointCloud(part.vertices, colors=colors)
     entities = [trimesh.path.entities.Line(seg) for seg in part.segments]
     return trimesh.path.Path3D(entities=entities, vertices=part.vertices, process=False)
+
+
+def _blended(part, colors):
+    """glTF look of a see-through mesh part (opacity < 1): a material of its colour with alpha =
+    opacity, ``alphaMode`` BLEND and double-sided: Blender's glTF importer makes it a blended
+    material whose viewport colour (Solid view) carries the alpha, and glTF viewers draw it
+    see-through (vertex alpha alone they ignore). Per-vertex colours, if any, stay ``COLOR_0``
+    (Blender's Solid view then shows them opaque: a constant colour is written as the material's)."""
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    c = np.asarray(part.color, np.float64).reshape(-1) if part.color is not None else np.ones(3)
+    rgb = c if c.shape == (3,) else np.ones(3)  # per-vertex colours: white, COLOR_0 carries them
+    material = PBRMaterial(name=f"{part.name}_material", baseColorFactor=[*rgb, part.opacity], alphaMode="BLEND",
+                           doubleSided=True, metallicFactor=0.0, roughnessFactor=0.6)
+    visual = TextureVisuals(material=material)
+    if colors is not None and c.shape != (3,):
+        visual.vertex_attributes["color"] = colors
+    return visual
+
+
+def file_vertex_count(part, suffix) -> int:
+    """How many vertices the file ``suffix`` holds for ``part``: trimesh writes a line set to
+    ``.ply`` and ``.glb`` as the two ends of every segment; ``.obj`` and every other kind hold
+    the part's vertices."""
+    if part.kind == "curves" and suffix in (".ply", ".glb"):
+        return 2 * len(part.segments)
+    return len(part.vertices)
 
 
 def _obj_text(parts) -> str:
@@ -381,7 +422,10 @@ def _write_one(parts, path, suffix):
         elif suffix == ".glb":
             scene = trimesh.Scene()
             for part in parts:
-                scene.add_geometry(_trimesh_geometry(part), node_name=part.name, geom_name=part.name)
+                geometry = _trimesh_geometry(part)
+                if part.kind == "mesh" and part.opacity < 1.0:
+                    geometry.visual = _blended(part, _rgba(part.color, len(part.vertices), part.opacity))
+                scene.add_geometry(geometry, node_name=part.name, geom_name=part.name)
             with open_temporary(tmp, "wb") as f:
                 f.write(scene.export(file_type="glb"))
         else:
@@ -444,7 +488,8 @@ def export_frame(cache, out, frame=None, *, surface=False, merge=False, guides=F
                  device=None, allow_damaged=False, up=None, prims=None) -> dict:
     """Export frame ``frame`` (None: the last) of ``cache`` to ``out`` (see the module docstring):
     ``up`` "y" or "z" (None: ``UP_AXIS`` of the suffix), ``prims`` prim names (None: every drawn
-    prim). Returns {"frame", "paths", "parts": [(name, kind, vertex count, face or segment count)],
+    prim). Returns {"frame", "paths", "parts": [(name, kind, vertex count as the file holds them
+    (:func:`file_vertex_count`), face or segment count)],
     "notes": [one line per thing left out]}."""
     if frame is not None and (isinstance(frame, bool) or not hasattr(frame, "__index__")):
         raise TypeError(f"frame {frame!r} is not a whole frame number; give e.g. frame=10 (None: the last)")
@@ -524,6 +569,7 @@ def _export(cache, out, frame, surface, merge, guides, spacing, device, up="y", 
             meshed.append(part)
         parts = meshed
     paths = write_parts(parts, str(out), merge)
-    summary = [(p.name, p.kind, len(p.vertices), len(p.faces) if p.kind == "mesh" else
+    suffix = os.path.splitext(str(out))[1].lower()
+    summary = [(p.name, p.kind, file_vertex_count(p, suffix), len(p.faces) if p.kind == "mesh" else
                 len(p.segments) if p.kind == "curves" else 0) for p in parts]
     return {"frame": frame, "paths": paths, "parts": summary, "notes": notes}

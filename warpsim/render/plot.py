@@ -7,7 +7,8 @@ What is plotted (:func:`cache_series` reads it; matplotlib draws it):
 - the element count of every prim whose count changes (particles, smoke samples, agents);
 - agents per state: the per-frame histogram of an instancer's ``primvars:state``.
 
-The x axis is time [s] (frame / fps).
+The x axis is time [s] (frame / fps); a y axis carries the unit its attribute was declared with
+(``customData["unit"]``, e.g. the pendulum's ``angle [rad]``).
 """
 from __future__ import annotations
 
@@ -59,10 +60,12 @@ def cache_series(path, allow_damaged=False, on_skip=None):
                 continue
             label = attr.GetName().split(":")[-1]
             values = np.array([attr.Get(f) for f in frames], np.float64)
+            unit = attr.GetCustomDataByKey("unit")  # declared with the attribute (add_attribute(..., unit=))
             if label.endswith("Energy"):
                 energy[label] = values
             else:
-                panels.append({"title": f"{name}: {label}", "ylabel": label, "lines": {label: values}})
+                panels.append({"title": f"{name}: {label}", "ylabel": f"{label} [{unit}]" if unit else label,
+                               "lines": {label: values}})
         if energy:
             panels.append({"title": f"{name}: energy", "ylabel": "energy [J]", "lines": energy})
         count_attr = prim.GetAttribute(_COUNT_ATTR[prim.GetTypeName()]) if prim.GetTypeName() in _COUNT_ATTR else None

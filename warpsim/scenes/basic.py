@@ -83,7 +83,7 @@ class PendulumScene(Scene):
 
     def declare(self, writer):
         writer.add_points("bob", radius=self.params["bob_radius"], color=(0.9, 0.7, 0.1))
-        writer.add_attribute("bob", "warpsim:angle", "double")
+        writer.add_attribute("bob", "warpsim:angle", "double", unit="rad")
         for name in self.ENERGY:
             writer.add_attribute("bob", name, "double")
         writer.add_curves("rod", curve_vertex_counts=[2], width=0.01, color=(0.3, 0.3, 0.3))

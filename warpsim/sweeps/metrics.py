@@ -42,8 +42,8 @@ from ..kernels import worlds as KW
 BUILTIN = ("center_x", "center_y", "center_z", "peak_center_y", "peak_speed", "kinetic_energy", "blown_up",
            "blown_frame", "energy_gain", "unstable")
 
-__all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "format_cell", "parse_rank", "parse_where", "print_picked",
-           "select"]
+__all__ = ["BUILTIN", "UserMetric", "WorldMetrics", "aligned", "format_cell", "parse_rank", "parse_where",
+           "print_picked", "select"]
 
 
 class UserMetric:
@@ -299,6 +299,24 @@ def print_picked(picked, total, params, *, rank=None, where=(), extra=(), out):
                             if m not in params]
     shown = list(dict.fromkeys(shown))
     print(f"picked {len(picked)} of {total} worlds:", file=out)
-    print("  " + "  ".join(["world", *shown]), file=out)
-    for r in picked:
-        print("  " + "  ".join([str(r["world"]), *(format_cell(r.get(k, "")) for k in shown)]), file=out)
+    for line in aligned([["world", *shown]] + [[str(r["world"]), *(format_cell(r.get(k, "")) for k in shown)]
+                                               for r in picked]):
+        print("  " + line, file=out)
+
+
+def aligned(rows) -> list:
+    """``rows`` (lists of cell texts, the header first) as lines of columns two spaces apart, each
+    column as wide as its widest cell: numbers right-aligned (their digits line up), other text
+    left-aligned; no trailing spaces."""
+    widths = [max(len(row[k]) for row in rows if k < len(row)) for k in range(max(map(len, rows), default=0))]
+
+    def number(text):
+        try:
+            float(text.split(",")[0])
+        except ValueError:
+            return False
+        return True
+
+    numeric = [all(number(row[k]) for row in rows[1:] if k < len(row) and row[k]) for k in range(len(widths))]
+    return ["  ".join(cell.rjust(widths[k]) if numeric[k] else cell.ljust(widths[k]) for k, cell in enumerate(row))
+            .rstrip() for row in rows]

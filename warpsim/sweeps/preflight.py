@@ -182,20 +182,22 @@ def _when(seconds):
 
 
 FRAME_TIME_NOTE = 10.0
-"""Seconds the first frame may take before a run estimates the whole run's time."""
+"""Seconds a frame after the first may take before a run estimates the whole run's time."""
 
 
-def frame_time_note(seconds, frames_left, device) -> str | None:
-    """After the first simulated frame took ``seconds`` [s]: one line estimating the remaining
-    ``frames_left`` frames when the first took longer than ``FRAME_TIME_NOTE``; None otherwise."""
+def frame_time_note(seconds, frames_left, device, frame=2) -> str | None:
+    """After frame ``frame`` took ``seconds`` [s]: one line estimating the remaining ``frames_left``
+    frames when it took longer than ``FRAME_TIME_NOTE``; None otherwise. ``frame`` is the second
+    frame a run computes: the first compiles and loads Warp's kernels, so its time says nothing of
+    the rest (a cloth run whose first frame took minutes then ran at several frames a second)."""
     if seconds <= FRAME_TIME_NOTE or frames_left <= 0:
         return None
     rest = seconds * frames_left
     when = f"{rest / 3600:.3g} h" if rest >= 3600 else f"{rest / 60:.3g} min" if rest >= 60 else f"{rest:.3g} s"
     fix = "a CUDA device (--device cuda:0), " if str(device) == "cpu" else ""
-    return (f"frame 1 took {seconds:.3g} s on {device} (a first run also compiles kernels): at that rate the other "
-            f"{frames_left} frames take about {when}; {fix}fewer frames or a smaller scene is faster (Ctrl-C keeps "
-            "the frames written)")
+    return (f"frame {frame} took {seconds:.3g} s on {device} (kernel compilation, in the first frame, left out): at "
+            f"that rate the other {frames_left} frames take about {when}; {fix}fewer frames or a smaller scene is "
+            "faster (Ctrl-C keeps the frames written)")
 
 
 _HOST = re.compile(r"^(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?)$")

@@ -171,12 +171,14 @@ class PrimSink:
         frame under key ``name`` (or ``primvars:name``)."""
         self._prim(prim).add_primvar(name, type_name, interpolation, value)
 
-    def add_attribute(self, prim, name, type_name, value=None):
+    def add_attribute(self, prim, name, type_name, value=None, *, unit=None):
         """Add custom attribute ``name`` (e.g. ``"warpsim:energy"``, ``"double"``) to ``prim``:
-        static when ``value`` is given, else sampled per frame under key ``name``."""
+        static when ``value`` is given, else sampled per frame under key ``name``. ``unit`` (e.g.
+        ``"rad"``) goes to the attribute's ``customData["unit"]``, which ``warpsim plot`` puts on
+        its axis."""
         if self._sealed:
             raise ValueError(f"add attribute {name!r} before the first frame is written")
-        self._prim(prim).add_attribute(name, type_name, value)
+        self._prim(prim).add_attribute(name, type_name, value, unit=unit)
 
     def _prim(self, name):
         if self._sealed:
