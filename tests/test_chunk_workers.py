@@ -152,3 +152,30 @@ def test_warpsim_run_with_a_writer_process_writes_the_same_bytes(tmp_path, monke
         assert code == 0, err.getvalue()
     same = files_equal(tmp_path / "0", tmp_path / "1")
     assert len(same) >= 6 and all(same.values()), same
+
+
+def test_thumbnails_read_and_encoded_by_workers_are_the_same_pictures(tmp_path):
+    """A sweep's pictures drawn with worker processes reading the layer and encoding the PNGs
+    are the bytes drawn in one process (the same geometry, camera and renderer)."""
+    import io
+
+    from warpsim.browse.occupancy import OccupancyRecord, occupancy_path
+    from warpsim.browse.panel import thumbnail_camera
+    from warpsim.browse.thumbs import draw_thumbnails
+    from warpsim.cli import main
+    from warpsim.render.renderer import Renderer
+
+    out = tmp_path / "s.usda"
+    code = main(["sweep", "bounce", "--worlds", "5", "--frames", "10", "--vary", "height=0.02:0.06", "--out", str(out),
+                 "--no-progress", "--no-thumbnails", "--device", "cpu"], io.StringIO(), io.StringIO())
+    assert code == 0
+    record = OccupancyRecord.load(occupancy_path(out))
+    camera = thumbnail_camera(record)
+    for workers in (0, 1):
+        folder = tmp_path / f"t{workers}"
+        folder.mkdir()
+        n = draw_thumbnails(str(folder), [str(tmp_path / "s.batch_0000.usdc")], camera, Renderer(128, 96, device="cpu"),
+                            workers=workers)
+        assert n == 5
+    same = files_equal(tmp_path / "t0", tmp_path / "t1")
+    assert len(same) == 5 and all(same.values()), same
