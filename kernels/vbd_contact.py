@@ -3,8 +3,9 @@
 Search (once at the start of a step and again every ``detect_every`` iterations, at the current
 positions x_d): two levels as ``warpsim.kernels.soft_contact`` (the bodies' bounds in a small BVH, then
 the subtree of each body met in a BVH grouped by body, ``collect_bodies``), three queries, each
-writing its own fixed-capacity list in the BVH's traversal order (no atomics on the lists, so the
-lists and everything computed from them are the same bits on every run):
+writing its own fixed-capacity list, sorted ascending (no atomics on the lists, and no dependence on
+the BVH's traversal order, so the lists and everything computed from them are the same bits on every
+run, and a world of a sweep gets the bits of its scene run alone):
 
 * every surface vertex against the triangles within ``query_radius`` (``vt_list``; the vertex's
   side of a vertex-triangle pair);
@@ -139,6 +140,8 @@ def query_box(kind: int, item: int, surface: wp.array(dtype=int), tri: wp.array(
     elif kind == EDGE_QUERY:
         first = edges[2 * item]
         corners = 2
+    else:
+        first = tri[3 * item]
     for c in range(corners):
         p = first
         if kind == TRIANGLE_QUERY:
@@ -168,7 +171,8 @@ def query_pair(kind: int, item: int, other: int, surface: wp.array(dtype=int), t
 
 @wp.kernel
 def query_pairs(
-    kind: int, body_bvh: wp.uint64, body_root: wp.array(dtype=int), bvh: wp.uint64, roots: wp.array(dtype=int),
+    kind: int, body_bvh: wp.uint64, world_roots: wp.array(dtype=int), body_world: wp.array(dtype=int),
+    bvh: wp.uint64, roots: wp.array(dtype=int),
     surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
     list_out: wp.array(dtype=int), count_out: wp.array(dtype=int), min_out: wp.array(dtype=float),
@@ -177,8 +181,8 @@ def query_pairs(
     """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
     triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
     ``list_out[item capacity ..]`` in traversal order, their count, and the smallest distance met (at
-    most ``query_radius``). Two levels: the bodies whose bounds meet the box (``collect_bodies``), then
-    each one's subtree of the grouped BVH."""
+    most ``query_radius``). Two levels: the bodies of the query's world whose bounds meet the box
+    (``collect_bodies`` from the world's root of the body BVH), then each one's subtree of the grouped BVH."""
     item = wp.tid()
     lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
     n = int(0)
@@ -186,7 +190,8 @@ def query_pairs(
     seen = int(0)
     more = int(1)
     while more == 1:
-        found, count = collect_bodies(body_bvh, body_root[0], lower, upper, own, self_contact, seen)
+        found, count = collect_bodies(body_bvh, world_roots[body_world[own]], lower, upper, own, self_contact,
+                                      seen)
         seen += count
         more = wp.where(count == BODY_BATCH, 1, 0)
         for g in range(count):
@@ -203,6 +208,15 @@ def query_pairs(
                         n += 1
                     else:
                         wp.atomic_add(overflow_io, kind, 1)
+    # ascending order: the list (and the sums over it) does not depend on the BVH's traversal order, so a
+    # world of a sweep (one BVH for all worlds) gets the bits of the same scene run alone
+    for a in range(1, n):
+        value = list_out[item * capacity + a]
+        b = a - 1
+        while b >= 0 and list_out[item * capacity + b] > value:
+            list_out[item * capacity + b + 1] = list_out[item * capacity + b]
+            b -= 1
+        list_out[item * capacity + b + 1] = value
     count_out[item] = n
     min_out[item] = dmin
 

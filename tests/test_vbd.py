@@ -294,3 +294,24 @@ def test_the_command_line_runs_the_heap_by_vbd(tmp_path):
                  "--set", "lattice_cells=5"], out, err)
     assert code == 0, err.getvalue()
     assert path.exists()
+
+
+def test_worlds_of_a_sweep_each_collide_their_own_tori_and_equal_their_runs_alone():
+    """Two worlds of the donuts by VBD (stiffness 150 and 300 N/m) in one batch: each world's tori meet only
+    its own (one contact, one BVH for both), and each world gives the bits of its scene run alone (the pair
+    lists are sorted, so the shared BVH's traversal order does not enter)."""
+    from warpsim.worlds.batch import WorldBatch
+
+    cls = get_scene("donuts")
+    params = [cls.resolve_params({"count": 2, **SMALL, "integrator": "vbd", "stiffness": k}) for k in (150.0, 300.0)]
+    batch = WorldBatch(cls, params, device=DEVICE)
+    for _ in range(25):
+        batch.advance(1.0 / 60.0, 4)
+    x, v = batch.world_slices()
+    for w, p in enumerate(params):
+        alone = cls(p, device=DEVICE)
+        for _ in range(25):
+            alone.advance(1.0 / 60.0, 4)
+        assert alone.vbd_contact.pair_counts()[0] > 0  # the tori touch
+        assert np.array_equal(x[w], alone.sim.state.positions.numpy()), w
+    assert np.abs(x[0] - x[1]).max() > 1e-3

@@ -90,6 +90,9 @@ class VBD(Integrator):
     name = "vbd"
     explicit_forces = True
     """Forces other than the springs enter at the step's start (``warpsim.core.stability.force_method_of``)."""
+    springs_per_copy = True
+    """Each copy's springs are read from the model (only the colouring is shared): worlds of a sweep may
+    vary stiffness, damping and masses (``warpsim.worlds.batch``)."""
 
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
                  chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True):
@@ -106,6 +109,12 @@ class VBD(Integrator):
                                            fix="iterations between contact searches, e.g. 5 (0: one a step)")
         self.adaptive_guess = checks.flag(adaptive_guess, "VBD adaptive_guess")
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
+
+    def tile_worlds(self, world_count: int, world_particle_count: int) -> None:
+        """For a batch of worlds laid end to end (``warpsim.worlds.batch``, on the batch's copy of this
+        integrator): the contact keeps each world's bodies to their own world."""
+        if self.contact is not None:
+            self.contact = self.contact.tile(world_count, world_particle_count)
 
     def colours(self, model) -> np.ndarray:
         """Colour of each particle (N,): a greedy colouring of copy 0's springs tiled over the copies

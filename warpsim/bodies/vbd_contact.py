@@ -11,6 +11,8 @@ particle's displacement bound; it allocates nothing and reads nothing back (a CU
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import warp as wp
 
@@ -100,6 +102,19 @@ class VBDContact:
             rows.append([*(normal / length), float(offset) / length])
         self.planes = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
         self.searches = 0
+        self.world_particle_count: int | None = None
+        """Particles of one world in a batch of worlds laid end to end (``tile``), or None: one world."""
+
+    def tile(self, world_count: int, world_particle_count: int) -> VBDContact:
+        """The same contact for ``world_count`` copies of the model laid end to end (world w owns
+        particles w P .. (w + 1) P - 1, P = ``world_particle_count``): bodies meet only bodies of their
+        own world (``warpsim.worlds.batch``). Unbound; ``body_size`` must be given."""
+        if self.body_size is None or int(world_particle_count) % self.body_size:
+            raise ValueError(f"VBDContact.tile: worlds of {world_particle_count} particles need body_size set to the "
+                             "particles of one copy that divides them; build the contact with body_size")
+        tiled = copy.copy(self)
+        tiled.world_particle_count = int(world_particle_count)
+        return tiled
 
     @property
     def query_radius(self) -> float:
@@ -172,6 +187,9 @@ class VBDContact:
         # two levels (``kernels.soft_contact``): a BVH over the bodies' bounds (from chunks of at most
         # CHUNK surface vertices of one body), then BVHs grouped by body
         B = int(body.max()) + 1
+        per_world = B if self.world_particle_count is None else self.world_particle_count // P
+        body_world = np.arange(B) // per_world
+        W = int(body_world.max()) + 1
         surface_body = body[tiled["surface"]]
         starts = np.flatnonzero(np.diff(surface_body, prepend=-1) != 0)
         run = np.arange(len(surface_body)) - np.repeat(starts, np.diff(np.append(starts, len(surface_body))))
@@ -180,10 +198,10 @@ class VBDContact:
         self._chunk_body = ints(surface_body[chunk])
         self.body_count = B
         self._groups = [ints(body[tiled["tri"][0::3]]), ints(surface_body), ints(body[tiled["edges"][0::2]]),
-                        ints(np.zeros(B, dtype=np.int64))]  # kept: a BVH holds its groups by pointer
+                        ints(body_world)]  # kept: a BVH holds its groups by pointer
         self._body_lower = wp.zeros(B, dtype=wp.vec3, device=d)
         self._body_upper = wp.zeros(B, dtype=wp.vec3, device=d)
-        self._roots = [wp.zeros(B, dtype=int, device=d) for _ in range(3)] + [wp.zeros(1, dtype=int, device=d)]
+        self._roots = [wp.zeros(B, dtype=int, device=d) for _ in range(3)] + [wp.zeros(W, dtype=int, device=d)]
         q = model.particle_q
         self._tri_lower = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
         self._tri_upper = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
@@ -226,15 +244,16 @@ class VBDContact:
 
         self._record_bounds(q)
         tri_bvh, point_bvh, edge_bvh, body_bvh = self._bvhs
-        tri_roots, point_roots, edge_roots, body_root = self._roots
+        tri_roots, point_roots, edge_roots, world_roots = self._roots
         lists = [(self._vt, self._vt_count, self._vt_min), (self._tv, self._tv_count, self._tv_min),
                  (self._ee, self._ee_count, self._ee_min)]
         kinds = [(K.VERTEX_QUERY, self.vertex_count, tri_bvh, tri_roots),
                  (K.TRIANGLE_QUERY, self.triangle_count, point_bvh, point_roots),
                  (K.EDGE_QUERY, self.edge_count, edge_bvh, edge_roots)]
         self._queries = [
-            record(K.query_pairs, count, [int(kind), body_bvh.id, body_root, bvh.id, roots, self._surface, self._tri,
-                                          self._edges, self._body, q, r, sc, C, *out, self._overflow])
+            record(K.query_pairs, count, [int(kind), body_bvh.id, world_roots, self._groups[3], bvh.id, roots,
+                                          self._surface, self._tri, self._edges, self._body, q, r, sc, C, *out,
+                                          self._overflow])
             for (kind, count, bvh, roots), out in zip(kinds, lists)] + [
             record(K.displacement_bounds, q.shape[0], [
                 q, self._slot, self._vt_min, self._tri_offsets, self._tris, self._tv_min, self._edge_offsets,

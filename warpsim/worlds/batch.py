@@ -327,7 +327,9 @@ class WorldBatch:
                 raise StructuralError(f"the integrator's contacts ({', '.join(missing)}) are not among the scene's "
                                       "colliders; batched worlds tile only those")
             integrator.contacts = [tiled[id(c)] for c in integrator.contacts]
-        if getattr(integrator, "body_size", None) is not None:
+        if hasattr(integrator, "tile_worlds"):  # ws.VBD: its contact keeps each world's bodies apart
+            integrator.tile_worlds(self.world_count, self.model.world_particle_count)
+        if getattr(integrator, "body_size", None) is not None and not getattr(integrator, "springs_per_copy", False):
             # ws.FastMassSpring: one matrix for every copy of every world
             varied = sorted({e.key for e in self.plan.values() for name in e.scale if name != "particle_radius"})
             if varied:
