@@ -7,7 +7,11 @@ reference to its prim in the sweep's batch layer, or with ``--flatten`` a self-c
 its samples), with the stage settings importers read: ``metersPerUnit``, ``upAxis``,
 ``startTimeCode`` / ``endTimeCode`` and ``timeCodesPerSecond`` / ``framesPerSecond`` of the
 sweep. The world's parameters come along in ``/World``'s ``customData["warpsim"]`` (authored
-on every world's prim by the sweep). A selector layer without these settings imports at the
+on every world's prim by the sweep). A picked world is one world, so the file holds it in the
+form a lone run writes: curves the sweep stores compactly as its particles' points and
+``warpsim:segments`` (springs), which Blender, usdview and Houdini do not read, are written into
+the file as the lone run's ``BasisCurves`` (:func:`full_form`; a teapot world: 5,238 curves).
+``warpsim pick`` then lists what the file holds (:func:`describe`). A selector layer without these settings imports at the
 wrong scale with an empty frame range; Blender's importer cannot choose a variant of the root.
 Exit status 2 (one line) for a root that is not a sweep's, a world out of range, a bad ``--out``.
 """
