@@ -16,6 +16,8 @@ and thumbnails) with timers around its stages, then the same worlds stepped alon
   other       the rest (building the batch, stability limits, metrics, record, root) [s]
   alone       the same worlds stepped alone in this process [s];  ratio: total / alone
   us/wf       (total - alone) per world and frame [us] (frames stepped, frame 0 aside)
+  MB          bytes the command wrote (layers, chunks, table, record, root, thumbnails) [MB]
+  MB/s        MB / total;  MB/s w: MB / (writing + closing), the rate while writing held up the loop
 
 and, with two or more world counts, the extra cost per world and frame of the command between
 the first and last counts, (T(W2) - T(W1)) / ((W2 - W1) x frames) [us] (issue 50's CPU goal:
@@ -152,6 +154,9 @@ def main(argv=None):
     p.add_argument("--store", default=None, help="all, preview or none (default: the command's choice)")
     p.add_argument("--thumbnails", action="store_true", help="draw thumbnails (default: --no-thumbnails)")
     p.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurement")
+    p.add_argument("--workers", nargs="+", default=["auto"],
+                   help="chunk-writing worker processes, each value a run of every world count (auto: the "
+                        "sweep's choice; N: WARPSIM_WRITE_WORKERS=N), e.g. --workers 0 auto")
     args = p.parse_args(argv)
     from warpsim.verbosity import set_warp_verbosity
 
@@ -171,7 +176,11 @@ def main(argv=None):
         run_command(["sweep", args.scene, "--worlds", "2", "--frames", "1", "--device", args.device, "--out",
                      os.path.join(folder, "warm", "s.usda"), "--no-progress", "--no-thumbnails",
                      *[f"--vary={v}" for v in args.vary]])
-        for n in args.worlds:
+        for workers, n in [(w, n) for w in args.workers for n in args.worlds]:
+            if workers == "auto":
+                os.environ.pop("WARPSIM_WRITE_WORKERS", None)
+            else:
+                os.environ["WARPSIM_WRITE_WORKERS"] = workers
             argv = ["sweep", args.scene, "--worlds", str(n), "--frames", str(args.frames), "--device", args.device,
                     "--out", os.path.join(folder, f"w{n}", "s.usda"), "--no-progress",
                     *[f"--vary={v}" for v in args.vary]]
@@ -183,21 +192,25 @@ def main(argv=None):
             from warpsim.sweeps import sample_worlds
 
             alone = step_alone(args.scene, sample_worlds(args.scene, {}, args.vary, n), args.frames, args.device)
-            rows.append((n, total, stages, alone))
+            written = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(os.path.join(folder, f"w{n}"))
+                          for f in fs)
+            rows.append((workers, n, total, stages, alone, written))
             shutil.rmtree(os.path.join(folder, f"w{n}"), ignore_errors=True)
         start = None if args.no_startup else startup_seconds(args.scene, args.device)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
-    head = ["worlds", "total", *STAGES, "other", "alone", "ratio", "us/wf"]
+    os.environ.pop("WARPSIM_WRITE_WORKERS", None)
+    head = ["workers", "worlds", "total", *STAGES, "other", "alone", "ratio", "us/wf", "MB", "MB/s", "MB/s w"]
     print(" | ".join(f"{h:>9}" for h in head))
-    for n, total, stages, alone in rows:
+    for workers, n, total, stages, alone, written in rows:
         other = total - sum(stages.values())
         per = 1e6 * (total - alone) / (n * max(args.frames, 1))
-        cells = [f"{n:>9}", f"{total:9.3f}", *[f"{stages[s]:9.3f}" for s in STAGES], f"{other:9.3f}",
-                 f"{alone:9.4f}", f"{total / max(alone, 1e-9):9.1f}", f"{per:9.1f}"]
+        cells = [f"{workers:>9}", f"{n:>9}", f"{total:9.3f}", *[f"{stages[s]:9.3f}" for s in STAGES], f"{other:9.3f}",
+                 f"{alone:9.4f}", f"{total / max(alone, 1e-9):9.1f}", f"{per:9.1f}", f"{written / 1e6:9.1f}",
+                 f"{written / 1e6 / total:9.1f}", f"{written / 1e6 / max(stages['writing'] + stages['closing'], 1e-9):9.1f}"]
         print(" | ".join(cells))
-    if len(rows) >= 2:
-        (n1, t1, _, a1), (n2, t2, _, a2) = rows[0], rows[-1]
+    if len(rows) >= 2 and len(args.worlds) >= 2:
+        (_, n1, t1, _, a1, _), (_, n2, t2, _, a2, _) = rows[0], rows[len(args.worlds) - 1]
         extra = 1e6 * (t2 - t1) / ((n2 - n1) * max(args.frames, 1))
         step = 1e6 * (a2 - a1) / ((n2 - n1) * max(args.frames, 1))
         print(f"extra cost per world and frame, {n2} worlds against {n1}: {extra:.1f} us (stepping alone: "

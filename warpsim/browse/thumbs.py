@@ -75,6 +75,7 @@ def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=
     total = sum(len(names) for _, names in slices)
     if workers is None:
         workers = default_workers(jobs=len(slices)) if total >= POOL_WORLDS else 0
+        workers = workers if workers >= 2 else 0  # one worker beside the renderer gains nothing measurable
     if not workers:
         count = 0
         for layer, names in slices:

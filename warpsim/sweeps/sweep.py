@@ -202,8 +202,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     def stored(frame):
         return frame == int(frames) or (frame % store_every == 0 if store_every else False)
 
-    def write(frame):
-        x, v = batch.world_slices()
+    def write(frame, ticket=None):
+        x, v = batch.world_slices() if ticket is None else batch.world_slices(ticket)
         batched = batch.batch_frame_data(x, v) if hasattr(batch, "batch_frame_data") else None
         if batched is not None:  # every world's samples at once (the scene's frame_arrays)
             if frame < first_written or not stored(frame):
@@ -231,6 +231,10 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         recorder.update()
         recorder.after_frame()
     write(0)
+    # on a GPU, frame f is written while frame f + 1 steps: its copy to the host is started (pinned,
+    # double-buffered, on a copy stream) before the next frame is launched, and waited for after
+    ahead = getattr(batch, "can_copy_ahead", lambda: False)()
+    pending = None  # (frame, ticket) of the frame copied and not yet written
     for frame in range(1, int(frames) + 1):
         if use_graph and graph is None and frame > 1:  # frame 1 ran eagerly: every module is loaded
             with wp.ScopedCapture(device=batch.device) as capture:
@@ -243,9 +247,21 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
             body()
         if recorder is not None:
             recorder.after_frame()
+        if ahead:
+            ticket = batch.start_host_copy()
+            if pending is not None:
+                write(*pending)
+                if progress is not None:
+                    progress(pending[0])
+            pending = (frame, ticket)
+            continue
         write(frame)
         if progress is not None:
             progress(frame)
+    if pending is not None:
+        write(*pending)
+        if progress is not None:
+            progress(pending[0])
     if on_stage is not None:
         on_stage("closing the layer")
     writer.close(scene_name)

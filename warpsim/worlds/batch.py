@@ -512,13 +512,34 @@ class WorldBatch:
         steps = frame_dt / self.world_steps(frame_dt, substeps)  # each world's own step [s]
         return worlds_warning(self.world_limits(), steps, labels)
 
-    def world_slices(self):
-        """Host copies (N, P, 3) of the positions and velocities."""
+    def world_slices(self, ticket=None):
+        """Host copies (N, P, 3) of the positions and velocities: now, or those a
+        :meth:`start_host_copy` ``ticket`` began (then views of pinned buffers, valid until the
+        ticket after next starts)."""
         n, P = self.world_count, self.model.world_particle_count
+        if ticket is not None:
+            x, v = self._host_copies.wait(ticket)
+            return x.reshape(n, P, 3), v.reshape(n, P, 3)
         st = self.sim.state
         broken = getattr(self.model, "spring_broken", None)  # breakable springs: each world's own mask
         self._frame_broken = None if broken is None else broken.numpy().reshape(n, -1)
         return st.positions.numpy().reshape(n, P, 3), st.velocities.numpy().reshape(n, P, 3)
+
+    def can_copy_ahead(self) -> bool:
+        """Whether a frame's host copy may be taken while the next frame steps
+        (:meth:`start_host_copy`): on CUDA devices, for scenes with no per-world spring mask."""
+        return self.device.is_cuda and getattr(self.model, "spring_broken", None) is None
+
+    def start_host_copy(self) -> int:
+        """Begin copying the positions and velocities to pinned host buffers on a copy stream
+        (:class:`warpsim.worlds.host_copies.HostCopies`, double-buffered); returns the ticket
+        :meth:`world_slices` takes. CUDA only (:meth:`can_copy_ahead`)."""
+        from .host_copies import HostCopies
+
+        st = self.sim.state
+        if getattr(self, "_host_copies", None) is None:
+            self._host_copies = HostCopies([st.positions, st.velocities], self.device)
+        return self._host_copies.start([st.positions, st.velocities])
 
     def batch_frame_data(self, x, v):
         """Every world's frame data at once from the host copies ``x``, ``v`` (N, P, 3) of
