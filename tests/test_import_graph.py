@@ -34,14 +34,9 @@ FLOORS = (
 )
 """The floors of ``warpsim/``, bottom up: a module may import its own floor and the floors below."""
 
-UPWARD = {
-    ("warpsim.core.simulator", "warpsim.diff"): "Simulator(differentiable=True) builds a diff.Rollout, "
-                                                "imported only then (the rollout steps the simulator)",
-    ("warpsim.render.gallery", "warpsim.cli"): "a script (python -m warpsim.render.gallery) that makes the README's "
-                                               "previews by running 'warpsim run' through the dispatcher",
-    ("warpsim.scenes.hair", "warpsim.viewer.geometry"): "the head's display mesh belongs one floor down",
-}
-"""Known upward imports and why: this list only shrinks."""
+UPWARD: dict = {}
+"""Known upward imports and why (none left since Architecture III moved the Rollout into core, the icosphere
+into bodies.shapes and the gallery's runs into child processes): this list only shrinks."""
 
 FACE = "warpsim"
 """The package face re-exports every floor (the upper ones lazily, in ``__getattr__``)."""
@@ -188,7 +183,7 @@ def test_the_graph_has_the_known_edges():
     graph = import_graph()
     assert "warpsim.core.model" in graph["warpsim.core.simulator"]
     assert "warpsim.bodies.mesh_io" in graph["warpsim.bodies.colliders"]
-    assert "warpsim.diff" in graph["warpsim.core.simulator"]  # imported inside Simulator.__init__: counts too
+    assert "warpsim.core.rollout" in graph["warpsim.core.simulator"]  # imported inside Simulator.__init__: counts too
     assert "warpsim.cli_common" in graph["warpsim.render.command"]
 
 
@@ -202,7 +197,7 @@ def test_moved_names_still_agree():
     from warpsim import cli, cli_common
     from warpsim.bodies import softbody
     from warpsim.cloth.solver import ClothSemiImplicitEuler
-    from warpsim.diff.rollout import CLOTH_SEMI_IMPLICIT
+    from warpsim.core.rollout import CLOTH_SEMI_IMPLICIT
 
     assert CLOTH_SEMI_IMPLICIT == ClothSemiImplicitEuler.name
     assert cli.UsageError is cli_common.UsageError

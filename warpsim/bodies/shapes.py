@@ -1,6 +1,9 @@
-"""Parametric closed meshes for soft bodies: the torus ("donut") of the mass-spring lecture."""
+"""Parametric closed meshes: the torus ("donut") of the mass-spring lecture, for soft bodies, and
+the icosphere (the hair scene's head, the viewer's spheres; ``warpsim.viewer.geometry`` re-exports it)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -38,3 +41,30 @@ def torus_mesh(major_radius: float = 0.1, minor_radius: float = 0.04, segments: 
     if meshtools.signed_volume(points, faces) < 0.0:
         faces = faces[:, ::-1].copy()
     return points, faces.astype(np.int64)
+
+
+def icosphere(subdivisions=1):
+    """Unit sphere: (vertices (V, 3) float32, triangles (T, 3) uint32), outward winding."""
+    t = (1.0 + math.sqrt(5.0)) / 2.0
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
+         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2),
+         (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11),
+         (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
+    for _ in range(int(subdivisions)):
+        cache, out = {}, []
+
+        def mid(a, b, cache=cache):
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        for a, b, c in f:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            out += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        f = out
+    return np.array(verts, np.float32), np.array(f, np.uint32)

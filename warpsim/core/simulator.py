@@ -88,10 +88,10 @@ class Simulator(SolverBase):
             ``stable_dt()`` and issue one ``ws.StabilityWarning`` naming the limiting spring when
             it is above (not while a graph is being captured, nor in adaptive runs).
         differentiable: step out of place, one State per step, recorded on a ``wp.Tape``
-            (``sim.rollout``, a ``warpsim.diff.Rollout``: gradients of a loss with respect to
-            spring stiffness/damping, masses, the initial state and force coefficients; the
-            forward result equals the ordinary mode's). Raises ValueError for what cannot be
-            differentiated (adaptive steps, implicit Euler, continuous collision detection, ...).
+            (``sim.rollout``, a ``warpsim.diff.Rollout``, from ``warpsim.core.rollout``: gradients
+            of a loss with respect to spring stiffness/damping, masses, the initial state and force
+            coefficients; the forward result equals the ordinary mode's). Raises ValueError for
+            what cannot be differentiated (adaptive steps, implicit Euler, continuous collision detection, ...).
     """
 
     def __init__(self, model, integrator="semi_implicit_euler", forces=None, colliders=(), *, adaptive=False,
@@ -164,7 +164,7 @@ class Simulator(SolverBase):
         self.rollout = None
         """The differentiable rollout (``warpsim.diff.Rollout``) when ``differentiable=True``."""
         if differentiable:
-            from ..diff import Rollout
+            from .rollout import Rollout
 
             self.rollout = Rollout(self)
 

@@ -3,12 +3,14 @@
 Runs every registered scene (or the named ones) on the CPU for a short clip with the settings
 below (unknown scenes: their ``smoke_params`` and 40 frames), renders each cache to a small GIF
 (``docs/<scene>.gif``, 200x150, at most ~30 frames, 128 colours) with container walls drawn as
-translucent guides, and prints the sizes. Caches go to a temporary folder.
+translucent guides, and prints the sizes. Caches go to a temporary folder. Each clip is made by
+``python -m warpsim run`` in a child process.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -40,8 +42,8 @@ MAX_FRAMES = 30
 
 
 def make(scene, out_dir, folder, err=sys.stderr):
-    """Run ``scene`` and write ``out_dir/<scene>.gif``; returns its path."""
-    from ..cli import main
+    """Run ``scene`` (``warpsim run`` in a child process, as a user would: the dispatcher is the
+    top floor, this module a floor below it) and write ``out_dir/<scene>.gif``; returns its path."""
     from ..scenes import get_scene
     from .cache import render_cache
 
@@ -51,8 +53,10 @@ def make(scene, out_dir, folder, err=sys.stderr):
     argv = ["run", scene, "--frames", str(frames), "--out", cache, "--device", "cpu", "--no-progress"]
     for s in sets:
         argv += ["--set", s]
-    with open(os.devnull, "w") as quiet:
-        code = main(argv, quiet, err)
+    child = subprocess.run([sys.executable, "-m", "warpsim", *argv], stdout=subprocess.DEVNULL,
+                           stderr=subprocess.PIPE, text=True, check=False)
+    err.write(child.stderr)
+    code = child.returncode
     if code != 0:
         raise RuntimeError(f"warpsim {' '.join(argv)} failed with status {code}")
     step = max(1, -(-(frames + 1) // MAX_FRAMES))

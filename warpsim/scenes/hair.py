@@ -207,7 +207,7 @@ class Hair(SimulatorScene):
         self.frame = HairFrame(self.sim, self.head, self.roots, use_graph=None if p["graph"] else False)
         self._curve_particles = self.hair.curve_particles().reshape(-1)
         self._free_particles = self.hair.free_particles()
-        from ..viewer.geometry import icosphere
+        from ..bodies.shapes import icosphere
 
         verts, tris = icosphere(3)
         self._head_local = verts.astype(np.float64) * HEAD_RADIUS

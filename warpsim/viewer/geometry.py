@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from ..bodies.shapes import icosphere  # below the viewer: scenes (the hair's head) draw it too
+
 __all__ = ["curve_segments", "icosphere", "subsample", "triangulate", "unit_mesh", "xyzw_to_wxyz"]
 
 
@@ -39,33 +41,6 @@ def curve_segments(points, counts):
     keep[ends - 1] = False  # the last vertex of a curve starts no segment
     first = np.flatnonzero(keep[: len(points) - 1]) if len(points) else np.zeros(0, np.int64)
     return np.stack([points[first], points[first + 1]], axis=1)
-
-
-def icosphere(subdivisions=1):
-    """Unit sphere: (vertices (V, 3) float32, triangles (T, 3) uint32), outward winding."""
-    t = (1.0 + math.sqrt(5.0)) / 2.0
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
-         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2),
-         (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11),
-         (6, 2, 10), (8, 6, 7), (9, 8, 1)]
-    verts = [np.array(p, float) / np.linalg.norm(p) for p in v]
-    for _ in range(int(subdivisions)):
-        cache, out = {}, []
-
-        def mid(a, b, cache=cache):
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                m = verts[a] + verts[b]
-                verts.append(m / np.linalg.norm(m))
-                cache[key] = len(verts) - 1
-            return cache[key]
-
-        for a, b, c in f:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            out += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
-        f = out
-    return np.array(verts, np.float32), np.array(f, np.uint32)
 
 
 def _axis_frame(axis):

@@ -1,4 +1,5 @@
-"""Rollout: the differentiable mode of ``ws.Simulator`` (``differentiable=True``).
+"""Rollout: the differentiable mode of ``ws.Simulator`` (``differentiable=True``), beside the
+Simulator that builds it (``warpsim.diff`` is its public face, with the float64 references).
 
 Each step reads state k and writes state k + 1 (out of place; integrating in place would
 overwrite the values the backward pass needs), and every launch is recorded on ``tape``:
@@ -47,11 +48,11 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ..core.forces import ConstantForce, Drag, Gravity, Magnets, Springs, Wind
-from ..core.integrators import ExplicitEuler, SemiImplicitEuler
-from ..core.launch import recording
-from ..core.model import State
 from ..kernels import autodiff as KD
+from .forces import ConstantForce, Drag, Gravity, Magnets, Springs, Wind
+from .integrators import ExplicitEuler, SemiImplicitEuler
+from .launch import recording
+from .model import State
 
 DIFFERENTIABLE_FORCES = (Gravity, ConstantForce, Wind, Drag, Magnets, Springs)
 """Force types a differentiable run accepts."""
@@ -98,17 +99,15 @@ def check_differentiable(sim) -> None:
         if not isinstance(f, DIFFERENTIABLE_FORCES):
             _refuse(f"forces[{k}] ({type(f).__name__})", "has no backward pass (its kernels compile without one)",
                     "use Gravity, ConstantForce, Wind, Drag, Magnets or the model's springs")
-    from ..bodies.colliders import Capsule, Planes
-
     for k, c in enumerate(sim.colliders):
         kind = type(c).__name__
-        if isinstance(c, Planes):
-            continue
-        if isinstance(c, Capsule):
-            if c.continuous:
+        # the colliders with an out-of-place step (``apply_out``: planes, and spheres and capsules, which
+        # may move or detect continuously); their classes are a floor up, in warpsim.bodies
+        if hasattr(c, "apply_out"):
+            if getattr(c, "continuous", False):
                 _refuse(f"colliders[{k}] ({kind})", "uses continuous collision detection, which is not differentiated",
                         f"pass ws.{kind}(..., continuous=False)")
-            if c.motion is not None:
+            if getattr(c, "motion", None) is not None:
                 _refuse(f"colliders[{k}] ({kind})", "moves (motion=...)", "use a static shape")
             continue
         if kind == "SpringFracture":
@@ -258,7 +257,7 @@ class Rollout:
         """Record loss = weight sum_k sum_i |q_k,i - target_k,i|^2 [m^2] over the states
         ``steps`` (default: the last one) against ``targets`` (one (n,) vec3 array per step);
         returns the (1,) loss array (zeroed first; allocated when ``loss`` is None)."""
-        from ..core import checks
+        from . import checks
 
         given = steps is not None
         steps = [self.step_count] if steps is None else list(steps)
