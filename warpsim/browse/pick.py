@@ -251,8 +251,7 @@ def report(args, out, pick):
             raise  # a damaged sweep: exit 1
         raise UsageError(error_line(exc)) from None
     print(f"world {args.world} of {os.path.relpath(os.path.abspath(args.root))}: {os.path.relpath(path)}"
-          f"{' (flattened)' if args.flatten else ''}: the world alone, written as a lone run writes it "
-          "(springs as curves):", file=out)
+          f"{' (flattened)' if args.flatten else ''}: the world alone, as a lone run writes it:", file=out)
     for line in describe(path):
         print(f"  {line}", file=out)
     return 0
