@@ -1,44 +1,50 @@
-"""Dam break with position-based fluids: a water column collapses in a box.
+"""Dam break with a particle liquid (PBF or divergence-free SPH): a water column collapses in a box.
 
 A column a wide and 2a tall (Martin and Moyce's n^2 = 2) stands in the -x corner of a box. Each
-frame the script advances the fluid in CFL-limited sub-steps, prints the surge front z/a against
-the dimensionless time T = t sqrt(2 g / a) beside Martin and Moyce's (1952) measurements, and
-streams the particles (UsdGeom.Points with ids) and the marching-cubes liquid surface (a Mesh
-whose topology changes every frame) into a USD cache.
+frame the script advances the fluid in CFL-limited sub-steps, prints the surge front z/a (the
+leading edge of the water on the floor, as the experiment measured it) against the dimensionless
+time T = t sqrt(2 g / a) beside Martin and Moyce's (1952) measurements, and streams the particles
+(UsdGeom.Points with ids) and the marching-cubes liquid surface (a Mesh whose topology changes
+every frame) into a USD cache. At the end it prints the worst deviation from the table over
+0.8 <= T <= 3, as run and with the experiment's release delay (``martin_moyce.RELEASE_DELAY``),
+and the throughput in particle-steps per second.
 
-    python examples/dam_break.py --frames 30 --out usd_out/dam_break.usda
-    python examples/dam_break.py --spacing 0.01 --depth 0.1      # finer, a thicker slab
+    python examples/dam_break.py --out usd_out/dam_break.usda              # PBF, up to T = 3.1
+    python examples/dam_break.py --method dfsph --spacing 0.01             # divergence-free SPH, finer
+    python examples/dam_break.py --method dfsph --spacing 0.002 --depth 0.1 --device cuda:0 --no-surface --out ''
 
 The surge front against Martin and Moyce is drawn to ``--figure`` (matplotlib, the ``plot``
 extra; ``--figure ''`` skips it).
 """
 
 import argparse
+import contextlib
 import math
 import sys
+import time
 
 import numpy as np
 
 from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
-from warpsim.particle_fluids.pbf import ParticleFluid, fluid_block
+from warpsim.particle_fluids import martin_moyce as MM
+from warpsim.particle_fluids.pbf import METHODS, ParticleFluid, fluid_block
 from warpsim.particle_fluids.surface import FluidSurface
 from warpsim.usd.writer import UsdCacheWriter
 from warpsim.verbosity import set_warp_verbosity
 
-G = 9.81
-# Martin and Moyce (1952), Phil. Trans. R. Soc. A 244, 312-324, Table 2 (n^2 = 2, a = 2.25 in)
-MM_T = np.array([0.41, 0.84, 1.19, 1.43, 1.63, 1.83, 1.98, 2.20, 2.32, 2.51, 2.65, 2.83, 2.98, 3.11, 3.33])
-MM_Z = np.array([1.11, 1.22, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.00, 3.22, 3.44, 3.67, 3.89, 4.11])
+G = MM.G
+T_END = 3.1  # the last frame reaches this T: every tabulated point of the window 0.8 <= T <= 3 is covered
 
 
 class Example:
     """The column [0, a] x [0, 2a] x [0, depth] in the box [0, 5a] x [0, 2.5a] x [0, depth]."""
 
-    def __init__(self, a=0.2, spacing=0.02, depth=0.06, iterations=40, surface=True, device=None):
+    def __init__(self, a=0.2, spacing=0.02, depth=0.06, iterations=40, surface=True, method="pbf", device=None):
         self.a = a
+        self.layers = max(1, int(round(depth / spacing)))
         self.fluid = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, depth), spacing), spacing=spacing,
                                    domain=((0, 0, 0), (5 * a, 2.5 * a, depth)), iterations=iterations,
-                                   viscosity=0.01, device=device)
+                                   viscosity=0.01, method=method, device=device)
         self.surface = FluidSurface(self.fluid, cell=0.5 * spacing) if surface else None
 
     def step(self, frame_dt):
@@ -46,9 +52,9 @@ class Example:
         return self.fluid.advance(frame_dt)
 
     def front(self):
-        """Surge front z/a (the furthest particle's edge)."""
+        """Surge front z/a: the far edge of the water on the floor (:func:`martin_moyce.floor_front`)."""
         x = self.fluid.positions.numpy()
-        return (x[:, 0].max() + 0.5 * self.fluid.spacing) / self.a
+        return MM.floor_front(x, self.fluid.spacing, layers=self.layers) / self.a
 
     def frame_data(self):
         f = self.fluid
@@ -66,15 +72,17 @@ class Example:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=DefaultsHelpFormatter)
-    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--frames", type=int, default=None, help=f"frames to run (default: up to T = {T_END})")
     parser.add_argument("--fps", type=float, default=60.0)
     parser.add_argument("--a", type=float, default=0.2, help="column width a [m] (height 2a)")
     parser.add_argument("--spacing", type=float, default=0.02, help="particle spacing [m]")
     parser.add_argument("--depth", type=float, default=0.06, help="slab thickness in z [m]")
-    parser.add_argument("--iterations", type=int, default=40, help="most PBF iterations per step (stops earlier at 0.2 %% mean compression)")
+    parser.add_argument("--method", default="pbf", choices=METHODS,
+                        help="pbf: position-based fluids; dfsph: divergence-free SPH with boundary particles")
+    parser.add_argument("--iterations", type=int, default=40, help="most pressure iterations per step (each solve)")
     parser.add_argument("--no-surface", action="store_true", help="skip the marching-cubes surface")
     parser.add_argument("--device", default=None)
-    parser.add_argument("--out", default="usd_out/dam_break.usda")
+    parser.add_argument("--out", default="usd_out/dam_break.usda", help="USD cache ('' for none)")
     parser.add_argument("--figure", default="usd_out/dam_break_front.png", help="surge-front figure ('' for none)")
     parser.add_argument("--verbose", action="store_true", help="show Warp's banner and module-load lines")
     args = parser.parse_args(argv)
@@ -87,6 +95,8 @@ def main(argv=None):
         raise ValueError(f"--spacing {args.spacing:g} m is too coarse for --depth {args.depth:g} m and --a {args.a:g} m: "
                          f"the box needs at least 2 particle spacings on every axis; use --spacing "
                          f"{min(args.depth, 2.5 * args.a) / 2.0:g} or less, or a deeper --depth")
+    if args.frames is not None and args.frames < 1:
+        raise ValueError(f"--frames {args.frames} must be >= 1")
     if args.figure:  # matplotlib is the optional "plot" extra: say so before simulating
         from warpsim.extras import MissingExtraError, require_extra
 
@@ -94,27 +104,54 @@ def main(argv=None):
             require_extra("plot", "--figure")
         except MissingExtraError as exc:
             parser.error(f"{exc} (or --figure '' for no figure)")
-    example = Example(args.a, args.spacing, args.depth, args.iterations, not args.no_surface, args.device)
-    scale = math.sqrt(2.0 * G / args.a)
-    print(f"{example.fluid.active_count} particles; Martin & Moyce (1952) n^2 = 2")
+    example = Example(args.a, args.spacing, args.depth, args.iterations, not args.no_surface, args.method,
+                      args.device)
+    scale = MM.time_scale(args.a, 2.0 * args.a)
+    frames = args.frames or math.ceil(T_END / scale * args.fps - 1e-9)
+    f = example.fluid
+    print(f"{f.active_count} particles, method {args.method}; Martin & Moyce (1952) n^2 = 2")
     print(f"{'frame':>5} {'T':>6} {'z/a':>6} {'M&M z/a':>8} {'substeps':>8} {'compression':>11}")
-    times, fronts = [], []
-    with UsdCacheWriter(args.out, fps=args.fps) as writer:
-        example.declare(writer)
-        writer.write_frame(0, example.frame_data())
-        for frame in range(1, args.frames + 1):
+    times, fronts = [0.0], [example.front()]
+    work, seconds = 0, 0.0
+    with (UsdCacheWriter(args.out, fps=args.fps) if args.out else contextlib.nullcontext()) as writer:
+        if writer is not None:
+            example.declare(writer)
+            writer.write_frame(0, example.frame_data())
+        for frame in range(1, frames + 1):
+            start = time.perf_counter()
             substeps = example.step(1.0 / args.fps)
-            writer.write_frame(frame, example.frame_data())
-            T = example.fluid.time * scale
-            measured = np.interp(T, MM_T, MM_Z, left=np.nan, right=np.nan)
+            if frame > 1:  # the first frame compiles the kernels
+                seconds += time.perf_counter() - start
+                work += substeps * f.active_count
+            if writer is not None:
+                writer.write_frame(frame, example.frame_data())
+            T = f.time * scale
+            measured = np.interp(T, MM.N2_2_T, MM.N2_2_Z, left=np.nan, right=np.nan)
             times.append(T)
             fronts.append(example.front())
-            print(f"{frame:5d} {T:6.2f} {example.front():6.2f} {measured:8.2f} {substeps:8d} "
-                  f"{example.fluid.density_error()[0]:11.2e}")
-    print(f"wrote {writer.output_path}")
+            print(f"{frame:5d} {T:6.2f} {fronts[-1]:6.2f} {measured:8.2f} {substeps:8d} {f.density_error()[0]:11.2e}")
+    if writer is not None:
+        print(f"wrote {writer.output_path}")
+    report(times, fronts)
+    if seconds > 0.0:
+        print(f"throughput: {work / seconds:.4g} particle-steps/s ({f.step_count} steps, "
+              f"{f.total_iterations / f.step_count:.1f} pressure iterations per step; first frame not timed)")
     if args.figure:
         front_figure(times, fronts, args, args.figure)
         print(f"wrote {args.figure}")
+
+
+def report(times, fronts):
+    """Print the worst deviation from Martin and Moyce over their window, raw and release-delayed."""
+    lo, hi = MM.WINDOW
+    if times[-1] < MM.N2_2_T[MM.N2_2_T <= hi].max():
+        print(f"the run ends at T = {times[-1]:.2f}: run to T = {T_END} (the default --frames) for the deviation "
+              f"over {lo} <= T <= {hi}")
+        return
+    t, dev = MM.worst(times, fronts)
+    print(f"worst deviation from Martin & Moyce over {lo} <= T <= {hi}: {100 * dev:+.1f} % at T = {t:.2f}")
+    t, dev = MM.worst(np.asarray(times) + MM.RELEASE_DELAY, fronts)
+    print(f"  with the experiment's release delay (T + {MM.RELEASE_DELAY}): {100 * dev:+.1f} % at T = {t:.2f}")
 
 
 def front_figure(times, fronts, args, path):
@@ -127,11 +164,15 @@ def front_figure(times, fronts, args, path):
     from warpsim.render.plot import save_figure
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(times, fronts, "-", label=f"PBF, spacing {args.spacing} m")
-    ax.plot(MM_T, MM_Z, "o", label="Martin & Moyce (1952), n^2 = 2")
+    ax.plot(times, fronts, "-", label=f"{args.method.upper()}, spacing {args.spacing} m")
+    ax.plot(np.asarray(times) + MM.RELEASE_DELAY, fronts, ":", color="C0",
+            label=f"the same, T + {MM.RELEASE_DELAY} (release delay)")
+    ax.plot(MM.N2_2_T, MM.N2_2_Z, "o", color="C1", label="Martin & Moyce (1952), n^2 = 2")
+    ax.axvspan(*MM.WINDOW, color="0.92", zorder=0)
     ax.set_xlabel("T = t sqrt(2 g / a)")
     ax.set_ylabel("front z / a")
     ax.set_title("dam break: surge front")
+    ax.legend(loc="upper left", fontsize=8)
     save_figure(fig, path)
 
 

@@ -30,6 +30,7 @@ from test_sph import run_dam_break as run_pbf_dam_break
 
 from warpsim.grid_fluids.flip import FlipLiquid
 from warpsim.grid_fluids.mac_grid import MacGrid
+from warpsim.particle_fluids import martin_moyce as MM
 
 G = 9.81
 A = 0.1  # column width a [m]; height 2a
@@ -66,7 +67,8 @@ def run_flip_dam_break(res=20, cfl=1.0, frames=FRAMES, **settings):
     time / (cfl dx)), as the grid-fluid scenes do.
 
     Front, recorded every frame: ``Z`` = furthest particle + half a particle spacing (spacing
-    dx / sqrt(particles per cell), i.e. + dx / 4), the same rule as the PBF front; ``Z_cell`` = the
+    dx / sqrt(particles per cell), i.e. + dx / 4), the same rule as the PBF front; ``Z_floor`` = the
+    edge of the water on the floor (``martin_moyce.floor_front``); ``Z_cell`` = the
     +x face of the furthest cell holding liquid (a cross-check, quantised to dx). Also the area of
     the particle surface (union of discs of 0.6 dx) over its value at T = 0, the particle count,
     the steps and the wall-clock seconds."""
@@ -79,9 +81,14 @@ def run_flip_dam_break(res=20, cfl=1.0, frames=FRAMES, **settings):
     def area(x):
         return particle_area(x, 0.6 * dx, grid.lower, grid.upper, dx / 8.0)
 
+    def floor(x):  # the water's edge on the floor (martin_moyce.floor_front, bins one cell wide: the jittered
+        # particles leave no gaps there; spray detached ahead does not count)
+        return MM.floor_front(np.pad(x[:, :2], ((0, 0), (0, 1))), dx, edge=half) / A
+
     x = flip.particles.numpy("x")
     area0 = area(x)
-    out = {"T": [0.0], "Z": [(x[:, 0].max() + half) / A], "Z_cell": [(np.floor(x[:, 0].max() / dx) + 1) * dx / A]}
+    out = {"T": [0.0], "Z": [(x[:, 0].max() + half) / A], "Z_cell": [(np.floor(x[:, 0].max() / dx) + 1) * dx / A],
+           "Z_floor": [floor(x)]}
     steps = 0
     start = time.perf_counter()
     for _ in range(frames):
@@ -97,6 +104,7 @@ def run_flip_dam_break(res=20, cfl=1.0, frames=FRAMES, **settings):
         out["T"].append(flip.time * SCALE)
         out["Z"].append((front + half) / A)
         out["Z_cell"].append((np.floor(front / dx) + 1) * dx / A)
+        out["Z_floor"].append(floor(x))
     out = {k: np.array(v) for k, v in out.items()}
     out.update(seconds=time.perf_counter() - start, steps=steps, res=res, dx=dx, particles0=n0,
                particles=flip.particle_count(), area=area(x) / area0, fluid=flip)

@@ -81,9 +81,10 @@ def test_the_sag_free_strand_stays_at_rest_through_the_protocol():
     assert np.ptp(x0[:, 0]) > 0.09  # it is still the horizontal strand
 
 
-def test_a_particle_fluid_block_falls_with_its_weight_through_the_protocol():
+@pytest.mark.parametrize("method", ["pbf", "dfsph"])
+def test_a_particle_fluid_block_falls_with_its_weight_through_the_protocol(method):
     fluid = ParticleFluid(fluid_block((-0.05, 0.5, -0.05), (0.05, 0.6, 0.05), 0.025), spacing=0.025,
-                          domain=((-1.0, 0.0, -1.0), (1.0, 2.0, 1.0)), device=CPU)
+                          domain=((-1.0, 0.0, -1.0), (1.0, 2.0, 1.0)), method=method, device=CPU)
     assert isinstance(fluid, Solver)
     fluid.step(0.004)
     fluid.frame(0.012, 3)

@@ -1,9 +1,11 @@
 """Lagrangian particle liquids: position-based fluids (``pbf``) with signed-distance boundaries
-(``boundaries``), nozzles and sinks (``emitters``), the SPH smoothing kernels on the host
-(``smoothing``), a float64 NumPy reference step (``reference``) and a surface mesh per frame
-(``surface``).
+(``boundaries``), divergence-free SPH with boundary particles (``dfsph``, ``method="dfsph"``),
+nozzles and sinks (``emitters``), the SPH smoothing kernels on the host (``smoothing``), a float64
+NumPy reference step (``reference``), a surface mesh per frame (``surface``) and the dam break
+against Martin and Moyce's (1952) table (``martin_moyce``).
 
-Drives ``warpsim.kernels.sph`` and ``warpsim.kernels.fluid_surface`` (with marching cubes).
+Drives ``warpsim.kernels.sph``, ``warpsim.kernels.dfsph`` and ``warpsim.kernels.fluid_surface``
+(with marching cubes).
 Entry classes: ParticleFluid, fluid_block, Nozzle, Sink, FluidSurface.
 """
 

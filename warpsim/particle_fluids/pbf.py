@@ -59,10 +59,29 @@ from ..core.simulator import check_dt
 from ..core.solver import SolverBase, frame_steps
 from ..kernels import sph as K
 from .boundaries import collider_geometry, positive_value
+from .dfsph import BOUNDARIES, DfsphSolver
 from .emitters import Nozzle, Sink
 from .smoothing import KERNELS, fluid_block, kernel_numpy, lattice_mass, wall_tables
 
 __all__ = ["KERNELS", "Nozzle", "ParticleFluid", "Sink", "fluid_block", "kernel_numpy"]
+
+METHODS = ("pbf", "dfsph")
+"""Pressure solvers of :class:`ParticleFluid`."""
+DEFAULT_DENSITY_TOLERANCE = {"pbf": 0.002, "dfsph": 0.0005}
+"""Mean compression each method's density solve stops at by default (DFSPH: SPlisHSPlasH's 0.05 %)."""
+DEFAULT_WALL_FRICTION = {"pbf": 5.0, "dfsph": 0.0}
+"""Wall friction rate [1/s] of each method by default: DFSPH's boundary particles are free-slip walls
+(with the experiment's release delay a free-slip dam break stays within 3-4 % of Martin and Moyce;
+5 /s takes another 6 % off the late surge: benchmarks/RESULTS.md)."""
+
+
+def check_method(method) -> str:
+    """The method name, or a ValueError naming the value and the choices."""
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} is not a particle-fluid method; use method='pbf' (position-based "
+                         f"fluids) or method='dfsph' (divergence-free SPH)")
+    return method
+
 
 class ParticleFluid(SolverBase):
     """Position-based fluid with signed-distance boundaries, emitters and sinks (a
@@ -119,6 +138,18 @@ class ParticleFluid(SolverBase):
         max_dt: largest sub-step [s].
         max_neighbors: neighbour-list capacity per particle.
         max_speed: speed [m/s] beyond which the run counts as blown up.
+        method: "pbf" (position-based fluids, the default) or "dfsph" (divergence-free SPH, Bender and
+            Koschier 2015: a divergence solve and a density solve of the SPH pressure per step,
+            ``warpsim.particle_fluids.dfsph``); vorticity and surface tension are PBF's only.
+        boundary: DFSPH's domain walls: "particles" (a shell of boundary particles continuing the
+            fluid's lattice, in the same hash grid) or "volume" (signed-distance walls, as PBF's).
+        kinematic_viscosity: DFSPH: nu [m^2/s] of the SPH (Monaghan) viscosity between fluid particles.
+        boundary_viscosity: DFSPH: nu [m^2/s] of the same term against the boundary particles at
+            rest (a no-slip wall; boundary="particles").
+        divergence_tolerance: DFSPH: the divergence solve stops when the mean relative density
+            change per step is below this (SPlisHSPlasH's 0.1 %).
+        density_tolerance default (None): 0.002 for PBF, 0.0005 for DFSPH; wall_friction default
+            (None): 5 /s for PBF, 0 (free slip) for DFSPH.
         sort_every: every this many frames of :meth:`advance`, reorder the particles into
             spatial (hash-grid cell) order for memory locality (0: never). Indices change, ids
             stay with their particles.
@@ -130,9 +161,19 @@ class ParticleFluid(SolverBase):
 
     def __init__(self, positions, velocities=None, *, spacing, rest_density=1000.0, capacity=None, domain=None,
                  colliders=(), gravity=(0.0, -9.81, 0.0), kernel="cubic", support=2.0, iterations=40,
-                 density_tolerance=0.002, peak_tolerance=None, viscosity=0.01, vorticity=0.0, surface_tension=0.0,
-                 wall_friction=5.0, emitters=(), sinks=(), cfl=None, max_dt=1.0 / 200.0, max_neighbors=64,
-                 max_speed=100.0, sort_every=0, device=None):
+                 density_tolerance=None, peak_tolerance=None, viscosity=0.01, vorticity=0.0, surface_tension=0.0,
+                 wall_friction=None, emitters=(), sinks=(), cfl=None, max_dt=1.0 / 200.0, max_neighbors=64,
+                 max_speed=100.0, sort_every=0, method="pbf", boundary="particles", kinematic_viscosity=0.0,
+                 boundary_viscosity=0.0, divergence_tolerance=0.001, device=None):
+        self.method = check_method(method)
+        """Pressure solver: "pbf" (position-based fluids) or "dfsph" (divergence-free SPH)."""
+        if boundary not in BOUNDARIES:
+            raise ValueError(f"boundary={boundary!r} is unknown; use boundary='particles' (the domain walls as "
+                             "boundary particles) or boundary='volume' (signed-distance walls); method='dfsph' only")
+        if density_tolerance is None:
+            density_tolerance = DEFAULT_DENSITY_TOLERANCE[self.method]
+        if wall_friction is None:
+            wall_friction = DEFAULT_WALL_FRICTION[self.method]
         filters, cfl = self._check_options(spacing, rest_density, kernel, support, iterations, density_tolerance,
                                            peak_tolerance, viscosity, wall_friction, vorticity, surface_tension, cfl,
                                            max_dt, max_speed, sort_every, max_neighbors, gravity)
@@ -148,6 +189,18 @@ class ParticleFluid(SolverBase):
         self._set_params(*filters)
         self._allocate(pos, vel, max_neighbors)
         self._reset_counters(len(pos))
+        self._dfsph = None
+        if self.method == "dfsph":
+            self._dfsph = DfsphSolver(
+                positions=self._x, velocities=self._v, density_out=self._density, pressure_out=self._pressure,
+                params=self._params, boundaries=self._boundaries, domain=self.domain, spacing=self.spacing,
+                support=self.h / self.spacing, boundary=boundary,
+                kinematic_viscosity=positive_value("kinematic_viscosity", kinematic_viscosity, allow_zero=True),
+                boundary_viscosity=positive_value("boundary_viscosity", boundary_viscosity, allow_zero=True),
+                density_tolerance=self.density_tolerance,
+                divergence_tolerance=positive_value("divergence_tolerance", divergence_tolerance),
+                iterations=self.iterations, counters=(self._counter, self._total_iterations),
+                grid_dims=self.grid_dims, max_neighbors=max_neighbors, device=d)
 
     # ------------------------------------------------------------------------------ construction steps
     def _check_options(self, spacing, rest_density, kernel, support, iterations, density_tolerance, peak_tolerance,
@@ -479,6 +532,8 @@ class ParticleFluid(SolverBase):
         compression a step leaves into velocity over the next one, so a much shorter step right
         after a long one kicks the particles (``advance`` uses equal sub-steps per frame)."""
         dt = check_dt(dt)
+        if self.step_count == 0 and self._dfsph is not None:
+            self._check_first_step(dt)
         self._emit(dt)
         n = self.active_count
         if n > 0:
@@ -486,7 +541,21 @@ class ParticleFluid(SolverBase):
         self.time += dt
         self.step_count += 1
 
+    def _check_first_step(self, dt: float) -> None:
+        """Before the first step (one read-back): a RuntimeWarning when ``dt`` exceeds the CFL-limited
+        step for the speed reachable within it (:meth:`cfl_dt`), the step :meth:`advance` keeps to."""
+        limit = self.cfl_dt(horizon=dt)
+        if dt > limit * (1.0 + 1e-6):
+            warnings.warn(f"ParticleFluid(method={self.method!r}): step dt = {dt:.4g} s exceeds the CFL-limited step "
+                          f"{limit:.4g} s (cfl {self.cfl:g} x spacing / the speed reachable within the step, at most "
+                          "max_dt): the run may be unstable; use advance(frame_dt), which sub-steps within the limit, "
+                          "or a smaller dt", RuntimeWarning, stacklevel=3)
+
     def _solve(self, n: int, dt: float) -> None:
+        if self._dfsph is not None:
+            self._dfsph.solve(n, dt)
+            self.last_dt = dt
+            return
         d, p, b = self.device, self._params, self._boundaries
         x, v = self._x[:n], self._v[:n]
         xp, xq = self._xp[:n], self._xq[:n]
@@ -599,6 +668,8 @@ class ParticleFluid(SolverBase):
 
     def _check_overflow(self) -> None:
         over = int(self._overflow.numpy()[0])
+        if self._dfsph is not None:
+            over = max(over, self._dfsph.overflow())
         if over > 0:
             self._overflow.zero_()
             warnings.warn(f"a particle had {over} neighbours but max_neighbors = {self._neighbors.capacity}; the extra ones "

@@ -1,4 +1,5 @@
-"""Particle-liquid scenes (position-based fluids): ``dam_break`` and ``pour``.
+"""Particle-liquid scenes (position-based fluids, or divergence-free SPH with ``--set method=dfsph``):
+``dam_break`` and ``pour``.
 
 Each frame writes the particles as ``UsdGeom.Points`` with ``ids`` (counts may change) and the
 liquid surface, splatted onto a grid and meshed with marching cubes, as a ``Mesh`` whose
@@ -12,11 +13,13 @@ import numpy as np
 
 from ..bodies import colliders as C
 from ..particle_fluids.surface import FluidSurface
-from ..particle_fluids.pbf import KERNELS, Nozzle, ParticleFluid, Sink, fluid_block
+from ..particle_fluids.pbf import KERNELS, METHODS, Nozzle, ParticleFluid, Sink, fluid_block
 from . import CONTAINER, Scene, add_floor, register_scene
 
 _WATER = (0.15, 0.45, 0.9)
 _COMMON = {
+    "method": ("pbf", "pressure solver: pbf (position-based fluids) or dfsph (divergence-free SPH, boundary "
+               "particles)", METHODS),
     "spacing": (0.025, "particle spacing [m] (the particle diameter)"),
     "iterations": (40, "most PBF density iterations per sub-step (it stops at 0.2 % mean compression)"),
     "viscosity": (0.01, "XSPH viscosity coefficient in [0, 1]"),
@@ -98,7 +101,7 @@ class FluidScene(Scene):
             raise ValueError(f"spacing={p['spacing']}: it must be > 0")
         if not p["cfl"] >= 0.0:
             raise ValueError(f"cfl={p['cfl']}: it must be > 0 (or 0: the fluid's default)")
-        return {"spacing": p["spacing"], "iterations": p["iterations"], "viscosity": p["viscosity"],
+        return {"method": p["method"], "spacing": p["spacing"], "iterations": p["iterations"], "viscosity": p["viscosity"],
                 "vorticity": p["vorticity"], "surface_tension": p["surface_tension"], "kernel": p["kernel"],
                 "cfl": p["cfl"] or None, "sort_every": 10, "device": self.device}
 

@@ -1,0 +1,182 @@
+"""Divergence-free SPH (ParticleFluid(method="dfsph"): warpsim.particle_fluids.dfsph, kernels/dfsph.py)
+and the dam break against Martin and Moyce (1952) (warpsim.particle_fluids.martin_moyce).
+
+Physics checked: boundary particles continuing the fluid's lattice give the rest density at the
+walls; a hydrostatic column (pressure rho g depth, density error small); the dam-break front
+against the published table over T = 0 .. 3.1 (the whole span, at a CPU-sized resolution); momentum
+of a free-falling block (internal forces pairwise antisymmetric); bit-identical repeat runs; bad
+method names refused.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpsim.particle_fluids import martin_moyce as MM
+from warpsim.particle_fluids.dfsph import boundary_lattice
+from warpsim.particle_fluids.pbf import ParticleFluid, fluid_block
+
+G = 9.81
+CPU = "cpu"
+
+
+def test_boundary_lattice_is_a_shell_that_continues_the_fluid_lattice():
+    s = 0.1
+    pts = boundary_lattice((0, 0, 0), (0.4, 0.3, 0.2), s, 2)
+    inner = (4, 3, 2)
+    assert len(pts) == np.prod(np.add(inner, 4)) - np.prod(inner)  # (n + 2 layers a side)^3 minus the inside
+    assert not np.any(np.all((pts > 0) & (pts < (0.4, 0.3, 0.2)), axis=1))  # nothing inside the box
+    # every coordinate is a lattice node of the fluid's (i + 1/2) s lattice, continued outward
+    np.testing.assert_allclose(np.mod(pts / s - 0.5, 1.0) * (np.mod(pts / s - 0.5, 1.0) < 0.5), 0.0, atol=1e-9)
+
+
+def test_a_lattice_filling_its_box_sits_at_rest_density_and_stays_put():
+    """A block filling its box exactly, no gravity: boundary particles behind all six walls make
+    every fluid particle's density rho0 (the wall particles too), so nothing moves."""
+    s = 0.05
+    f = ParticleFluid(fluid_block((0, 0, 0), (0.3, 0.2, 0.25), s), spacing=s, domain=((0, 0, 0), (0.3, 0.2, 0.25)),
+                      gravity=(0.0, 0.0, 0.0), method="dfsph", device=CPU)
+    x0 = f.positions.numpy().copy()
+    f.step(1.0e-3)
+    np.testing.assert_allclose(f.density.numpy(), 1000.0, rtol=2e-5)
+    np.testing.assert_allclose(f.positions.numpy(), x0, atol=1e-7)
+    assert f.last_iterations == 3  # the minimum: one divergence and two density iterations
+
+
+def test_hydrostatic_column_density_and_pressure():
+    """A 0.3 m column at rest in a box of boundary particles: after 1.5 s at rest (< 0.1 m/s), mean
+    compression < 1 %, peak < 2 %, and at least a kernel radius from the walls and the floor the
+    pressure within 5 % of rho g depth (bins 2 spacings thick; measured 0.999-1.039). The layer on
+    the floor reads higher (1.27): a boundary particle pushes with the fluid particle's own pressure
+    only (kappa_i, not kappa_i + kappa_j), so the wall layer carries more kappa for the same force."""
+    s, width, height = 0.03, 0.3, 0.3
+    f = ParticleFluid(fluid_block((0, 0, 0), (width, height, width), s), spacing=s,
+                      domain=((0, 0, 0), (width, height + 0.1, width)), viscosity=0.05, max_dt=1.0 / 240.0,
+                      method="dfsph", device=CPU)
+    for _ in range(90):
+        f.advance(1.0 / 60.0)
+    assert f.max_speed_now() < 0.1
+    mean, peak = f.density_error()
+    assert mean < 0.01 and peak < 0.02, (mean, peak)
+    x, p = f.positions.numpy(), f.pressure.numpy()
+    inside = np.all((x[:, [0, 2]] > f.h) & (x[:, [0, 2]] < width - f.h), axis=1) & (x[:, 1] > f.h)
+    # the depth of rest-density fluid above each particle: the weight above it per unit area / (rho0 g)
+    y = x[:, 1]
+    above = np.clip((y[None, :] + 0.5 * s - y[:, None]) / s, 0.0, 1.0).sum(axis=1)
+    depth = above * f.particle_mass / (1000.0 * width * width)
+    checked = 0
+    for lo, hi in zip(np.arange(2 * s, height, 2 * s), np.arange(4 * s, height + 2 * s, 2 * s)):
+        m = inside & (depth >= lo) & (depth < hi)
+        if m.sum() < 4:
+            continue
+        ratio = p[m].mean() / (1000.0 * G * depth[m].mean())
+        assert abs(ratio - 1.0) < 0.05, (lo, hi, ratio)
+        checked += 1
+    assert checked >= 3
+
+
+@pytest.fixture(scope="module")
+def dam_break():
+    wp.init()
+    return MM.run_dam_break("dfsph", res=10, device=CPU)
+
+
+def test_dam_break_front_within_5_percent_of_martin_moyce_with_the_release_delay(dam_break):
+    """Martin and Moyce's n^2 = 2 table (martin_moyce.N2_2_*, Table 2 of the paper), every point with
+    0.8 <= T <= 3, the front of the water on the floor, DFSPH at a / spacing = 10, free-slip walls.
+
+    Raw, the instantaneous release leads the experiment: measured +13..+17 % for 1 < T < 1.9 (the
+    same lead PBF and FLIP show at every resolution, benchmarks/RESULTS.md), asserted between
+    +8 % and +20 % there and within 20 % everywhere. The lead is a start delay: with T shifted by
+    the experiment's release delay (martin_moyce.RELEASE_DELAY = 0.2, one number fitted on the
+    converged runs of all three methods, not on this one) every point is within 5 % (measured
+    4.2 %), the goal of issue 54."""
+    T, Z = dam_break["T"], dam_break["Z"]
+    assert T[-1] >= 3.0 and len(T) == 63  # the whole span: T = 0 .. 3.1
+    tt, raw = MM.deviation(T, Z)
+    print("raw Z_sim / Z_exp - 1 at T =", tt, ":", np.round(raw, 3))
+    early = (tt > 1.0) & (tt < 1.9)
+    assert np.all(raw[early] > 0.08) and np.all(np.abs(raw) < 0.20), raw
+    _, delayed = MM.deviation(T + MM.RELEASE_DELAY, Z)
+    print(f"with T + {MM.RELEASE_DELAY}:", np.round(delayed, 3))
+    assert np.all(np.abs(delayed) < 0.05), delayed
+    shift, err = MM.best_shift(T, Z)
+    assert 0.1 <= shift <= 0.3 and err < 0.05, (shift, err)
+
+
+def test_dam_break_keeps_its_density(dam_break):
+    """Mean compression (measured at every frame) below 1 %; every particle inside the box."""
+    assert dam_break["compression"].max() < 0.01, dam_break["compression"].max()
+    f = dam_break["fluid"]
+    x = f.positions.numpy()
+    lo, hi = f.domain
+    assert np.all(x >= lo) and np.all(x <= hi)
+
+
+def test_repeat_runs_are_bit_identical():
+    """Two runs of the same dam break (10 frames) give the same bits: fixed-order gathers, no float atomics."""
+    runs = []
+    for _ in range(2):
+        a, s = 0.2, 0.02
+        f = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, 3 * s), s), spacing=s,
+                          domain=((0, 0, 0), (5 * a, 2.5 * a, 3 * s)), method="dfsph", device=CPU)
+        for _ in range(10):
+            f.advance(1.0 / 60.0)
+        runs.append((f.positions.numpy().tobytes(), f.velocities.numpy().tobytes(), f.total_iterations))
+    assert runs[0] == runs[1]
+
+
+def test_free_fall_momentum_matches_gravity():
+    """No walls: the pressure, SPH viscosity and XSPH are pairwise antisymmetric, so the total
+    momentum changes by exactly M g t while the block deforms."""
+    s = 0.02
+    x0 = fluid_block((-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), s, jitter=0.1, seed=2) * 0.9
+    v0 = np.random.default_rng(0).normal(0.0, 0.3, x0.shape)
+    f = ParticleFluid(x0, v0, spacing=s, viscosity=0.1, kinematic_viscosity=1e-3, method="dfsph", device=CPU)
+    p0 = f.momentum()
+    for _ in range(10):
+        f.step(1.0 / 500.0)
+    expected = p0 + f.total_mass * np.array([0.0, -G, 0.0]) * f.time
+    np.testing.assert_allclose(f.momentum(), expected, atol=2e-5 * f.total_mass)
+
+
+def test_a_first_step_beyond_the_cfl_limit_is_said_before_it_runs():
+    """step(dt) with dt above the CFL-limited step (here max_dt, 5 ms) warns before the first step;
+    advance() sub-steps inside the limit and says nothing."""
+    x = fluid_block((0, 0, 0), (0.1, 0.2, 0.06), 0.02)
+    f = ParticleFluid(x, spacing=0.02, domain=((0, 0, 0), (0.5, 0.25, 0.06)), method="dfsph", device=CPU)
+    with pytest.warns(RuntimeWarning, match=r"dt = 0.02 s exceeds the CFL-limited step 0.005 s"):
+        f.step(0.02)
+    quiet = ParticleFluid(x, spacing=0.02, domain=((0, 0, 0), (0.5, 0.25, 0.06)), method="dfsph", device=CPU)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet.advance(1.0 / 60.0)
+    assert quiet.last_substeps >= 4
+
+
+def test_bad_method_and_boundary_are_refused():
+    x = fluid_block((0, 0, 0), (0.1, 0.1, 0.1), 0.05)
+    with pytest.raises(ValueError, match=r"method='sph'.*method='pbf'.*method='dfsph'"):
+        ParticleFluid(x, spacing=0.05, method="sph", device=CPU)
+    with pytest.raises(ValueError, match=r"boundary='mesh'.*'particles'.*'volume'"):
+        ParticleFluid(x, spacing=0.05, method="dfsph", boundary="mesh", device=CPU)
+    from warpsim.scenes import get_scene
+
+    for scene in ("dam_break", "pour"):  # warpsim run SCENE --set method=sph
+        with pytest.raises(ValueError, match=r"method='sph' is not one of pbf, dfsph"):
+            get_scene(scene).resolve_params({"method": "sph"})
+        assert get_scene(scene).resolve_params({"method": "dfsph"})["method"] == "dfsph"
+
+
+def test_martin_moyce_tables_follow_the_aspect_ratio():
+    """The n^2 = 2 table for a column twice as tall as wide (the scene's 0.2 x 0.4 m), the square
+    column's for n^2 = 1; T = n t sqrt(g / a) (sqrt(2 g / a) for n^2 = 2); other ratios refused."""
+    assert MM.table(0.2, 0.4)[0] is MM.N2_2_T and MM.table(0.1, 0.1)[0] is MM.N2_1_T
+    assert MM.time_scale(0.2, 0.4) == pytest.approx(np.sqrt(2.0 * G / 0.2))
+    with pytest.raises(ValueError, match="n\\^2 = height/width = 1.5"):
+        MM.table(0.4, 0.6)
+    # both series run toward Ritter's inviscid front Z = 1 + 2T from below
+    for t, z in (MM.table(1, 2), MM.table(1, 1)):
+        assert np.all(z < 1.0 + 2.0 * t) and np.all(np.diff(z) > 0) and np.all(np.diff(t) > 0)
