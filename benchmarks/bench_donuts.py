@@ -29,6 +29,10 @@ the BVH search and then switches (the list is slow while tori fall).
 ``--integrator fast_mass_spring --dt 0.0041666667`` steps the heap by ``ws.FastMassSpring`` at 1/240 s
 (``--solver-iterations N``, default the scene's 10); ``--integrator implicit_euler`` by Newton and CG.
 
+``--integrator vbd --dt 0.0041666667`` steps the heap by ``ws.VBD`` (vertex block descent, contact inside the
+descent; ``benchmarks/vbd_heap.py``: step, contact share, frames/s, deepest vertex, edges through triangles;
+``--reference-integrator fast_mass_spring`` times that integrator on the same heap in the same run).
+
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
 and synchronisations per step, and the contact search's candidates per query
 (``SoftContact.record_candidates``); ``--rebuild-every N`` sets the contact's BVH rebuild period.
@@ -194,7 +198,9 @@ def main():
     parser.add_argument("--integrator", default="semi_implicit_euler", help="the scene's integrator "
                         "(implicit_euler, fast_mass_spring: no spring limit on the step)")
     parser.add_argument("--solver-iterations", type=int, default=None, help="fast_mass_spring: local-global "
-                        "iterations a step (default: the scene's)")
+                        "iterations a step; vbd: colour sweeps a step (default: the scene's)")
+    parser.add_argument("--reference-integrator", default=None, help="vbd: also build, settle and time the heap with "
+                        "this integrator (e.g. fast_mass_spring) in the same run")
     parser.add_argument("--contact-stiffness", type=float, default=None, help="implicit_euler: contact penalty "
                         "stiffness inside the solve [N/m] (the scene's contact_stiffness)")
     parser.add_argument("--contact-damping", type=float, default=None, help="implicit_euler: contact damping inside "
@@ -230,6 +236,10 @@ def main():
     args = parser.parse_args()
     device = wp.get_device(args.device)
     wp.config.quiet = True
+    if args.integrator == "vbd":
+        from vbd_heap import run_vbd
+
+        return run_vbd(args, device, build)
 
     scene, h = settle(args, args.count, device)
     sim, contact = scene.sim, scene.contact

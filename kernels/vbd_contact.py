@@ -17,9 +17,10 @@ one kernel, ``query_pairs``, with the query's kind as its first argument.
 
 Pairs sharing a particle are skipped; so are pairs of the same body unless self contact is on.
 Each query also keeps the smallest distance it met (``*_min``, [m]); ``displacement_bounds`` turns
-them into each particle's step bound (the proof is in ``warpsim.bodies.vbd``). A pair within the
-radius but beyond a list's ``capacity`` is counted in ``overflow`` (integer atomic) and still lowers
-the smallest distance, so an overflow can miss a contact force but never the bound.
+them into each particle's step bound (the proof is in ``warpsim.bodies.vbd``). A query with more
+pairs within the radius than a list's ``capacity`` keeps the nearest (``keep_nearest``), counts the
+rest in ``overflow`` (integer atomic) and still lowers the smallest distance with them, so an
+overflow can miss a far pair's force but never the bound.
 
 Contact energy of one pair, written with four particles k and weights a_k (vertex-triangle: 1,
 -b_0, -b_1, -b_2 with b the barycentrics of the triangle point nearest the vertex; edge-edge:
@@ -120,6 +121,29 @@ def edge_edge_distance(i: int, j: int, f: int, edges: wp.array(dtype=int), body:
     return wp.length(r)
 
 
+@wp.func
+def keep_nearest(start: int, n: int, capacity: int, d: float, stored: int, list_io: wp.array(dtype=int),
+                 distance_io: wp.array(dtype=float)) -> int:
+    """Add pair ``stored`` at distance ``d`` [m] to the list at ``start`` holding ``n``: appended while
+    there is room, else in place of the farthest (ties: the larger index) when nearer; returns n + 1
+    (n + 1 > capacity: a pair was left out). The kept set does not depend on the order pairs come in."""
+    if n < capacity:
+        list_io[start + n] = stored
+        distance_io[start + n] = d
+        return n + 1
+    worst = int(0)
+    for k in range(1, capacity):
+        a = start + k
+        b = start + worst
+        if distance_io[a] > distance_io[b] or (distance_io[a] == distance_io[b] and list_io[a] > list_io[b]):
+            worst = k
+    w = start + worst
+    if d < distance_io[w] or (d == distance_io[w] and stored < list_io[w]):
+        list_io[w] = stored
+        distance_io[w] = d
+    return n + 1
+
+
 VERTEX_QUERY = wp.constant(0)
 TRIANGLE_QUERY = wp.constant(1)
 EDGE_QUERY = wp.constant(2)
@@ -175,13 +199,13 @@ def query_pairs(
     bvh: wp.uint64, roots: wp.array(dtype=int),
     surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
-    list_out: wp.array(dtype=int), count_out: wp.array(dtype=int), min_out: wp.array(dtype=float),
-    overflow_io: wp.array(dtype=int),
+    list_out: wp.array(dtype=int), distance_out: wp.array(dtype=float), count_out: wp.array(dtype=int),
+    min_out: wp.array(dtype=float), overflow_io: wp.array(dtype=int),
 ):
     """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
     triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
-    ``list_out[item capacity ..]`` in traversal order, their count, and the smallest distance met (at
-    most ``query_radius``). Two levels: the bodies of the query's world whose bounds meet the box
+    ``list_out[item capacity ..]`` (the ``capacity`` nearest, ``keep_nearest``) in ascending order, their
+    count, and the smallest distance met (at most ``query_radius``). Two levels: the bodies of the query's world whose bounds meet the box
     (``collect_bodies`` from the world's root of the body BVH), then each one's subtree of the grouped BVH."""
     item = wp.tid()
     lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
@@ -203,11 +227,10 @@ def query_pairs(
                     continue
                 dmin = wp.min(dmin, d)
                 if d < query_radius:
-                    if n < capacity:
-                        list_out[item * capacity + n] = stored
-                        n += 1
-                    else:
+                    n = keep_nearest(item * capacity, n, capacity, d, stored, list_out, distance_out)
+                    if n > capacity:
                         wp.atomic_add(overflow_io, kind, 1)
+                        n = capacity
     # ascending order: the list (and the sums over it) does not depend on the BVH's traversal order, so a
     # world of a sweep (one BVH for all worlds) gets the bits of the same scene run alone
     for a in range(1, n):

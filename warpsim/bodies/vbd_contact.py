@@ -55,7 +55,7 @@ class VBDContact:
         bound_fraction: gamma in (0, 1/2): each search lets a particle move gamma x its distance to the
             nearest non-incident primitive (``warpsim.bodies.vbd`` proves no pair then closes).
         max_displacement: b_max [m], the most a particle moves between searches (default: the thickness).
-        capacity: pairs kept per query list (more are counted in :attr:`overflow`).
+        capacity: pairs kept per query list, the nearest (more are counted in :attr:`overflow`).
         planes: (normal (3,), offset) pairs: half-spaces n . x >= offset (floor and walls).
         rebuild_every: searches between BVH rebuilds (refits in between).
     """
@@ -178,6 +178,9 @@ class VBDContact:
         self._ee = wp.zeros(self.edge_count * C, dtype=int, device=d)
         self._ee_count = wp.zeros(self.edge_count, dtype=int, device=d)
         self._ee_min = wp.zeros(self.edge_count, dtype=float, device=d)
+        self._distances = [wp.zeros(self.vertex_count * C, dtype=float, device=d),
+                           wp.zeros(self.triangle_count * C, dtype=float, device=d),
+                           wp.zeros(self.edge_count * C, dtype=float, device=d)]  # the lists' distances [m]
         self._overflow = wp.zeros(3, dtype=int, device=d)
         self._planes = wp.array(self.planes.astype(np.float32), dtype=wp.vec4, device=d)
         self.reference = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -245,8 +248,9 @@ class VBDContact:
         self._record_bounds(q)
         tri_bvh, point_bvh, edge_bvh, body_bvh = self._bvhs
         tri_roots, point_roots, edge_roots, world_roots = self._roots
-        lists = [(self._vt, self._vt_count, self._vt_min), (self._tv, self._tv_count, self._tv_min),
-                 (self._ee, self._ee_count, self._ee_min)]
+        lists = [(self._vt, self._distances[0], self._vt_count, self._vt_min),
+                 (self._tv, self._distances[1], self._tv_count, self._tv_min),
+                 (self._ee, self._distances[2], self._ee_count, self._ee_min)]
         kinds = [(K.VERTEX_QUERY, self.vertex_count, tri_bvh, tri_roots),
                  (K.TRIANGLE_QUERY, self.triangle_count, point_bvh, point_roots),
                  (K.EDGE_QUERY, self.edge_count, edge_bvh, edge_roots)]

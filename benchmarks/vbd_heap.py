@@ -1,0 +1,103 @@
+"""``bench_donuts.py --integrator vbd``: the donut heap stepped by ``ws.VBD`` (contact inside the descent).
+
+After ``--settle`` steps of ``--dt`` (blow-up checks on), on the same heap: the full step (eager, and on
+CUDA as a graph of one BVH-rebuild period), the contact search alone (``VBDContact.search``, times the
+searches a step makes: its share of a step), one colour sweep, frames of 1/60 s per wall second, the
+pairs listed and list overflows, then the two properties the heap tests assert on the final state:
+the deepest vertex of a torus inside another [mm] and the surface edges passing through another
+torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``). ``--reference-integrator
+fast_mass_spring`` builds and settles the same heap with that integrator in the same process and prints
+the ratio of the step times.
+
+    python benchmarks/bench_donuts.py --integrator vbd --device cpu --count 12 --segments 24 --sides 12 \\
+        --lattice-cells 8 --dt 0.0041666667 --settle 240 --steps 20
+    python benchmarks/bench_donuts.py --integrator vbd --device cuda:0 --dt 0.0041666667 --settle 2400 --steps 200 \\
+        --reference-integrator fast_mass_spring --set solver_chebyshev=true --solver-iterations 12
+"""
+
+import math
+import os
+import sys
+import time
+
+import warp as wp
+from timing import time_per_call
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies  # noqa: E402 (the tests' oracles)
+
+
+def searches_per_step(integrator) -> int:
+    """Contact searches a VBD step makes (one opens it, one every ``detect_every`` iterations after)."""
+    every = integrator.detect_every
+    return 1 + ((integrator.iterations - 1) // every if every else 0)
+
+
+def settle(build, args, device, integrator):
+    """Build the heap with ``integrator`` and take ``--settle`` steps; returns (scene, h, build seconds)."""
+    args.integrator = integrator
+    t0 = time.perf_counter()
+    scene = build(args, args.count, device)
+    wp.synchronize_device(device)
+    built = time.perf_counter() - t0
+    h = scene.params["dt"] / scene.inner_steps
+    t0 = time.perf_counter()
+    for _ in range(args.settle):
+        scene.sim.step(h)
+    wp.synchronize_device(device)
+    scene.sim.check_every = 0  # no host read-back while timing
+    print(f"{integrator}: built in {built:.2f} s; settled {args.settle} steps of {h:.4g} s in "
+          f"{time.perf_counter() - t0:.1f} s; kinetic energy {scene.kinetic_energy():.3g} J")
+    return scene, h, built
+
+
+def run_vbd(args, device, build) -> None:
+    scene, h, _ = settle(build, args, device, "vbd")
+    sim, integrator, contact = scene.sim, scene.sim.integrator, scene.vbd_contact
+    model = sim.model
+    print(f"device {device}; {args.count} tori x {args.segments * args.sides} surface vertices; {model.particle_count} "
+          f"particles, {model.spring_count} springs, {integrator.colour_count} colours, {contact.triangle_count} "
+          f"triangles, {contact.edge_count} edges; {integrator.iterations} sweeps and {searches_per_step(integrator)} "
+          f"contact searches a step (query radius {contact.query_radius * 1e3:.3g} mm)")
+    full = time_per_call(lambda: sim.step(h), args.steps, device)
+    q = sim.state.positions
+    search = time_per_call(lambda: contact.search(q), args.steps, device)
+    sweep = time_per_call(lambda: [launch.launch() for launch in integrator._sweep], args.steps, device)
+    per_frame = round(1.0 / 60.0 / h)
+    share = search * searches_per_step(integrator) / full
+    vt, ee = contact.pair_counts()
+    print(f"VBD step              {full * 1e3:9.3f} ms   {1.0 / full:8.1f} steps/s")
+    print(f"contact search        {search * 1e3:9.3f} ms x {searches_per_step(integrator)} a step: share of a step "
+          f"{share:.1%} ({vt} vertex-triangle, {ee} edge-edge pairs listed; overflow {contact.overflow})")
+    print(f"one colour sweep      {sweep * 1e3:9.3f} ms x {integrator.iterations} a step")
+    print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
+    if device.is_cuda:
+        period = contact.rebuild_every // math.gcd(contact.rebuild_every, searches_per_step(integrator))
+
+        def steps():
+            for _ in range(period):
+                sim.step(h)
+
+        with wp.ScopedCapture(device=device) as capture:
+            steps()
+        calls = max(1, args.steps // period)
+        eager = time_per_call(steps, calls, device) / period
+        graph = time_per_call(lambda: wp.capture_launch(capture.graph), calls, device) / period
+        print(f"step as a CUDA graph  {graph * 1e3:9.3f} ms   eager / graph {eager / graph:.2f}x (a graph of {period} "
+              f"steps, one BVH rebuild period); frames of 1/60 s per wall second {1.0 / (graph * per_frame):.2f}")
+    x = sim.state.positions.numpy()
+    t0 = time.perf_counter()
+    crossings = sum(n for _, _, n in edges_through_other_bodies(x, scene.bodies))
+    print(f"deepest vertex inside another torus {deepest_vertex(x, scene.bodies) * 1e3:.3f} mm (thickness "
+          f"{scene.params['thickness'] * 1e3:.3g} mm); edges through another torus's triangles: {crossings} "
+          f"(oracles, {time.perf_counter() - t0:.1f} s)")
+    if args.reference_integrator:
+        other, h2, _ = settle(build, args, device, args.reference_integrator)
+        reference = time_per_call(lambda: other.sim.step(h2), args.steps, device)
+        again = time_per_call(lambda: sim.step(h), args.steps, device)
+        print(f"{args.reference_integrator} step {reference * 1e3:9.3f} ms at {h2:.4g} s; VBD step {again * 1e3:.3f} ms "
+              f"at {h:.4g} s: {args.reference_integrator} / vbd time per simulated second "
+              f"{(reference / h2) / (again / h):.2f}x")
+        y = other.sim.state.positions.numpy()
+        print(f"{args.reference_integrator}: deepest vertex {deepest_vertex(y, other.bodies) * 1e3:.3f} mm, edges "
+              f"through: {sum(n for _, _, n in edges_through_other_bodies(y, other.bodies))}")
