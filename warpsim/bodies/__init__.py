@@ -3,7 +3,9 @@ particle-particle contacts, keyframed motion), mass-spring soft bodies from tria
 Utah teapot, dragging a particle with the mouse or a script, and host mesh helpers (``meshtools``).
 
 Drives ``warpsim.kernels.collide``, ``warpsim.kernels.interaction`` and ``warpsim.kernels.soft_contact``
-(soft body against soft body: ``SoftContact``; ``torus_mesh`` makes the lecture's donuts), and
+(soft body against soft body: ``SoftContact``, its implicit penalty ``SoftContactForce`` in
+``soft_contact_force``; ``shapes``: ``torus_mesh`` makes the lecture's donuts, ``icosphere`` the hair's
+head and the viewer's spheres), and
 ``warpsim.kernels.vbd`` / ``vbd_contact`` (``VBD``: backward Euler by vertex block descent with contact
 inside the descent, ``VBDContact``).
 Entry classes: Plane, Box, Sphere, TriangleMesh, ParticleCollisions, SoftContact, add_soft_body, teapot_mesh,

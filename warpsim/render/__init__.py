@@ -5,7 +5,8 @@ agents, colliders, smoke density as a ray-marched volume) with Lambert shading, 
 with shadows and a camera that frames the scene's bounds, and writes PNG, GIF or MP4 files.
 
 Drives ``warpsim.kernels.render``. Entry points: Renderer, Camera, frame_bounds, GeometryBuilder,
-render_cache (also ``warpsim render CACHE`` and ``warpsim plot CACHE``).
+render_cache (also ``warpsim render CACHE`` and ``warpsim plot CACHE``). The README's previews:
+``python -m warpsim.render.gallery`` (each clip made by ``python -m warpsim run`` in a child process).
 """
 
 from .cache import render_cache
