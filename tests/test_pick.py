@@ -141,3 +141,21 @@ def test_a_picked_world_holds_the_curves_a_lone_run_writes(scene, tmp_path):
         assert set(listed) == {p.GetName() for p in stage.GetDefaultPrim().GetChildren()}
         if flatten:
             assert SEGMENTS_ATTR not in springs.GetPropertyNames()
+
+
+def test_a_damaged_sweeps_picked_springs_keep_the_readable_frames(tmp_path):
+    """``--allow-damaged``: the springs of a sweep whose middle chunk file is truncated are written
+    as curves at the frames that remain (0..23 and 48..60), the lost chunk's frames left out."""
+    root = tmp_path / "s.usda"
+    code, _, err = run("sweep", "springs", "--worlds", 2, "--vary", "stiffness=30:60", "--frames", 60, "--chunk", 24,
+                       "--no-progress", "--no-thumbnails", "--device", "cpu", "--out", root)
+    assert code == 0, err
+    chunk = next(p for p in tmp_path.iterdir() if p.name.startswith("s.batch_0000.run") and
+                 p.name.endswith("chunk000024.usdc"))
+    chunk.write_bytes(chunk.read_bytes()[:100])
+    code, text, err = run("pick", root, "--world", 1, "--out", tmp_path / "w1.usdc", "--allow-damaged")
+    assert code == 0, err
+    stage = Usd.Stage.Open(str(tmp_path / "w1.usdc"))
+    springs = stage.GetPrimAtPath("/World/springs")
+    assert springs.GetTypeName() == "BasisCurves"
+    assert springs.GetAttribute("points").GetTimeSamples() == [float(f) for f in (*range(24), *range(48, 61))]

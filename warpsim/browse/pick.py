@@ -180,8 +180,10 @@ def full_form(layer, world_path, batch, batch_world) -> list:
             continue
         keys = ["points"] + (["velocities"] if decl.has_velocities else [])
         attrs = {key: prim.GetAttribute(key) for key in keys}
-        times = attrs["points"].GetTimeSamples()
-        frames = [(t, {key: np.asarray(attrs[key].Get(t)) for key in keys}) for t in times]
+        times = _stored_times(prim, batch)
+        values = [(t, {key: _sample(attrs[key], t) for key in keys}) for t in times]
+        frames = [(t, {key: np.asarray(v) for key, v in data.items()}) for t, data in values
+                  if all(v is not None for v in data.values())]  # (--allow-damaged: a lost chunk's frames stay out)
         found.append((f"{world_path}/{prim.GetName()}", decl, frames))
     del stage
     with Sdf.ChangeBlock():
@@ -194,6 +196,40 @@ def full_form(layer, world_path, batch, batch_world) -> list:
                 for name, value in decl.frame_samples(data, t).items():
                     layer.SetTimeSample(f"{path}.{name}", t, to_vt(decl.attrs[name].type_name, value))
     return [path for path, _, _ in found]
+
+
+def _stored_times(prim, batch) -> list:
+    """The frames of ``prim``'s ``points`` in the batch layer file ``batch``; where a chunk file is
+    damaged (a pick with ``--allow-damaged``; USD then cannot list them at once), the frames of
+    the chunk files that open (warpsim's clips map times one to one)."""
+    from pxr import Sdf, Tf, Usd
+
+    try:
+        return list(prim.GetAttribute("points").GetTimeSamples())
+    except Tf.ErrorException:
+        pass
+    clips = Usd.ClipsAPI(prim.GetParent())
+    source = clips.GetClipPrimPath() or str(prim.GetParent().GetPath())
+    times = set()
+    for asset in clips.GetClipAssetPaths():
+        try:
+            layer = Sdf.Layer.FindOrOpen(os.path.join(os.path.dirname(os.fspath(batch)), asset.path))
+        except Tf.ErrorException:
+            continue  # the damaged chunk: its frames are missing
+        if layer is not None:
+            times.update(layer.ListTimeSamplesForPath(f"{source}/{prim.GetName()}.points"))
+    return sorted(times)
+
+
+def _sample(attr, t):
+    """``attr``'s value at time ``t``, or None where its chunk file is lost or damaged (a pick with
+    ``--allow-damaged``: those frames are missing from the file, as from the sweep)."""
+    from pxr import Tf
+
+    try:
+        return attr.Get(t)
+    except Tf.ErrorException:
+        return None
 
 
 def describe(path) -> list:
