@@ -159,11 +159,13 @@ def _write_pick(root, world, owner, out_path, flatten) -> str:
 
 
 def full_form(layer, world_path, batch, batch_world) -> list:
-    """Write the curves a sweep stores as its particles' points (:class:`warpsim.usd.prims.JoinedPointsDecl`,
-    e.g. springs) of the world prim ``batch_world`` of the batch layer file ``batch`` into ``layer``
-    over its prim ``world_path`` (which references that world), in the form a lone run writes them: a ``BasisCurves`` prim declared by the lone run's own declaration
-    (:func:`warpsim.usd.prims.curves_decl`) with its samples at every stored frame (segment ends,
-    extent, velocities), bit for bit, and the sweep's ``warpsim:segments`` blocked. Blender,
+    """Write the curves a sweep stores as its particles' points
+    (:class:`warpsim.usd.prims.JoinedPointsDecl`, e.g. springs) of the world prim ``batch_world`` of
+    the batch layer file ``batch`` into ``layer`` over its prim ``world_path`` (which references
+    that world), in the form a lone run writes them: a ``BasisCurves`` prim declared by the lone
+    run's own declaration (:func:`warpsim.usd.prims.curves_decl`) with its samples at every stored
+    frame (segment ends, extent, velocities), bit for bit, and the sweep's ``warpsim:segments``
+    blocked. Blender,
     usdview and Houdini draw curves; they do not read ``warpsim:segments``. Returns the prim paths
     written (none for a world without such prims)."""
     import numpy as np
@@ -250,14 +252,14 @@ def describe(path) -> list:
         counts = []
         if points and points.HasValue():
             noun = "instances" if kind == "PointInstancer" else "points"
-            counts.append(f"{len(points.Get(t) or []):,} {noun}")
+            counts.append(f"{len(_sample(points, t) or []):,} {noun}")
         faces = prim.GetAttribute("faceVertexCounts") if kind == "Mesh" else None
         if faces and faces.HasValue():
-            n = len(faces.Get(t) or [])
+            n = len(_sample(faces, t) or [])
             counts.append(f"{n:,} face{'s' if n != 1 else ''}")
         curves = prim.GetAttribute("curveVertexCounts") if kind == "BasisCurves" else None
         if curves and curves.HasValue():
-            counts.insert(0, f"{len(curves.Get(t) or []):,} curves")
+            counts.insert(0, f"{len(_sample(curves, t) or []):,} curves")
         opacity = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayOpacity")
         if opacity and opacity.HasValue() and len(opacity.Get(t) or []) == 1 and opacity.Get(t)[0] < 1.0:
             counts.append(f"opacity {opacity.Get(t)[0]:g}")
@@ -277,7 +279,8 @@ def run(args, out, err):
 
 def report(args, out, pick):
     """Run ``pick()`` (a path) for ``warpsim pick``'s ``args``: one line for bad input (exit 2), a
-    damaged sweep raised (exit 1), else the line naming the file written."""
+    damaged sweep raised (exit 1), else the line naming the file written and what it holds
+    (:func:`describe`)."""
     from ..usd.pxr_errors import error_line
 
     try:
