@@ -226,26 +226,10 @@ class ClothSimulator(Simulator):
 
     def run(self, frames: int, frame_dt: float = 1.0 / 60.0, substeps: int = 1, callback=None, writer=None):
         """As ws.Simulator.run, each frame advanced by ``frame``."""
-        from ..core.errors import SimulationError
-
         frame_dt = check_dt(frame_dt)
         if int(frames) < 0:
             raise ValueError(f"frames = {frames}; it must be >= 0")
-        if writer is not None:
-            writer.write(0, self.state)
-        for frame in range(1, int(frames) + 1):
-            try:
-                self.frame(frame_dt, substeps)
-            except SimulationError as err:
-                err.frame = frame
-                err.args = (f"frame {frame}: {err.args[0]}",)
-                raise
-            if self.fracture is not None:
-                self.fracture.end_frame(frame)
-            if callback is not None:
-                callback(frame, self)
-            if writer is not None:
-                writer.write(frame, self.state)
+        self._run_frames(int(frames), frame_dt, substeps, callback, writer)
 
 
 def cloth_energy(model, q, qd, gravity=(0.0, 0.0, 0.0)) -> tuple:

@@ -425,6 +425,11 @@ class Simulator(SolverBase):
             substeps = self.auto_substeps(frame_dt)
         substeps = checks.count(substeps, "run substeps", fix="give steps per frame, e.g. 1, or 'auto'")
         frames = checks.count(frames, "run frames", minimum=0, fix="give the number of frames, e.g. 120")
+        self._run_frames(frames, frame_dt, substeps, callback, writer)
+
+    def _run_frames(self, frames: int, frame_dt: float, substeps: int, callback, writer) -> None:
+        """``run``'s loop over checked arguments (``ClothSimulator.run`` too): frame 0 to the writer,
+        then each frame advanced by ``frame``, its fracture report, callback and write."""
         if writer is not None:
             writer.write(0, self.state)
         for frame in range(1, int(frames) + 1):
