@@ -315,3 +315,23 @@ def test_worlds_of_a_sweep_each_collide_their_own_tori_and_equal_their_runs_alon
         assert alone.vbd_contact.pair_counts()[0] > 0  # the tori touch
         assert np.array_equal(x[w], alone.sim.state.positions.numpy()), w
     assert np.abs(x[0] - x[1]).max() > 1e-3
+
+
+def test_the_viewer_drag_goes_through_the_protocol():
+    """A drag spring added to a running VBD heap (``scene.add_drag``, as the viewer does: the integrator
+    re-allocates through ``notify_changed("forces")``) lifts the grabbed vertex toward its target, with the
+    contact still inside the descent (no edge through another torus's triangle)."""
+    cls = get_scene("donuts")
+    scene = cls(cls.resolve_params({"count": 2, **SMALL, "integrator": "vbd"}), device=DEVICE)
+    for _ in range(20):
+        scene.advance(1.0 / 60.0, 4)
+    drag = ws.DragSpring(20.0, 0.5)
+    scene.add_drag(drag)
+    particle = int(scene.bodies[1].surface_indices[0])
+    start = scene.sim.state.positions.numpy()[particle].copy()
+    drag.grab(particle, start + np.array([0.0, 0.15, 0.0]))
+    for _ in range(30):
+        scene.advance(1.0 / 60.0, 4)
+    x = scene.sim.state.positions.numpy()
+    assert x[particle, 1] > start[1] + 0.05  # lifted toward the target
+    assert edges_through_other_bodies(x, scene.bodies) == []
