@@ -335,3 +335,79 @@ def test_the_viewer_drag_goes_through_the_protocol():
     x = scene.sim.state.positions.numpy()
     assert x[particle, 1] > start[1] + 0.05  # lifted toward the target
     assert edges_through_other_bodies(x, scene.bodies) == []
+
+
+def point_triangle_distances(p, a, b, c):
+    """Distances [m] from points p (N, 3) to one triangle abc: to its plane where the projection lies
+    inside, else to the nearest of its three sides (NumPy oracle)."""
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    h = (p - a) @ n
+    x = p - h[:, None] * n
+    inside = np.ones(len(p), dtype=bool)
+    for u, v in ((a, b), (b, c), (c, a)):
+        inside &= np.cross(v - u, x - u) @ n >= 0.0
+    sides = [point_segment_distances(p, u, v) for u, v in ((a, b), (b, c), (c, a))]
+    return np.where(inside, np.abs(h), np.min(sides, axis=0))
+
+
+def point_segment_distances(p, u, v):
+    t = np.clip((p - u) @ (v - u) / ((v - u) @ (v - u)), 0.0, 1.0)
+    return np.linalg.norm(p - (u + t[:, None] * (v - u)), axis=1)
+
+
+def segment_distance(p1, q1, p2, q2):
+    """Distance [m] between two segments: the four end-to-segment distances, or the lines' closest
+    points where both fall inside (NumPy oracle)."""
+    ends = [point_segment_distances(np.array([x]), u, v)[0] for x, u, v in
+            ((p1, p2, q2), (q1, p2, q2), (p2, p1, q1), (q2, p1, q1))]
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    A = np.array([[d1 @ d1, -d1 @ d2], [d1 @ d2, -d2 @ d2]])
+    if abs(np.linalg.det(A)) > 1e-14:
+        s, t = np.linalg.solve(A, [-(d1 @ r), -(d2 @ r)])
+        if 0.0 <= s <= 1.0 and 0.0 <= t <= 1.0:
+            ends.append(np.linalg.norm(p1 + s * d1 - p2 - t * d2))
+    return min(ends)
+
+
+def test_the_search_lists_every_pair_within_the_radius_and_bounds_by_the_nearest():
+    """Two tori 4 mm apart (10 x 6 surfaces, no self contact): each surface
+    vertex's list holds exactly the other torus's triangles within the query radius, each edge's list the
+    other torus's edges within it (NumPy distances, pairs within 1e-5 m of the radius left out), and each
+    vertex's bound is the fraction of the nearest distance its vertex, triangles and edges meet (or b_max)."""
+    sim, contact, faces = two_tori(self_contact=False, gap=0.004)
+    sim.integrator.prepare(sim.system)
+    contact.search(sim.state.positions)
+    x = sim.state.positions.numpy().astype(np.float64)
+    body = contact._body.numpy()
+    surface, r = contact._surface.numpy(), contact.query_radius
+    vt, count = contact._vt.numpy().reshape(len(surface), -1), contact._vt_count.numpy()
+    distances = np.stack([point_triangle_distances(x[surface], *x[f]) for f in faces], 1)  # (V, F)
+    other = body[surface][:, None] != body[faces[:, 0]][None, :]
+    listed = 0
+    for s in range(len(surface)):
+        want = set(np.flatnonzero(other[s] & (distances[s] < r - 1e-5)))
+        maybe = set(np.flatnonzero(other[s] & (np.abs(distances[s] - r) <= 1e-5)))
+        got = set(vt[s, :count[s]].tolist())
+        assert want <= got <= want | maybe, s
+        listed += len(got)
+    assert listed > 20  # the tori are close
+    edges, _, _ = meshtools.edge_topology(faces)
+    ee, ecount = contact._ee.numpy().reshape(len(edges), -1), contact._ee_count.numpy()
+    near = np.flatnonzero(ecount > 0)
+    assert len(near) > 10
+    for e in near[:40]:
+        i, j = edges[e]
+        for f in range(len(edges)):
+            k, m = edges[f]
+            if body[k] == body[i]:
+                assert f not in ee[e, :ecount[e]]
+                continue
+            d = segment_distance(x[i], x[j], x[k], x[m])
+            if abs(d - r) > 1e-5:
+                assert (f in ee[e, :ecount[e]]) == (d < r), (e, f, d)
+    bound = contact.bound.numpy()
+    nearest = np.where(other, distances, np.inf).min(1)
+    for s, p in enumerate(surface):
+        assert bound[p] <= contact.bound_fraction * nearest[s] + 1e-7  # its own vertex-triangle pairs
+    assert bound.max() == pytest.approx(contact.max_displacement)
