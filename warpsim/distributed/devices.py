@@ -234,7 +234,7 @@ def plan_blocks(scene_name, world_params, devices, resume_root=None):
 
 
 def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, table_path, settings, fps=None,
-                     substeps=None, layout="variants", track=None, fused=False, occupancy=None, chunk_size=24,
+                     substeps=None, layout="variants", track=None, fused=False, occupancy=None, chunk_size=None,
                      resume=False, warn=None, progress=None, log=None) -> dict:
     """Run a sweep split over ``devices`` in this process; write its layers, table, occupancy
     record and root (module docstring). ``settings``: what ``--resume`` must match (the one-device

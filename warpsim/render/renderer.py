@@ -53,16 +53,37 @@ class Renderer:
         self._image = wp.empty(self.width * self.height, dtype=wp.vec3, device=self.device)
         self._dummy_density = wp.zeros((1, 1, 1), dtype=float, device=self.device)
         self.last_seconds = None
+        self._buffers = {}  # name -> device array reused while the shape stays (pictures of one scene)
+        self._meshes = {}  # name -> (triangles, wp.Mesh): refitted while the triangles stay
 
-    def _array(self, a, dtype):
-        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+    def _array(self, a, dtype, name=None):
+        """``a`` on the device: a new array, or (``name`` given) that name's buffer of the last
+        picture refilled when the shape and type are the same (no allocation, no free)."""
+        a = np.ascontiguousarray(a)
+        if name is None:
+            return wp.array(a, dtype=dtype, device=self.device)
+        buf = self._buffers.get(name)
+        count = a.size // wp.types.type_size(dtype)
+        if buf is None or buf.dtype != dtype or buf.shape != (count,):
+            buf = self._buffers[name] = wp.array(a, dtype=dtype, device=self.device)
+        else:
+            buf.assign(a)
+        return buf
 
-    def _mesh(self, points, triangles, keep):
-        """(0/1, id) of a ``wp.Mesh`` of the triangles (id 0 when there are none)."""
+    def _mesh(self, points, triangles, name):
+        """(0/1, id) of a ``wp.Mesh`` of the triangles (id 0 when there are none); the last
+        picture's mesh of ``name`` is refitted to the new points when its triangles are the same
+        (sweep thumbnails, frames of one cache: no BVH built per picture)."""
         if not len(triangles):
             return 0, 0
+        cached = self._meshes.get(name)
+        if cached is not None and cached[0].shape == triangles.shape and np.array_equal(cached[0], triangles) \
+                and cached[1].points.shape[0] == len(points):
+            cached[1].points.assign(np.ascontiguousarray(points, dtype=np.float32))
+            cached[1].refit()
+            return 1, cached[1].id
         mesh = wp.Mesh(self._array(points, wp.vec3), self._array(triangles.reshape(-1), wp.int32))
-        keep.append(mesh)
+        self._meshes[name] = (np.array(triangles, copy=True), mesh)
         return 1, mesh.id
 
     def render(self, geom, camera, ground_y=None, linear=False):
@@ -71,20 +92,24 @@ class Renderer:
         the geometry's bounds; ``False``: no ground; an empty frame has none)."""
         dev = self.device
         vec3 = wp.vec3
-        keep = []  # device objects that must outlive the launch
-        has_mesh, mesh_id = self._mesh(geom.points, geom.triangles, keep)
-        has_glass, glass_id = self._mesh(geom.glass_points, geom.glass_triangles, keep)
+        has_mesh, mesh_id = self._mesh(geom.points, geom.triangles, "opaque")  # (kept by the renderer)
+        has_glass, glass_id = self._mesh(geom.glass_points, geom.glass_triangles, "glass")
         has_caps = len(geom.cap_r) > 0
         bvh_id = 0
-        cap_a = self._array(geom.cap_a, vec3)
-        cap_b = self._array(geom.cap_b, vec3)
-        cap_r = self._array(geom.cap_r, float)
+        cap_a = self._array(geom.cap_a, vec3, "cap_a")
+        cap_b = self._array(geom.cap_b, vec3, "cap_b")
+        cap_r = self._array(geom.cap_r, float, "cap_r")
         if has_caps:
             r = geom.cap_r[:, None]
             lowers = np.minimum(geom.cap_a, geom.cap_b) - r
             uppers = np.maximum(geom.cap_a, geom.cap_b) + r
-            bvh = wp.Bvh(self._array(lowers, vec3), self._array(uppers, vec3))
-            keep.append(bvh)
+            bvh = self._meshes.get("caps")
+            if bvh is not None and bvh.lowers.shape[0] == len(lowers):  # the same count: refitted, not rebuilt
+                bvh.lowers.assign(np.ascontiguousarray(lowers, np.float32))
+                bvh.uppers.assign(np.ascontiguousarray(uppers, np.float32))
+                bvh.refit()
+            else:
+                bvh = self._meshes["caps"] = wp.Bvh(self._array(lowers, vec3), self._array(uppers, vec3))
             bvh_id = bvh.id
 
         f, r_, u = camera.basis()
@@ -120,12 +145,12 @@ class Renderer:
 
         wp.launch(K.render_pixels, dim=self.width * self.height, device=dev, inputs=[
             cam, lit, self.width, self.height,
-            mesh_id, int(has_mesh), self._array(geom.face_colors, vec3), self._array(geom.corner_normals, vec3),
-            glass_id, int(has_glass), self._array(geom.glass_colors, vec3), self._array(geom.glass_alpha, float),
-            bvh_id, int(has_caps), cap_a, cap_b, cap_r, self._array(geom.cap_colors, vec3), vol,
+            mesh_id, int(has_mesh), self._array(geom.face_colors, vec3, "face_colors"),
+            self._array(geom.corner_normals, vec3, "corner_normals"), glass_id, int(has_glass),
+            self._array(geom.glass_colors, vec3, "glass_colors"), self._array(geom.glass_alpha, float, "glass_alpha"),
+            bvh_id, int(has_caps), cap_a, cap_b, cap_r, self._array(geom.cap_colors, vec3, "cap_colors"), vol,
         ], outputs=[self._image])
         img = self._image.numpy().reshape(self.height, self.width, 3).copy()  # (a view on the CPU)
-        del keep
         if linear:
             return img
         return to_srgb8(img)

@@ -91,8 +91,10 @@ def add_parser(sub):
     s.add_argument("--fused", action="store_true",
                    help="step mass-spring scenes through the fused semi-implicit kernel (faster on GPUs; agrees "
                         "to float32 rounding)")
-    s.add_argument("--chunk", type=int, default=24, metavar="K",
-                   help="frames per chunk file of the batch layer (default 24; completed chunks survive a kill)")
+    s.add_argument("--chunk", type=int, default=None, metavar="K",
+                   help="frames per chunk file of the batch layer (default: 24, fewer where a chunk would hold over "
+                        "128 MiB, so worker processes write many worlds' chunks side by side; completed chunks "
+                        "survive a kill)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.add_argument("--store", default=None, choices=STORE_MODES,
                    help="what the batch layer keeps: all (every frame), preview (every "
@@ -216,7 +218,7 @@ def _checked_flags(args):
             devices = parse_devices(args.devices)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-    if args.chunk < 1:
+    if args.chunk is not None and args.chunk < 1:
         raise UsageError(f"--chunk {args.chunk}: it must be >= 1 (frames per chunk file)")
     if getattr(args, "ray", None) is not None:
         from ..extras import require_extra

@@ -33,6 +33,10 @@ temporaries (RK4 keeps four stages) (an upper estimate)."""
 DEVICE_BYTES_PER_SPRING = 48
 """Device memory per spring [bytes]: two indices, rest length, stiffness, damping, CSR entries."""
 
+WRITE_CHUNKS = 9
+"""Chunks a sweep's writing holds in memory at most: one per worker process (8 at most) and the
+one being gathered (:mod:`warpsim.usd.chunk_stage`)."""
+
 HOST_BYTES_PER_PARTICLE = 96
 """Host memory per particle while frames are written [bytes]: the (N, P, 3) position and
 velocity copies of a frame and the samples held until a chunk is saved."""
@@ -68,6 +72,9 @@ def estimate_sweep_bytes(particles, springs, worlds, batch_worlds=None) -> dict:
     b = worlds if batch_worlds is None else min(worlds, batch_worlds)
     device = b * (particles * DEVICE_BYTES_PER_PARTICLE + springs * DEVICE_BYTES_PER_SPRING)
     host = worlds * HOST_BYTES_PER_WORLD + b * particles * HOST_BYTES_PER_PARTICLE
+    # chunks on their way to the disk: a chunk of up to 24 frames of points and velocities (24 bytes
+    # a particle and frame), one per worker process and the one being gathered (at most 9 of 128 MiB)
+    host += min(WRITE_CHUNKS * (128 << 20), WRITE_CHUNKS * b * particles * 24 * 24)
     return {"device": device, "host": host}
 
 

@@ -14,7 +14,7 @@ from ..scenes.timing import resolve_timing
 from ..worlds.batch import WorldBatch
 from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
-from .usd import BatchLayerWriter, chunk_writers
+from .usd import MAX_CHUNK_FRAMES, BatchLayerWriter, auto_chunk_frames, chunk_writers, world_frame_bytes
 
 __all__ = ["frame_timing", "make_batch", "normalise_params", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
 
@@ -100,7 +100,7 @@ def make_batch(cls, world_params, device=None, fused=False, reference_params=Non
 
 def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, device=None, layer_path, first_world=0,
               track=None, metrics=(), use_graph=None, progress=None, fused=False, occupancy=None,
-              warn=None, timing=None, chunk_size=24, resume_frame=None, frame_steps=None,
+              warn=None, timing=None, chunk_size=None, resume_frame=None, frame_steps=None,
               reference_params=None, store_every=1, on_stage=None, write_workers=None) -> list:
     """Step these worlds in one batched run and return one row per world.
 
@@ -111,7 +111,8 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     world} for position metrics; ``metrics``: :class:`warpsim.sweeps.metrics.UserMetric` list;
     ``use_graph``: capture each frame as a CUDA graph (None: on CUDA devices when the scene allows);
     ``fused``: step through the fused semi-implicit kernel (:class:`WorldBatch`);
-    ``chunk_size``: frames per chunk file of the layer (completed chunks survive a kill);
+    ``chunk_size``: frames per chunk file of the layer (completed chunks survive a kill; None:
+    :func:`warpsim.sweeps.usd.auto_chunk_frames`, 24 or fewer so a chunk holds at most 128 MiB);
     ``resume_frame``: keep the layer's completed chunks before this frame, re-simulate the frames
     before it without writing them (the run is bit-reproducible, so they come out the same) and
     write on from there;
@@ -183,11 +184,15 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt, step_dt=frame_dt / np.asarray(counts))
     if resume_frame is not None and not 0 <= int(resume_frame) <= int(frames) + 1:
         raise ValueError(f"resume_frame {resume_frame}: the run has frames 0..{frames}")
-    writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps, chunk_size=chunk_size,
+    writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps,
+                              chunk_size=MAX_CHUNK_FRAMES if chunk_size is None else chunk_size,
                               resume_frame=resume_frame)
     writer.scene_name = scene_name
+    frame_bytes = world_frame_bytes(writer, batch)
+    if chunk_size is None:  # (set before the writer begins: its layer records it) in frames, stored or not
+        writer.chunk_size = auto_chunk_frames(frame_bytes) * max(int(store_every), 1)
     if write_workers is None:
-        write_workers = chunk_writers(writer, batch, frames, store_every)
+        write_workers = chunk_writers(writer, frame_bytes, frames, store_every)
     writer.workers = checks.integer(write_workers, "run_batch write_workers", lo=0, hi=64,
                                     fix="0 (this process writes) or a few processes")
     recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)

@@ -25,10 +25,12 @@ import os
 import numpy as np
 
 from ..browse.roots import world_prim_name
+from ..usd.frame_arrays import world_bounds
 from ..usd.prims import joined_form
 from ..usd.writer import UsdCacheWriter
 
-__all__ = ["BatchLayerWriter", "chunk_writers", "estimate_sweep_bytes", "stored_frames"]
+__all__ = ["BatchLayerWriter", "auto_chunk_frames", "chunk_writers", "estimate_sweep_bytes", "stored_frames",
+           "world_frame_bytes"]
 
 SHARED = "/WorldShared"
 """Class prim of a batch layer holding the declarations every world's prims inherit."""
@@ -65,13 +67,32 @@ def estimate_sweep_bytes(scene, layer_path, worlds, frames, fps=60.0, store_ever
 POOL_CHUNK_BYTES = 8 << 20
 """A sweep whose chunk files hold at least this many bytes [bytes] has worker processes author
 them (:func:`chunk_writers`); smaller ones are written faster than a worker starts."""
+AUTO_CHUNK_BYTES = 128 << 20
+"""The most bytes [bytes] an automatic chunk holds (:func:`auto_chunk_frames`): many worlds'
+frames are cut into several chunks, which worker processes author side by side."""
+MAX_CHUNK_FRAMES = 24
+"""Frames an automatic chunk holds at most (a lone run's default ``chunk_size``)."""
 
 
-def chunk_writers(writer, batch, frames, store_every=1) -> int:
-    """Worker processes for ``writer``'s chunk files (:mod:`warpsim.usd.chunk_author`): none when a
-    chunk would hold less than :data:`POOL_CHUNK_BYTES` or nothing is kept, else one per core left
-    beside this process (:func:`warpsim.process_pool.default_workers`), at most one per chunk. The
-    environment variable ``WARPSIM_WRITE_WORKERS=N`` sets the count (0: never)."""
+def world_frame_bytes(writer, batch) -> int:
+    """Bytes one frame of every world of ``batch`` adds to ``writer``'s chunks [bytes] (from world 0's
+    frame data now: counts that change later, as fluids', make it the first frame's rate)."""
+    x, v = batch.world_slices()
+    return writer.frame_bytes(batch.world_frame_data(x[0], v[0], 0)) * batch.world_count
+
+
+def auto_chunk_frames(frame_bytes) -> int:
+    """Frames per chunk for frames of ``frame_bytes`` bytes: :data:`MAX_CHUNK_FRAMES`, fewer when
+    that would hold more than :data:`AUTO_CHUNK_BYTES` (at least one)."""
+    return int(max(1, min(MAX_CHUNK_FRAMES, AUTO_CHUNK_BYTES // max(int(frame_bytes), 1))))
+
+
+def chunk_writers(writer, frame_bytes, frames, store_every=1) -> int:
+    """Worker processes for ``writer``'s chunk files (:mod:`warpsim.usd.chunk_author`), frames of
+    ``frame_bytes`` bytes (:func:`world_frame_bytes`): none when a chunk would hold less than
+    :data:`POOL_CHUNK_BYTES` or nothing is kept, else one per core left beside this process
+    (:func:`warpsim.process_pool.default_workers`), at most one per chunk. The environment
+    variable ``WARPSIM_WRITE_WORKERS=N`` sets the count (0: never)."""
     from ..process_pool import default_workers, forced_workers
 
     forced = forced_workers()
@@ -80,10 +101,8 @@ def chunk_writers(writer, batch, frames, store_every=1) -> int:
     kept = stored_frames(int(frames) + 1, store_every)
     if not kept:
         return 0
-    x, v = batch.world_slices()
-    per = writer.frame_bytes(batch.world_frame_data(x[0], v[0], 0))
     frames_a_chunk = min(writer.chunk_size, kept)
-    if per * batch.world_count * frames_a_chunk < POOL_CHUNK_BYTES:
+    if frame_bytes * frames_a_chunk < POOL_CHUNK_BYTES:
         return 0
     return default_workers(jobs=-(-kept // frames_a_chunk))
 
@@ -289,8 +308,8 @@ class BatchLayerWriter(UsdCacheWriter):
             pts = pts[finite]
             if not len(pts):
                 return
-        lo = pts.min(axis=(0, 1)).astype(np.float64)
-        hi = pts.max(axis=(0, 1)).astype(np.float64)
+        lo, hi = world_bounds(pts)
+        lo, hi = lo.min(axis=0).astype(np.float64), hi.max(axis=0).astype(np.float64)
         self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
 
     def _write_samples(self, frame, samples):

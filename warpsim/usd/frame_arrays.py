@@ -27,8 +27,8 @@ import numpy as np
 
 from .prims import CurvesDecl, JoinedPointsDecl, MeshDecl, PointsDecl, as_numpy, coerce
 
-__all__ = ["Particles", "PerWorld", "Shared", "batch_frame_data", "described", "frame_data_from", "world_extents",
-           "world_samples"]
+__all__ = ["Particles", "PerWorld", "Shared", "batch_frame_data", "described", "frame_data_from", "world_bounds",
+           "world_extents", "world_samples"]
 
 SOURCES = ("positions", "velocities")
 
@@ -132,6 +132,15 @@ def described(scene):
 
 
 # ---------------------------------------------------------------------- samples of every world
+def world_bounds(points):
+    """(lo, hi), each (N, 3) float32: the smallest and largest coordinates of each world's points
+    (N, k, 3), k >= 1 (NaN where a world's points hold one). One component at a time: a
+    reduction over the points' axis of the (N, k, 3) layout runs about 14x slower in NumPy."""
+    lo = np.stack([points[..., c].min(axis=1) for c in range(3)], axis=1)
+    hi = np.stack([points[..., c].max(axis=1) for c in range(3)], axis=1)
+    return lo, hi
+
+
 def world_extents(points, pad):
     """Bounds (N, 2, 3) float32 of each world's points (N, k, 3) float32 grown by ``pad`` (scalar
     or one per point): :func:`warpsim.usd.prims._extent` of every world, bit for bit."""
@@ -141,11 +150,13 @@ def world_extents(points, pad):
         return out
     pad = np.asarray(pad, np.float32)
     if pad.ndim == 1:
-        out[:, 0] = (points - pad[None, :, None]).min(axis=1)
-        out[:, 1] = (points + pad[None, :, None]).max(axis=1)
+        for c in range(3):
+            out[:, 0, c] = (points[..., c] - pad[None, :]).min(axis=1)
+            out[:, 1, c] = (points[..., c] + pad[None, :]).max(axis=1)
     else:
-        out[:, 0] = points.min(axis=1) - pad
-        out[:, 1] = points.max(axis=1) + pad
+        lo, hi = world_bounds(points)
+        out[:, 0] = lo - pad
+        out[:, 1] = hi + pad
     return out
 
 
