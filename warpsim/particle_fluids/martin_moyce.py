@@ -74,8 +74,9 @@ def floor_front(x, spacing: float, floor: float = 0.0, origin: float = 0.0, band
     lie within ``band`` spacings of the floor are binned along +x in bins one spacing wide, a bin
     is wet with at least ``max(1, layers // 2 + 1)`` particles (``layers``: particle layers across
     the slab's depth, so a lone particle of a thick slab is spray, not water); the front is the
-    furthest such particle of the wet bins joined to ``origin`` (the column's wall) plus ``edge``
-    (default half a spacing: the particle's edge). x: (N, 3) [m]."""
+    furthest such particle of the wet bins joined to ``origin`` (the column's wall; one dry bin
+    between wet ones is a particle-sized hole in the film, two end it) plus ``edge`` (default half a
+    spacing: the particle's edge). x: (N, 3) [m]."""
     x = np.asarray(x, np.float64)
     near = x[(x[:, 1] - floor) < band * spacing, 0] - origin
     if near.size == 0:
@@ -86,8 +87,11 @@ def floor_front(x, spacing: float, floor: float = 0.0, origin: float = 0.0, band
     if bins.size == 0:
         return origin
     wet = np.bincount(bins) >= max(1, layers // 2 + 1)
-    dry = np.flatnonzero(~wet)
-    last = dry[0] if dry.size else wet.size  # bins 0 .. last-1 are wet and joined to the wall
+    dry = ~wet
+    gap = np.flatnonzero(dry[:-1] & dry[1:]) if wet.size > 1 else np.flatnonzero(dry)
+    last = gap[0] if gap.size else wet.size  # bins 0 .. last-1 hold the film joined to the wall
+    if last > 0 and dry[last - 1]:
+        last -= 1
     if last == 0:
         return origin
     return origin + float(near[bins < last].max()) + (0.5 * spacing if edge is None else edge)
@@ -117,6 +121,22 @@ def best_shift(T, Z, width: float = 1.0, height: float = 2.0, window=WINDOW, shi
     errs = [np.abs(deviation(np.asarray(T) + dt, Z, width, height, window)[1]).max() for dt in shifts]
     k = int(np.argmin(errs))
     return float(shifts[k]), float(errs[k])
+
+
+SPEED_WINDOW = (1.4, 3.0)
+"""Where the surge runs at a steady speed in the table (a straight line through its points)."""
+
+
+def surge_speed(T, Z, width: float = 1.0, height: float = 2.0, window=SPEED_WINDOW):
+    """(dZ/dT of the run, dZ/dT of the table): least-squares slopes over ``window`` (the run's frames
+    inside it, the table's points inside it). Unlike the deviation, a start delay does not change it."""
+    T, Z = np.asarray(T, np.float64), np.asarray(Z, np.float64)
+    tt, zz = table(width, height)
+    m = (T >= window[0]) & (T <= window[1])
+    k = (tt >= window[0]) & (tt <= window[1])
+    if m.sum() < 2:
+        raise ValueError(f"the run has {int(m.sum())} frames with {window[0]} <= T <= {window[1]}; it needs 2 or more")
+    return float(np.polyfit(T[m], Z[m], 1)[0]), float(np.polyfit(tt[k], zz[k], 1)[0])
 
 
 def worst(T, Z, width: float = 1.0, height: float = 2.0, window=WINDOW):
