@@ -42,7 +42,7 @@ import argparse
 import time
 
 import warp as wp
-from timing import time_per_call
+from timing import eager_and_graph, time_per_call
 
 from warpsim.scenes import get_scene
 
@@ -271,20 +271,8 @@ def main():
             # one graph of a whole rebuild period (a rebuild and its refits), against as many eager steps
             period = contact.schedule_period if contact is not None else 1
 
-            def steps():
-                for _ in range(period):
-                    sim.step(h)
-
-            # alternate eager and graph rounds and keep each one's fastest: the heap moves on between
-            # rounds (a falling heap's steps grow dearer), so one round of each is not a fair comparison
-            with wp.ScopedCapture(device=device) as capture:
-                steps()
             calls = max(1, args.steps // period)
-            rounds: dict = {"eager": [], "graph": []}
-            for _ in range(3):
-                rounds["eager"].append(time_per_call(steps, calls, device) / period)
-                rounds["graph"].append(time_per_call(lambda: wp.capture_launch(capture.graph), calls, device) / period)
-            eager, graph = min(rounds["eager"]), min(rounds["graph"])
+            eager, graph = eager_and_graph(lambda: sim.step(h), period, calls, device)
             print(f"step as a CUDA graph  {graph * 1e3:9.3f} ms   {1.0 / graph:8.1f} steps/s   eager / graph: "
                   f"{eager / graph:.2f}x (a graph of {period} steps against {period} eager steps, {eager * 1e3:.3f} "
                   f"ms a step; fastest of 3 alternating rounds of {calls} x {period} steps)")

@@ -24,3 +24,22 @@ def time_per_graph_launch(fn, steps, device):
     with wp.ScopedCapture(device=device) as capture:
         fn()
     return time_per_call(lambda: wp.capture_launch(capture.graph), steps, device)
+
+
+def eager_and_graph(step, period, calls, device, rounds=3):
+    """(eager, graph) seconds per step of ``step`` (one call: one step) taken ``period`` at a time, eagerly
+    and replayed from one CUDA graph of ``period`` steps; the fastest of ``rounds`` alternating rounds of
+    ``calls`` x ``period`` steps each (the state moves on between rounds: one round of each is not a fair
+    comparison)."""
+
+    def steps():
+        for _ in range(period):
+            step()
+
+    with wp.ScopedCapture(device=device) as capture:
+        steps()
+    eager, graph = [], []
+    for _ in range(rounds):
+        eager.append(time_per_call(steps, calls, device) / period)
+        graph.append(time_per_call(lambda: wp.capture_launch(capture.graph), calls, device) / period)
+    return min(eager), min(graph)

@@ -21,7 +21,7 @@ import sys
 import time
 
 import warp as wp
-from timing import time_per_call
+from timing import eager_and_graph, time_per_call
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies  # noqa: E402 (the tests' oracles)
@@ -73,16 +73,7 @@ def run_vbd(args, device, build) -> None:
     print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
     if device.is_cuda:
         period = contact.rebuild_every // math.gcd(contact.rebuild_every, searches_per_step(integrator))
-
-        def steps():
-            for _ in range(period):
-                sim.step(h)
-
-        with wp.ScopedCapture(device=device) as capture:
-            steps()
-        calls = max(1, args.steps // period)
-        eager = time_per_call(steps, calls, device) / period
-        graph = time_per_call(lambda: wp.capture_launch(capture.graph), calls, device) / period
+        eager, graph = eager_and_graph(lambda: sim.step(h), period, max(1, args.steps // period), device)
         print(f"step as a CUDA graph  {graph * 1e3:9.3f} ms   eager / graph {eager / graph:.2f}x (a graph of {period} "
               f"steps, one BVH rebuild period); frames of 1/60 s per wall second {1.0 / (graph * per_frame):.2f}")
     x = sim.state.positions.numpy()
