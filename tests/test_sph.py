@@ -574,6 +574,8 @@ def test_fluid_surface_block_volume_and_watertight():
 @pytest.mark.parametrize("name, params, frames", [
     ("dam_break", {"spacing": 0.05, "column": (0.2, 0.3, 0.2), "box": (0.6, 0.4, 0.2)}, 4),
     ("pour", {"spacing": 0.04}, 24),
+    ("dam_break", {"spacing": 0.05, "column": (0.2, 0.3, 0.2), "box": (0.6, 0.4, 0.2), "method": "dfsph"}, 4),
+    ("pour", {"spacing": 0.04, "method": "dfsph"}, 24),
 ])
 def test_scene_writes_points_with_ids_and_a_changing_surface(name, params, frames, tmp_path):
     from pxr import Usd

@@ -105,7 +105,7 @@ class ParticleFluid(SolverBase):
         iterations: most PBF Jacobi iterations (position corrections) per step. Deep fluids need
             more: Jacobi spreads a correction about one kernel radius per iteration (a dam break
             column of 79 x 158 x 79 particles kept a 2 % mean density error at a fixed 4).
-        density_tolerance: a step stops iterating once the mean compression
+        density_tolerance: (None: 0.002 for PBF, 0.0005 for DFSPH) a step stops iterating once the mean compression
             mean(max(rho/rho0 - 1, 0)) is below this (0: always run ``iterations``), after at
             least one correction if any particle is compressed by this or more; decided on
             the device (``wp.capture_while``), so CUDA steps read nothing back and can be
@@ -120,7 +120,7 @@ class ParticleFluid(SolverBase):
         viscosity: XSPH coefficient c in [0, 1].
         vorticity: vorticity-confinement strength epsilon [m] (0: off).
         surface_tension: Akinci cohesion/curvature coefficient gamma [1/s^2] (0: off).
-        wall_friction: damping rate k [1/s] of a particle's velocity at walls and colliders, a
+        wall_friction: (None: 5 for PBF, 0 for DFSPH) damping rate k [1/s] of a particle's velocity at walls and colliders, a
             time-step independent model of a solid wall's resistance (no-slip drag and the
             contact line's friction on a dry floor): every step v_i *= exp(-k phi_i dt), phi_i
             the solid's share of particle i's kernel support (about 0.5 at a wall; 0 in the
@@ -148,8 +148,6 @@ class ParticleFluid(SolverBase):
             rest (a no-slip wall; boundary="particles").
         divergence_tolerance: DFSPH: the divergence solve stops when the mean relative density
             change per step is below this (SPlisHSPlasH's 0.1 %).
-        density_tolerance default (None): 0.002 for PBF, 0.0005 for DFSPH; wall_friction default
-            (None): 5 /s for PBF, 0 (free slip) for DFSPH.
         sort_every: every this many frames of :meth:`advance`, reorder the particles into
             spatial (hash-grid cell) order for memory locality (0: never). Indices change, ids
             stay with their particles.
