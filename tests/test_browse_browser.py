@@ -14,7 +14,8 @@ import os
 import numpy as np
 import playwright.sync_api as playwright  # the test extra installs it; CI must run this test, never skip it
 import pytest
-from test_viewer_browser import ARGS, CHROMIUM, HEIGHT, WIDTH, _free_port, _project, _wait
+from browser_page import ARGS, CHROMIUM, HEIGHT, LONG, WIDTH, dismiss_notice, wait_still
+from browser_page import free_port as _free_port, project as _project, wait as _wait
 
 from warpsim.cli import main
 from warpsim.viewer.command import add_parser, build
@@ -76,8 +77,8 @@ def test_dragging_the_box_changes_the_list(root):
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
             page.goto(viewer.url)
-            page.wait_for_selector("canvas", timeout=30_000)
-            page.get_by_text(f"{len(before)} of 9 worlds", exact=False).first.wait_for(timeout=30_000)
+            page.wait_for_selector("canvas", timeout=LONG)
+            page.get_by_text(f"{len(before)} of 9 worlds", exact=False).first.wait_for(timeout=LONG)
             client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
             viewer.playing = False
             # the first framing: world 0, where the box is drawn: both corners and their gizmos' arrows
@@ -94,10 +95,8 @@ def test_dragging_the_box_changes_the_list(root):
             client.camera.position = tuple(corner + np.array([0.0, 0.0, 1.6]))
             client.camera.look_at = tuple(corner)
             _wait(lambda: np.allclose(client.camera.look_at, corner, atol=1e-3), what="the camera")
-            close = page.locator(".mantine-Notification-closeButton")  # viser's "software WebGL" notice
-            if close.count():
-                close.first.click()
-            page.wait_for_timeout(1500)
+            dismiss_notice(page)  # viser's "software WebGL" notice
+            wait_still(page)  # the page has drawn the moved camera
             # the gizmo's y arrow: press on it, drag upward, release
             scale = query.gizmo_scale
             x0, y0 = _project(client.camera, corner + np.array([0.0, 0.7 * scale, 0.0]))
@@ -105,22 +104,20 @@ def test_dragging_the_box_changes_the_list(root):
             assert 0 < x0 < WIDTH and 0 < y1 < y0 < HEIGHT
             page.mouse.move(x0, y0)
             page.mouse.down()
-            for k in range(1, 21):
-                page.mouse.move(x0 + (x1 - x0) * k / 20, y0 + (y1 - y0) * k / 20)
-                page.wait_for_timeout(30)
+            page.mouse.move(x1, y1, steps=20)
             page.mouse.up()
             _wait(lambda: query.matches != before, timeout=30, what="the released gizmo to change the list")
             after = list(query.matches)
             assert query.hi[1] > 0.3 and set(before) < set(after)  # the box grew upward: more balls pass
             assert after == [int(w) for w in np.flatnonzero(answer_region(query.record, query.region()).match)]
             assert query.answer_seconds < 1.0
-            page.get_by_text(f"{len(after)} of 9 worlds", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_text(f"{len(after)} of 9 worlds", exact=False).first.wait_for(timeout=LONG)
             # a listed world's button plays it alone, framed, and the play button says "Pause"
-            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=30_000)
+            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=LONG)
             page.get_by_role("button", name=f"#1 world {after[0]}", exact=False).first.click()
             world = f"world_{after[0]:06d}"
             _wait(lambda: viewer.isolated == world, timeout=30, what="the click to play a world")
-            page.get_by_role("button", name="Pause", exact=True).wait_for(timeout=30_000)
+            page.get_by_role("button", name="Pause", exact=True).wait_for(timeout=LONG)
             lo, hi = viewer.reader.world_bounds(world)
             _wait(lambda: np.allclose(client.camera.look_at, 0.5 * (lo + hi), atol=1e-3), what="the world's framing")
             for corner in (lo, hi):
@@ -128,7 +125,7 @@ def test_dragging_the_box_changes_the_list(root):
                 assert 0 < x < WIDTH and 0 < y < HEIGHT
             page.get_by_role("button", name="Pause", exact=True).click()  # pressing it pauses, as it says
             _wait(lambda: not viewer.playing, timeout=30, what="the pause")
-            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=30_000)
+            page.get_by_role("button", name="Play", exact=True).wait_for(timeout=LONG)
             browser.close()
     finally:
         viewer.stop()
@@ -190,7 +187,7 @@ def _choose(page, label, option):
     """Open the drop-down ``label`` in the page and return the locator of its ``option``."""
     page.get_by_label(label, exact=True).first.click()
     choice = page.get_by_role("option", name=option, exact=True)
-    choice.wait_for(timeout=30_000)
+    choice.wait_for(timeout=LONG)
     return choice
 
 
@@ -217,18 +214,18 @@ def test_the_answer_shows_within_a_second_of_a_control_change_at_many_worlds(man
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
             page.goto(viewer.url)
-            page.wait_for_selector("canvas", timeout=120_000)
-            page.get_by_text(f"{len(inside)} of {MANY} worlds", exact=False).first.wait_for(timeout=120_000)
-            page.wait_for_timeout(2000)  # the first frame of every world drawn
+            page.wait_for_selector("canvas", timeout=2 * LONG)
+            page.get_by_text(f"{len(inside)} of {MANY} worlds", exact=False).first.wait_for(timeout=2 * LONG)
+            wait_still(page, timeout=120)  # the first frame of every world drawn
             option = _choose(page, "rank by", "time inside")
             start = time.perf_counter()
             option.click()
-            page.get_by_role("button", name=f"#1 world {longest}:", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_role("button", name=f"#1 world {longest}:", exact=False).first.wait_for(timeout=LONG)
             rerank = time.perf_counter() - start
             option = _choose(page, "mode", "NOT IN")
             start = time.perf_counter()
             option.click()
-            page.get_by_text("NOT IN the box", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_text("NOT IN the box", exact=False).first.wait_for(timeout=LONG)
             negate = time.perf_counter() - start
             browser.close()
         assert rerank < 1.0 and negate < 1.0, (rerank, negate)

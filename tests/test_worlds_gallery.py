@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import playwright.sync_api as playwright  # the test extra installs it; CI must run this test, never skip it
 import pytest
-from test_viewer_browser import ARGS, CHROMIUM, HEIGHT, WIDTH, _free_port, _project, _wait
+from browser_page import ARGS, CHROMIUM, HEIGHT, LONG, WIDTH, dismiss_notice, wait_still
+from browser_page import free_port as _free_port, project as _project, wait as _wait
 
 from warpsim.viewer.command import add_parser
 from warpsim.sweeps import run_batch, sample_worlds, write_sweep_root
@@ -59,8 +60,8 @@ def test_click_isolates_a_world_in_the_browser(sweep):
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
             page.goto(viewer.url)
-            page.wait_for_selector("canvas", timeout=30_000)
-            page.get_by_text("world", exact=True).first.wait_for(timeout=30_000)
+            page.wait_for_selector("canvas", timeout=LONG)
+            page.get_by_text("world", exact=True).first.wait_for(timeout=LONG)
             client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
             viewer.playing = False
             items = viewer.reader.items(viewer.index)
@@ -69,15 +70,13 @@ def test_click_isolates_a_world_in_the_browser(sweep):
             client.camera.position = tuple(center + np.array([0.0, 1.2, 1.6]))
             client.camera.look_at = tuple(center)
             _wait(lambda: np.allclose(client.camera.look_at, center, atol=1e-3), what="the camera")
-            close = page.locator(".mantine-Notification-closeButton")  # viser's "software WebGL" notice
-            if close.count():
-                close.first.click()
-            page.wait_for_timeout(1500)
+            dismiss_notice(page)  # viser's "software WebGL" notice
+            wait_still(page)  # the page has drawn the moved camera
             x, y = _project(client.camera, center)
             assert 0 < x < WIDTH and 0 < y < HEIGHT
             page.mouse.click(x, y)
             _wait(lambda: viewer.isolated == "world_000002", timeout=30, what="the click to isolate world 2")
-            shown = {w for w, h in viewer._handles() if getattr(h, "visible", True)}
+            shown = {w for w, h, _ in viewer.drawn_nodes() if getattr(h, "visible", True)}
             assert shown == {"world_000002"}
             _wait(lambda: viewer.menu.value == "world_000002", what="the menu to follow the isolated world")
             # the camera frames the selected world: its teapot over the run fills the middle of the view
@@ -88,11 +87,11 @@ def test_click_isolates_a_world_in_the_browser(sweep):
                                 for c in (lo[2], hi[2])])
             assert (corners > 0).all() and (corners[:, 0] < WIDTH).all() and (corners[:, 1] < HEIGHT).all()
             assert np.ptp(corners[:, 1]) > 0.3 * HEIGHT  # framed, not a speck
-            page.wait_for_timeout(500)
+            wait_still(page)
             x, y = _project(client.camera, center)
             page.mouse.click(x, y)
             _wait(lambda: viewer.isolated is None, timeout=30, what="a second click to show every world")
-            assert {w for w, h in viewer._handles() if getattr(h, "visible", True)} == set(viewer.reader.worlds)
+            assert {w for w, h, _ in viewer.drawn_nodes() if getattr(h, "visible", True)} == set(viewer.reader.worlds)
             _wait(lambda: np.allclose(client.camera.look_at, viewer.gallery_pose[1], atol=1e-3),
                   what="the gallery's framing again")
             browser.close()

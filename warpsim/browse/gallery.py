@@ -19,6 +19,7 @@ import tempfile
 
 import numpy as np
 
+from ..viewer.framing import aim
 from ..viewer.playback import DYNAMIC_TYPES, CacheReader, PlaybackViewer
 from .roots import root_worlds, write_sweep_root
 
@@ -188,11 +189,20 @@ class GalleryViewer(PlaybackViewer):
 
             self.query = QueryPanel(self, thumbnails=self.thumbnails)
             if self.reader.worlds:  # the first view: world 0, where the box and its gizmos are drawn
-                position, look_at = self.world_pose(self.reader.worlds[0], self.query.box_bounds())
-                camera.look_at = tuple(float(v) for v in look_at)
-                camera.position = tuple(float(v) for v in position)
+                aim(camera, *self.world_pose(self.reader.worlds[0], self.query.box_bounds()))
+        first = (np.asarray(camera.position, np.float64), np.asarray(camera.look_at, np.float64))
+        self.server.on_client_connect(lambda client: self._first_view(client, first))
         self._refresh()
         return self
+
+    def _first_view(self, client, pose):
+        """A new tab (after its first camera report) is put at the first view (``pose``: (position,
+        look_at) [m]) unless it is there: a page busy loading many worlds could miss the initial
+        camera and keep its default, looking past the box from (3, 3, 3)."""
+        camera = client.camera
+        if not (np.allclose(camera.position, pose[0], atol=1e-4) and np.allclose(camera.look_at, pose[1], atol=1e-4)):
+            with client.atomic():
+                aim(camera, *pose)
 
     def world_pose(self, world, also=None):
         """(position, look_at) [m] of a camera framing ``world`` over the sweep (and the bounds
@@ -215,8 +225,7 @@ class GalleryViewer(PlaybackViewer):
             position, look_at = self.world_pose(world)
         for client in self.server.get_clients().values():
             with client.atomic():
-                client.camera.look_at = tuple(float(v) for v in look_at)
-                client.camera.position = tuple(float(v) for v in position)
+                aim(client.camera, position, look_at)
 
     def isolate(self, world):
         """Show ``world`` alone (None: every world)."""
@@ -237,12 +246,16 @@ class GalleryViewer(PlaybackViewer):
             super().show(index)
             self._refresh()
 
-    def _handles(self):
+    def drawn_nodes(self):
+        """(world, handle, clickable) of every drawn node. See-through containers (walls, tanks)
+        take no clicks: a clickable node stops the pointer, so their near faces would catch every
+        press on what is inside them (the query box's gizmos among it)."""
         for name, (node, _) in self.drawer.nodes.items():
             for h in node if isinstance(node, list) else [node]:
-                yield name.split("/")[0], h
+                yield name.split("/")[0], h, True
         for h in self.drawer.static_nodes:
-            yield h.name.split("/")[2], h
+            item = self.reader.static.get(h.name.split("/", 2)[2])
+            yield h.name.split("/")[2], h, item is None or item.opacity is None or item.opacity >= 1.0
 
     def _refresh(self, isolated=...):
         """Visibility per the isolated world (``isolated``: that world instead of
@@ -251,11 +264,11 @@ class GalleryViewer(PlaybackViewer):
             return
         isolated = self.isolated if isolated is ... else isolated
         hidden = self.query.hidden if self.query is not None and isolated is None else ()
-        for world, h in self._handles():
+        for world, h, clickable in self.drawn_nodes():
             visible = (isolated is None or world == isolated) and world not in hidden
             if getattr(h, "visible", visible) != visible:
                 h.visible = visible
-            if id(h) not in self._hooked and hasattr(h, "on_click"):
+            if clickable and id(h) not in self._hooked and hasattr(h, "on_click"):
                 self._hooked.add(id(h))
 
                 def clicked(_event, world=world):

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from ..core.safe_files import clear_temporary, open_temporary
+from ..core.safe_files import clear_temporary
 from .occupancy import OccupancyRecord, occupancy_path
 from .query import Region, answer_region, cached_positions
 
@@ -44,6 +44,16 @@ MODES = ("IN", "NOT IN")
 VISIBILITY_DELAY = 0.2
 """Seconds between an answer and the worlds' visibility it implies (the answer is painted first)."""
 THUMB_SIZE = (128, 96)
+BOX_COLOR = (60, 140, 255)
+EDGE_PIXELS = 2.0
+"""Width of the query box's edges on screen [px]."""
+
+
+def box_edges(lo, hi) -> np.ndarray:
+    """The 12 edges of the axis-aligned box ``lo``..``hi`` [m] as segments, shape (12, 2, 3) float32."""
+    corners = np.array([[(lo, hi)[(k >> a) & 1][a] for a in range(3)] for k in range(8)], np.float32)
+    pairs = [(k, k | 1 << a) for k in range(8) for a in range(3) if not k >> a & 1]
+    return corners[np.array(pairs)]
 
 
 def thumbnail(root, world, camera=None, size=THUMB_SIZE, frame=None, device=None) -> str:
@@ -82,42 +92,18 @@ def thumbnails_folder(root) -> str:
 
 def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None, progress=None) -> dict:
     """Every world's picture of the sweep ``root`` (its last frame, as :func:`thumbnail` draws it,
-    with :func:`thumbnail_camera`), rendered by warpsim's renderer straight from the batch
-    ``layers`` (each opened once, its worlds drawn one after another) into
-    ``<stem>.thumbs/world_GGGGGG.png``, so the gallery finds them made (``progress()``: called
-    after each picture). Returns {"count", "seconds", "folder"}."""
-    from PIL import Image
-
-    from ..render.cache import ground_height
+    with :func:`thumbnail_camera`), rendered by warpsim's renderer on ``device`` straight from the
+    batch ``layers`` into ``<stem>.thumbs/world_GGGGGG.png``, so the gallery finds them made
+    (:func:`warpsim.browse.thumbs.draw_thumbnails`: many worlds are read and encoded in worker
+    processes; ``progress()``: called after each picture). Returns {"count", "seconds", "folder"}."""
     from ..render.renderer import Renderer
-    from ..render.usd_scene import CacheScene
+    from .thumbs import draw_thumbnails
 
     t0 = time.perf_counter()
     folder = thumbnails_folder(root)
     os.makedirs(folder, exist_ok=True)
-    camera = thumbnail_camera(record, size)
     renderer = Renderer(int(size[0]), int(size[1]), device=device)
-    count = 0
-    for layer in layers:
-        scene = CacheScene(layer)
-        prims = scene.prims
-        worlds: dict = {}
-        for prim in prims:  # /Worlds/world_GGGGGG/...
-            parts = str(prim.GetPath()).split("/")
-            if len(parts) > 3 and parts[2].startswith("world_"):
-                worlds.setdefault(parts[2], []).append(prim)
-        frame = scene.frames[-1] if scene.frames else None
-        for world, own in worlds.items():
-            scene.prims = own
-            image = renderer.render(scene.geometry(frame), camera, ground_y=ground_height(scene, [frame]))
-            path = os.path.join(folder, world + ".png")
-            with open_temporary(path + ".tmp.png", "wb") as f:  # never through a planted link
-                Image.fromarray(image).save(f, format="PNG")
-            os.replace(path + ".tmp.png", path)
-            count += 1
-            if progress is not None:
-                progress()
-        scene.prims = prims
+    count = draw_thumbnails(folder, layers, thumbnail_camera(record, size), renderer, progress=progress)
     return {"count": count, "seconds": time.perf_counter() - t0, "folder": folder}
 
 
@@ -182,8 +168,10 @@ class QueryPanel:
         self._lock_thumbs = threading.Lock()
         rec, server = self.record, viewer.server
         self.origin = self._origin(None)
-        inner_lo, inner_hi = rec.occupied_bounds()  # where things go: the box starts in its middle
-        center, size = 0.5 * (inner_lo + inner_hi), 0.25 * (inner_hi - inner_lo)
+        inner_lo, inner_hi = rec.occupied_bounds()  # where things go: the box starts in its middle,
+        # a quarter of its largest extent on every axis (a quarter per axis made a sliver where things
+        # move along one axis, as falling balls do, that nothing entered: every world hidden at once)
+        center, size = 0.5 * (inner_lo + inner_hi), np.full(3, 0.25 * float(np.max(inner_hi - inner_lo)))
         self.lo, self.hi = center - 0.5 * size, center + 0.5 * size
         gui = server.gui
         with gui.add_folder("where things go"):
@@ -199,13 +187,20 @@ class QueryPanel:
             self.listing = gui.add_folder("matches")
         self.gizmo_scale = scale = float(np.max(inner_hi - inner_lo)) * 0.15
         """Length [m] of the corner gizmos' arrows."""
-        self.box = server.scene.add_box("/query/box", color=(60, 140, 255), dimensions=tuple(self.hi - self.lo),
+        # drawn over see-through containers: a translucent mesh writes depth as an opaque one does, so
+        # the near face of a scene's walls (drawn first when farther) hid a translucent box and the
+        # gizmos behind it; the box's edges are opaque lines (drawn before anything translucent) and
+        # the gizmos skip the depth test
+        self.box = server.scene.add_box("/query/box", color=BOX_COLOR, dimensions=tuple(self.hi - self.lo),
                                         position=tuple(self.origin + center), opacity=0.3, cast_shadow=False,
                                         receive_shadow=False)
-        self.gizmo_lo = server.scene.add_transform_controls("/query/min", scale=scale, disable_rotations=True,
-                                                            position=tuple(self.origin + self.lo))
-        self.gizmo_hi = server.scene.add_transform_controls("/query/max", scale=scale, disable_rotations=True,
-                                                            position=tuple(self.origin + self.hi))
+        self.edges = server.scene.add_line_segments("/query/edges", box_edges(self.origin + self.lo,
+                                                                              self.origin + self.hi),
+                                                    BOX_COLOR, thickness=EDGE_PIXELS, thickness_units="screen")
+        self.gizmo_lo, self.gizmo_hi = (
+            server.scene.add_transform_controls(f"/query/{name}", scale=scale, disable_rotations=True,
+                                                depth_test=False, position=tuple(self.origin + corner))
+            for name, corner in (("min", self.lo), ("max", self.hi)))
         for gizmo in (self.gizmo_lo, self.gizmo_hi):
             gizmo.on_update(self._gizmo_moved)
         for handle in (self.box_lo, self.box_hi):
@@ -233,8 +228,7 @@ class QueryPanel:
     def _draw_box(self):
         self._syncing = True
         try:
-            self.box.position = tuple(self.origin + 0.5 * (self.lo + self.hi))
-            self.box.dimensions = tuple(np.maximum(self.hi - self.lo, 1e-6))
+            self._shape(self.lo, self.hi)
             self.gizmo_lo.position = tuple(self.origin + self.lo)
             self.gizmo_hi.position = tuple(self.origin + self.hi)
             self.box_lo.value = tuple(float(v) for v in self.lo)
@@ -258,9 +252,13 @@ class QueryPanel:
         """While a gizmo moves: the box follows (no query until it is released)."""
         if self._syncing:
             return
-        lo, hi = self._corners_from_gizmos()
+        self._shape(*self._corners_from_gizmos())
+
+    def _shape(self, lo, hi):
+        """The drawn box (fill and edges) from corner ``lo`` to ``hi`` [m] (the record's coordinates)."""
         self.box.position = tuple(self.origin + 0.5 * (lo + hi))
         self.box.dimensions = tuple(np.maximum(hi - lo, 1e-6))
+        self.edges.points = box_edges(self.origin + lo, self.origin + hi)
 
     def _released(self):
         if self._syncing:

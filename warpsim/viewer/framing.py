@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["VIEW", "camera_pose", "item_points", "item_radius", "live_bounds", "playback_bounds",
+__all__ = ["VIEW", "aim", "camera_pose", "item_points", "item_radius", "live_bounds", "playback_bounds",
            "robust_bounds"]
 
 VIEW = np.array([0.35, 0.45, 1.0])
@@ -88,3 +88,12 @@ def camera_pose(bounds, fov_degrees=50.0, margin=1.1):
     radius = max(0.5 * float(np.linalg.norm(hi - lo)), 0.05) * margin
     distance = radius / np.sin(np.radians(0.5 * fov_degrees))
     return center + distance * VIEW / np.linalg.norm(VIEW), center
+
+
+def aim(camera, position, look_at):
+    """Put ``camera`` (a viser client's camera or the server's initial camera) at ``position``
+    looking at ``look_at`` [m]. The position goes first: a client camera keeps its orientation when
+    moved, carrying its look-at point along (looking at the old subject's offset, often empty
+    space), so the look-at point set after it is the one that stays."""
+    camera.position = tuple(float(v) for v in position)
+    camera.look_at = tuple(float(v) for v in look_at)
