@@ -18,10 +18,13 @@ __all__ = ["ChunkStage"]
 
 
 class ChunkStage:
-    """The samples of one chunk of at most ``capacity`` frames (see the module docstring)."""
+    """The samples of one chunk of at most ``capacity`` frames (see the module docstring);
+    ``blocks``: a :class:`warpsim.process_pool.BlockPool` the shared memory comes from and goes
+    back to (None: fresh blocks, freed by :meth:`release`)."""
 
-    def __init__(self, capacity):
+    def __init__(self, capacity, blocks=None):
         self.capacity = int(capacity)
+        self.pool = blocks
         self.times = []
         self.keys = {}  # field key -> index
         self.fields = []  # (paths, type_name, on_change)
@@ -33,7 +36,7 @@ class ChunkStage:
     @property
     def nbytes(self) -> int:
         """Bytes held in shared memory [bytes]."""
-        return sum(b.shm.size for b in self.blocks if b is not None and b.shm is not None)
+        return sum(b.nbytes for b in self.blocks if b is not None)
 
     def add(self, time, key, paths, type_name, on_change, values):
         """One field's values in the frame at ``time`` (a new time starts the next frame)."""
@@ -53,7 +56,8 @@ class ChunkStage:
             self.fields.append((list(paths), type_name, bool(on_change)))
             block = None
             if isinstance(values, np.ndarray) and values.size:
-                block = SharedBlock(self.capacity * values.nbytes)
+                size = self.capacity * values.nbytes
+                block = self.pool.take(size) if self.pool is not None else SharedBlock(size)
             self.blocks.append(block)
             self.shapes.append((values.shape, values.dtype) if block is not None else None)
             self.lists.append([] if block is None else None)
@@ -74,7 +78,7 @@ class ChunkStage:
         view = block.array(0, (self.capacity, *shape), dtype)
         self.lists[k] = [[_copy(v) for v in view[f]] for f in range(frames)]
         del view
-        block.release()
+        self._free(block)
         self.blocks[k] = None
         self.shapes[k] = None
 
@@ -100,8 +104,14 @@ class ChunkStage:
         """Free the shared memory (after the worker answered, or when the chunk is dropped)."""
         for block in self.blocks:
             if block is not None:
-                block.release()
+                self._free(block)
         self.blocks = [None] * len(self.blocks)
+
+    def _free(self, block):
+        if self.pool is not None:
+            self.pool.give(block)
+        else:
+            block.release()
 
 
 def _copy(value):

@@ -42,6 +42,7 @@ import glob
 import operator
 import os
 import secrets
+import time
 
 import numpy as np
 
@@ -57,6 +58,9 @@ from .sink import PrimSink, state_frame_data
 __all__ = ["ROOT_EXTENSIONS", "CacheWriteError", "UsdCacheWriter", "declare_prim", "settings_run_id"]
 
 ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
+ROOT_EVERY = 0.2
+"""Seconds at least between two rewrites of the root while worker processes write the chunks
+(four times the last rewrite's time when that is longer): completed chunks are listed in groups."""
 
 
 def settings_run_id(settings) -> str:
@@ -236,8 +240,11 @@ class UsdCacheWriter(PrimSink):
         self.workers = checks.integer(workers, "UsdCacheWriter workers", lo=0, hi=64,
                                       fix="0 (author chunks here) or a few processes, e.g. default_workers()")
         self._pool = None  # warpsim.process_pool.ProcessPool of the chunk authors (workers > 0)
+        self._blocks = None  # warpsim.process_pool.BlockPool of their shared memory
         self._inflight = collections.deque()  # chunks handed to workers: (chunk, future), oldest first
         self._specs_text = None  # a chunk's specs as .usda text (the workers copy them)
+        self._unlisted = []  # chunks from workers renamed into place, not yet indexed and in the root
+        self._root_due = 0.0  # time.monotonic() after which the root is rewritten again
 
     # ------------------------------------------------------------------ declarations
     # add_points, add_mesh, add_curves, add_instancer, add_static_mesh, add_plane, add_box,
@@ -338,11 +345,11 @@ class UsdCacheWriter(PrimSink):
         chunk, self._chunk = self._chunk, None
         if chunk is not None:
             chunk.layer = None  # release the layer (and its file) before removing it
-        self._stop_pool(wait=False)  # (the workers' temporaries carry this process's id too)
         for c in [chunk, *(c for c, _ in self._inflight)]:
             if c is not None and getattr(c, "stage", None) is not None:
                 c.stage.release()
         self._inflight.clear()
+        self._stop_pool(wait=False)  # (the workers' temporaries carry this process's id too)
         for tmp in glob.glob(self._abs(glob.escape(self.stem) + f".*tmp-{os.getpid()}*")):
             try:
                 os.remove(tmp)
@@ -403,9 +410,10 @@ class UsdCacheWriter(PrimSink):
         if self._lock is None:  # one writer per cache: another process writing it is refused here
             self._lock = OutputLock(self.path).acquire()
         if self.workers and self._pool is None:  # started now: they are ready by the first chunk
-            from ..process_pool import ProcessPool
+            from ..process_pool import BlockPool, ProcessPool
 
             self._pool = ProcessPool(self.workers)
+            self._blocks = BlockPool()  # the shared memory of written chunks, reused by the next ones
         try:
             # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
             # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
@@ -437,7 +445,7 @@ class UsdCacheWriter(PrimSink):
         if self._pool is not None:  # staged for a worker (warpsim.usd.chunk_stage): no layer here
             from .chunk_stage import ChunkStage
 
-            chunk.stage = ChunkStage(self.chunk_size)
+            chunk.stage = ChunkStage(self.chunk_size, self._blocks)
             self._chunk = chunk
             return
         clear_temporary(chunk.tmp_path)  # a leftover, or a planted link: removed, never followed
@@ -534,27 +542,21 @@ class UsdCacheWriter(PrimSink):
         self._reap(wait_all=False)
 
     def _reap(self, wait_all):
-        """Complete the workers' chunks in order: rename each into place, index it, then rewrite
-        the root once listing them all (``wait_all``: every chunk out; else those done, and the
-        oldest while more than ``workers`` are out)."""
-        done = []
-        try:
-            while self._inflight:
-                chunk, future = self._inflight[0]
-                if not (wait_all or future.done() or len(self._inflight) > self.workers):
-                    break
-                self._inflight.popleft()
-                self._complete(chunk, future)
-                done.append(chunk)
-        finally:
-            if done:
-                try:
-                    self._write_root()
-                except BaseException:
-                    del self.chunks[-len(done):]  # the root on disk still lists the chunks before these
-                    raise
+        """Complete the workers' chunks in order (``wait_all``: every chunk out; else those done,
+        and the oldest while more than ``workers`` are out): rename each into place, then index
+        them and rewrite the root once listing them all, at most every few root writes' time
+        (a root of many worlds takes a while to write) and always when ``wait_all``."""
+        while self._inflight:
+            chunk, future = self._inflight[0]
+            if not (wait_all or future.done() or len(self._inflight) > self.workers):
+                break
+            self._inflight.popleft()
+            self._complete(chunk, future)
+        if self._unlisted and (wait_all or time.monotonic() >= self._root_due):
+            self._list_completed()
 
     def _complete(self, chunk, future):
+        """Wait for a worker's chunk and rename it into place (listed later: :meth:`_list_completed`)."""
         from ..process_pool import RemoteError
 
         self._target = chunk.final_path
@@ -568,16 +570,33 @@ class UsdCacheWriter(PrimSink):
         finally:
             chunk.stage.release()
         self._replace(chunk.tmp_path, chunk.final_path, synced=True)  # (the worker synced it)
+        self._unlisted.append(chunk)
+
+    def _list_completed(self):
+        """Index the renamed chunks and rewrite the root listing them (a kill before this leaves
+        them unlisted: a resumed run removes and rewrites them)."""
+        done, self._unlisted = self._unlisted, []
         self._target = self._index_file
-        chunk_index.append_record(self._index_file, chunk_index.record(chunk.final_path, chunk.start, chunk.end,
-                                                                        chunk.stats, self.run_id), self.durable)
-        self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
+        for chunk in done:
+            chunk_index.append_record(self._index_file, chunk_index.record(
+                chunk.final_path, chunk.start, chunk.end, chunk.stats, self.run_id), self.durable)
+            self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
+        t0 = time.monotonic()
+        try:
+            self._write_root()
+        except BaseException:
+            del self.chunks[-len(done):]  # the root on disk still lists the chunks before these
+            raise
+        self._root_due = time.monotonic() + max(ROOT_EVERY, 4.0 * (time.monotonic() - t0))
 
     def _stop_pool(self, wait=True):
         """End the chunk workers (after :meth:`flush`, or dropping what is out on a failure)."""
         pool, self._pool = self._pool, None
         if pool is not None:
             pool.close(wait=wait)
+        blocks, self._blocks = self._blocks, None
+        if blocks is not None:
+            blocks.close()
 
     # ------------------------------------------------------------------ layers
     def _declare_specs(self, layer, manifest):
