@@ -13,6 +13,7 @@ front measure). Prints Markdown tables (benchmarks/RESULTS.md).
 
     python benchmarks/dam_break_convergence.py                        # 10, 20, 40 per method (~7 min, 2 cores)
     python benchmarks/dam_break_convergence.py --causes --res 20 --methods pbf dfsph
+    python benchmarks/dam_break_convergence.py --gate-speeds 0.5 1 2 4 --res 20   # a gate lifted off the column
 """
 
 import argparse
@@ -69,11 +70,18 @@ def main():
     ap.add_argument("--methods", nargs="+", default=["pbf", "dfsph", "flip"], choices=["pbf", "dfsph", "flip"])
     ap.add_argument("--res", type=int, nargs="+", default=[10, 20, 40], help="particles (cells) per column width a")
     ap.add_argument("--causes", action="store_true", help="one switch at a time at the first --res")
+    ap.add_argument("--gate-speeds", type=float, nargs="*", default=[],
+                    help="DFSPH at the first --res released by a gate lifted at these speeds [m/s] instead")
     ap.add_argument("--device", default="cpu", help="particle methods' device (FLIP runs on the CPU)")
     args = ap.parse_args()
     set_warp_verbosity()
     wp.init()
     print(HEADER.format(d=MM.RELEASE_DELAY))
+    if args.gate_speeds:
+        for speed in args.gate_speeds:
+            r = MM.run_dam_break("dfsph", res=args.res[0], gate_speed=speed, device=args.device)
+            print(particle_row(f"DFSPH a/{args.res[0]}: gate lifted at {speed:g} m/s", r), flush=True)
+        return 0
     if args.causes:
         res = args.res[0]
         for method in [m for m in args.methods if m in CAUSES]:

@@ -34,6 +34,16 @@ class DfsphParams:
     lattice_count: float  # neighbours of a particle inside a full lattice (for the signed-distance walls)
     min_neighbors: float  # fewer (effective) neighbours: a free-surface particle, no divergence correction
     beta_eps: float  # smallest denominator of the DFSPH factor [1/m^2]
+    moving_start: int  # boundary particles from this index on move with boundary_velocity (a gate)
+    boundary_velocity: wp.vec3  # [m/s]
+
+
+@wp.func
+def boundary_velocity(dp: DfsphParams, j: int) -> wp.vec3:
+    """Velocity of boundary particle j [m/s]: the moving ones' (a gate), zero for the walls."""
+    if j >= dp.moving_start:
+        return dp.boundary_velocity
+    return wp.vec3(0.0)
 
 
 @wp.func
@@ -154,7 +164,7 @@ def apply_nonpressure(
             s = dp.kinematic_viscosity * 2.0 * p.rest_density / (rhoi + rhoj) * wp.dot(vij, rij) / (r2 + dp.viscosity_eps)
             acc += (dp.dimension_factor * s * wf[1]) * rij
         else:
-            s = dp.boundary_viscosity * wp.dot(vi, rij) / (r2 + dp.viscosity_eps)
+            s = dp.boundary_viscosity * wp.dot(vi - boundary_velocity(dp, j), rij) / (r2 + dp.viscosity_eps)
             acc += (dp.dimension_factor * s * wf[1]) * rij
     vnew = vi + p.viscosity * dv + dt * (p.gravity + acc)
     if p.wall_friction > 0.0:
@@ -194,7 +204,7 @@ def predict_error(
         j = nb.index[e]
         rij = xi - x_all[j]
         f = neighbor_gradient(p, nb, e, wp.dot(rij, rij))
-        vij = vi
+        vij = vi - boundary_velocity(dp, j)
         if j >= nbc:
             vij = vi - v[j - nbc]
         rate += f * wp.dot(vij, rij)
@@ -295,6 +305,19 @@ def advance_positions(
                 vi = vi - vn * n
     v_io[i] = vi
     x_io[i] = y
+
+
+@wp.kernel
+def move_boundary(
+    start_points: wp.array(dtype=wp.vec3),
+    velocity: wp.vec3,
+    t: float,
+    first: int,
+    x_all_out: wp.array(dtype=wp.vec3),
+):
+    """Moving boundary particle k (a gate) at time t [s]: x_all[first + k] = start_points[k] + t velocity."""
+    k = wp.tid()
+    x_all_out[first + k] = start_points[k] + t * velocity
 
 
 @wp.kernel

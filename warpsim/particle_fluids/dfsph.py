@@ -70,11 +70,14 @@ class DfsphSolver:
         density_tolerance, divergence_tolerance: mean relative errors the two solves stop at.
         iterations: most iterations of each solve; counters: (step, total) int buffers the fluid reads.
         grid_dims: hash grid cells per axis; max_neighbors: list capacity; device: Warp device.
+        moving_boundary: None or (points (M, 3) [m] at t = 0, velocity (3,) [m/s]): boundary
+            particles moving at a constant velocity (a gate lifted off a column), at
+            points + t velocity at the start of each step.
     """
 
     def __init__(self, *, positions, velocities, density_out, pressure_out, params, boundaries, domain, spacing,
                  support, boundary, kinematic_viscosity, boundary_viscosity, density_tolerance,
-                 divergence_tolerance, iterations, counters, grid_dims, max_neighbors, device):
+                 divergence_tolerance, iterations, counters, grid_dims, max_neighbors, device, moving_boundary=None):
         if boundary not in BOUNDARIES:
             raise ValueError(f"boundary={boundary!r} is unknown; use one of {list(BOUNDARIES)}")
         if boundary == "particles" and domain is None:
@@ -89,8 +92,20 @@ class DfsphSolver:
         self._step_counter, self._total = counters
         layers = int(np.ceil(support)) if boundary == "particles" else 0
         pts = boundary_lattice(domain[0], domain[1], spacing, layers) if layers else np.zeros((0, 3))
+        moving_start = len(pts)
+        self._moving = None
+        if moving_boundary is not None:
+            if boundary != "particles":
+                raise ValueError("moving_boundary needs boundary='particles' and a domain box")
+            mpts, mvel = moving_boundary
+            mpts = np.asarray(mpts, np.float64).reshape(-1, 3)
+            if len(mpts) == 0 or not np.all(np.isfinite(mpts)):
+                raise ValueError(f"moving_boundary points must be a non-empty finite (M, 3) array, got shape {mpts.shape}")
+            mvel = np.asarray(mvel, np.float64).reshape(3)
+            self._moving = (wp.array(mpts.astype(np.float32), dtype=wp.vec3, device=d), wp.vec3(*mvel), len(mpts))
+            pts = np.concatenate([pts, mpts])
         self.boundary_points = pts.astype(np.float32)
-        """Boundary particle centres, (M, 3) [m] (empty with boundary="volume")."""
+        """Boundary particle centres at t = 0, (M, 3) [m] (empty with boundary="volume")."""
         nbc = len(pts)
         cap = positions.shape[0]
         self._x_all = wp.zeros(nbc + cap, dtype=wp.vec3, device=d)
@@ -110,6 +125,8 @@ class DfsphSolver:
         dp.lattice_count = float(np.count_nonzero((r > 0) & (r < support)))
         dp.min_neighbors = 20.0 / 32.0 * dp.lattice_count  # SPlisHSPlasH's 20 in 3D at support 2 (32 neighbours)
         dp.beta_eps = 1.0e-9 / (h * h)
+        dp.moving_start = moving_start
+        dp.boundary_velocity = self._moving[1] if self._moving else wp.vec3(0.0, 0.0, 0.0)
         self._dp = dp
         # the fluid's own projection keeps a particle half a spacing from a wall; the pressure keeps it
         # there, so the safety net here acts only at a quarter spacing
@@ -164,12 +181,16 @@ class DfsphSolver:
             self._overflow.zero_()
         return over
 
-    def solve(self, n: int, dt: float) -> None:
-        """One DFSPH step of the first n fluid particles (allocates nothing)."""
+    def solve(self, n: int, dt: float, t: float = 0.0) -> None:
+        """One DFSPH step of the first n fluid particles from time t [s] (allocates nothing)."""
         d, p, dp, nb = self.device, self._p, self._dp, self._nb
         nbc = dp.boundary_count
         x, v = self._x[:n], self._v[:n]
         wp.copy(self._x_all, self._x, dest_offset=nbc, count=n)
+        if self._moving is not None:
+            start_points, velocity, count = self._moving
+            wp.launch(D.move_boundary, count, inputs=[start_points, velocity, t, dp.moving_start],
+                      outputs=[self._x_all], device=d)
         self._grid.build(self._x_all[: nbc + n], p.h)
         wp.launch(D.find_neighbors_factor, n, inputs=[self._grid.id, p, dp, self._sdf, self._x_all],
                   outputs=[nb, self._overflow, self._density, self._beta_inv, self._share, self._bgrad, self._neighbors],

@@ -148,14 +148,27 @@ def worst(T, Z, width: float = 1.0, height: float = 2.0, window=WINDOW):
     return float(tt[k]), float(dev[k])
 
 
+def gate(a: float, depth: float, spacing: float, top: float, layers: int = 2) -> np.ndarray:
+    """Boundary particles of a gate holding the column at x = a: ``layers`` lattice layers at
+    x = a + (k + 1/2) spacing, from half a spacing above the floor to ``top`` [m], across the slab's
+    depth on the fluid's lattice (the z nodes of ``dfsph.boundary_lattice``), (M, 3) [m]."""
+    cells = max(1, int(round(depth / spacing)))
+    z = (np.arange(cells) + 0.5) * (depth / cells)
+    y = (np.arange(int(math.ceil(top / spacing))) + 0.5) * spacing
+    x = a + (np.arange(layers) + 0.5) * spacing
+    return np.stack(np.meshgrid(x, y, z, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
 def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: float = 0.2, t_end: float = 3.1,
-                  frames_per_T: int = 20, device=None, **settings) -> dict:
+                  frames_per_T: int = 20, gate_speed: float = 0.0, device=None, **settings) -> dict:
     """Martin and Moyce's n^2 = 2 dam break with a ParticleFluid: the column a x 2a (``layers``
     particles thick, a / spacing = ``res``) in the -x corner of the box 5a x 2.5a, released at
     rest at T = 0 and advanced in frames of dT = 1 / frames_per_T (CFL sub-steps) to ``t_end``.
     Returns T, the floor front Z (:func:`floor_front`) and the tip front Z_tip (:func:`tip_front`)
     per frame (over a), the mean compression per frame, steps, pressure iterations per step,
-    particles, wall-clock seconds and the fluid. ``settings`` go to ParticleFluid."""
+    particles, wall-clock seconds and the fluid. ``gate_speed`` > 0 [m/s] (DFSPH): the column is
+    released by lifting a gate (:func:`gate`) at that speed instead of all at once. ``settings`` go
+    to ParticleFluid."""
     import time
 
     from .pbf import ParticleFluid, fluid_block
@@ -164,6 +177,8 @@ def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: floa
         raise ValueError(f"res={res!r}: the column needs at least 2 particles across (an integer >= 2)")
     s = a / res
     depth = layers * s
+    if gate_speed:
+        settings["moving_boundary"] = (gate(a, depth, s, 2.5 * a + 2.0 * s), (0.0, float(gate_speed), 0.0))
     f = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, depth), s), spacing=s,
                       domain=((0, 0, 0), (5 * a, 2.5 * a, depth)), method=method, device=device, **settings)
     scale = time_scale(a, 2 * a)

@@ -148,6 +148,8 @@ class ParticleFluid(SolverBase):
             rest (a no-slip wall; boundary="particles").
         divergence_tolerance: DFSPH: the divergence solve stops when the mean relative density
             change per step is below this (SPlisHSPlasH's 0.1 %).
+        moving_boundary: DFSPH with boundary particles: (points (M, 3) [m] at t = 0, velocity (3,)
+            [m/s]), boundary particles moving at a constant velocity, e.g. a gate lifted off a column.
         sort_every: every this many frames of :meth:`advance`, reorder the particles into
             spatial (hash-grid cell) order for memory locality (0: never). Indices change, ids
             stay with their particles.
@@ -162,7 +164,7 @@ class ParticleFluid(SolverBase):
                  density_tolerance=None, peak_tolerance=None, viscosity=0.01, vorticity=0.0, surface_tension=0.0,
                  wall_friction=None, emitters=(), sinks=(), cfl=None, max_dt=1.0 / 200.0, max_neighbors=64,
                  max_speed=100.0, sort_every=0, method="pbf", boundary="particles", kinematic_viscosity=0.0,
-                 boundary_viscosity=0.0, divergence_tolerance=0.001, device=None):
+                 boundary_viscosity=0.0, divergence_tolerance=0.001, moving_boundary=None, device=None):
         self.method = check_method(method)
         """Pressure solver: "pbf" (position-based fluids) or "dfsph" (divergence-free SPH)."""
         if boundary not in BOUNDARIES:
@@ -198,7 +200,9 @@ class ParticleFluid(SolverBase):
                 density_tolerance=self.density_tolerance,
                 divergence_tolerance=positive_value("divergence_tolerance", divergence_tolerance),
                 iterations=self.iterations, counters=(self._counter, self._total_iterations),
-                grid_dims=self.grid_dims, max_neighbors=max_neighbors, device=d)
+                grid_dims=self.grid_dims, max_neighbors=max_neighbors, device=d, moving_boundary=moving_boundary)
+        elif moving_boundary is not None:
+            raise ValueError("moving_boundary (boundary particles moving at a constant velocity) needs method='dfsph'")
 
     # ------------------------------------------------------------------------------ construction steps
     def _check_options(self, spacing, rest_density, kernel, support, iterations, density_tolerance, peak_tolerance,
@@ -551,7 +555,7 @@ class ParticleFluid(SolverBase):
 
     def _solve(self, n: int, dt: float) -> None:
         if self._dfsph is not None:
-            self._dfsph.solve(n, dt)
+            self._dfsph.solve(n, dt, self.time)
             self.last_dt = dt
             return
         d, p, b = self.device, self._params, self._boundaries
