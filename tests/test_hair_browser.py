@@ -8,7 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_viewer_browser import HEIGHT, WIDTH, _free_port, _project, _wait, browser  # noqa: F401  (fixture)
+from browser_page import HEIGHT, LONG, WIDTH, dismiss_notice
+from browser_page import free_port as _free_port, project as _project, wait as _wait
+from test_viewer_browser import browser  # noqa: F401  (fixture)
 from warpsim.scenes import get_scene
 from warpsim.viewer.server import PICKABLE_POINTS, Viewer
 
@@ -27,13 +29,11 @@ def test_hair_is_draggable_at_the_default_strand_count(viewer, browser):  # noqa
     assert len(s.scene.drag_map()["hair_vertices"]) > PICKABLE_POINTS  # no clickable spheres for these
     page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
     page.goto(viewer.url)
-    page.wait_for_selector("canvas", timeout=30_000)
-    page.get_by_text("friction (live)").wait_for(timeout=60_000)
+    page.wait_for_selector("canvas", timeout=LONG)
+    page.get_by_text("friction (live)").wait_for(timeout=2 * LONG)
     client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
     _wait(lambda: s.frame > 1, timeout=60.0, what="the simulation to run")
-    close = page.locator(".mantine-Notification-closeButton")
-    if close.count():
-        close.first.click()
+    dismiss_notice(page)
     cam = client.camera
     with s.lock:
         ends = s.items["hair"].points.reshape(-1, 3).copy()

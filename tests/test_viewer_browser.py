@@ -15,7 +15,6 @@ import io
 import math
 import os
 import re
-import socket
 import time
 
 import numpy as np
@@ -25,39 +24,8 @@ import pytest
 from warpsim.usd.validate import cache_info, validate_cache
 from warpsim.viewer.server import Viewer
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--headless=new", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
-WIDTH, HEIGHT = 1000, 640
-DOCS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs")
-
-
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(cond, timeout=20.0, what="condition"):
-    t0 = time.time()
-    while time.time() - t0 < timeout:
-        value = cond()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
-
-def _project(cam, point):
-    """Pixel (x, y) of world ``point`` seen by a viser client camera (OpenCV convention: the
-    camera's +z looks forward, +y down; ``fov`` is vertical)."""
-    w, x, y, z = np.asarray(cam.wxyz, float)
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    p = rot.T @ (np.asarray(point, float) - np.asarray(cam.position, float))
-    f = (HEIGHT / 2) / np.tan(cam.fov / 2)
-    return WIDTH / 2 + f * p[0] / p[2], HEIGHT / 2 + f * p[1] / p[2]
+from browser_page import ARGS, CHROMIUM, HEIGHT, LONG, WIDTH, dismiss_notice, pixels
+from browser_page import free_port as _free_port, project as _project, wait as _wait
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +50,8 @@ def browser():
 def _open(browser, viewer):
     page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
     page.goto(viewer.url)
-    page.wait_for_selector("canvas", timeout=30_000)
-    page.get_by_text("restitution (live)").wait_for(timeout=30_000)
+    page.wait_for_selector("canvas", timeout=LONG)
+    page.get_by_text("restitution (live)").wait_for(timeout=LONG)
     client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), what="the client")
     return page, client
 
@@ -94,19 +62,26 @@ def _box(page, label):
     return row.locator("input.mantine-NumberInput-input")
 
 
+def _drawn_share(img, cam, verts):
+    """Share of the screen box of ``verts`` [m] (left of the panel) that differs from the empty
+    background at the top of the view: the teapot drawn where the camera projects it."""
+    px = np.array([_project(cam, p) for p in verts])
+    x0, y0 = np.maximum(px.min(0).astype(int), 0)
+    x1, y1 = px.max(0).astype(int)
+    box = img[y0:y1 + 1, x0:min(x1 + 1, 660)]  # the GUI panel covers x > 665
+    background = np.median(img[5:60, 330:600], axis=(0, 1))  # an empty patch at the top
+    return float((np.abs(box - background).sum(axis=2) > 30).mean()) if box.size else 0.0
+
+
 def test_teapot_in_the_browser(viewer, browser, tmp_path):
     s = viewer.session
-    time.sleep(1.0)
     assert s.frame == 0 and not s.playing  # nobody is looking yet: the scene waits at frame 0
     page, client = _open(browser, viewer)
     assert s.playing  # the first page started it
     _wait(lambda: s.frame > 60, what="the simulation to run")  # the teapot settles on the floor
 
     # 1. the canvas shows the teapot: its light grey-blue where the camera projects it, not the background
-    close = page.locator(".mantine-Notification-closeButton")  # viser's "software WebGL" notice
-    if close.count():
-        close.first.click()
-    time.sleep(1.0)
+    dismiss_notice(page)  # viser's "software WebGL" notice (gone from the page when this returns)
     png = page.screenshot()
     from PIL import Image
 
@@ -118,18 +93,7 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     px = np.array([_project(cam, p) for p in verts])
     inside = (px[:, 0] > 0) & (px[:, 0] < WIDTH) & (px[:, 1] > 0) & (px[:, 1] < HEIGHT)
     assert inside.mean() > 0.95
-    x0, y0 = px.min(0).astype(int)
-    x1, y1 = px.max(0).astype(int)
-    box = img[y0:y1 + 1, x0:min(x1 + 1, 660)]  # the GUI panel covers x > 665
-    background = np.median(img[5:60, 330:600], axis=(0, 1))  # an empty patch at the top
-    differs = np.abs(box - background).sum(axis=2) > 30
-    assert differs.mean() > 0.3, "the teapot is not drawn where the camera projects it"
-    # the README's picture: written to docs/ only when asked (WARPSIM_WRITE_DOCS=1), so a test run
-    # leaves the checkout clean
-    shots = DOCS if os.environ.get("WARPSIM_WRITE_DOCS") == "1" else str(tmp_path)
-    os.makedirs(shots, exist_ok=True)
-    Image.open(io.BytesIO(png)).convert("RGB").quantize(64).save(os.path.join(shots, "viewer_teapot.png"),
-                                                                 optimize=True)
+    assert _drawn_share(img, cam, verts) > 0.3, "the teapot is not drawn where the camera projects it"
 
     # 2. a slider dragged with the mouse changes the running scene's parameter (live)
     row = page.get_by_text("restitution (live)").locator("xpath=ancestor::*[.//input][1]")
@@ -192,8 +156,8 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     # stable parameters and the server keeps serving
     info = s.stability()
     assert 0.0 < info["limit"] < math.inf and not info["exceeded"]
-    page.get_by_text("dt [ms]").wait_for(timeout=15_000)
-    page.get_by_text("stable up to").wait_for(timeout=15_000)
+    page.get_by_text("dt [ms]").wait_for(timeout=LONG)
+    page.get_by_text("stable up to").wait_for(timeout=LONG)
     dt_row = page.get_by_text("dt [ms]").locator("xpath=ancestor::*[.//input][1]")
     assert "limit" in dt_row.inner_text()  # the slider's mark at the limit
     stable_dt = s.params["dt"]
@@ -206,7 +170,7 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     dt_box = _box(page, "dt [ms]")
     _wait(lambda: float(dt_box.input_value()) == pytest.approx(dt_slider.max), what="the box at the slider's end")
     assert s.params["dt"] == pytest.approx(4.0 * info["limit"])  # the server's setting is no user change
-    page.get_by_text("past the limit").wait_for(timeout=15_000)
+    page.get_by_text("past the limit").wait_for(timeout=LONG)
     _wait(lambda: s.status()["exploding"] or s.status()["error"], what="the blow-up")
     blown = s.exploding["frame"] if s.exploding else None
     drawn = []
@@ -219,11 +183,15 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     assert max(np.ptp(p, axis=0).max() for p in drawn) > 1.25 * size  # and it did fly apart
     _wait(lambda: s.status()["error"], what="the pause after the explosion")
     assert not s.playing
-    page.get_by_text("Stability limit", exact=False).first.wait_for(timeout=15_000)  # the explanation, paused
+    # the panel's frame is the error's: where it blew up, not the last frame of the explosion shown
+    assert s.status()["frame"] == blown and s.error.startswith(f"frame {blown}:"), (s.status()["frame"], s.error)
+    _wait(lambda: f"at frame {blown} |" in viewer.controls.status.content, what="the readout at the blow-up's frame")
+    page.get_by_text(f"at frame {blown} |", exact=False).first.wait_for(timeout=LONG)
+    page.get_by_text("Stability limit", exact=False).first.wait_for(timeout=LONG)  # the explanation, paused
     assert "Simulation error" in page.content() and "blew up" in page.content()
     dt_row.scroll_into_view_if_needed()  # where the user is: at the dt slider, the panel's top scrolled away
     note = page.locator(".mantine-Notification-root", has_text="Simulation error")
-    note.wait_for(timeout=15_000)
+    note.wait_for(timeout=LONG)
 
     def inside(nb):
         return nb is not None and nb["x"] >= 0 and nb["y"] >= 0 and nb["x"] + nb["width"] <= WIDTH and \
@@ -234,13 +202,19 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     page.get_by_role("button", name="Reset").click()
     _wait(lambda: s.status()["error"] is None, what="the reset")
     assert s.params["dt"] == pytest.approx(stable_dt)  # the last parameters that ran stable
-    page.get_by_text("reset to the last stable parameters", exact=False).wait_for(timeout=15_000)
+    # said in the dt box's unit (ms), and the view redrawn at frame 0 at once (the exploded mesh gone)
+    page.get_by_text(f"reset to the last stable parameters: dt = {1e3 * stable_dt:.4g} ms", exact=False) \
+        .wait_for(timeout=LONG)
+    assert s.frame == 0
+    with s.lock:
+        start = s.items["teapot"].points.copy()
+    _wait(lambda: _drawn_share(pixels(page), cam, start) > 0.3, what="the teapot redrawn at frame 0")
     _wait(lambda: abs(float(_box(page, "dt [ms]").input_value()) - 1e3 * stable_dt) < 2e-3,
           what="the dt box to show the restored step")
-    note.wait_for(state="detached", timeout=15_000)  # the notification goes with the error
+    note.wait_for(state="detached", timeout=LONG)  # the notification goes with the error
     other = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})  # a new tab shows it too
     other.goto(viewer.url)
-    other.get_by_text("dt [ms]").wait_for(timeout=30_000)
+    other.get_by_text("dt [ms]").wait_for(timeout=LONG)
     assert float(_box(other, "dt [ms]").input_value()) == pytest.approx(1e3 * stable_dt, abs=2e-3)
     other.close()
     page.get_by_role("button", name="Play").click()
@@ -254,8 +228,22 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
     stiffness.fill("60")  # typed: 60 N/m, not 10^60 clamped to 1e4
     _wait(lambda: s.params["stiffness"] == 60.0, what="the typed stiffness")
     page.keyboard.press("Tab")
-    time.sleep(0.5)
-    assert float(stiffness.input_value()) == 60.0 and s.params["stiffness"] == 60.0
+    _wait(lambda: float(stiffness.input_value()) == 60.0, what="the box to keep the typed stiffness")
+    assert s.params["stiffness"] == 60.0
+    # a value typed past a decade slider's range is the value run and shown: 1 kg after 0.05 kg (whose
+    # range ends at 0.1) ran 0.1 kg, the box clamping it as it lost focus
+    mass = _box(page, "mass [kg]")
+    mass.scroll_into_view_if_needed()
+    mass.fill("0.05")
+    page.keyboard.press("Tab")
+    _wait(lambda: s.params["mass"] == 0.05 and viewer.param_handles["mass"].max == pytest.approx(0.1),
+          what="mass 0.05 kg and its range to 0.1")
+    mass.fill("1")
+    page.keyboard.press("Tab")
+    _wait(lambda: s.params["mass"] == 1.0 and float(mass.input_value()) == 1.0 and
+          "mass = 1 kg" in viewer.controls.message.content, what="mass 1 kg run, shown and said")
+    page.get_by_text("mass = 1 kg", exact=False).first.wait_for(timeout=LONG)
+    assert not any("mass = 0.1 " in text for _, text in s.messages)  # the box's clamp never ran
     # 6. closing the page mid-drag releases the grab and completes the recording
     with s.lock:
         verts = s.items["teapot"].points.copy()

@@ -107,6 +107,8 @@ def build(args):
     params = cls.resolve_params(given)
     timing_from_flags(cls, params, given, args.fps, args.substeps)  # flags that disagree: one line, exit 2, before serving
     device = device_arg(args.device)
+    print(f"warpsim view: building scene {cls.name!r} on {device or 'the default device'} (then the first frame "
+          "compiles Warp's kernels; the page says so) ...", file=sys.stderr, flush=True)
     try:
         return Viewer(cls, params, device, host=args.host, port=args.port, fps=args.fps, substeps=args.substeps,
                       max_points=args.max_points, record_dir=args.record_dir, paused=args.paused,

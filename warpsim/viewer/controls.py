@@ -21,7 +21,12 @@ SPEEDS = {"0.25x": 0.25, "0.5x": 0.5, "1x (real time)": 1.0, "2x": 2.0, "4x": 4.
 def format_status(status):
     """Markdown readout of ``Session.status()``."""
     state = "playing" if status["playing"] else ("failed" if status["error"] else "paused")
-    text = (f"**{status['scene']}** {state}  \nframe {status['frame']} | t = {status['time']:.3f} s  \n"
+    where = "frame"
+    if status.get("exploding"):
+        state, where = "blowing up", "since frame"
+    elif status["error"]:
+        where = "at frame"
+    text = (f"**{status['scene']}** {state}  \n{where} {status['frame']} | t = {status['time']:.3f} s  \n"
             f"{status['wall_ms']:.1f} ms/frame + {status.get('draw_ms', 0.0):.1f} ms/draw | "
             f"{status['sim_rate']:.3g} sim s per wall s")
     if status["grabbed"]:
@@ -100,6 +105,15 @@ class Controls:
     def say(self, text):
         self.message.content = text
 
+    def starting(self):
+        """The readout while the first frame is stepped (its Warp kernels compile then, once per
+        kernel cache: seconds to a minute on a CPU, the page otherwise silent)."""
+        name = self.viewer.session.cls.name
+        text = (f"**{name}** starting: compiling Warp's kernels and stepping frame 1 (once per kernel cache; "
+                f"seconds to a minute on a CPU)")
+        if self.status.content != text:
+            self.status.content = text
+
     def _notify(self, text):
         """Show ``text`` (None: nothing) as the error notification of every open tab."""
         with self._notice_lock:
@@ -133,7 +147,10 @@ class Controls:
     def refresh(self):
         """Update the readouts from the session (called a few times a second)."""
         st = self.viewer.session.status()
-        self.status.content = format_status(st)
+        text = format_status(st)
+        pace = getattr(self.viewer, "pace", None)
+        note = pace.note() if pace is not None else None
+        self.status.content = text + (f"  \n{note}" if note else "")
         label = "Pause" if st["playing"] else "Play"
         if self.play.label != label:
             self.play.label = label

@@ -19,14 +19,20 @@ from __future__ import annotations
 
 import math
 import re
+import time
 
-__all__ = ["build_param_panel", "dt_limit_text", "hint_for", "label_for", "log_window", "refresh_dt_limit",
+__all__ = ["build_param_panel", "clamp_echo", "dt_limit_text", "format_param", "hint_for", "label_for", "log_window", "refresh_dt_limit",
            "sync_param_handles", "widget_spec"]
 
 UNIT_KEYS = ("restitution", "friction", "tilt_fraction", "opacity")
 LOG_KEYS = ("mass", "stiffness", "density")
 """Parameters (by substring) that span decades: a log10 slider."""
 _UNIT = re.compile(r"\[([^\]]+)\]")
+SLIDERS = ("slider", "log_slider", "dt_slider")
+CLAMP_ECHO_SECONDS = 2.0
+"""A slider's number box clamps a value typed past its range to the range's end when the box is
+left: the range is widened to the typed value at once, and such an end arriving within this time
+after the typed value is ignored (the value typed is the value run and shown)."""
 
 
 def label_for(key, param, live=False):
@@ -37,6 +43,20 @@ def label_for(key, param, live=False):
         units = [u for u in _UNIT.findall(param.help or "") if "," not in u]  # "[0, 1]" is a range
         unit = units[0] if units else None
     return key + (f" [{unit}]" if unit else "") + (" (live)" if live else "")
+
+
+def format_param(key, param, value):
+    """``value`` as the panel shows it, with the unit of its label: ``dt`` in ms as its slider
+    (``dt = 1.667 ms``), ``mass = 1 kg``; the same words in every message that names a value."""
+    unit = _UNIT.search(label_for(key, param))
+    unit = f" {unit.group(1)}" if unit else ""
+    if key == "dt" and isinstance(value, (int, float)):
+        return f"{key} = {1e3 * float(value):.4g}{unit}"
+    if isinstance(value, bool) or not isinstance(value, (int, float, tuple, list)):
+        return f"{key} = {value}"
+    if isinstance(value, (tuple, list)):
+        return f"{key} = ({', '.join(f'{float(v):.4g}' for v in value)}){unit}"
+    return f"{key} = {value:.6g}{unit}"
 
 
 def hint_for(key, param):
@@ -133,6 +153,7 @@ def build_param_panel(gui, session, on_result):
     gui.add_markdown("Live: " + (", ".join(sorted(live)) if live else "none") +
                      ". Other changes rebuild the scene.")
     handles = {}
+    typed = {}  # key -> (value typed in the slider's unit, the (min, max) it arrived in, when [s])
     for key, param in cls.params.items():
         kind, o = widget_spec(key, param)
         label = label_for(key, param, key in live)
@@ -170,24 +191,50 @@ def build_param_panel(gui, session, on_result):
 
         bounds = (o.get("lo"), o.get("hi"))  # a decade slider's allowed values
 
-        def changed(event, key=key, h=h, scale=1e-3 if kind == "dt_slider" else None, log=kind == "log_slider",
-                    bounds=bounds):
+        def changed(event, key=key, h=h, kind=kind, bounds=bounds):
             if getattr(event, "client", True) is None:
                 return  # the server set the input (sync_param_handles): nothing changed by the user
-            value = h.value * scale if scale else h.value
-            if log:
+            shown = h.value
+            if kind in SLIDERS:
+                now = time.monotonic()
+                if clamp_echo(typed.get(key), shown, now):  # the box's clamp to the range it knew
+                    h.value = typed[key][0]  # shown again as typed (the server's setting: no change)
+                    return
+                typed[key] = (shown, (h.min, h.max), now)
+            value = shown * 1e-3 if kind == "dt_slider" else shown
+            if kind == "log_slider":
                 value = float(f"{float(value):.6g}")  # the box's typed value, without float noise
+                _fit_log_range(h, value, *bounds)  # at once: the page knows the new range before its blur
+            elif kind in SLIDERS:
+                _widen(h, shown)
             try:
                 outcome = session.set_param(key, value)
             except ValueError as exc:
+                sync_param_handles(handles, session, keys=(key,))  # the value it still runs with
                 on_result(key, str(exc), False)
                 return
-            if log:
-                _fit_log_range(h, value, *bounds)
             on_result(key, outcome, True)
 
         h.on_update(changed)
     return handles
+
+
+def clamp_echo(last, value, now):
+    """Whether a slider's new ``value`` is its number box clamping the value typed before it to
+    the range the page knew (on leaving the box), not a change: ``last`` = (typed value, (min,
+    max) when it arrived, time [s]) of the slider's last change; ``now`` [s]."""
+    if last is None or now - last[2] > CLAMP_ECHO_SECONDS:
+        return False
+    typed, (lo, hi) = last[0], last[1]
+    return (typed > hi and value == hi) or (typed < lo and value == lo)
+
+
+def _widen(h, value):
+    """A slider's range grown to hold a typed ``value`` (in the slider's unit)."""
+    if value > h.max:
+        h.max = value
+    elif value < h.min:
+        h.min = value
 
 
 def _fit_log_range(h, value, lo, hi):
@@ -199,11 +246,14 @@ def _fit_log_range(h, value, lo, hi):
         h.max = hi_w
 
 
-def sync_param_handles(handles, session):
-    """Show in every input the value the session runs with (after a Reset restored the last
-    stable parameters; viser sends it to every open tab and to tabs opened later). Setting an
-    input from here does not count as a change (see ``changed`` in :func:`build_param_panel`)."""
+def sync_param_handles(handles, session, keys=None):
+    """Show in every input (those of ``keys``: None, all) the value the session runs with (after a
+    Reset restored the last stable parameters; viser sends it to every open tab and to tabs opened
+    later). Setting an input from here does not count as a change (see ``changed`` in
+    :func:`build_param_panel`)."""
     for key, (kind, lo, hi) in handles.get("_kinds", {}).items():
+        if keys is not None and key not in keys:
+            continue
         h, value = handles[key], session.params.get(key)
         if value is None:
             continue

@@ -18,7 +18,10 @@ import time
 
 import numpy as np
 
+from dataclasses import replace
+
 from .geometry import icosphere
+from .pace import THIN_SEGMENTS, ClientPace, thin_strands
 from .picking import pointer_ray, segment_ribbon_triangles, segment_ribbons
 from .serving import Serving
 from .session import Session
@@ -302,6 +305,10 @@ class Viewer(Serving):
         self.draw_count = 0  # frames sent to the browser
         self.draw_fps = float(draw_fps)
         self.environment = bool(environment)
+        self.pace = None
+        """The pages' round trips (:class:`~warpsim.viewer.pace.ClientPace`) when the scene draws long
+        curve sets, else None."""
+        self._first_frame_done = False
 
     @property
     def url(self):
@@ -334,6 +341,8 @@ class Viewer(Serving):
             self.session.playing = False
             self.controls.play.label = "Play"
         self.server.on_client_connect(self._on_connect)
+        if any(it.kind == "segments" and len(it.points) > THIN_SEGMENTS for it in self.session.items.values()):
+            self.pace = ClientPace(self.server)  # long curve sets (hair): thinned while a page lags
         self.redraw()
         self._thread = threading.Thread(target=self._loop, name="warpsim-viewer", daemon=True)
         self._thread.start()
@@ -352,6 +361,8 @@ class Viewer(Serving):
     def stop(self):
         """Stop stepping and serving; any recording is completed first."""
         self._stop.set()
+        if self.pace is not None:
+            self.pace.stop()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5.0)
         self.session.close()
@@ -373,10 +384,16 @@ class Viewer(Serving):
                 items["_mouse_drag"] = DrawItem("_mouse_drag", "segments", seg, (0.9, 0.2, 0.1), radius=0.002)
             else:
                 items["_mouse_drag"] = DrawItem("_mouse_drag", "segments", np.zeros((0, 2, 3), np.float32))
+        step = self.pace.step if self.pace is not None else 1
+        if step > 1:  # a page behind: one strand in `step` of the long curve sets (the panel says so)
+            items = {name: replace(it, points=thin_strands(it.points, step))
+                     if it.kind == "segments" and len(it.points) > THIN_SEGMENTS else it for name, it in items.items()}
         if self.server is not None:
             self.drawer.draw(items, static, version, draggable)
         self._drawn_frame = (version, frame)
         self._drawn_at = time.perf_counter()
+        if self.pace is not None:
+            self.pace.sent(self._drawn_at)
         self.draw_count += 1
         ms = 1e3 * (self._drawn_at - t0)
         s.draw_ms = ms if s.draw_ms == 0.0 else 0.8 * s.draw_ms + 0.2 * ms
@@ -397,7 +414,10 @@ class Viewer(Serving):
             t0 = time.perf_counter()
             stepped = False
             if s.playing and not self.user_driven:
+                if not self._first_frame_done:  # said before the first step: it compiles kernels
+                    self.controls.starting()
                 stepped = s.advance(interruptible=True)  # a Pause stops it between sub-steps
+                self._first_frame_done = self._first_frame_done or stepped
             due = time.perf_counter() - self._drawn_at >= 1.0 / self.draw_fps or not s.playing
             if (s.version, s.frame) != self._drawn_frame and due:
                 try:
@@ -419,11 +439,12 @@ class Viewer(Serving):
 
     # ------------------------------------------------------------------ input
     def _param_result(self, key, outcome, ok):
+        value = f"`{self.session.shown(key)}`"  # the value it runs with, as the input shows it
         if ok:
-            text = {"live": f"`{key}` applied live", "rebuilt": f"`{key}`: the scene was rebuilt (not live)",
-                    "unchanged": f"`{key}` unchanged"}[outcome]
+            text = {"live": f"{value} applied live", "rebuilt": f"{value}: the scene was rebuilt (not live)",
+                    "unchanged": f"{value} unchanged"}[outcome]
         else:
-            text = f"`{key}` not changed: {outcome}"
+            text = f"`{key}` not changed (still {value}): {outcome}"
         self.controls.say(text)
         self.redraw()
 

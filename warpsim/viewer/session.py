@@ -22,6 +22,7 @@ from ..bodies.drag import DragSpring
 from ..core.errors import SimulationError
 from ..scenes import parse_value
 from ..scenes.timing import resolve_timing
+from .params import format_param
 from .picking import camera_plane_target, pick_mesh_vertex, pick_point
 from .record import Recorder, default_recording_path
 from .sink import ViewerSink
@@ -130,6 +131,9 @@ class Session:
         self.frame = 0
         self.time = 0.0
         self.error = None
+        self.failed_at = None
+        """(frame, time [s]) where the run failed or blew up (the error names it; the frames of the
+        explosion shown after it do not move it), None while it runs."""
         self._substeps_done = 0
         self.sim_rate = 0.0  # measured afresh: the rebuilt scene may run at another rate
         self._items = self.sink.draw(scene.frame_data(), 0)
@@ -179,7 +183,7 @@ class Session:
             self._build()
             if restored:
                 self._say("info", "reset to the last stable parameters: " +
-                          ", ".join(f"{k} = {v}" for k, v in restored.items()))
+                          ", ".join(self.shown(k) for k in restored))
             else:
                 self._say("info", "reset to frame 0")
 
@@ -235,6 +239,8 @@ class Session:
     def _fail(self, exc, frame):
         self.playing = False
         self.exploding = None
+        if self.failed_at is None:
+            self.failed_at = (frame, self.time)
         self.error = f"frame {frame}: {exc}" if not str(exc).startswith("frame") else str(exc)
         limit = self.limit
         if limit is not None and math.isfinite(limit.dt):
@@ -253,6 +259,7 @@ class Session:
         if self.grabbed is not None:  # let go: no drag line left pointing at a run that stopped
             self.drag.release()
             self.grabbed = None
+        self.failed_at = (frame, self.time + self.frame_dt)
         self.exploding = {"error": exc, "frame": frame, "left": EXPLOSION_FRAMES,
                           "until": time.perf_counter() + EXPLOSION_SECONDS}
         self._last_drawn = {name: it.points.reshape(-1, 3).astype(np.float64) for name, it in self._items.items()
@@ -365,6 +372,11 @@ class Session:
             return self.advance()
 
     # ------------------------------------------------------------------ parameters
+    def shown(self, key):
+        """``key = value unit`` of the value the session runs with, as the panel shows it (``dt``
+        in ms, as its slider)."""
+        return format_param(key, self.cls.params[key], self.params[key])
+
     def set_param(self, key, value):
         """Change a scene parameter: ``"live"`` when applied to the running simulation,
         ``"rebuilt"`` when the scene was rebuilt for it, ``"unchanged"``. ValueError naming the
@@ -394,7 +406,7 @@ class Session:
                 self.params[key] = value
                 self._frames_since_change = 0
                 self._update_limit()
-                self._say("info", f"{key} = {value}: applied live")
+                self._say("info", f"{self.shown(key)}: applied live")
                 return "live"
             old = self.params[key]
             self.params[key] = value
@@ -404,7 +416,7 @@ class Session:
                 self.params[key] = old
                 self._build()
                 raise ValueError(f"{key}={value!r}: {exc}") from None
-            self._say("info", f"{key} = {value}: the scene was rebuilt (not a live parameter)")
+            self._say("info", f"{self.shown(key)}: the scene was rebuilt (not a live parameter)")
             return "rebuilt"
 
     # ------------------------------------------------------------------ dragging
@@ -550,9 +562,12 @@ class Session:
         del self.messages[:-20]
 
     def status(self):
-        """Frame, simulated time [s], wall ms per frame, simulated s per wall s, and state flags."""
+        """Frame, simulated time [s], wall ms per frame, simulated s per wall s, and state flags. After
+        a blow-up, the frame and time are where it blew up (those the error names), also while the
+        explosion is shown past it."""
         with self.lock:
-            return {"scene": self.cls.name, "frame": self.frame, "time": self.time, "wall_ms": self.wall_ms,
+            frame, t = self.failed_at if self.failed_at is not None else (self.frame, self.time)
+            return {"scene": self.cls.name, "frame": frame, "time": t, "wall_ms": self.wall_ms,
                     "draw_ms": self.draw_ms,
                     "sim_rate": self.sim_rate, "playing": self.playing, "speed": self.speed, "error": self.error,
                     "exploding": self.exploding is not None,
