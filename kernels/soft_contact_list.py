@@ -40,9 +40,9 @@ from .soft_contact import (
     counts_toward_scale,
     edge_edge_candidate,
     edge_edge_test,
-    first_candidate,
+    first_body,
     nearer,
-    next_candidate,
+    next_body,
     resolve_one,
     segment_closest_params,
     triangle_barycentric,
@@ -133,18 +133,19 @@ def search_vertex(
     lower = x - wp.vec3(grow)
     upper = x + wp.vec3(grow)
     found = int(0)
-    query, cur = first_candidate(body_bvh, world_root[vertex_world[v]], tri_bvh, body_tri_root, lower, upper, body,
-                                 self_contact)
-    while cur.item >= 0:
-        t = cur.item
-        if vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
-            a = q[tri[3 * t]]
-            b = q[tri[3 * t + 1]]
-            c = q[tri[3 * t + 2]]
-            w = triangle_barycentric(x, a, b, c)
-            if wp.length(x - (w[0] * a + w[1] * b + w[2] * c)) < keep:
-                found = push_candidate(v, found, t, capacity, cand_out)
-        query, cur = next_candidate(query, cur)
+    others = first_body(body_bvh, world_root[vertex_world[v]], lower, upper, body, self_contact)
+    while others.other >= 0:
+        query = wp.bvh_query_aabb(tri_bvh, lower, upper, body_tri_root[others.other])
+        t = int(0)
+        while wp.bvh_query_next(query, t):
+            if vertex_triangle_candidate(p, body, t, tri, tri_body, rest, inv_mass, self_contact, self_rest_distance):
+                a = q[tri[3 * t]]
+                b = q[tri[3 * t + 1]]
+                c = q[tri[3 * t + 2]]
+                w = triangle_barycentric(x, a, b, c)
+                if wp.length(x - (w[0] * a + w[1] * b + w[2] * c)) < keep:
+                    found = push_candidate(v, found, t, capacity, cand_out)
+        others = next_body(others)
     return found
 
 
@@ -163,17 +164,18 @@ def search_edge(
     lower = wp.min(xa, xb) - wp.vec3(grow)
     upper = wp.max(xa, xb) + wp.vec3(grow)
     found = int(0)
-    query, cur = first_candidate(body_bvh, world_root[edge_world[e]], edge_bvh, body_edge_root, lower, upper, body,
-                                 self_contact)
-    while cur.item >= 0:
-        f = cur.item
-        if edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
-            xc = q[edges[2 * f]]
-            xd = q[edges[2 * f + 1]]
-            ut = segment_closest_params(xa, xb, xc, xd)
-            if wp.length((xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))) < keep:
-                found = push_candidate(slot, found, f, capacity, cand_out)
-        query, cur = next_candidate(query, cur)
+    others = first_body(body_bvh, world_root[edge_world[e]], lower, upper, body, self_contact)
+    while others.other >= 0:
+        query = wp.bvh_query_aabb(edge_bvh, lower, upper, body_edge_root[others.other])
+        f = int(0)
+        while wp.bvh_query_next(query, f):
+            if edge_edge_candidate(e, f, edges, edge_body, rest, inv_mass, self_contact, self_rest_distance):
+                xc = q[edges[2 * f]]
+                xd = q[edges[2 * f + 1]]
+                ut = segment_closest_params(xa, xb, xc, xd)
+                if wp.length((xa + ut[0] * (xb - xa)) - (xc + ut[1] * (xd - xc))) < keep:
+                    found = push_candidate(slot, found, f, capacity, cand_out)
+        others = next_body(others)
     return found
 
 
