@@ -162,3 +162,19 @@ def flag_incoherent_worlds(
         streak[w] = 0
     if streak[w] >= frames and unstable_frame_out[w] < 0:
         unstable_frame_out[w] = frame_counter[0]
+
+
+@wp.kernel
+def other_ends(offsets: wp.array(dtype=int), springs: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
+               other: wp.array(dtype=int)):
+    """Per particle i (one thread), for each CSR entry e of its springs: the spring's other end
+    (i itself for a spring from i to i)."""
+    i = wp.tid()
+    for e in range(offsets[i], offsets[i + 1]):
+        s = springs[e]
+        a = spring_indices[2 * s]
+        b = spring_indices[2 * s + 1]
+        if a == i:
+            other[e] = b
+        else:
+            other[e] = a

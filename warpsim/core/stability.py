@@ -357,26 +357,27 @@ def pendulum_limit(g_over_l, integrator) -> StabilityLimit:
 
 
 def _adjacency(model):
-    """CSR (offsets, spring, other particle) of the model's springs per particle, in spring order
-    (built once per model on the host with a stable sort; cached on the model)."""
+    """CSR (offsets, spring, other particle) of the model's springs per particle, in spring order,
+    and the springs' ends (S, 2) on the host: the model's own CSR (``particle_spring_offsets``,
+    ``particle_springs``: a batch tiles world 0's on the device), each entry's other end found on
+    the device (cached on the model)."""
+    from .model import ensure_spring_adjacency
+
     n, S = model.particle_count, model.spring_count
     cached = getattr(model, "_stability_adjacency", None)
     if cached is not None and cached[0] == (n, S):
         return cached[1]
     idx = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64) if S else np.zeros((0, 2), np.int64)
-    owner = np.concatenate([idx[:, 0], idx[:, 1]])
-    other = np.concatenate([idx[:, 1], idx[:, 0]])
-    spring = np.concatenate([np.arange(S), np.arange(S)])
-    order = np.lexsort((spring, owner))  # by particle, then spring index: a fixed order
-    offsets = np.zeros(n + 1, dtype=np.int32)
-    np.cumsum(np.bincount(owner, minlength=n), out=offsets[1:])
     d = model.device
-
-    def arr(x):
-        return wp.array(np.ascontiguousarray(x, dtype=np.int32), dtype=int, device=d)
-
-    value = (arr(offsets), arr(spring[order]) if S else wp.zeros(1, dtype=int, device=d),
-             arr(other[order]) if S else wp.zeros(1, dtype=int, device=d), idx)
+    if S:
+        ensure_spring_adjacency(model)
+        offsets, springs = model.particle_spring_offsets, model.particle_springs
+        other = wp.empty(2 * S, dtype=int, device=d)
+        wp.launch(K.other_ends, n, inputs=[offsets, springs, model.spring_indices, other], device=d)
+        value = (offsets, springs, other, idx)
+    else:
+        value = (wp.zeros(n + 1, dtype=int, device=d), wp.zeros(1, dtype=int, device=d), wp.zeros(1, dtype=int, device=d),
+                 idx)
     model._stability_adjacency = ((n, S), value)
     return value
 

@@ -475,6 +475,7 @@ class WorldBatch:
             setattr(stand_in, name, out)
         for name in ("spring_broken", "_stability_adjacency"):
             vars(stand_in).pop(name, None)
+        self._tile_adjacency(m0, stand_in)  # world 0's CSR tiled on the device (not sorted again on the host)
         return stand_in
 
     def world_limits(self) -> list:
