@@ -74,6 +74,20 @@ def pair_force_hessian(r: wp.vec3, u: wp.vec3, a: float, radius: float, stiffnes
 
 
 @wp.func
+def spheres_apart(c1: wp.vec3, r1: float, c2: wp.vec3, r2: float, radius: float) -> bool:
+    """Whether two bounding spheres (centres [m], radii [m]) are more than ``radius`` apart: then so are
+    the primitives inside them (a cheap rejection before the nearest points)."""
+    return wp.length(c1 - c2) > r1 + r2 + radius
+
+
+@wp.func
+def triangle_sphere(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """A bounding sphere of triangle abc: (centroid, largest corner distance) [m]."""
+    m = (a + b + c) / 3.0
+    return m, wp.max(wp.max(wp.length(a - m), wp.length(b - m)), wp.length(c - m))
+
+
+@wp.func
 def vertex_triangle_rel(x: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     """(r = x - nearest point of triangle abc [m], barycentrics of that point)."""
     w = triangle_barycentric(x, a, b, c)
@@ -296,6 +310,9 @@ def contact_force_hessian(
             i = tri[3 * t]
             j = tri[3 * t + 1]
             k = tri[3 * t + 2]
+            centre, extent = triangle_sphere(q[i], q[j], q[k])
+            if spheres_apart(x, 0.0, centre, extent, radius):
+                continue
             r, w = vertex_triangle_rel(x, q[i], q[j], q[k])
             u = dx - (w[0] * (q[i] - q0[i]) + w[1] * (q[j] - q0[j]) + w[2] * (q[k] - q0[k]))
             fc, Hc = pair_force_hessian(r, u, 1.0, radius, stiffness, friction, friction_eps)
@@ -317,8 +334,11 @@ def contact_force_hessian(
                     xv = x
                 xs[m] = xv
                 ds[m] = xv - q0[v]
+            centre, extent = triangle_sphere(xs[0], xs[1], xs[2])
             for n in range(tv_count[t]):
                 v = tv_list[t * capacity + n]
+                if spheres_apart(q[v], 0.0, centre, extent, radius):
+                    continue
                 r, w = vertex_triangle_rel(q[v], xs[0], xs[1], xs[2])
                 u = (q[v] - q0[v]) - (w[0] * ds[0] + w[1] * ds[1] + w[2] * ds[2])
                 fc, Hc = pair_force_hessian(r, u, -w[corner], radius, stiffness, friction, friction_eps)
@@ -336,10 +356,14 @@ def contact_force_hessian(
                 xj = x
             di = xi - q0[i]
             dj = xj - q0[j]
+            centre = 0.5 * (xi + xj)
+            extent = 0.5 * wp.length(xj - xi)
             for n in range(ee_count[e]):
                 g = ee_list[e * capacity + n]
                 k = edges[2 * g]
                 m = edges[2 * g + 1]
+                if spheres_apart(centre, extent, 0.5 * (q[k] + q[m]), 0.5 * wp.length(q[m] - q[k]), radius):
+                    continue
                 r, st = edge_edge_rel(xi, xj, q[k], q[m])
                 u = (1.0 - st[0]) * di + st[0] * dj - (1.0 - st[1]) * (q[k] - q0[k]) - st[1] * (q[m] - q0[m])
                 weight = wp.where(i == p, 1.0 - st[0], st[0])

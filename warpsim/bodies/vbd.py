@@ -146,7 +146,7 @@ class VBD(Integrator):
         n, d = system.count, system.device
         self.model = model
         ensure_spring_adjacency(model)
-        self._recorded_key = None
+        self._recorded_key: tuple | None = None
         offsets, particles = colour_groups(self.colours(model))
         self.colour_offsets = [int(o) for o in offsets]
         """Start of each colour in ``colour_particles`` (host list, C + 1)."""
