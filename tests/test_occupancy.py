@@ -159,12 +159,13 @@ def test_cells_marked_inside_the_step_equal_the_separate_pass_and_numpy(device, 
     from warpsim.sweeps import sample_worlds
     from warpsim.worlds import WorldBatch
     from warpsim.browse.occupancy import OccupancyRecorder
-    from warpsim.sweeps.sweep import frame_timing
+    from warpsim.scenes.timing import resolve_timing
 
     cls = get_scene("springs")
     worlds = sample_worlds("springs", {"shape": "lattice", "count": 4}, ["stiffness=200:600", "gravity=3:12"], 6,
                            sample="lhs", seed=1)
-    _, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    timing = resolve_timing(cls, cls.resolve_params(worlds[0]))
+    substeps, frame_dt = timing.steps, timing.frame_dt
     frames = 40
     records = []
     for in_step in (True, False):

@@ -14,7 +14,8 @@ pytest.importorskip("pxr")
 from pxr import Usd
 
 from warpsim.scenes import get_scene
-from warpsim.sweeps.sweep import frame_timing, run_batch
+from warpsim.scenes.timing import resolve_timing
+from warpsim.sweeps.sweep import run_batch
 from warpsim.sweeps.usd import BatchLayerWriter
 
 # scene -> (--set values that keep it small, frames); frames are enough for the stage to act
@@ -63,7 +64,8 @@ def test_identical_worlds_give_identical_rows_and_each_equals_its_run_alone(tmp_
     alone = cls(params, device="cpu")
     decls = BatchLayerWriter(str(tmp_path / "alone.usdc"), alone, 0, 1, 60.0)  # the samples a batch layer holds
     alone.use_timing(alone.timing.with_steps(timing["frame_steps"]))  # the steps per frame the batch took (auto)
-    _, substeps, frame_dt = frame_timing(cls, params)
+    timing = resolve_timing(cls, params)
+    substeps, frame_dt = timing.steps, timing.frame_dt
     moved = 0.0
     for frame in range(frames + 1):
         if frame:

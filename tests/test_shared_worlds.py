@@ -11,7 +11,7 @@ from warpsim.sweeps import sample_worlds
 from warpsim.worlds import WorldBatch
 from warpsim.worlds.plan import StructuralError
 from warpsim.scenes.timing import resolve_timing
-from warpsim.sweeps.sweep import frame_timing
+from warpsim.scenes.timing import resolve_timing
 
 # (varying the teapot's mass scales its per-vertex masses as (mass at 1 kg) x mass in float32, which
 # rounds differently from the scene's own total / count: worlds then agree with their scenes to
@@ -46,7 +46,8 @@ def _frames(batch, frame_dt, substeps, frames):
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_shared_path_is_bit_identical_to_the_tiled_path_and_to_each_world_alone(name):
     cls, worlds = _worlds(name)
-    _, substeps, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    timing = resolve_timing(cls, cls.resolve_params(worlds[0]))
+    substeps, frame_dt = timing.steps, timing.frame_dt
     shared = WorldBatch(cls, worlds, device="cpu")
     tiled = WorldBatch(cls, worlds, device="cpu", shared=False)
     assert shared.shared and not tiled.shared
@@ -84,7 +85,8 @@ def test_shared_topology_is_stored_once():
 def test_shared_world_gathers_follow_the_atomics_path_within_a_micrometre_over_240_steps():
     cls, worlds = _worlds("springs")
     params = cls.resolve_params(worlds[0])
-    _, substeps, frame_dt = frame_timing(cls, params)
+    timing = resolve_timing(cls, params)
+    substeps, frame_dt = timing.steps, timing.frame_dt
     shared = WorldBatch(cls, worlds, device="cpu")
     atomics = WorldBatch(cls, worlds, device="cpu", shared=False)
     springs = [f for f in atomics.sim.forces if type(f).__name__ == "Springs"]
@@ -110,7 +112,7 @@ def test_shared_true_names_what_the_scene_lacks():
 @pytest.mark.parametrize("substeps", [3, 4])  # odd: the frame ends in the spare buffers and copies home
 def test_one_launch_per_frame_gives_the_per_step_paths_bits(substeps):
     cls, worlds = _worlds("teapot")
-    _, _, frame_dt = frame_timing(cls, cls.resolve_params(worlds[0]))
+    frame_dt = resolve_timing(cls, cls.resolve_params(worlds[0])).frame_dt
     steps = WorldBatch(cls, worlds, device="cpu")
     blocks = WorldBatch(cls, worlds, device="cpu", block_per_world=True)
     _fixed_steps(steps, blocks)

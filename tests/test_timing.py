@@ -75,8 +75,6 @@ def test_automatic_steps_start_at_the_scenes_own_count():
 
 
 def test_run_view_sweep_and_rerun_resolve_one_timing():
-    from warpsim.viewer.session import frame_timing as view_timing
-    from warpsim.sweeps.sweep import frame_timing as sweep_frame_timing
     from warpsim.sweeps.sweep import sweep_timing
 
     for name, opts in (("bounce", {"substeps": 3}), ("teapot", {"fps": 30.0}), ("cloth", {"substeps": 2}),
@@ -85,8 +83,6 @@ def test_run_view_sweep_and_rerun_resolve_one_timing():
         p = cls.resolve_params({})
         t = resolve_timing(cls, p, **opts)
         assert sweep_timing(cls, [{}], opts.get("fps"), opts.get("substeps")) == t
-        assert sweep_frame_timing(cls, p, opts.get("fps"), opts.get("substeps")) == (t.fps, t.steps, t.frame_dt)
-        assert view_timing(cls, p, opts.get("fps"), opts.get("substeps")) == (t.frame_dt, t.steps, t.fps)
 
 
 # ---------------------------------------------------------------------------------- the command line

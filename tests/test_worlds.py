@@ -14,7 +14,7 @@ from warpsim.sweeps import UserMetric, run_batch, sample_worlds, write_sweep_roo
 from warpsim.worlds import WorldBatch
 from warpsim.sweeps.metrics import parse_rank, parse_where, select
 from warpsim.sweeps.sampling import parse_vary, sample_params
-from warpsim.sweeps.sweep import frame_timing
+from warpsim.scenes.timing import resolve_timing
 
 CASES = {
     "bounce": ({}, [{"height": 0.03, "restitution": 0.3, "velocity": (0.1, 0.0, 0.0)},
@@ -36,7 +36,8 @@ CASES = {
 
 def run_alone(cls, params, frames):
     scene = cls(params, device="cpu")
-    _, substeps, frame_dt = frame_timing(cls, params)
+    timing = resolve_timing(cls, params)
+    substeps, frame_dt = timing.steps, timing.frame_dt
     out = [scene.sim.state.positions.numpy().copy()]
     for _ in range(frames):
         scene.advance(frame_dt, substeps)
@@ -53,7 +54,8 @@ def test_every_world_equals_its_parameters_run_alone(name):
     batch = WorldBatch(cls, params, device="cpu")
     assert batch.model.particle_count == 3 * batch.scene.sim.model.particle_count
     assert batch.model.spring_count == 3 * batch.scene.sim.model.spring_count
-    _, substeps, frame_dt = frame_timing(cls, params[0])
+    timing = resolve_timing(cls, params[0])
+    substeps, frame_dt = timing.steps, timing.frame_dt
     frames = 24 if name == "drape" else 6  # the drape's sheet falls freely until frame ~15
     for _ in range(frames):
         batch.advance(frame_dt, substeps)
@@ -92,7 +94,8 @@ def test_fused_step_agrees_with_the_batched_simulator():
     fused = WorldBatch(cls, worlds, device="cpu", fused=True)
     fused.sim.integrator.requested_mode = "gather"
     fused.sim.integrator._system = None  # re-allocate in gather mode
-    _, substeps, frame_dt = frame_timing(cls, plain.params[0])
+    timing = resolve_timing(cls, plain.params[0])
+    substeps, frame_dt = timing.steps, timing.frame_dt
     for _ in range(8):
         plain.advance(frame_dt, substeps)
         fused.advance(frame_dt, substeps)
@@ -175,7 +178,8 @@ def test_metrics_match_the_states(tmp_path):
                      track={"tip": 3}, metrics=[UserMetric("potential", potential_energy)])
     for w, p in enumerate(params):
         scene = cls(cls.resolve_params(p), device="cpu")
-        _, substeps, frame_dt = frame_timing(cls, scene.params)
+        timing = resolve_timing(cls, scene.params)
+        substeps, frame_dt = timing.steps, timing.frame_dt
         m = scene.sim.model.particle_mass.numpy()
         centers, speeds, potentials, tips = [], [], [], []
         for f in range(frames + 1):
@@ -257,7 +261,8 @@ def test_flock_worlds_keep_to_their_own_neighbours_and_food():
     params = [cls.resolve_params({"birds": 20, "geese": 4, "food": 2, "seed": s, "food_bites": 5 + s})
               for s in (0, 1, 2)]
     batch = make_batch(cls, params, device="cpu")
-    _, substeps, frame_dt = frame_timing(cls, params[0])
+    timing = resolve_timing(cls, params[0])
+    substeps, frame_dt = timing.steps, timing.frame_dt
     frames = 300  # long enough for hungry birds to reach food
     for _ in range(frames):
         batch.advance(frame_dt, substeps)
@@ -291,7 +296,8 @@ def test_particle_collisions_pair_particles_of_one_world_only():
     for triple in speeds:
         params = [cls.resolve_params({**base, "ball_speed": v}) for v in triple]
         batch = make_batch(cls, params, device="cpu")
-        _, substeps, frame_dt = frame_timing(cls, params[0])
+        timing = resolve_timing(cls, params[0])
+        substeps, frame_dt = timing.steps, timing.frame_dt
         for _ in range(frames):
             batch.advance(frame_dt, substeps)
         results.append(batch.world_slices()[0].copy())

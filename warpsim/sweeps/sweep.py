@@ -16,7 +16,7 @@ from .metrics import WorldMetrics
 from .sampling import parse_vary, sample_params
 from .usd import MAX_CHUNK_FRAMES, BatchLayerWriter, auto_chunk_frames, chunk_writers, world_frame_bytes
 
-__all__ = ["frame_timing", "make_batch", "normalise_params", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
+__all__ = ["make_batch", "normalise_params", "run_batch", "sample_worlds", "sweep_timing", "write_table"]
 
 
 def _typed_fixed(cls, fixed):
@@ -50,14 +50,6 @@ def sample_worlds(scene_name, fixed, vary, n, sample="grid", seed=0) -> list:
             raise ValueError(f"{s.key} is given both with --set and --vary; give it once")
     varied = sample_params(specs, cls.params, n, sample, seed)
     return [{**fixed, **v} for v in varied]
-
-
-def frame_timing(cls, params, fps=None, substeps=None, given=()):
-    """(fps, substeps, frame_dt [s]) as ``warpsim run`` picks them: the
-    :class:`~warpsim.scenes.timing.FrameTiming` of :func:`~warpsim.scenes.timing.resolve_timing`
-    as a tuple (``substeps="auto"``: the scene's own count, the fewest automatic steps)."""
-    t = resolve_timing(cls, params, fps=fps, substeps=substeps, given=given)
-    return t.fps, t.steps, t.frame_dt
 
 
 def sweep_timing(cls, world_params, fps=None, substeps=None):
@@ -160,6 +152,47 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
     given = [dict(p) for p in world_params]
     if not world_params:
         raise ValueError("run_batch needs at least one world")
+    store_every = int(store_every)
+    if store_every < 0:
+        raise ValueError(f"store_every {store_every}: give 1 (every frame), k > 1 (every k-th) or 0 (the last only)")
+    if resume_frame is not None and not 0 <= int(resume_frame) <= int(frames) + 1:
+        raise ValueError(f"resume_frame {resume_frame}: the run has frames 0..{frames}")
+    batch, (fps, substeps, frame_dt), counts = _timed_batch(cls, world_params, fps, substeps, device, fused,
+                                                            reference_params, frame_steps, timing, warn)
+    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt, step_dt=frame_dt / np.asarray(counts))
+    writer = _open_layer(batch, layer_path, scene_name, first_world, fps, frames, chunk_size, store_every,
+                         write_workers, resume_frame)
+    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
+    for i, p in enumerate(getattr(batch, "params", given)):
+        writer.set_world_params(i, p)
+    writer.begin()  # adopts the kept chunks of a resumed layer (ValueError when one is damaged)
+
+    def body():
+        batch.advance(frame_dt, substeps)
+        stats.update()
+        if recorder is not None:
+            recorder.update()
+
+    stats.update()
+    if recorder is not None:
+        recorder.update()
+        recorder.after_frame()
+    write = _FrameWriter(batch, writer, frames, store_every, int(resume_frame or 0))
+    _step_frames(batch, body, frames, write, recorder, progress,
+                 batch.device.is_cuda and batch.can_capture() if use_graph is None else use_graph)
+    if on_stage is not None:
+        on_stage("closing the layer")
+    writer.close(scene_name)
+    if recorder is not None:
+        if on_stage is not None:
+            on_stage("saving the occupancy record")
+        recorder.finish().save(occupancy["path"])
+    return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
+
+
+def _timed_batch(cls, world_params, fps, substeps, device, fused, reference_params, frame_steps, timing, warn):
+    """(batch, (fps, substeps, frame_dt), steps each world takes a frame) of ``run_batch``: the
+    one timing of every world, the batch built with it (``warn``: the stability line, if any)."""
     request = sweep_timing(cls, world_params, fps, substeps)  # the one FrameTiming of every world
     fps, substeps, frame_dt = request.fps, request.steps, request.frame_dt
     first = cls.resolve_params(world_params[0])
@@ -181,9 +214,15 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         line = batch.stability_warning(frame_dt, substeps)
         if line is not None:
             warn(line)
-    stats = WorldMetrics(batch, track=track, user=metrics, frame_dt=frame_dt, step_dt=frame_dt / np.asarray(counts))
-    if resume_frame is not None and not 0 <= int(resume_frame) <= int(frames) + 1:
-        raise ValueError(f"resume_frame {resume_frame}: the run has frames 0..{frames}")
+    return batch, (fps, substeps, frame_dt), counts
+
+
+def _open_layer(batch, layer_path, scene_name, first_world, fps, frames, chunk_size, store_every, write_workers,
+                resume_frame):
+    """The batch layer's writer (not begun): chunks of ``chunk_size`` frames (None: automatic,
+    :func:`warpsim.sweeps.usd.auto_chunk_frames`), ``write_workers`` processes (None: by size)."""
+    from ..core import checks
+
     writer = BatchLayerWriter(layer_path, batch.scene, first_world, batch.world_count, fps,
                               chunk_size=MAX_CHUNK_FRAMES if chunk_size is None else chunk_size,
                               resume_frame=resume_frame)
@@ -195,51 +234,40 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
         write_workers = chunk_writers(writer, frame_bytes, frames, store_every)
     writer.workers = checks.integer(write_workers, "run_batch write_workers", lo=0, hi=64,
                                     fix="0 (this process writes) or a few processes")
-    recorder = _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer)
-    for i, p in enumerate(getattr(batch, "params", given)):
-        writer.set_world_params(i, p)
-    writer.begin()  # adopts the kept chunks of a resumed layer (ValueError when one is damaged)
-    first_written = int(resume_frame or 0)
-    store_every = int(store_every)
-    if store_every < 0:
-        raise ValueError(f"store_every {store_every}: give 1 (every frame), k > 1 (every k-th) or 0 (the last only)")
+    return writer
 
-    def stored(frame):
-        return frame == int(frames) or (frame % store_every == 0 if store_every else False)
 
-    def write(frame, ticket=None):
+class _FrameWriter:
+    """``write(frame, ticket=None)``: a frame of every world to the layer (stored frames) or to its
+    extent only (frames before ``first_written``, or not kept by ``store_every``)."""
+
+    def __init__(self, batch, writer, frames, store_every, first_written):
+        self.batch, self.writer, self.frames = batch, writer, int(frames)
+        self.store_every, self.first_written = store_every, first_written
+
+    def stored(self, frame):
+        return frame == self.frames or (frame % self.store_every == 0 if self.store_every else False)
+
+    def __call__(self, frame, ticket=None):
+        batch, writer = self.batch, self.writer
         x, v = batch.world_slices() if ticket is None else batch.world_slices(ticket)
+        kept = frame >= self.first_written and self.stored(frame)
         batched = batch.batch_frame_data(x, v) if hasattr(batch, "batch_frame_data") else None
         if batched is not None:  # every world's samples at once (the scene's frame_arrays)
-            if frame < first_written or not stored(frame):
-                writer.observe_batch(batched)
-            else:
-                writer.write_batch(frame, batched)
+            writer.write_batch(frame, batched) if kept else writer.observe_batch(batched)
             return
         datas = [batch.world_frame_data(x[w], v[w], w) for w in range(batch.world_count)]
-        if frame < first_written or not stored(frame):
-            writer.observe(datas)
-        else:
-            writer.write_worlds(frame, datas)
+        writer.write_worlds(frame, datas) if kept else writer.observe(datas)
 
-    def body():
-        batch.advance(frame_dt, substeps)
-        stats.update()
-        if recorder is not None:
-            recorder.update()
 
-    graph = None
-    if use_graph is None:
-        use_graph = batch.device.is_cuda and batch.can_capture()
-    stats.update()
-    if recorder is not None:
-        recorder.update()
-        recorder.after_frame()
+def _step_frames(batch, body, frames, write, recorder, progress, use_graph):
+    """Frames 1..``frames``: ``body()`` (captured as a CUDA graph from frame 2 with ``use_graph``),
+    then ``write(frame)``. On a GPU frame f is written while frame f + 1 steps: its copy to the
+    host is started (pinned, double-buffered, on a copy stream) before the next frame is
+    launched, and waited for after (:meth:`WorldBatch.start_host_copy`)."""
     write(0)
-    # on a GPU, frame f is written while frame f + 1 steps: its copy to the host is started (pinned,
-    # double-buffered, on a copy stream) before the next frame is launched, and waited for after
     ahead = getattr(batch, "can_copy_ahead", lambda: False)()
-    pending = None  # (frame, ticket) of the frame copied and not yet written
+    graph, pending = None, None  # pending: (frame, ticket) of the frame copied and not yet written
     for frame in range(1, int(frames) + 1):
         if use_graph and graph is None and frame > 1:  # frame 1 ran eagerly: every module is loaded
             with wp.ScopedCapture(device=batch.device) as capture:
@@ -252,29 +280,19 @@ def run_batch(scene_name, world_params, *, frames, fps=None, substeps=None, devi
             body()
         if recorder is not None:
             recorder.after_frame()
-        if ahead:
-            ticket = batch.start_host_copy()
-            if pending is not None:
-                write(*pending)
-                if progress is not None:
-                    progress(pending[0])
-            pending = (frame, ticket)
+        done = (frame, batch.start_host_copy()) if ahead else (frame,)
+        if ahead and pending is None:
+            pending = done
             continue
-        write(frame)
+        if ahead:
+            done, pending = pending, done
+        write(*done)
         if progress is not None:
-            progress(frame)
+            progress(done[0])
     if pending is not None:
         write(*pending)
         if progress is not None:
             progress(pending[0])
-    if on_stage is not None:
-        on_stage("closing the layer")
-    writer.close(scene_name)
-    if recorder is not None:
-        if on_stage is not None:
-            on_stage("saving the occupancy record")
-        recorder.finish().save(occupancy["path"])
-    return [{"world": int(first_world) + i, **p, **m} for i, (p, m) in enumerate(zip(given, stats.rows()))]
 
 
 def _recorder(batch, occupancy, frames, track, fps, first_world, scene_name, writer):

@@ -27,7 +27,7 @@ from .picking import camera_plane_target, pick_mesh_vertex, pick_point
 from .record import Recorder, default_recording_path
 from .sink import ViewerSink
 
-__all__ = ["EXPLOSION_FRAMES", "EXPLOSION_SECONDS", "STABLE_FRAMES", "Session", "frame_timing"]
+__all__ = ["EXPLOSION_FRAMES", "EXPLOSION_SECONDS", "STABLE_FRAMES", "Session"]
 
 EXPLOSION_FRAMES = 45
 """Frames drawn past a blow-up, one simulation step each (slow motion; checks off, positions
@@ -43,14 +43,6 @@ seconds under the toast)."""
 STABLE_FRAMES = 60
 """Frames a parameter set must run without a failure to count as the last stable one (Reset
 after a blow-up returns to it)."""
-
-
-def frame_timing(cls, params, fps=None, substeps=None, given=()):
-    """(frame_dt [s], substeps, fps) of a scene class with resolved ``params``: the
-    :class:`~warpsim.scenes.timing.FrameTiming` ``warpsim run`` resolves, as a tuple
-    (``substeps="auto"``: the scene's own number, the fewest of the automatic ones)."""
-    t = resolve_timing(cls, params, fps=fps, substeps=substeps, given=given)
-    return t.frame_dt, t.steps, t.fps
 
 
 class Session:
