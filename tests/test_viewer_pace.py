@@ -3,6 +3,7 @@ one in k, and the round-trip probe halves the strands drawn while the slowest pa
 them all again once it keeps up (a stand-in viser server whose page answers late, then at once)."""
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -40,21 +41,41 @@ class _Server:
         return {7: self.page}
 
 
+def feed(pace, every, stop):
+    """Tell ``pace`` a frame was sent every ``every`` s until ``stop`` is set (a thread)."""
+    def run():
+        while not stop.wait(every):
+            pace.sent()
+
+    threading.Thread(target=run, daemon=True).start()
+
+
 def test_the_probe_thins_while_the_page_lags_and_draws_all_once_it_keeps_up():
     page = _Page()
     pace = ClientPace(_Server(page), every=0.01)
     try:
+        wait(lambda: pace.rounds >= 3 and pace.slowest() >= BEHIND, 30, "slow round trips measured")
+        assert pace.step == 1  # no frame sent (paused): nothing to fall behind, nothing thinned
+        stop = threading.Event()
+        feed(pace, 0.01, stop)  # frames sent every 10 ms while the page answers in a second
         wait(lambda: pace.step >= 4, 30, "the strands thinned while the page lags")
         assert "drawing 1 strand in" in pace.note() and pace.slowest() >= BEHIND
         page.delay = 0.0
         wait(lambda: pace.step == 1, 30, "every strand drawn again")
         assert pace.note() is None
-        for k in range(5):  # frames sent 3 s apart (a slow simulation): a page 1 s behind keeps up with them
-            pace.sent(3.0 * k)
-        page.delay = 2 * BEHIND
-        wait(lambda: pace.slowest() >= 2 * BEHIND, 30, "the slow round trips measured")
+        stop.set()
+    finally:
+        pace.stop()
+    # frames 0.5 s apart (a slow simulation): a page 0.6 s behind keeps up with them, nothing thinned
+    page.delay = 1.2 * BEHIND
+    pace = ClientPace(_Server(page), every=0.01)
+    try:
+        stop = threading.Event()
+        feed(pace, 0.5, stop)
+        wait(lambda: pace.slowest() >= 1.2 * BEHIND and pace.period > 0.4, 30, "slow frames and round trips")
         rounds = pace.rounds
         wait(lambda: pace.rounds >= rounds + 3, 30, "three more rounds of probes")
-        assert pace.step == 1  # none thinned
+        stop.set()
+        assert pace.step == 1
     finally:
         pace.stop()

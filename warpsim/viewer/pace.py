@@ -23,8 +23,9 @@ it is sent): draw half as many strands."""
 CAUGHT_UP = 0.15
 """A round trip shorter than this [s] or than half a frame sent: draw twice as many again (up to
 all)."""
-THIN_SEGMENTS = 4_096
-"""Curve sets of more segments than this may be thinned (hair at its default: 32,000)."""
+THIN_SEGMENTS = 16_384
+"""Curve sets of more segments than this may be thinned (hair at its default: 32,000; not a
+teapot's 5,238 springs)."""
 MOST_THINNING = 16
 
 
@@ -41,6 +42,8 @@ class ClientPace:
         self.period = 0.0
         """Seconds between two frames sent to the pages, smoothed (:meth:`sent`)."""
         self._last_sent = None
+        self.sent_count = 0
+        """Frames sent to the pages (:meth:`sent`)."""
         self.rounds = 0
         """Probe rounds made (every open page asked once a round)."""
         self._stop = threading.Event()
@@ -60,6 +63,7 @@ class ClientPace:
                 f"(all are drawn again once it keeps up)")
 
     def _run(self):
+        counted = 0
         while not self._stop.wait(self.every):
             server = self.server
             if server is None:
@@ -75,7 +79,9 @@ class ClientPace:
                 self.seconds[cid] = time.perf_counter() - t0
             self.rounds += 1
             slowest = self.slowest()
-            if slowest > max(BEHIND, 2.0 * self.period):
+            # frames flowing (paused: nothing to fall behind), two or more, so their period is known
+            flowing, counted = self.sent_count != counted and self.period > 0.0, self.sent_count
+            if flowing and slowest > max(BEHIND, 2.0 * self.period):
                 self.step = min(2 * self.step, MOST_THINNING)
             elif slowest < max(CAUGHT_UP, 0.5 * self.period):
                 self.step = max(self.step // 2, 1)
@@ -87,6 +93,7 @@ class ClientPace:
             gap = now - self._last_sent
             self.period = gap if self.period == 0.0 else 0.8 * self.period + 0.2 * gap
         self._last_sent = now
+        self.sent_count += 1
 
     def stop(self):
         self._stop.set()
