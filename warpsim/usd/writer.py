@@ -42,7 +42,6 @@ import glob
 import operator
 import os
 import secrets
-import time
 
 import numpy as np
 
@@ -52,15 +51,13 @@ from . import chunk_index
 from .lock import OutputLock
 from ..core.names import close_matches
 from .chunk_author import copy_specs
+from .chunk_pool import WorkerChunks
 from .value_types import pxr_modules as _pxr, to_vt, vt_maker
 from .sink import PrimSink, state_frame_data
 
 __all__ = ["ROOT_EXTENSIONS", "CacheWriteError", "UsdCacheWriter", "declare_prim", "settings_run_id"]
 
 ROOT_EXTENSIONS = (".usd", ".usda", ".usdc")
-ROOT_EVERY = 0.2
-"""Seconds at least between two rewrites of the root while worker processes write the chunks
-(four times the last rewrite's time when that is longer): completed chunks are listed in groups."""
 
 
 def settings_run_id(settings) -> str:
@@ -170,7 +167,7 @@ def declare_prim(layer, path, decl, manifest=False) -> None:
         declare_prim(layer, path.AppendPath(Sdf.Path(rel_path)), child, manifest)
 
 
-class UsdCacheWriter(PrimSink):
+class UsdCacheWriter(WorkerChunks, PrimSink):
     """Streams simulation frames into a crash-safe chunked USD cache (see module docstring).
 
     Args:
@@ -410,10 +407,7 @@ class UsdCacheWriter(PrimSink):
         if self._lock is None:  # one writer per cache: another process writing it is refused here
             self._lock = OutputLock(self.path).acquire()
         if self.workers and self._pool is None:  # started now: they are ready by the first chunk
-            from ..process_pool import BlockPool, ProcessPool
-
-            self._pool = ProcessPool(self.workers)
-            self._blocks = BlockPool()  # the shared memory of written chunks, reused by the next ones
+            self._start_pool()
         try:
             # Leftovers of a killed run: our "<name>.tmp-PID.usdc" files and the temporaries usd-core
             # itself writes while saving one ("<name>.tmp-PID.XXXXXX", no .usd suffix).
@@ -522,81 +516,6 @@ class UsdCacheWriter(PrimSink):
         except BaseException:
             self.chunks.pop()  # the root on disk still lists the chunks before this one
             raise
-
-    # ------------------------------------------------------------------ chunks in worker processes
-    def _chunk_specs(self) -> str:
-        """A chunk's specs (``_declare_specs(manifest=True)``) as ``.usda`` text, made once."""
-        if self._specs_text is None:
-            Sdf, _, _ = _pxr()
-            layer = Sdf.Layer.CreateAnonymous(".usda")
-            self._declare_specs(layer, manifest=True)
-            self._specs_text = layer.ExportToString()
-        return self._specs_text
-
-    def _submit(self, chunk):
-        """Hand a staged chunk to a worker; complete the chunks already done (in order) and wait
-        for the oldest while more than ``workers`` are out (their samples hold memory)."""
-        clear_temporary(chunk.tmp_path)  # a leftover, or a planted link: removed, never followed
-        job = chunk.stage.job(chunk.tmp_path, self._chunk_specs(), self.save_bytes, self.durable)
-        self._inflight.append((chunk, self._pool.submit("warpsim.usd.chunk_author:author_chunk", job)))
-        self._reap(wait_all=False)
-
-    def _reap(self, wait_all):
-        """Complete the workers' chunks in order (``wait_all``: every chunk out; else those done,
-        and the oldest while more than ``workers`` are out): rename each into place, then index
-        them and rewrite the root once listing them all, at most every few root writes' time
-        (a root of many worlds takes a while to write) and always when ``wait_all``."""
-        while self._inflight:
-            chunk, future = self._inflight[0]
-            if not (wait_all or future.done() or len(self._inflight) > self.workers):
-                break
-            self._inflight.popleft()
-            self._complete(chunk, future)
-        if self._unlisted and (wait_all or time.monotonic() >= self._root_due):
-            self._list_completed()
-
-    def _complete(self, chunk, future):
-        """Wait for a worker's chunk and rename it into place (listed later: :meth:`_list_completed`)."""
-        from ..process_pool import RemoteError
-
-        self._target = chunk.final_path
-        try:
-            future.result()
-        except RemoteError as exc:  # the worker's error, as this process would have raised it
-            code = exc.errno if exc.errno is not None else disk_full(exc)
-            if code is not None or exc.kind in ("OSError", "FileNotFoundError", "PermissionError"):
-                raise OSError(code, f"{exc} ({os.path.basename(chunk.tmp_path)})") from None
-            raise RuntimeError(f"writing {os.path.basename(chunk.final_path)}: {exc.kind}: {exc}") from None
-        finally:
-            chunk.stage.release()
-        self._replace(chunk.tmp_path, chunk.final_path, synced=True)  # (the worker synced it)
-        self._unlisted.append(chunk)
-
-    def _list_completed(self):
-        """Index the renamed chunks and rewrite the root listing them (a kill before this leaves
-        them unlisted: a resumed run removes and rewrites them)."""
-        done, self._unlisted = self._unlisted, []
-        self._target = self._index_file
-        for chunk in done:
-            chunk_index.append_record(self._index_file, chunk_index.record(
-                chunk.final_path, chunk.start, chunk.end, chunk.stats, self.run_id), self.durable)
-            self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
-        t0 = time.monotonic()
-        try:
-            self._write_root()
-        except BaseException:
-            del self.chunks[-len(done):]  # the root on disk still lists the chunks before these
-            raise
-        self._root_due = time.monotonic() + max(ROOT_EVERY, 4.0 * (time.monotonic() - t0))
-
-    def _stop_pool(self, wait=True):
-        """End the chunk workers (after :meth:`flush`, or dropping what is out on a failure)."""
-        pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.close(wait=wait)
-        blocks, self._blocks = self._blocks, None
-        if blocks is not None:
-            blocks.close()
 
     # ------------------------------------------------------------------ layers
     def _declare_specs(self, layer, manifest):
