@@ -90,7 +90,7 @@ def test_dam_break_front_within_5_percent_of_martin_moyce_with_the_release_delay
     +8 % and +20 % there and within 20 % everywhere. The lead is a start delay: with T shifted by
     the experiment's release delay (martin_moyce.RELEASE_DELAY = 0.2, one number fitted on the
     converged runs of all three methods, not on this one) every point is within 5 % (measured
-    4.2 %), the goal of issue 54."""
+    3.6 %), the goal of issue 54 with the release delay (raw, it is not met: benchmarks/RESULTS.md)."""
     T, Z = dam_break["T"], dam_break["Z"]
     assert T[-1] >= 3.0 and len(T) == 63  # the whole span: T = 0 .. 3.1
     tt, raw = MM.deviation(T, Z)
@@ -107,7 +107,7 @@ def test_dam_break_front_within_5_percent_of_martin_moyce_with_the_release_delay
 def test_dam_break_surge_runs_at_the_experiments_speed(dam_break):
     """What a start delay leaves alone: the surge's speed dZ/dT over 1.4 <= T <= 3 (a least-squares
     line through the frames, against one through the table's points, 1.30) within 5 % (measured
-    -0.4 % at a / spacing = 10, +1.7 % at 40): the flow after the release is the experiment's."""
+    +1.3 % at a / spacing = 10, +0.1 % at 20, +4.4 % at 40): the flow after the release is the experiment's."""
     speed, measured = MM.surge_speed(dam_break["T"], dam_break["Z"])
     print(f"dZ/dT {speed:.3f} against {measured:.3f}")
     assert measured == pytest.approx(1.30, abs=0.01)

@@ -123,7 +123,8 @@ class DfsphSolver:
         lattice = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), -1).reshape(-1, 3)
         r = np.linalg.norm(lattice, axis=1)
         dp.lattice_count = float(np.count_nonzero((r > 0) & (r < support)))
-        dp.min_neighbors = 20.0 / 32.0 * dp.lattice_count  # SPlisHSPlasH's 20 in 3D at support 2 (32 neighbours)
+        # SPlisHSPlasH's 20 in 3D, where a particle inside the lattice has 26 neighbours at support 2
+        dp.min_neighbors = 20.0 / 26.0 * dp.lattice_count
         dp.beta_eps = 1.0e-9 / (h * h)
         dp.moving_start = moving_start
         dp.boundary_velocity = self._moving[1] if self._moving else wp.vec3(0.0, 0.0, 0.0)

@@ -71,8 +71,8 @@ DEFAULT_DENSITY_TOLERANCE = {"pbf": 0.002, "dfsph": 0.0005}
 """Mean compression each method's density solve stops at by default (DFSPH: SPlisHSPlasH's 0.05 %)."""
 DEFAULT_WALL_FRICTION = {"pbf": 5.0, "dfsph": 0.0}
 """Wall friction rate [1/s] of each method by default: DFSPH's boundary particles are free-slip walls
-(a free-slip DFSPH dam break runs the surge at Martin and Moyce's speed, within 3 %; 5 /s slows it
-by 9 %: benchmarks/RESULTS.md)."""
+(a free-slip DFSPH dam break runs the surge at Martin and Moyce's speed, within 5 %; 5 /s slows it
+by 8 %: benchmarks/RESULTS.md)."""
 
 
 def check_method(method) -> str:
