@@ -151,6 +151,8 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--device", default="cpu")
     p.add_argument("--vary", action="append", default=[], help="as warpsim sweep --vary (default: none)")
+    p.add_argument("--sample", default=None, help="as warpsim sweep --sample (grid, random, lhs; default grid)")
+    p.add_argument("--seed", default=None, help="as warpsim sweep --seed")
     p.add_argument("--store", default=None, help="all, preview or none (default: the command's choice)")
     p.add_argument("--thumbnails", action="store_true", help="draw thumbnails (default: --no-thumbnails)")
     p.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurement")
@@ -171,11 +173,12 @@ def main(argv=None):
           f"{args.frames} frames, device {args.device}, store {args.store or 'default'}, thumbnails "
           f"{'on' if args.thumbnails else 'off'}")
     rows = []
+    sampling = [*(["--sample", args.sample] if args.sample else []), *(["--seed", args.seed] if args.seed else [])]
     try:
         # warm: every module and kernel loaded before the first timed run
         run_command(["sweep", args.scene, "--worlds", "2", "--frames", "1", "--device", args.device, "--out",
                      os.path.join(folder, "warm", "s.usda"), "--no-progress", "--no-thumbnails",
-                     *[f"--vary={v}" for v in args.vary]])
+                     *[f"--vary={v}" for v in args.vary], *sampling])
         for workers, n in [(w, n) for w in args.workers for n in args.worlds]:
             if workers == "auto":
                 os.environ.pop("WARPSIM_WRITE_WORKERS", None)
@@ -183,7 +186,7 @@ def main(argv=None):
                 os.environ["WARPSIM_WRITE_WORKERS"] = workers
             argv = ["sweep", args.scene, "--worlds", str(n), "--frames", str(args.frames), "--device", args.device,
                     "--out", os.path.join(folder, f"w{n}", "s.usda"), "--no-progress",
-                    *[f"--vary={v}" for v in args.vary]]
+                    *[f"--vary={v}" for v in args.vary], *sampling]
             if args.store:
                 argv += ["--store", args.store]
             if not args.thumbnails:
@@ -191,7 +194,8 @@ def main(argv=None):
             total, stages, _ = run_command(argv)
             from warpsim.sweeps import sample_worlds
 
-            alone = step_alone(args.scene, sample_worlds(args.scene, {}, args.vary, n), args.frames, args.device)
+            alone = step_alone(args.scene, sample_worlds(args.scene, {}, args.vary, n, args.sample or "grid",
+                                                         int(args.seed or 0)), args.frames, args.device)
             written = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(os.path.join(folder, f"w{n}"))
                           for f in fs)
             rows.append((workers, n, total, stages, alone, written))
