@@ -172,6 +172,41 @@ def test_view_of_a_sweep_that_stored_nothing_re_runs_the_world_on_demand(tmp_pat
         on_demand_world(str(none), 9)
 
 
+def test_an_unstored_sweeps_viewer_re_runs_any_world_on_demand(tmp_path):
+    """``warpsim view`` of a --store none sweep: the page's "world" box and "re-run and play" re-run
+    another world in the background and play it (the sweep's world, bit for bit); a world out of
+    range or a re-run that fails is said in the page, and the server goes on serving."""
+    import socket
+
+    pytest.importorskip("viser")
+    from warpsim.sweeps.rerun import first_difference, manifest_path
+    from warpsim.viewer.command import on_demand_world
+    from warpsim.viewer.unstored import UnstoredSweepViewer
+
+    none = _sweep(tmp_path, "none", "--store", "none", "--no-thumbnails")
+    every = _sweep(tmp_path, "all", "--store", "all", "--no-thumbnails")
+    got = on_demand_world(str(none), 0)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    viewer = UnstoredSweepViewer(str(none), 0, got.path, got.folder, 4, port=port).start()
+    try:
+        first_folder = got.folder.name
+        viewer.request(2).join(120)
+        assert viewer.world == 2 and "re-ran exactly" in viewer.status.content
+        assert first_difference(every, 2, viewer.reader.path) is None  # world 2 of the sweep, bit for bit
+        assert not os.path.exists(first_folder)  # the world played before is removed
+        assert viewer.request(7) is None and "out of range" in viewer.status.content
+        os.rename(manifest_path(none), manifest_path(none) + ".away")  # the next re-run cannot read it
+        viewer.request(1).join(60)
+        assert "could not be re-run" in viewer.status.content and viewer.world == 2
+        assert viewer.server is not None and viewer.reader.path.endswith("world_000002.usda")
+    finally:
+        viewer.stop()
+        if viewer.rerun_folder is not None:
+            viewer.rerun_folder.cleanup()
+
+
 def test_a_preview_layer_resumes_to_the_same_chunks(tmp_path):
     """--store preview with --resume: a layer resumed after its last completed chunk (frames 4..4
     of chunk 4: resumed at 5, as SweepStaging.resume_frame says; the frames before re-simulated
