@@ -21,7 +21,8 @@ _COMMON = {
     "method": ("pbf", "pressure solver: pbf (position-based fluids) or dfsph (divergence-free SPH, boundary "
                "particles)", METHODS),
     "spacing": (0.025, "particle spacing [m] (the particle diameter)"),
-    "iterations": (40, "most PBF density iterations per sub-step (it stops at 0.2 % mean compression)"),
+    "iterations": (40, "most pressure iterations per sub-step (PBF stops at 0.2 % mean compression; DFSPH, "
+                   "per solve, at 0.05 %)"),
     "viscosity": (0.01, "XSPH viscosity coefficient in [0, 1]"),
     "vorticity": (0.0, "vorticity confinement strength (0: off)"),
     "surface_tension": (0.0, "Akinci surface tension coefficient (0: off)"),
@@ -106,8 +107,8 @@ class FluidScene(Scene):
                 "cfl": p["cfl"] or None, "sort_every": 10, "device": self.device}
 
 
-@register_scene("dam_break", "a water column collapsing in a box (position-based fluids), surface meshed "
-                "every frame", params={
+@register_scene("dam_break", "a water column collapsing in a box (position-based fluids, or DFSPH with "
+                "method=dfsph), surface meshed every frame", params={
                     **_COMMON,
                     "column": ((0.4, 0.6, 0.5), "water column size x,y,z [m], in the box's -x corner"),
                     "box": ((1.6, 0.8, 0.5), "container size x,y,z [m]"),
