@@ -255,33 +255,6 @@ def apply_pressure(
 
 
 @wp.kernel
-def iteration_control(
-    stats: wp.array(dtype=float),
-    n: int,
-    tolerance: float,
-    min_iterations: int,
-    max_iterations: int,
-    advance: int,
-    solve_counter_io: wp.array(dtype=int),
-    step_counter_io: wp.array(dtype=int),
-    total_io: wp.array(dtype=int),
-    go_out: wp.array(dtype=int),
-):
-    """One thread: counts ``advance`` more iterations (this solve, this step, overall) and sets
-    go_out[0] = 1 while another is due: fewer than ``max_iterations`` in this solve and either
-    fewer than ``min_iterations`` or a mean error stats[0] / n above ``tolerance``. Decided on the
-    device, so the loop (``wp.capture_while``) reads nothing back inside a CUDA graph."""
-    it = solve_counter_io[0] + advance
-    solve_counter_io[0] = it
-    step_counter_io[0] = step_counter_io[0] + advance
-    total_io[0] = total_io[0] + advance
-    go = int(0)
-    if it < max_iterations and (it < min_iterations or stats[0] > tolerance * float(n)):
-        go = 1
-    go_out[0] = go
-
-
-@wp.kernel
 def advance_positions(
     p: FluidParams,
     b: Boundaries,

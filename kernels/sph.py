@@ -490,15 +490,17 @@ def iteration_control(
     n: int,
     tolerance: float,
     peak_tolerance: float,
+    min_iterations: int,
     max_iterations: int,
     advance: int,
     counter_io: wp.array(dtype=int),
     total_io: wp.array(dtype=int),
     go_out: wp.array(dtype=int),
 ):
-    """One thread: counts ``advance`` more corrections (counter_io[0] this step, total_io[0]
+    """One thread: counts ``advance`` more corrections (counter_io[0] this step or solve, total_io[0]
     overall) and sets go_out[0] = 1 while another one is due: fewer than ``max_iterations`` so far
-    and the mean compression stats[0] / n (stats[0]: the sum of the particles' C) at least
+    and fewer than ``min_iterations`` (DFSPH's solves: 1 and 2; PBF: 0), or the mean error
+    stats[0] / n (PBF: the sum of the particles' compression C) at least
     ``tolerance`` (tolerance 0: always), or the largest compression stats[1] at least
     ``peak_tolerance``, or, for the step's first correction, that largest compression at least
     ``tolerance``. Both keep
@@ -513,7 +515,8 @@ def iteration_control(
     total = stats[0]
     peak = stats[1]
     go = int(0)
-    if it < max_iterations and (total >= tolerance * float(n) or peak >= peak_tolerance or (it == 0 and peak >= tolerance)):
+    due = it < min_iterations or total >= tolerance * float(n) or peak >= peak_tolerance
+    if it < max_iterations and (due or (it == 0 and peak >= tolerance)):
         go = 1
     go_out[0] = go
 

@@ -68,7 +68,7 @@ class DfsphSolver:
         boundary: "particles" (the domain walls as boundary particles) or "volume" (signed distance).
         kinematic_viscosity, boundary_viscosity: [m^2/s] of the SPH viscosity (fluid, walls).
         density_tolerance, divergence_tolerance: mean relative errors the two solves stop at.
-        iterations: most iterations of each solve; counters: (step, total) int buffers the fluid reads.
+        iterations: most iterations of each solve; total_counter: the fluid's int buffer of all iterations.
         grid_dims: hash grid cells per axis; max_neighbors: list capacity; device: Warp device.
         moving_boundary: None or (points (M, 3) [m] at t = 0, velocity (3,) [m/s]): boundary
             particles moving at a constant velocity (a gate lifted off a column), at
@@ -77,7 +77,8 @@ class DfsphSolver:
 
     def __init__(self, *, positions, velocities, density_out, pressure_out, params, boundaries, domain, spacing,
                  support, boundary, kinematic_viscosity, boundary_viscosity, density_tolerance,
-                 divergence_tolerance, iterations, counters, grid_dims, max_neighbors, device, moving_boundary=None):
+                 divergence_tolerance, iterations, total_counter, grid_dims, max_neighbors, device,
+                 moving_boundary=None):
         if boundary not in BOUNDARIES:
             raise ValueError(f"boundary={boundary!r} is unknown; use one of {list(BOUNDARIES)}")
         if boundary == "particles" and domain is None:
@@ -89,7 +90,7 @@ class DfsphSolver:
         self._p, self._all = params, boundaries
         self.density_tolerance, self.divergence_tolerance = float(density_tolerance), float(divergence_tolerance)
         self.iterations = int(iterations)
-        self._step_counter, self._total = counters
+        self._total = total_counter
         layers = int(np.ceil(support)) if boundary == "particles" else 0
         pts = boundary_lattice(domain[0], domain[1], spacing, layers) if layers else np.zeros((0, 3))
         moving_start = len(pts)
@@ -150,7 +151,8 @@ class DfsphSolver:
         self._nb = nb
         self._overflow = wp.zeros(1, dtype=int, device=d)
         self._reduction = FixedOrderReduction(2, first_max_column=1, device=d)
-        self._solve_counter = wp.zeros(1, dtype=int, device=d)
+        self._div_counter = wp.zeros(1, dtype=int, device=d)  # iterations of the last divergence solve
+        self._density_counter = wp.zeros(1, dtype=int, device=d)  # ... and of the last density solve
         self._go = wp.zeros(1, dtype=int, device=d)
         self._grid = wp.HashGrid(*grid_dims, device=d)
         self._has_shapes = bool(boundaries.capsule_radii.shape[0] or boundaries.mesh_ids.shape[0])
@@ -196,36 +198,43 @@ class DfsphSolver:
         wp.launch(D.find_neighbors_factor, n, inputs=[self._grid.id, p, dp, self._sdf, self._x_all],
                   outputs=[nb, self._overflow, self._density, self._beta_inv, self._share, self._bgrad, self._neighbors],
                   device=d)
-        self._step_counter.zero_()
         self._kappa_sum.zero_()
-        self._pressure_solve(n, dt, v, divergence=1, tolerance=self.divergence_tolerance, min_iterations=1)
+        self._pressure_solve(n, dt, v, divergence=1, tolerance=self.divergence_tolerance, min_iterations=1,
+                             counter=self._div_counter)
         wp.launch(D.apply_nonpressure, n, inputs=[p, dp, self._x_all, v, self._density, self._share, nb, dt],
                   outputs=[self._v_star], device=d)
         v_star = self._v_star[:n]
-        self._pressure_solve(n, dt, v_star, divergence=0, tolerance=self.density_tolerance, min_iterations=2)
+        self._pressure_solve(n, dt, v_star, divergence=0, tolerance=self.density_tolerance, min_iterations=2,
+                             counter=self._density_counter)
         wp.copy(v, v_star, count=n)
         wp.launch(D.advance_positions, n, inputs=[p, self._all, dt, self._min_distance], outputs=[v, x], device=d)
         if self._has_shapes:
             wp.launch(K.project_boundaries, n, inputs=[p, self._all, x], device=d)
         wp.launch(D.store_pressure, n, inputs=[p, self._density, self._kappa_sum], outputs=[self._pressure], device=d)
 
-    def _pressure_solve(self, n, dt, vel, divergence, tolerance, min_iterations):
+    @property
+    def last_iterations(self) -> int:
+        """Iterations of the last step's divergence and density solves together (two read-backs)."""
+        return int(self._div_counter.numpy()[0]) + int(self._density_counter.numpy()[0])
+
+    def _pressure_solve(self, n, dt, vel, divergence, tolerance, min_iterations, counter):
         """Jacobi iterations on ``vel`` until the mean error is below ``tolerance`` (decided on the device)."""
         d, p, dp, nb = self.device, self._p, self._dp, self._nb
         predict = [p, dp, self._x_all, vel, self._density, self._beta_inv, self._bgrad, self._neighbors, nb, dt,
                    divergence]
-        control = [self._reduction.result, n, tolerance, min_iterations, self.iterations]
-        counters = [self._solve_counter, self._step_counter, self._total, self._go]
-        self._solve_counter.zero_()
+        # the loop control PBF uses (kernels/sph.py), without its peak condition
+        control = [self._reduction.result, n, tolerance, 3.0e38, min_iterations, self.iterations]
+        counters = [counter, self._total, self._go]
+        counter.zero_()
         wp.launch(D.predict_error, n, inputs=predict, outputs=[self._kappa, self._error], device=d)
         self._reduction.sum_max(self._error, n)
-        wp.launch(D.iteration_control, 1, inputs=[*control, 0], outputs=counters, device=d)
+        wp.launch(K.iteration_control, 1, inputs=[*control, 0], outputs=counters, device=d)
 
         def body():
             wp.launch(D.apply_pressure, n, inputs=[p, dp, self._x_all, self._kappa, self._bgrad, nb, dt],
                       outputs=[vel, self._kappa_sum], device=d)
             wp.launch(D.predict_error, n, inputs=predict, outputs=[self._kappa, self._error], device=d)
             self._reduction.sum_max(self._error, n)
-            wp.launch(D.iteration_control, 1, inputs=[*control, 1], outputs=counters, device=d)
+            wp.launch(K.iteration_control, 1, inputs=[*control, 1], outputs=counters, device=d)
 
         wp.capture_while(self._go, body)

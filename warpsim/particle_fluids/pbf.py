@@ -199,7 +199,7 @@ class ParticleFluid(SolverBase):
                 boundary_viscosity=positive_value("boundary_viscosity", boundary_viscosity, allow_zero=True),
                 density_tolerance=self.density_tolerance,
                 divergence_tolerance=positive_value("divergence_tolerance", divergence_tolerance),
-                iterations=self.iterations, counters=(self._counter, self._total_iterations),
+                iterations=self.iterations, total_counter=self._total_iterations,
                 grid_dims=self.grid_dims, max_neighbors=max_neighbors, device=d, moving_boundary=moving_boundary)
         elif moving_boundary is not None:
             raise ValueError("moving_boundary (boundary particles moving at a constant velocity) needs method='dfsph'")
@@ -493,7 +493,10 @@ class ParticleFluid(SolverBase):
 
     @property
     def last_iterations(self) -> int:
-        """Position corrections the last step ran (a device read-back)."""
+        """Position corrections (PBF) or pressure iterations of both solves (DFSPH) the last step ran
+        (a device read-back)."""
+        if self._dfsph is not None:
+            return self._dfsph.last_iterations
         return int(self._counter.numpy()[0])
 
     @property
@@ -569,7 +572,7 @@ class ParticleFluid(SolverBase):
         # Jacobi corrections while the mean compression is above density_tolerance, at most
         # `iterations`: the decision is taken on the device (iteration_control), so the loop reads
         # nothing back inside a CUDA graph (wp.capture_while makes it a conditional node there)
-        control = [self._stats, n, self.density_tolerance, self.peak_tolerance, self.iterations]
+        control = [self._stats, n, self.density_tolerance, self.peak_tolerance, 0, self.iterations]
         outputs = [self._counter, self._total_iterations, self._go]
         wp.launch(K.iteration_control, 1, inputs=[*control, 0], outputs=outputs, device=d)
         nb = self._neighbors
