@@ -1,10 +1,10 @@
 """A sweep's thumbnails, drawn when it ends: every world's last frame, one picture each.
 
-The host work around each picture (its geometry read from the batch layer, its PNG encoding) runs
-in worker processes (:mod:`warpsim.process_pool`) while this process renders on the sweep's device
-what they have read: for a sweep of many worlds the pictures take about the renderer's time, not
-the sum of reading, rendering and encoding. Few worlds are drawn here (a worker starts in about a
-second). The pictures are the same either way: the same geometry, camera and renderer.
+For a sweep of many worlds, worker processes (:mod:`warpsim.process_pool`) draw slices of the
+worlds side by side: each reads its worlds' geometry from the batch layer (opened once per
+worker), renders them on the sweep's device (its own renderer: one CUDA context a worker on a
+GPU) and encodes the PNGs. Few worlds are drawn here (a worker starts in about a second). The
+pictures are the same either way: the same geometry, camera and renderer.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import os
 
 from ..core.safe_files import open_temporary
 
-__all__ = ["POOL_WORLDS", "draw_thumbnails", "save_pngs", "world_geometry"]
+__all__ = ["POOL_WORLDS", "draw_thumbnails", "save_pngs", "slice_pictures", "world_geometry"]
 
 POOL_WORLDS = 200
 """Sweeps with at least this many worlds read and encode their pictures in worker processes."""
@@ -20,26 +20,43 @@ SLICE_WORLDS = 32
 """Worlds a worker reads (or encodes) per job: small enough that rendering starts early."""
 
 
+_OPENED: dict = {}
+"""Layers opened by :func:`world_geometry` in this process: ``{path: (mtime, scene, prims by world)}``
+(a worker is handed many slices of one layer: it opens and traverses the layer once)."""
+
+
+def _opened(layer):
+    from ..render.usd_scene import CacheScene
+
+    mtime = os.path.getmtime(layer)
+    known = _OPENED.get(layer)
+    if known is None or known[0] != mtime:
+        scene = CacheScene(layer)
+        worlds: dict = {}
+        for prim in scene.prims:  # /Worlds/world_GGGGGG/...
+            parts = str(prim.GetPath()).split("/")
+            if len(parts) > 3 and parts[2].startswith("world_"):
+                worlds.setdefault(parts[2], []).append(prim)
+        _OPENED.clear()  # one layer at a time
+        known = _OPENED[layer] = (mtime, scene, worlds)
+    return known[1], known[2]
+
+
 def world_geometry(layer, names, frame="last"):
     """[(world name, FrameGeometry, ground height [m] or False)] of the worlds ``names``
     (``world_GGGGGG``) of the batch layer ``layer`` at ``frame`` ("last": its last frame)."""
     from ..render.cache import ground_height
-    from ..render.usd_scene import CacheScene
 
-    scene = CacheScene(layer)
+    scene, worlds = _opened(os.path.abspath(layer))
     prims = scene.prims
     frame = (scene.frames[-1] if scene.frames else None) if frame == "last" else frame
-    wanted = set(names)
-    worlds: dict = {}
-    for prim in prims:  # /Worlds/world_GGGGGG/...
-        parts = str(prim.GetPath()).split("/")
-        if len(parts) > 3 and parts[2] in wanted:
-            worlds.setdefault(parts[2], []).append(prim)
     out = []
-    for name in names:
-        scene.prims = worlds.get(name, [])
-        out.append((name, scene.geometry(frame), ground_height(scene, [frame])))
-    scene.prims = prims
+    try:
+        for name in names:
+            scene.prims = worlds.get(name, [])
+            out.append((name, scene.geometry(frame), ground_height(scene, [frame])))
+    finally:
+        scene.prims = prims
     return out
 
 
@@ -66,8 +83,9 @@ def _layer_worlds(layer):
 
 def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=None) -> int:
     """Every world of the batch ``layers`` drawn by ``renderer`` with ``camera`` into
-    ``folder/world_GGGGGG.png``; ``workers``: processes reading and encoding (None: by the worlds'
-    count, :data:`POOL_WORLDS`; 0: none). Returns the pictures' count."""
+    ``folder/world_GGGGGG.png``; ``workers``: processes that each read, render (on the renderer's
+    device, with a renderer of the same size) and encode a slice of the worlds (None: by the
+    worlds' count, :data:`POOL_WORLDS`; 0: all here). Returns the pictures' count."""
     from ..process_pool import ProcessPool, default_workers
 
     slices = [(layer, names[i:i + SLICE_WORLDS]) for layer in layers
@@ -75,17 +93,41 @@ def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=
     total = sum(len(names) for _, names in slices)
     if workers is None:
         workers = default_workers(jobs=len(slices)) if total >= POOL_WORLDS else 0
-        workers = workers if workers >= 2 else 0  # one worker beside the renderer gains nothing measurable
+        workers = workers if workers >= 2 else 0  # one worker beside this process gains nothing measurable
     if not workers:
         count = 0
         for layer, names in slices:
             count += save_pngs(_render(folder, world_geometry(layer, names), camera, renderer, progress))
         return count
+    device = renderer.device.alias
+    size = (renderer.width, renderer.height)
+    count = 0
     with ProcessPool(workers) as pool:
-        reads = [pool.submit("warpsim.browse.thumbs:world_geometry", layer, names) for layer, names in slices]
-        writes = [pool.submit("warpsim.browse.thumbs:save_pngs",
-                              _render(folder, read.result(), camera, renderer, progress)) for read in reads]
-        return sum(w.result() for w in writes)
+        jobs = [pool.submit("warpsim.browse.thumbs:slice_pictures", layer, names, folder, camera, size, device)
+                for layer, names in slices]
+        for job in jobs:
+            done = job.result()
+            count += done
+            for _ in range(done if progress is not None else 0):
+                progress()
+    return count
+
+
+_RENDERERS: dict = {}
+
+
+def slice_pictures(layer, names, folder, camera, size, device) -> int:
+    """A worker's job: the pictures of the worlds ``names`` of ``layer``, read, rendered on
+    ``device`` by a renderer of ``size`` (kept for the worker's next slices) and saved as PNGs."""
+    from ..render.renderer import Renderer
+    from ..verbosity import set_warp_verbosity
+
+    set_warp_verbosity()  # Warp's per-module lines only when asked (the worker shares the caller's stderr)
+    key = (tuple(size), device)
+    if key not in _RENDERERS:
+        _RENDERERS.clear()
+        _RENDERERS[key] = Renderer(int(size[0]), int(size[1]), device=device)
+    return save_pngs(_render(folder, world_geometry(layer, names), camera, _RENDERERS[key], None))
 
 
 def _render(folder, geometries, camera, renderer, progress):

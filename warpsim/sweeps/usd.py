@@ -255,7 +255,7 @@ class BatchLayerWriter(UsdCacheWriter):
         for attr, values, paths, text, make in plan:  # the worlds' extent, grown once a frame
             if attr.name == "points" and not attr.on_change:
                 if isinstance(values, np.ndarray):
-                    self._grow_worlds(values)
+                    self._grow_worlds(values, finite=True)  # (world_samples refused non-finite points)
                 else:
                     for v in values:
                         self._grow_bounds(v)
@@ -298,10 +298,16 @@ class BatchLayerWriter(UsdCacheWriter):
                     self._authored(attr.name, value)
             self._chunk.stage.add(t, text[0], text, attr.type_name, attr.on_change, values)
 
-    def _grow_worlds(self, points):
-        """:meth:`_grow_bounds` of each world's points (N, k, 3), vectorised (non-finite worlds skipped)."""
+    def _grow_worlds(self, points, finite=False):
+        """:meth:`_grow_bounds` of each world's points (N, k, 3), vectorised (non-finite worlds
+        skipped; ``finite``: the caller has checked they are all finite)."""
         pts = np.asarray(points)
         if pts.shape[1] == 0:
+            return
+        if finite:
+            lo, hi = world_bounds(pts)
+            lo, hi = lo.min(axis=0).astype(np.float64), hi.max(axis=0).astype(np.float64)
+            self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
             return
         finite = np.isfinite(pts).all(axis=(1, 2))
         if not finite.all():
