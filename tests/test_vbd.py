@@ -234,11 +234,12 @@ def test_small_heap_keeps_every_edge_out_at_every_frame():
     assert max(x[b.surface_indices, 1].mean() for b in scene.bodies) > 0.15  # stacked, not side by side
 
 
-@pytest.mark.parametrize("rounding", [{"solver_iterations": 12}, {"solver_iterations": 8},
-                                      {"solver_iterations": 12, "vbd_detect_every": 4}])
+@pytest.mark.parametrize("rounding", [{"solver_iterations": 8}, {"solver_iterations": 6},
+                                      {"solver_iterations": 8, "vbd_detect_every": 3}])
 def test_the_scene_heap_holds_over_600_frames(rounding):
     """The donuts scene's 12 tori (10 x 6 vertices and a 5-cell lattice each, so that 600 frames fit the
-    CPU) at 1/240 s by VBD, under three roundings (12 and 8 sweeps a step; searches every 4 sweeps): over
+    CPU) at 1/240 s by VBD, under three roundings (8 and 6 sweeps a step; 8 with searches every 3 sweeps; the
+    scene's 12 held too, 75 s of CPU time, benchmarks/RESULTS.md): over
     the scene's 600 frames no edge passes through another torus's triangle (every 10 frames), no vertex goes
     deeper than the thickness, the energy balance never trips (checked every frame), nothing is thrown
     faster than the tori fall, and the heap comes to rest with tori on tori."""

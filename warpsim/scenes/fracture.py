@@ -22,7 +22,10 @@ integrator=implicit_euler --fps 60 --substeps 4``: 1/240 s); the contacts then e
 as a penalty (``contact_stiffness``) with a speculative ``contact_reach`` and 16 passes after each
 step. Held at 1/240 s (no vertex deeper than the thickness, no edge through a triangle) for this
 scene's 12 tori over 45 frames, 14 x 7 tori (4 stacked, 24 landing) and 2 tori of 2,000 vertices; not
-yet for 12 tori of 2,000 vertices (benchmarks/RESULTS.md). Prims:
+yet for 12 tori of 2,000 vertices (benchmarks/RESULTS.md). With ``integrator=vbd`` (``warpsim run donuts
+--set integrator=vbd --substeps 4``: 1/240 s) ``ws.VBD`` steps the heap by vertex block descent with the
+contacts, floor and walls inside the descent (``ws.VBDContact``, no collider after the step) and a step bound
+that provably keeps every edge out of every triangle; held over 600 frames at 1/240 s (tests/test_vbd.py). Prims:
 ``donuts`` (one mesh, all tori; custom ``warpsim:kineticEnergy`` [J])
 and ``walls`` (the box).
 """
