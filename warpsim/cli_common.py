@@ -121,6 +121,12 @@ def check_output_path(path, flag="--out"):
     if os.path.isdir(path):
         raise UsageError(f"{flag} {path!r} is a folder; name a file in it, e.g. "
                          f"{os.path.join(path, 'scene' + (os.path.splitext(path)[1] or '.usda'))!r}")
+    from .core.safe_files import check_replaceable
+
+    try:
+        check_replaceable(path, flag)  # a FIFO or a device there: refused, never written into
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     folder = os.path.dirname(os.path.abspath(path))
     probe = folder
     while not os.path.lexists(probe):

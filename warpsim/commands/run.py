@@ -141,9 +141,9 @@ def _checked_output(args, cls):
         preview = preview_target(args.preview, path)
         require_extra("render", f"--preview {preview}", render_modules(preview))  # before simulating
         try:
-            check_out(preview)
+            check_out(preview, "--preview")
         except (ValueError, OSError) as exc:
-            raise UsageError(f"--preview: {exc}") from None
+            raise UsageError(str(exc)) from None
     return path
 
 
@@ -346,6 +346,6 @@ def _report(args, cls, writer, start, seconds, device, out, err):
 
         preview = preview_target(args.preview, writer.output_path)
         result = render_to(writer.output_path, preview, err, device=device, progress=not args.no_progress,
-                           max_frames=300)  # long runs: every k-th frame, played in real time
+                           max_frames=300, flag="--preview")  # long runs: every k-th frame, played in real time
         print(f"preview: {os.path.relpath(result['path'])} ({result['frames']} frames, {result['seconds']:.2f} s)",
               file=out)

@@ -22,8 +22,8 @@ import errno
 import os
 import stat
 
-__all__ = ["DISK_ERRNOS", "UnsafePathError", "check_regular", "clear_temporary", "disk_full", "disk_reason", "open_fd",
-           "open_for_write", "open_temporary"]
+__all__ = ["DISK_ERRNOS", "UnsafePathError", "check_regular", "check_replaceable", "clear_temporary", "disk_full", "disk_reason", "open_fd",
+           "open_for_write", "open_temporary", "temporary_name", "write_replacing"]
 
 DISK_ERRNOS = tuple(e for e in (errno.ENOSPC, errno.EROFS, getattr(errno, "EDQUOT", None), errno.EFBIG)
                     if e is not None)
@@ -76,6 +76,21 @@ def check_regular(path, what: str = "file") -> bool:
     if not stat.S_ISREG(mode):
         raise _refusal(path, what, mode)
     return True
+
+
+def check_replaceable(path, flag: str = "--out") -> bool:
+    """Whether ``path`` exists; :class:`UnsafePathError` naming ``flag`` when it is a folder, a
+    FIFO, a socket or a device (an output is written under a temporary name and renamed onto
+    ``path``: a regular file or a symbolic link there is replaced, never written through)."""
+    try:
+        mode = os.lstat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    if stat.S_ISREG(mode) or stat.S_ISLNK(mode):
+        return True
+    fix = f"name a file in it, e.g. {os.path.join(os.fspath(path), 'out' + os.path.splitext(os.fspath(path))[1])!r}" if stat.S_ISDIR(mode) else \
+        f"remove it (rm '{os.fspath(path)}') or choose another {flag}"
+    raise UnsafePathError(f"{flag} {os.fspath(path)!r} is {_kind(mode)}, not a file warpsim can replace; {fix}")
 
 
 def clear_temporary(path, what: str = "temporary file") -> None:
@@ -183,3 +198,29 @@ def open_temporary(path, mode: str = "w", *, what: str = "temporary file", encod
         except OSError:
             pass
         raise
+
+
+def temporary_name(path) -> str:
+    """The temporary name beside ``path`` that :func:`write_replacing` writes first
+    (``stem.tmp-PID.suffix``: the suffix kept for libraries that read it)."""
+    stem, ext = os.path.splitext(os.fspath(path))
+    return f"{stem}.tmp-{os.getpid()}{ext}"
+
+
+def write_replacing(path, write, *, what: str = "file", mode: str = "wb"):
+    """``write(f)`` into a fresh temporary name beside ``path`` (:func:`open_temporary`: a link
+    planted there is removed, never followed), then rename it onto ``path`` (a link or file
+    planted at ``path`` is replaced, not written through). A failure leaves no temporary file
+    behind and ``path`` as it was. Returns ``path``."""
+    tmp = temporary_name(path)
+    with open_temporary(tmp, mode, what=f"temporary file of {what}") as f:
+        write(f)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.remove(tmp)
+        except OSError:
+            pass
+        raise
+    return path

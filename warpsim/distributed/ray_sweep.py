@@ -88,6 +88,13 @@ def ray_usage_error(args):
         return f"--ray-cpus {args.ray_cpus}: it must be >= 1"
     if args.ray_cpus is not None and args.ray != "local":
         return "--ray-cpus sizes a local cluster; a running cluster at --ray ADDRESS has its own CPUs"
+    if args.ray == "local":  # a head that cannot start under ulimit -v: said before any world is sampled
+        from .ray_head import RayHeadError, check_address_space
+
+        try:
+            check_address_space()
+        except RayHeadError as exc:
+            return str(exc)
     return None
 
 
@@ -181,7 +188,9 @@ def _connect(address, num_cpus):
         _probe_address(address)
     quiet = {"logging_level": logging.ERROR, "log_to_driver": False}
     if not remote:
-        ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
+        from .ray_head import start_local_head
+
+        start_local_head(ray, num_cpus=num_cpus, include_dashboard=False, **quiet)  # one line when it fails
         _watch_local_cluster(ray)
     else:
         try:

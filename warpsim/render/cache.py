@@ -126,11 +126,15 @@ def render_cache(cache, out, frame=None, frames=None, size=(480, 360), camera=No
     sink = open_sink(out, fps, gif_colors)
     t0 = time.perf_counter()
     ground_y = ground_height(scene, chosen)
-    for k, f in enumerate(chosen):
-        sink.add(renderer.render(scene.geometry(f), camera, ground_y=ground_y))
-        if progress is not None:
-            progress(k + 1, len(chosen))
-    path = sink.close()
+    try:
+        for k, f in enumerate(chosen):
+            sink.add(renderer.render(scene.geometry(f), camera, ground_y=ground_y))
+            if progress is not None:
+                progress(k + 1, len(chosen))
+        path = sink.close()
+    except BaseException:
+        sink.abort()  # no temporary picture left behind
+        raise
     return {"path": path, "frames": len(chosen), "seconds": time.perf_counter() - t0, "camera": camera}
 
 

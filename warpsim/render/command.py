@@ -30,9 +30,9 @@ def preview_target(preview: str, cache: str) -> str:
 
 
 def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camera=None, fps=None, device=None,
-              guides=False, progress=True, max_frames=None, allow_damaged=False):
+              guides=False, progress=True, max_frames=None, allow_damaged=False, flag="--out"):
     """Shared by ``render`` and ``run --preview``: render and return the result dict; usage
-    mistakes raise ``cli.UsageError``."""
+    mistakes raise ``cli.UsageError`` (a bad ``out`` is named as ``flag``)."""
     from ..cli_common import UsageError
     from ..cli_common import device_arg as _device
     from ..usd.validate import DamagedCacheError
@@ -46,11 +46,14 @@ def render_to(cache, out, err, *, frame=None, frames=None, size="480x360", camer
     from ..usd.family import check_output
     from ..usd.lock import hold
 
+    from .output import check_out
+
     try:
-        check_output(out, [cache], "--out")
-    except ValueError as exc:
+        check_out(out, flag)  # a folder, FIFO or device, or a folder that cannot be written: before anything is read
+        check_output(out, [cache], flag)
+    except (ValueError, OSError) as exc:
         raise UsageError(str(exc)) from None
-    hold(out, "--out")  # released when the command (or, through the API, the process) ends
+    hold(out, flag)  # released when the command (or, through the API, the process) ends
     from ..verbosity import set_warp_verbosity
 
     set_warp_verbosity()  # Warp's module-load lines only with --verbose

@@ -42,6 +42,9 @@ def run(args, out, err):
                          f"{', '.join(FORMATS)}")
     if not os.path.exists(args.cache):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
+    from ..cli_common import check_output_path
+
+    check_output_path(args.out, "--out")  # a folder, FIFO or device, an unwritable folder: before reading
     if args.spacing is not None and not args.spacing > 0.0:
         raise UsageError(f"--spacing {args.spacing}: it must be > 0 [m]")
     prims = None

@@ -1,7 +1,10 @@
 """Image and animation files: PNG (one frame), GIF and MP4 (animations) through Pillow and imageio.
 
 :func:`open_sink` checks the file name before anything is rendered and returns a sink with
-``add(rgb)`` (one (h, w, 3) uint8 frame) and ``close()``.
+``add(rgb)`` (one (h, w, 3) uint8 frame), ``close()`` and ``abort()`` (a failed render: nothing
+left behind). Every picture is written under a temporary name and renamed onto its path, so a
+link planted at the path or at the temporary name is never written through
+(:mod:`warpsim.core.safe_files`).
 """
 from __future__ import annotations
 
@@ -10,19 +13,31 @@ import zlib
 
 import numpy as np
 
+from ..core.safe_files import temporary_name, write_replacing
+
 FORMATS = {".png": "image", ".gif": "animation", ".mp4": "animation"}
 
 
-def check_out(path):
-    """The extension of ``path`` (ValueError for an unknown one, PermissionError/FileNotFoundError
-    when its folder cannot be written)."""
+def check_out(path, flag="--out"):
+    """The extension of ``path`` (ValueError for an unknown one; :class:`UsageError`-worthy
+    ValueError/OSError naming ``flag`` when ``path`` is a folder, a FIFO or a device, or when its
+    folder cannot be written: a probe file is made there, so ``/proc/...`` is refused here, before
+    anything is rendered)."""
+    import tempfile
+
+    from ..core.safe_files import check_replaceable
+
     ext = os.path.splitext(str(path))[1].lower()
     if ext not in FORMATS:
-        raise ValueError(f"--out {path!r}: write a .png (one frame), .gif or .mp4 file")
+        raise ValueError(f"{flag} {path!r}: write a .png (one frame), .gif or .mp4 file")
+    check_replaceable(path, flag)
     folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    if not os.access(folder, os.W_OK):
-        raise PermissionError(f"--out {path!r}: folder {folder} is not writable; choose another --out")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError as exc:
+        raise PermissionError(f"{flag} {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose "
+                              f"another {flag}") from None
     return ext
 
 
@@ -35,11 +50,14 @@ class _Png:
             raise ValueError(f"{self.path}: a .png holds one frame; write a .gif or .mp4 for an animation")
         from PIL import Image
 
-        Image.fromarray(rgb).save(self.path)
+        write_replacing(self.path, lambda f: Image.fromarray(rgb).save(f, format="PNG"), what=f"--out {self.path!r}")
         self.count += 1
 
     def close(self):
         return self.path
+
+    def abort(self):
+        pass
 
 
 class _Gif:
@@ -74,13 +92,20 @@ class _Gif:
         images = [Image.fromarray(self._frame(k)).quantize(palette=palette, dither=Image.Dither.NONE)
                   for k in range(len(self.frames))]
         duration = max(20, round(1000.0 / self.fps / 10.0) * 10)  # GIF delays are in 1/100 s
-        images[0].save(self.path, save_all=True, append_images=images[1:], duration=duration, loop=0,
-                       optimize=False, disposal=1)
+        write_replacing(self.path, lambda f: images[0].save(f, format="GIF", save_all=True, append_images=images[1:],
+                                                            duration=duration, loop=0, optimize=False, disposal=1),
+                        what=f"--out {self.path!r}")
         self.frames = []
         return self.path
 
+    def abort(self):
+        self.frames = []
+
 
 class _Mp4:
+    """ffmpeg writes by name: into a private folder made beside ``path`` (``mkdtemp``, mode 0700,
+    so nothing can be planted in it), renamed onto ``path`` when complete."""
+
     def __init__(self, path, fps):
         try:
             import imageio.v2 as iio
@@ -88,9 +113,18 @@ class _Mp4:
         except ImportError as exc:
             raise ImportError(f"writing {path} needs imageio with its ffmpeg plugin: pip install 'warpsim[render]' "
                               f"(imageio, imageio-ffmpeg) [{exc}]") from None
-        self.writer = iio.get_writer(path, fps=float(fps), codec="libx264", quality=7, macro_block_size=1,
-                                     pixelformat="yuv420p")
+        import tempfile
+
         self.path, self.count = path, 0
+        self.folder = tempfile.mkdtemp(prefix=os.path.basename(temporary_name(path)) + ".",
+                                       dir=os.path.dirname(os.path.abspath(path)))
+        self.tmp = os.path.join(self.folder, "picture.mp4")
+        try:
+            self.writer = iio.get_writer(self.tmp, fps=float(fps), codec="libx264", quality=7, macro_block_size=1,
+                                         pixelformat="yuv420p")
+        except BaseException:
+            self.abort()
+            raise
 
     def add(self, rgb):
         h, w = rgb.shape[:2]
@@ -99,8 +133,17 @@ class _Mp4:
         self.count += 1
 
     def close(self):
-        self.writer.close()
+        try:
+            self.writer.close()
+            os.replace(self.tmp, self.path)
+        finally:
+            self.abort()
         return self.path
+
+    def abort(self):
+        import shutil
+
+        shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def open_sink(path, fps, gif_colors=255):

@@ -138,8 +138,13 @@ def save_figure(fig, path, dpi=90, legend=True):
             ax.legend(fontsize=8)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    from ..core.safe_files import write_replacing
+
+    ext = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    try:  # under a temporary name, renamed onto path: a link planted at either is never written through
+        write_replacing(path, lambda f: fig.savefig(f, dpi=dpi, format=ext or None), what=repr(os.fspath(path)))
+    finally:
+        plt.close(fig)
 
 
 def add_parser(sub):
@@ -159,7 +164,11 @@ def run(args, out, err):
 
     if not os.path.exists(args.cache):
         raise UsageError(f"cache {args.cache!r} does not exist; write one with 'warpsim run SCENE'")
+    from ..cli_common import check_output_path
     from ..usd.validate import DamagedCacheError
+
+    # a folder, FIFO or device at --out, or a folder that cannot be written: before the cache is read
+    check_output_path(args.out or os.path.splitext(args.cache)[0] + ".plot.png", "--out")
 
     try:
         path, n = plot_cache(args.cache, args.out, allow_damaged=args.allow_damaged,
