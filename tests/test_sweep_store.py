@@ -179,7 +179,7 @@ def test_an_unstored_sweeps_viewer_re_runs_any_world_on_demand(tmp_path):
     import socket
 
     pytest.importorskip("viser")
-    from warpsim.sweeps.rerun import first_difference, manifest_path
+    from warpsim.sweeps.rerun import first_difference, manifest_path, pick_or_rerun
     from warpsim.viewer.command import on_demand_world
     from warpsim.viewer.unstored import UnstoredSweepViewer
 
@@ -189,7 +189,7 @@ def test_an_unstored_sweeps_viewer_re_runs_any_world_on_demand(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    viewer = UnstoredSweepViewer(str(none), 0, got.path, got.folder, 4, port=port).start()
+    viewer = UnstoredSweepViewer(str(none), 0, got.path, got.folder, 4, pick_or_rerun, port=port).start()
     try:
         first_folder = got.folder.name
         viewer.request(2).join(120)

@@ -21,10 +21,14 @@ __all__ = ["UnstoredSweepViewer"]
 
 class UnstoredSweepViewer(PlaybackViewer):
     """Plays world ``world`` of the ``--store none`` sweep ``root`` (already re-run into ``path``,
-    in the temporary folder ``folder``) and re-runs any other on demand."""
+    in the temporary folder ``folder``) and re-runs any other on demand with
+    ``rerun(root, world, out_path) -> cache path`` (``warpsim.sweeps.rerun.pick_or_rerun``, given by
+    the command: the viewer stands below the sweeps)."""
 
-    def __init__(self, root, world, path, folder, world_count, *, host="127.0.0.1", port=8080, max_points=200_000):
+    def __init__(self, root, world, path, folder, world_count, rerun, *, host="127.0.0.1", port=8080,
+                 max_points=200_000):
         super().__init__(path, host=host, port=port, max_points=max_points)
+        self.rerun = rerun
         self.root, self.world, self.world_count = os.fspath(root), int(world), int(world_count)
         self.max_points = max_points
         self.rerun_folder = folder  # removed with the viewer (and replaced by each new world's)
@@ -61,12 +65,10 @@ class UnstoredSweepViewer(PlaybackViewer):
         return self.rerun_thread
 
     def _rerun(self, world):
-        from ..sweeps.rerun import pick_or_rerun
-
         folder = tempfile.TemporaryDirectory(prefix="warpsim_view_world_")
         t0 = time.perf_counter()
         try:
-            path = pick_or_rerun(self.root, world, os.path.join(folder.name, f"world_{world:06d}.usda"))
+            path = self.rerun(self.root, world, os.path.join(folder.name, f"world_{world:06d}.usda"))
             reader = CacheReader(path, max_points=self.max_points)
         except Exception as exc:  # noqa: BLE001  (any failure is said in the page; the server goes on)
             folder.cleanup()
