@@ -11,6 +11,7 @@ and thumbnails) with timers around its stages, then the same worlds stepped alon
   writing     host copies, frame data and USD samples (world_slices, batch_frame_data /
               world_frame_data, write_batch / write_worlds / observe) [s]
   closing     completing the layer (BatchLayerWriter.close) [s]
+  record      the occupancy record completed and saved (OccupancyRecorder.finish, OccupancyRecord.save) [s]
   thumbs      thumbnails_after_sweep [s];   table: write_table [s]
   preflight   estimates before the first step (memory, disk, --store) [s]
   other       the rest (building the batch, stability limits, metrics, record, root) [s]
@@ -40,7 +41,7 @@ import sys
 import tempfile
 import time
 
-STAGES = ("stepping", "writing", "closing", "thumbs", "table", "preflight")
+STAGES = ("stepping", "writing", "closing", "record", "thumbs", "table", "preflight")
 
 
 class Timers:
@@ -89,6 +90,24 @@ def _install(timers):
     timers.wrap(panel, "thumbnails_after_sweep", "thumbs")
     timers.wrap(sweep, "write_table", "table")
     timers.wrap(command, "_check_resources", "preflight")
+    from warpsim.browse.occupancy import OccupancyRecorder
+
+    finish = OccupancyRecorder.finish
+
+    def said_finish(self):  # the record's own host timers, said once a run (stderr)
+        t0 = time.perf_counter()
+        try:
+            return finish(self)
+        finally:
+            parts = ", ".join(f"{k} {v:.3f} s" for k, v in self.host_seconds.items())
+            sys.__stderr__.write(f"occupancy record: finish {time.perf_counter() - t0:.3f} s ({parts})\n")
+
+    timers._patched.append((OccupancyRecorder, "finish", finish))
+    OccupancyRecorder.finish = said_finish
+    from warpsim.browse.occupancy import OccupancyRecord
+
+    timers.wrap(OccupancyRecorder, "finish", "record")
+    timers.wrap(OccupancyRecord, "save", "record")
 
 
 def run_command(argv):

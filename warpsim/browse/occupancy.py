@@ -421,7 +421,7 @@ class OccupancyRecorder:
         self._start = wp.zeros(n + 1, dtype=int, device=self.device)
         self._cells_out = wp.zeros(0, dtype=wp.uint32, device=self.device)
         self._words_out = wp.zeros(0, dtype=wp.uint32, device=self.device)
-        self.host_seconds = {"flush": 0.0, "finish": 0.0}
+        self.host_seconds = {"flush": 0.0, "finish": 0.0, "merge_wait": 0.0}
         self.flushed_bytes = 0
         """Bytes moved from the device to the host by the flushes so far."""
 
@@ -514,6 +514,7 @@ class OccupancyRecorder:
             self._merger.shutdown()
             self._merger = None
         self._merging = []
+        self.host_seconds["merge_wait"] = time.perf_counter() - t0
         keys, bits = self._keys, np.ascontiguousarray(self._bits[:, :nwords])
         if bits.shape[1] < nwords:
             bits = np.pad(bits, ((0, 0), (0, nwords - bits.shape[1])))
