@@ -54,8 +54,8 @@ def _viser_or_usage():
     require_extra("viewer", "warpsim view")
 
 
-def build(args):
-    """The Viewer (or PlaybackViewer) the arguments describe; UsageError for mistakes."""
+def _check_address(args):
+    """UsageError for a port, --max-points or host the viewer cannot serve with."""
     from .server import PortInUseError, check_port
 
     if not 0 < args.port < 65536:
@@ -68,7 +68,34 @@ def build(args):
         raise UsageError(str(exc)) from None
     except OSError as exc:
         raise UsageError(f"--host {args.host!r}: {exc}") from None
-    if os.path.splitext(args.scene)[1] in (".usd", ".usda", ".usdc"):
+
+
+def _is_cache(args):
+    return os.path.splitext(args.scene)[1] in (".usd", ".usda", ".usdc")
+
+
+def _live_scene(args):
+    """(scene class, resolved parameters, device) of a live scene's arguments; UsageError (one
+    line, exit 2) for an unknown scene, parameter or device, or flags that disagree: all said before
+    anything is built or served."""
+    from ..scenes import get_scene
+
+    try:
+        cls = get_scene(args.scene)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    given = parse_sets(cls, args.sets, args.integrator)
+    params = cls.resolve_params(given)
+    timing_from_flags(cls, params, given, args.fps, args.substeps)  # flags that disagree: one line, exit 2, before serving
+    return cls, params, device_arg(args.device)
+
+
+def build(args, address_checked=False):
+    """The Viewer (or PlaybackViewer) the arguments describe; UsageError for mistakes
+    (``address_checked``: the port was checked, and is held by the starting page)."""
+    if not address_checked:
+        _check_address(args)
+    if _is_cache(args):
         if args.sets or args.integrator:
             raise UsageError("--set and --integrator apply to scenes, not to a cache being played")
         from ..usd.validate import DamagedCacheError, check_damage
@@ -79,9 +106,13 @@ def build(args):
         if rerun is not None:  # a sweep that stored no frames: its world re-run now, then played
             print(f"{args.scene} stored no frames (--store none): world {rerun.world} re-ran exactly in "
                   f"{rerun.seconds:.2f} s; playing it", file=sys.stderr)
-            viewer = PlaybackViewer(rerun.path, host=args.host, port=args.port, max_points=args.max_points)
-            viewer.rerun_folder = rerun.folder  # removed with the viewer
-            return viewer
+            from ..browse.roots import unstored_sweep
+            from ..sweeps.rerun import pick_or_rerun
+            from .unstored import UnstoredSweepViewer
+
+            return UnstoredSweepViewer(args.scene, rerun.world, rerun.path, rerun.folder,  # any world, on demand
+                                       int(unstored_sweep(args.scene)["worldCount"]), pick_or_rerun,
+                                       host=args.host, port=args.port, max_points=args.max_points)
 
         player = GalleryViewer if is_sweep_root(args.scene) else PlaybackViewer  # a sweep: its worlds side by side
         try:
@@ -96,17 +127,9 @@ def build(args):
             reader.frames = [f for f in reader.frames if f not in bad]
             print(f"warpsim: leaving out {len(bad)} frame(s) of damaged chunk files", file=sys.stderr)
         return viewer
-    from ..scenes import get_scene
     from .server import Viewer
 
-    try:
-        cls = get_scene(args.scene)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    given = parse_sets(cls, args.sets, args.integrator)
-    params = cls.resolve_params(given)
-    timing_from_flags(cls, params, given, args.fps, args.substeps)  # flags that disagree: one line, exit 2, before serving
-    device = device_arg(args.device)
+    cls, params, device = _live_scene(args)
     print(f"warpsim view: building scene {cls.name!r} on {device or 'the default device'} (then the first frame "
           "compiles Warp's kernels; the page says so) ...", file=sys.stderr, flush=True)
     try:
@@ -148,32 +171,58 @@ def threading_is_main():
     return threading.current_thread() is threading.main_thread()
 
 
+def _build_and_start(args, page, err):
+    """The viewer built (what the build says on standard error also shown on the starting
+    ``page``, when there is one), its notes said, then started on the port the page held (closed
+    just before: an open tab reconnects to the viewer by itself)."""
+    import contextlib
+
+    from .server import PortInUseError
+
+    with page.reporting() if page is not None else contextlib.nullcontext():
+        viewer = build(args, address_checked=page is not None)
+        session = getattr(viewer, "session", None)
+        if session is not None and hasattr(session.scene, "stability_warning"):
+            import warnings
+
+            from ..core.stability import StabilityWarning
+
+            warnings.simplefilter("ignore", StabilityWarning)  # said once here; the page shows the limit
+            timing_note(session.timing, getattr(args, "strict", False), err)
+            stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
+    if page is not None:
+        page.close()
+    try:
+        viewer.start()
+    except PortInUseError as exc:  # taken between the check and the start
+        raise UsageError(str(exc)) from None
+    return viewer
+
+
 def run(args, out, err):
     from ..verbosity import set_warp_verbosity
-    from .server import PortInUseError
 
     _viser_or_usage()  # before any work
     set_warp_verbosity()  # Warp's module-load lines only with --verbose
     from ..usd.validate import DamagedCacheError
 
+    page = None
+    if not _is_cache(args):  # a live scene: a page says how its build goes, at the viewer's address
+        from .starting import StartingPage
+
+        _check_address(args)
+        _live_scene(args)  # its mistakes said before anything is served
+        page = StartingPage(args.host, args.port, f"warpsim view {args.scene}: starting")
+        print(f"warpsim view: http://{args.host}:{args.port}   (the page says how the start goes)", file=out,
+              flush=True)
     try:
-        viewer = build(args)
+        viewer = _build_and_start(args, page, err)
     except DamagedCacheError as exc:
         print(f"warpsim: error: {exc}", file=err)
         return 1
-    session = getattr(viewer, "session", None)
-    if session is not None and hasattr(session.scene, "stability_warning"):
-        import warnings
-
-        from ..core.stability import StabilityWarning
-
-        warnings.simplefilter("ignore", StabilityWarning)  # said once here; the page shows the limit
-        timing_note(session.timing, getattr(args, "strict", False), err)
-        stability_check(session.scene, session.frame_dt, session.substeps, getattr(args, "strict", False), err)
-    try:
-        viewer.start()
-    except PortInUseError as exc:  # taken between the check and the start
-        raise UsageError(str(exc)) from None
+    finally:
+        if page is not None:
+            page.close()
     import signal
 
     if threading_is_main():
