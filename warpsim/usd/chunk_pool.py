@@ -78,13 +78,15 @@ class WorkerChunks:
             raise RuntimeError(f"writing {os.path.basename(chunk.final_path)}: {exc.kind}: {exc}") from None
         finally:
             chunk.stage.release()
-        self._replace(chunk.tmp_path, chunk.final_path, synced=True)  # (the worker synced it)
+        self._replace(chunk.tmp_path, chunk.final_path, synced=True, sync_folder=False)  # (the worker synced it)
         self._unlisted.append(chunk)
 
     def _list_completed(self):
         """Index the renamed chunks and rewrite the root listing them (a kill before this leaves
         them unlisted: a resumed run removes and rewrites them)."""
         done, self._unlisted = self._unlisted, []
+        if self.durable:  # the renames made durable, once for the group, before anything lists them
+            self._sync_folder()
         self._target = self._index_file
         for chunk in done:
             chunk_index.append_record(self._index_file, chunk_index.record(

@@ -379,19 +379,24 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
     def _index_file(self):
         return chunk_index.index_path(self.dirname, self.stem)
 
-    def _replace(self, tmp, final, synced=False):
+    def _replace(self, tmp, final, synced=False, sync_folder=True):
+        """Rename ``tmp`` to ``final``; with ``durable``, the file synced first (unless ``synced``)
+        and the folder after (unless ``sync_folder`` is False: the caller syncs it once for several)."""
         if self.durable and not synced:
             _fsync(tmp)
         os.replace(tmp, final)
-        if self.durable:
+        if self.durable and sync_folder:
+            self._sync_folder()
+
+    def _sync_folder(self):
+        try:
+            fd = os.open(self.dirname, os.O_RDONLY)
             try:
-                fd = os.open(self.dirname, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-            except OSError:  # pragma: no cover - directories cannot be opened on some platforms
-                pass
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError:  # pragma: no cover - directories cannot be opened on some platforms
+            pass
 
     def _export_atomic(self, layer, final):
         tmp = _tmp_name(final)
