@@ -258,17 +258,28 @@ def query_pairs(
     min_out[item] = dmin
 
 
+@wp.func
+def sphere_gap(sphere: wp.vec4, x: wp.vec3):
+    """(distance [m] of x outside the static sphere (centre, radius) = sphere, outward normal)."""
+    r = x - wp.vec3(sphere[0], sphere[1], sphere[2])
+    length = wp.length(r)
+    n = wp.vec3(0.0, 1.0, 0.0)
+    if length > 1.0e-12:
+        n = r / length
+    return length - sphere[3], n
+
+
 @wp.kernel
 def displacement_bounds(
     q: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int), vertex_min: wp.array(dtype=float),
     tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tri_min: wp.array(dtype=float),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), edge_min: wp.array(dtype=float),
-    planes: wp.array(dtype=wp.vec4), fraction: float, max_displacement: float,
+    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), fraction: float, max_displacement: float,
     reference_out: wp.array(dtype=wp.vec3), bound_out: wp.array(dtype=float),
 ):
     """Particle p's step bound [m]: ``fraction`` x the smallest distance from p's primitives (the
     vertex, its triangles, its edges) to any non-incident primitive met by the queries, or to a
-    plane, at most ``max_displacement``; and its reference position (now)."""
+    plane or a sphere (static), at most ``max_displacement``; and its reference position (now)."""
     p = wp.tid()
     x = q[p]
     dmin = max_displacement / fraction
@@ -282,6 +293,9 @@ def displacement_bounds(
     for k in range(planes.shape[0]):
         plane = planes[k]
         dmin = wp.min(dmin, wp.max(wp.dot(wp.vec3(plane[0], plane[1], plane[2]), x) - plane[3], 0.0))
+    for k in range(spheres.shape[0]):
+        gap, normal = sphere_gap(spheres[k], x)
+        dmin = wp.min(dmin, wp.max(gap, 0.0))
     reference_out[p] = x
     bound_out[p] = fraction * dmin
 
@@ -295,11 +309,12 @@ def contact_force_hessian(
     tv_count: wp.array(dtype=int),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
     ee_count: wp.array(dtype=int),
-    planes: wp.array(dtype=wp.vec4), radius: float, stiffness: float, friction: float, friction_eps: float,
+    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float, stiffness: float,
+    friction: float, friction_eps: float,
 ):
     """Sum of the contact forces [N] and Hessian blocks [N/m] on particle p at position ``x`` (the
     other particles at ``q``; ``q0`` the step's start): its vertex-triangle pairs as the vertex
-    and as a triangle corner, its edges' edge-edge pairs, the planes; fixed order."""
+    and as a triangle corner, its edges' edge-edge pairs, the planes and spheres; fixed order."""
     f = wp.vec3()
     H = wp.mat33()
     s = slot[p]
@@ -375,6 +390,12 @@ def contact_force_hessian(
         normal = wp.vec3(plane[0], plane[1], plane[2])
         d = wp.max(wp.dot(normal, x) - plane[3], 1.0e-9)
         fc, Hc = pair_force_hessian(d * normal, x - q0[p], 1.0, radius, stiffness, friction, friction_eps)
+        f += fc
+        H += Hc
+    for k in range(spheres.shape[0]):
+        gap, normal = sphere_gap(spheres[k], x)
+        fc, Hc = pair_force_hessian(wp.max(gap, 1.0e-9) * normal, x - q0[p], 1.0, radius, stiffness, friction,
+                                    friction_eps)
         f += fc
         H += Hc
     return f, H

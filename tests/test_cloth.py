@@ -687,7 +687,7 @@ def test_cloth_scenes_registered_and_checked():
 
     for name in ("cloth", "drape"):
         scene_cls = get_scene(name)
-        assert set(scene_cls.params["integrator"].choices) == {"implicit_euler", "semi_implicit_euler"}
+        assert set(scene_cls.params["integrator"].choices) == {"implicit_euler", "semi_implicit_euler", "vbd"}
         with pytest.raises(ValueError, match="resolution"):
             scene_cls({"resolution": 0}, device=DEVICE)
     scene = get_scene("cloth")({"resolution": 3, "integrator": "semi_implicit_euler"}, device=DEVICE)

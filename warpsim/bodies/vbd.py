@@ -17,7 +17,7 @@ No primitive passes through another (the step bound). At a search (the step's st
     D_i = min( d(i, T) over triangles T not containing i,
                d(T', j) over triangles T' containing i and vertices j not in T',
                d(e, e') over edges e containing i and edges e' sharing no particle with e,
-               d(i, plane) over the planes,   r_q )
+               d(i, plane or sphere) over the static shapes,   r_q )
 
 (distances at x^d, pairs within the query radius r_q = r_c + 2 b_max; farther ones count as r_q),
 and b_i = min(gamma D_i, b_max) with gamma < 1/2. Until the next search every position update is
@@ -32,7 +32,7 @@ d' >= d - |dx_i| - max_k b_k. If d <= r_q: D_i <= d (first term) and D_k <= d fo
 T (second term, j = i), so |dx_i| <= gamma d and b_k <= gamma d: d' >= (1 - 2 gamma) d > 0. If
 d > r_q: b <= b_max for all, d' >= r_q - 2 b_max = r_c > 0. Edges e, e' sharing no particle: each
 closest point is a convex combination of its edge's ends, each end k of e has D_k <= d(e, e') (third
-term), likewise for e', so d' >= (1 - 2 gamma) d > 0 (or > r_c past r_q). A plane is static:
+term), likewise for e', so d' >= (1 - 2 gamma) d > 0 (or > r_c past r_q). A plane or sphere is static:
 d' >= (1 - gamma) d. Every intermediate position of an update lies on the segment between two points
 of the ball |x - x^d| <= b (the ball is convex), so the bounds hold along the path too. A pair of
 closed surfaces that starts apart can interpenetrate only through a vertex crossing a triangle or an
@@ -172,7 +172,7 @@ class VBD(Integrator):
             self._bound = wp.full(n, 1.0e30, dtype=float, device=d)
             self._contact_inputs = [wp.full(n, -1, dtype=int, device=d), empty, empty, 0, empty, empty, empty, empty,
                                     empty, empty, empty, empty, empty, empty, wp.zeros(0, dtype=wp.vec4, device=d),
-                                    0.0, 0.0, 0.0, 1.0]
+                                    wp.zeros(0, dtype=wp.vec4, device=d), 0.0, 0.0, 0.0, 1.0]
 
     @property
     def colour_count(self) -> int:

@@ -57,6 +57,7 @@ class VBDContact:
         max_displacement: b_max [m], the most a particle moves between searches (default: the thickness).
         capacity: pairs kept per query list, the nearest (more are counted in :attr:`overflow`).
         planes: (normal (3,), offset) pairs: half-spaces n . x >= offset (floor and walls).
+        spheres: (centre (3,), radius) pairs: static spheres the surface stays outside of.
         rebuild_every: searches between BVH rebuilds (refits in between).
     """
 
@@ -66,7 +67,7 @@ class VBDContact:
     def __init__(self, faces, *, body_size: int | None = None, particle_body=None, thickness: float = 0.006,
                  stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
                  self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,
-                 capacity: int = 32, planes=(), rebuild_every: int = 20):
+                 capacity: int = 32, planes=(), spheres=(), rebuild_every: int = 20):
         faces = checks.index_array(np.asarray(faces), "VBDContact faces") if np.asarray(faces).dtype.kind == "f" \
             else np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -101,6 +102,17 @@ class VBDContact:
                 raise ValueError(f"VBDContact planes[{k}] has a zero normal; give e.g. ((0, 1, 0), 0.0)")
             rows.append([*(normal / length), float(offset) / length])
         self.planes = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
+        balls = []
+        for k, sphere in enumerate(spheres):
+            try:
+                centre, radius = sphere
+                centre = checks.vec3(centre, f"VBDContact spheres[{k}] centre")
+                radius = checks.positive(radius, f"VBDContact spheres[{k}] radius", unit="m", fix="e.g. 0.3")
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"VBDContact spheres[{k}] is {sphere!r}; give (centre (3,), radius [m] > 0): "
+                                 f"{exc}") from None
+            balls.append([*centre, radius])
+        self.spheres = np.asarray(balls, dtype=np.float64).reshape(-1, 4)
         self.searches = 0
         self.world_particle_count: int | None = None
         """Particles of one world in a batch of worlds laid end to end (``tile``), or None: one world."""
@@ -183,6 +195,7 @@ class VBDContact:
                            wp.zeros(self.edge_count * C, dtype=float, device=d)]  # the lists' distances [m]
         self._overflow = wp.zeros(3, dtype=int, device=d)
         self._planes = wp.array(self.planes.astype(np.float32), dtype=wp.vec4, device=d)
+        self._spheres = wp.array(self.spheres.astype(np.float32), dtype=wp.vec4, device=d)
         self.reference = wp.zeros(n, dtype=wp.vec3, device=d)
         """Positions [m] at the last search, shape (N,)."""
         self.bound = wp.zeros(n, dtype=float, device=d)
@@ -261,7 +274,7 @@ class VBDContact:
             for (kind, count, bvh, roots), out in zip(kinds, lists)] + [
             record(K.displacement_bounds, q.shape[0], [
                 q, self._slot, self._vt_min, self._tri_offsets, self._tris, self._tv_min, self._edge_offsets,
-                self._edge_list, self._ee_min, self._planes, self.bound_fraction, self.max_displacement,
+                self._edge_list, self._ee_min, self._planes, self._spheres, self.bound_fraction, self.max_displacement,
                 self.reference, self.bound])]
         self._recorded_key = (q.ptr, self.thickness, self.max_displacement, self.bound_fraction, self.self_contact,
                               self.stiffness)
@@ -288,7 +301,7 @@ class VBDContact:
         """The contact arguments of ``kernels.vbd.solve_colour`` (slot .. friction_eps)."""
         return [self._slot, self._tri, self._edges, self.capacity, self._vt, self._vt_count, self._tri_offsets,
                 self._tris, self._tv, self._tv_count, self._edge_offsets, self._edge_list, self._ee, self._ee_count,
-                self._planes, self.thickness, self.stiffness, self.friction, self.friction_eps]
+                self._planes, self._spheres, self.thickness, self.stiffness, self.friction, self.friction_eps]
 
     @property
     def overflow(self) -> tuple:

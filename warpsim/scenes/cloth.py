@@ -1,6 +1,7 @@
 """Cloth scenes: ``cloth`` (a sheet pinned at two corners swinging down onto a sphere) and
 ``drape`` (a sheet falling onto a sphere and the floor). The cloth is a UsdGeom.Mesh with fixed
-topology and points / velocities per frame."""
+topology and points / velocities per frame. ``integrator=vbd`` steps the sheet by ``ws.VBD`` with its
+self contact, the sphere and the floor inside the descent (``ws.VBDContact``)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ from typing import ClassVar
 from ..cloth.builder import add_cloth_grid
 from ..cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 from ..bodies.colliders import Plane, Sphere
-from ..core import Gravity, ModelBuilder, Wind
+from ..bodies.vbd import VBD
+from ..bodies.vbd_contact import VBDContact
+from ..core import Gravity, ModelBuilder, Simulator, Wind
 from . import SimulatorScene, register_scene
 from .live import drop_graphs, set_contact, set_springs
 
-CLOTH_INTEGRATORS = ("implicit_euler", "semi_implicit_euler")
+CLOTH_INTEGRATORS = ("implicit_euler", "semi_implicit_euler", "vbd")
 
 COMMON = {
     "resolution": (32, "cells per side of the square sheet"),
@@ -27,7 +30,12 @@ COMMON = {
     "friction": (0.4, "Coulomb friction against the sphere and the floor"),
     "thickness": (0.01, "cloth thickness offset for collisions [m]"),
     "sphere_radius": (0.3, "sphere radius [m]"),
-    "integrator": ("implicit_euler", "implicit_euler (Baraff-Witkin) or semi_implicit_euler", CLOTH_INTEGRATORS),
+    "integrator": ("implicit_euler", ("implicit_euler (Baraff-Witkin), semi_implicit_euler, or vbd (ws.VBD: vertex block "
+                                      "descent with the sheet's self contact, the sphere and the floor inside the descent "
+                                      "and a step bound that keeps every edge out of every triangle)"), CLOTH_INTEGRATORS),
+    "vbd_iterations": (10, "vbd only: colour sweeps per step"),
+    "vbd_contact_stiffness": (1000.0, "vbd only: k_c of the contact energy k_c/2 (thickness - d)^2 [N/m]"),
+    "self_contact": (True, "vbd only: the sheet against itself (pairs sharing a particle never)"),
     "explicit_substeps": (40, "semi_implicit_euler only: steps per frame sub-step (~40 for stability)"),
     "cg_tol": (1.0e-4, "implicit_euler: CG tolerance relative to |b|"),
     "newton_iterations": (3, "implicit_euler: most Newton iterations a step, until no velocity changes by more "
@@ -63,6 +71,9 @@ class ClothScene(SimulatorScene):
         b = ModelBuilder()
         self.cloth = self.make_cloth(b, p)
         model = b.finalize(self.device)
+        if p["integrator"] == "vbd":
+            self._build_vbd(p, model)
+            return
         if p["integrator"] == "implicit_euler":
             integrator = ClothImplicitEuler(cg_tol=p["cg_tol"], newton_iterations=p["newton_iterations"],
                                             newton_tol=p["newton_tol"])
@@ -77,6 +88,22 @@ class ClothScene(SimulatorScene):
         self.sim = ClothSimulator(model, integrator, forces=[Gravity(), self.wind],
                                   colliders=[self.sphere, self.floor])
         self.steps_per_substep = 1 if p["integrator"] == "implicit_euler" else p["explicit_substeps"]
+
+    def _build_vbd(self, p, model) -> None:
+        """``integrator=vbd``: a ws.Simulator stepped by ws.VBD whose contact holds the sheet's triangles (self
+        contact), the sphere and the floor (no collider after the step)."""
+        if p["vbd_iterations"] < 1:
+            raise ValueError(f"vbd_iterations={p['vbd_iterations']}: it must be >= 1 (colour sweeps a step)")
+        self.vbd_contact = VBDContact(self.cloth.triangles, thickness=p["thickness"],
+                                      stiffness=p["vbd_contact_stiffness"], friction=p["friction"],
+                                      self_contact=p["self_contact"], planes=[((0.0, 1.0, 0.0), 0.0)],
+                                      spheres=[(self.sphere_center, p["sphere_radius"])])
+        mass = model.particle_mass.numpy()
+        self.wind_coefficient = 2.0 * float(mass[mass > 0].mean()) if (mass > 0).any() else 0.0  # [kg/s]
+        self.wind = Wind((0.0, 0.0, 1.0), speed=p["wind"], coefficient=self.wind_coefficient if p["wind"] else 0.0)
+        self.sim = Simulator(model, integrator=VBD(int(p["vbd_iterations"]), contact=self.vbd_contact),
+                             forces=[Gravity(), self.wind], colliders=[])
+        self.steps_per_substep = 1
 
     def springs(self, p):
         k = p["damping"]
