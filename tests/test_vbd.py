@@ -435,3 +435,20 @@ def test_cloth_scenes_by_vbd_keep_the_sheet_whole_and_outside_the_sphere(name):
             assert crossings(x, scene.cloth.triangles) == 0, frame
     assert closest < p["thickness"]  # it lies on the sphere
     assert scene.sim.energy_gain < MARGIN
+
+
+def test_a_changed_friction_reaches_the_descent():
+    """The viewer's friction slider on a cloth by VBD (``apply_param``): the contact's friction is recorded again
+    at the next step, so a frictionless sheet slides off the sphere farther than a rough one."""
+    cls = get_scene("drape")
+    ends = []
+    for friction in (0.0, 2.0):
+        scene = cls(cls.resolve_params({"integrator": "vbd", "resolution": 8, "friction": 0.4}), device=DEVICE)
+        scene.advance(1.0 / 60.0, 4)
+        scene.apply_param("friction", friction)
+        assert scene.vbd_contact.friction == friction
+        for _ in range(40):
+            scene.advance(1.0 / 60.0, 4)
+        x = scene.sim.state.positions.numpy()
+        ends.append(float(np.linalg.norm(x[:, [0, 2]], axis=1).mean()))  # how far the sheet spread out
+    assert ends[0] > ends[1] + 1e-3

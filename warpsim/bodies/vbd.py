@@ -190,6 +190,8 @@ class VBD(Integrator):
 
         springs = [m.particle_spring_offsets, m.particle_springs, m.spring_indices, m.spring_rest_length,
                    m.spring_stiffness, m.spring_damping, self._broken]
+        if self.contact is not None:  # its thickness, stiffness and friction as they are now
+            self._contact_inputs = self.contact.solve_inputs()
         self._predict = record(K.predict, n, [qd, self.qd_prev, self.f_ext, m.particle_inv_mass, h,
                                                int(self.adaptive_guess), self._reference, self._bound, q, self.q0,
                                                self.y])
@@ -204,12 +206,18 @@ class VBD(Integrator):
                              record(K.clip_positions, n, [self._reference, self._bound, q]))
                             for omega in (self._omegas if self.chebyshev_rho > 0.0 else [])]
         self._finish = record(FK.finish_step, n, [q, self.q0, 1.0 / h, qd])
-        self._recorded_key = (q.ptr, qd.ptr, h)
+        self._recorded_key = self._key(q, qd, h)
+
+    def _key(self, q, qd, h: float) -> tuple:
+        """What the recorded launches depend on: the arrays, the step and the contact's coefficients (a
+        changed ``contact.friction``, ``stiffness`` or ``thickness`` is recorded again at the next step)."""
+        c = self.contact
+        return (q.ptr, qd.ptr, h) + ((c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ())
 
     def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)
         h = float(dt)
-        if getattr(self, "_recorded_key", None) != (q.ptr, qd.ptr, h):
+        if getattr(self, "_recorded_key", None) != self._key(q, qd, h):
             self._record(q, qd, h)
         if f_out is not None:
             f_out.zero_()  # a straight path within the step (see ImplicitEuler.step)

@@ -12,7 +12,7 @@ from ..cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimu
 from ..bodies.colliders import Plane, Sphere
 from ..bodies.vbd import VBD
 from ..bodies.vbd_contact import VBDContact
-from ..core import Gravity, ModelBuilder, Simulator, Wind
+from ..core import Gravity, ModelBuilder, Simulator, Wind, checks
 from . import SimulatorScene, register_scene
 from .live import drop_graphs, set_contact, set_springs
 
@@ -117,6 +117,8 @@ class ClothScene(SimulatorScene):
             self.wind.coefficient = self.wind_coefficient if value else 0.0
         elif key == "friction":
             set_contact(self.sim.colliders, friction=value)
+            if getattr(self, "vbd_contact", None) is not None:  # integrator=vbd: the contact inside the descent
+                self.vbd_contact.friction = float(checks.nonnegative(value, "friction", fix="e.g. 0.4"))
         elif key == "damping":
             for kind, (start, count) in self.cloth.springs.items():
                 set_springs(self.sim.model, "damping", value * (0.25 if kind == "bend" else 1.0), start, count)
