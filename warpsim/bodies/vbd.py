@@ -4,7 +4,7 @@ Geometric Contact", SIGGRAPH 2025). Kernels: ``warpsim.kernels.vbd`` (the descen
 ``warpsim.kernels.vbd_contact`` (search, contact energies, bounds); contact topology and search:
 :class:`warpsim.bodies.vbd_contact.VBDContact`.
 
-A step of h [s] minimises backward Euler's incremental potential G (inertia m / (2 h^2) |x - y|^2,
+A step of h [s] minimises backward Euler's incremental potential G (inertia ``m / (2 h^2) |x - y|^2``,
 the springs, the contacts) by ``iterations`` sweeps over the particle colours, each particle a 3x3
 Newton step with the others held (``kernels.vbd``), Chebyshev-accelerated, from VBD's adaptive
 initial guess. Converged it is backward Euler (tested against ``ImplicitEuler``); stopped early it
@@ -12,7 +12,7 @@ is still unconditionally stable (each Newton step on a block lowers a positive-d
 and dissipates: the number of iterations sets the accuracy, not the stability.
 
 No primitive passes through another (the step bound). At a search (the step's start, then every
-``detect_every`` iterations) at positions x^d, let for each particle i
+``detect_every`` iterations) at positions x^d, let for each particle i::
 
     D_i = min( d(i, T) over triangles T not containing i,
                d(T', j) over triangles T' containing i and vertices j not in T',
@@ -21,20 +21,20 @@ No primitive passes through another (the step bound). At a search (the step's st
 
 (distances at x^d, pairs within the query radius r_q = r_c + 2 b_max; farther ones count as r_q),
 and b_i = min(gamma D_i, b_max) with gamma < 1/2. Until the next search every position update is
-clipped to |x_i - x_i^d| <= b_i (the initial guess, each Newton step, each Chebyshev extrapolation).
+clipped to ``|x_i - x_i^d| <= b_i`` (the initial guess, each Newton step, each Chebyshev extrapolation).
 
 Claim: no vertex-triangle or edge-edge pair that is apart at a search meets before the next one,
 along the straight path of any update in between, so no edge passes through a triangle.
 Proof. Vertex i and triangle T (i not in T), distance d = d(i, T) > 0 at x^d. Every point of T is
-a convex combination sum w_k x_k of its corners, so it moves by at most max_k |dx_k| <= max_k b_k;
+a convex combination sum w_k x_k of its corners, so it moves by at most ``max_k |dx_k| <= max_k b_k``;
 the distance function is 1-Lipschitz in each argument, so at any later positions
-d' >= d - |dx_i| - max_k b_k. If d <= r_q: D_i <= d (first term) and D_k <= d for each corner k of
-T (second term, j = i), so |dx_i| <= gamma d and b_k <= gamma d: d' >= (1 - 2 gamma) d > 0. If
+``d' >= d - |dx_i| - max_k b_k``. If d <= r_q: D_i <= d (first term) and D_k <= d for each corner k of
+T (second term, j = i), so ``|dx_i| <= gamma d`` and ``b_k <= gamma d``: d' >= (1 - 2 gamma) d > 0. If
 d > r_q: b <= b_max for all, d' >= r_q - 2 b_max = r_c > 0. Edges e, e' sharing no particle: each
 closest point is a convex combination of its edge's ends, each end k of e has D_k <= d(e, e') (third
 term), likewise for e', so d' >= (1 - 2 gamma) d > 0 (or > r_c past r_q). A plane or sphere is static:
 d' >= (1 - gamma) d. Every intermediate position of an update lies on the segment between two points
-of the ball |x - x^d| <= b (the ball is convex), so the bounds hold along the path too. A pair of
+of the ball ``|x - x^d| <= b`` (the ball is convex), so the bounds hold along the path too. A pair of
 closed surfaces that starts apart can interpenetrate only through a vertex crossing a triangle or an
 edge crossing an edge, and neither pair's distance reaches 0; hence no edge passes through a
 triangle. Since d' > 0 for every pair, no vertex is ever deeper than the thickness r_c either.
