@@ -36,6 +36,14 @@ case "${1:-core}" in
     cmp /tmp/sweep1/teapots.csv /tmp/sweep2/teapots.csv && echo "tables identical"
     python3 -c "import sys; from warpsim.usd.validate import validate_cache as v; print('validation errors:', [v(p) for p in sys.argv[1:]])" /tmp/sweep1/teapots.usda /tmp/sweep2/teapots.usda
     ;;
+  vbd)  # issue 53: the donut heap by vertex block descent (step, contact share, frames/s, graph, depth, crossings)
+    (cd .. && run python3 -m pytest -q tests/test_vbd.py -k allocates)  # CUDA graph replay gives the eager bits
+    T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --dt 0.0041666667 --settle 2400 --steps 200 \
+      --reference-integrator fast_mass_spring --set solver_chebyshev=true --solver-iterations 12
+    T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --count 100 --dt 0.0041666667 --settle 2400 --steps 100
+    T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --count 1000 --dt 0.0041666667 --settle 1200 --steps 40
+    T=590 run python3 check_heap.py --device "$D" --count 12 --integrator vbd --dt 1/240 --frames 600 --check-every 10
+    ;;
   occupancy)  # issue 29: record cost, bytes and query time at 10,000 teapots x 120 frames
     T=590 run python3 bench_occupancy.py --device "$D" --worlds 10000 --frames 120 --sweep-frames ${SWEEP_FRAMES:-4} --repeat 1
     ;;
