@@ -118,13 +118,14 @@ def step_run(cls, worlds, devices, frames, frame_dt, steps):
     return seconds, built, blocks, x, v, bad
 
 
-def sweep_run(devices, worlds, frames, folder):
-    """(wall seconds, exit code) of ``warpsim sweep teapot`` on ``devices`` (one: --device)."""
+def sweep_run(devices, worlds, frames, folder, store="all"):
+    """(wall seconds, exit code) of ``warpsim sweep teapot`` on ``devices`` (one: --device),
+    ``--store store``."""
     from warpsim.cli import main
 
     flag = ["--device", devices[0]] if len(devices) == 1 else ["--devices", ",".join(devices)]
     argv = ["sweep", "teapot", "--worlds", str(worlds), "--sample", "lhs", "--frames", str(frames), "--substeps", "10",
-            "--out", os.path.join(folder, "s.usda"), "--no-progress", *flag]
+            "--out", os.path.join(folder, "s.usda"), "--no-progress", "--store", store, *flag]
     for v in VARY:
         argv += ["--vary", v]
     for k, v in FIXED.items():
@@ -169,6 +170,8 @@ def main():
     p.add_argument("--frames", type=int, default=10, help="frames timed")
     p.add_argument("--sweep-worlds", type=int, default=0, help="worlds of the whole-sweep comparison (0: skip)")
     p.add_argument("--sweep-frames", type=int, default=6)
+    p.add_argument("--sweep-store", nargs="+", default=["all"], choices=["all", "preview", "none"],
+                   help="--store of the whole-sweep comparisons (each a run on every device set)")
     p.add_argument("--sweep-devices", nargs="+", default=None,
                    help="device sets of the whole-sweep comparison (default: those of --devices); the first is "
                         "the reference")
@@ -200,17 +203,17 @@ def main():
                      f"; final state {'bit-identical' if same else 'DIFFERS'} to {','.join(sets[0])}"
                      f"{'' if same else f' (max |dx| {np.abs(x - ref[1]).max():.3g} m)'}")
         print(line, flush=True)
-    if args.sweep_worlds:
+    for store in args.sweep_store if args.sweep_worlds else ():
         with tempfile.TemporaryDirectory() as tmp:
             outs = None
             for devices in [parse_devices(s) for s in args.sweep_devices] if args.sweep_devices else sets:
                 folder = os.path.join(tmp, "_".join(d.replace(":", "") for d in devices))
-                seconds, code = sweep_run(devices, args.sweep_worlds, args.sweep_frames, folder)
+                seconds, code = sweep_run(devices, args.sweep_worlds, args.sweep_frames, folder, store)
                 if code:
                     continue
                 t0 = time.perf_counter()
                 got = sweep_outputs(folder)
-                line = (f"sweep {args.sweep_worlds} worlds x {args.sweep_frames} frames with USD on "
+                line = (f"sweep {args.sweep_worlds} worlds x {args.sweep_frames} frames, --store {store}, on "
                         f"{','.join(devices)}: {seconds:.1f} s")
                 if outs is None:
                     outs = (seconds, got)

@@ -84,7 +84,8 @@ def _sweep(tmp_path, name, *extra):
     from warpsim.cli import main
 
     root = tmp_path / name / "s.usda"
-    code = main(["sweep", "bounce", "--worlds", "4", "--frames", "9", "--device", "cpu", "--vary",
+    device = [] if "--devices" in extra else ["--device", "cpu"]
+    code = main(["sweep", "bounce", "--worlds", "4", "--frames", "9", *device, "--vary",
                  "restitution=0.2:0.9", "--out", str(root), "--no-progress", *extra])
     assert code == 0
     return root
@@ -235,3 +236,49 @@ def test_query_of_a_sweep_that_stored_nothing_answers_from_its_record(tmp_path, 
         answers[mode] = capsys.readouterr().out
     assert "picked worlds: none written" in answers["none"] and "re-runs one" in answers["none"]
     assert answers["all"].split("picked worlds:")[0] == answers["none"].split("picked worlds:")[0]
+
+
+@pytest.mark.parametrize("mode", ["none", "preview"])
+def test_store_modes_over_two_devices_equal_one_device(tmp_path, mode):
+    """--store none and preview over --devices cpu,cpu: the same table, occupancy record and
+    thumbnails as on one device, and (preview) the same kept samples; a none sweep's scratch
+    layers are gone afterwards and its worlds re-run from the root."""
+    import glob
+    import tempfile
+
+    from warpsim.sweeps.rerun import pick_or_rerun
+
+    before = set(glob.glob(os.path.join(tempfile.gettempdir(), "warpsim_sweep_last_*")))
+    one = _sweep(tmp_path, "one", "--store", mode)
+    two = _sweep(tmp_path, "two", "--store", mode, "--devices", "cpu,cpu")
+    a, b = os.path.dirname(one), os.path.dirname(two)
+    for f in ("s.csv", "s.occupancy.npz"):
+        assert open(os.path.join(a, f), "rb").read() == open(os.path.join(b, f), "rb").read(), f
+    pictures = sorted(os.listdir(os.path.join(a, "s.thumbs")))
+    assert pictures == sorted(os.listdir(os.path.join(b, "s.thumbs"))) and len(pictures) == 4
+    for f in pictures:
+        assert open(os.path.join(a, "s.thumbs", f), "rb").read() == open(os.path.join(b, "s.thumbs", f), "rb").read()
+    assert set(glob.glob(os.path.join(tempfile.gettempdir(), "warpsim_sweep_last_*"))) == before
+    if mode == "none":
+        assert not [f for f in os.listdir(b) if ".batch_" in f]
+        picked = pick_or_rerun(two, 3, tmp_path / "w3two" / "w.usda")
+        again = pick_or_rerun(one, 3, tmp_path / "w3one" / "w.usda")
+        assert _chunk_bytes(os.path.dirname(picked)) == _chunk_bytes(os.path.dirname(again)) != {}
+    else:
+        assert _world_samples(a) == _world_samples(b) and len(_world_samples(a)) == 4
+
+
+def _world_samples(folder):
+    """{world: [(attribute, time, bytes)]} of every batch layer in ``folder``."""
+    import glob
+
+    from pxr import Usd
+
+    out = {}
+    for layer in sorted(glob.glob(os.path.join(folder, "s.batch_[0-9][0-9][0-9][0-9].usdc"))):
+        stage = Usd.Stage.Open(layer)
+        for world in stage.GetPrimAtPath("/Worlds").GetChildren():
+            out[world.GetName()] = [(str(at.GetPath()).split("/", 3)[-1], t, np.asarray(at.Get(t)).tobytes())
+                                    for prim in Usd.PrimRange(world) for at in prim.GetAttributes()
+                                    for t in at.GetTimeSamples()]
+    return out

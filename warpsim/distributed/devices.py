@@ -235,14 +235,17 @@ def plan_blocks(scene_name, world_params, devices, resume_root=None):
 
 def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, table_path, settings, fps=None,
                      substeps=None, layout="variants", track=None, fused=False, occupancy=None, chunk_size=None,
-                     resume=False, warn=None, progress=None, log=None) -> dict:
+                     resume=False, warn=None, progress=None, log=None, store_every=1) -> dict:
     """Run a sweep split over ``devices`` in this process; write its layers, table, occupancy
     record and root (module docstring). ``settings``: what ``--resume`` must match (the one-device
     sweep's staging settings; the split is added). ``occupancy``: None, or the options of
     :func:`warpsim.sweeps.run_batch` without ``path`` (the record goes beside the root).
     ``progress(frames)``: called with the frames every block has finished, as that grows;
-    ``log``: a file told of a resume. Returns ``{"rows", "root", "layers", "record", "blocks",
-    "frame_steps"}``. DeviceSweepError naming the device when a block fails after frame 0; a
+    ``log``: a file told of a resume; ``store_every``: the frames kept, as ``run_batch`` takes it
+    (``--store``: 1 all, k preview, 0 none: each block's last frame goes to a scratch layer, the
+    ``"layers"`` returned, for the thumbnails; the caller removes them, and the root is
+    :func:`warpsim.browse.roots.write_unstored_root`'s). Returns ``{"rows", "root", "layers",
+    "record", "blocks", "frame_steps"}``. DeviceSweepError naming the device when a block fails after frame 0; a
     ValueError a block raises before it (a bad parameter) is raised as it is."""
     from ..cli_common import UsageError
     from ..browse.occupancy import OccupancyRecord, occupancy_path
@@ -256,7 +259,12 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
     blocks = plan_blocks(scene_name, world_params, devices, out_path if resume else None)
     blocks = [(b, d) for b, d in zip(blocks, devices) if b[1] > 0]
     staging = SweepStaging(out_path, {**settings, "blocks": [list(b) for b, _ in blocks]}, resume=resume,
-                           blocks=len(blocks))
+                           blocks=len(blocks), stored=int(store_every) != 0)
+    scratch = [None] * len(blocks)  # --store none: each block's last frame, for the thumbnails
+    if int(store_every) == 0:
+        import tempfile
+
+        scratch = [os.path.join(tempfile.mkdtemp(prefix="warpsim_sweep_last_"), "last.usdc") for _ in blocks]
     # automatic sub-steps: resolved over the whole sweep before the split, on the first device
     steps = sweep_frame_steps(scene_name, world_params, fps=fps, substeps=substeps, device=blocks[0][1], fused=fused)
     firsts = [staging.resume_frame(k) for k in range(len(blocks))]
@@ -312,7 +320,8 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
         acquire(k)
         try:
             results[k] = run_batch(scene_name, world_params[first:first + count], frames=frames, fps=fps,
-                                   substeps=substeps, device=device, layer_path=staging.layers[k], first_world=first,
+                                   substeps=substeps, device=device, layer_path=scratch[k] or staging.layers[k],
+                                   first_world=first, store_every=store_every,
                                    track=track, progress=lambda f: tick(k, f), fused=fused, occupancy=opts,
                                    warn=warn, chunk_size=chunk_size, resume_frame=firsts[k], frame_steps=steps,
                                    reference_params=world_params)
@@ -366,7 +375,16 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
         if os.path.exists(p):
             os.remove(p)
     write_table(table_path, rows)
-    root = write_sweep_root(out_path, staging.final_layers, n, layout=layout)
+    if int(store_every) == 0:
+        from ..browse.roots import write_unstored_root
+        from ..scenes import get_scene
+        from ..sweeps.sweep import sweep_timing
+
+        root = write_unstored_root(out_path, n, scene=scene_name, frames=frames,
+                                   fps=sweep_timing(get_scene(scene_name), world_params, fps, substeps).fps)
+    else:
+        root = write_sweep_root(out_path, staging.final_layers, n, layout=layout)
     staging.finish()
-    return {"rows": rows, "root": root, "layers": list(staging.final_layers), "record": record if moves else None,
+    return {"rows": rows, "root": root, "layers": scratch if int(store_every) == 0 else list(staging.final_layers),
+            "record": record if moves else None,
             "blocks": [(first, count, device) for (first, count), device in blocks], "frame_steps": steps}

@@ -337,7 +337,7 @@ def store_every(mode) -> int:
 def _choose_store(args, scene, path, worlds, frames, fps, devices, resume) -> str:
     """Set ``args.store`` (given, or by size: all when every frame fits in ``AUTO_STORE_BYTES`` and
     half the free disk, else preview when that fits, else none) and ``args.store_every``; returns
-    the line saying which and why. ValueError for preview / none with ``--ray`` or ``--devices``."""
+    the line saying which and why. ValueError for preview / none with ``--ray``."""
     from .usd import estimate_sweep_bytes
 
     several = getattr(args, "ray", None) is not None or devices is not None
@@ -346,9 +346,9 @@ def _choose_store(args, scene, path, worlds, frames, fps, devices, resume) -> st
             for m in ("all", "preview")}
     fmt = preflight.format_bytes
     if args.store is not None:
-        if args.store != "all" and several:
-            raise ValueError(f"--store {args.store} runs on one device for now; drop --ray / --devices or use "
-                             "--store all")
+        if args.store != "all" and getattr(args, "ray", None) is not None:
+            raise ValueError(f"--store {args.store} runs in one process for now (on one device or over --devices); "
+                             "drop --ray or use --store all")
         why = "as given"
     elif several or resume:
         args.store, why = "all", "the default with --ray / --devices / --resume"
@@ -422,6 +422,7 @@ def _run_on_devices(args, cls, world_params, outputs, devices, track, occupancy,
     from .staging import settings_digest
 
     path, table = outputs
+    every = getattr(args, "store_every", 1)
     progress = None
     if not args.no_progress:
         from tqdm import tqdm
@@ -439,7 +440,8 @@ def _run_on_devices(args, cls, world_params, outputs, devices, track, occupancy,
             cls.name, world_params, devices=devices, frames=args.frames, out_path=path, table_path=table,
             settings={"scene": cls.name, "frames": args.frames, "fps": args.fps, "substeps": args.substeps,
                       "chunk": args.chunk, "fused": bool(args.fused), "track": track or {},
-                      "worlds": settings_digest(world_params)},
+                      "worlds": settings_digest(world_params), **({"store": args.store} if every != 1 else {})},
+            store_every=every,
             fps=args.fps, substeps=args.substeps, layout=args.layout, track=track, fused=bool(args.fused),
             occupancy=occupancy, chunk_size=args.chunk, resume=bool(getattr(args, "resume", False)),
             warn=lambda line: warn_or_refuse(line, args.strict, err), progress=advanced if progress else None,
@@ -560,7 +562,8 @@ def _answer(args, rows, written, params, picking, device, out, err):
         if store == "none":  # the scratch layer of the last frame has served the thumbnails
             import shutil
 
-            shutil.rmtree(os.path.dirname(layers[0]), ignore_errors=True)
+            for layer in layers:  # (one a block with --devices)
+                shutil.rmtree(os.path.dirname(layer), ignore_errors=True)
         # a preview's cache lacks most frames: its answers come from the record alone
         positions = cached_positions(root, record) if regions and store == "all" else None
         answers = [answer_region(record, r, positions) for r in regions]
