@@ -24,6 +24,14 @@ from . import CONTAINER, Scene, add_floor, register_scene
 
 _WATER = (0.15, 0.45, 0.9)
 _SMOKE = (0.75, 0.75, 0.8)
+SMOKE_CELL_BYTES = 350.0
+"""Host bytes a smoke grid cell takes while building (measured: 270 at resolution 64 and 96)."""
+LIQUID_CELL_BYTES, LIQUID_PARTICLE_BYTES = 300.0, 25.0
+"""Host bytes a level-set liquid cell takes while building, plus per marker particle per band
+cell (measured with 16 particles a cell: 653 bytes a cell at resolution 64, 536 at 96)."""
+FLIP_CELL_BYTES, FLIP_PARTICLE_BYTES = 300.0, 110.0
+"""Host bytes a FLIP cell takes while building, plus per particle per cell (measured with 8
+particles a cell: 1,094 bytes a cell at resolution 64)."""
 _COMMON = {
     "cfl": (1.0, "CFL number: sub-steps keep max speed x dt <= cfl x dx"),
     "max_substeps": (32, "most sub-steps per frame"),
@@ -58,6 +66,14 @@ class GridFluidScene(Scene):
             raise ValueError(f"max_substeps={p['max_substeps']}: it must be >= 1")
         if not 0.0 < p["tol"] < 1.0:
             raise ValueError(f"tol={p['tol']}: it must be in (0, 1)")
+
+    def check_cells(self, p, cells, bytes_each, fit_of):
+        """Refuse (one line naming ``resolution``, the estimate and the value that fits) a grid of
+        ``cells`` cells at ``bytes_each`` bytes a cell (measured while building, grid fields,
+        pressure solver levels, particles and mesher together) before anything is allocated."""
+        from ..core.memory import check_build_memory
+
+        check_build_memory("resolution", p["resolution"], cells, "grid cells", bytes_each, fit_of)
 
     def max_speed(self):
         return max(float(np.abs(f.numpy()).max()) for f in self.grid.faces)
@@ -107,6 +123,8 @@ class SmokeScene(GridFluidScene):
             raise ValueError(f"resolution={n}: it must be >= 4")
         if not 0.0 < p["sphere_radius"] < 0.4:
             raise ValueError(f"sphere_radius={p['sphere_radius']}: it must be in (0, 0.4) m")
+        # measured while building on the CPU: 270 bytes a cell (resolution 64 and 96)
+        self.check_cells(p, n * (3 * n // 2) * n, SMOKE_CELL_BYTES, lambda k: max(4, int((k / 1.5) ** (1 / 3))))
         self.grid = MacGrid((n, 3 * n // 2, n), 1.0 / n, origin=(-0.5, 0.0, -0.5), open_sides=("+y",),
                             device=self.device)
         self.sphere = ((0.0, 0.6, 0.0), p["sphere_radius"])
@@ -165,6 +183,10 @@ class LiquidScene(GridFluidScene):
         if not (0.05 < p["depth"] < 0.55 and abs(p["tilt"]) < 1.0):
             raise ValueError(f"depth={p['depth']} must be in (0.05, 0.55) m and |tilt|={abs(p['tilt'])} below 1")
         dx = 1.0 / n
+        # the band's marker particles scale with the surface (n^2), the fields with n^3: bounded per cell
+        self.check_cells(p, n * max(4, round(0.6 / dx)) * max(4, round(0.4 / dx)),
+                         LIQUID_CELL_BYTES + LIQUID_PARTICLE_BYTES * max(0, int(p["particles_per_cell"])),
+                         lambda k: max(8, int((k / 0.24) ** (1 / 3))))
         self.grid = MacGrid((n, max(4, round(0.6 / dx)), max(4, round(0.4 / dx))), dx, device=self.device)
         depth, tilt = p["depth"], p["tilt"]
         self.solver = LevelSetLiquid(self.grid, lambda x: x[..., 1] - (depth + tilt * (x[..., 0] - 0.5)),
@@ -208,6 +230,9 @@ class FlipSplashScene(GridFluidScene):
         if n < 8:
             raise ValueError(f"resolution={n}: it must be >= 8")
         dx = 1.0 / n
+        self.check_cells(p, n * max(4, round(0.8 / dx)) * max(4, round(0.5 / dx)),
+                         FLIP_CELL_BYTES + FLIP_PARTICLE_BYTES * max(0, int(p["particles_per_cell"])),
+                         lambda k: max(8, int((k / 0.4) ** (1 / 3))))
         self.grid = MacGrid((n, max(4, round(0.8 / dx)), max(4, round(0.5 / dx))), dx, device=self.device)
         b = np.asarray(p["block"], float)
         lo, hi = b[:3], b[3:]

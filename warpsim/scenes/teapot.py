@@ -12,7 +12,7 @@ import warpsim as ws
 from ..bodies.colliders import Capsule, Quad, Sphere, TriangleMesh
 from ..bodies.drag import parse_drag_spec, scripted_drag
 from ..bodies.softbody import add_soft_body
-from ..bodies.teapot import teapot_mesh
+from ..bodies.teapot import resolve_resolution, teapot_mesh
 from . import CONTAINER, SimulatorScene, add_floor, register_scene
 from .live import set_contact, set_gravity, set_springs
 
@@ -40,6 +40,42 @@ def anchor_vertex(points, who: str) -> int:
     if not 0 <= index < len(p):
         raise ValueError(f"drag vertex {index} is out of range [0, {len(p)}) for this teapot resolution")
     return index
+
+
+TEAPOT_PAIR_BYTES = 110.0
+"""Bytes of the winding-number test that places the interior lattice, per triangle and query
+point of a chunk of at most 256 (measured while building on the CPU: 98 at resolution 12, 102 at
+24, where it is nearly all of the 231 MB and 967 MB taken)."""
+TEAPOT_TRIANGLE_BYTES = 600.0
+"""Bytes a surface triangle takes besides that test (vertices, edge and bending springs)."""
+TEAPOT_CELL_BYTES = 7000.0
+"""Bytes a candidate lattice cell takes while building (its distance tests, lattice and tie
+springs; measured: 134 MB for lattice_cells=40, 20,000 candidate cells)."""
+TEAPOT_SHAPE = (1.0, 0.49, 0.62)
+"""The teapot's bounding box over its longest side (length, height, depth)."""
+
+
+def check_teapot_memory(resolution, lattice_cells, available=None):
+    """Refuse (ValueError naming ``resolution`` or ``lattice_cells``, the estimate and the value
+    that fits) a teapot whose surface or interior lattice cannot be built in memory, before the
+    mesh is made; returns the estimated bytes."""
+    from ..core.memory import available_host_bytes, check_build_memory
+
+    n = resolve_resolution(resolution)
+    cells = int(lattice_cells)
+    if cells < 1:
+        raise ValueError(f"lattice_cells={lattice_cells}: it must be >= 1 (interior cells along the length)")
+    faces = 64 * n * n  # 32 patches of n x n quads, two triangles each
+    candidates = 1
+    for ratio in TEAPOT_SHAPE:
+        candidates *= max(1, math.ceil(ratio * cells))
+    available = available_host_bytes() if available is None else int(available)
+    need = check_build_memory("resolution", resolution, faces, "triangles",
+                              TEAPOT_PAIR_BYTES * min(candidates, 256) + TEAPOT_TRIANGLE_BYTES,
+                              lambda k: max(2, int((k / 64) ** 0.5)), available=available)
+    return need + check_build_memory("lattice_cells", cells, candidates, "candidate lattice cells", TEAPOT_CELL_BYTES,
+                                     lambda k: max(1, int((k / math.prod(TEAPOT_SHAPE)) ** (1 / 3))),
+                                     available=max(0, available - need))
 
 
 @register_scene("teapot", "the jiggly Utah teapot: a mass-spring soft body bouncing in a box of walls", params={
@@ -88,6 +124,7 @@ class TeapotScene(SimulatorScene):
         for key in ("stiffness", "damping", "drag_stiffness", "drag_damping"):
             if not p[key] >= 0:
                 raise ValueError(f"{key}={p[key]}: it must be >= 0")
+        check_teapot_memory(p["resolution"], p["lattice_cells"])
         mesh = teapot_mesh(p["resolution"], scale=p["size"])
         self.rest_points = mesh.points  # the surface vertices untilted: where the anchors are named
         b = ws.ModelBuilder()
