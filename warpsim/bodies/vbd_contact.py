@@ -68,8 +68,7 @@ class VBDContact:
                  stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
                  self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,
                  capacity: int = 32, planes=(), spheres=(), rebuild_every: int = 20):
-        faces = checks.index_array(np.asarray(faces), "VBDContact faces") if np.asarray(faces).dtype.kind == "f" \
-            else np.asarray(faces)
+        faces = checks.index_array(faces, "VBDContact faces")  # a float index is refused, never truncated
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"VBDContact faces must have shape (F, 3) with F >= 1, got {faces.shape}; give the "
                              "surface triangles in particle indices")
