@@ -276,13 +276,13 @@ def _simulate(args, cls, scene, writer, timing, start, checkpoint, device, err):
                 for frame in range(max(start, 1), args.frames + 1):
                     t_frame = time.perf_counter()
                     scene.advance(timing.frame_dt, timing.steps)
-                    if frame == max(start, 1) + 1:  # a slow frame: the whole run's time (the first frame, which
-                        # compiles and loads the kernels, is left out: it may take minutes where the rest run at
-                        # several frames a second)
+                    writer.write_frame(frame, scene.frame_data())
+                    if frame == max(start, 1) + 1:  # the whole run's time, estimated from this frame, measured
+                        # (stepping and writing): the first frame, which compiles and loads the kernels, is left
+                        # out (it may take minutes where the rest run at several frames a second)
                         note = frame_time_note(time.perf_counter() - t_frame, args.frames - frame, device, frame)
                         if note:
                             (progress.write if progress else lambda s: print(s, file=err))(f"warpsim: note: {note}")
-                    writer.write_frame(frame, scene.frame_data())
                     if progress:
                         progress.update(1)
                     if args.checkpoint_every and (frame % args.checkpoint_every == 0 or frame == args.frames):

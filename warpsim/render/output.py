@@ -36,8 +36,8 @@ def check_out(path, flag="--out"):
         os.makedirs(folder, exist_ok=True)
         tempfile.TemporaryFile(dir=folder).close()
     except OSError as exc:
-        raise PermissionError(f"{flag} {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose "
-                              f"another {flag}") from None
+        raise PermissionError(f"{flag} {path!r}: cannot write in folder {folder!r} ({exc.strerror or exc}); choose a "
+                              "writable folder") from None
     return ext
 
 

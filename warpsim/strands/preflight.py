@@ -18,7 +18,8 @@ from ..core.memory import available_host_bytes
 __all__ = ["DENSE_MATRICES", "FRAME_SECONDS_LIMIT", "POSE_BYTES_PER_STEP", "STEP_SECONDS", "STRAND_HOST_BYTES",
            "STRAND_SOLVER_PARTICLE_BYTES", "STRAND_VERTEX_DEVICE_BYTES", "STRAND_VERTEX_HOST_BYTES",
            "check_hair_params", "check_hair_steps", "check_strand_memory", "dense_bytes", "dense_seconds",
-           "estimate_strand_bytes", "format_bytes", "format_seconds", "frame_seconds", "segments_fit"]
+           "estimate_basis", "estimate_strand_bytes", "format_bytes", "format_seconds", "frame_seconds",
+           "segments_fit"]
 
 STRAND_HOST_BYTES = 16 << 10
 """Host memory per strand while a groom is built [bytes]: its scalp lattice entries and the
@@ -164,6 +165,14 @@ def check_strand_memory(strands, segments, device=None, available=None, solver="
             raise ValueError(f"{what} needs about {format_bytes(need['device'])} on {device}, which has "
                              f"{format_bytes(free)} free; use fewer strands or segments")
     return need
+
+
+def estimate_basis(device="cpu") -> str:
+    """What :func:`frame_seconds` rests on, said with every figure made from it."""
+    if _cuda(device):
+        return ("from strand steps timed on a 2-core CPU, taken as ten times faster on CUDA: an assumed ratio, not "
+                "measured here; frame 2's time is said when the run is long")
+    return "from strand steps timed on a 2-core CPU, not on this machine; frame 2's time is said when the run is long"
 
 
 def frame_seconds(steps, particles, solver="implicit", device="cpu") -> float:

@@ -485,10 +485,28 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
         progress = tqdm(total=args.frames, unit="frame", desc=f"{cls.name} x{len(world_params)}", file=err,
                         dynamic_ncols=True)
     record = _record_path(path)
+    clock = []
+
+    def advanced(frame):
+        """Progress, and the sweep's time estimated from its second frame, measured (the time between
+        the first two frames' reports: stepping every world and writing them; the first frame, which
+        compiles Warp's kernels, left out)."""
+        import time
+
+        clock.append(time.perf_counter())
+        if len(clock) == 2 and not first:
+            note = preflight.frame_time_note(clock[1] - clock[0], args.frames - frame, device, frame,
+                                             measured=f"stepping its {len(world_params):,} worlds and writing them",
+                                             fix="fewer worlds or frames")
+            if note:
+                (progress.write if progress else lambda line: print(line, file=err))(f"warpsim: note: {note}")
+        if progress:
+            progress.update(1)
+
     try:
         rows = run_batch(cls.name, world_params, frames=args.frames, fps=args.fps, substeps=args.substeps,
                          device=device, layer_path=layer_path, first_world=0, track=track, store_every=every,
-                         progress=(lambda f: progress.update(1)) if progress else None, fused=args.fused,
+                         progress=advanced, fused=args.fused,
                          occupancy={**occupancy, "path": staging.partial(record)},
                          warn=lambda line: warn_or_refuse(line, args.strict, err), chunk_size=args.chunk,
                          resume_frame=first, timing=run_timing,

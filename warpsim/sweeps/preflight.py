@@ -168,8 +168,11 @@ def steps_note(scene, frame_dt, substeps, frames) -> str | None:
             run += f", about {_when(seconds * frames)}"
         return f"{steps:,} steps a frame (step {frame_dt / steps:.3g} s{by}){run}; lower the stiffness (or --fps) for fewer"
     if seconds is not None and frames >= 1 and seconds * frames > LONG_RUN_NOTE:
+        from ..strands.preflight import estimate_basis
+
         return (f"{frames} frames of {steps:,} steps each take about {_when(seconds * frames)} ({_when(seconds)} a "
-                "frame, estimated); fewer frames or a smaller scene is faster (Ctrl-C keeps the frames written)")
+                f"frame, estimated {estimate_basis(getattr(scene, 'device', 'cpu'))}); fewer frames or a smaller "
+                "scene is faster (Ctrl-C keeps the frames written)")
     return None
 
 
@@ -191,20 +194,27 @@ def _when(seconds):
 FRAME_TIME_NOTE = 10.0
 """Seconds a frame after the first may take before a run estimates the whole run's time."""
 
+LONG_REST_NOTE = 600.0
+"""Seconds the rest of a run, estimated from a measured frame, may take before it is said even
+when each frame is short."""
 
-def frame_time_note(seconds, frames_left, device, frame=2) -> str | None:
-    """After frame ``frame`` took ``seconds`` [s]: one line estimating the remaining ``frames_left``
-    frames when it took longer than ``FRAME_TIME_NOTE``; None otherwise. ``frame`` is the second
-    frame a run computes: the first compiles and loads Warp's kernels, so its time says nothing of
-    the rest (a cloth run whose first frame took minutes then ran at several frames a second)."""
-    if seconds <= FRAME_TIME_NOTE or frames_left <= 0:
-        return None
+
+def frame_time_note(seconds, frames_left, device, frame=2, measured="stepping and writing",
+                    fix="fewer frames or a smaller scene") -> str | None:
+    """After frame ``frame`` took ``seconds`` [s] (``measured``: what the time covers): one line
+    estimating the remaining ``frames_left`` frames from that measured frame, when the frame took
+    longer than ``FRAME_TIME_NOTE`` or the rest longer than ``LONG_REST_NOTE``; None otherwise.
+    ``frame`` is the second frame a run computes: the first compiles and loads Warp's kernels, so
+    its time says nothing of the rest (a cloth run whose first frame took minutes then ran at
+    several frames a second); no ratio between devices is assumed."""
     rest = seconds * frames_left
+    if frames_left <= 0 or (seconds <= FRAME_TIME_NOTE and rest <= LONG_REST_NOTE):
+        return None
     when = f"{rest / 3600:.3g} h" if rest >= 3600 else f"{rest / 60:.3g} min" if rest >= 60 else f"{rest:.3g} s"
-    fix = "a CUDA device (--device cuda:0), " if str(device) == "cpu" else ""
-    return (f"frame {frame} took {seconds:.3g} s on {device} (kernel compilation, in the first frame, left out): at "
-            f"that rate the other {frames_left} frames take about {when}; {fix}fewer frames or a smaller scene is "
-            "faster (Ctrl-C keeps the frames written)")
+    faster = "a CUDA device (--device cuda:0), " if str(device) == "cpu" else ""
+    return (f"frame {frame} took {seconds:.3g} s on {device} ({measured}; frame {frame - 1}, which compiles Warp's "
+            f"kernels, left out): estimated from frame {frame}, the other {frames_left} frames take about {when}; "
+            f"{faster}{fix} is faster (Ctrl-C keeps the frames written)")
 
 
 _HOST = re.compile(r"^(?:\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?)$")
