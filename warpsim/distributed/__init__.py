@@ -15,6 +15,9 @@ What lives here:
 - ``ray_sweep``: :func:`run_ray_sweep`, the driver (one Ray task per batch, one GPU per task where
   the cluster has GPUs, one CPU otherwise, Ray's task retries for killed workers), and the
   ``--ray`` / ``--batch-size`` / ``--resume`` options of ``warpsim sweep``.
+- ``ray_head``: :func:`start_local_head`, the local cluster of ``--ray`` started or refused in one
+  line naming the cause and the fix (:class:`RayHeadError`: an address-space limit the raylet's
+  object store cannot be mapped under is refused before Ray starts).
 
 It drives no kernels of its own: each task calls ``warpsim.sweeps.run_batch`` (the batched
 many-worlds run) and the driver ``warpsim.sweeps.write_sweep_root`` / ``write_table``. Ray (the
