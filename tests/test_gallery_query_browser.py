@@ -17,7 +17,7 @@ import numpy as np
 import playwright.sync_api as playwright  # the test extra installs it; CI must run this test, never skip it
 import pytest
 from browser_page import (ARGS, CHROMIUM, HEIGHT, PATIENCE, VIEW_RIGHT, WIDTH, dismiss_notice,
-                          drawn_where_projected, free_port, pixel_box, pixels, project, wait)
+                          drawn_where_projected, free_port, pixel_box, pixels, project, wait, wait_still)
 
 from warpsim.browse.gallery import ALL, GalleryViewer
 from warpsim.browse.query import Region, answer_region
@@ -159,7 +159,8 @@ def test_the_box_is_drawn_dragged_and_a_world_clicked(sweep, request, tmp_path):
                          f"{query.origin})")
             pose = viewer.world_pose(other)
             wait(lambda: np.allclose(client.camera.look_at, pose[1], atol=1e-3), 60, "the clicked world framed")
-            page.screenshot(path=str(tmp_path / "isolated.png"))
+            wait_still(page)
+            page.screenshot(path=str(tmp_path / "isolated.png"))  # for a person to look at
             browser.close()
         assert worlds == len(viewer.reader.worlds)
     finally:
