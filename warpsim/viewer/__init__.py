@@ -10,6 +10,8 @@ Modules: ``sink`` (ViewerSink: declarations -> draw items, pure NumPy), ``geomet
 ``session`` (the server-side state: stepping, speed, parameters, dragging, recording, errors;
 no viser), ``record`` (recording into a crash-safe USD cache), ``playback`` (caches read on
 demand), ``server`` (the viser front end: Viewer), ``controls`` and ``params`` (the GUI panels),
+``framing`` (where the camera starts, and aiming it), ``pace`` (whether the page keeps up: long
+curve sets thinned while it lags), ``starting`` (the page served while a scene is built),
 ``command`` (``warpsim view``). Drives no kernels of its own (dragging uses
 ``warpsim.bodies.drag.DragSpring``). Entry class: :class:`Viewer` (``ws.Viewer``).
 """
