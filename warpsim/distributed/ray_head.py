@@ -23,7 +23,7 @@ import resource
 import sys
 import time
 
-__all__ = ["RayHeadError", "check_address_space", "head_failure_line", "object_store_bytes", "ray_temp_dir",
+__all__ = ["RayHeadError", "address_space_needed", "check_address_space", "head_failure_line", "object_store_bytes", "ray_temp_dir",
            "start_local_head"]
 
 HEAD_PROCESSES = ("raylet", "gcs_server")
@@ -138,22 +138,49 @@ def object_store_bytes() -> int:
 
 
 RAYLET_EXTRA_BYTES = 1 << 30
-"""Address space the raylet needs besides its object store [bytes] (its threads and libraries)."""
+"""Address space the raylet, and the driver, need besides the object store and what the driver
+already holds [bytes] (threads, libraries, Ray's core worker)."""
+
+
+def _process_bytes() -> int:
+    """This process's address space now [bytes] (``VmSize``; 0 where /proc is missing)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def address_space_needed(store=None, held=None) -> int:
+    """Address space a local Ray cluster's processes need under ``ulimit -v`` [bytes]: every one
+    maps the whole object store, the raylet twice (its allocator and its own client: measured with
+    Ray 2.60 under ``ulimit -v 9500000``, a 6.6 GiB store, the raylet died in
+    ``PlasmaClient::GetStoreFdAndMmap``), plus ``RAYLET_EXTRA_BYTES`` each and what this process
+    holds already."""
+    store = object_store_bytes() if store is None else int(store)
+    held = _process_bytes() if held is None else int(held)
+    return 2 * store + 2 * RAYLET_EXTRA_BYTES + held
 
 
 def check_address_space(store=None) -> None:
     """:class:`RayHeadError` at once when this process's address-space limit (``ulimit -v``, which
-    the head's processes inherit) is below what the raylet maps: Ray would find out only after
-    its 30 s wait (see the module docstring)."""
+    the head's processes inherit) is below :func:`address_space_needed`: Ray would find out only
+    after its 30 s wait, or a process of it aborts in C++ with a stack trace and no Python
+    exception to catch."""
     limit = resource.getrlimit(resource.RLIMIT_AS)[0]
     if limit == resource.RLIM_INFINITY or limit < 0:
         return
     store = object_store_bytes() if store is None else int(store)
-    if limit < store + RAYLET_EXTRA_BYTES:
-        raise RayHeadError(f"--ray: a local Ray cluster cannot start under this address-space limit: its raylet maps "
-                           f"an object store of about {store / 2 ** 30:.3g} GiB (Ray's default, 30 % of the available "
-                           f"memory) and ulimit -v allows {limit / 2 ** 30:.3g} GiB; raise it (ulimit -v unlimited) "
-                           "or run the sweep without --ray")
+    need = address_space_needed(store)
+    if limit < need:
+        raise RayHeadError(f"--ray: a local Ray cluster cannot start under this address-space limit: its processes "
+                           f"map an object store of about {store / 2 ** 30:.3g} GiB each (Ray's default, 30 % of the "
+                           f"available memory; the raylet twice), about {need / 2 ** 30:.3g} GiB in all, and ulimit -v "
+                           f"allows {limit / 2 ** 30:.3g} GiB; raise it (ulimit -v unlimited) or run the sweep without "
+                           "--ray")
 
 
 def start_local_head(ray, **init_options) -> None:
