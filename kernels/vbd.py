@@ -43,15 +43,17 @@ def predict(
     qd: wp.array(dtype=wp.vec3), qd_prev: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float), h: float, adaptive: int, reference: wp.array(dtype=wp.vec3),
     bound: wp.array(dtype=float), q_io: wp.array(dtype=wp.vec3), q0_out: wp.array(dtype=wp.vec3),
-    y_out: wp.array(dtype=wp.vec3),
+    y_out: wp.array(dtype=wp.vec3), deficit_out: wp.array(dtype=wp.vec3),
 ):
     """Step start q0 = q, inertial target y = q + h v + h^2 a_ext [m] and the initial guess in q:
     q + h v + h^2 s a_ext with s = clamp(a_prev . a_ext / |a_ext|^2, 0, 1) and a_prev = (v - v_prev) / h
     (VBD's adaptive guess: a body resting on the floor starts where it rests; ``adaptive`` 0: s = 1),
-    clipped to the bound (``bound[i]`` [m])."""
+    clipped to the bound (``bound[i]`` [m]); what the clip left out goes to ``deficit_out`` [m]
+    (``restore_guess``)."""
     i = wp.tid()
     x = q_io[i]
     q0_out[i] = x
+    deficit_out[i] = wp.vec3()
     if inv_mass[i] == 0.0:
         y_out[i] = x
         return
@@ -64,7 +66,10 @@ def predict(
         s = 0.0
         if a2 > 0.0:
             s = wp.clamp(wp.dot((v - qd_prev[i]) / h, a) / a2, 0.0, 1.0)
-    q_io[i] = clip_to_bound(x + h * v + h * h * s * a, reference[i], bound[i])
+    guess = x + h * v + h * h * s * a
+    clipped = clip_to_bound(guess, reference[i], bound[i])
+    q_io[i] = clipped
+    deficit_out[i] = guess - clipped
 
 
 @wp.kernel
@@ -124,6 +129,19 @@ def commit_colour(colour_particles: wp.array(dtype=int), start: int, q_new: wp.a
     """Copy the colour's new positions [m] into the positions the next colour reads."""
     p = colour_particles[start + wp.tid()]
     q_out[p] = q_new[p]
+
+
+@wp.kernel
+def restore_guess(reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
+                  deficit_io: wp.array(dtype=wp.vec3), q_io: wp.array(dtype=wp.vec3)):
+    """After a search within the step: add back what the bound cut from the initial guess, as far as the
+    new bound allows (a falling body whose guess was cut moves on as a whole, instead of being dragged
+    back by its springs, sweep by sweep, to its neighbours' cut positions)."""
+    i = wp.tid()
+    x = q_io[i]
+    moved = clip_to_bound(x + deficit_io[i], reference[i], bound[i])
+    deficit_io[i] = deficit_io[i] - (moved - x)
+    q_io[i] = moved
 
 
 @wp.kernel

@@ -21,7 +21,8 @@ No primitive passes through another (the step bound). At a search (the step's st
 
 (distances at x^d, pairs within the query radius r_q = r_c + 2 b_max; farther ones count as r_q),
 and b_i = min(gamma D_i, b_max) with gamma < 1/2. Until the next search every position update is
-clipped to ``|x_i - x_i^d| <= b_i`` (the initial guess, each Newton step, each Chebyshev extrapolation).
+clipped to ``|x_i - x_i^d| <= b_i`` (the initial guess, each Newton step, each Chebyshev extrapolation,
+and after each search within the step the part of the initial guess the bound cut, ``restore_guess``).
 
 Claim: no vertex-triangle or edge-edge pair that is apart at a search meets before the next one,
 along the straight path of any update in between, so no edge passes through a triangle.
@@ -156,6 +157,8 @@ class VBD(Integrator):
         self.q0 = wp.zeros(n, dtype=wp.vec3, device=d)
         self.y = wp.zeros(n, dtype=wp.vec3, device=d)
         self.q_new = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.deficit = wp.zeros(n, dtype=wp.vec3, device=d)
+        """What the bound cut from each particle's initial guess and no search has given back yet [m]."""
         self.qd_prev = wp.array(model.particle_qd.numpy(), dtype=wp.vec3, device=d)
         chebyshev = self.chebyshev_rho > 0.0
         self._older = wp.zeros(n if chebyshev else 0, dtype=wp.vec3, device=d)
@@ -194,7 +197,8 @@ class VBD(Integrator):
             self._contact_inputs = self.contact.solve_inputs()
         self._predict = record(K.predict, n, [qd, self.qd_prev, self.f_ext, m.particle_inv_mass, h,
                                                int(self.adaptive_guess), self._reference, self._bound, q, self.q0,
-                                               self.y])
+                                               self.y, self.deficit])
+        self._restore = record(K.restore_guess, n, [self._reference, self._bound, self.deficit, q])
         self._sweep = []
         for c in range(self.colour_count):
             start, count = self.colour_offsets[c], self.colour_offsets[c + 1] - self.colour_offsets[c]
@@ -234,6 +238,7 @@ class VBD(Integrator):
         for k in range(self.iterations):
             if self.contact is not None and k > 0 and self.detect_every and k % self.detect_every == 0:
                 self.contact.search(q)
+                self._restore.launch()
             for launch in self._sweep:  # one Gauss-Seidel sweep: a colour solved into q_new, copied back
                 launch.launch()
             if chebyshev:
