@@ -77,6 +77,8 @@ class ClientPace:
                         self.seconds.pop(cid, None)
                         continue
                 self.seconds[cid] = time.perf_counter() - t0
+            if self._stop.is_set():
+                return
             self.rounds += 1
             slowest = self.slowest()
             # frames flowing (paused: nothing to fall behind), two or more, so their period is known
@@ -96,7 +98,9 @@ class ClientPace:
         self.sent_count += 1
 
     def stop(self):
+        """Stop probing; every strand is drawn from the next frame on."""
         self._stop.set()
+        self.step = 1
 
 
 def thin_strands(points, step):

@@ -18,8 +18,6 @@ import time
 
 import numpy as np
 
-from dataclasses import replace
-
 from .geometry import icosphere
 from .pace import THIN_SEGMENTS, ClientPace, thin_strands
 from .picking import pointer_ray, segment_ribbon_triangles, segment_ribbons
@@ -83,6 +81,9 @@ class Drawer:
         self._ribbons_sent = {}  # name -> time [s] the click ribbons of grabbable curves were last sent
         self.static_nodes = []
         self.version = None
+        self.thin = 1
+        """Draw one curve in ``thin`` of curve sets longer than THIN_SEGMENTS segments (and take clicks
+        on those drawn: their ribbons are most of what a frame sends)."""
         self._sphere = icosphere(1)
 
     def clear(self):
@@ -130,8 +131,8 @@ class Drawer:
             sig = ("mesh", item.topology, n)
         elif item.kind == "points":
             sig = ("spheres" if draggable and n <= PICKABLE_POINTS else "cloud", n)
-        elif item.kind == "segments":
-            sig = ("pick_segments" if draggable else "segments", n)
+        elif item.kind == "segments":  # a thinned long set is a new node (its click ribbons are fewer)
+            sig = ("pick_segments" if draggable else "segments", n, self.thin if n > THIN_SEGMENTS else 1)
         else:
             sig = ("instances", n, tuple(np.bincount(item.proto, minlength=len(item.prototypes))) if n else ())
         known = self.nodes.get(name)
@@ -153,20 +154,27 @@ class Drawer:
             handle.vertices = np.asarray(item.points, np.float32)
         elif sig[0] == "spheres":
             handle.batched_positions = np.asarray(item.points, np.float32)
-        elif sig[0] == "cloud" or sig[0] == "segments":
+        elif sig[0] == "cloud":
             handle.points = np.asarray(item.points, np.float32)
+        elif sig[0] == "segments":
+            handle.points = self._lines(item)
         elif sig[0] == "pick_segments":
-            handle[0].points = np.asarray(item.points, np.float32)
+            handle[0].points = self._lines(item)
             now = time.perf_counter()
             if now - self._ribbons_sent.get(name, 0.0) >= RIBBON_PERIOD:  # the click target lags a little
                 self._ribbons_sent[name] = now
-                handle[1].vertices = segment_ribbons(item.points, self._ribbon_width(item))
+                handle[1].vertices = segment_ribbons(self._lines(item), self._ribbon_width(item))
         else:
             for k, h in enumerate(handle):
                 sel = item.proto == k
                 if sel.any():
                     h.batched_positions = np.asarray(item.points[sel], np.float32)
                     h.batched_wxyzs = np.asarray(item.orientations[sel], np.float32)
+
+    def _lines(self, item):
+        """The segments of a curves item to draw: one curve in :attr:`thin` of a long set."""
+        points = np.asarray(item.points, np.float32)
+        return thin_strands(points, self.thin) if len(points) > THIN_SEGMENTS else points
 
     def _add(self, path, item, sig, draggable, name):
         scene = self.server.scene
@@ -191,13 +199,12 @@ class Drawer:
                                          point_size=2.0 * max(item.radius, 1e-3), point_shape="circle",
                                          precision="float32")
         if sig[0] == "segments":
-            return scene.add_line_segments(path, np.asarray(item.points, np.float32), color,
-                                           thickness=max(2.0 * item.radius, 1.5e-3))
+            return scene.add_line_segments(path, self._lines(item), color, thickness=max(2.0 * item.radius, 1.5e-3))
         if sig[0] == "pick_segments":  # grabbable curves (hair): drawn as lines, clicked on a ribbon mesh
-            lines = scene.add_line_segments(path, np.asarray(item.points, np.float32), color,
-                                            thickness=max(2.0 * item.radius, 1.5e-3))
-            ribbons = scene.add_mesh_simple(f"{path}_pick", segment_ribbons(item.points, self._ribbon_width(item)),
-                                            segment_ribbon_triangles(len(item.points)), color=color, opacity=0.0,
+            shown = self._lines(item)
+            lines = scene.add_line_segments(path, shown, color, thickness=max(2.0 * item.radius, 1.5e-3))
+            ribbons = scene.add_mesh_simple(f"{path}_pick", segment_ribbons(shown, self._ribbon_width(item)),
+                                            segment_ribbon_triangles(len(shown)), color=color, opacity=0.0,
                                             side="double", cast_shadow=False, receive_shadow=False)
             self._drag_hook(ribbons, name)
             return [lines, ribbons]
@@ -384,10 +391,8 @@ class Viewer(Serving):
                 items["_mouse_drag"] = DrawItem("_mouse_drag", "segments", seg, (0.9, 0.2, 0.1), radius=0.002)
             else:
                 items["_mouse_drag"] = DrawItem("_mouse_drag", "segments", np.zeros((0, 2, 3), np.float32))
-        step = self.pace.step if self.pace is not None else 1
-        if step > 1:  # a page behind: one strand in `step` of the long curve sets (the panel says so)
-            items = {name: replace(it, points=thin_strands(it.points, step))
-                     if it.kind == "segments" and len(it.points) > THIN_SEGMENTS else it for name, it in items.items()}
+        # a page behind: one strand in `step` of the long curve sets drawn (the panel says so)
+        self.drawer.thin = self.pace.step if self.pace is not None else 1
         if self.server is not None:
             self.drawer.draw(items, static, version, draggable)
         self._drawn_frame = (version, frame)
