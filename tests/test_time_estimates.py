@@ -76,3 +76,14 @@ def test_hair_estimate_before_the_first_step_says_what_it_rests_on():
 
     assert "assumed ratio, not measured" in estimate_basis("cuda:0") and "ten times" in estimate_basis("cuda:0")
     assert "not on this machine" in estimate_basis("cpu") and "ten" not in estimate_basis("cpu")
+
+
+def test_hair_refusals_from_an_estimate_name_its_basis():
+    from warpsim.strands.preflight import check_hair_steps
+
+    with pytest.raises(ValueError, match=r"on cuda:0 \(estimated from strand steps timed on a 2-core CPU, taken as "
+                                         r"ten times faster on CUDA: an assumed ratio, not measured here\); use"):
+        check_hair_steps(10 ** 9, 2, 2, device="cuda:0", available=1 << 40)
+    with pytest.raises(ValueError, match=r"on cpu \(estimated from strand steps timed on a 2-core CPU, not on this "
+                                         r"machine\); use at most"):
+        check_hair_steps(10 ** 8, 2, 2, device="cpu", available=1 << 40)

@@ -19,7 +19,8 @@ import warpsim as ws
 from ..bodies.colliders import ParticleCollisions, quat_multiply, quat_rotate
 from ..strands import StrandForce, StrandImplicitEuler, StrandRoots, add_strands, sag_free, strand_stable_dt
 from ..strands.frame import HairFrame, PosedSphere
-from ..strands.preflight import FRAME_SECONDS_LIMIT, check_hair_params, format_seconds, frame_seconds
+from ..strands.preflight import (FRAME_SECONDS_LIMIT, check_hair_params, estimate_basis, format_seconds,
+                                 frame_seconds)
 from ..usd.sink import display_hints
 from . import SimulatorScene, register_scene
 from .live import set_contact
@@ -198,7 +199,8 @@ class Hair(SimulatorScene):
                 raise ValueError(f"solver=explicit: at segments={p['segments']} the strands' stable step is "
                                  f"{self.stable_dt:.3g} s, {self.strand_steps(1.0 / 60.0):,} steps a frame of "
                                  f"{self.model.particle_count:,} particles take about {format_seconds(seconds)} a "
-                                 "frame; use solver=implicit, or fewer segments or strands")
+                                 "frame; use solver=implicit, or fewer segments or strands (the time estimated "
+                                 f"{estimate_basis(self.device, False)})")
             self.sim = ws.Simulator(self.model, forces=forces, colliders=colliders, max_speed=100.0)
         # the blow-up test (a device read-back) once per frame, not once per strand step
         self.sim.check_every = self.strand_steps(1.0 / self.fps)

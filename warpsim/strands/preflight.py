@@ -167,12 +167,14 @@ def check_strand_memory(strands, segments, device=None, available=None, solver="
     return need
 
 
-def estimate_basis(device="cpu") -> str:
-    """What :func:`frame_seconds` rests on, said with every figure made from it."""
+def estimate_basis(device="cpu", later=True) -> str:
+    """What :func:`frame_seconds` rests on, said with every figure made from it (``later``: add
+    that the run says frame 2's measured time)."""
+    then = "; frame 2's time is said when the run is long" if later else ""
     if _cuda(device):
         return ("from strand steps timed on a 2-core CPU, taken as ten times faster on CUDA: an assumed ratio, not "
-                "measured here; frame 2's time is said when the run is long")
-    return "from strand steps timed on a 2-core CPU, not on this machine; frame 2's time is said when the run is long"
+                f"measured here{then}")
+    return f"from strand steps timed on a 2-core CPU, not on this machine{then}"
 
 
 def frame_seconds(steps, particles, solver="implicit", device="cpu") -> float:
@@ -200,8 +202,9 @@ def check_hair_steps(steps, strands, segments, solver="implicit", device="cpu", 
     seconds = frame_seconds(steps, particles, solver, device)
     if seconds > FRAME_SECONDS_LIMIT:
         raise ValueError(f"{name}={steps:,}: one frame of {steps:,} strand steps of {particles:,} particles takes "
-                         f"about {format_seconds(seconds)} on {device}; use at most about {name}={fit:,} (a frame "
-                         f"of about {format_seconds(fit * per)}), or fewer strands or segments")
+                         f"about {format_seconds(seconds)} on {device} (estimated {estimate_basis(device, False)}); "
+                         f"use at most about {name}={fit:,} (a frame of about {format_seconds(fit * per)}), or fewer "
+                         "strands or segments")
     return seconds
 
 
