@@ -1,14 +1,15 @@
 """End to end: ``warpsim view teapot`` in a real browser (Debian's Chromium, headless, driven by
 Playwright; WebGL through SwiftShader). The page loads and draws the teapot (a screenshot with
-the teapot's colour where the camera projects it; written to docs/viewer_teapot.png for the
-README when WARPSIM_WRITE_DOCS=1), a parameter slider dragged with the mouse changes the running scene's parameter, a mouse
-drag on the teapot pulls the grabbed vertex toward the pointer, Record writes a cache that
-opens and validates, the dt slider shows its stability limit, a step past it explodes (drawn,
-then paused with the explanation, raised as a notification inside the window while the panel is
-scrolled to the dt slider) and Reset recovers while the server keeps serving (the inputs, also in a
-new tab, show the restored values and the page says so), the decade sliders' number boxes show and
-take the physical value, the scene waits at frame 0 for the first page, and closing the page
-mid-drag lets go and completes a running recording."""
+the teapot's colour where the camera projects it; the README's picture is made by
+docs/viewer_pictures.py), a parameter slider dragged with the mouse changes the running scene's
+parameter, a mouse drag on the teapot pulls the grabbed vertex toward the pointer, Record writes a
+cache that opens and validates, the dt slider shows its stability limit, a step past it explodes
+(drawn, then paused with the explanation, the panel's frame the error's, raised as a notification
+inside the window while the panel is scrolled to the dt slider) and Reset recovers while the server
+keeps serving (the view redrawn at frame 0, the inputs, also in a new tab, show the restored values
+and the page says so, dt in ms), the decade sliders' number boxes show and take the physical value
+(also one typed past the slider's range), the scene waits at frame 0 for the first page, and closing
+the page mid-drag lets go and completes a running recording. Every wait is for a condition."""
 from __future__ import annotations
 
 import io
