@@ -329,6 +329,11 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
                 self._release_lock()
         return self.output_path
 
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` has completed the cache."""
+        return self._closed
+
     def _kept_text(self) -> str:
         """What a failed write kept: the completed chunks the root layer lists (readable)."""
         if not self.chunks or not os.path.exists(self.path):

@@ -293,14 +293,5 @@ def refresh_dt_limit(handles, session):
         return
     info = session.stability()
     content = dt_limit_text(info)
-    if text.content != content:
-        text.content = content
-        slider = handles.get("dt")
-        if slider is not None:
-            try:  # viser keeps the marks in a private prop; the text above says it either way
-                from viser._gui_api import _build_slider_marks
-
-                o = {"min": slider.min, "max": slider.max}
-                slider._marks = _build_slider_marks(_dt_marks(info, o))
-            except (ImportError, AttributeError):
-                pass
+    if text.content != content:  # (the dt slider's mark stays where it was drawn: viser has no public way
+        text.content = content   # to move a mark, and this text gives the limit as it is now)

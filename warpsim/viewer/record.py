@@ -54,7 +54,7 @@ class Recorder:
 
     @property
     def closed(self):
-        return self.writer._closed
+        return self.writer.closed
 
     def close(self):
         """Complete the last chunk; returns the path to open (idempotent)."""
