@@ -248,6 +248,12 @@ class _FrameWriter:
     def stored(self, frame):
         return frame == self.frames or (frame % self.store_every == 0 if self.store_every else False)
 
+    def needed(self, frame) -> bool:
+        """Whether frame ``frame`` must reach the host: every frame where the layer's extent covers
+        them all (all, preview), only the last with ``store_every`` 0 (``--store none``: its scratch
+        layer feeds the thumbnails, nothing else reads the frames)."""
+        return bool(self.store_every) or frame == self.frames
+
     def __call__(self, frame, ticket=None):
         batch, writer = self.batch, self.writer
         x, v = batch.world_slices() if ticket is None else batch.world_slices(ticket)
@@ -265,7 +271,8 @@ def _step_frames(batch, body, frames, write, recorder, progress, use_graph):
     then ``write(frame)``. On a GPU frame f is written while frame f + 1 steps: its copy to the
     host is started (pinned, double-buffered, on a copy stream) before the next frame is
     launched, and waited for after (:meth:`WorldBatch.start_host_copy`)."""
-    write(0)
+    if write.needed(0):
+        write(0)
     ahead = getattr(batch, "can_copy_ahead", lambda: False)()
     graph, pending = None, None  # pending: (frame, ticket) of the frame copied and not yet written
     for frame in range(1, int(frames) + 1):
@@ -280,6 +287,10 @@ def _step_frames(batch, body, frames, write, recorder, progress, use_graph):
             body()
         if recorder is not None:
             recorder.after_frame()
+        if not write.needed(frame):  # (--store none: only the last frame goes to the host)
+            if progress is not None:
+                progress(frame)
+            continue
         done = (frame, batch.start_host_copy()) if ahead else (frame,)
         if ahead and pending is None:
             pending = done
