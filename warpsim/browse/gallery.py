@@ -257,6 +257,12 @@ class GalleryViewer(PlaybackViewer):
             item = self.reader.static.get(h.name.split("/", 2)[2])
             yield h.name.split("/")[2], h, item is None or item.opacity is None or item.opacity >= 1.0
 
+    def refresh_visibility(self):
+        """Show and hide the worlds as the isolated world and the query's answer say now (the
+        query panel calls it once an answer is painted)."""
+        with self._lock:
+            self._refresh()
+
     def _refresh(self, isolated=...):
         """Visibility per the isolated world (``isolated``: that world instead of
         ``self.isolated``); click handlers on new meshes."""

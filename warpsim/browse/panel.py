@@ -336,8 +336,7 @@ class QueryPanel:
         """Show and hide the worlds as ``hidden`` says now (the latest answer's)."""
         if self.viewer.server is None:
             return
-        with self.viewer._lock:
-            self.viewer._refresh()
+        self.viewer.refresh_visibility()
 
     def settle(self, timeout=10.0):
         """Wait until the worlds' visibility follows the last answer (tests, scripts)."""

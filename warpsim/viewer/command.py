@@ -226,7 +226,7 @@ def run(args, out, err):
     import signal
 
     if threading_is_main():
-        signal.signal(signal.SIGTERM, lambda *_: viewer._stop.set())  # kill: stop cleanly, completing a recording
+        signal.signal(signal.SIGTERM, lambda *_: viewer.request_stop())  # kill: stop cleanly, completing a recording
     live = hasattr(viewer, "session")
     print(f"warpsim view: {viewer.url}   (Ctrl-C stops" + (f"; recordings go to {args.record_dir}/)" if live else ")"),
           file=out, flush=True)

@@ -9,8 +9,12 @@ class Serving:
     """Mix-in for a viewer with ``server`` (None until ``start``), ``_stop`` (a threading.Event),
     ``start()`` and ``stop()``."""
 
+    def request_stop(self):
+        """Ask :meth:`run` to stop at its next check (safe from a signal handler: it sets an event)."""
+        self._stop.set()
+
     def run(self):
-        """Serve until Ctrl-C (or :meth:`stop` from another thread)."""
+        """Serve until Ctrl-C (or :meth:`stop` / :meth:`request_stop` from another thread)."""
         if self.server is None:
             self.start()
         try:
