@@ -260,7 +260,7 @@ def run_device_sweep(scene_name, world_params, *, devices, frames, out_path, tab
     blocks = [(b, d) for b, d in zip(blocks, devices) if b[1] > 0]
     staging = SweepStaging(out_path, {**settings, "blocks": [list(b) for b, _ in blocks]}, resume=resume,
                            blocks=len(blocks), stored=int(store_every) != 0)
-    scratch = [None] * len(blocks)  # --store none: each block's last frame, for the thumbnails
+    scratch: list = [None] * len(blocks)  # --store none: each block's last frame, for the thumbnails
     if int(store_every) == 0:
         import tempfile
 

@@ -99,7 +99,7 @@ def _author_samples(layer, job, values) -> int:
     paths = [[Sdf.Path(p) for p in field_paths] for field_paths, _, _ in fields]
     changes = [bool(on_change) for _, _, on_change in fields]
     n = len(paths[0]) if paths else 0
-    last = [[None] * n for _ in fields]
+    last: list = [[None] * n for _ in fields]
     pending = total = 0
     save_bytes = job["save_bytes"]
     for f, t in enumerate(times):

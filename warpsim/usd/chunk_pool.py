@@ -26,6 +26,9 @@ ROOT_EVERY = 0.2
 class WorkerChunks:
     """Mixin of :class:`warpsim.usd.writer.UsdCacheWriter`: its chunks written by worker processes."""
 
+    def _declare_specs(self, layer, manifest):  # pragma: no cover - the writer's own (UsdCacheWriter)
+        raise NotImplementedError
+
     def _start_pool(self):
         """Start the ``workers`` processes and the shared memory pool of their chunks."""
         from ..process_pool import BlockPool, ProcessPool
