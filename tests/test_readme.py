@@ -114,9 +114,9 @@ COMMANDS = {
     "warpsim view cloth --set integrator=implicit_euler --port 8090": skip("serves until stopped"),
     "warpsim view dam_break --device cuda:0 --max-points 200000": skip("serves until stopped, on a GPU"),
     "warpsim view usd_out/teapot.usda": skip("serves until stopped"),
+    "python docs/viewer_pictures.py":
+        skip("the README's viewer pictures in headless Chromium: tests/test_readme_pictures.py runs it"),
     "warpsim view usd_out/bounce.usda": skip("serves until stopped"),
-    "WARPSIM_WRITE_DOCS=1 python -m pytest tests/test_viewer_browser.py":
-        skip("the viewer's browser test (the suite runs it; this line also rewrites the picture)"),
     "warpsim view SCENE": skip("serves until stopped"),
     "warpsim render CACHE": run("wrote usd_out/pendulum.gif", "CACHE => usd_out/pendulum.usda", "+ --size 64x48",
                                 "+ --frames 0:4"),
