@@ -24,6 +24,8 @@ import sys
 import tempfile
 import time
 
+from bench_sweep_command import Timers
+
 STAGES = ("advance", "data", "write", "close")
 
 
@@ -35,25 +37,11 @@ def timed_run(argv, seconds):
 
     scene_class = get_scene(argv[1])
 
-    patched = []
-
-    def wrap(owner, name, stage):
-        fn = getattr(owner, name)
-
-        def timed(*args, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                seconds[stage] += time.perf_counter() - t0
-
-        patched.append((owner, name, fn))
-        setattr(owner, name, timed)
-
-    wrap(scene_class, "advance", "advance")
-    wrap(scene_class, "frame_data", "data")
-    wrap(UsdCacheWriter, "write_frame", "write")
-    wrap(UsdCacheWriter, "close", "close")
+    timers = Timers(seconds)  # (bench_sweep_command's; each stage counted once, not inside another)
+    timers.wrap(scene_class, "advance", "advance")
+    timers.wrap(scene_class, "frame_data", "data")
+    timers.wrap(UsdCacheWriter, "write_frame", "write")
+    timers.wrap(UsdCacheWriter, "close", "close")
     out, err = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()
     try:
@@ -61,8 +49,7 @@ def timed_run(argv, seconds):
             code = main(argv)
     finally:
         total = time.perf_counter() - t0
-        for owner, name, fn in reversed(patched):
-            setattr(owner, name, fn)
+        timers.restore()
     if code not in (0, None):
         raise SystemExit(f"warpsim {' '.join(argv)} exited {code}: {err.getvalue().strip()[-400:]}")
     return total

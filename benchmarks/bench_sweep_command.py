@@ -45,8 +45,11 @@ STAGES = ("stepping", "writing", "closing", "record", "thumbs", "table", "prefli
 
 
 class Timers:
-    def __init__(self):
-        self.seconds = dict.fromkeys(STAGES, 0.0)
+    """Wraps methods so their calls add to ``seconds[stage]`` (a call inside another timed one
+    counts once); :meth:`restore` puts the methods back."""
+
+    def __init__(self, seconds=None):
+        self.seconds = dict.fromkeys(STAGES, 0.0) if seconds is None else seconds
         self._patched = []
         self._depth = 0
 

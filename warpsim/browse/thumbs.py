@@ -96,8 +96,11 @@ def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=
         workers = workers if workers >= 2 else 0  # one worker beside this process gains nothing measurable
     if not workers:
         count = 0
-        for layer, names in slices:
-            count += save_pngs(_render(folder, world_geometry(layer, names), camera, renderer, progress))
+        try:
+            for layer, names in slices:
+                count += save_pngs(_render(folder, world_geometry(layer, names), camera, renderer, progress))
+        finally:
+            _OPENED.clear()  # (this process keeps no stage of the layer once its pictures are drawn)
         return count
     device = renderer.device.alias
     size = (renderer.width, renderer.height)

@@ -304,14 +304,9 @@ class BatchLayerWriter(UsdCacheWriter):
         pts = np.asarray(points)
         if pts.shape[1] == 0:
             return
-        if finite:
-            lo, hi = world_bounds(pts)
-            lo, hi = lo.min(axis=0).astype(np.float64), hi.max(axis=0).astype(np.float64)
-            self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
-            return
-        finite = np.isfinite(pts).all(axis=(1, 2))
-        if not finite.all():
-            pts = pts[finite]
+        keep = None if finite else np.isfinite(pts).all(axis=(1, 2))
+        if keep is not None and not keep.all():
+            pts = pts[keep]
             if not len(pts):
                 return
         lo, hi = world_bounds(pts)
