@@ -115,24 +115,38 @@ class Controls:
             self.status.content = text
 
     def _notify(self, text):
-        """Show ``text`` (None: nothing) as the error notification of every open tab."""
+        """Show ``text`` (None: nothing) as the error notification of every open tab.
+
+        A tab keeps one notification while there is an error: a new text (the blow-up shown, then
+        the pause's explanation) updates its body in place, and it is removed once when the error
+        goes. (Removing one and showing another within a few milliseconds could leave one drawn in
+        the browser after its removal.)"""
         with self._notice_lock:
             if text == self._notice_text:
                 return
             self._notice_text = text
+            if text is None:
+                for note in self._notices.values():
+                    note.remove()
+                self._notices = {}
+                return
             for note in self._notices.values():
-                note.remove()
-            self._notices = {}
+                note.body = self._notice_body(text)
             server = self.viewer.server
-            if text is None or server is None:
+            if server is None:
                 return
             for client_id, client in server.get_clients().items():
-                self._notices[client_id] = self._add_notice(client, text)
+                if client_id not in self._notices:
+                    self._notices[client_id] = self._add_notice(client, text)
+
+    @staticmethod
+    def _notice_body(text):
+        return text.replace("**", "").replace("  \n", "\n")
 
     @staticmethod
     def _add_notice(client, text):
-        body = text.replace("**", "").replace("  \n", "\n")
-        return client.add_notification("Simulation error", body, with_close_button=True, color="red")
+        return client.add_notification("Simulation error", Controls._notice_body(text),
+                                       with_close_button=True, color="red")
 
     def on_connect(self, client):
         """A tab opened: it gets the error notification while there is one."""
