@@ -40,7 +40,11 @@ CAUSES = {
                                                                 {"boundary_viscosity": 0.01}),
               ("SPH viscosity nu 0.001", {"kinematic_viscosity": 0.001}),
               ("SPH viscosity nu 0.01", {"kinematic_viscosity": 0.01}), ("XSPH 0", {"viscosity": 0.0}),
-              ("converged solve (0.01 %)", {"density_tolerance": 0.0001}), ("cfl 0.1", {"cfl": 0.1})],
+              ("converged solve (0.01 %)", {"density_tolerance": 0.0001}), ("cfl 0.1", {"cfl": 0.1}),
+              ("SPlisHSPlasH's mass (0.8 of the lattice's: starts at 0.8 rho0)", {"mass_fraction": 0.8}),
+              ("SPlisHSPlasH's block (one spacing inside, one layer fewer)", {"inset": True}),
+              ("SPlisHSPlasH's mass and block", {"mass_fraction": 0.8, "inset": True}),
+              ("SPlisHSPlasH's mass, SPH viscosity nu 0.01", {"mass_fraction": 0.8, "kinematic_viscosity": 0.01})],
 }
 
 
@@ -70,6 +74,7 @@ def main():
     ap.add_argument("--methods", nargs="+", default=["pbf", "dfsph", "flip"], choices=["pbf", "dfsph", "flip"])
     ap.add_argument("--res", type=int, nargs="+", default=[10, 20, 40], help="particles (cells) per column width a")
     ap.add_argument("--causes", action="store_true", help="one switch at a time at the first --res")
+    ap.add_argument("--only", default="", help="with --causes: only the switches whose label contains this")
     ap.add_argument("--gate-speeds", type=float, nargs="*", default=[],
                     help="DFSPH at the first --res released by a gate lifted at these speeds [m/s] instead")
     ap.add_argument("--device", default="cpu", help="particle methods' device (FLIP runs on the CPU)")
@@ -86,6 +91,8 @@ def main():
         res = args.res[0]
         for method in [m for m in args.methods if m in CAUSES]:
             for label, settings in CAUSES[method]:
+                if args.only not in label:
+                    continue
                 settings = dict(settings)
                 layers = settings.pop("layers", 3)
                 r = MM.run_dam_break(method, res=res, layers=layers, device=args.device, **settings)

@@ -17,7 +17,8 @@ helpers these kernels use):
 
 import warp as wp
 
-from .sph import Boundaries, FluidParams, NeighborList, boundary_density, pair_terms
+from .sph import (Boundaries, FluidParams, NeighborList, boundary_density, close_neighbor_list, list_neighbors,
+                  pair_terms)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -80,36 +81,9 @@ def find_neighbors_factor(
     nbc = dp.boundary_count
     self_index = nbc + i
     xi = x_all[self_index]
-    capacity = nb_out.capacity
-    base = i * nb_out.stride_i
-    count = int(0)
-    rho = p.self_density
-    rho_boundary = float(0.0)
-    grad_sum = wp.vec3(0.0)
-    grad2 = float(0.0)
-    query = wp.hash_grid_query(grid, xi, p.h)
-    j = int(0)
-    while wp.hash_grid_query_next(query, j):
-        rij = xi - x_all[j]
-        r2 = wp.dot(rij, rij)
-        if r2 < p.h2 and j != self_index:
-            if count < capacity:
-                k = base + count * nb_out.stride_k
-                nb_out.index[k] = j
-                wf = pair_terms(p, r2)
-                rho += wf[0]
-                grad_sum += wf[1] * rij
-                if j < nbc:
-                    rho_boundary += wf[0]
-                else:
-                    grad2 += wf[1] * wf[1] * r2
-                if nb_out.cache_gradients != 0:
-                    nb_out.grad_factor[k] = wf[1]
-            count += 1
-    if count > capacity:
-        wp.atomic_max(overflow_out, 0, count)
-        count = capacity
-    nb_out.count[i] = count
+    count, rho, grad_sum, grad2, rho_boundary = list_neighbors(grid, p, x_all, self_index, xi, nbc, 1, nb_out,
+                                                               i * nb_out.stride_i)
+    count = close_neighbor_list(nb_out, i, count, overflow_out)
     bd = boundary_density(b, xi, p.h)
     gb = wp.vec3(bd[0], bd[1], bd[2])
     g = grad_sum + gb

@@ -337,6 +337,56 @@ def store_density_constraint(
         compression_out[i] = c
 
 
+@wp.func
+def list_neighbors(grid: wp.uint64, p: FluidParams, x: wp.array(dtype=wp.vec3), self_index: int, xi: wp.vec3,
+                   first_fluid: int, with_density: int, nb_out: NeighborList, base: int):
+    """The neighbour list of the particle at ``xi`` (hash-grid candidates j != ``self_index`` with
+    |x_i - x_j| < h, indices into ``x``, stored from ``base`` up to the list's capacity), in the
+    grid's candidate order. With ``with_density`` != 0 also, in the same fixed order, the density
+    sum rho = m W(0) + sum_j m W_ij [kg/m^3], sum_j grad W_ij terms (the pair gradient cached when
+    the list caches them), sum |grad W_ij|^2 r^2 over the particles j >= ``first_fluid`` and the
+    density of those below it (boundary particles). Returns (all candidates within h: may exceed the
+    capacity, rho, grad sum, gradient-square sum, boundary density)."""
+    capacity = nb_out.capacity
+    count = int(0)
+    rho = p.self_density
+    rho_boundary = float(0.0)
+    grad_sum = wp.vec3(0.0)
+    grad2 = float(0.0)
+    query = wp.hash_grid_query(grid, xi, p.h)
+    j = int(0)
+    while wp.hash_grid_query_next(query, j):
+        rij = xi - x[j]
+        r2 = wp.dot(rij, rij)
+        if r2 < p.h2 and j != self_index:
+            if count < capacity:
+                k = base + count * nb_out.stride_k
+                nb_out.index[k] = j
+                if with_density != 0:
+                    wf = pair_terms(p, r2)
+                    rho += wf[0]
+                    grad_sum += wf[1] * rij
+                    if j < first_fluid:
+                        rho_boundary += wf[0]
+                    else:
+                        grad2 += wf[1] * wf[1] * r2
+                    if nb_out.cache_gradients != 0:
+                        nb_out.grad_factor[k] = wf[1]
+            count += 1
+    return count, rho, grad_sum, grad2, rho_boundary
+
+
+@wp.func
+def close_neighbor_list(nb_out: NeighborList, i: int, count: int, overflow_out: wp.array(dtype=int)) -> int:
+    """Store particle i's list length (at most the capacity; overflow_out[0] receives the largest
+    count that did not fit) and return it."""
+    if count > nb_out.capacity:
+        wp.atomic_max(overflow_out, 0, count)
+        count = nb_out.capacity
+    nb_out.count[i] = count
+    return count
+
+
 @wp.kernel
 def find_neighbors_density(
     grid: wp.uint64,
@@ -362,33 +412,9 @@ def find_neighbors_density(
     tid = wp.tid()
     i = wp.hash_grid_point_id(grid, tid)
     xi = x[i]
-    capacity = nb_out.capacity
-    base = i * nb_out.stride_i
-    count = int(0)
-    rho = p.self_density
-    grad_i = wp.vec3(0.0)
-    sum_grad2 = float(0.0)
-    query = wp.hash_grid_query(grid, xi, p.h)
-    j = int(0)
-    while wp.hash_grid_query_next(query, j):
-        rij = xi - x[j]
-        r2 = wp.dot(rij, rij)
-        if r2 < p.h2 and j != i:
-            if count < capacity:
-                k = base + count * nb_out.stride_k
-                nb_out.index[k] = j
-                if with_density != 0:
-                    wf = pair_terms(p, r2)
-                    rho += wf[0]
-                    grad_i += wf[1] * rij
-                    sum_grad2 += wf[1] * wf[1] * r2
-                    if nb_out.cache_gradients != 0:
-                        nb_out.grad_factor[k] = wf[1]
-            count += 1
-    if count > capacity:
-        wp.atomic_max(overflow_out, 0, count)
-        count = capacity
-    nb_out.count[i] = count
+    count, rho, grad_i, sum_grad2, unused = list_neighbors(grid, p, x, i, xi, 0, with_density, nb_out,
+                                                           i * nb_out.stride_i)
+    close_neighbor_list(nb_out, i, count, overflow_out)
     if with_density != 0:
         store_density_constraint(p, b, i, xi, rho, grad_i, sum_grad2, with_stats, density_out, lambda_out,
                                  boundary_grad_out, compression_out)

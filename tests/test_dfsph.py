@@ -114,6 +114,34 @@ def test_dam_break_surge_runs_at_the_experiments_speed(dam_break):
     assert abs(speed / measured - 1.0) < 0.05
 
 
+def test_an_under_dense_block_collapses_later_as_splishsplash_s_setup_does(dam_break):
+    """Why a well-known SPH code (SPlisHSPlasH, DFSPH) stays within ~7 % of the table where the
+    rest-density column leads by ~16 %: its fluid particles get 0.8 of a lattice cell's mass
+    (``FluidModel::initMasses``: "to prevent pressure at the beginning"), so its block starts at
+    0.8 rho0 and, the pressure clamped at >= 0, is soft until packed to rest density. The same
+    setting here (``mass_fraction=0.8``): the interior starts at 0.80-0.83 rho0 after one frame (the cubic kernel sums a
+    lattice to exactly 1 / s^3), no particle reaches rho0 in the first frames, and the front
+    trails the rest-density block's at T = 1.2 by several points (measured a/10: raw worst +7.5 %
+    against +16.3 %; a/20 +6.7 % against +17.7 %, benchmarks/RESULTS.md). Not a remedy: it removes
+    a fifth of the column's stiffness, not the experiment's release."""
+    soft = MM.run_dam_break("dfsph", res=10, device=CPU, mass_fraction=0.8, t_end=1.3)
+    f = soft["fluid"]
+    assert f.particle_mass == pytest.approx(0.8 * dam_break["fluid"].particle_mass, rel=1e-12)
+    first = MM.run_dam_break("dfsph", res=10, device=CPU, mass_fraction=0.8, t_end=0.05)["fluid"]
+    rho = first.density.numpy() / first.rest_density
+    x = first.positions.numpy()
+    interior = (x[:, 0] > 0.05) & (x[:, 0] < 0.15) & (x[:, 1] > 0.05) & (x[:, 1] < 0.3)
+    assert interior.sum() > 20 and np.all((rho[interior] > 0.78) & (rho[interior] < 0.85)), rho[interior]
+    assert rho.max() < 1.0
+    z_soft = np.interp(1.2, soft["T"], soft["Z"])
+    z_rest = np.interp(1.2, dam_break["T"], dam_break["Z"])
+    z_exp = np.interp(1.2, *MM.table(0.2, 0.4))
+    print(f"Z(1.2): rest density {z_rest:.3f}, 0.8 rho0 {z_soft:.3f}, measured {z_exp:.3f}")
+    assert z_soft < z_rest - 0.05 * z_exp and z_soft > z_exp  # later, and still ahead of the experiment
+    with pytest.raises(ValueError, match="mass_fraction"):
+        ParticleFluid(fluid_block((0, 0, 0), (0.1, 0.1, 0.1), 0.05), spacing=0.05, mass_fraction=3.0, device=CPU)
+
+
 def test_floor_front_is_the_water_on_the_floor_not_spray():
     """floor_front: the edge of the film joined to the wall; a drop ahead of a dry stretch, or a
     particle above the floor band, is not the front; a one-bin hole in the film is."""

@@ -160,15 +160,19 @@ def gate(a: float, depth: float, spacing: float, top: float, layers: int = 2) ->
 
 
 def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: float = 0.2, t_end: float = 3.1,
-                  frames_per_T: int = 20, gate_speed: float = 0.0, device=None, **settings) -> dict:
+                  frames_per_T: int = 20, gate_speed: float = 0.0, inset: bool = False, device=None,
+                  **settings) -> dict:
     """Martin and Moyce's n^2 = 2 dam break with a ParticleFluid: the column a x 2a (``layers``
     particles thick, a / spacing = ``res``) in the -x corner of the box 5a x 2.5a, released at
     rest at T = 0 and advanced in frames of dT = 1 / frames_per_T (CFL sub-steps) to ``t_end``.
     Returns T, the floor front Z (:func:`floor_front`) and the tip front Z_tip (:func:`tip_front`)
     per frame (over a), the mean compression per frame, steps, pressure iterations per step,
     particles, wall-clock seconds and the fluid. ``gate_speed`` > 0 [m/s] (DFSPH): the column is
-    released by lifting a gate (:func:`gate`) at that speed instead of all at once. ``settings`` go
-    to ParticleFluid."""
+    released by lifting a gate (:func:`gate`) at that speed instead of all at once. ``inset``: the
+    block as SPlisHSPlasH's ``createFluidBlocks`` samples it, its first particle one spacing inside
+    the column's faces and round(L / spacing) - 1 particles along x and y (a column one layer
+    narrower and lower, a spacing off the wall); by default the lattice fills a x 2a exactly, its
+    particles half a spacing inside the faces. ``settings`` go to ParticleFluid."""
     import time
 
     from .pbf import ParticleFluid, fluid_block
@@ -179,7 +183,13 @@ def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: floa
     depth = layers * s
     if gate_speed:
         settings["moving_boundary"] = (gate(a, depth, s, 2.5 * a + 2.0 * s), (0.0, float(gate_speed), 0.0))
-    f = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, depth), s), spacing=s,
+    if inset:
+        axes = [(np.arange(int(round(length / s)) - 1) + 1.0) * s for length in (a, 2 * a)]
+        axes.append((np.arange(layers) + 0.5) * s)
+        block = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    else:
+        block = fluid_block((0, 0, 0), (a, 2 * a, depth), s)
+    f = ParticleFluid(block, spacing=s,
                       domain=((0, 0, 0), (5 * a, 2.5 * a, depth)), method=method, device=device, **settings)
     scale = time_scale(a, 2 * a)
     T, Z, tip, compression = [0.0], [1.0], [1.0], [0.0]
