@@ -3,7 +3,8 @@
 After ``--settle`` steps of ``--dt`` (blow-up checks on), on the same heap: the full step (eager, and on
 CUDA as a graph of one BVH-rebuild period), the contact search alone (``VBDContact.search``, times the
 searches a step makes: its share of a step), one colour sweep, frames of 1/60 s per wall second, the
-pairs listed and list overflows, then the two properties the heap tests assert on the final state:
+pairs listed, the queries past the lists' capacity at the last search and the most pairs one query met (per
+search: figures that cannot wrap), then the two properties the heap tests assert on the final state:
 the deepest vertex of a torus inside another [mm] and the surface edges passing through another
 torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``). ``--reference-integrator
 fast_mass_spring`` builds and settles the same heap with that integrator in the same process and prints
@@ -68,7 +69,10 @@ def run_vbd(args, device, build) -> None:
     vt, ee = contact.pair_counts()
     print(f"VBD step              {full * 1e3:9.3f} ms   {1.0 / full:8.1f} steps/s")
     print(f"contact search        {search * 1e3:9.3f} ms x {searches_per_step(integrator)} a step: share of a step "
-          f"{share:.1%} ({vt} vertex-triangle, {ee} edge-edge pairs listed; overflow {contact.overflow})")
+          f"{share:.1%} ({vt} vertex-triangle, {ee} edge-edge pairs listed)")
+    over, most = contact.overflow, contact.most_pairs
+    print(f"queries past the lists' capacity of {contact.capacity} at the last search (vertex, triangle, edge): "
+          f"{over}; the most pairs one query met: {most}")
     print(f"one colour sweep      {sweep * 1e3:9.3f} ms x {integrator.iterations} a step")
     print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
     if device.is_cuda:

@@ -18,9 +18,10 @@ one kernel, ``query_pairs``, with the query's kind as its first argument.
 Pairs sharing a particle are skipped; so are pairs of the same body unless self contact is on.
 Each query also keeps the smallest distance it met (``*_min``, [m]); ``displacement_bounds`` turns
 them into each particle's step bound (the proof is in ``warpsim.bodies.vbd``). A query with more
-pairs within the radius than a list's ``capacity`` keeps the nearest (``keep_nearest``), counts the
-rest in ``overflow`` (integer atomic) and still lowers the smallest distance with them, so an
-overflow can miss a far pair's force but never the bound.
+pairs within the radius than a list's ``capacity`` keeps the nearest (``keep_nearest``), is counted in
+``overflow`` (queries past capacity at this search and the most pairs one query met: integer atomics on
+figures bounded by the number of queries and of pairs, zeroed at each search) and still lowers the
+smallest distance with the rest, so an overflow can miss a far pair's force but never the bound.
 
 Contact energy of one pair, written with four particles k and weights a_k (vertex-triangle: 1,
 -b_0, -b_1, -b_2 with b the barycentrics of the triangle point nearest the vertex; edge-edge:
@@ -219,11 +220,15 @@ def query_pairs(
     """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
     triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
     ``list_out[item capacity ..]`` (the ``capacity`` nearest, ``keep_nearest``) in ascending order, their
-    count, and the smallest distance met (at most ``query_radius``). Two levels: the bodies of the query's world whose bounds meet the box
+    count, and the smallest distance met (at most ``query_radius``). A query with more pairs than ``capacity``
+    adds 1 to ``overflow_io[kind]`` and raises ``overflow_io[3 + kind]`` to its number of pairs (both zeroed
+    before the search: they count queries of one search, never pairs over many, so they cannot wrap). Two
+    levels: the bodies of the query's world whose bounds meet the box
     (``collect_bodies`` from the world's root of the body BVH), then each one's subtree of the grouped BVH."""
     item = wp.tid()
     lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
     n = int(0)
+    total = int(0)
     dmin = query_radius
     seen = int(0)
     more = int(1)
@@ -241,10 +246,11 @@ def query_pairs(
                     continue
                 dmin = wp.min(dmin, d)
                 if d < query_radius:
-                    n = keep_nearest(item * capacity, n, capacity, d, stored, list_out, distance_out)
-                    if n > capacity:
-                        wp.atomic_add(overflow_io, kind, 1)
-                        n = capacity
+                    n = wp.min(keep_nearest(item * capacity, n, capacity, d, stored, list_out, distance_out), capacity)
+                    total += 1
+    if total > capacity:
+        wp.atomic_add(overflow_io, kind, 1)
+        wp.atomic_max(overflow_io, 3 + kind, total)
     # ascending order: the list (and the sums over it) does not depend on the BVH's traversal order, so a
     # world of a sweep (one BVH for all worlds) gets the bits of the same scene run alone
     for a in range(1, n):

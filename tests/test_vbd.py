@@ -111,8 +111,9 @@ def test_greedy_colouring_separates_every_spring_and_tiles():
         greedy_colouring(4, [(0, 1), (2, 2)])
 
 
-def two_tori(self_contact=True, gap=0.02):
-    """Two tori of 10 x 6, the upper tilted, dropped on a floor, VBD with contact (self contact on)."""
+def two_tori(self_contact=True, gap=0.02, **contact_options):
+    """Two tori of 10 x 6, the upper tilted, dropped on a floor, VBD with contact (self contact on; more
+    ``VBDContact`` options as keywords)."""
     b = ws.ModelBuilder()
     _, lower = small_torus((0.0, 0.06, 0.0), b)
     points, faces = ws.torus_mesh(0.1, 0.04, 10, 6)
@@ -125,7 +126,7 @@ def two_tori(self_contact=True, gap=0.02):
     body[upper.particle_start:] = 1
     faces = np.concatenate([lower.faces, upper.faces])
     contact = ws.VBDContact(faces, particle_body=body, thickness=0.006, self_contact=self_contact,
-                            planes=[((0.0, 1.0, 0.0), 0.0)])
+                            planes=[((0.0, 1.0, 0.0), 0.0)], **contact_options)
     sim = ws.Simulator(model, integrator=ws.VBD(10, contact=contact), forces=[ws.Gravity()])
     return sim, contact, faces
 
@@ -412,6 +413,39 @@ def test_the_search_lists_every_pair_within_the_radius_and_bounds_by_the_nearest
     for s, p in enumerate(surface):
         assert bound[p] <= contact.bound_fraction * nearest[s] + 1e-7  # its own vertex-triangle pairs
     assert bound.max() == pytest.approx(contact.max_displacement)
+
+
+def test_list_overflow_is_counted_per_search_and_says_the_capacity_needed():
+    """Two tori 4 mm apart with lists of 2 pairs: ``overflow`` gives the vertex and triangle queries that met
+    more pairs within the query radius than that at the last search and ``most_pairs`` the most one met (NumPy
+    distances); the edge queries overflow too. Searching again at the same positions gives the same figures:
+    they count one search, never pairs summed over searches (that int32 counter wrapped negative at 1,000
+    tori on the H200)."""
+    capacity = 2
+    sim, contact, faces = two_tori(self_contact=False, gap=0.004, capacity=capacity)
+    sim.integrator.prepare(sim.system)
+    q = sim.state.positions
+    contact.search(q)
+    x = q.numpy().astype(np.float64)
+    body = contact._body.numpy()
+    surface, r = contact._surface.numpy(), contact.query_radius
+    distances = np.stack([point_triangle_distances(x[surface], *x[f]) for f in faces], 1)  # (V, F)
+    other = body[surface][:, None] != body[faces[:, 0]][None, :]
+    surely = other & (distances < r - 1e-5)
+    maybe = other & (distances <= r + 1e-5)
+    over, most = contact.overflow, contact.most_pairs
+    for kind, axis in ((0, 1), (1, 0)):  # per vertex, per triangle
+        low, high = surely.sum(axis), maybe.sum(axis)
+        assert (low > capacity).sum() <= over[kind] <= (high > capacity).sum(), (kind, over)
+        assert over[kind] > 0 and low.max() <= most[kind] <= high.max(), (kind, most)
+    assert over[2] > 0 and most[2] > capacity
+    vt, count = contact._vt.numpy().reshape(len(surface), -1), contact._vt_count.numpy()
+    for s in np.flatnonzero(surely.sum(1) > capacity):  # each kept its nearest
+        kept = distances[s, vt[s, :count[s]]]
+        assert count[s] == capacity and kept.max() <= np.sort(distances[s][other[s]])[capacity - 1] + 1e-6, s
+    for _ in range(3):
+        contact.search(q)
+    assert contact.overflow == over and contact.most_pairs == most
 
 
 @pytest.mark.parametrize("name", ["drape", "cloth"])

@@ -192,7 +192,7 @@ class VBDContact:
         self._distances = [wp.zeros(self.vertex_count * C, dtype=float, device=d),
                            wp.zeros(self.triangle_count * C, dtype=float, device=d),
                            wp.zeros(self.edge_count * C, dtype=float, device=d)]  # the lists' distances [m]
-        self._overflow = wp.zeros(3, dtype=int, device=d)
+        self._overflow = wp.zeros(6, dtype=int, device=d)  # queries past capacity, most pairs of one query
         self._planes = wp.array(self.planes.astype(np.float32), dtype=wp.vec4, device=d)
         self._spheres = wp.array(self.spheres.astype(np.float32), dtype=wp.vec4, device=d)
         self.reference = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -293,6 +293,7 @@ class VBDContact:
             for launch in self._find_roots:
                 launch.launch()
         self.searches += 1
+        self._overflow.zero_()
         for launch in self._queries:
             launch.launch()
 
@@ -304,8 +305,17 @@ class VBDContact:
 
     @property
     def overflow(self) -> tuple:
-        """(vertex, triangle, edge) queries' pairs beyond ``capacity`` so far (reads back)."""
-        return tuple(int(x) for x in self._overflow.numpy())
+        """(vertex, triangle, edge) queries with more pairs within the query radius than ``capacity`` at the
+        last search (reads back; each kept its nearest ``capacity``). Per search, never accumulated: a figure
+        at most the number of queries, which cannot wrap."""
+        return tuple(int(x) for x in self._overflow.numpy()[:3])
+
+    @property
+    def most_pairs(self) -> tuple:
+        """(vertex, triangle, edge): the most pairs within the query radius one query of that kind met at the
+        last search, where it was more than ``capacity`` (else 0; reads back): the capacity that would have
+        kept them all."""
+        return tuple(int(x) for x in self._overflow.numpy()[3:])
 
     def pair_counts(self) -> tuple:
         """(vertex-triangle, edge-edge) pairs listed at the last search (reads back; each pair
