@@ -358,28 +358,129 @@ def pendulum_limit(g_over_l, integrator) -> StabilityLimit:
 
 def _adjacency(model):
     """CSR (offsets, spring, other particle) of the model's springs per particle, in spring order,
-    and the springs' ends (S, 2) on the host: the model's own CSR (``particle_spring_offsets``,
-    ``particle_springs``: a batch tiles world 0's on the device), each entry's other end found on
-    the device (cached on the model)."""
+    and the springs' ends (S, 2) on the host (:func:`_device_adjacency`, :func:`_spring_ends`)."""
+    return (*_device_adjacency(model), _spring_ends(model))
+
+
+def _device_adjacency(model):
+    """CSR (offsets, spring, other particle) of the model's springs per particle, in spring order:
+    the model's own CSR (``particle_spring_offsets``, ``particle_springs``: a batch tiles world 0's
+    on the device), each entry's other end found on the device (cached on the model)."""
     from .model import ensure_spring_adjacency
 
     n, S = model.particle_count, model.spring_count
     cached = getattr(model, "_stability_adjacency", None)
     if cached is not None and cached[0] == (n, S):
         return cached[1]
-    idx = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64) if S else np.zeros((0, 2), np.int64)
     d = model.device
     if S:
         ensure_spring_adjacency(model)
         offsets, springs = model.particle_spring_offsets, model.particle_springs
         other = wp.empty(2 * S, dtype=int, device=d)
         wp.launch(K.other_ends, n, inputs=[offsets, springs, model.spring_indices, other], device=d)
-        value = (offsets, springs, other, idx)
+        value = (offsets, springs, other)
     else:
-        value = (wp.zeros(n + 1, dtype=int, device=d), wp.zeros(1, dtype=int, device=d), wp.zeros(1, dtype=int, device=d),
-                 idx)
+        value = (wp.zeros(n + 1, dtype=int, device=d), wp.zeros(1, dtype=int, device=d), wp.zeros(1, dtype=int, device=d))
     model._stability_adjacency = ((n, S), value)
     return value
+
+
+def _spring_ends(model, count=None):
+    """The ends (count, 2) int64 of the model's first ``count`` springs (None: all) on the host."""
+    S = model.spring_count if count is None else int(count)
+    return model.spring_indices[:2 * S].numpy().reshape(-1, 2).astype(np.int64) if S else np.zeros((0, 2), np.int64)
+
+
+SPRING_BLOCK = 1 << 16
+"""Springs per host block of the per-spring estimates of a batch's worlds: temporaries of a few MB
+that stay in the caches (arrays of every world's springs went through memory once an operation)."""
+
+
+class _HostSprings:
+    """The per-spring host work of :func:`particle_limits`: each spring's own limit and, after the
+    power iteration, each world's spring storing most of the mode's energy. ``tiled`` (P, S): the
+    model is ``W`` copies of one world (world w's particles w P.., springs w S.., ends world 0's
+    + w P): the work goes by blocks of whole worlds from world 0's ends; else all springs at once,
+    each world's springs found by one stable sort. Both give every value the same bits (the same
+    element-wise operations on the same elements)."""
+
+    def __init__(self, model, tiled, world, W):
+        S, n = model.spring_count, model.particle_count
+        self.tiled = tiled is not None and tiled[1] > 0 and S == W * tiled[1] and n == W * tiled[0]
+        self.W = W
+        if self.tiled:
+            self.P0, self.S0 = int(tiled[0]), int(tiled[1])
+            self.ends0 = _spring_ends(model, self.S0)
+            per = max(1, SPRING_BLOCK // self.S0)
+            self.blocks = [(w0, min(W, w0 + per)) for w0 in range(0, W, per)]
+        else:
+            self.ends0 = _spring_ends(model)
+            self.blocks = [(0, W)]
+            spring_world = world[self.ends0[:, 0]] if S else np.zeros(0, dtype=np.int64)
+            self.order = np.argsort(spring_world, kind="stable")
+            self.start = np.searchsorted(spring_world[self.order], np.arange(W + 1))
+        self.best = np.zeros(W, dtype=np.int64)  # (find_strongest: per world, tiled)
+        self.energy = np.zeros(S)  # (find_strongest: per spring, not tiled)
+
+    def _block(self, block):
+        """(springs as a slice, their ends (m, 2)) of ``block``."""
+        if not self.tiled:
+            return slice(0, len(self.ends0)), self.ends0
+        w0, w1 = block
+        ends = (self.ends0[None] + (np.arange(w0, w1, dtype=np.int64) * self.P0)[:, None, None]).reshape(-1, 2)
+        return slice(w0 * self.S0, w1 * self.S0), ends
+
+    def ends(self, s):
+        """The two particles of spring ``s``."""
+        if not self.tiled:
+            return self.ends0[s]
+        return self.ends0[s % self.S0] + (s // self.S0) * self.P0
+
+    def steps(self, method, k32, c32, broken, inv_mass, drag):
+        """Each spring's own limit [s] (per spring on its own: omega_s^2 = k (1/m_i + 1/m_j),
+        zeta_s = c (1/m_i + 1/m_j) / (2 omega_s)); ``k32``, ``c32``: host arrays as stored."""
+        out = np.empty(len(k32))
+        for block in self.blocks:
+            span, ends = self._block(block)
+            k, c = k32[span].astype(np.float64), c32[span].astype(np.float64)
+            w_sum = inv_mass[ends[:, 0]] + inv_mass[ends[:, 1]]
+            omega_s = np.sqrt(np.maximum(k, 0.0) * w_sum)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                zeta_s = np.where(omega_s > 0, (c * w_sum + drag * w_sum / 2) / (2.0 * omega_s), 0.0)
+            out[span] = stable_steps(method, omega_s, zeta_s)
+        out[broken] = np.inf
+        return out
+
+    def find_strongest(self, q, vh, k32, broken):
+        """Note each world's spring of most energy k (strain along it)^2 in the mode ``vh`` (n, 3)
+        about the positions ``q`` (n, 3) [float64] (:meth:`strongest`)."""
+        for block in self.blocks:
+            span, ends = self._block(block)
+            dirs = q[ends[:, 1]] - q[ends[:, 0]]
+            lengths = np.linalg.norm(dirs, axis=1)
+            dirs = dirs / np.where(lengths > 0, lengths, 1.0)[:, None]
+            strain = np.einsum("ij,ij->i", vh[ends[:, 0]] - vh[ends[:, 1]], dirs)
+            energy = np.where(broken[span], 0.0, k32[span].astype(np.float64) * strain * strain)
+            if not self.tiled:  # (one block)
+                self.energy = energy
+                continue
+            w0, w1 = block  # the first of equal energies, as np.argmax over the world's springs
+            self.best[w0:w1] = energy.reshape(w1 - w0, self.S0).argmax(axis=1) + np.arange(w0, w1) * self.S0
+
+    def strongest(self, w) -> int:
+        """World ``w``'s spring of most energy (after :meth:`find_strongest`)."""
+        if self.tiled:
+            return int(self.best[w])
+        springs = self.order[self.start[w]:self.start[w + 1]]
+        return int(springs[np.argmax(self.energy[springs])])
+
+    def world_steps(self, spring_dt, w):
+        """World ``w``'s springs' own limits (all of them for one world)."""
+        if self.W == 1:
+            return spring_dt
+        if self.tiled:
+            return spring_dt[w * self.S0:(w + 1) * self.S0]
+        return spring_dt[self.order[self.start[w]:self.start[w + 1]]]
 
 
 def synchronised_energy(integrator) -> bool:
@@ -448,13 +549,16 @@ def _collider_steps(model, positions, velocities, colliders, gravity):
 
 
 def particle_limits(model, positions, integrator, forces=(), colliders=(), *, particle_world=None,
-                    world_count: int = 1, iterations: int = POWER_ITERATIONS, velocities=None) -> list:
+                    world_count: int = 1, iterations: int = POWER_ITERATIONS, velocities=None, tiled=None) -> list:
     """One :class:`StabilityLimit` per world of a particle model (see module docstring).
 
     ``positions``: wp.array of vec3 (particle_count,) about which springs are linearised;
     ``particle_world``: host int array (particle_count,) of world indices (None: one world);
     ``velocities``: (particle_count, 3) [m/s] for the colliders' distance limits (None: the model's
-    initial velocities)."""
+    initial velocities); ``tiled``: (P, S) when the model is ``world_count`` copies of one world of P
+    particles and S springs (a batch's: particles and springs world by world, each world's ends world
+    0's + w P, ``particle_world`` = particle // P): the per-spring host work then goes by blocks of
+    whole worlds, the same values (None: any model)."""
     method = method_of(integrator)
     force_method = force_method_of(integrator)
     n, S, d = model.particle_count, model.spring_count, model.device
@@ -469,30 +573,21 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     moving = inv_mass > 0.0
     world = np.zeros(n, dtype=np.int64) if particle_world is None else np.asarray(particle_world, dtype=np.int64)
     W = int(world_count)
-    offsets, adj_spring, adj_other, idx = _adjacency(model)
-    k = model.spring_stiffness.numpy().astype(np.float64) if S else np.zeros(0)
-    c = model.spring_damping.numpy().astype(np.float64) if S else np.zeros(0)
+    offsets, adj_spring, adj_other = _device_adjacency(model)
+    springs = _HostSprings(model, tiled, world, W)
+    k = model.spring_stiffness.numpy() if S else np.zeros(0)  # (as stored: float64 block by block)
+    c = model.spring_damping.numpy() if S else np.zeros(0)
     broken = model.spring_broken.numpy() != 0 if S and hasattr(model, "spring_broken") else np.zeros(S, bool)
     broken_arr = model.spring_broken if S and hasattr(model, "spring_broken") else wp.zeros(max(S, 1), dtype=int,
                                                                                               device=d)
     drag = _linear_drag(forces)
 
-    # per spring on its own: omega_s^2 = k (1/m_i + 1/m_j), zeta_s = c (1/m_i + 1/m_j) / (2 omega_s)
-    if S:
-        w_sum = inv_mass[idx[:, 0]] + inv_mass[idx[:, 1]]
-        omega_s = np.sqrt(np.maximum(k, 0.0) * w_sum)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            zeta_s = np.where(omega_s > 0, (c * w_sum + drag * w_sum / 2) / (2.0 * omega_s), 0.0)
-        spring_dt = stable_steps(method, omega_s, zeta_s)
-        spring_dt[broken] = np.inf
-    else:
-        spring_dt = np.zeros(0)
+    spring_dt = springs.steps(method, k, c, broken, inv_mass, drag) if S else np.zeros(0)
 
     omega2 = np.zeros(W)
     damp = np.zeros(W)
     bound = np.zeros(W)
     particle_dt = np.full(n, np.inf)
-    energy = np.zeros(S)
     amplitude = np.zeros(n)
     if S and n and moving.any():
         rest = model.spring_rest_length
@@ -533,12 +628,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         row = rows.numpy().astype(np.float64)
         np.maximum.at(bound, world, row)
         particle_dt = stable_steps(method, np.sqrt(np.maximum(row, 0.0)), 0.0)
-        q = positions.numpy().astype(np.float64)
-        dirs = q[idx[:, 1]] - q[idx[:, 0]]
-        lengths = np.linalg.norm(dirs, axis=1)
-        dirs = dirs / np.where(lengths > 0, lengths, 1.0)[:, None]
-        strain = np.einsum("ij,ij->i", vh[idx[:, 0]] - vh[idx[:, 1]], dirs)
-        energy = np.where(broken, 0.0, k * strain * strain)
+        springs.find_strongest(positions.numpy().astype(np.float64), vh, k, broken)
         amplitude = np.einsum("ij,ij->i", vh, vh)
 
     k_c, zeta_c = _penalty(colliders)
@@ -546,12 +636,10 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         velocities = model.particle_qd.numpy()
     collider_dt, collider_of, collider_L = _collider_steps(model, positions, velocities, colliders,
                                                            gravity_of(forces, W)[world])
-    spring_world = world[idx[:, 0]] if S else np.zeros(0, dtype=np.int64)
-    # each world's particles and springs as slices of one stable sort (W x n scans cost minutes at 10^5 worlds)
+    # each world's particles (and springs: _HostSprings) as slices of one stable sort (W x n scans cost minutes
+    # at 10^5 worlds)
     p_order = np.argsort(world, kind="stable")
     p_start = np.searchsorted(world[p_order], np.arange(W + 1))
-    s_order = np.argsort(spring_world, kind="stable")
-    s_start = np.searchsorted(spring_world[s_order], np.arange(W + 1))
     limits = []
     for w in range(W):
         omega = math.sqrt(omega2[w])
@@ -563,9 +651,8 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         if len(in_world) and amplitude[in_world].max() > 0:
             particle = int(in_world[np.argmax(amplitude[in_world])])
         if omega > 0:
-            springs = s_order[s_start[w]:s_start[w + 1]]
-            s = int(springs[np.argmax(energy[springs])])
-            ends = [e for e in idx[s] if moving[e]]
+            s = springs.strongest(w)
+            ends = [e for e in springs.ends(s) if moving[e]]
             kind, index, stiffness, damping = "spring", s, float(k[s]), float(c[s])
             m = float(min(mass[e] for e in ends)) if ends else 0.0
         who = "none" if kind == "none" else f"{kind} {index}: k = {stiffness:.4g} N/m, m = {m:.4g} kg"
@@ -596,16 +683,16 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         if len(in_world) and np.isfinite(collider_dt[in_world]).any():
             p = int(in_world[np.argmin(collider_dt[in_world])])
             if collider_dt[p] < dt:
-                c = colliders[int(collider_of[p])]
-                name = getattr(c, "name", type(c).__name__)
+                collider = colliders[int(collider_of[p])]
+                name = getattr(collider, "name", type(collider).__name__)
                 dt, kind, index, particle = float(collider_dt[p]), "collider", int(collider_of[p]), p
                 stiffness, m, damping = 0.0, float(mass[p]), 0.0
-                reason = (f"{name} ({getattr(c, 'mode_name', 'contact')}) on particle {p}: it may move at most "
+                reason = (f"{name} ({getattr(collider, 'mode_name', 'contact')}) on particle {p}: it may move at most "
                           f"{collider_L[p]:.4g} m per step (its collision thickness or fall height) and covers "
                           f"|v| dt + |g| dt^2 per step, so dt <= {dt:.4g} s")
         limits.append(StabilityLimit(
             dt=dt, integrator=region, omega_max=omega, damping_ratio=zeta, limiting=kind, index=index,
             stiffness=stiffness, mass=m, damping=damping, particle=particle, omega_bound=math.sqrt(bound[w]),
-            reason=reason, spring_dt=spring_dt if W == 1 else spring_dt[s_order[s_start[w]:s_start[w + 1]]],
+            reason=reason, spring_dt=springs.world_steps(spring_dt, w),
             particle_dt=particle_dt if W == 1 else particle_dt[in_world]))
     return limits

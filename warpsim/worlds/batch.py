@@ -448,7 +448,8 @@ class WorldBatch:
         sim = self.sim
         return particle_limits(self._springs_model(), self.model.particle_q, sim.integrator, sim.forces, sim.colliders,
                                particle_world=self.model.particle_world.numpy(), world_count=self.world_count,
-                               iterations=POWER_ITERATIONS if iterations is None else int(iterations))
+                               iterations=POWER_ITERATIONS if iterations is None else int(iterations),
+                               tiled=(self.model.world_particle_count, self.model.world_spring_count))
 
     def _springs_model(self):
         """The model whose springs the stability estimate reads: the batch's own, or on the shared
