@@ -179,3 +179,28 @@ def test_thumbnails_read_and_encoded_by_workers_are_the_same_pictures(tmp_path):
         assert n == 5
     same = files_equal(tmp_path / "t0", tmp_path / "t1")
     assert len(same) == 5 and all(same.values()), same
+
+
+def test_thumbnail_workers_started_during_the_sweep_draw_the_same_pictures(tmp_path, monkeypatch):
+    """The thumbnails' workers a sweep starts once its frames are stepped (they warm up while the
+    layer, record, table and root are completed) draw the bytes drawn in one process."""
+    import io
+
+    from warpsim.browse import thumbs
+    from warpsim.cli import main
+
+    started, drawn = [], []
+    start, draw = thumbs.start_workers, thumbs.draw_thumbnails
+    monkeypatch.setattr(thumbs, "start_workers", lambda *a: started.append(start(*a)) or started[-1])
+    monkeypatch.setattr(thumbs, "draw_thumbnails", lambda *a, **k: drawn.append(k.get("pool")) or draw(*a, **k))
+    for workers in (0, 2):
+        monkeypatch.setattr(thumbs, "thumbnail_workers", lambda world_count, jobs=None, n=workers: n)
+        code = main(["sweep", "bounce", "--worlds", "5", "--frames", "10", "--vary", "height=0.02:0.06", "--out",
+                     str(tmp_path / f"w{workers}" / "s.usda"), "--no-progress", "--thumbnails", "--device", "cpu"],
+                    io.StringIO(), io.StringIO())
+        assert code == 0
+    pools = [pool for pool in started if pool is not None]  # (none for the sweep drawing in this process)
+    assert len(pools) == 1 and pools[0].workers == 2
+    assert drawn == [None, pools[0]] and pools[0]._closed  # the early pool drew them, and was closed after
+    same = files_equal(tmp_path / "w0" / "s.thumbs", tmp_path / "w2" / "s.thumbs")
+    assert len(same) == 5 and all(same.values()), same

@@ -90,12 +90,13 @@ def thumbnails_folder(root) -> str:
     return os.path.splitext(os.path.abspath(os.fspath(root)))[0] + ".thumbs"
 
 
-def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None, progress=None) -> dict:
+def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None, progress=None, pool=None) -> dict:
     """Every world's picture of the sweep ``root`` (its last frame, as :func:`thumbnail` draws it,
     with :func:`thumbnail_camera`), rendered by warpsim's renderer on ``device`` straight from the
     batch ``layers`` into ``<stem>.thumbs/world_GGGGGG.png``, so the gallery finds them made
     (:func:`warpsim.browse.thumbs.draw_thumbnails`: many worlds are read and encoded in worker
-    processes; ``progress()``: called after each picture). Returns {"count", "seconds", "folder"}."""
+    processes; ``progress()``: called after each picture; ``pool``: those processes started early,
+    :func:`warpsim.browse.thumbs.start_workers`). Returns {"count", "seconds", "folder"}."""
     from ..render.renderer import Renderer
     from .thumbs import draw_thumbnails
 
@@ -103,7 +104,7 @@ def sweep_thumbnails(root, layers, record, *, size=THUMB_SIZE, device=None, prog
     folder = thumbnails_folder(root)
     os.makedirs(folder, exist_ok=True)
     renderer = Renderer(int(size[0]), int(size[1]), device=device)
-    count = draw_thumbnails(folder, layers, thumbnail_camera(record, size), renderer, progress=progress)
+    count = draw_thumbnails(folder, layers, thumbnail_camera(record, size), renderer, progress=progress, pool=pool)
     return {"count": count, "seconds": time.perf_counter() - t0, "folder": folder}
 
 
@@ -112,12 +113,12 @@ OPT_IN_WORLDS = 10_000
 a picture on a CPU, 100,000 worlds would add a quarter of an hour."""
 
 
-def thumbnails_after_sweep(root, layers, record, device=None, enabled=True, progress=None) -> str:
+def thumbnails_after_sweep(root, layers, record, device=None, enabled=True, progress=None, pool=None) -> str:
     """What ``warpsim sweep`` does for the gallery's pictures: draw them all
     (:func:`sweep_thumbnails`), or with ``enabled=False`` (``--no-thumbnails``, or past
     ``OPT_IN_WORLDS`` worlds without ``--thumbnails``: ``enabled="many"``) remove an older sweep's
     pictures of this root, so the gallery draws fresh ones on first show. ``progress()``: after
-    each picture. Returns the line to print."""
+    each picture; ``pool``: the workers that draw them, started early (or None). Returns the line to print."""
     import shutil
 
     if enabled == "many":
@@ -129,7 +130,7 @@ def thumbnails_after_sweep(root, layers, record, device=None, enabled=True, prog
         shutil.rmtree(thumbnails_folder(root), ignore_errors=True)
         return "thumbnails: none (--no-thumbnails; the gallery draws them on first show)"
     try:
-        made = sweep_thumbnails(root, layers, record, device=device, progress=progress)
+        made = sweep_thumbnails(root, layers, record, device=device, progress=progress, pool=pool)
     except Exception as exc:  # noqa: BLE001  (a finished sweep stands; the gallery draws them on first show)
         return f"thumbnails: not drawn ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
     return (f"thumbnails: {made['count']} pictures of {THUMB_SIZE[0]}x{THUMB_SIZE[1]} in {made['seconds']:.2f} s "

@@ -5,6 +5,10 @@ worlds side by side: each reads its worlds' geometry from the batch layer (opene
 worker), renders them on the sweep's device (its own renderer: one CUDA context a worker on a
 GPU) and encodes the PNGs. Few worlds are drawn here (a worker starts in about a second). The
 pictures are the same either way: the same geometry, camera and renderer.
+
+A sweep starts those workers early (:func:`start_workers`, once its frames are stepped): they
+import the renderer, start Warp and build their renderer while the sweep completes its layer,
+its record, table and root, and draw as soon as the layer is whole.
 """
 from __future__ import annotations
 
@@ -12,7 +16,8 @@ import os
 
 from ..core.safe_files import open_temporary
 
-__all__ = ["POOL_WORLDS", "draw_thumbnails", "save_pngs", "slice_pictures", "world_geometry"]
+__all__ = ["POOL_WORLDS", "draw_thumbnails", "save_pngs", "slice_pictures", "start_workers", "thumbnail_workers",
+           "warm_worker", "world_geometry"]
 
 POOL_WORLDS = 200
 """Sweeps with at least this many worlds read and encode their pictures in worker processes."""
@@ -81,19 +86,60 @@ def _layer_worlds(layer):
     return [child.name for child in worlds.nameChildren] if worlds is not None else []
 
 
-def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=None) -> int:
+def thumbnail_workers(world_count, jobs=None) -> int:
+    """Processes that draw the pictures of ``world_count`` worlds (``jobs``: slices of them, None:
+    one per :data:`SLICE_WORLDS`): by the cores, from :data:`POOL_WORLDS` worlds on; 0: this process."""
+    from ..process_pool import default_workers
+
+    if world_count < POOL_WORLDS:
+        return 0
+    workers = default_workers(jobs=-(-int(world_count) // SLICE_WORLDS) if jobs is None else jobs)
+    return workers if workers >= 2 else 0  # one worker beside this process gains nothing measurable
+
+
+def start_workers(world_count, size, device):
+    """The :class:`~warpsim.process_pool.ProcessPool` that will draw ``world_count`` worlds'
+    pictures of ``size`` on ``device``, started now, each worker warming up (:func:`warm_worker`)
+    while the caller goes on; hand it to :func:`draw_thumbnails` (``pool``) and close it after.
+    None when this process draws them (:func:`thumbnail_workers`)."""
+    from ..process_pool import ProcessPool
+
+    workers = thumbnail_workers(world_count)
+    if not workers:
+        return None
+    pool = ProcessPool(workers)
+    for _ in range(workers):  # (one job a worker: each holds its worker until done)
+        pool.submit("warpsim.browse.thumbs:warm_worker", tuple(size), str(device))
+    return pool
+
+
+def warm_worker(size, device) -> None:
+    """A worker's first job: the modules a slice needs imported, Warp started and the renderer of
+    ``size`` on ``device`` built (:func:`slice_pictures` keeps it)."""
+    import warp as wp
+
+    from ..render import usd_scene  # noqa: F401  (the layer's reader, and usd-core)
+    from ..verbosity import set_warp_verbosity
+
+    set_warp_verbosity()
+    _renderer(size, wp.get_device(device).alias)  # (the name slice_pictures is given: the renderer's device)
+
+
+def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=None, pool=None) -> int:
     """Every world of the batch ``layers`` drawn by ``renderer`` with ``camera`` into
     ``folder/world_GGGGGG.png``; ``workers``: processes that each read, render (on the renderer's
     device, with a renderer of the same size) and encode a slice of the worlds (None: by the
-    worlds' count, :data:`POOL_WORLDS`; 0: all here). Returns the pictures' count."""
-    from ..process_pool import ProcessPool, default_workers
+    worlds' count, :func:`thumbnail_workers`; 0: all here); ``pool``: those processes, already
+    started (:func:`start_workers`; the caller closes it). Returns the pictures' count."""
+    from ..process_pool import ProcessPool
 
     slices = [(layer, names[i:i + SLICE_WORLDS]) for layer in layers
               for names in [_layer_worlds(layer)] for i in range(0, len(names), SLICE_WORLDS)]
     total = sum(len(names) for _, names in slices)
-    if workers is None:
-        workers = default_workers(jobs=len(slices)) if total >= POOL_WORLDS else 0
-        workers = workers if workers >= 2 else 0  # one worker beside this process gains nothing measurable
+    if pool is not None:
+        workers = pool.workers
+    elif workers is None:
+        workers = thumbnail_workers(total, jobs=len(slices))
     if not workers:
         count = 0
         try:
@@ -104,15 +150,21 @@ def draw_thumbnails(folder, layers, camera, renderer, *, progress=None, workers=
         return count
     device = renderer.device.alias
     size = (renderer.width, renderer.height)
+    if pool is not None:
+        return _draw_slices(pool, slices, folder, camera, size, device, progress)
+    with ProcessPool(workers) as started:
+        return _draw_slices(started, slices, folder, camera, size, device, progress)
+
+
+def _draw_slices(pool, slices, folder, camera, size, device, progress) -> int:
     count = 0
-    with ProcessPool(workers) as pool:
-        jobs = [pool.submit("warpsim.browse.thumbs:slice_pictures", layer, names, folder, camera, size, device)
-                for layer, names in slices]
-        for job in jobs:
-            done = job.result()
-            count += done
-            for _ in range(done if progress is not None else 0):
-                progress()
+    jobs = [pool.submit("warpsim.browse.thumbs:slice_pictures", layer, names, folder, camera, size, device)
+            for layer, names in slices]
+    for job in jobs:
+        done = job.result()
+        count += done
+        for _ in range(done if progress is not None else 0):
+            progress()
     return count
 
 
@@ -122,6 +174,11 @@ _RENDERERS: dict = {}
 def slice_pictures(layer, names, folder, camera, size, device) -> int:
     """A worker's job: the pictures of the worlds ``names`` of ``layer``, read, rendered on
     ``device`` by a renderer of ``size`` (kept for the worker's next slices) and saved as PNGs."""
+    return save_pngs(_render(folder, world_geometry(layer, names), camera, _renderer(size, device), None))
+
+
+def _renderer(size, device):
+    """This worker's renderer of ``size`` on ``device`` (built once, kept for its next slices)."""
     from ..render.renderer import Renderer
     from ..verbosity import set_warp_verbosity
 
@@ -130,7 +187,7 @@ def slice_pictures(layer, names, folder, camera, size, device) -> int:
     if key not in _RENDERERS:
         _RENDERERS.clear()
         _RENDERERS[key] = Renderer(int(size[0]), int(size[1]), device=device)
-    return save_pngs(_render(folder, world_geometry(layer, names), camera, _RENDERERS[key], None))
+    return _RENDERERS[key]
 
 
 def _render(folder, geometries, camera, renderer, progress):

@@ -168,14 +168,19 @@ def run(args, out, err):
     if timing.note:  # --substeps N overriding the scene's dt (--strict: refused)
         warn_or_refuse(timing.note, args.strict, err)
     _check_resources(args, cls, base, len(world_params), path, device, devices, timing.fps, err)
+    args.thumbnail_pool = None  # (the thumbnails' workers: started once the frames are stepped, _run_here)
     try:
         rows, root, layers = _execute(args, cls, world_params, (path, table), (device, devices), track, occupancy,
                                       err)
     except (SimulationError, ValueError, RaySweepError, DeviceSweepError) as exc:
+        _close_thumbnail_pool(args)
         if isinstance(exc, ValueError) and not isinstance(exc, SimulationError) and _is_usage(exc):
             raise UsageError(str(exc).splitlines()[0]) from None
         print(f"warpsim: sweep failed: {str(exc).splitlines()[0]}", file=err)
         return 1
+    except BaseException:
+        _close_thumbnail_pool(args)
+        raise
     unstable = sum(1 for r in rows if r.get("unstable"))
     blown = sum(1 for r in rows if r.get("blown_up") and not r.get("unstable"))  # the unstable ones are said below
     note = f"{blown} blew up and were frozen" if blown else ""
@@ -187,8 +192,38 @@ def run(args, out, err):
     print(args.store_note, file=out)
     thumbs_device = device if getattr(args, "ray", None) is None and devices is None else \
         devices[0] if devices is not None else "cpu"
-    return _answer(args, rows, (root, layers, path), list(world_params[0]), (regions, rank, where), thumbs_device,
-                   out, err)
+    try:
+        return _answer(args, rows, (root, layers, path), list(world_params[0]), (regions, rank, where),
+                       thumbs_device, out, err)
+    finally:
+        _close_thumbnail_pool(args)
+
+
+def _thumbnails_wanted(args, worlds):
+    """True (drawn), False (``--no-thumbnails``) or "many" (past ``OPT_IN_WORLDS`` without ``--thumbnails``)."""
+    from ..browse.panel import OPT_IN_WORLDS
+
+    return not args.no_thumbnails and ("many" if worlds > OPT_IN_WORLDS and not args.thumbnails else True)
+
+
+def _start_thumbnail_pool(args, worlds, device):
+    """Start the workers that will draw the thumbnails (:func:`warpsim.browse.thumbs.start_workers`)
+    while the sweep completes its layer, record, table and root; none when this process draws them."""
+    if _thumbnails_wanted(args, worlds) is not True or getattr(args, "thumbnail_pool", None) is not None:
+        return
+    from ..browse.panel import THUMB_SIZE
+    from ..browse.thumbs import start_workers
+
+    try:
+        args.thumbnail_pool = start_workers(worlds, THUMB_SIZE, device)
+    except OSError:  # (then they start when drawn, as without this head start)
+        args.thumbnail_pool = None
+
+
+def _close_thumbnail_pool(args):
+    pool, args.thumbnail_pool = getattr(args, "thumbnail_pool", None), None
+    if pool is not None:
+        pool.close(wait=False)
 
 
 def _checked_flags(args):
@@ -487,6 +522,13 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
     record = _record_path(path)
     clock = []
 
+    def staged(name):
+        """A stage after the frames: the thumbnails' workers start with the first (they warm up while
+        the layer, record, table and root are completed); the progress bar's label."""
+        _start_thumbnail_pool(args, len(world_params), device)
+        if progress:
+            progress.set_description_str(f"{cls.name} x{len(world_params)}: {name}")
+
     def advanced(frame):
         """Progress, and the sweep's time estimated from its second frame, measured (the time between
         the first two frames' reports: stepping every world and writing them; the first frame, which
@@ -509,9 +551,7 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
                          progress=advanced, fused=args.fused,
                          occupancy={**occupancy, "path": staging.partial(record)},
                          warn=lambda line: warn_or_refuse(line, args.strict, err), chunk_size=args.chunk,
-                         resume_frame=first, timing=run_timing,
-                         on_stage=(lambda name: progress.set_description_str(
-                             f"{cls.name} x{len(world_params)}: {name}")) if progress else None)
+                         resume_frame=first, timing=run_timing, on_stage=staged)
     except BaseException:
         staging.abandon()  # refused before any frame (e.g. a batch that cannot be built): no progress file
         if every == 0:
@@ -562,9 +602,7 @@ def _answer(args, rows, written, params, picking, device, out, err):
 
         record = OccupancyRecord.load(_record_path(path))
         print(record.describe(), file=out)
-        from ..browse.panel import OPT_IN_WORLDS
-
-        enabled = not args.no_thumbnails and ("many" if len(rows) > OPT_IN_WORLDS and not args.thumbnails else True)
+        enabled = _thumbnails_wanted(args, len(rows))
         bar = None
         if enabled is True and not args.no_progress:
             from tqdm import tqdm
@@ -572,7 +610,8 @@ def _answer(args, rows, written, params, picking, device, out, err):
             bar = tqdm(total=len(rows), unit="world", desc="thumbnails", file=err, dynamic_ncols=True)
         try:
             print(thumbnails_after_sweep(root, layers, record, enabled=enabled, device=device,
-                                         progress=bar.update if bar else None), file=out)
+                                         progress=bar.update if bar else None,
+                                         pool=getattr(args, "thumbnail_pool", None)), file=out)
         finally:
             if bar:
                 bar.close()
