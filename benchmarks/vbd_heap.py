@@ -73,7 +73,9 @@ def run_vbd(args, device, build) -> None:
     over, most = contact.overflow, contact.most_pairs
     print(f"queries past the lists' capacity of {contact.capacity} at the last search (vertex, triangle, edge): "
           f"{over}; the most pairs one query met: {most}")
-    print(f"one colour sweep      {sweep * 1e3:9.3f} ms x {integrator.iterations} a step")
+    kept, whole = contact.near_stats()
+    print(f"one colour sweep      {sweep * 1e3:9.3f} ms x {integrator.iterations} a step (gathering over {kept} list "
+          f"entries that can push, {whole} vertices past near_capacity {contact.near_capacity} over their whole lists)")
     print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
     if device.is_cuda:
         period = contact.rebuild_every // math.gcd(contact.rebuild_every, searches_per_step(integrator))

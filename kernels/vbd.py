@@ -83,7 +83,8 @@ def solve_colour(
     vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
     tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
-    ee_count: wp.array(dtype=int), planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
+    ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
+    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
     contact_stiffness: float,
     friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
     q_out: wp.array(dtype=wp.vec3),
@@ -116,7 +117,8 @@ def solve_colour(
         f -= stiffness[s] * (length - rest[s]) * n + c * (nn * (dxp - (q[o] - q0[o])))
         H += stiffness[s] * (nn + wp.max(0.0, 1.0 - rest[s] / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
     fc, Hc = contact_force_hessian(p, x, q, q0, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
-                                   tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, planes, spheres, radius,
+                                   tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                   near_capacity, planes, spheres, radius,
                                    contact_stiffness, friction, friction_eps)
     f += fc
     H += Hc

@@ -23,6 +23,10 @@ pairs within the radius than a list's ``capacity`` keeps the nearest (``keep_nea
 figures bounded by the number of queries and of pairs, zeroed at each search) and still lowers the
 smallest distance with the rest, so an overflow can miss a far pair's force but never the bound.
 
+After the search ``keep_near_pairs`` keeps, for each surface vertex, the list entries that can still push on
+it before the next search (by the distances and the step bounds), so the colour sweeps gather over those
+alone (the same sums, bit for bit).
+
 Contact energy of one pair, written with four particles k and weights a_k (vertex-triangle: 1,
 -b_0, -b_1, -b_2 with b the barycentrics of the triangle point nearest the vertex; edge-edge:
 1 - s, s, -(1 - t), -t with s, t the parameters of the nearest points): r = sum a_k x_k, d = |r|,
@@ -255,11 +259,14 @@ def query_pairs(
     # world of a sweep (one BVH for all worlds) gets the bits of the same scene run alone
     for a in range(1, n):
         value = list_out[item * capacity + a]
+        distance = distance_out[item * capacity + a]
         b = a - 1
         while b >= 0 and list_out[item * capacity + b] > value:
             list_out[item * capacity + b + 1] = list_out[item * capacity + b]
+            distance_out[item * capacity + b + 1] = distance_out[item * capacity + b]
             b -= 1
         list_out[item * capacity + b + 1] = value
+        distance_out[item * capacity + b + 1] = distance
     count_out[item] = n
     min_out[item] = dmin
 
@@ -307,6 +314,155 @@ def displacement_bounds(
 
 
 @wp.func
+def vertex_triangle_pair(x: wp.vec3, dx: wp.vec3, t: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+                         tri: wp.array(dtype=int), radius: float, stiffness: float, friction: float,
+                         friction_eps: float):
+    """Force [N] and Hessian block [N/m] on a vertex at ``x`` (step displacement ``dx`` [m]) from its pair
+    with triangle t (the vertex's side); zero when the bounding spheres are apart."""
+    i = tri[3 * t]
+    j = tri[3 * t + 1]
+    k = tri[3 * t + 2]
+    centre, extent = triangle_sphere(q[i], q[j], q[k])
+    if spheres_apart(x, 0.0, centre, extent, radius):
+        return wp.vec3(), wp.mat33()
+    r, w = vertex_triangle_rel(x, q[i], q[j], q[k])
+    u = dx - (w[0] * (q[i] - q0[i]) + w[1] * (q[j] - q0[j]) + w[2] * (q[k] - q0[k]))
+    return pair_force_hessian(r, u, 1.0, radius, stiffness, friction, friction_eps)
+
+
+@wp.func
+def corner_triangle(p: int, x: wp.vec3, t: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+                    tri: wp.array(dtype=int)):
+    """Triangle t with its corner p at ``x``: (corners [m] as rows, their step displacements [m], bounding
+    sphere centre [m] and radius [m], which corner p is)."""
+    corner = int(0)
+    if tri[3 * t + 1] == p:
+        corner = 1
+    elif tri[3 * t + 2] == p:
+        corner = 2
+    xs = wp.mat33()
+    ds = wp.mat33()
+    for m in range(3):
+        v = tri[3 * t + m]
+        xv = q[v]
+        if v == p:
+            xv = x
+        xs[m] = xv
+        ds[m] = xv - q0[v]
+    centre, extent = triangle_sphere(xs[0], xs[1], xs[2])
+    return xs, ds, centre, extent, corner
+
+
+@wp.func
+def triangle_vertex_pair(xs: wp.mat33, ds: wp.mat33, centre: wp.vec3, extent: float, corner: int, v: int,
+                         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), radius: float, stiffness: float,
+                         friction: float, friction_eps: float):
+    """Force [N] and Hessian block [N/m] on corner ``corner`` of a triangle (``corner_triangle``) from its
+    pair with vertex v (the triangle's side); zero when the bounding spheres are apart."""
+    if spheres_apart(q[v], 0.0, centre, extent, radius):
+        return wp.vec3(), wp.mat33()
+    r, w = vertex_triangle_rel(q[v], xs[0], xs[1], xs[2])
+    u = (q[v] - q0[v]) - (w[0] * ds[0] + w[1] * ds[1] + w[2] * ds[2])
+    return pair_force_hessian(r, u, -w[corner], radius, stiffness, friction, friction_eps)
+
+
+@wp.func
+def edge_with(p: int, x: wp.vec3, e: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+              edges: wp.array(dtype=int)):
+    """Edge e with its end p at ``x``: (ends [m] as rows 0 and 1, their step displacements [m] as rows,
+    bounding sphere centre [m] and radius [m], 1 when p is the first end else 0)."""
+    i = edges[2 * e]
+    j = edges[2 * e + 1]
+    xi = q[i]
+    xj = q[j]
+    if i == p:
+        xi = x
+    else:
+        xj = x
+    xs = wp.matrix_from_rows(xi, xj, wp.vec3())
+    ds = wp.matrix_from_rows(xi - q0[i], xj - q0[j], wp.vec3())
+    return xs, ds, 0.5 * (xi + xj), 0.5 * wp.length(xj - xi), wp.where(i == p, 1, 0)
+
+
+@wp.func
+def edge_edge_pair(xs: wp.mat33, ds: wp.mat33, centre: wp.vec3, extent: float, first: int, g: int,
+                   q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), edges: wp.array(dtype=int), radius: float,
+                   stiffness: float, friction: float, friction_eps: float):
+    """Force [N] and Hessian block [N/m] on an end of an edge (``edge_with``) from its pair with edge g;
+    zero when the bounding spheres are apart."""
+    k = edges[2 * g]
+    m = edges[2 * g + 1]
+    if spheres_apart(centre, extent, 0.5 * (q[k] + q[m]), 0.5 * wp.length(q[m] - q[k]), radius):
+        return wp.vec3(), wp.mat33()
+    r, st = edge_edge_rel(xs[0], xs[1], q[k], q[m])
+    u = (1.0 - st[0]) * ds[0] + st[0] * ds[1] - (1.0 - st[1]) * (q[k] - q0[k]) - st[1] * (q[m] - q0[m])
+    weight = wp.where(first == 1, 1.0 - st[0], st[0])
+    return pair_force_hessian(r, u, weight, radius, stiffness, friction, friction_eps)
+
+
+@wp.kernel
+def keep_near_pairs(
+    surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+    vt_list: wp.array(dtype=int), vt_distance: wp.array(dtype=float), vt_count: wp.array(dtype=int),
+    tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tv_list: wp.array(dtype=int),
+    tv_distance: wp.array(dtype=float), tv_count: wp.array(dtype=int),
+    edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
+    ee_distance: wp.array(dtype=float), ee_count: wp.array(dtype=int),
+    reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float), radius: float, near_capacity: int,
+    near_out: wp.array(dtype=int), near_end_out: wp.array(dtype=int),
+):
+    """After a search, for surface vertex s (particle p): the positions in the three lists of the pairs
+    that can still push on p before the next search, in the gather's order (p's vertex-triangle pairs, its
+    triangles' pairs, its edges' pairs), into ``near_out[s near_capacity ..]``, and where each of the three
+    parts ends in ``near_end_out[3 s ..]`` (-1 first when more than ``near_capacity``: the gather then walks
+    the whole lists).
+
+    A pair at distance D [m] at the search, its two sides within bounds b_a and b_b of where they were
+    (every point of a side is a convex combination of its corners: b = the largest corner bound), is at
+    least D - b_a - b_b apart until the next search; at ``radius`` or more it exerts nothing, so leaving it
+    out changes no bit. Left out only with a slack of 1e-3 ``radius`` + 1e-5 |x_p| beyond that (far more than
+    the rounding of the distances), so a pair the gather would find inside the radius is always kept."""
+    s = wp.tid()
+    p = surface[s]
+    reach = radius + 1.0e-3 * radius + 1.0e-5 * wp.length(reference[p])
+    bp = bound[p]
+    base = s * near_capacity
+    n = int(0)
+    for k in range(vt_count[s]):
+        a = s * capacity + k
+        t = vt_list[a]
+        far = wp.max(wp.max(bound[tri[3 * t]], bound[tri[3 * t + 1]]), bound[tri[3 * t + 2]])
+        if vt_distance[a] - bp - far < reach:
+            if n < near_capacity:
+                near_out[base + n] = a
+            n += 1
+    near_end_out[3 * s] = n
+    for c in range(tri_offsets[p], tri_offsets[p + 1]):
+        t = tris[c]
+        own = wp.max(wp.max(bound[tri[3 * t]], bound[tri[3 * t + 1]]), bound[tri[3 * t + 2]])
+        for k in range(tv_count[t]):
+            a = t * capacity + k
+            if tv_distance[a] - own - bound[tv_list[a]] < reach:
+                if n < near_capacity:
+                    near_out[base + n] = a
+                n += 1
+    near_end_out[3 * s + 1] = n
+    for c in range(edge_offsets[p], edge_offsets[p + 1]):
+        e = edge_list[c]
+        own = wp.max(bound[edges[2 * e]], bound[edges[2 * e + 1]])
+        for k in range(ee_count[e]):
+            a = e * capacity + k
+            g = ee_list[a]
+            if ee_distance[a] - own - wp.max(bound[edges[2 * g]], bound[edges[2 * g + 1]]) < reach:
+                if n < near_capacity:
+                    near_out[base + n] = a
+                n += 1
+    near_end_out[3 * s + 2] = n
+    if n > near_capacity:
+        near_end_out[3 * s] = -1
+
+
+@wp.func
 def contact_force_hessian(
     p: int, x: wp.vec3, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int),
     tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
@@ -314,83 +470,76 @@ def contact_force_hessian(
     tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tv_list: wp.array(dtype=int),
     tv_count: wp.array(dtype=int),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
-    ee_count: wp.array(dtype=int),
+    ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
     planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float, stiffness: float,
     friction: float, friction_eps: float,
 ):
     """Sum of the contact forces [N] and Hessian blocks [N/m] on particle p at position ``x`` (the
     other particles at ``q``; ``q0`` the step's start): its vertex-triangle pairs as the vertex
-    and as a triangle corner, its edges' edge-edge pairs, the planes and spheres; fixed order."""
+    and as a triangle corner, its edges' edge-edge pairs, the planes and spheres; fixed order. The pairs
+    are those ``keep_near_pairs`` kept for p (the same sums: the pairs left out add nothing), or every
+    listed pair where p's kept pairs did not fit."""
     f = wp.vec3()
     H = wp.mat33()
     s = slot[p]
     if s >= 0:
         dx = x - q0[p]
-        for n in range(vt_count[s]):
-            t = vt_list[s * capacity + n]
-            i = tri[3 * t]
-            j = tri[3 * t + 1]
-            k = tri[3 * t + 2]
-            centre, extent = triangle_sphere(q[i], q[j], q[k])
-            if spheres_apart(x, 0.0, centre, extent, radius):
-                continue
-            r, w = vertex_triangle_rel(x, q[i], q[j], q[k])
-            u = dx - (w[0] * (q[i] - q0[i]) + w[1] * (q[j] - q0[j]) + w[2] * (q[k] - q0[k]))
-            fc, Hc = pair_force_hessian(r, u, 1.0, radius, stiffness, friction, friction_eps)
-            f += fc
-            H += Hc
-        for a in range(tri_offsets[p], tri_offsets[p + 1]):
-            t = tris[a]
-            corner = int(0)
-            if tri[3 * t + 1] == p:
-                corner = 1
-            elif tri[3 * t + 2] == p:
-                corner = 2
+        if near_end[3 * s] >= 0:
+            base = s * near_capacity
+            for k in range(near_end[3 * s]):
+                fc, Hc = vertex_triangle_pair(x, dx, vt_list[near[base + k]], q, q0, tri, radius, stiffness, friction,
+                                              friction_eps)
+                f += fc
+                H += Hc
             xs = wp.mat33()
             ds = wp.mat33()
-            for m in range(3):
-                v = tri[3 * t + m]
-                xv = q[v]
-                if v == p:
-                    xv = x
-                xs[m] = xv
-                ds[m] = xv - q0[v]
-            centre, extent = triangle_sphere(xs[0], xs[1], xs[2])
-            for n in range(tv_count[t]):
-                v = tv_list[t * capacity + n]
-                if spheres_apart(q[v], 0.0, centre, extent, radius):
-                    continue
-                r, w = vertex_triangle_rel(q[v], xs[0], xs[1], xs[2])
-                u = (q[v] - q0[v]) - (w[0] * ds[0] + w[1] * ds[1] + w[2] * ds[2])
-                fc, Hc = pair_force_hessian(r, u, -w[corner], radius, stiffness, friction, friction_eps)
+            centre = wp.vec3()
+            extent = float(0.0)
+            corner = int(0)
+            last = int(-1)
+            for k in range(near_end[3 * s], near_end[3 * s + 1]):
+                a = near[base + k]
+                t = a // capacity
+                if t != last:  # a triangle's pairs come together
+                    xs, ds, centre, extent, corner = corner_triangle(p, x, t, q, q0, tri)
+                    last = t
+                fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[a], q, q0, radius, stiffness,
+                                              friction, friction_eps)
                 f += fc
                 H += Hc
-        for a in range(edge_offsets[p], edge_offsets[p + 1]):
-            e = edge_list[a]
-            i = edges[2 * e]
-            j = edges[2 * e + 1]
-            xi = q[i]
-            xj = q[j]
-            if i == p:
-                xi = x
-            else:
-                xj = x
-            di = xi - q0[i]
-            dj = xj - q0[j]
-            centre = 0.5 * (xi + xj)
-            extent = 0.5 * wp.length(xj - xi)
-            for n in range(ee_count[e]):
-                g = ee_list[e * capacity + n]
-                k = edges[2 * g]
-                m = edges[2 * g + 1]
-                if spheres_apart(centre, extent, 0.5 * (q[k] + q[m]), 0.5 * wp.length(q[m] - q[k]), radius):
-                    continue
-                r, st = edge_edge_rel(xi, xj, q[k], q[m])
-                u = (1.0 - st[0]) * di + st[0] * dj - (1.0 - st[1]) * (q[k] - q0[k]) - st[1] * (q[m] - q0[m])
-                weight = wp.where(i == p, 1.0 - st[0], st[0])
-                fc, Hc = pair_force_hessian(r, u, weight, radius, stiffness, friction, friction_eps)
+            last = int(-1)
+            for k in range(near_end[3 * s + 1], near_end[3 * s + 2]):
+                a = near[base + k]
+                e = a // capacity
+                if e != last:
+                    xs, ds, centre, extent, corner = edge_with(p, x, e, q, q0, edges)
+                    last = e
+                fc, Hc = edge_edge_pair(xs, ds, centre, extent, corner, ee_list[a], q, q0, edges, radius, stiffness,
+                                        friction, friction_eps)
                 f += fc
                 H += Hc
+        else:
+            for n in range(vt_count[s]):
+                fc, Hc = vertex_triangle_pair(x, dx, vt_list[s * capacity + n], q, q0, tri, radius, stiffness, friction,
+                                              friction_eps)
+                f += fc
+                H += Hc
+            for a in range(tri_offsets[p], tri_offsets[p + 1]):
+                t = tris[a]
+                xs, ds, centre, extent, corner = corner_triangle(p, x, t, q, q0, tri)
+                for n in range(tv_count[t]):
+                    fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[t * capacity + n], q, q0,
+                                                  radius, stiffness, friction, friction_eps)
+                    f += fc
+                    H += Hc
+            for a in range(edge_offsets[p], edge_offsets[p + 1]):
+                e = edge_list[a]
+                xs, ds, centre, extent, first = edge_with(p, x, e, q, q0, edges)
+                for n in range(ee_count[e]):
+                    fc, Hc = edge_edge_pair(xs, ds, centre, extent, first, ee_list[e * capacity + n], q, q0, edges,
+                                            radius, stiffness, friction, friction_eps)
+                    f += fc
+                    H += Hc
     for k in range(planes.shape[0]):
         plane = planes[k]
         normal = wp.vec3(plane[0], plane[1], plane[2])

@@ -448,6 +448,26 @@ def test_list_overflow_is_counted_per_search_and_says_the_capacity_needed():
     assert contact.overflow == over and contact.most_pairs == most
 
 
+def test_the_sweeps_gather_over_the_pairs_that_can_push_and_give_the_same_bits():
+    """After each search every surface vertex keeps the list entries that can still push on it
+    (``keep_near_pairs``: by the distances and the step bounds); the sweeps gather over those alone. Two tori
+    dropped on each other with self contact: the same bits as gathering over the whole lists (each vertex's
+    kept entries past a capacity of 1), and the kept entries are fewer than the listed ones."""
+    runs = []
+    for near_capacity in (128, 1):
+        sim, contact, _ = two_tori(near_capacity=near_capacity)
+        kept = listed = whole = 0
+        for _ in range(30):
+            sim.frame(1.0 / 60.0, 4)
+            entries, past = contact.near_stats()
+            kept, whole = max(kept, entries), max(whole, past)
+            listed = max(listed, contact.pair_counts()[0])
+        runs.append((sim.state.positions.numpy(), sim.state.velocities.numpy(), kept, whole))
+    assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
+    assert runs[0][3] == 0 and runs[1][3] > 0  # capacity 1: vertices gathered over the whole lists
+    assert listed > 0 and runs[0][2] > 0
+
+
 @pytest.mark.parametrize("name", ["drape", "cloth"])
 def test_cloth_scenes_by_vbd_keep_the_sheet_whole_and_outside_the_sphere(name):
     """``integrator=vbd`` in the cloth scenes (the sheet's self contact, the sphere and the floor inside the

@@ -43,7 +43,10 @@ triangle. Since d' > 0 for every pair, no vertex is ever deeper than the thickne
 
 The same positions give the contact pairs: a pair farther than r_q at a search closes by at most
 2 b_max before the next, so it stays beyond r_c and exerts nothing; every pair that can push is
-listed. Everything is gathered per particle in fixed order (CSR rows, per-query lists written by
+listed. Of the listed pairs the sweeps gather only those that can still come within r_c: a pair at
+distance D at the search whose sides' bounds are b_a and b_b stays at least D - b_a - b_b apart (as
+above), so one with D - b_a - b_b >= r_c exerts nothing until the next search and is left out
+(``kernels.vbd_contact.keep_near_pairs``; the sums, hence the bits, are those of the whole lists). Everything is gathered per particle in fixed order (CSR rows, per-query lists written by
 their own thread): two runs give the same bits; a step allocates nothing and reads nothing back.
 """
 
@@ -174,7 +177,8 @@ class VBD(Integrator):
             self._reference = wp.zeros(n, dtype=wp.vec3, device=d)
             self._bound = wp.full(n, 1.0e30, dtype=float, device=d)
             self._contact_inputs = [wp.full(n, -1, dtype=int, device=d), empty, empty, 0, empty, empty, empty, empty,
-                                    empty, empty, empty, empty, empty, empty, wp.zeros(0, dtype=wp.vec4, device=d),
+                                    empty, empty, empty, empty, empty, empty, empty, empty, 0,
+                                    wp.zeros(0, dtype=wp.vec4, device=d),
                                     wp.zeros(0, dtype=wp.vec4, device=d), 0.0, 0.0, 0.0, 1.0]
 
     @property

@@ -56,6 +56,9 @@ class VBDContact:
             nearest non-incident primitive (``warpsim.bodies.vbd`` proves no pair then closes).
         max_displacement: b_max [m], the most a particle moves between searches (default: the thickness).
         capacity: pairs kept per query list, the nearest (more are counted in :attr:`overflow`).
+        near_capacity: list entries kept per surface vertex after a search for the colour sweeps, those that can
+            still push on it (``kernels.vbd_contact.keep_near_pairs``); a vertex with more gathers over the whole
+            lists (the same sums: only the time differs).
         planes: (normal (3,), offset) pairs: half-spaces n . x >= offset (floor and walls).
         spheres: (centre (3,), radius) pairs: static spheres the surface stays outside of.
         rebuild_every: searches between BVH rebuilds (refits in between).
@@ -67,7 +70,7 @@ class VBDContact:
     def __init__(self, faces, *, body_size: int | None = None, particle_body=None, thickness: float = 0.006,
                  stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
                  self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,
-                 capacity: int = 32, planes=(), spheres=(), rebuild_every: int = 20):
+                 capacity: int = 32, near_capacity: int = 128, planes=(), spheres=(), rebuild_every: int = 20):
         faces = checks.index_array(faces, "VBDContact faces")  # a float index is refused, never truncated
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"VBDContact faces must have shape (F, 3) with F >= 1, got {faces.shape}; give the "
@@ -87,6 +90,8 @@ class VBDContact:
         self.max_displacement = self.thickness if max_displacement is None else checks.positive(
             max_displacement, "VBDContact max_displacement", unit="m", fix="e.g. the thickness")
         self.capacity = checks.integer(capacity, "VBDContact capacity", lo=1, hi=4096, fix="e.g. 32")
+        self.near_capacity = checks.integer(near_capacity, "VBDContact near_capacity", lo=1, hi=1 << 16,
+                                            fix="e.g. 128")
         self.rebuild_every = checks.integer(rebuild_every, "VBDContact rebuild_every", lo=1, hi=1 << 30,
                                             fix="e.g. 20")
         rows = []
@@ -193,6 +198,8 @@ class VBDContact:
                            wp.zeros(self.triangle_count * C, dtype=float, device=d),
                            wp.zeros(self.edge_count * C, dtype=float, device=d)]  # the lists' distances [m]
         self._overflow = wp.zeros(6, dtype=int, device=d)  # queries past capacity, most pairs of one query
+        self._near = wp.zeros(self.vertex_count * self.near_capacity, dtype=int, device=d)
+        self._near_end = wp.zeros(3 * self.vertex_count, dtype=int, device=d)
         self._planes = wp.array(self.planes.astype(np.float32), dtype=wp.vec4, device=d)
         self._spheres = wp.array(self.spheres.astype(np.float32), dtype=wp.vec4, device=d)
         self.reference = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -274,7 +281,12 @@ class VBDContact:
             record(K.displacement_bounds, q.shape[0], [
                 q, self._slot, self._vt_min, self._tri_offsets, self._tris, self._tv_min, self._edge_offsets,
                 self._edge_list, self._ee_min, self._planes, self._spheres, self.bound_fraction, self.max_displacement,
-                self.reference, self.bound])]
+                self.reference, self.bound]),
+            record(K.keep_near_pairs, self.vertex_count, [
+                self._surface, self._tri, self._edges, C, self._vt, self._distances[0], self._vt_count,
+                self._tri_offsets, self._tris, self._tv, self._distances[1], self._tv_count, self._edge_offsets,
+                self._edge_list, self._ee, self._distances[2], self._ee_count, self.reference, self.bound,
+                self.thickness, self.near_capacity, self._near, self._near_end])]
         self._recorded_key = (q.ptr, self.thickness, self.max_displacement, self.bound_fraction, self.self_contact,
                               self.stiffness)
 
@@ -301,7 +313,8 @@ class VBDContact:
         """The contact arguments of ``kernels.vbd.solve_colour`` (slot .. friction_eps)."""
         return [self._slot, self._tri, self._edges, self.capacity, self._vt, self._vt_count, self._tri_offsets,
                 self._tris, self._tv, self._tv_count, self._edge_offsets, self._edge_list, self._ee, self._ee_count,
-                self._planes, self._spheres, self.thickness, self.stiffness, self.friction, self.friction_eps]
+                self._near, self._near_end, self.near_capacity, self._planes, self._spheres, self.thickness,
+                self.stiffness, self.friction, self.friction_eps]
 
     @property
     def overflow(self) -> tuple:
@@ -316,6 +329,12 @@ class VBDContact:
         last search, where it was more than ``capacity`` (else 0; reads back): the capacity that would have
         kept them all."""
         return tuple(int(x) for x in self._overflow.numpy()[3:])
+
+    def near_stats(self) -> tuple:
+        """(list entries the sweeps gather over, vertices past ``near_capacity`` that gather over the whole
+        lists) at the last search (reads back)."""
+        end = self._near_end.numpy().reshape(-1, 3)
+        return int(end[:, 2].sum()), int((end[:, 0] < 0).sum())
 
     def pair_counts(self) -> tuple:
         """(vertex-triangle, edge-edge) pairs listed at the last search (reads back; each pair
