@@ -56,3 +56,24 @@ def test_automatic_chunks_hold_at_most_128_mib():
     frames = auto_chunk_frames(teapots)
     assert frames * teapots <= AUTO_CHUNK_BYTES < (frames + 1) * teapots
     assert auto_chunk_frames(10 * AUTO_CHUNK_BYTES) == 1  # a frame larger than a chunk: one frame each
+
+
+def test_stability_by_world_blocks_is_all_springs_at_once_bit_for_bit(monkeypatch):
+    """A batch's estimate by blocks of whole worlds (``tiled``, blocks of a few worlds here) gives every
+    limit of the estimate over all springs at once, bit for bit: the limiting spring, its values and
+    each world's per-spring and per-particle limits."""
+    import warpsim.core.stability as stability
+
+    batch = make_batch(get_scene("teapot"), sample_worlds("teapot", {}, ["stiffness=20:60"], 7), device="cpu")
+    monkeypatch.setattr(stability, "SPRING_BLOCK", 3 * batch.model.world_spring_count)  # 3 worlds a block
+    sim, model = batch.sim, batch._springs_model()
+    runs = [stability.particle_limits(model, batch.model.particle_q, sim.integrator, sim.forces, sim.colliders,
+                                      particle_world=batch.model.particle_world.numpy(), world_count=batch.world_count,
+                                      iterations=20, tiled=tiled)
+            for tiled in (None, (batch.model.world_particle_count, batch.model.world_spring_count))]
+    for w, (a, b) in enumerate(zip(*runs)):
+        assert a.limiting == "spring" and a.index // batch.model.world_spring_count == w  # a spring of its own world
+        assert vars(a).keys() == vars(b).keys()
+        for name, value in vars(a).items():
+            other = vars(b)[name]
+            assert np.array_equal(value, other) if isinstance(value, np.ndarray) else value == other, name
