@@ -13,11 +13,15 @@ vertex i takes one Newton step on its 3 coordinates,
     H_i dx = f_i,    f_i = m_i / h^2 (y_i - x_i) - dG_rest / dx_i,    H_i = m_i / h^2 I + sum d^2 E / dx_i^2,
 
 each spring's block taken positive semi-definite (k [n n^T + max(0, 1 - L / l) (I - n n^T)]).
-Vertices of one colour share no spring, so ``solve_colour`` updates a colour in parallel; it writes
-to a second buffer and ``commit_colour`` copies back, so no thread of a colour reads a position
-another thread of the same launch writes (contact pairs may join two vertices of one colour: they
-see each other's positions from before the colour, Jacobi between them, and the result does not
-depend on thread order). Every step is clipped to the particle's bound around its reference
+Vertices of one colour share no spring, so ``solve_colour`` updates a colour in parallel; it reads
+one buffer of positions and writes the other, so no thread of a colour reads a position another thread
+of the same launch writes (contact pairs may join two vertices of one colour: they see each other's
+positions from before the colour, Jacobi between them, and the result does not depend on thread order).
+The colours alternate the two buffers, and each launch also copies the previous colour's new positions
+from the buffer it reads into the one it writes (no thread of the launch reads that one): the buffer a
+colour writes then holds every colour solved so far, and a sweep ends with one ``commit_colour`` of its
+last colour, after which both buffers hold the same positions (the bits of solving into a second buffer
+and copying back after each colour, with half the launches). Every step is clipped to the particle's bound around its reference
 position (``clip_to_bound``), the bound of ``vbd_contact.displacement_bounds``.
 """
 
@@ -43,19 +47,20 @@ def predict(
     qd: wp.array(dtype=wp.vec3), qd_prev: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float), h: float, adaptive: int, reference: wp.array(dtype=wp.vec3),
     bound: wp.array(dtype=float), q_io: wp.array(dtype=wp.vec3), q0_out: wp.array(dtype=wp.vec3),
-    y_out: wp.array(dtype=wp.vec3), deficit_out: wp.array(dtype=wp.vec3),
+    y_out: wp.array(dtype=wp.vec3), deficit_out: wp.array(dtype=wp.vec3), q_copy_out: wp.array(dtype=wp.vec3),
 ):
     """Step start q0 = q, inertial target y = q + h v + h^2 a_ext [m] and the initial guess in q:
     q + h v + h^2 s a_ext with s = clamp(a_prev . a_ext / |a_ext|^2, 0, 1) and a_prev = (v - v_prev) / h
     (VBD's adaptive guess: a body resting on the floor starts where it rests; ``adaptive`` 0: s = 1),
     clipped to the bound (``bound[i]`` [m]); what the clip left out goes to ``deficit_out`` [m]
-    (``restore_guess``)."""
+    (``restore_guess``); the guess also into ``q_copy_out`` (the sweeps' second buffer)."""
     i = wp.tid()
     x = q_io[i]
     q0_out[i] = x
     deficit_out[i] = wp.vec3()
     if inv_mass[i] == 0.0:
         y_out[i] = x
+        q_copy_out[i] = x
         return
     a = f_ext[i] * inv_mass[i]
     v = qd[i]
@@ -69,12 +74,14 @@ def predict(
     guess = x + h * v + h * h * s * a
     clipped = clip_to_bound(guess, reference[i], bound[i])
     q_io[i] = clipped
+    q_copy_out[i] = clipped
     deficit_out[i] = guess - clipped
 
 
 @wp.kernel
 def solve_colour(
-    colour_particles: wp.array(dtype=int), start: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+    colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
+    q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
     y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
     spring_offsets: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
     rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
@@ -89,9 +96,17 @@ def solve_colour(
     friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
     q_out: wp.array(dtype=wp.vec3),
 ):
-    """One Newton step of particle ``colour_particles[start + k]`` on G (module docstring), clipped
-    to its bound, into ``q_out``; forces and Hessians summed in the fixed order of its CSR rows."""
-    p = colour_particles[start + wp.tid()]
+    """One Newton step of particle ``colour_particles[start + k]`` (k < ``count``) on G (module docstring),
+    clipped to its bound, into ``q_out``; forces and Hessians summed in the fixed order of its CSR rows.
+    Thread k < ``previous_count`` also copies particle ``colour_particles[previous_start + k]`` (the previous
+    colour's, solved into ``q``) into ``q_out``. Launched over max(count, previous_count) threads."""
+    k = wp.tid()
+    if k < previous_count:
+        o = colour_particles[previous_start + k]
+        q_out[o] = q[o]
+    if k >= count:
+        return
+    p = colour_particles[start + k]
     x = q[p]
     if inv_mass[p] == 0.0:
         q_out[p] = x
@@ -128,22 +143,25 @@ def solve_colour(
 @wp.kernel
 def commit_colour(colour_particles: wp.array(dtype=int), start: int, q_new: wp.array(dtype=wp.vec3),
                   q_out: wp.array(dtype=wp.vec3)):
-    """Copy the colour's new positions [m] into the positions the next colour reads."""
+    """Copy the colour's new positions [m] into the other buffer (a sweep's last colour)."""
     p = colour_particles[start + wp.tid()]
     q_out[p] = q_new[p]
 
 
 @wp.kernel
 def restore_guess(reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
-                  deficit_io: wp.array(dtype=wp.vec3), q_io: wp.array(dtype=wp.vec3)):
+                  deficit_io: wp.array(dtype=wp.vec3), q_io: wp.array(dtype=wp.vec3),
+                  q_copy_out: wp.array(dtype=wp.vec3)):
     """After a search within the step: add back what the bound cut from the initial guess, as far as the
     new bound allows (a falling body whose guess was cut moves on as a whole, instead of being dragged
-    back by its springs, sweep by sweep, to its neighbours' cut positions)."""
+    back by its springs, sweep by sweep, to its neighbours' cut positions); the positions also into
+    ``q_copy_out`` (the sweeps' second buffer)."""
     i = wp.tid()
     x = q_io[i]
     moved = clip_to_bound(x + deficit_io[i], reference[i], bound[i])
     deficit_io[i] = deficit_io[i] - (moved - x)
     q_io[i] = moved
+    q_copy_out[i] = moved
 
 
 @wp.kernel

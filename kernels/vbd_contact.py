@@ -13,7 +13,12 @@ run, and a world of a sweep gets the bits of its scene run alone):
   of the same pairs);
 * every surface edge against the edges within the radius (``ee_list``),
 
-one kernel, ``query_pairs``, with the query's kind as its first argument.
+one kernel, ``query_pairs``, with the query's kind as its first argument. The vertex query also stages
+each pair it finds into the triangle's list, and the edge query meets each pair once (from the edge of the
+lower body) and stages it into both edges' lists, each side's distance computed as that side's own query
+computes it; a list that holds all its item's pairs is then only sorted, and a query with more pairs than
+the capacity is run whole (``WHOLE``, ``HALF``, ``FINISH``): the lists, distances and smallest distances
+of three whole queries, bit for bit, with one triangle query and half the edge traversal less.
 
 Pairs sharing a particle are skipped; so are pairs of the same body unless self contact is on.
 Each query also keeps the smallest distance it met (``*_min``, [m]); ``displacement_bounds`` turns
@@ -167,6 +172,10 @@ VERTEX_QUERY = wp.constant(0)
 TRIANGLE_QUERY = wp.constant(1)
 EDGE_QUERY = wp.constant(2)
 
+WHOLE = wp.constant(0)  # query mode: every pair of the item, its own list (keep_nearest)
+HALF = wp.constant(1)  # every pair once, from the item of the lower body (or index), staged into both lists
+FINISH = wp.constant(2)  # the staged list when it holds every pair (sorted), else the WHOLE query
+
 
 @wp.func
 def query_box(kind: int, item: int, surface: wp.array(dtype=int), tri: wp.array(dtype=int),
@@ -212,14 +221,26 @@ def query_pair(kind: int, item: int, other: int, surface: wp.array(dtype=int), t
     return edge_edge_distance(edges[2 * item], edges[2 * item + 1], other, edges, body, q, self_contact), other
 
 
+@wp.func
+def stage_pair(index: int, stored: int, d: float, capacity: int, list_io: wp.array(dtype=int),
+               distance_io: wp.array(dtype=float), count_io: wp.array(dtype=int)):
+    """Put pair ``stored`` at distance ``d`` [m] into list ``index``'s next slot (an integer atomic: the slots'
+    order depends on the threads', the ``FINISH`` pass sorts them); past ``capacity`` only counted."""
+    slot = wp.atomic_add(count_io, index, 1)
+    if slot < capacity:
+        list_io[index * capacity + slot] = stored
+        distance_io[index * capacity + slot] = d
+
+
 @wp.kernel
 def query_pairs(
-    kind: int, body_bvh: wp.uint64, world_roots: wp.array(dtype=int), body_world: wp.array(dtype=int),
+    kind: int, mode: int, body_bvh: wp.uint64, world_roots: wp.array(dtype=int), body_world: wp.array(dtype=int),
     bvh: wp.uint64, roots: wp.array(dtype=int),
     surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
     list_out: wp.array(dtype=int), distance_out: wp.array(dtype=float), count_out: wp.array(dtype=int),
-    min_out: wp.array(dtype=float), overflow_io: wp.array(dtype=int),
+    min_out: wp.array(dtype=float), overflow_io: wp.array(dtype=int), mirror: int,
+    mirror_list_io: wp.array(dtype=int), mirror_distance_io: wp.array(dtype=float), mirror_count_io: wp.array(dtype=int),
 ):
     """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
     triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
@@ -228,30 +249,64 @@ def query_pairs(
     adds 1 to ``overflow_io[kind]`` and raises ``overflow_io[3 + kind]`` to its number of pairs (both zeroed
     before the search: they count queries of one search, never pairs over many, so they cannot wrap). Two
     levels: the bodies of the query's world whose bounds meet the box
-    (``collect_bodies`` from the world's root of the body BVH), then each one's subtree of the grouped BVH."""
+    (``collect_bodies`` from the world's root of the body BVH), then each one's subtree of the grouped BVH.
+
+    The other side of each pair found (``mirror`` 1: the triangle's side of a vertex's pair, the other edge's
+    side of an edge's pair, its distance computed as that side's query computes it) is staged into the mirror
+    lists (``stage_pair``; their counts zeroed before). ``mode`` ``HALF`` (edges) meets each pair once, from the
+    edge of the lower body (within one body, the lower edge), and stages both sides; ``FINISH`` then takes a
+    list that holds every pair of its item (count at most ``capacity``: the pairs, and so the sorted list and
+    the smallest distance, of the ``WHOLE`` query, bit for bit) and queries the rest whole."""
     item = wp.tid()
-    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
     n = int(0)
     total = int(0)
     dmin = query_radius
+    search = int(1)
+    if mode == FINISH and count_out[item] <= capacity:
+        n = count_out[item]
+        for k in range(n):
+            dmin = wp.min(dmin, distance_out[item * capacity + k])
+        search = 0
+    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
     seen = int(0)
-    more = int(1)
+    more = search
     while more == 1:
         found, count = collect_bodies(body_bvh, world_roots[body_world[own]], lower, upper, own, self_contact,
                                       seen)
         seen += count
         more = wp.where(count == BODY_BATCH, 1, 0)
         for g in range(count):
+            if mode == HALF and found[g] < own:
+                continue
             query = wp.bvh_query_aabb(bvh, lower, upper, roots[found[g]])
             other = int(0)
             while wp.bvh_query_next(query, other):
+                if mode == HALF and found[g] == own and other < item:
+                    continue
                 d, stored = query_pair(kind, item, other, surface, tri, edges, body, q, self_contact)
                 if d < 0.0:
                     continue
-                dmin = wp.min(dmin, d)
+                if mode != HALF:
+                    dmin = wp.min(dmin, d)
                 if d < query_radius:
-                    n = wp.min(keep_nearest(item * capacity, n, capacity, d, stored, list_out, distance_out), capacity)
-                    total += 1
+                    if mode == HALF:
+                        stage_pair(item, stored, d, capacity, list_out, distance_out, count_out)
+                    else:
+                        n = wp.min(keep_nearest(item * capacity, n, capacity, d, stored, list_out, distance_out),
+                                   capacity)
+                        total += 1
+                if mirror == 1:
+                    if kind == VERTEX_QUERY:
+                        if d < query_radius:
+                            stage_pair(other, surface[item], d, capacity, mirror_list_io, mirror_distance_io,
+                                       mirror_count_io)
+                    else:
+                        d2, stored2 = query_pair(kind, other, item, surface, tri, edges, body, q, self_contact)
+                        if d2 >= 0.0 and d2 < query_radius:
+                            stage_pair(other, item, d2, capacity, mirror_list_io, mirror_distance_io,
+                                       mirror_count_io)
+    if mode == HALF:
+        return
     if total > capacity:
         wp.atomic_add(overflow_io, kind, 1)
         wp.atomic_max(overflow_io, 3 + kind, total)

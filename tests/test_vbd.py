@@ -506,3 +506,80 @@ def test_a_changed_friction_reaches_the_descent():
         x = scene.sim.state.positions.numpy()
         ends.append(float(np.linalg.norm(x[:, [0, 2]], axis=1).mean()))  # how far the sheet spread out
     assert ends[0] > ends[1] + 1e-3
+
+
+def whole_queries(contact, q):
+    """The three queries of ``contact`` run whole (``kernels.vbd_contact.WHOLE``: each item its own traversal,
+    nothing staged) into new arrays: [(list, distances, count, smallest distance) per kind], overflow."""
+    from warpsim.kernels import vbd_contact as K
+    C, (tri_bvh, point_bvh, edge_bvh, body_bvh) = contact.capacity, contact._bvhs
+    overflow, out = wp.zeros(6, dtype=int, device=DEVICE), []
+    for kind, count, bvh, roots in ((K.VERTEX_QUERY, contact.vertex_count, tri_bvh, contact._roots[0]),
+                                    (K.TRIANGLE_QUERY, contact.triangle_count, point_bvh, contact._roots[1]),
+                                    (K.EDGE_QUERY, contact.edge_count, edge_bvh, contact._roots[2])):
+        lists = [wp.zeros(count * C, dtype=int, device=DEVICE), wp.zeros(count * C, dtype=float, device=DEVICE),
+                 wp.zeros(count, dtype=int, device=DEVICE), wp.zeros(count, dtype=float, device=DEVICE)]
+        wp.launch(K.query_pairs, count, inputs=[
+            int(kind), int(K.WHOLE), body_bvh.id, contact._roots[3], contact._groups[3], bvh.id, roots,
+            contact._surface, contact._tri, contact._edges, contact._body, q, contact.query_radius,
+            int(contact.self_contact), C, *lists, overflow, 0, *lists[:3]], device=DEVICE)
+        out.append([a.numpy() for a in lists])
+    return out, overflow.numpy()
+
+
+@pytest.mark.parametrize("capacity", [32, 3])
+def test_the_staged_lists_are_the_whole_queries_bit_for_bit(capacity):
+    """The search stages the triangles' lists from the vertex query and meets each edge pair once (from the
+    edge of the lower body, or the lower edge within a body with self contact), then sorts; lists past their
+    capacity are queried whole. Two tori with self contact, dropped onto each other: at every frame each list,
+    its distances and smallest distance, and the overflow counters are those of the three queries run whole,
+    bit for bit (capacity 3: many lists past it, queried whole)."""
+    sim, contact, _ = two_tori(gap=0.004, capacity=capacity)
+    listed = over = 0
+    for _ in range(12):
+        sim.frame(1.0 / 60.0, 4)
+        q = sim.state.positions
+        contact.search(q)
+        whole, overflow = whole_queries(contact, q)
+        ours = [(contact._vt, contact._distances[0], contact._vt_count, contact._vt_min),
+                (contact._tv, contact._distances[1], contact._tv_count, contact._tv_min),
+                (contact._ee, contact._distances[2], contact._ee_count, contact._ee_min)]
+        for (lst, dist, count, dmin), (w_lst, w_dist, w_count, w_min) in zip(ours, whole):
+            assert np.array_equal(count.numpy(), w_count) and np.array_equal(dmin.numpy(), w_min)
+            live = (np.arange(capacity)[None, :] < w_count[:, None]).reshape(-1)
+            assert np.array_equal(lst.numpy()[live], w_lst[live]) and np.array_equal(dist.numpy()[live], w_dist[live])
+            listed += int(w_count.sum())
+        assert np.array_equal(contact._overflow.numpy(), overflow)
+        over += int(overflow[:3].sum())
+    assert listed > 100 and contact._ee_count.numpy().sum() > 0
+    assert (over > 0) == (capacity == 3)
+
+
+def test_each_colour_commits_the_one_before_it_with_the_same_bits():
+    """A sweep is one launch a colour (each copies the colour before it across the two position buffers)
+    and one commit: the same bits as solving each colour into the second buffer and copying it back before
+    the next colour, and both buffers hold the same positions after it."""
+    from warpsim.kernels import vbd as K
+    sim, _, _ = two_tori(gap=0.004)
+    integ, q = sim.integrator, sim.state.positions
+    for _ in range(30):
+        integ.step(sim.system, q, sim.state.velocities, sim._time, 1.0 / 240.0)
+    start = (q.numpy() + np.random.default_rng(5).normal(0.0, 2.0e-4, q.shape + (3,))).astype(np.float32)
+    q.assign(start)  # a sweep from here moves every particle (after a step most sit at their bound)
+    integ.q_new.assign(start)
+    for launch in integ._sweep:
+        launch.launch()
+    folded = q.numpy()
+    assert np.array_equal(folded, integ.q_new.numpy()) and not np.array_equal(folded, start)
+    q.assign(start)
+    integ.q_new.assign(start)
+    offsets = integ.colour_offsets
+    for c in range(integ.colour_count):
+        launch, count = integ._sweep[c], offsets[c + 1] - offsets[c]
+        launch.set_param_by_name("previous_count", 0)
+        launch.set_param_by_name("q", q)
+        launch.set_param_by_name("q_out", integ.q_new)
+        launch.set_dim(count)
+        launch.launch()
+        wp.launch(K.commit_colour, count, inputs=[integ.colour_particles, offsets[c], integ.q_new, q], device=DEVICE)
+    assert np.array_equal(q.numpy(), folded)

@@ -183,7 +183,7 @@ class VBD(Integrator):
 
     @property
     def colour_count(self) -> int:
-        """Colours of the prepared model (launch pairs a sweep)."""
+        """Colours of the prepared model (one launch each a sweep, and one commit)."""
         return len(self.colour_offsets) - 1
 
     def _record(self, q, qd, h: float) -> None:
@@ -201,15 +201,24 @@ class VBD(Integrator):
             self._contact_inputs = self.contact.solve_inputs()
         self._predict = record(K.predict, n, [qd, self.qd_prev, self.f_ext, m.particle_inv_mass, h,
                                                int(self.adaptive_guess), self._reference, self._bound, q, self.q0,
-                                               self.y, self.deficit])
-        self._restore = record(K.restore_guess, n, [self._reference, self._bound, self.deficit, q])
+                                               self.y, self.deficit, self.q_new])
+        self._restore = record(K.restore_guess, n, [self._reference, self._bound, self.deficit, q, self.q_new])
+        # a sweep starts with q_new = q (predict, restore_guess and the Chebyshev step keep it so); colour c reads
+        # one buffer and writes the other, copying colour c - 1 across (kernels.vbd's docstring), and the last
+        # colour is committed to the buffer it did not write: one launch a colour and one a sweep
+        buffers, offsets = (q, self.q_new), self.colour_offsets
         self._sweep = []
         for c in range(self.colour_count):
-            start, count = self.colour_offsets[c], self.colour_offsets[c + 1] - self.colour_offsets[c]
-            self._sweep.append(record(K.solve_colour, count, [
-                self.colour_particles, start, q, self.q0, self.y, m.particle_mass, m.particle_inv_mass, 1.0 / h,
-                *springs, *self._contact_inputs, self._reference, self._bound, self.q_new]))
-            self._sweep.append(record(K.commit_colour, count, [self.colour_particles, start, self.q_new, q]))
+            start, count = offsets[c], offsets[c + 1] - offsets[c]
+            before, previous = (offsets[c - 1], offsets[c] - offsets[c - 1]) if c > 0 else (0, 0)
+            self._sweep.append(record(K.solve_colour, max(count, previous), [
+                self.colour_particles, start, count, before, previous, buffers[c % 2], self.q0, self.y,
+                m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs, self._reference,
+                self._bound, buffers[(c + 1) % 2]]))
+        last = self.colour_count - 1
+        if last >= 0:
+            self._sweep.append(record(K.commit_colour, offsets[last + 1] - offsets[last], [
+                self.colour_particles, offsets[last], buffers[(last + 1) % 2], buffers[last % 2]]))
         self._accelerate = [(record(FK.chebyshev_step, n, [q, omega, self._older, self._old]),
                              record(K.clip_positions, n, [self._reference, self._bound, q]))
                             for omega in (self._omegas if self.chebyshev_rho > 0.0 else [])]
@@ -243,11 +252,12 @@ class VBD(Integrator):
             if self.contact is not None and k > 0 and self.detect_every and k % self.detect_every == 0:
                 self.contact.search(q)
                 self._restore.launch()
-            for launch in self._sweep:  # one Gauss-Seidel sweep: a colour solved into q_new, copied back
+            for launch in self._sweep:  # one Gauss-Seidel sweep: colour by colour, q and q_new alternating
                 launch.launch()
             if chebyshev:
                 for launch in self._accelerate[k]:
                     launch.launch()
                 wp.copy(self._old, q)  # the clipped iterate is the one the next extrapolation starts from
+                wp.copy(self.q_new, q)  # the next sweep starts with both buffers equal
         wp.copy(self.qd_prev, qd)
         self._finish.launch()

@@ -270,14 +270,15 @@ class VBDContact:
         lists = [(self._vt, self._distances[0], self._vt_count, self._vt_min),
                  (self._tv, self._distances[1], self._tv_count, self._tv_min),
                  (self._ee, self._distances[2], self._ee_count, self._ee_min)]
-        kinds = [(K.VERTEX_QUERY, self.vertex_count, tri_bvh, tri_roots),
-                 (K.TRIANGLE_QUERY, self.triangle_count, point_bvh, point_roots),
-                 (K.EDGE_QUERY, self.edge_count, edge_bvh, edge_roots)]
+        kinds = [(K.VERTEX_QUERY, K.WHOLE, self.vertex_count, tri_bvh, tri_roots, lists[0], lists[1]),
+                 (K.TRIANGLE_QUERY, K.FINISH, self.triangle_count, point_bvh, point_roots, lists[1], None),
+                 (K.EDGE_QUERY, K.HALF, self.edge_count, edge_bvh, edge_roots, lists[2], lists[2]),
+                 (K.EDGE_QUERY, K.FINISH, self.edge_count, edge_bvh, edge_roots, lists[2], None)]
         self._queries = [
-            record(K.query_pairs, count, [int(kind), body_bvh.id, world_roots, self._groups[3], bvh.id, roots,
-                                          self._surface, self._tri, self._edges, self._body, q, r, sc, C, *out,
-                                          self._overflow])
-            for (kind, count, bvh, roots), out in zip(kinds, lists)] + [
+            record(K.query_pairs, count, [int(kind), int(mode), body_bvh.id, world_roots, self._groups[3], bvh.id,
+                                          roots, self._surface, self._tri, self._edges, self._body, q, r, sc, C, *out,
+                                          self._overflow, int(mirror is not None), *(mirror or out)[:3]])
+            for kind, mode, count, bvh, roots, out, mirror in kinds] + [
             record(K.displacement_bounds, q.shape[0], [
                 q, self._slot, self._vt_min, self._tri_offsets, self._tris, self._tv_min, self._edge_offsets,
                 self._edge_list, self._ee_min, self._planes, self._spheres, self.bound_fraction, self.max_displacement,
@@ -306,6 +307,8 @@ class VBDContact:
                 launch.launch()
         self.searches += 1
         self._overflow.zero_()
+        self._tv_count.zero_()  # the triangles' and edges' lists are staged by the vertex and edge queries
+        self._ee_count.zero_()
         for launch in self._queries:
             launch.launch()
 
