@@ -21,8 +21,8 @@ The colours alternate the two buffers, and each launch also copies the previous 
 from the buffer it reads into the one it writes (no thread of the launch reads that one): the buffer a
 colour writes then holds every colour solved so far, and a sweep ends with one ``commit_colour`` of its
 last colour, after which both buffers hold the same positions (the bits of solving into a second buffer
-and copying back after each colour, with half the launches). Every step is clipped to the particle's bound around its reference
-position (``clip_to_bound``), the bound of ``vbd_contact.displacement_bounds``.
+and copying back after each colour, with half the launches). Every step is clipped to the particle's bound
+around its reference position (``clip_to_bound``), the bound of ``vbd_contact.displacement_bounds``.
 """
 
 import warp as wp

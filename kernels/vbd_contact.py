@@ -1,7 +1,8 @@
 """Contact search and contact energies of vertex block descent (``warpsim.bodies.vbd.VBD``).
 
 Search (once at the start of a step and again every ``detect_every`` iterations, at the current
-positions x_d): two levels as ``warpsim.kernels.soft_contact`` (the bodies' bounds in a small BVH, then
+positions x_d; one within the step is skipped, on the device, when every particle is well inside its bound,
+``search_needed``): two levels as ``warpsim.kernels.soft_contact`` (the bodies' bounds in a small BVH, then
 the subtree of each body met in a BVH grouped by body, ``collect_bodies``), three queries, each
 writing its own fixed-capacity list, sorted ascending (no atomics on the lists, and no dependence on
 the BVH's traversal order, so the lists and everything computed from them are the same bits on every
@@ -234,13 +235,15 @@ def stage_pair(index: int, stored: int, d: float, capacity: int, list_io: wp.arr
 
 @wp.kernel
 def query_pairs(
-    kind: int, mode: int, body_bvh: wp.uint64, world_roots: wp.array(dtype=int), body_world: wp.array(dtype=int),
+    go: wp.array(dtype=int), kind: int, mode: int, body_bvh: wp.uint64, world_roots: wp.array(dtype=int),
+    body_world: wp.array(dtype=int),
     bvh: wp.uint64, roots: wp.array(dtype=int),
     surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
     list_out: wp.array(dtype=int), distance_out: wp.array(dtype=float), count_out: wp.array(dtype=int),
     min_out: wp.array(dtype=float), overflow_io: wp.array(dtype=int), mirror: int,
-    mirror_list_io: wp.array(dtype=int), mirror_distance_io: wp.array(dtype=float), mirror_count_io: wp.array(dtype=int),
+    mirror_list_io: wp.array(dtype=int), mirror_distance_io: wp.array(dtype=float),
+    mirror_count_io: wp.array(dtype=int),
 ):
     """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
     triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
@@ -256,8 +259,12 @@ def query_pairs(
     lists (``stage_pair``; their counts zeroed before). ``mode`` ``HALF`` (edges) meets each pair once, from the
     edge of the lower body (within one body, the lower edge), and stages both sides; ``FINISH`` then takes a
     list that holds every pair of its item (count at most ``capacity``: the pairs, and so the sorted list and
-    the smallest distance, of the ``WHOLE`` query, bit for bit) and queries the rest whole."""
+    the smallest distance, of the ``WHOLE`` query, bit for bit) and queries the rest whole. Nothing when
+    ``go[w]`` is 0 for the item's world w (its search skipped: ``search_needed``)."""
     item = wp.tid()
+    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
+    if go[body_world[own]] == 0:
+        return
     n = int(0)
     total = int(0)
     dmin = query_radius
@@ -267,7 +274,6 @@ def query_pairs(
         for k in range(n):
             dmin = wp.min(dmin, distance_out[item * capacity + k])
         search = 0
-    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
     seen = int(0)
     more = search
     while more == 1:
@@ -326,6 +332,46 @@ def query_pairs(
     min_out[item] = dmin
 
 
+@wp.kernel
+def search_needed(q: wp.array(dtype=wp.vec3), reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
+                  deficit: wp.array(dtype=wp.vec3), fraction: float, body: wp.array(dtype=int),
+                  body_world: wp.array(dtype=int), go_out: wp.array(dtype=int)):
+    """``go_out[w]`` = 1 (zeroed before) for particle i's world w when i has moved more than ``fraction`` of its bound [m] from
+    its reference [m] since the last search, or still has some of its initial guess cut (``deficit`` [m], not
+    zero): a search within the step would then let it move on; else the search is skipped (every particle
+    far inside its bound: the lists and bounds of the last search still hold, ``warpsim.bodies.vbd``). Per
+    world, so that a world of a sweep searches when its scene run alone would (the same bits)."""
+    i = wp.tid()
+    if wp.length(q[i] - reference[i]) > fraction * bound[i] or wp.length(deficit[i]) > 0.0:
+        go_out[body_world[body[i]]] = 1  # every thread that writes writes 1: no atomic needed
+
+
+@wp.kernel
+def begin_search(go: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int),
+                 body: wp.array(dtype=int), body_world: wp.array(dtype=int), tri_count_out: wp.array(dtype=int),
+                 edge_count_out: wp.array(dtype=int), overflow_out: wp.array(dtype=int),
+                 searches_io: wp.array(dtype=int)):
+    """Zero the list counts of the triangles and edges of each world that searches (``go[w]`` not 0: the queries
+    stage into them) and, when any world searches, the overflow counters, and count the worlds' searches
+    (``searches_io[0]``); launched over max(T, E) threads."""
+    k = wp.tid()
+    if k < tri_count_out.shape[0]:
+        if go[body_world[body[tri[3 * k]]]] != 0:
+            tri_count_out[k] = 0
+    if k < edge_count_out.shape[0]:
+        if go[body_world[body[edges[2 * k]]]] != 0:
+            edge_count_out[k] = 0
+    if k == 0:
+        worlds = int(0)
+        for w in range(go.shape[0]):
+            if go[w] != 0:
+                worlds += 1
+        if worlds > 0:
+            for m in range(overflow_out.shape[0]):
+                overflow_out[m] = 0
+        searches_io[0] = searches_io[0] + worlds
+
+
 @wp.func
 def sphere_gap(sphere: wp.vec4, x: wp.vec3):
     """(distance [m] of x outside the static sphere (centre, radius) = sphere, outward normal)."""
@@ -339,7 +385,8 @@ def sphere_gap(sphere: wp.vec4, x: wp.vec3):
 
 @wp.kernel
 def displacement_bounds(
-    q: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int), vertex_min: wp.array(dtype=float),
+    go: wp.array(dtype=int), body: wp.array(dtype=int), body_world: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
+    slot: wp.array(dtype=int), vertex_min: wp.array(dtype=float),
     tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tri_min: wp.array(dtype=float),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), edge_min: wp.array(dtype=float),
     planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), fraction: float, max_displacement: float,
@@ -347,8 +394,11 @@ def displacement_bounds(
 ):
     """Particle p's step bound [m]: ``fraction`` x the smallest distance from p's primitives (the
     vertex, its triangles, its edges) to any non-incident primitive met by the queries, or to a
-    plane or a sphere (static), at most ``max_displacement``; and its reference position (now)."""
+    plane or a sphere (static), at most ``max_displacement``; and its reference position (now). Nothing
+    when ``go[w]`` is 0 for p's world w."""
     p = wp.tid()
+    if go[body_world[body[p]]] == 0:
+        return
     x = q[p]
     dmin = max_displacement / fraction
     s = slot[p]
@@ -457,7 +507,8 @@ def edge_edge_pair(xs: wp.mat33, ds: wp.mat33, centre: wp.vec3, extent: float, f
 
 @wp.kernel
 def keep_near_pairs(
-    surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+    go: wp.array(dtype=int), body: wp.array(dtype=int), body_world: wp.array(dtype=int), surface: wp.array(dtype=int),
+    tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
     vt_list: wp.array(dtype=int), vt_distance: wp.array(dtype=float), vt_count: wp.array(dtype=int),
     tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tv_list: wp.array(dtype=int),
     tv_distance: wp.array(dtype=float), tv_count: wp.array(dtype=int),
@@ -476,9 +527,12 @@ def keep_near_pairs(
     (every point of a side is a convex combination of its corners: b = the largest corner bound), is at
     least D - b_a - b_b apart until the next search; at ``radius`` or more it exerts nothing, so leaving it
     out changes no bit. Left out only with a slack of 1e-3 ``radius`` + 1e-5 |x_p| beyond that (far more than
-    the rounding of the distances), so a pair the gather would find inside the radius is always kept."""
+    the rounding of the distances), so a pair the gather would find inside the radius is always kept. Nothing
+    when ``go[w]`` is 0 for p's world w."""
     s = wp.tid()
     p = surface[s]
+    if go[body_world[body[p]]] == 0:
+        return
     reach = radius + 1.0e-3 * radius + 1.0e-5 * wp.length(reference[p])
     bp = bound[p]
     base = s * near_capacity

@@ -301,7 +301,8 @@ def test_the_command_line_runs_the_heap_by_vbd(tmp_path):
 def test_worlds_of_a_sweep_each_collide_their_own_tori_and_equal_their_runs_alone():
     """Two worlds of the donuts by VBD (stiffness 150 and 300 N/m) in one batch: each world's tori meet only
     its own (one contact, one BVH for both), and each world gives the bits of its scene run alone (the pair
-    lists are sorted, so the shared BVH's traversal order does not enter)."""
+    lists are sorted, so the shared BVH's traversal order does not enter; a search within a step is skipped
+    or run world by world)."""
     from warpsim.worlds.batch import WorldBatch
 
     cls = get_scene("donuts")
@@ -310,13 +311,17 @@ def test_worlds_of_a_sweep_each_collide_their_own_tori_and_equal_their_runs_alon
     for _ in range(25):
         batch.advance(1.0 / 60.0, 4)
     x, v = batch.world_slices()
+    searches = []
     for w, p in enumerate(params):
         alone = cls(p, device=DEVICE)
         for _ in range(25):
             alone.advance(1.0 / 60.0, 4)
         assert alone.vbd_contact.pair_counts()[0] > 0  # the tori touch
         assert np.array_equal(x[w], alone.sim.state.positions.numpy()), w
+        searches.append(alone.vbd_contact.searches_run)
     assert np.abs(x[0] - x[1]).max() > 1e-3
+    # searches within a step are skipped world by world (each as its scene run alone), counted per world
+    assert batch.sim.integrator.contact.searches_run == sum(searches)
 
 
 def test_the_viewer_drag_goes_through_the_protocol():
@@ -520,7 +525,8 @@ def whole_queries(contact, q):
         lists = [wp.zeros(count * C, dtype=int, device=DEVICE), wp.zeros(count * C, dtype=float, device=DEVICE),
                  wp.zeros(count, dtype=int, device=DEVICE), wp.zeros(count, dtype=float, device=DEVICE)]
         wp.launch(K.query_pairs, count, inputs=[
-            int(kind), int(K.WHOLE), body_bvh.id, contact._roots[3], contact._groups[3], bvh.id, roots,
+            wp.ones(1, dtype=int, device=DEVICE), int(kind), int(K.WHOLE), body_bvh.id, contact._roots[3],
+            contact._groups[3], bvh.id, roots,
             contact._surface, contact._tri, contact._edges, contact._body, q, contact.query_radius,
             int(contact.self_contact), C, *lists, overflow, 0, *lists[:3]], device=DEVICE)
         out.append([a.numpy() for a in lists])
@@ -583,3 +589,32 @@ def test_each_colour_commits_the_one_before_it_with_the_same_bits():
         launch.launch()
         wp.launch(K.commit_colour, count, inputs=[integ.colour_particles, offsets[c], integ.q_new, q], device=DEVICE)
     assert np.array_equal(q.numpy(), folded)
+
+
+def test_searches_within_a_step_run_when_a_particle_nears_its_bound():
+    """A search within the step runs only when some particle has moved more than ``renew_fraction`` of its
+    bound since the last search or has some of its initial guess cut (decided on the device, no read-back):
+    a torus dropped with its lowest point 6 cm above the floor skips them while it starts to fall and once it
+    rests, and runs them around the impact (guesses cut by the bound near the floor); ``renew_fraction=None``
+    runs every one; each step opens with one either way, no vertex goes below the floor, and the runs repeat
+    bit for bit."""
+    counts, runs = {}, []
+    for fraction in (0.5, None, 0.5):
+        b = ws.ModelBuilder()
+        _, body = small_torus((0.0, 0.1, 0.0), b)
+        model = b.finalize(DEVICE)
+        contact = ws.VBDContact(body.faces, thickness=0.006, planes=[((0.0, 1.0, 0.0), 0.0)])
+        sim = ws.Simulator(model, integrator=ws.VBD(10, contact=contact, renew_fraction=fraction),
+                           forces=[ws.Gravity()])
+        per_step = []
+        for _ in range(40):
+            before = contact.searches_run
+            sim.frame(1.0 / 60.0, 4)
+            per_step.append((contact.searches_run - before) / 4)
+            assert sim.state.positions.numpy()[:, 1].min() > 0.0
+        counts[fraction] = per_step
+        runs.append(sim.state.positions.numpy())
+    assert counts[None] == [2.0] * 40  # 10 sweeps, a search every 5: the step's and one within it
+    skipped = counts[0.5]
+    assert skipped[0] < 2.0 and max(skipped) == 2.0 and skipped[-1] < 2.0 and min(skipped) >= 1.0, skipped
+    assert np.array_equal(runs[0], runs[2])

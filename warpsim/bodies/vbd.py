@@ -43,9 +43,12 @@ triangle. Since d' > 0 for every pair, no vertex is ever deeper than the thickne
 
 The same positions give the contact pairs: a pair farther than r_q at a search closes by at most
 2 b_max before the next, so it stays beyond r_c and exerts nothing; every pair that can push is
-listed. Of the listed pairs the sweeps gather only those that can still come within r_c: a pair at
-distance D at the search whose sides' bounds are b_a and b_b stays at least D - b_a - b_b apart (as
-above), so one with D - b_a - b_b >= r_c exerts nothing until the next search and is left out
+listed. A search within the step may be skipped (every particle still within ``renew_fraction`` of its
+bound from its reference, nothing of its guess cut): the bounds and lists of the last search then hold
+until the next one that runs, as the claim above needs (it asks only that every update until the next
+search be clipped to the last search's bounds). Of the listed pairs the sweeps gather only those that can
+still come within r_c: a pair at distance D at the search whose sides' bounds are b_a and b_b stays at least
+D - b_a - b_b apart (as above), so one with D - b_a - b_b >= r_c exerts nothing until the next search and is left out
 (``kernels.vbd_contact.keep_near_pairs``; the sums, hence the bits, are those of the whole lists). Everything is gathered per particle in fixed order (CSR rows, per-query lists written by
 their own thread): two runs give the same bits; a step allocates nothing and reads nothing back.
 """
@@ -87,6 +90,10 @@ class VBD(Integrator):
         detect_every: iterations between contact searches within a step (a search always opens the
             step); 0: only that one. Each search lets a particle move another b_max at most.
         adaptive_guess: VBD's adaptive initial guess (off: y, the inertial target).
+        renew_fraction: a search within the step (every ``detect_every`` iterations) runs only when some
+            particle has moved more than this fraction of its bound since the last search or has some of its
+            initial guess cut (decided on the device: a heap at rest skips them); None: always. The search
+            opening a step always runs.
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -99,7 +106,8 @@ class VBD(Integrator):
     vary stiffness, damping and masses (``warpsim.worlds.batch``)."""
 
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
-                 chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True):
+                 chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True,
+                 renew_fraction: float | None = 0.5):
         super().__init__()
         self.iterations = checks.integer(iterations, "VBD iterations", lo=1, hi=100_000, fix="e.g. 10")
         if contact is not None and not isinstance(contact, VBDContact):
@@ -112,6 +120,8 @@ class VBD(Integrator):
         self.detect_every = checks.integer(detect_every, "VBD detect_every", lo=0, hi=100_000,
                                            fix="iterations between contact searches, e.g. 5 (0: one a step)")
         self.adaptive_guess = checks.flag(adaptive_guess, "VBD adaptive_guess")
+        self.renew_fraction = None if renew_fraction is None else checks.in_range(
+            renew_fraction, "VBD renew_fraction", 0.0, 1.0, fix="e.g. 0.5, or None to search every time")
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
 
     def tile_worlds(self, world_count: int, world_particle_count: int) -> None:
@@ -250,8 +260,11 @@ class VBD(Integrator):
             wp.copy(self._old, q)
         for k in range(self.iterations):
             if self.contact is not None and k > 0 and self.detect_every and k % self.detect_every == 0:
-                self.contact.search(q)
-                self._restore.launch()
+                if self.renew_fraction is None:
+                    self.contact.search(q)
+                else:  # skipped where every particle is well inside its bound with nothing of its guess cut
+                    self.contact.search(q, self.deficit, self.renew_fraction)
+                self._restore.launch()  # skipped or not: a deficit of zero and positions inside the bound stay
             for launch in self._sweep:  # one Gauss-Seidel sweep: colour by colour, q and q_new alternating
                 launch.launch()
             if chebyshev:

@@ -198,6 +198,7 @@ class VBDContact:
                            wp.zeros(self.triangle_count * C, dtype=float, device=d),
                            wp.zeros(self.edge_count * C, dtype=float, device=d)]  # the lists' distances [m]
         self._overflow = wp.zeros(6, dtype=int, device=d)  # queries past capacity, most pairs of one query
+        self._searched = wp.zeros(1, dtype=int, device=d)  # searches run (skipped ones not counted)
         self._near = wp.zeros(self.vertex_count * self.near_capacity, dtype=int, device=d)
         self._near_end = wp.zeros(3 * self.vertex_count, dtype=int, device=d)
         self._planes = wp.array(self.planes.astype(np.float32), dtype=wp.vec4, device=d)
@@ -224,6 +225,7 @@ class VBDContact:
         self._body_lower = wp.zeros(B, dtype=wp.vec3, device=d)
         self._body_upper = wp.zeros(B, dtype=wp.vec3, device=d)
         self._roots = [wp.zeros(B, dtype=int, device=d) for _ in range(3)] + [wp.zeros(W, dtype=int, device=d)]
+        self._go = wp.ones(W, dtype=int, device=d)  # per world; 0: this search skipped there (search(deficit=))
         q = model.particle_q
         self._tri_lower = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
         self._tri_upper = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
@@ -275,28 +277,44 @@ class VBDContact:
                  (K.EDGE_QUERY, K.HALF, self.edge_count, edge_bvh, edge_roots, lists[2], lists[2]),
                  (K.EDGE_QUERY, K.FINISH, self.edge_count, edge_bvh, edge_roots, lists[2], None)]
         self._queries = [
-            record(K.query_pairs, count, [int(kind), int(mode), body_bvh.id, world_roots, self._groups[3], bvh.id,
-                                          roots, self._surface, self._tri, self._edges, self._body, q, r, sc, C, *out,
-                                          self._overflow, int(mirror is not None), *(mirror or out)[:3]])
+            record(K.begin_search, max(self.triangle_count, self.edge_count), [
+                self._go, self._tri, self._edges, self._body, self._groups[3], self._tv_count, self._ee_count,
+                self._overflow, self._searched])] + [
+            record(K.query_pairs, count, [self._go, int(kind), int(mode), body_bvh.id, world_roots, self._groups[3],
+                                          bvh.id, roots, self._surface, self._tri, self._edges, self._body, q, r, sc, C,
+                                          *out, self._overflow, int(mirror is not None), *(mirror or out)[:3]])
             for kind, mode, count, bvh, roots, out, mirror in kinds] + [
             record(K.displacement_bounds, q.shape[0], [
-                q, self._slot, self._vt_min, self._tri_offsets, self._tris, self._tv_min, self._edge_offsets,
-                self._edge_list, self._ee_min, self._planes, self._spheres, self.bound_fraction, self.max_displacement,
+                self._go, self._body, self._groups[3], q, self._slot, self._vt_min, self._tri_offsets, self._tris,
+                self._tv_min,
+                self._edge_offsets, self._edge_list, self._ee_min, self._planes, self._spheres,
+                self.bound_fraction, self.max_displacement,
                 self.reference, self.bound]),
             record(K.keep_near_pairs, self.vertex_count, [
-                self._surface, self._tri, self._edges, C, self._vt, self._distances[0], self._vt_count,
+                self._go, self._body, self._groups[3], self._surface, self._tri, self._edges, C, self._vt,
+                self._distances[0], self._vt_count,
                 self._tri_offsets, self._tris, self._tv, self._distances[1], self._tv_count, self._edge_offsets,
                 self._edge_list, self._ee, self._distances[2], self._ee_count, self.reference, self.bound,
                 self.thickness, self.near_capacity, self._near, self._near_end])]
         self._recorded_key = (q.ptr, self.thickness, self.max_displacement, self.bound_fraction, self.self_contact,
                               self.stiffness)
 
-    def search(self, q) -> None:
+    def search(self, q, deficit=None, fraction: float = 0.5) -> None:
         """Pairs within the query radius at positions ``q`` (N,) [m], and each particle's bound and
-        reference (no allocation, no read-back)."""
+        reference (no allocation, no read-back). With ``deficit`` (N,) [m] (what the bound cut from each
+        particle's initial guess, ``ws.VBD``), only when some particle has moved more than ``fraction`` of its
+        bound since the last search or has some of its guess cut (``kernels.vbd_contact.search_needed``,
+        decided on the device, world by world in a batch of worlds); else the last search's lists and bounds
+        stay (they hold until the next)."""
         if self._recorded_key != (q.ptr, self.thickness, self.max_displacement, self.bound_fraction,
                                   self.self_contact, self.stiffness):
             self._record(q)
+        if deficit is None:
+            self._go.fill_(1)
+        else:
+            self._go.zero_()
+            wp.launch(K.search_needed, q.shape[0], inputs=[q, self.reference, self.bound, deficit, float(fraction),
+                                                           self._body, self._groups[3], self._go], device=self.device)
         for launch in self._bounds:
             launch.launch()
         rebuild = self.searches % self.rebuild_every == 0
@@ -306,10 +324,7 @@ class VBDContact:
             for launch in self._find_roots:
                 launch.launch()
         self.searches += 1
-        self._overflow.zero_()
-        self._tv_count.zero_()  # the triangles' and edges' lists are staged by the vertex and edge queries
-        self._ee_count.zero_()
-        for launch in self._queries:
+        for launch in self._queries:  # begin_search zeroes the counts the vertex and edge queries stage into
             launch.launch()
 
     def solve_inputs(self) -> list:
@@ -318,6 +333,12 @@ class VBDContact:
                 self._tris, self._tv, self._tv_count, self._edge_offsets, self._edge_list, self._ee, self._ee_count,
                 self._near, self._near_end, self.near_capacity, self._planes, self._spheres, self.thickness,
                 self.stiffness, self.friction, self.friction_eps]
+
+    @property
+    def searches_run(self) -> int:
+        """Searches run so far (in a batch of worlds: the worlds' searches summed), those skipped
+        (``search(..., deficit=)``) not counted (reads back)."""
+        return int(self._searched.numpy()[0])
 
     @property
     def overflow(self) -> tuple:
