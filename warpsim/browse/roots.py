@@ -166,14 +166,18 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
     root.specifier = Sdf.SpecifierDef
     root.typeName = "Xform"
 
-    def reference(spec, g):
-        asset = "./" + os.path.relpath(owner[g], folder).replace(os.sep, "/")
-        spec.referenceList.Prepend(Sdf.Reference(asset, f"/Worlds/{world_prim_name(g)}"))
+    assets = {p: "./" + os.path.relpath(p, folder).replace(os.sep, "/") for p in set(owner.values())}
+
+    def reference(spec, g, name):  # (one list op authored: a proxy's Prepend costs more with many worlds)
+        ref = Sdf.Reference(assets[owner[g]], f"/Worlds/{name}")
+        spec.SetInfo("references", Sdf.ReferenceListOp.Create(prependedItems=[ref]))
 
     if layout == "variants":
         vset = Sdf.VariantSetSpec(root, "world")
-        for g in chosen:
-            reference(Sdf.VariantSpec(vset, world_prim_name(g)).primSpec, g)
+        with Sdf.ChangeBlock():
+            for g in chosen:
+                name = world_prim_name(g)
+                reference(Sdf.VariantSpec(vset, name).primSpec, g, name)
         root.variantSetNameList.Prepend("world")
         if chosen:
             root.variantSelections["world"] = world_prim_name(chosen[0])
@@ -183,10 +187,11 @@ def write_sweep_root(out_path, layer_paths, world_count, layout="variants", *, w
             raise ValueError(f"spacing {spacing} must be > 0 [m]")
         columns = max(1, math.ceil(math.sqrt(len(chosen))))
         for k, g in enumerate(chosen):
-            spec = Sdf.CreatePrimInLayer(layer, f"/World/{world_prim_name(g)}")
+            name = world_prim_name(g)
+            spec = Sdf.CreatePrimInLayer(layer, f"/World/{name}")
             spec.specifier = Sdf.SpecifierDef
             spec.typeName = "Xform"
-            reference(spec, g)
+            reference(spec, g, name)
             op = Sdf.AttributeSpec(spec, "xformOp:translate", Sdf.ValueTypeNames.Double3)
             op.default = Gf.Vec3d((k % columns) * step, 0.0, (k // columns) * step)
             order = Sdf.AttributeSpec(spec, "xformOpOrder", Sdf.ValueTypeNames.TokenArray, Sdf.VariabilityUniform)

@@ -154,10 +154,18 @@ class BatchLayerWriter(UsdCacheWriter):
         ``world`` (the global index) and ``params`` {name: value}, so a root or a picked file that
         references the prim carries them (not only the CSV)."""
         self.world_params[int(local)] = dict(params)
-        self.__dict__.pop("_templates", None)  # the root's declarations carry them
+        self.__dict__.pop("_root", None)  # the root's declarations carry them: authored again
 
     def _world_path(self, local):
-        return f"/Worlds/{world_prim_name(self.first_world + local)}"
+        return self._world_paths()[local]
+
+    def _world_paths(self):
+        """The prim path of every world (``/Worlds/world_GGGGGG``), made once."""
+        paths = self.__dict__.get("_paths_text")
+        if paths is None:
+            paths = self._paths_text = [f"/Worlds/{world_prim_name(self.first_world + k)}"
+                                        for k in range(self.world_count)]
+        return paths
 
     def observe(self, datas):
         """Widen the worlds' extent by one frame's data without writing it (frames a resumed
@@ -227,15 +235,22 @@ class BatchLayerWriter(UsdCacheWriter):
         self.last_frame = frame
 
     def _batch_paths(self, name, attr_name):
-        """(Sdf paths, path strings) of attribute ``name.attr_name`` of every world (made once)."""
+        """The path strings of attribute ``name.attr_name`` of every world (made once)."""
         cache = self.__dict__.setdefault("_paths", {})
         key = (name, attr_name)
         if key not in cache:
+            cache[key] = [f"{world}/{name}.{attr_name}" for world in self._world_paths()]
+        return cache[key]
+
+    def _sdf_paths(self, text):
+        """``text`` (a :meth:`_batch_paths` list) as Sdf paths, made once (only this process's
+        authoring needs them: a worker makes its own)."""
+        cache = self.__dict__.setdefault("_sdf", {})
+        if id(text) not in cache:
             from pxr import Sdf
 
-            text = [f"{self._world_path(k)}/{name}.{attr_name}" for k in range(self.world_count)]
-            cache[key] = ([Sdf.Path(t) for t in text], text)
-        return cache[key]
+            cache[id(text)] = [Sdf.Path(t) for t in text]
+        return cache[id(text)]
 
     def _write_batch_samples(self, frame, samples):
         from ..usd.writer import vt_maker
@@ -246,13 +261,13 @@ class BatchLayerWriter(UsdCacheWriter):
             decl = self.prims[name]
             for attr_name, values in attrs.items():
                 attr = decl.attrs[attr_name]
-                paths, text = self._batch_paths(name, attr_name)
-                plan.append((attr, values, paths, text, vt_maker(attr.type_name)))
+                text = self._batch_paths(name, attr_name)
+                plan.append((attr, values, text, vt_maker(attr.type_name)))
         if chunk.stage is not None:  # a worker authors the chunk (the same order, values and saves)
             self._stage_batch(t, plan)
         else:
             self._author_batch(t, plan)
-        for attr, values, paths, text, make in plan:  # the worlds' extent, grown once a frame
+        for attr, values, text, make in plan:  # the worlds' extent, grown once a frame
             if attr.name == "points" and not attr.on_change:
                 if isinstance(values, np.ndarray):
                     self._grow_worlds(values, finite=True)  # (world_samples refused non-finite points)
@@ -277,6 +292,7 @@ class BatchLayerWriter(UsdCacheWriter):
         chunk = self._chunk
         layer, last, pending = chunk.layer, chunk.last, 0
         with Sdf.ChangeBlock():
+            plan = [(attr, values, self._sdf_paths(text), text, make) for attr, values, text, make in plan]
             for w in range(self.world_count):  # world by world, attribute by attribute: write_worlds' order
                 for attr, values, paths, text, make in plan:
                     value = values[w]
@@ -292,7 +308,7 @@ class BatchLayerWriter(UsdCacheWriter):
 
     def _stage_batch(self, t, plan):
         """One frame of every world staged for the chunk's worker (:class:`warpsim.usd.chunk_stage.ChunkStage`)."""
-        for attr, values, paths, text, make in plan:
+        for attr, values, text, make in plan:
             if attr.on_change and attr.name == "points":  # (an unchanged value adds nothing new to the bounds)
                 for value in values:
                     self._authored(attr.name, value)
@@ -351,27 +367,11 @@ class BatchLayerWriter(UsdCacheWriter):
         return layer.GetPrimAtPath(self._world_path(0))
 
     def _declare_specs(self, layer, manifest):
-        """:meth:`_author_specs` into ``layer``; the root layer's copied from a template authored
-        once (it is rewritten after every chunk: with many worlds, authoring its specs each time
-        cost seconds a chunk)."""
-        from pxr import Sdf
-
-        if manifest:  # a chunk: authored as it is (a copied template saves its crate file otherwise)
-            return self._author_specs(layer, manifest)
-        templates = self.__dict__.setdefault("_templates", {})
-        template = templates.get(bool(manifest))
-        if template is None:
-            template = Sdf.Layer.CreateAnonymous(".usda")
-            self._author_specs(template, manifest)
-            templates[bool(manifest)] = template
-        layer.TransferContent(template)
-        return layer.GetPrimAtPath("/Worlds")
-
-    def _author_specs(self, layer, manifest):
-        """The root layer: every prim declared once in the class ``/WorldShared`` (static
-        attributes, topology, materials) and inherited by each world's prim of that name, which
-        holds nothing itself (its samples come from the chunks); a chunk (``manifest``): each
-        world's time-varying attributes."""
+        """The root layer (authored once, then updated in place: :meth:`_write_root`): every prim
+        declared once in the class ``/WorldShared`` (static attributes, topology, materials) and
+        inherited by each world's prim of that name, which holds nothing itself (its samples come
+        from the chunks); a chunk (``manifest``): each world's time-varying attributes (world 0's
+        declared, the others' copied: :meth:`_declare_world_prims`)."""
         from pxr import Sdf
 
         if not manifest:
@@ -382,36 +382,52 @@ class BatchLayerWriter(UsdCacheWriter):
         root = Sdf.CreatePrimInLayer(layer, "/Worlds")
         root.specifier = Sdf.SpecifierDef
         root.typeName = "Scope"
-        for k in range(self.world_count):
-            spec = Sdf.CreatePrimInLayer(layer, self._world_path(k))
-            spec.specifier = Sdf.SpecifierDef
-            spec.typeName = "Xform"
-            if not manifest and k in self.world_params:
-                spec.customData = {"warpsim": {"world": self.first_world + k, "params": {
-                    str(key): _custom_value(v) for key, v in self.world_params[k].items()}}}
-            for name, decl in self.prims.items():
-                if not manifest:
-                    prim = Sdf.CreatePrimInLayer(layer, spec.path.AppendChild(name))
-                    prim.specifier = Sdf.SpecifierDef
-                    prim.typeName = decl.type_name
-                    prim.inheritPathList.Prepend(f"{SHARED}/{name}")
-                elif decl.is_dynamic:
-                    self._declare_prim(layer, spec.path.AppendChild(name), decl, manifest)
+        names = [(name, decl) for name, decl in self.prims.items() if not manifest or decl.is_dynamic]
+        inherits = [Sdf.PathListOp.Create(prependedItems=[Sdf.Path(f"{SHARED}/{name}")]) for name, _ in names]
+        first = None  # world 0's prims in a chunk, copied into every other world
+        with Sdf.ChangeBlock():
+            for k, path in enumerate(self._world_paths()):  # (PrimSpec: specifier and type in one call)
+                spec = Sdf.PrimSpec(root, path[len("/Worlds/"):], Sdf.SpecifierDef, "Xform")
+                if manifest:
+                    first = self._declare_world_prims(layer, spec, names, first)
+                    continue
+                if k in self.world_params:
+                    spec.customData = {"warpsim": {"world": self.first_world + k, "params": {
+                        str(key): v if type(v) in _PLAIN else _custom_value(v)
+                        for key, v in self.world_params[k].items()}}}
+                for (name, decl), inherit in zip(names, inherits):  # each inherits /WorldShared/NAME
+                    prim = Sdf.PrimSpec(spec, name, Sdf.SpecifierDef, decl.type_name)
+                    prim.SetInfo("inheritPaths", inherit)
         return root
 
-    def _build_layer(self, manifest):
+    def _declare_world_prims(self, layer, spec, names, first):
+        """A chunk's prims ``names`` of the world prim ``spec``: declared in the first world
+        (``first`` None), copied from ``first`` (their paths there) in the others (``Sdf.CopySpec``,
+        C++, spec by spec; the chunks copy them from the manifest's text, so their bytes stay the
+        same); returns the first world's paths."""
+        from pxr import Sdf
+
+        if first is None:
+            first = [spec.path.AppendChild(name) for name, _ in names]
+            for path, (_, decl) in zip(first, names):
+                self._declare_prim(layer, path, decl, True)
+            return first
+        for (name, _), source in zip(names, first):
+            child = spec.path.AppendChild(name)
+            Sdf.CreatePrimInLayer(layer, child)
+            if not Sdf.CopySpec(layer, source, layer, child):
+                raise ValueError(f"could not copy the spec {source} to {child}")
+        return first
+
+    def _set_clips(self, layer, world, clips):
+        """The clips on every world prim instead of ``/Worlds``, each with its own ``primPath``."""
+        for path in self._world_paths():
+            layer.GetPrimAtPath(path).SetInfo("clips", {"default": {**clips, "primPath": path}})
+
+    def _set_root_info(self, layer, world):
         from pxr import Vt
 
-        layer = super()._build_layer(manifest)
-        if manifest:
-            return layer
-        root = layer.GetPrimAtPath("/Worlds")
-        if root.HasInfo("clips"):  # on every world prim instead, each with its own primPath
-            clips = dict(dict(root.GetInfo("clips"))["default"])
-            root.ClearInfo("clips")
-            for k in range(self.world_count):
-                path = self._world_path(k)
-                layer.GetPrimAtPath(path).SetInfo("clips", {"default": {**clips, "primPath": path}})
+        super()._set_root_info(layer, world)
         finite = np.isfinite(self.hi - self.lo).all()
         span = float(np.max(self.hi - self.lo)) if finite else 1.0
         data = dict(layer.customLayerData.get("warpsim", {}))
@@ -420,7 +436,18 @@ class BatchLayerWriter(UsdCacheWriter):
         if finite:
             data.update(lo=Vt.DoubleArray(list(self.lo)), hi=Vt.DoubleArray(list(self.hi)))
         layer.customLayerData = {"warpsim": data}
-        return layer
+
+    def _write_root(self):
+        """Rewrite the root layer: authored once (the first time, or again once no chunk is
+        listed), then only its metadata and clips updated in place (with many worlds, authoring
+        its specs again cost seconds a chunk); the same fields in the same order, so the same bytes."""
+        layer = self.__dict__.get("_root")
+        if layer is None or not self.chunks:
+            layer = self._build_layer(manifest=False)
+        else:
+            self._set_root_info(layer, layer.GetPrimAtPath("/Worlds"))
+        self._root = layer
+        self._export_atomic(layer, self.path)
 
     def close(self, scene_name=""):
         """Complete the last chunk and rewrite the layer; returns its path."""
@@ -439,11 +466,15 @@ class BatchLayerWriter(UsdCacheWriter):
         return self.path
 
 
+_PLAIN = (bool, int, float, str)
+"""Types USD customData holds as they are (:func:`_custom_value`)."""
+
+
 def _custom_value(value):
     """A parameter value as USD customData holds it (vectors as double arrays)."""
     from pxr import Vt
 
-    if isinstance(value, (bool, int, float, str)):
+    if isinstance(value, _PLAIN):
         return value
     if isinstance(value, (tuple, list, np.ndarray)):
         return Vt.DoubleArray([float(v) for v in value])

@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-__all__ = ["author_chunk", "chunk_job", "copy_specs"]
+__all__ = ["author_chunk", "chunk_job", "copy_specs", "prepare_specs", "specs_source"]
 
 
 def chunk_job(tmp_path, specs, fields, times, blocks, save_bytes, durable) -> dict:
@@ -34,13 +34,37 @@ def chunk_job(tmp_path, specs, fields, times, blocks, save_bytes, durable) -> di
             "save_bytes": int(save_bytes), "durable": bool(durable)}
 
 
-def copy_specs(text, layer):
-    """Copy the specs of ``text`` (a layer as ``.usda`` text) into ``layer``, prim by prim."""
+_PARSED: dict = {}  # the last specs text this process parsed -> its layer (specs_source)
+
+
+def specs_source(text, cache=None):
+    """A layer holding the specs of ``text`` (``.usda`` text), parsed once per ``cache`` (a dict;
+    None: this process's): the chunks of one writer share their specs, which take seconds to parse
+    with many worlds."""
     from pxr import Sdf
 
-    source = Sdf.Layer.CreateAnonymous(".usda")
-    if not source.ImportFromString(text):
-        raise ValueError("the chunk's specs did not parse")
+    cache = _PARSED if cache is None else cache
+    source = cache.get(text)
+    if source is None:
+        source = Sdf.Layer.CreateAnonymous(".usda")
+        if not source.ImportFromString(text):
+            raise ValueError("the chunk's specs did not parse")
+        cache.clear()  # (one writer's at a time: a worker serves one writer)
+        cache[text] = source
+    return source
+
+
+def prepare_specs(text) -> None:
+    """A worker's job: parse ``text`` now (:func:`specs_source`), before the first chunk needs it."""
+    specs_source(text)
+
+
+def copy_specs(text, layer):
+    """Copy the specs of ``text`` (a layer as ``.usda`` text, or a layer made by :func:`specs_source`)
+    into ``layer``, prim by prim."""
+    from pxr import Sdf
+
+    source = specs_source(text) if isinstance(text, str) else text
     for prim in source.rootPrims:
         Sdf.CreatePrimInLayer(layer, prim.path)
         if not Sdf.CopySpec(source, prim.path, layer, prim.path):

@@ -38,13 +38,21 @@ class WorkerChunks:
         self._blocks = BlockPool()  # the shared memory of written chunks, reused by the next ones
 
     def _chunk_specs(self) -> str:
-        """A chunk's specs (``_declare_specs(manifest=True)``) as ``.usda`` text, made once."""
+        """A chunk's specs (``_declare_specs(manifest=True)``) as ``.usda`` text, made once (the
+        manifest's text, kept by ``_seal``)."""
         if self._specs_text is None:
             Sdf, _, _ = _pxr()
             layer = Sdf.Layer.CreateAnonymous(".usda")
             self._declare_specs(layer, manifest=True)
             self._specs_text = layer.ExportToString()
         return self._specs_text
+
+    def _warm_workers(self):
+        """Have each worker parse a chunk's specs now (:func:`warpsim.usd.chunk_author.prepare_specs`),
+        while this process steps: with many worlds that parse takes seconds a chunk's job then skips."""
+        text = self._chunk_specs()
+        for _ in range(self.workers):
+            self._pool.submit("warpsim.usd.chunk_author:prepare_specs", text)
 
     def _submit(self, chunk):
         """Hand a staged chunk to a worker; complete the chunks already done (in order) and wait

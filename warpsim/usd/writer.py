@@ -50,7 +50,7 @@ from ..core.safe_files import clear_temporary, disk_full, disk_reason
 from . import chunk_index
 from .lock import OutputLock
 from ..core.names import close_matches
-from .chunk_author import copy_specs
+from .chunk_author import copy_specs, specs_source
 from .chunk_pool import WorkerChunks
 from .value_types import pxr_modules as _pxr, to_vt, vt_maker
 from .sink import PrimSink, state_frame_data
@@ -240,6 +240,7 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
         self._blocks = None  # warpsim.process_pool.BlockPool of their shared memory
         self._inflight = collections.deque()  # chunks handed to workers: (chunk, future), oldest first
         self._specs_text = None  # a chunk's specs as .usda text (the workers copy them)
+        self._parsed = {}  # the specs text parsed once for this process's chunks (chunk_author.specs_source)
         self._unlisted = []  # chunks from workers renamed into place, not yet indexed and in the root
         self._root_due = 0.0  # time.monotonic() after which the root is rewritten again
 
@@ -424,13 +425,18 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
             for tmp in glob.glob(self._abs(glob.escape(self.stem) + ".*tmp-*")):
                 os.remove(tmp)
             self._sealed = True
-            self._export_atomic(self._build_layer(manifest=True), self._abs(self._file("manifest")))
+            manifest = self._abs(self._file("manifest"))
+            self._export_atomic(self._build_layer(manifest=True), manifest)
+            with open(manifest, encoding="utf-8", newline="") as f:  # a chunk's specs: the manifest's,
+                self._specs_text = f.read()  # authored once (its .usda text; WorkerChunks._chunk_specs)
             if self.resume_frame is not None:
                 self._load_for_resume(self.resume_frame)
             else:
                 chunk_index.write_index(self._index_file, [], self.durable)
             self._write_root()
             self._remove_unlisted_chunks()
+            if self._pool is not None:
+                self._warm_workers()
         except BaseException:
             self._lock.release()  # nothing of this run was written: the cache stays free for another writer
             self._lock = None
@@ -456,7 +462,8 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
         layer = Sdf.Layer.CreateNew(chunk.tmp_path)
         if layer is None:
             raise OSError(f"could not create {chunk.tmp_path}")
-        copy_specs(self._chunk_specs(), layer)  # as a worker does (the same bytes whoever writes the chunk)
+        # as a worker does (the same bytes whoever writes the chunk); the text parsed once for all chunks
+        copy_specs(specs_source(self._chunk_specs(), self._parsed), layer)
         chunk.layer = layer
         self._chunk = chunk
 
@@ -544,11 +551,17 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
         declare_prim(layer, path, decl, manifest)
 
     def _build_layer(self, manifest):
-        Sdf, Vt, _ = _pxr()
+        Sdf, _, _ = _pxr()
         layer = Sdf.Layer.CreateAnonymous(".usda")
         world = self._declare_specs(layer, manifest)
-        if manifest:
-            return layer
+        if not manifest:
+            self._set_root_info(layer, world)
+        return layer
+
+    def _set_root_info(self, layer, world):
+        """Author the root layer's metadata and its clips (on ``world``, the root prim's spec) listing
+        the completed chunks; again on the same layer, the same fields in the same order."""
+        Sdf, Vt, _ = _pxr()
         layer.defaultPrim = self.root_prim
         layer.timeCodesPerSecond = self.fps
         layer.framesPerSecond = self.fps
@@ -560,14 +573,17 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
         if self.chunks:
             layer.startTimeCode = float(self.chunks[0][0])
             layer.endTimeCode = float(self.chunks[-1][1])
-            world.SetInfo("clips", {"default": {
+            self._set_clips(layer, world, {
                 "assetPaths": Sdf.AssetPathArray(["./" + c[2] for c in self.chunks]),
                 "active": Vt.Vec2dArray([(float(c[0]), float(i)) for i, c in enumerate(self.chunks)]),
                 "times": Vt.Vec2dArray([(float(self.chunks[0][0]),) * 2, (float(self.chunks[-1][1]),) * 2]),
                 "manifestAssetPath": Sdf.AssetPath("./" + self._file("manifest")),
                 "primPath": "/" + self.root_prim,
-            }})
-        return layer
+            })
+
+    def _set_clips(self, layer, world, clips):
+        """Author ``clips`` (the chunks' value clips) as ``clips["default"]`` of the root prim ``world``."""
+        world.SetInfo("clips", {"default": clips})
 
     def _clip_prim(self, layer):
         """The prim spec of ``layer`` whose ``clips`` list the chunks (the root prim here)."""
