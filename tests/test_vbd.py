@@ -618,3 +618,18 @@ def test_searches_within_a_step_run_when_a_particle_nears_its_bound():
     skipped = counts[0.5]
     assert skipped[0] < 2.0 and max(skipped) == 2.0 and skipped[-1] < 2.0 and min(skipped) >= 1.0, skipped
     assert np.array_equal(runs[0], runs[2])
+
+
+def test_the_size_check_counts_the_pair_lists():
+    """The donut scene's memory estimate (checked before anything is built) counts VBD's pair lists:
+    ``VBDContact.list_bytes`` is within 10 % of the bytes VBDContact allocates for the heap (capacity
+    32 and the sweeps' 128 entries per vertex: 0.67 MB a torus of 24 x 12, 0.67 GB at 1,000 tori)."""
+    cls = get_scene("donuts")
+    scene = cls(cls.resolve_params({"count": 3, "integrator": "vbd"}), device=DEVICE)
+    contact = scene.vbd_contact
+    arrays = [v for v in vars(contact).values() if isinstance(v, wp.array)]
+    arrays += [a for v in vars(contact).values() if isinstance(v, list) for a in v if isinstance(a, wp.array)]
+    allocated = sum(a.capacity for a in arrays)
+    faces = scene.torus.faces
+    estimate = 3 * ws.VBDContact.list_bytes(len(np.unique(faces)), len(faces), 3 * len(faces) // 2)
+    assert 0.9 < allocated / estimate < 1.1, (allocated, estimate)

@@ -67,6 +67,20 @@ class VBDContact:
     CHUNK = 8
     """Surface vertices per thread of the body-bounds pass."""
 
+    @staticmethod
+    def list_bytes(vertices: int, triangles: int, edges: int, capacity: int = 32, near_capacity: int = 128) -> int:
+        """Device bytes of one copy of a surface of ``vertices``, ``triangles`` and ``edges`` (int32 and
+        float32): each query's ``capacity`` indices and distances with its count and smallest distance,
+        the sweeps' ``near_capacity`` entries and 3 ends per vertex, the topology (corners, ends, the CSR
+        of each vertex's triangles and edges) and the bounding boxes. The per-particle arrays (slot, body,
+        reference, bound) are not counted here."""
+        queries = vertices + triangles + edges
+        lists = 8 * capacity * queries + 8 * queries
+        near = 4 * near_capacity * vertices + 12 * vertices
+        topology = 4 * (6 * triangles + 4 * edges) + 4 * vertices
+        boxes = 24 * (triangles + edges) + 12 * vertices
+        return lists + near + topology + boxes
+
     def __init__(self, faces, *, body_size: int | None = None, particle_body=None, thickness: float = 0.006,
                  stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
                  self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,

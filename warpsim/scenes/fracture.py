@@ -378,16 +378,18 @@ def check_donut_box(box: float, major_radius: float, minor_radius: float) -> flo
     return smallest
 
 
-def check_donut_memory(count: int, torus, device, list_capacity: int = 0) -> None:
+def check_donut_memory(count: int, torus, device, list_capacity: int = 0, extra_bytes: int = 0) -> None:
     """ValueError (with the figures) when ``count`` copies of ``torus`` (a SoftBody) would not fit
     in the device's free memory, or the host's for the build. Per torus: about 300 B per particle
     (state, model, integrator and contact buffers), 120 B per spring (model, adjacency), 260 B per
     surface triangle (BVHs, edges, contact slots), and with a candidate list of ``list_capacity``
     candidates a query 2 (4 capacity + 8) B per triangle (about two queries, a vertex's and 1.5 edges',
-    per triangle); the Python build holds about 250 B per spring and 200 B per particle on the host."""
+    per triangle); the Python build holds about 250 B per spring and 200 B per particle on the host.
+    ``extra_bytes``: more device bytes per torus (``integrator=vbd``: its pair lists, ``VBDContact.list_bytes``,
+    and about 10 vectors a particle of the descent's positions and bounds)."""
     faces = len(torus.faces)
     per_face = 260 + (2 * (4 * list_capacity + 8) if list_capacity else 0)
-    device_bytes = count * (300 * torus.particle_count + 120 * torus.spring_count + per_face * faces)
+    device_bytes = count * (300 * torus.particle_count + 120 * torus.spring_count + per_face * faces + extra_bytes)
     host_bytes = count * (200 * torus.particle_count + 250 * torus.spring_count)
     need = [("host", host_bytes, available_host_bytes(unknown=0))]
     if device.is_cuda:
@@ -492,8 +494,12 @@ class DonutsScene(SimulatorScene):
                                  stiffness=p["stiffness"], damping=p["damping"], lattice_cells=p["lattice_cells"],
                                  name="torus")
         broad_phase = p["broad_phase"]
+        extra = 0
+        if p["integrator"] == "vbd":  # its pair lists (no SoftContact list) and descent buffers
+            faces_n = len(faces)
+            extra = ws.VBDContact.list_bytes(len(points), faces_n, 3 * faces_n // 2) + 120 * template.particle_count
         check_donut_memory(p["count"], template, wp.get_device(self.device),
-                           SoftContact.DEFAULT_CAPACITY if broad_phase == "list" else 0)
+                           SoftContact.DEFAULT_CAPACITY if broad_phase == "list" else 0, extra)
         reach = p["major_radius"] + p["minor_radius"]
         box = p["box"] or max(0.35 * p["major_radius"] / 0.1 * (p["count"] / 12.0) ** (1.0 / 3.0), reach + 0.01)
         per_side = max(1, int((2.0 * box) // (2.0 * reach + 0.02)))
