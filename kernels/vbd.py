@@ -91,6 +91,7 @@ def solve_colour(
     tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
     ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
+    vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
     planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
     contact_stiffness: float,
     friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
@@ -133,8 +134,8 @@ def solve_colour(
         H += stiffness[s] * (nn + wp.max(0.0, 1.0 - rest[s] / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
     fc, Hc = contact_force_hessian(p, x, q, q0, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
                                    tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
-                                   near_capacity, planes, spheres, radius,
-                                   contact_stiffness, friction, friction_eps)
+                                   near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
+                                   contact_stiffness, friction, friction_eps, reference)
     f += fc
     H += Hc
     q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])

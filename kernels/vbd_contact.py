@@ -572,6 +572,19 @@ def keep_near_pairs(
 
 
 @wp.func
+def moved(p: int, x: wp.vec3, v: int, q: wp.array(dtype=wp.vec3), reference: wp.array(dtype=wp.vec3)) -> float:
+    """How far [m] particle v (at ``x`` when it is p) is from its reference (its position at the search)."""
+    return wp.length(wp.where(v == p, x, q[v]) - reference[v])
+
+
+@wp.func
+def still_apart(room: float, v: int, q: wp.array(dtype=wp.vec3), reference: wp.array(dtype=wp.vec3)) -> bool:
+    """Whether particle v has moved less than ``room`` [m] (> 0) from its reference (its position at the
+    search): a side of a pair whose corners all have keeps the pair out of reach (``contact_force_hessian``)."""
+    return room > 0.0 and wp.length_sq(q[v] - reference[v]) < room * room
+
+
+@wp.func
 def contact_force_hessian(
     p: int, x: wp.vec3, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int),
     tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
@@ -580,14 +593,18 @@ def contact_force_hessian(
     tv_count: wp.array(dtype=int),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
     ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
+    vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
     planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float, stiffness: float,
-    friction: float, friction_eps: float,
+    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3),
 ):
     """Sum of the contact forces [N] and Hessian blocks [N/m] on particle p at position ``x`` (the
     other particles at ``q``; ``q0`` the step's start): its vertex-triangle pairs as the vertex
     and as a triangle corner, its edges' edge-edge pairs, the planes and spheres; fixed order. The pairs
     are those ``keep_near_pairs`` kept for p (the same sums: the pairs left out add nothing), or every
-    listed pair where p's kept pairs did not fit."""
+    listed pair where p's kept pairs did not fit. A kept pair at distance D [m] at the search whose two sides
+    have moved by less than D - ``radius`` (each side: its largest corner displacement from ``reference``,
+    the positions of the search) is still farther apart than ``radius`` and adds nothing: skipped before its
+    nearest points (``still_apart``; the same slack as ``keep_near_pairs``), so the sums keep their bits."""
     f = wp.vec3()
     H = wp.mat33()
     s = slot[p]
@@ -595,9 +612,16 @@ def contact_force_hessian(
         dx = x - q0[p]
         if near_end[3 * s] >= 0:
             base = s * near_capacity
+            reach = radius + 1.0e-3 * radius + 1.0e-5 * wp.length(reference[p])
+            own = wp.length(x - reference[p])
             for k in range(near_end[3 * s]):
-                fc, Hc = vertex_triangle_pair(x, dx, vt_list[near[base + k]], q, q0, tri, radius, stiffness, friction,
-                                              friction_eps)
+                a = near[base + k]
+                t = vt_list[a]
+                room = vt_distance[a] - own - reach
+                if still_apart(room, tri[3 * t], q, reference) and still_apart(room, tri[3 * t + 1], q, reference):
+                    if still_apart(room, tri[3 * t + 2], q, reference):
+                        continue
+                fc, Hc = vertex_triangle_pair(x, dx, t, q, q0, tri, radius, stiffness, friction, friction_eps)
                 f += fc
                 H += Hc
             xs = wp.mat33()
@@ -605,25 +629,43 @@ def contact_force_hessian(
             centre = wp.vec3()
             extent = float(0.0)
             corner = int(0)
-            last = int(-1)
+            built = int(-1)
+            t = int(-1)
+            lo = -1 - capacity  # t's pairs are at [lo, lo + capacity) of the lists
             for k in range(near_end[3 * s], near_end[3 * s + 1]):
                 a = near[base + k]
-                t = a // capacity
-                if t != last:  # a triangle's pairs come together
+                if a < lo or a >= lo + capacity:  # a triangle's pairs come together: one division a triangle
+                    t = a // capacity
+                    lo = t * capacity
+                    own = wp.max(wp.max(moved(p, x, tri[3 * t], q, reference),
+                                        moved(p, x, tri[3 * t + 1], q, reference)),
+                                 moved(p, x, tri[3 * t + 2], q, reference))
+                if still_apart(tv_distance[a] - own - reach, tv_list[a], q, reference):
+                    continue
+                if t != built:  # the triangle's corners only for a pair that is not skipped
                     xs, ds, centre, extent, corner = corner_triangle(p, x, t, q, q0, tri)
-                    last = t
+                    built = t
                 fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[a], q, q0, radius, stiffness,
                                               friction, friction_eps)
                 f += fc
                 H += Hc
-            last = int(-1)
+            built = int(-1)
+            e = int(-1)
+            lo = -1 - capacity
             for k in range(near_end[3 * s + 1], near_end[3 * s + 2]):
                 a = near[base + k]
-                e = a // capacity
-                if e != last:
+                if a < lo or a >= lo + capacity:
+                    e = a // capacity
+                    lo = e * capacity
+                    own = wp.max(moved(p, x, edges[2 * e], q, reference), moved(p, x, edges[2 * e + 1], q, reference))
+                g = ee_list[a]
+                room = ee_distance[a] - own - reach
+                if still_apart(room, edges[2 * g], q, reference) and still_apart(room, edges[2 * g + 1], q, reference):
+                    continue
+                if e != built:
                     xs, ds, centre, extent, corner = edge_with(p, x, e, q, q0, edges)
-                    last = e
-                fc, Hc = edge_edge_pair(xs, ds, centre, extent, corner, ee_list[a], q, q0, edges, radius, stiffness,
+                    built = e
+                fc, Hc = edge_edge_pair(xs, ds, centre, extent, corner, g, q, q0, edges, radius, stiffness,
                                         friction, friction_eps)
                 f += fc
                 H += Hc

@@ -188,7 +188,7 @@ class VBD(Integrator):
             self._bound = wp.full(n, 1.0e30, dtype=float, device=d)
             self._contact_inputs = [wp.full(n, -1, dtype=int, device=d), empty, empty, 0, empty, empty, empty, empty,
                                     empty, empty, empty, empty, empty, empty, empty, empty, 0,
-                                    wp.zeros(0, dtype=wp.vec4, device=d),
+                                    *[wp.zeros(0, dtype=float, device=d)] * 3, wp.zeros(0, dtype=wp.vec4, device=d),
                                     wp.zeros(0, dtype=wp.vec4, device=d), 0.0, 0.0, 0.0, 1.0]
 
     @property
