@@ -32,7 +32,8 @@ SLIDERS = ("slider", "log_slider", "dt_slider")
 CLAMP_ECHO_SECONDS = 2.0
 """A slider's number box clamps a value typed past its range to the range's end when the box is
 left: the range is widened to the typed value at once, and such an end arriving within this time
-after the typed value is ignored (the value typed is the value run and shown)."""
+after the typed value was applied (the handler's end: a rebuild may take seconds, the clamp waits
+behind it) is ignored (the value typed is the value run and shown)."""
 
 
 def label_for(key, param, live=False):
@@ -213,6 +214,9 @@ def build_param_panel(gui, session, on_result):
                 sync_param_handles(handles, session, keys=(key,))  # the value it still runs with
                 on_result(key, str(exc), False)
                 return
+            finally:
+                if kind in SLIDERS:  # the box's clamp is queued behind this handler (a rebuild can take
+                    typed[key] = typed[key][:2] + (time.monotonic(),)  # seconds): its window starts now
             on_result(key, outcome, True)
 
         h.on_update(changed)
