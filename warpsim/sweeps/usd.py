@@ -129,6 +129,7 @@ class BatchLayerWriter(UsdCacheWriter):
         self.first_world, self.world_count = int(first_world), int(world_count)
         self.scene_name = ""
         self.world_params = {}
+        self._root = None  # the root layer as last written (updated in place: _write_root); None: author it anew
         self.dynamic = {name: d for name, d in self.prims.items() if d.is_dynamic}
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
@@ -154,7 +155,7 @@ class BatchLayerWriter(UsdCacheWriter):
         ``world`` (the global index) and ``params`` {name: value}, so a root or a picked file that
         references the prim carries them (not only the CSV)."""
         self.world_params[int(local)] = dict(params)
-        self.__dict__.pop("_root", None)  # the root's declarations carry them: authored again
+        self._root = None  # the root's declarations carry them: authored again
 
     def _world_path(self, local):
         return self._world_paths()[local]
@@ -441,7 +442,7 @@ class BatchLayerWriter(UsdCacheWriter):
         """Rewrite the root layer: authored once (the first time, or again once no chunk is
         listed), then only its metadata and clips updated in place (with many worlds, authoring
         its specs again cost seconds a chunk); the same fields in the same order, so the same bytes."""
-        layer = self.__dict__.get("_root")
+        layer = self._root
         if layer is None or not self.chunks:
             layer = self._build_layer(manifest=False)
         else:
