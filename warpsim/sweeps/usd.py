@@ -227,12 +227,17 @@ class BatchLayerWriter(UsdCacheWriter):
         if self.last_frame is not None and frame <= self.last_frame:
             raise ValueError(f"frames must increase: got frame {frame} after {self.last_frame}")
         n = self.world_count
-        samples = {name: world_samples(decl, batched.get(name), frame, n) for name, decl in self.dynamic.items()}
+        samples, bounds = {}, {}
+        for name, decl in self.dynamic.items():
+            reduced: list = []
+            samples[name] = world_samples(decl, batched.get(name), frame, n, reduced)
+            if reduced:
+                bounds[name] = reduced[0]  # (each world's points reduced once: for the extent and the layer's bounds)
         if self._chunk is not None and frame // self.chunk_size != self._chunk.start // self.chunk_size:
             self._finish_chunk()
         if self._chunk is None:
             self._open_chunk(frame)
-        self._write_batch_samples(frame, samples)
+        self._write_batch_samples(frame, samples, bounds)
         self.last_frame = frame
 
     def _batch_paths(self, name, attr_name):
@@ -253,7 +258,10 @@ class BatchLayerWriter(UsdCacheWriter):
             cache[id(text)] = [Sdf.Path(t) for t in text]
         return cache[id(text)]
 
-    def _write_batch_samples(self, frame, samples):
+    def _write_batch_samples(self, frame, samples, bounds=None):
+        """Author (or stage for the chunk's worker) one frame of every world's ``samples`` and
+        grow the layer's bounds; ``bounds``: ``{prim: (lo, hi)}`` per-world bounds (N, 3) of its
+        sampled points already reduced (:func:`warpsim.usd.frame_arrays.world_samples`)."""
         from ..usd.writer import vt_maker
 
         chunk, n, t = self._chunk, self.world_count, float(frame)
@@ -263,14 +271,16 @@ class BatchLayerWriter(UsdCacheWriter):
             for attr_name, values in attrs.items():
                 attr = decl.attrs[attr_name]
                 text = self._batch_paths(name, attr_name)
-                plan.append((attr, values, text, vt_maker(attr.type_name)))
+                plan.append((attr, values, text, vt_maker(attr.type_name), name))
         if chunk.stage is not None:  # a worker authors the chunk (the same order, values and saves)
-            self._stage_batch(t, plan)
+            self._stage_batch(t, [entry[:4] for entry in plan])
         else:
-            self._author_batch(t, plan)
-        for attr, values, text, make in plan:  # the worlds' extent, grown once a frame
+            self._author_batch(t, [entry[:4] for entry in plan])
+        for attr, values, text, make, name in plan:  # the worlds' extent, grown once a frame
             if attr.name == "points" and not attr.on_change:
-                if isinstance(values, np.ndarray):
+                if isinstance(values, np.ndarray) and values.shape[1] and name in (bounds or {}):
+                    self._grow_reduced(*bounds[name])
+                elif isinstance(values, np.ndarray):
                     self._grow_worlds(values, finite=True)  # (world_samples refused non-finite points)
                 else:
                     for v in values:
@@ -326,7 +336,10 @@ class BatchLayerWriter(UsdCacheWriter):
             pts = pts[keep]
             if not len(pts):
                 return
-        lo, hi = world_bounds(pts)
+        self._grow_reduced(*world_bounds(pts))
+
+    def _grow_reduced(self, lo, hi):
+        """Widen ``lo``/``hi`` [m] by every world's bounds ``lo``, ``hi`` (N, 3), all finite."""
         lo, hi = lo.min(axis=0).astype(np.float64), hi.max(axis=0).astype(np.float64)
         self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
 

@@ -141,9 +141,11 @@ def world_bounds(points):
     return lo, hi
 
 
-def world_extents(points, pad):
+def world_extents(points, pad, bounds_out=None):
     """Bounds (N, 2, 3) float32 of each world's points (N, k, 3) float32 grown by ``pad`` (scalar
-    or one per point): :func:`warpsim.usd.prims._extent` of every world, bit for bit."""
+    or one per point): :func:`warpsim.usd.prims._extent` of every world, bit for bit.
+    ``bounds_out``: a list that receives the points' own :func:`world_bounds` ``(lo, hi)`` where
+    they were reduced on the way (a scalar pad), so a caller needing them reduces nothing twice."""
     n, k = points.shape[0], points.shape[1]
     out = np.zeros((n, 2, 3), np.float32)
     if k == 0:
@@ -157,6 +159,8 @@ def world_extents(points, pad):
         lo, hi = world_bounds(points)
         out[:, 0] = lo - pad
         out[:, 1] = hi + pad
+        if bounds_out is not None:
+            bounds_out.append((lo, hi))
     return out
 
 
@@ -181,11 +185,13 @@ def _per_world(decl, values, frame, n):
     return {attr: [p[attr] for p in per] for attr in per[0]} if per else {}
 
 
-def world_samples(decl, values, frame, n) -> dict:
+def world_samples(decl, values, frame, n, bounds_out=None) -> dict:
     """The samples of prim ``decl`` for every world of a frame: ``{attribute: (N, ...) array or
     list}`` in the order :meth:`PrimDecl.frame_samples` gives them, equal to it world by world
     (``values``: this prim's entry of :func:`batch_frame_data`). Points, meshes with fixed
-    topology and curves are made with vectorised operations; any other prim world by world."""
+    topology and curves are made with vectorised operations; any other prim world by world.
+    ``bounds_out``: a list that receives each world's bounds ``(lo, hi)`` (N, 3) of the sampled
+    points when the extents were made from them (:func:`world_extents`)."""
     where = f"prim {decl.name!r} at frame {frame}"
     if values is None:
         raise ValueError(f"{where}: no data given; every time-varying prim needs data every frame")
@@ -225,7 +231,7 @@ def world_samples(decl, values, frame, n) -> dict:
         return _per_world(decl, values, frame, n)
     if isinstance(decl, JoinedPointsDecl) and decl.index_max >= k:
         return _per_world(decl, values, frame, n)
-    extent = world_extents(points, pad)
+    extent = world_extents(points, pad, bounds_out)
     if not np.isfinite(extent).all():
         raise ValueError(f"{where}: points contain NaN or infinite values")
     out["extent"] = extent
