@@ -23,6 +23,8 @@ over each world's points) instead of asking the scene once per world.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from .prims import CurvesDecl, JoinedPointsDecl, MeshDecl, PointsDecl, as_numpy, coerce
@@ -132,12 +134,38 @@ def described(scene):
 
 
 # ---------------------------------------------------------------------- samples of every world
+PARALLEL_BOUNDS = 1 << 20
+"""Coordinates (N k 3) from which :func:`world_bounds` reduces blocks of worlds in threads."""
+_BOUNDS_POOL: list = []
+
+
+def _bounds_block(points, lo, hi, start, stop):
+    for c in range(3):  # (NumPy's reductions release the GIL: blocks run side by side)
+        points[start:stop, :, c].min(axis=1, out=lo[start:stop, c])
+        points[start:stop, :, c].max(axis=1, out=hi[start:stop, c])
+
+
 def world_bounds(points):
     """(lo, hi), each (N, 3) float32: the smallest and largest coordinates of each world's points
     (N, k, 3), k >= 1 (NaN where a world's points hold one). One component at a time: a
-    reduction over the points' axis of the (N, k, 3) layout runs about 14x slower in NumPy."""
-    lo = np.stack([points[..., c].min(axis=1) for c in range(3)], axis=1)
-    hi = np.stack([points[..., c].max(axis=1) for c in range(3)], axis=1)
+    reduction over the points' axis of the (N, k, 3) layout runs about 14x slower in NumPy.
+    From :data:`PARALLEL_BOUNDS` coordinates on, blocks of worlds are reduced in threads (a
+    minimum is exact: the same values whatever the blocks)."""
+    n = points.shape[0]
+    lo = np.empty((n, 3), points.dtype)
+    hi = np.empty((n, 3), points.dtype)
+    threads = min(8, os.cpu_count() or 1, n)
+    if points.size < PARALLEL_BOUNDS or threads < 2:
+        _bounds_block(points, lo, hi, 0, n)
+        return lo, hi
+    if not _BOUNDS_POOL:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _BOUNDS_POOL.append(ThreadPoolExecutor(threads, thread_name_prefix="warpsim-bounds"))
+    edges = np.linspace(0, n, threads + 1).astype(int)
+    jobs = [_BOUNDS_POOL[0].submit(_bounds_block, points, lo, hi, a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    for job in jobs:
+        job.result()
     return lo, hi
 
 
