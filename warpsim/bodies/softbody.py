@@ -224,7 +224,7 @@ def add_soft_body(builder, points, faces, *, position=(0.0, 0.0, 0.0), rotation=
     pos, rot = parse_pose(position, rotation, name)
     velocity = checks.vec3(velocity, f"{name} velocity")
 
-    world = pos + np.array([quat_rotate(rot, scale * p) for p in points]) if len(points) else points
+    world = pos + quat_rotate(rot, scale * points) if len(points) else points  # (N, 3) at once, the same bits
     lattice = np.zeros((0, 3))
     lattice_pairs = np.zeros((0, 2), dtype=np.int64)
     tie_pairs = np.zeros((0, 2), dtype=np.int64)
@@ -276,13 +276,11 @@ def add_soft_body(builder, points, faces, *, position=(0.0, 0.0, 0.0), rotation=
     builder.add_particles(np.concatenate([world, lattice]), np.tile(velocity, (nv + ni, 1)), masses, radius)
     edges, _, _ = meshtools.edge_topology(faces)
     bends = bending_pairs(faces)
-    for (i, j) in edges:
-        builder.add_spring(start + int(i), start + int(j), k_edge, c_edge)
-    for (i, j) in bends:
-        builder.add_spring(start + int(i), start + int(j), k_bend, c_bend)
-    for (i, j) in lattice_pairs:
-        builder.add_spring(start + nv + int(i), start + nv + int(j), k_in, c_in)
-    for (i, j) in tie_pairs:
-        builder.add_spring(start + int(i), start + nv + int(j), k_in, c_in)
+    groups = [(edges, 0, 0, k_edge, c_edge), (bends, 0, 0, k_bend, c_bend), (lattice_pairs, nv, nv, k_in, c_in),
+              (tie_pairs, 0, nv, k_in, c_in)]  # (pairs, offsets of their two ends, stiffness, damping)
+    pairs = [np.asarray(g, dtype=np.int64).reshape(-1, 2) + (start + a, start + b) for g, a, b, _, _ in groups]
+    counts = [len(g) for g in pairs]
+    builder.add_springs(np.concatenate(pairs), np.repeat([g[3] for g in groups], counts),
+                        np.repeat([g[4] for g in groups], counts))  # rest lengths rounded as add_spring's
     return SoftBody(start, nv, ni, faces + start, spring_start, len(edges), len(bends), len(lattice_pairs),
                     len(tie_pairs))

@@ -86,9 +86,11 @@ class ModelBuilder:
                                       item=f"row (particle {first} +)", unit="kg")
         radii = checks.numbers_array(radii, "add_particles radii", n, lo=0.0, item=f"row (particle {first} +)",
                                      unit="m")
-        return np.array(
-            [self.add_particle(positions[k], velocities[k], masses[k], radii[k]) for k in range(n)], dtype=np.int64
-        )
+        self.particle_q.extend(map(tuple, positions.tolist()))  # (checked above as add_particle checks one)
+        self.particle_qd.extend(map(tuple, velocities.tolist()))
+        self.particle_mass.extend(masses.tolist())
+        self.particle_radius.extend(radii.tolist())
+        return np.arange(first, first + n, dtype=np.int64)
 
     def add_spring(self, i: int, j: int, stiffness: float, damping: float = 0.0, rest_length: float | None = None,
                    *, break_strain: float | None = None, break_force: float | None = None) -> int:
@@ -148,11 +150,10 @@ class ModelBuilder:
         if len(bad):
             raise ValueError(f"spring {first + int(bad[0])} joins particle {int(ij[bad[0], 0])} to itself; join two "
                              "different particles")
-        q = np.asarray(self.particle_q, dtype=np.float64).reshape(-1, 3)
         values = {}
         for name, value in (("stiffness", stiffness), ("damping", damping),
-                            ("rest length", np.linalg.norm(q[ij[:, 0]] - q[ij[:, 1]], axis=1)
-                             if rest_length is None else rest_length)):
+                            ("rest length", pair_distances(self.particle_q, ij) if rest_length is None else
+                             rest_length)):
             v = np.broadcast_to(np.asarray(value, dtype=np.float64), (m,))
             bad = np.flatnonzero(~np.isfinite(v) | (v < 0.0))
             if len(bad):
@@ -229,6 +230,16 @@ class ModelBuilder:
         model.particle_spring_offsets = wp.array(offsets, dtype=int, device=d)
         model.particle_springs = wp.array(springs, dtype=int, device=d)
         return model
+
+
+def pair_distances(points, pairs) -> np.ndarray:
+    """|points[i] - points[j]| [m] of each pair (M, 2), rounded as ``add_spring`` rounds one
+    (``np.linalg.norm`` of the difference: its dot product, here one per pair through
+    ``np.matmul`` of a row and a column, which calls the same dot)."""
+    ij = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    q = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    d = q[ij[:, 0]] - q[ij[:, 1]]
+    return np.sqrt(np.matmul(d[:, None, :], d[:, :, None]).reshape(-1))
 
 
 def _break_thresholds(index: int, break_strain, break_force, rest_length: float) -> tuple:
