@@ -31,7 +31,10 @@ the BVH search and then switches (the list is slow while tori fall).
 
 ``--integrator vbd --dt 0.0041666667`` steps the heap by ``ws.VBD`` (vertex block descent, contact inside the
 descent; ``benchmarks/vbd_heap.py``: step, contact share, frames/s, deepest vertex, edges through triangles;
-``--reference-integrator fast_mass_spring`` times that integrator on the same heap in the same run).
+``--reference-integrator fast_mass_spring`` times that integrator on the same heap in the same run;
+``--vbd-lanes 1,32`` settles with the first value of ``ws.VBD``'s ``lanes`` and times the colour sweep and the step
+with each on the same heap: 1 a thread a particle, 32 a warp a particle; ``--cpu-blocks`` lets the CPU run
+lanes as Warp's cooperative fibers, ``wp.config.enable_cpu_blocks``, else a CPU block is one lane).
 
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
 and synchronisations per step, and the contact search's candidates per query
@@ -201,6 +204,12 @@ def main():
                         "iterations a step; vbd: colour sweeps a step (default: the scene's)")
     parser.add_argument("--reference-integrator", default=None, help="vbd: also build, settle and time the heap with "
                         "this integrator (e.g. fast_mass_spring) in the same run")
+    parser.add_argument("--vbd-lanes", default=None, metavar="B[,B...]", help="vbd: threads a particle in the "
+                        "colour solve (ws.VBD lanes; 1: a thread a particle): settle with the first, then time the "
+                        "sweep and the step with each on the same heap (default: the integrator's, 32 on CUDA, 1 on "
+                        "the CPU)")
+    parser.add_argument("--cpu-blocks", action="store_true", help="wp.config.enable_cpu_blocks: CPU blocks of more "
+                        "than one lane run as Warp's cooperative fibers (else as one lane)")
     parser.add_argument("--contact-stiffness", type=float, default=None, help="implicit_euler: contact penalty "
                         "stiffness inside the solve [N/m] (the scene's contact_stiffness)")
     parser.add_argument("--contact-damping", type=float, default=None, help="implicit_euler: contact damping inside "
@@ -236,6 +245,8 @@ def main():
     args = parser.parse_args()
     device = wp.get_device(args.device)
     wp.config.quiet = True
+    if args.cpu_blocks:
+        wp.config.enable_cpu_blocks = True
     if args.integrator == "vbd":
         from vbd_heap import run_vbd
 

@@ -8,12 +8,15 @@ last search and the most pairs one query met (per search: figures that cannot wr
 the heap tests assert on the final state: the deepest vertex of a torus inside another [mm] and the surface
 edges passing through another torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``). ``--reference-integrator
 fast_mass_spring`` builds and settles the same heap with that integrator in the same process and prints
-the ratio of the step times.
+the ratio of the step times. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and the
+step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle).
 
     python benchmarks/bench_donuts.py --integrator vbd --device cpu --count 12 --segments 24 --sides 12 \\
         --lattice-cells 8 --dt 0.0041666667 --settle 240 --steps 20
     python benchmarks/bench_donuts.py --integrator vbd --device cuda:0 --dt 0.0041666667 --settle 2400 --steps 200 \\
         --reference-integrator fast_mass_spring --set solver_chebyshev=true --solver-iterations 12
+    python benchmarks/bench_donuts.py --integrator vbd --device cuda:0 --dt 0.0041666667 --settle 600 --steps 100 \\
+        --vbd-lanes 1,32,64
 """
 
 import math
@@ -34,11 +37,36 @@ def searches_per_step(integrator) -> int:
     return 1 + ((integrator.iterations - 1) // every if every else 0)
 
 
+def lanes_of(args) -> list:
+    """``--vbd-lanes`` as a list of ints (threads a particle in VBD's colour solve)."""
+    return [int(b) for b in args.vbd_lanes.split(",")]
+
+
+def compare_lanes(args, sim, h, device) -> None:
+    """One colour sweep and one step (on CUDA also as a graph of one BVH rebuild period) with each value of
+    ``--vbd-lanes`` on the heap as it is (a step first records the sweep's launches)."""
+    integrator = sim.integrator
+    for lanes in lanes_of(args):
+        integrator.lanes = lanes
+        sim.step(h)  # records the colour solves with these lanes
+        sweep = time_per_call(lambda: [launch.launch() for launch in integrator._sweep], args.steps, device)
+        full = time_per_call(lambda: sim.step(h), args.steps, device)
+        line = f"lanes {lanes:4d}: one colour sweep {sweep * 1e3:9.3f} ms, VBD step {full * 1e3:9.3f} ms"
+        if device.is_cuda:
+            every = integrator.contact.rebuild_every
+            period = every // math.gcd(every, searches_per_step(integrator))
+            _, graph = eager_and_graph(lambda: sim.step(h), period, max(1, args.steps // period), device)
+            line += f", step as a CUDA graph {graph * 1e3:9.3f} ms"
+        print(line)
+
+
 def settle(build, args, device, integrator):
     """Build the heap with ``integrator`` and take ``--settle`` steps; returns (scene, h, build seconds)."""
     args.integrator = integrator
     t0 = time.perf_counter()
     scene = build(args, args.count, device)
+    if integrator == "vbd" and getattr(args, "vbd_lanes", None):
+        scene.sim.integrator.lanes = lanes_of(args)[0]
     wp.synchronize_device(device)
     built = time.perf_counter() - t0
     h = scene.params["dt"] / scene.inner_steps
@@ -85,6 +113,8 @@ def run_vbd(args, device, build) -> None:
         eager, graph = eager_and_graph(lambda: sim.step(h), period, max(1, args.steps // period), device)
         print(f"step as a CUDA graph  {graph * 1e3:9.3f} ms   eager / graph {eager / graph:.2f}x (a graph of {period} "
               f"steps, one BVH rebuild period); frames of 1/60 s per wall second {1.0 / (graph * per_frame):.2f}")
+    if getattr(args, "vbd_lanes", None):
+        compare_lanes(args, sim, h, device)
     x = sim.state.positions.numpy()
     t0 = time.perf_counter()
     crossings = sum(n for _, _, n in edges_through_other_bodies(x, scene.bodies))

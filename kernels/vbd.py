@@ -17,6 +17,9 @@ Vertices of one colour share no spring, so ``solve_colour`` updates a colour in 
 one buffer of positions and writes the other, so no thread of a colour reads a position another thread
 of the same launch writes (contact pairs may join two vertices of one colour: they see each other's
 positions from before the colour, Jacobi between them, and the result does not depend on thread order).
+``solve_colour`` gives each particle a thread; ``solve_colour_lanes`` a block of B lanes that split its springs
+and contact entries and add their partial sums by a fixed-order tile reduction (faster on a GPU, where a colour
+of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists).
 The colours alternate the two buffers, and each launch also copies the previous colour's new positions
 from the buffer it reads into the one it writes (no thread of the launch reads that one): the buffer a
 colour writes then holds every colour solved so far, and a sweep ends with one ``commit_colour`` of its
@@ -78,11 +81,10 @@ def predict(
     deficit_out[i] = guess - clipped
 
 
-@wp.kernel
-def solve_colour(
-    colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
-    q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
-    y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
+@wp.func
+def vertex_force_hessian(
+    p: int, x: wp.vec3, lane: int, lanes: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+    y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_h: float,
     spring_offsets: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
     rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
     broken: wp.array(dtype=int),
@@ -94,29 +96,20 @@ def solve_colour(
     vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
     planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
     contact_stiffness: float,
-    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
-    q_out: wp.array(dtype=wp.vec3),
+    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3),
 ):
-    """One Newton step of particle ``colour_particles[start + k]`` (k < ``count``) on G (module docstring),
-    clipped to its bound, into ``q_out``; forces and Hessians summed in the fixed order of its CSR rows.
-    Thread k < ``previous_count`` also copies particle ``colour_particles[previous_start + k]`` (the previous
-    colour's, solved into ``q``) into ``q_out``. Launched over max(count, previous_count) threads."""
-    k = wp.tid()
-    if k < previous_count:
-        o = colour_particles[previous_start + k]
-        q_out[o] = q[o]
-    if k >= count:
-        return
-    p = colour_particles[start + k]
-    x = q[p]
-    if inv_mass[p] == 0.0:
-        q_out[p] = x
-        return
-    inertia = mass[p] * inv_h * inv_h
-    f = inertia * (y[p] - x)
-    H = inertia * wp.identity(3, dtype=float)
+    """Lane ``lane``'s share (of ``lanes``) of f_i [N] and H_i [N/m] of particle p at ``x`` [m] (module docstring):
+    the inertia (lane 0), then the springs at positions lane, lane + lanes, ... of p's CSR row, in that order,
+    then its share of the contacts (``contact_force_hessian``). Lane 0 of 1 is the whole sum, in the order of
+    the CSR row and the contact lists."""
+    f = wp.vec3()
+    H = wp.mat33()
+    if lane == 0:
+        inertia = mass[p] * inv_h * inv_h
+        f = inertia * (y[p] - x)
+        H = inertia * wp.identity(3, dtype=float)
     dxp = x - q0[p]
-    for a in range(spring_offsets[p], spring_offsets[p + 1]):
+    for a in range(spring_offsets[p] + lane, spring_offsets[p + 1], lanes):
         s = spring_list[a]
         if broken[s] != 0:
             continue
@@ -132,13 +125,87 @@ def solve_colour(
         c = damping[s] * inv_h
         f -= stiffness[s] * (length - rest[s]) * n + c * (nn * (dxp - (q[o] - q0[o])))
         H += stiffness[s] * (nn + wp.max(0.0, 1.0 - rest[s] / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
-    fc, Hc = contact_force_hessian(p, x, q, q0, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
-                                   tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
-                                   near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
-                                   contact_stiffness, friction, friction_eps, reference)
-    f += fc
-    H += Hc
-    q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
+    fc, Hc = contact_force_hessian(p, x, lane, lanes, q, q0, slot, tri, edges, capacity, vt_list, vt_count,
+                                   tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count,
+                                   near, near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
+                                   spheres, radius, contact_stiffness, friction, friction_eps, reference)
+    return f + fc, H + Hc
+
+
+def solve_colour_kernel(tiled: bool):
+    """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
+    particle, ``wp.launch_tiled``): one kernel body, the variant chosen at code generation (``wp.static``), each in
+    a module of its own (a tiled module is compiled for each block size)."""
+
+    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False)
+    def kernel(
+        colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
+        q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+        y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
+        spring_offsets: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
+        rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
+        broken: wp.array(dtype=int),
+        slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+        vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
+        tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
+        edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
+        ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
+        vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
+        planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
+        contact_stiffness: float,
+        friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
+        q_out: wp.array(dtype=wp.vec3),
+    ):
+        k = int(0)
+        lane = int(0)
+        lanes = int(1)
+        if wp.static(tiled):
+            k, lane = wp.tid()
+            lanes = wp.block_dim()
+        else:
+            k = wp.tid()
+        if lane == 0 and k < previous_count:
+            o = colour_particles[previous_start + k]
+            q_out[o] = q[o]
+        if k >= count:
+            return  # the whole block: k is the block's
+        p = colour_particles[start + k]
+        x = q[p]
+        if inv_mass[p] == 0.0:
+            if lane == 0:
+                q_out[p] = x
+            return
+        f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
+                                    spring_offsets, spring_list, spring_indices, rest, stiffness, damping, broken,
+                                    slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
+                                    tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                    near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
+                                    contact_stiffness, friction, friction_eps, reference)
+        if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
+            f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+            H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
+        if lane == 0:
+            q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
+
+    return kernel
+
+
+solve_colour = solve_colour_kernel(False)
+solve_colour.__doc__ = """One Newton step of particle ``colour_particles[start + k]`` (k < ``count``) on G (module
+docstring), clipped to its bound, into ``q_out``; forces and Hessians summed by one thread in the fixed order of
+its CSR row and contact lists (``vertex_force_hessian``, lane 0 of 1). Thread k < ``previous_count`` also copies
+particle ``colour_particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``.
+Launched over max(count, previous_count) threads."""
+
+solve_colour_lanes = solve_colour_kernel(True)
+solve_colour_lanes.__doc__ = """``solve_colour`` with particle k's sums spread over the B lanes of block k
+(``wp.launch_tiled(dim=max(count, previous_count), block_dim=B)``): lane l sums, in order, the inertia (l = 0) and
+the springs of the CSR row and entries of the contact lists at positions l, l + B, l + 2B, ...
+(``vertex_force_hessian``); the B partial f and H are then added by ``wp.tile_sum``, whose order is fixed for a
+given B: on CUDA a warp's shuffle-down tree (lane l += lane l + 16, then + 8, 4, 2, 1; at B = 32 that is all), for
+B > 32 then the warps' sums in warp order; on the CPU (``wp.config.enable_cpu_blocks``) lane 0, 1, ..., B - 1 in
+turn. No float atomics: two runs give the same bits. Lane 0 takes the Newton step and the clip and copies the
+previous colour's particle k."""
 
 
 @wp.kernel

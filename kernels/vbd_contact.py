@@ -585,8 +585,16 @@ def still_apart(room: float, v: int, q: wp.array(dtype=wp.vec3), reference: wp.a
 
 
 @wp.func
+def lane_start(begin: int, lane: int, lanes: int) -> int:
+    """The first index at or after ``begin`` that lane ``lane`` of ``lanes`` takes when indices 0, 1, 2, ... are
+    dealt to the lanes in turn (index i to lane i mod ``lanes``): ``begin`` itself when ``lanes`` is 1."""
+    return begin + (lane + lanes - begin % lanes) % lanes
+
+
+@wp.func
 def contact_force_hessian(
-    p: int, x: wp.vec3, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int),
+    p: int, x: wp.vec3, lane: int, lanes: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+    slot: wp.array(dtype=int),
     tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
     vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int),
     tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tv_list: wp.array(dtype=int),
@@ -599,7 +607,10 @@ def contact_force_hessian(
 ):
     """Sum of the contact forces [N] and Hessian blocks [N/m] on particle p at position ``x`` (the
     other particles at ``q``; ``q0`` the step's start): its vertex-triangle pairs as the vertex
-    and as a triangle corner, its edges' edge-edge pairs, the planes and spheres; fixed order. The pairs
+    and as a triangle corner, its edges' edge-edge pairs, the planes and spheres; fixed order. Lane ``lane``
+    of ``lanes`` (``kernels.vbd.solve_colour_lanes``) sums every ``lanes``-th of the pairs, counted in that
+    order from 0 (``lane_start``: pair i to lane i mod ``lanes``), and of the planes, then of the spheres, each
+    counted from 0; lane 0 of 1 sums them all. The pairs
     are those ``keep_near_pairs`` kept for p (the same sums: the pairs left out add nothing), or every
     listed pair where p's kept pairs did not fit. A kept pair at distance D [m] at the search whose two sides
     have moved by less than D - ``radius`` (each side: its largest corner displacement from ``reference``,
@@ -614,7 +625,7 @@ def contact_force_hessian(
             base = s * near_capacity
             reach = radius + 1.0e-3 * radius + 1.0e-5 * wp.length(reference[p])
             own = wp.length(x - reference[p])
-            for k in range(near_end[3 * s]):
+            for k in range(lane_start(0, lane, lanes), near_end[3 * s], lanes):
                 a = near[base + k]
                 t = vt_list[a]
                 room = vt_distance[a] - own - reach
@@ -632,7 +643,7 @@ def contact_force_hessian(
             built = int(-1)
             t = int(-1)
             lo = -1 - capacity  # t's pairs are at [lo, lo + capacity) of the lists
-            for k in range(near_end[3 * s], near_end[3 * s + 1]):
+            for k in range(lane_start(near_end[3 * s], lane, lanes), near_end[3 * s + 1], lanes):
                 a = near[base + k]
                 if a < lo or a >= lo + capacity:  # a triangle's pairs come together: one division a triangle
                     t = a // capacity
@@ -652,7 +663,7 @@ def contact_force_hessian(
             built = int(-1)
             e = int(-1)
             lo = -1 - capacity
-            for k in range(near_end[3 * s + 1], near_end[3 * s + 2]):
+            for k in range(lane_start(near_end[3 * s + 1], lane, lanes), near_end[3 * s + 2], lanes):
                 a = near[base + k]
                 if a < lo or a >= lo + capacity:
                     e = a // capacity
@@ -670,35 +681,42 @@ def contact_force_hessian(
                 f += fc
                 H += Hc
         else:
-            for n in range(vt_count[s]):
+            done = vt_count[s]  # entries dealt so far (lane_start)
+            for n in range(lane, vt_count[s], lanes):
                 fc, Hc = vertex_triangle_pair(x, dx, vt_list[s * capacity + n], q, q0, tri, radius, stiffness, friction,
                                               friction_eps)
                 f += fc
                 H += Hc
             for a in range(tri_offsets[p], tri_offsets[p + 1]):
                 t = tris[a]
-                xs, ds, centre, extent, corner = corner_triangle(p, x, t, q, q0, tri)
-                for n in range(tv_count[t]):
-                    fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[t * capacity + n], q, q0,
-                                                  radius, stiffness, friction, friction_eps)
-                    f += fc
-                    H += Hc
+                first = lane_start(done, lane, lanes) - done
+                if first < tv_count[t]:  # the triangle's corners only for a lane with one of its pairs
+                    xs, ds, centre, extent, corner = corner_triangle(p, x, t, q, q0, tri)
+                    for n in range(first, tv_count[t], lanes):
+                        fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[t * capacity + n], q,
+                                                      q0, radius, stiffness, friction, friction_eps)
+                        f += fc
+                        H += Hc
+                done += tv_count[t]
             for a in range(edge_offsets[p], edge_offsets[p + 1]):
                 e = edge_list[a]
-                xs, ds, centre, extent, first = edge_with(p, x, e, q, q0, edges)
-                for n in range(ee_count[e]):
-                    fc, Hc = edge_edge_pair(xs, ds, centre, extent, first, ee_list[e * capacity + n], q, q0, edges,
-                                            radius, stiffness, friction, friction_eps)
-                    f += fc
-                    H += Hc
-    for k in range(planes.shape[0]):
+                first = lane_start(done, lane, lanes) - done
+                if first < ee_count[e]:
+                    xs, ds, centre, extent, end = edge_with(p, x, e, q, q0, edges)
+                    for n in range(first, ee_count[e], lanes):
+                        fc, Hc = edge_edge_pair(xs, ds, centre, extent, end, ee_list[e * capacity + n], q, q0, edges,
+                                                radius, stiffness, friction, friction_eps)
+                        f += fc
+                        H += Hc
+                done += ee_count[e]
+    for k in range(lane, planes.shape[0], lanes):
         plane = planes[k]
         normal = wp.vec3(plane[0], plane[1], plane[2])
         d = wp.max(wp.dot(normal, x) - plane[3], 1.0e-9)
         fc, Hc = pair_force_hessian(d * normal, x - q0[p], 1.0, radius, stiffness, friction, friction_eps)
         f += fc
         H += Hc
-    for k in range(spheres.shape[0]):
+    for k in range(lane, spheres.shape[0], lanes):
         gap, normal = sphere_gap(spheres[k], x)
         fc, Hc = pair_force_hessian(wp.max(gap, 1.0e-9) * normal, x - q0[p], 1.0, radius, stiffness, friction,
                                     friction_eps)

@@ -173,6 +173,36 @@ def test_a_step_allocates_nothing(monkeypatch):
         check_graph_capture("cuda:0")
 
 
+def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(monkeypatch):
+    """``VBD(lanes=B)``: each particle's springs and contact entries dealt over the B lanes of a block, their
+    partial sums added by a fixed-order tile reduction (``kernels.vbd.solve_colour_lanes``, the CUDA default; on
+    the CPU its lanes run as Warp's fibers, ``wp.config.enable_cpu_blocks``). Two tori dropped on each other with
+    self contact: within rounding of a thread a particle (4 lanes over the kept entries; 3 over the whole lists,
+    ``near_capacity`` 1), two runs the same bits, and a step allocates nothing."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    runs = []
+    for lanes, near_capacity in ((1, 128), (4, 128), (4, 128), (3, 1)):
+        sim, _, _ = two_tori(gap=0.004, near_capacity=near_capacity)
+        sim.integrator.lanes = lanes
+        for _ in range(12):
+            sim.frame(1.0 / 60.0, 4)
+        assert sim.integrator._sweep[0].block_dim == lanes
+        runs.append((sim.state.positions.numpy(), sim.state.velocities.numpy()))
+    (x1, v1), (x4, v4), (x4b, v4b), (x3, v3) = runs
+    assert np.array_equal(x4, x4b) and np.array_equal(v4, v4b)
+    assert not np.array_equal(x4, x1)  # the lanes ran: the sums' order differs
+    for x, v in ((x4, v4), (x3, v3)):
+        assert np.abs(x - x1).max() < 1.0e-5  # [m], tori of 0.1 m
+        assert np.abs(v - v1).max() < 1.0e-4  # [m/s]
+    allocator = wp.get_device(DEVICE).default_allocator
+    sizes = []
+    allocate = allocator.allocate
+    monkeypatch.setattr(allocator, "allocate", lambda size: sizes.append(size) or allocate(size))
+    for _ in range(3):
+        sim.integrator.step(sim.system, sim.state.positions, sim.state.velocities, sim._time, 1.0 / 240.0)
+    assert sizes == []
+
+
 def check_graph_capture(device):
     """Eager steps and the same steps replayed from a CUDA graph give the same bits (CUDA only)."""
     results = []

@@ -50,7 +50,8 @@ search be clipped to the last search's bounds). Of the listed pairs the sweeps g
 still come within r_c: a pair at distance D at the search whose sides' bounds are b_a and b_b stays at least
 D - b_a - b_b apart (as above), so one with D - b_a - b_b >= r_c exerts nothing until the next search and is left out
 (``kernels.vbd_contact.keep_near_pairs``; the sums, hence the bits, are those of the whole lists). Everything is gathered per particle in fixed order (CSR rows, per-query lists written by
-their own thread): two runs give the same bits; a step allocates nothing and reads nothing back.
+their own thread; with ``lanes`` > 1 the lanes' partial sums added by a fixed-order tile reduction): two runs give
+the same bits; a step allocates nothing and reads nothing back.
 """
 
 from __future__ import annotations
@@ -94,6 +95,17 @@ class VBD(Integrator):
             particle has moved more than this fraction of its bound since the last search or has some of its
             initial guess cut (decided on the device: a heap at rest skips them); None: always. The search
             opening a step always runs.
+        lanes: threads that share one particle's sums in a colour solve (B; the kernel
+            ``kernels.vbd.solve_colour_lanes``: each lane sums every B-th spring and contact list entry, the B
+            partial forces and Hessians added by a fixed-order tile reduction, so runs repeat bit for bit);
+            1: a thread a particle (``solve_colour``); None: 32 on CUDA, 1 on the CPU. A colour holds a few
+            thousand particles, a thread each fills ~1 % of a large GPU and runs as long as the particle with the
+            longest lists (hundreds of entries, serial dependent gathers); 32 lanes are one warp (a shuffle-only
+            reduction, no shared memory, no block barrier beyond the warp), keep ~10 entries a lane on the
+            longest lists and put the colour's few thousand warps on every multiprocessor. On the CPU Warp runs a
+            block's lanes one after another as fibers, and only with ``wp.config.enable_cpu_blocks`` (else a
+            block is one lane: the sums of ``lanes`` = 1), so a thread a particle is faster there. The sums'
+            order differs with B (other bits, the same physics; each B repeats its own bits).
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -107,7 +119,7 @@ class VBD(Integrator):
 
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
                  chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True,
-                 renew_fraction: float | None = 0.5):
+                 renew_fraction: float | None = 0.5, lanes: int | None = None):
         super().__init__()
         self.iterations = checks.integer(iterations, "VBD iterations", lo=1, hi=100_000, fix="e.g. 10")
         if contact is not None and not isinstance(contact, VBDContact):
@@ -122,7 +134,16 @@ class VBD(Integrator):
         self.adaptive_guess = checks.flag(adaptive_guess, "VBD adaptive_guess")
         self.renew_fraction = None if renew_fraction is None else checks.in_range(
             renew_fraction, "VBD renew_fraction", 0.0, 1.0, fix="e.g. 0.5, or None to search every time")
+        self.lanes = None if lanes is None else checks.integer(
+            lanes, "VBD lanes", lo=1, hi=1024, fix="threads a particle in a colour solve, e.g. 32 (1: a thread a "
+            "particle), or None (32 on CUDA, 1 on the CPU)")
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
+
+    def lanes_on(self, device) -> int:
+        """Threads a particle in a colour solve on ``device`` (``lanes``; None: 32 on CUDA, 1 on the CPU)."""
+        if self.lanes is not None:
+            return self.lanes
+        return 32 if wp.get_device(device).is_cuda else 1
 
     def tile_worlds(self, world_count: int, world_particle_count: int) -> None:
         """For a batch of worlds laid end to end (``warpsim.worlds.batch``, on the batch's copy of this
@@ -217,11 +238,19 @@ class VBD(Integrator):
         # one buffer and writes the other, copying colour c - 1 across (kernels.vbd's docstring), and the last
         # colour is committed to the buffer it did not write: one launch a colour and one a sweep
         buffers, offsets = (q, self.q_new), self.colour_offsets
+        lanes = self.lanes_on(d)
+        if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
+            def solve(dim, inputs):
+                return wp.launch_tiled(K.solve_colour_lanes, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
+                                       record_cmd=True)
+        else:
+            def solve(dim, inputs):
+                return record(K.solve_colour, dim, inputs)
         self._sweep = []
         for c in range(self.colour_count):
             start, count = offsets[c], offsets[c + 1] - offsets[c]
             before, previous = (offsets[c - 1], offsets[c] - offsets[c - 1]) if c > 0 else (0, 0)
-            self._sweep.append(record(K.solve_colour, max(count, previous), [
+            self._sweep.append(solve(max(count, previous), [
                 self.colour_particles, start, count, before, previous, buffers[c % 2], self.q0, self.y,
                 m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs, self._reference,
                 self._bound, buffers[(c + 1) % 2]]))
@@ -236,10 +265,11 @@ class VBD(Integrator):
         self._recorded_key = self._key(q, qd, h)
 
     def _key(self, q, qd, h: float) -> tuple:
-        """What the recorded launches depend on: the arrays, the step and the contact's coefficients (a
-        changed ``contact.friction``, ``stiffness`` or ``thickness`` is recorded again at the next step)."""
+        """What the recorded launches depend on: the arrays, the step, ``lanes`` and the contact's coefficients (a
+        changed ``lanes``, ``contact.friction``, ``stiffness`` or ``thickness`` is recorded again at the next step)."""
         c = self.contact
-        return (q.ptr, qd.ptr, h) + ((c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ())
+        coefficients = (c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ()
+        return (q.ptr, qd.ptr, h, self.lanes) + coefficients
 
     def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)
