@@ -26,43 +26,28 @@ SLICE_WORLDS = 32
 
 
 _OPENED: dict = {}
-"""Layers opened by :func:`world_geometry` in this process: ``{path: (mtime, scene, prims by world)}``
-(a worker is handed many slices of one layer: it opens and traverses the layer once)."""
+"""Layers opened by :func:`world_geometry` in this process: ``{path: (mtime, BatchScene)}`` (a
+worker is handed many slices of one layer: it opens the layer and reads what its worlds share once)."""
 
 
 def _opened(layer):
-    from ..render.usd_scene import CacheScene
+    from ..render.batch_scene import BatchScene
 
     mtime = os.path.getmtime(layer)
     known = _OPENED.get(layer)
     if known is None or known[0] != mtime:
-        scene = CacheScene(layer)
-        worlds: dict = {}
-        for prim in scene.prims:  # /Worlds/world_GGGGGG/...
-            parts = str(prim.GetPath()).split("/")
-            if len(parts) > 3 and parts[2].startswith("world_"):
-                worlds.setdefault(parts[2], []).append(prim)
         _OPENED.clear()  # one layer at a time
-        known = _OPENED[layer] = (mtime, scene, worlds)
-    return known[1], known[2]
+        known = _OPENED[layer] = (mtime, BatchScene(layer))
+    return known[1]
 
 
 def world_geometry(layer, names, frame="last"):
     """[(world name, FrameGeometry, ground height [m] or False)] of the worlds ``names``
-    (``world_GGGGGG``) of the batch layer ``layer`` at ``frame`` ("last": its last frame)."""
-    from ..render.cache import ground_height
-
-    scene, worlds = _opened(os.path.abspath(layer))
-    prims = scene.prims
-    frame = (scene.frames[-1] if scene.frames else None) if frame == "last" else frame
-    out = []
-    try:
-        for name in names:
-            scene.prims = worlds.get(name, [])
-            out.append((name, scene.geometry(frame), ground_height(scene, [frame])))
-    finally:
-        scene.prims = prims
-    return out
+    (``world_GGGGGG``) of the batch layer ``layer`` at ``frame`` ("last": its last frame)
+    (:class:`warpsim.render.batch_scene.BatchScene`)."""
+    batch = _opened(os.path.abspath(layer))
+    frame = (batch.frames[-1] if batch.frames else None) if frame == "last" else frame
+    return [(name, batch.geometry(name, frame), batch.ground(name, frame)) for name in names]
 
 
 def save_pngs(items) -> int:

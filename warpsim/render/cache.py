@@ -151,10 +151,20 @@ def _ranges(frames):
 
 def ground_height(scene, chosen):
     """Ground height [m]: the bottom of everything in the cache, guides included (a box's floor)."""
+    return ground_below(ground_scene(scene).bounds(None if chosen == [None] else chosen))
+
+
+def ground_scene(scene):
+    """A copy of the CacheScene ``scene`` that also draws ``guide`` prims (what the ground is under)."""
     full = CacheScene.__new__(CacheScene)
     full.__dict__.update(scene.__dict__)
     full.purposes = scene.purposes + ("guide",)
-    b = full.bounds(None if chosen == [None] else chosen)
-    if b is None:
+    return full
+
+
+def ground_below(bounds):
+    """The ground height [m] under ``bounds`` [[lo], [hi]] [m] (False when None): just below, so floors
+    do not flicker."""
+    if bounds is None:
         return False
-    return float(b[0][1] - 2e-3 * max(np.max(b[1] - b[0]), 1e-3))  # just below, so floors do not flicker
+    return float(bounds[0][1] - 2e-3 * max(np.max(bounds[1] - bounds[0]), 1e-3))

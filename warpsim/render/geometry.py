@@ -89,18 +89,67 @@ def corner_normals(points, tris, smooth=True):
     if len(tris) == 0:
         return np.zeros((0, 3), np.float32)
     a, b, c = p[tris[:, 0]], p[tris[:, 1]], p[tris[:, 2]]
-    fn = np.cross(b - a, c - a)  # length = 2 x area
-    unit = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+    fn = _cross(b - a, c - a)  # length = 2 x area
+    unit = fn / np.maximum(_norm(fn), 1e-30)
     corners = np.repeat(unit, 3, axis=0)
     if smooth:
-        vn = np.zeros_like(p)
+        # a vertex's normal: its faces' fn summed corner 0 of every face, then 1, then 2 (bincount
+        # adds in input order: the same sums, bit for bit, as np.add.at corner by corner)
+        at = np.asarray(tris).T.reshape(-1)
+        vn = np.empty_like(p)
         for k in range(3):
-            np.add.at(vn, tris[:, k], fn)
-        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+            vn[:, k] = np.bincount(at, weights=np.tile(fn[:, k], 3), minlength=len(p))
+        vn /= np.maximum(_norm(vn), 1e-30)
         vc = vn[tris.reshape(-1)]
-        ok = (vc * corners).sum(1) > SMOOTH_COS
+        d = vc * corners
+        ok = d[:, 0] + d[:, 1] + d[:, 2] > SMOOTH_COS
         corners[ok] = vc[ok]
     return corners.astype(np.float32)
+
+
+# np.cross and np.linalg.norm(axis=1) of (n, 3) rows, the same operations in the same order
+# (bit for bit) without their generality's overhead
+def _cross(u, v):
+    out = np.empty_like(u)
+    out[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    out[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    out[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    return out
+
+
+def _norm(x):
+    """(n, 1) lengths of rows x (n, 3)."""
+    sq = x * x
+    return np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])[:, None]
+
+
+@dataclass(frozen=True)
+class MeshFaces:
+    """What a mesh's polygons and colour make of any V points: triangles (T, 3) int64 and a colour
+    per triangle (T, 3) float32 (built once for a topology shared by many frames or worlds)."""
+
+    triangles: np.ndarray
+    face_colors: np.ndarray
+    vertex_count: int  # V, the points these faces were built for (per-vertex colours depend on it)
+
+
+def mesh_faces(counts, indices, color, vertex_count):
+    """:class:`MeshFaces` of polygons (counts (P,), indices) over ``vertex_count`` points coloured
+    by ``color``: None, one colour, one per vertex (averaged per triangle) or one per polygon;
+    None when there are no triangles."""
+    tris, poly = triangulate(counts, indices)
+    if len(tris) == 0:
+        return None
+    c = None if color is None else np.asarray(color, np.float32).reshape(-1, 3)
+    if c is None or len(c) == 1:
+        fc = _colors(c, len(tris))
+    elif len(c) == vertex_count:
+        fc = c[tris].mean(1)
+    elif len(c) == len(np.asarray(counts).reshape(-1)):
+        fc = c[poly]
+    else:
+        fc = _colors(c[:1], len(tris))
+    return MeshFaces(tris, fc, int(vertex_count))
 
 
 def cube_mesh(size):
@@ -136,23 +185,26 @@ class GeometryBuilder:
         """Polygons (points (V, 3), counts (P,), indices) coloured by one colour, one per vertex
         (averaged per triangle) or one per polygon; ``opacity`` < 1 makes them translucent."""
         pts = np.asarray(points, np.float32).reshape(-1, 3)
-        tris, poly = triangulate(counts, indices)
-        if len(tris) == 0:
+        self.add_faces(pts, mesh_faces(counts, indices, color, len(pts)), opacity, smooth)
+
+    def add_faces(self, points, faces, opacity=1.0, smooth=True):
+        """``faces`` (:class:`MeshFaces` or None: nothing) over ``points`` (V, 3) [m]; as :meth:`add_mesh`."""
+        if faces is None:
             return
-        c = None if color is None else np.asarray(color, np.float32).reshape(-1, 3)
-        if c is None or len(c) == 1:
-            fc = _colors(c, len(tris))
-        elif len(c) == len(pts):
-            fc = c[tris].mean(1)
-        elif len(c) == len(np.asarray(counts).reshape(-1)):
-            fc = c[poly]
-        else:
-            fc = _colors(c[:1], len(tris))
+        pts = np.asarray(points, np.float32).reshape(-1, 3)
         if opacity < 1.0:
             if opacity > 0.0:
-                self._glass.append((pts, tris, fc, float(opacity)))
+                self._glass.append((pts, faces.triangles, faces.face_colors, float(opacity)))
         else:
-            self._meshes.append((pts, tris, fc, corner_normals(pts, tris, smooth)))
+            self._meshes.append((pts, faces.triangles, faces.face_colors, corner_normals(pts, faces.triangles, smooth)))
+
+    def extend(self, other):
+        """Add everything ``other`` (a GeometryBuilder) holds, after what this one holds."""
+        self._meshes.extend(other._meshes)
+        self._glass.extend(other._glass)
+        self._caps.extend(other._caps)
+        if other.volume is not None:
+            self.volume = other.volume
 
     def add_capsules(self, a, b, radius, color=None):
         """Capsules from a (n, 3) to b (n, 3) [m] of radius (scalar or (n,)) [m]."""

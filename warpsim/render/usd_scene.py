@@ -21,10 +21,14 @@ import numpy as np
 
 from ..usd.prims import segment_pairs
 from ..usd.validate import frame_codes, open_stage
-from .geometry import GeometryBuilder, cone_mesh, cube_mesh
+from .geometry import GeometryBuilder, cone_mesh, cube_mesh, mesh_faces
 
 DRAWN_PURPOSES = ("default", "render")
 GUIDE_OPACITY = 0.25
+
+
+_EYE = np.eye(4)
+_EYE_TOL = 1e-8 + 1e-5 * _EYE  # np.allclose's atol + rtol |b|
 
 
 def quat_rotate(q, v):
@@ -97,16 +101,24 @@ class CacheScene:
                        key=lambda f: -1 if f is None else f)
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for f in picks:
-            cache = UsdGeom.BBoxCache(self.time(f), list(self.purposes), useExtentsHint=False)
+            cache = self.bbox_cache(f)
             for prim in self.prims:
-                if not self._drawn(prim, f):
-                    continue
-                box = cache.ComputeWorldBound(prim).ComputeAlignedRange()
-                if box.IsEmpty():
-                    continue
-                lo = np.minimum(lo, np.asarray(box.GetMin()))
-                hi = np.maximum(hi, np.asarray(box.GetMax()))
+                box = self.prim_box(cache, prim) if self._drawn(prim, f) else None
+                if box is not None:
+                    lo, hi = np.minimum(lo, box[0]), np.maximum(hi, box[1])
         return np.array([lo, hi]) if np.isfinite(lo).all() else None
+
+    def bbox_cache(self, frame):
+        """A ``UsdGeom.BBoxCache`` of ``frame`` over this scene's purposes (no extentsHint)."""
+        from pxr import UsdGeom
+
+        return UsdGeom.BBoxCache(self.time(frame), list(self.purposes), useExtentsHint=False)
+
+    @staticmethod
+    def prim_box(cache, prim):
+        """World bounds ((3,) lo, (3,) hi) [m] of ``prim`` from ``cache`` (:meth:`bbox_cache`), None when empty."""
+        box = cache.ComputeWorldBound(prim).ComputeAlignedRange()
+        return None if box.IsEmpty() else (np.asarray(box.GetMin()), np.asarray(box.GetMax()))
 
     def subject_bounds(self, frames=None, samples=7, quantile=0.01):
         """Robust world bounds [[lo], [hi]] [m] of the scene's subject: the time-varying prims
@@ -165,17 +177,29 @@ class CacheScene:
         xf = UsdGeom.XformCache(t)
         g = GeometryBuilder()
         for prim in self.prims:
-            if not self._drawn(prim, frame):
-                continue
-            m = np.asarray(xf.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention: p' = [p 1] m
-            kind = prim.GetTypeName()
-            color, opacity = self._display(prim, t)
-            if opacity >= 1.0 and UsdGeom.Imageable(prim).ComputePurpose() == "guide":
-                opacity = GUIDE_OPACITY  # guides without a displayOpacity are drawn see-through
-            handler = getattr(self, f"_add_{kind}", None)
-            if handler is not None:
-                handler(g, prim, t, m, color, opacity)
+            look = self.look(prim, frame, xf)
+            if look is not None:
+                self.add_prim(g, prim, t, look)
         return g.build()
+
+    def look(self, prim, frame, xf):
+        """How ``prim`` is drawn at ``frame``: (transform (4, 4) [m], colour, opacity), or None when
+        it is not drawn; ``xf``: a ``UsdGeom.XformCache`` of the frame."""
+        from pxr import UsdGeom
+
+        if not self._drawn(prim, frame):
+            return None
+        m = np.asarray(xf.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention: p' = [p 1] m
+        color, opacity = self._display(prim, self.time(frame))
+        if opacity >= 1.0 and UsdGeom.Imageable(prim).ComputePurpose() == "guide":
+            opacity = GUIDE_OPACITY  # guides without a displayOpacity are drawn see-through
+        return m, color, opacity
+
+    def add_prim(self, g, prim, t, look):
+        """Add ``prim`` at time ``t`` drawn with ``look`` (:meth:`look`) to the GeometryBuilder ``g``."""
+        handler = getattr(self, f"_add_{prim.GetTypeName()}", None)
+        if handler is not None:
+            handler(g, prim, t, *look)
 
     @staticmethod
     def _display(prim, t):
@@ -199,7 +223,7 @@ class CacheScene:
 
     @staticmethod
     def _apply(m, p):
-        if np.allclose(m, np.eye(4)):
+        if (np.abs(m - _EYE) <= _EYE_TOL).all():  # np.allclose(m, np.eye(4)), without its generality
             return p
         return p @ m[:3, :3] + m[3, :3]
 
@@ -207,16 +231,32 @@ class CacheScene:
     def _scale(m):
         return float(np.cbrt(abs(np.linalg.det(m[:3, :3])))) or 1.0
 
+    # A Mesh, Points or BasisCurves prim is read in two parts: its declaration (_decl_KIND: topology,
+    # widths, colours; what a batch layer's worlds share) and its points (the sampled part), which
+    # _draw_KIND turns into geometry with the declaration.
+    @staticmethod
+    def _points(prim, t):
+        """The prim's ``points`` at ``t``, (n, 3) float32 (local) [m]."""
+        return _np(prim.GetAttribute("points").Get(t), np.float32)
+
     def _add_Mesh(self, g, prim, t, m, color, opacity):
+        pts = self._points(prim, t)
+        if len(pts) == 0:
+            return
+        self._draw_Mesh(g, self._decl_Mesh(prim, t, color, len(pts)), pts, m, opacity)
+
+    @staticmethod
+    def _decl_Mesh(prim, t, color, count):
+        """:class:`~warpsim.render.geometry.MeshFaces` of the mesh over ``count`` points (or None)."""
         from pxr import UsdGeom
 
         mesh = UsdGeom.Mesh(prim)
-        pts = _np(mesh.GetPointsAttr().Get(t), np.float32)
-        if len(pts) == 0:
-            return
         counts = _np(mesh.GetFaceVertexCountsAttr().Get(t), np.int64)
         indices = _np(mesh.GetFaceVertexIndicesAttr().Get(t), np.int64)
-        g.add_mesh(self._apply(m, pts), counts, indices, color, opacity)
+        return mesh_faces(counts, indices, color, count)
+
+    def _draw_Mesh(self, g, decl, pts, m, opacity):
+        g.add_faces(self._apply(m, pts), decl, opacity)
 
     def _add_Cube(self, g, prim, t, m, color, opacity):
         pts, counts, idx = cube_mesh(prim.GetAttribute("size").Get(t) or 2.0)
@@ -246,27 +286,26 @@ class CacheScene:
     _add_Cylinder = _add_Capsule
 
     def _add_Points(self, g, prim, t, m, color, opacity):
-        from pxr import UsdGeom
-
-        pts = _np(UsdGeom.Points(prim).GetPointsAttr().Get(t), np.float32)
+        pts = self._points(prim, t)
         if len(pts) == 0:
             return
-        pts = self._apply(m, pts)
+        decl = self._decl_Points(prim, t, color, len(pts))
+        if not (decl["volume"] and self._add_volume(g, prim, t, self._apply(m, pts), m, color)):
+            self._draw_Points(g, decl, pts, m, opacity)
+
+    @staticmethod
+    def _decl_Points(prim, t, color, count):
+        """{"volume": a density grid's samples?, "widths", "pairs" (joined points) or None, "color"}."""
+        from pxr import UsdGeom
+
         density = UsdGeom.PrimvarsAPI(prim).GetPrimvar("density")
         cell = prim.GetAttribute("warpsim:cellSize")
-        if density and density.HasValue() and cell and cell.HasValue():
-            rho = _np(density.ComputeFlattened(t), np.float32)
-            if len(rho) == len(pts):
-                dx = float(cell.Get()) * self._scale(m)
-                lo = pts.min(0)
-                ijk = np.rint((pts - lo) / dx).astype(np.int64)
-                grid = np.zeros(ijk.max(0) + 1, np.float32)
-                grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = rho
-                c = (0.8, 0.8, 0.85) if color is None else np.asarray(color, np.float32).reshape(-1, 3)[0]
-                g.set_volume(grid, lo - 0.5 * dx, dx, c)
-                return
-        widths = _np(UsdGeom.Points(prim).GetWidthsAttr().Get(t), np.float32)
-        pairs = segment_pairs(prim)  # a sweep's springs: curves between its points, drawn as curves are
+        return {"volume": bool(density and density.HasValue() and cell and cell.HasValue()), "color": color,
+                "widths": _np(UsdGeom.Points(prim).GetWidthsAttr().Get(t), np.float32),
+                "pairs": segment_pairs(prim)}  # a sweep's springs: curves between its points, drawn as curves are
+
+    def _draw_Points(self, g, decl, pts, m, opacity):
+        pts, widths, pairs, color = self._apply(m, pts), decl["widths"], decl["pairs"], decl["color"]
         if pairs is not None and len(widths) == 1 and (not len(pairs) or pairs.max() < len(pts)):
             g.add_capsules(pts[pairs[:, 0]], pts[pairs[:, 1]], 0.5 * float(widths[0]) * self._scale(m),
                            color if color is None or len(color) == 1 else None)
@@ -274,22 +313,51 @@ class CacheScene:
         r = 0.5 * (widths if len(widths) == len(pts) else (widths[:1] if len(widths) else np.float32(0.01)))
         g.add_spheres(pts, r * self._scale(m), color if color is None or len(color) in (1, len(pts)) else None)
 
+    def _add_volume(self, g, prim, t, pts, m, color):
+        """The Points prim as a density volume (its ``density`` at its world points ``pts``);
+        False when the densities do not match the points."""
+        from pxr import UsdGeom
+
+        rho = _np(UsdGeom.PrimvarsAPI(prim).GetPrimvar("density").ComputeFlattened(t), np.float32)
+        if len(rho) != len(pts):
+            return False
+        dx = float(prim.GetAttribute("warpsim:cellSize").Get()) * self._scale(m)
+        lo = pts.min(0)
+        ijk = np.rint((pts - lo) / dx).astype(np.int64)
+        grid = np.zeros(ijk.max(0) + 1, np.float32)
+        grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = rho
+        c = (0.8, 0.8, 0.85) if color is None else np.asarray(color, np.float32).reshape(-1, 3)[0]
+        g.set_volume(grid, lo - 0.5 * dx, dx, c)
+        return True
+
     def _add_BasisCurves(self, g, prim, t, m, color, opacity):
+        pts = self._points(prim, t)
+        if len(pts) == 0:
+            return
+        self._draw_BasisCurves(g, self._decl_BasisCurves(prim, t, color, len(pts)), pts, m, opacity)
+
+    @staticmethod
+    def _decl_BasisCurves(prim, t, color, count):
+        """The segments of curves over ``count`` points: {"starts": (S,) first point of each,
+        "radius": [m] (scalar or (S,)), "color"}, or None when the counts do not add up to ``count``."""
         from pxr import UsdGeom
 
         curves = UsdGeom.BasisCurves(prim)
-        pts = _np(curves.GetPointsAttr().Get(t), np.float32)
         counts = _np(curves.GetCurveVertexCountsAttr().Get(t), np.int64)
-        if len(pts) == 0 or len(counts) == 0 or counts.sum() != len(pts):
-            return
-        pts = self._apply(m, pts)
+        if len(counts) == 0 or counts.sum() != count:
+            return None
         widths = _np(curves.GetWidthsAttr().Get(t), np.float32)
-        seg_start = np.ones(len(pts), bool)
+        seg_start = np.ones(count, bool)
         seg_start[np.cumsum(counts) - 1] = False  # the last vertex of a curve starts no segment
         i = np.flatnonzero(seg_start)
-        r = 0.5 * (widths[i] if len(widths) == len(pts) else (widths[0] if len(widths) else 0.005))
-        c = color if color is None or len(color) == 1 else (color[i] if len(color) == len(pts) else None)
-        g.add_capsules(pts[i], pts[i + 1], r * self._scale(m), c)
+        r = 0.5 * (widths[i] if len(widths) == count else (widths[0] if len(widths) else 0.005))
+        c = color if color is None or len(color) == 1 else (color[i] if len(color) == count else None)
+        return {"starts": i, "radius": r, "color": c}
+
+    def _draw_BasisCurves(self, g, decl, pts, m, opacity):
+        if decl is not None:
+            i, pts = decl["starts"], self._apply(m, pts)
+            g.add_capsules(pts[i], pts[i + 1], decl["radius"] * self._scale(m), decl["color"])
 
     def _add_PointInstancer(self, g, prim, t, m, color, opacity):
         from pxr import UsdGeom
