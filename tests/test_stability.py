@@ -230,3 +230,33 @@ def test_batched_worlds_have_one_limit_each():
 
     batch.use_timing(resolve_timing(cls, batch.params[0], substeps=1))  # the step as given
     assert batch.stability_warning(1.5 * per_world[1], 1).startswith("2 of 3 worlds step above their stability limit")
+
+
+def test_per_world_picks_equal_a_loop_over_worlds():
+    """warpsim.core.segments (particle_limits' per-world picks, issue 50): the first largest /
+    smallest value of each world's particles as np.argmax / np.argmin over the world picks it,
+    -1 for an empty world or one holding a NaN; any_per_world as .any() per world."""
+    from warpsim.core.segments import any_per_world, first_extreme
+
+    rng = np.random.default_rng(5)
+    for trial in range(200):
+        W, n = int(rng.integers(1, 7)), int(rng.integers(0, 25))
+        world = rng.integers(0, W, n)
+        values = rng.integers(0, 4, n).astype(float)  # ties: the first wins
+        if n and trial % 3 == 0:
+            values[rng.integers(0, n)] = np.nan
+        if n and trial % 4 == 0:
+            values[rng.integers(0, n)] = np.inf
+        order = np.argsort(world, kind="stable")
+        start = np.searchsorted(world[order], np.arange(W + 1))
+        flags = values > 1.5
+        anyw = any_per_world(flags, order, start)
+        for largest, pick in ((True, np.argmax), (False, np.argmin)):
+            index, extreme = first_extreme(values, order, start, largest)
+            for w in range(W):
+                mine = order[start[w]:start[w + 1]]
+                assert anyw[w] == bool(flags[mine].any())
+                if not len(mine) or np.isnan(values[mine]).any():
+                    assert index[w] == -1 and np.isnan(extreme[w])
+                    continue
+                assert index[w] == mine[pick(values[mine])] and extreme[w] == values[index[w]]

@@ -60,6 +60,7 @@ import warp as wp
 
 from ..kernels import stability as K
 from .energy import gravity_of
+from .segments import any_per_world, first_extreme
 
 __all__ = ["AUTO_SAFETY", "StabilityLimit", "StabilityWarning", "SubstepCapWarning", "method_of", "particle_limits", "pendulum_limit",
            "stable_step", "stable_steps", "worlds_warning"]
@@ -422,13 +423,18 @@ class _HostSprings:
         self.best = np.zeros(W, dtype=np.int64)  # (find_strongest: per world, tiled)
         self.energy = np.zeros(S)  # (find_strongest: per spring, not tiled)
 
-    def _block(self, block):
-        """(springs as a slice, their ends (m, 2)) of ``block``."""
+    def _span(self, block):
+        """The springs of ``block`` as a slice."""
+        return slice(block[0] * self.S0, block[1] * self.S0) if self.tiled else slice(0, len(self.ends0))
+
+    def _take(self, a, block, end):
+        """``a[ends[:, end]]`` of ``block``'s springs (a: per particle, (n,) or (n, 3)): np.take of
+        world 0's ends from the block's rows (the same values, without the block's ends array)."""
         if not self.tiled:
-            return slice(0, len(self.ends0)), self.ends0
+            return np.take(a, self.ends0[:, end], axis=0)
         w0, w1 = block
-        ends = (self.ends0[None] + (np.arange(w0, w1, dtype=np.int64) * self.P0)[:, None, None]).reshape(-1, 2)
-        return slice(w0 * self.S0, w1 * self.S0), ends
+        rows = a[w0 * self.P0:w1 * self.P0].reshape(w1 - w0, self.P0, *a.shape[1:])
+        return np.take(rows, self.ends0[:, end], axis=1).reshape(-1, *a.shape[1:])
 
     def ends(self, s):
         """The two particles of spring ``s``."""
@@ -441,9 +447,9 @@ class _HostSprings:
         zeta_s = c (1/m_i + 1/m_j) / (2 omega_s)); ``k32``, ``c32``: host arrays as stored."""
         out = np.empty(len(k32))
         for block in self.blocks:
-            span, ends = self._block(block)
+            span = self._span(block)
             k, c = k32[span].astype(np.float64), c32[span].astype(np.float64)
-            w_sum = inv_mass[ends[:, 0]] + inv_mass[ends[:, 1]]
+            w_sum = self._take(inv_mass, block, 0) + self._take(inv_mass, block, 1)
             omega_s = np.sqrt(np.maximum(k, 0.0) * w_sum)
             with np.errstate(divide="ignore", invalid="ignore"):
                 zeta_s = np.where(omega_s > 0, (c * w_sum + drag * w_sum / 2) / (2.0 * omega_s), 0.0)
@@ -455,11 +461,14 @@ class _HostSprings:
         """Note each world's spring of most energy k (strain along it)^2 in the mode ``vh`` (n, 3)
         about the positions ``q`` (n, 3) [float64] (:meth:`strongest`)."""
         for block in self.blocks:
-            span, ends = self._block(block)
-            dirs = q[ends[:, 1]] - q[ends[:, 0]]
-            lengths = np.linalg.norm(dirs, axis=1)
-            dirs = dirs / np.where(lengths > 0, lengths, 1.0)[:, None]
-            strain = np.einsum("ij,ij->i", vh[ends[:, 0]] - vh[ends[:, 1]], dirs)
+            span = self._span(block)
+            dirs = self._take(q, block, 1) - self._take(q, block, 0)
+            lengths = dirs[:, 0] * dirs[:, 0]  # np.linalg.norm(dirs, axis=1): the squares summed in order
+            lengths += dirs[:, 1] * dirs[:, 1]
+            lengths += dirs[:, 2] * dirs[:, 2]
+            lengths = np.sqrt(lengths)
+            dirs /= np.where(lengths > 0, lengths, 1.0)[:, None]
+            strain = np.einsum("ij,ij->i", self._take(vh, block, 0) - self._take(vh, block, 1), dirs)
             energy = np.where(broken[span], 0.0, k32[span].astype(np.float64) * strain * strain)
             if not self.tiled:  # (one block)
                 self.energy = energy
@@ -640,6 +649,12 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     # at 10^5 worlds)
     p_order = np.argsort(world, kind="stable")
     p_start = np.searchsorted(world[p_order], np.arange(W + 1))
+    loudest, amplitude_max = first_extreme(amplitude, p_order, p_start)  # per world, at once
+    lightest_of, _ = first_extreme(np.where(moving, mass, np.inf), p_order, p_start, largest=False)
+    has_moving = any_per_world(moving, p_order, p_start)
+    fastest, _ = first_extreme(collider_dt, p_order, p_start, largest=False)
+    any_finite = any_per_world(np.isfinite(collider_dt), p_order, p_start)
+    held = _point_springs(forces)
     limits = []
     for w in range(W):
         omega = math.sqrt(omega2[w])
@@ -648,8 +663,8 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         kind, index, stiffness, m, damping, particle = "none", -1, 0.0, 0.0, 0.0, -1
         region = method  # the stability region of what sets the limit
         in_world = p_order[p_start[w]:p_start[w + 1]]
-        if len(in_world) and amplitude[in_world].max() > 0:
-            particle = int(in_world[np.argmax(amplitude[in_world])])
+        if amplitude_max[w] > 0:
+            particle = int(loudest[w])
         if omega > 0:
             s = springs.strongest(w)
             ends = [e for e in springs.ends(s) if moving[e]]
@@ -657,8 +672,8 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
             m = float(min(mass[e] for e in ends)) if ends else 0.0
         who = "none" if kind == "none" else f"{kind} {index}: k = {stiffness:.4g} N/m, m = {m:.4g} kg"
         reason = limit_reason(method, omega, zeta, dt, who, STABILITY_NOTES.get(getattr(integrator, "name", integrator)))
-        if k_c > 0.0 and moving[in_world].any():
-            lightest = int(in_world[moving[in_world]][np.argmin(mass[in_world][moving[in_world]])])
+        if k_c > 0.0 and has_moving[w] and lightest_of[w] >= 0:
+            lightest = int(lightest_of[w])
             omega_c = math.sqrt(k_c / mass[lightest])
             dt_c = stable_step("semi_implicit_euler", omega_c, zeta_c)
             if dt_c < dt:
@@ -668,7 +683,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
                 reason = (f"penalty contact k = {k_c:.4g} N/m on particle {lightest} (m = {m:.4g} kg): omega = "
                           f"{omega_c:.4g} rad/s, zeta = {zeta_c:.3g}; contact impulses act like semi-implicit Euler, "
                           f"stable for dt <= 2 / (omega (zeta + sqrt(1 + zeta^2))) = {dt_c:.4g} s")
-        for p, k_d, c_d in _point_springs(forces):  # a particle held by a drag spring: an oscillator of its own
+        for p, k_d, c_d in held:  # a particle held by a drag spring: an oscillator of its own
             if world[p] != w or not moving[p] or k_d <= 0.0:
                 continue
             omega_d = math.sqrt(k_d * inv_mass[p])
@@ -680,8 +695,8 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
                 region = force_method
                 reason = limit_reason(force_method, omega_d, zeta_d, dt_d,
                                       f"particle {p} held by a drag spring: k = {k_d:.4g} N/m, m = {m:.4g} kg")
-        if len(in_world) and np.isfinite(collider_dt[in_world]).any():
-            p = int(in_world[np.argmin(collider_dt[in_world])])
+        if any_finite[w] and fastest[w] >= 0:
+            p = int(fastest[w])
             if collider_dt[p] < dt:
                 collider = colliders[int(collider_of[p])]
                 name = getattr(collider, "name", type(collider).__name__)
