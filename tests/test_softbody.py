@@ -429,3 +429,27 @@ def test_jiggly_teapot_example_runs(tmp_path):
                          env=dict(os.environ, WARP_QUIET="1"), capture_output=True, text=True, timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "picked particle" in out.stdout and (tmp_path / "t.usda").exists()
+
+
+def test_soft_body_springs_equal_add_spring_one_at_a_time():
+    """add_soft_body adds its springs at once (add_springs): the same pairs, coefficients and rest
+    lengths, bit for bit, as add_spring one spring at a time, and its rotated vertices as
+    quat_rotate one vertex at a time (issue 50)."""
+    m = teapot_mesh(3, scale=0.3)
+    rotation = (0.0, 0.0, math.sin(0.3), math.cos(0.3))
+    bulk = ws.ModelBuilder()
+    body = add_soft_body(bulk, m.points, m.faces, position=(0.1, 0.7, -0.2), rotation=rotation, stiffness=37.0,
+                         damping=0.3, interior_stiffness=55.0, lattice_cells=4)
+    from warpsim.bodies.colliders import parse_pose, quat_rotate
+
+    pos, rot = parse_pose((0.1, 0.7, -0.2), rotation, "teapot")
+    world = pos + np.array([quat_rotate(rot, 1.0 * p) for p in m.points])
+    assert np.asarray(bulk.particle_q)[:body.surface_count].tobytes() == world.tobytes()
+    one = ws.ModelBuilder()
+    one.add_particles(np.asarray(bulk.particle_q))
+    for (i, j), k, c in zip(bulk.spring_indices, bulk.spring_stiffness, bulk.spring_damping):
+        one.add_spring(i, j, k, c)
+    assert one.spring_indices == bulk.spring_indices
+    for name in ("spring_rest_length", "spring_stiffness", "spring_damping"):
+        assert np.asarray(getattr(one, name)).tobytes() == np.asarray(getattr(bulk, name)).tobytes(), name
+    assert set(bulk.spring_stiffness) == {37.0, 55.0} and bulk.spring_count == body.spring_count
