@@ -80,6 +80,26 @@ def settle(build, args, device, integrator):
     return scene, h, built
 
 
+def kernel_table(step, steps, device, top=16) -> None:
+    """The GPU's activity over ``steps`` calls of ``step`` (``wp.timing_begin``/``end``, kernels, copies and
+    BVH work): per name, calls and milliseconds a step, largest first."""
+    step()
+    wp.synchronize_device(device)
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    for _ in range(steps):
+        step()
+    results = wp.timing_end()
+    totals, calls = {}, {}
+    for r in results:
+        name = (r.name or "?").split("(")[0].strip()
+        totals[name] = totals.get(name, 0.0) + r.elapsed / steps
+        calls[name] = calls.get(name, 0) + 1
+    gpu = sum(totals.values()) or 1.0
+    print(f"kernel table, {steps} steps: GPU activity {gpu:.3f} ms a step")
+    for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:
+        print(f"  {name[:52]:52s} {calls[name] / steps:8.2f} calls {ms:9.4f} ms {ms / gpu:7.1%}")
+
+
 def run_vbd(args, device, build) -> None:
     scene, h, _ = settle(build, args, device, "vbd")
     sim, integrator, contact = scene.sim, scene.sim.integrator, scene.vbd_contact
@@ -115,6 +135,8 @@ def run_vbd(args, device, build) -> None:
               f"steps, one BVH rebuild period); frames of 1/60 s per wall second {1.0 / (graph * per_frame):.2f}")
     if getattr(args, "vbd_lanes", None):
         compare_lanes(args, sim, h, device)
+    if args.profile and device.is_cuda:
+        kernel_table(lambda: sim.step(h), min(args.steps, 20), device)
     x = sim.state.positions.numpy()
     t0 = time.perf_counter()
     crossings = sum(n for _, _, n in edges_through_other_bodies(x, scene.bodies))
