@@ -206,6 +206,11 @@ def _thumbnails_wanted(args, worlds):
     return not args.no_thumbnails and ("many" if worlds > OPT_IN_WORLDS and not args.thumbnails else True)
 
 
+def _is_cuda(device) -> bool:
+    """Whether ``device`` (a Warp device or its name) is a CUDA device."""
+    return str(getattr(device, "alias", device)).startswith("cuda")
+
+
 def _start_thumbnail_pool(args, worlds, device):
     """Start the workers that will draw the thumbnails (:func:`warpsim.browse.thumbs.start_workers`)
     while the sweep completes its layer, record, table and root; none when this process draws them."""
@@ -524,7 +529,8 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
 
     def staged(name):
         """A stage after the frames: the thumbnails' workers start with the first (they warm up while
-        the layer, record, table and root are completed); the progress bar's label."""
+        the layer, record, table and root are completed; on a GPU they started after the first frame);
+        the progress bar's label."""
         _start_thumbnail_pool(args, len(world_params), device)
         if progress:
             progress.set_description_str(f"{cls.name} x{len(world_params)}: {name}")
@@ -536,6 +542,8 @@ def _run_here(args, cls, world_params, outputs, device, track, occupancy, run_ti
         import time
 
         clock.append(time.perf_counter())
+        if len(clock) == 1 and _is_cuda(device):  # (a GPU's frames leave the host's cores to spare: the
+            _start_thumbnail_pool(args, len(world_params), device)  # workers warm up beside the frame loop)
         if len(clock) == 2 and not first:
             note = preflight.frame_time_note(clock[1] - clock[0], args.frames - frame, device, frame,
                                              measured=f"stepping its {len(world_params):,} worlds and writing them",
