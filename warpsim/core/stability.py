@@ -528,25 +528,32 @@ def _linear_drag(forces):
     return float(sum(f.linear for f in forces or () if isinstance(f, Drag)))
 
 
-def _collider_steps(model, positions, velocities, colliders, gravity):
+def _collider_steps(model, positions, velocities, colliders, gravity, world):
     """Per particle: the step-size limit [s] from the colliders' step distances (module docstring),
-    inf where none applies, and the collider setting it (index into ``colliders``, -1 none), and L [m]."""
+    inf where none applies, and the collider setting it (index into ``colliders``, -1 none), and L [m].
+    ``velocities`` [m/s] (None: the model's initial ones), ``gravity`` [m/s^2] per world (W, 3),
+    ``world`` each particle's: read only once a collider has step distances."""
     n = model.particle_count
     dt = np.full(n, np.inf)
     which = np.full(n, -1, dtype=np.int64)
     dist = np.zeros(n)
-    q = positions.numpy().astype(np.float64) if hasattr(positions, "numpy") else np.asarray(positions, float)
-    v = np.zeros((n, 3)) if velocities is None else np.asarray(velocities, dtype=np.float64).reshape(n, 3)
-    speed = np.linalg.norm(v, axis=1)
-    g = np.linalg.norm(np.asarray(gravity, dtype=np.float64).reshape(-1, 3), axis=1)
-    if len(g) != n:
-        g = np.full(n, float(g[0]) if len(g) else 0.0)
-    moving = model.particle_inv_mass.numpy() > 0.0
+    q = speed = None
+    v = None if velocities is None else np.asarray(velocities, dtype=np.float64).reshape(n, 3)
     for c_index, c in enumerate(colliders):
         own = getattr(c, "step_distances", None)
+        if own is not None and q is None:
+            q = positions.numpy().astype(np.float64) if hasattr(positions, "numpy") else np.asarray(positions, float)
         L = own(model, q) if own is not None else None
         if L is None:
             continue
+        if speed is None:
+            if v is None:  # the initial velocities
+                v = model.particle_qd.numpy().astype(np.float64).reshape(n, 3)
+            speed = np.linalg.norm(v, axis=1)
+            g = np.linalg.norm(np.asarray(gravity[world], dtype=np.float64).reshape(-1, 3), axis=1)
+            if len(g) != n:
+                g = np.full(n, float(g[0]) if len(g) else 0.0)
+            moving = model.particle_inv_mass.numpy() > 0.0
         L = np.asarray(L, dtype=np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
             limit = np.where(g > 0, (np.sqrt(speed * speed + 4.0 * g * L) - speed) / (2.0 * np.where(g > 0, g, 1.0)),
@@ -572,7 +579,8 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
     force_method = force_method_of(integrator)
     n, S, d = model.particle_count, model.spring_count, model.device
     host_q = positions.numpy() if hasattr(positions, "numpy") else np.asarray(positions, dtype=np.float64)
-    bad = np.flatnonzero(~np.isfinite(np.asarray(host_q, dtype=np.float64).reshape(-1, 3)).all(axis=1))
+    q64 = np.asarray(host_q, dtype=np.float64).reshape(-1, 3)  # (also find_strongest's)
+    bad = np.flatnonzero(~np.isfinite(q64).all(axis=1))
     if len(bad):
         raise ValueError(f"particle {int(bad[0])} has a non-finite position {host_q[bad[0]]}: the stability limit "
                          "is taken about finite positions; give finite values (or restore the state from before "
@@ -637,23 +645,23 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         row = rows.numpy().astype(np.float64)
         np.maximum.at(bound, world, row)
         particle_dt = stable_steps(method, np.sqrt(np.maximum(row, 0.0)), 0.0)
-        springs.find_strongest(positions.numpy().astype(np.float64), vh, k, broken)
+        springs.find_strongest(q64, vh, k, broken)
         amplitude = np.einsum("ij,ij->i", vh, vh)
 
     k_c, zeta_c = _penalty(colliders)
-    if velocities is None and n:
-        velocities = model.particle_qd.numpy()
     collider_dt, collider_of, collider_L = _collider_steps(model, positions, velocities, colliders,
-                                                           gravity_of(forces, W)[world])
+                                                           gravity_of(forces, W), world)
     # each world's particles (and springs: _HostSprings) as slices of one stable sort (W x n scans cost minutes
     # at 10^5 worlds)
     p_order = np.argsort(world, kind="stable")
     p_start = np.searchsorted(world[p_order], np.arange(W + 1))
     loudest, amplitude_max = first_extreme(amplitude, p_order, p_start)  # per world, at once
-    lightest_of, _ = first_extreme(np.where(moving, mass, np.inf), p_order, p_start, largest=False)
-    has_moving = any_per_world(moving, p_order, p_start)
-    fastest, _ = first_extreme(collider_dt, p_order, p_start, largest=False)
-    any_finite = any_per_world(np.isfinite(collider_dt), p_order, p_start)
+    if k_c > 0.0:  # (penalty contact: each world's lightest moving particle)
+        lightest_of, _ = first_extreme(np.where(moving, mass, np.inf), p_order, p_start, largest=False)
+        has_moving = any_per_world(moving, p_order, p_start)
+    finite = np.isfinite(collider_dt)
+    any_finite = any_per_world(finite, p_order, p_start) if finite.any() else np.zeros(W, dtype=bool)
+    fastest = first_extreme(collider_dt, p_order, p_start, largest=False)[0] if finite.any() else None
     held = _point_springs(forces)
     limits = []
     for w in range(W):
