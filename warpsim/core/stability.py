@@ -661,7 +661,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
         has_moving = any_per_world(moving, p_order, p_start)
     finite = np.isfinite(collider_dt)
     any_finite = any_per_world(finite, p_order, p_start) if finite.any() else np.zeros(W, dtype=bool)
-    fastest = first_extreme(collider_dt, p_order, p_start, largest=False)[0] if finite.any() else None
+    fastest = first_extreme(collider_dt, p_order, p_start, largest=False)[0] if finite.any() else np.full(W, -1)
     held = _point_springs(forces)
     limits = []
     for w in range(W):
