@@ -21,10 +21,6 @@ computes it; a list that holds all its item's pairs is then only sorted, and a q
 the capacity is run whole (``WHOLE``, ``HALF``, ``FINISH``): the lists, distances and smallest distances
 of three whole queries, bit for bit, with one triangle query and half the edge traversal less.
 
-A BVH candidate whose exact box is apart from the query's by the radius and a rounding margin is skipped
-before its nearest points, and an edge pair's other side is not computed when the first side is that far: such
-a pair changes no list, distance or smallest distance (``query_pairs``: the margin's argument).
-
 Pairs sharing a particle are skipped; so are pairs of the same body unless self contact is on.
 Each query also keeps the smallest distance it met (``*_min``, [m]); ``displacement_bounds`` turns
 them into each particle's step bound (the proof is in ``warpsim.bodies.vbd``). A query with more
@@ -124,6 +120,33 @@ def gather_points(particles: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), po
 
 
 @wp.func
+def vertex_triangle_distance(p: int, x: wp.vec3, t: int, tri: wp.array(dtype=int), body: wp.array(dtype=int),
+                             q: wp.array(dtype=wp.vec3), self_contact: int) -> float:
+    """Distance [m] from particle p at x to triangle t; -1 when the pair is skipped (p a corner of t,
+    or the same body without self contact)."""
+    i = tri[3 * t]
+    j = tri[3 * t + 1]
+    k = tri[3 * t + 2]
+    if i == p or j == p or k == p or (self_contact == 0 and body[i] == body[p]):
+        return -1.0
+    r, w = vertex_triangle_rel(x, q[i], q[j], q[k])
+    return wp.length(r)
+
+
+@wp.func
+def edge_edge_distance(i: int, j: int, f: int, edges: wp.array(dtype=int), body: wp.array(dtype=int),
+                       q: wp.array(dtype=wp.vec3), self_contact: int) -> float:
+    """Distance [m] from edge ij to edge f; -1 when the pair is skipped (a shared particle, or the
+    same body without self contact)."""
+    k = edges[2 * f]
+    m = edges[2 * f + 1]
+    if i == k or i == m or j == k or j == m or (self_contact == 0 and body[i] == body[k]):
+        return -1.0
+    r, st = edge_edge_rel(q[i], q[j], q[k], q[m])
+    return wp.length(r)
+
+
+@wp.func
 def keep_nearest(start: int, n: int, capacity: int, d: float, stored: int, list_io: wp.array(dtype=int),
                  distance_io: wp.array(dtype=float)) -> int:
     """Add pair ``stored`` at distance ``d`` [m] to the list at ``start`` holding ``n``: appended while
@@ -157,9 +180,9 @@ FINISH = wp.constant(2)  # the staged list when it holds every pair (sorted), el
 
 @wp.func
 def query_box(kind: int, item: int, surface: wp.array(dtype=int), tri: wp.array(dtype=int),
-              edges: wp.array(dtype=int), body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3)):
-    """(lower, upper [m], body) of query ``item``: a surface vertex, a triangle or an edge by ``kind``, the
-    exact box of its corners (``query_pairs`` grows it by the radius for the BVH)."""
+              edges: wp.array(dtype=int), body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), pad: float):
+    """(lower, upper, body) of query ``item``: a surface vertex, a triangle or an edge by ``kind``, its
+    box grown by ``pad`` [m]."""
     lower = wp.vec3(1.0e30)
     upper = wp.vec3(-1.0e30)
     first = int(0)
@@ -180,31 +203,23 @@ def query_box(kind: int, item: int, surface: wp.array(dtype=int), tri: wp.array(
             p = edges[2 * item + c]
         lower = wp.min(lower, q[p])
         upper = wp.max(upper, q[p])
-    return lower, upper, body[first]
+    return lower - wp.vec3(pad), upper + wp.vec3(pad), body[first]
 
 
 @wp.func
-def max_abs(lower: wp.vec3, upper: wp.vec3) -> float:
-    """The largest coordinate magnitude [m] of box [lower, upper]."""
-    m = wp.max(wp.abs(lower), wp.abs(upper))
-    return wp.max(wp.max(m[0], m[1]), m[2])
-
-
-@wp.func
-def boxes_apart(lower: wp.vec3, upper: wp.vec3, other_lower: wp.vec3, other_upper: wp.vec3,
-                reach: float) -> bool:
-    """Whether box [lower, upper] and box [other_lower, other_upper] [m] are at least ``reach`` [m] apart
-    (``query_pairs``: the query's exact box and a BVH item's, ``reach`` its ``far_distance``)."""
-    gap = wp.max(wp.max(other_lower - upper, lower - other_upper), wp.vec3(0.0))
-    return wp.dot(gap, gap) >= reach * reach
-
-
-@wp.func
-def far_distance(query_radius: float, scale: float) -> float:
-    """query_radius + 1e-5 (scale + query_radius) + 1e-7 m: a lower bound at least this far (the box gap of
-    ``boxes_apart``, or a first-side distance) leaves every exact distance of the pair at ``query_radius`` or
-    more (``query_pairs``: the margin's argument); ``scale`` [m] bounds the corners' coordinates."""
-    return query_radius + 1.0e-5 * (scale + query_radius) + 1.0e-7
+def query_pair(kind: int, item: int, other: int, surface: wp.array(dtype=int), tri: wp.array(dtype=int),
+               edges: wp.array(dtype=int), body: wp.array(dtype=int), q: wp.array(dtype=wp.vec3),
+               self_contact: int):
+    """(distance [m] or -1 when skipped, what the list stores) of query ``item`` and BVH item ``other``:
+    vertex against triangle (stores the triangle), triangle against vertex (the vertex's particle), edge
+    against edge (the edge)."""
+    if kind == VERTEX_QUERY:
+        p = surface[item]
+        return vertex_triangle_distance(p, q[p], other, tri, body, q, self_contact), other
+    if kind == TRIANGLE_QUERY:
+        p = surface[other]
+        return vertex_triangle_distance(p, q[p], item, tri, body, q, self_contact), p
+    return edge_edge_distance(edges[2 * item], edges[2 * item + 1], other, edges, body, q, self_contact), other
 
 
 @wp.func
@@ -222,10 +237,7 @@ def stage_pair(index: int, stored: int, d: float, capacity: int, list_io: wp.arr
 def query_pairs(
     go: wp.array(dtype=int), kind: int, mode: int, body_bvh: wp.uint64, world_roots: wp.array(dtype=int),
     body_world: wp.array(dtype=int),
-    bvh: wp.uint64, roots: wp.array(dtype=int), box_lower: wp.array(dtype=wp.vec3),
-    box_upper: wp.array(dtype=wp.vec3), body_lower: wp.array(dtype=wp.vec3),
-    body_upper: wp.array(dtype=wp.vec3),
-    reject: int,
+    bvh: wp.uint64, roots: wp.array(dtype=int),
     surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
     q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
     list_out: wp.array(dtype=int), distance_out: wp.array(dtype=float), count_out: wp.array(dtype=int),
@@ -248,57 +260,11 @@ def query_pairs(
     edge of the lower body (within one body, the lower edge), and stages both sides; ``FINISH`` then takes a
     list that holds every pair of its item (count at most ``capacity``: the pairs, and so the sorted list and
     the smallest distance, of the ``WHOLE`` query, bit for bit) and queries the rest whole. Nothing when
-    ``go[w]`` is 0 for the item's world w (its search skipped: ``search_needed``).
-
-    Rejection (``reject`` 1; 0 computes every candidate's distance, the same bits slower): ``box_lower``,
-    ``box_upper`` are the exact boxes of the BVH's items (the min and max of their corners, as the BVH holds
-    them), ``body_lower``, ``body_upper`` the bodies' bounds (``body_bvh``'s boxes: they hold every corner). A
-    candidate contributes only through d < ``query_radius`` (the lists, the mirror) and dmin = min(dmin, d)
-    with dmin starting at ``query_radius`` (Warp's min ignores a NaN), so one whose exact distance d (and, for
-    a staged edge pair, the other side's d2) is at least ``query_radius`` or NaN changes no bit. The gap G
-    between the query's exact box and the candidate's is a lower bound on the distance of any point of one
-    primitive to any point of the other; the candidate is skipped before its nearest points when G >=
-    ``far_distance`` = r_q + m, m = 1e-5 (M + r_q) + 1e-7 m, M the largest coordinate magnitude of the query's
-    box and the candidate's body's bounds (so at least the corners' of both primitives). The margin: with u =
-    2^-24 (float32 rounding), the computed nearest points are within about 6 u M per coordinate of points of
-    the primitives (edge parameters are clamped to [0, 1]; the barycentric weights are one-hot or a clamped
-    division on the corners' and edges' regions and within rounding of [0, 1] inside), r = their difference
-    and |r| add 2 u M and a relative 3 u, so d >= G (1 - 3 u) - 25 u M; G computed (differences, squares,
-    their sum, compared squared) is within a relative 5 u of the true gap. A skipped pair thus has d >= (r_q +
-    m)(1 - 8 u) - 25 u M >= r_q, since m exceeds 8 u (r_q + m) + 25 u M (about 5e-7 r_q + 1.5e-6 M) several
-    times over; d2 (the same four points in the other order) likewise. In the same way a first-side d >= r_q +
-    m (the same M) gives d2 >= d (1 - 6 u) - 50 u M >= r_q: the mirror's d2 is then not computed. A non-finite
-    coordinate makes the exact distance NaN or infinite (every corner enters the nearest point): nothing
-    either way. The one case outside the argument is a triangle collapsed to within rounding (va + vb + vc of
-    ``triangle_barycentric``, its doubled area squared, within rounding of 0), whose interior weights are not
-    bounded.
-
-    The query's own corners are loaded once (not per candidate): the same values."""
+    ``go[w]`` is 0 for the item's world w (its search skipped: ``search_needed``)."""
     item = wp.tid()
-    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q)
+    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
     if go[body_world[own]] == 0:
         return
-    scale = max_abs(lower, upper)
-    grown_lower = lower - wp.vec3(query_radius)
-    grown_upper = upper + wp.vec3(query_radius)
-    ia = int(0)
-    ib = int(0)
-    ic = int(0)
-    if kind == VERTEX_QUERY:
-        ia = surface[item]
-        ib = ia
-        ic = ia
-    elif kind == TRIANGLE_QUERY:
-        ia = tri[3 * item]
-        ib = tri[3 * item + 1]
-        ic = tri[3 * item + 2]
-    else:
-        ia = edges[2 * item]
-        ib = edges[2 * item + 1]
-        ic = ib
-    xa = q[ia]
-    xb = q[ib]
-    xc = q[ic]
     n = int(0)
     total = int(0)
     dmin = query_radius
@@ -311,52 +277,19 @@ def query_pairs(
     seen = int(0)
     more = search
     while more == 1:
-        found, count = collect_bodies(body_bvh, world_roots[body_world[own]], grown_lower, grown_upper, own,
-                                      self_contact, seen)
+        found, count = collect_bodies(body_bvh, world_roots[body_world[own]], lower, upper, own, self_contact,
+                                      seen)
         seen += count
         more = wp.where(count == BODY_BATCH, 1, 0)
         for g in range(count):
             if mode == HALF and found[g] < own:
                 continue
-            far = query_radius  # far_distance, M of the query's box and the body's bounds (its corners)
-            if reject == 1:
-                body_scale = max_abs(body_lower[found[g]], body_upper[found[g]])
-                far = far_distance(query_radius, wp.max(scale, body_scale))
-            query = wp.bvh_query_aabb(bvh, grown_lower, grown_upper, roots[found[g]])
+            query = wp.bvh_query_aabb(bvh, lower, upper, roots[found[g]])
             other = int(0)
             while wp.bvh_query_next(query, other):
                 if mode == HALF and found[g] == own and other < item:
                     continue
-                if reject == 1:
-                    if boxes_apart(lower, upper, box_lower[other], box_upper[other], far):
-                        continue
-                # the exact distance (-1: a pair sharing a particle, or of one body without self contact)
-                d = float(-1.0)
-                stored = other
-                xk = wp.vec3()
-                xm = wp.vec3()
-                if kind == VERTEX_QUERY:
-                    i = tri[3 * other]
-                    j = tri[3 * other + 1]
-                    k = tri[3 * other + 2]
-                    if not (i == ia or j == ia or k == ia or (self_contact == 0 and body[i] == own)):
-                        r, w = vertex_triangle_rel(xa, q[i], q[j], q[k])
-                        d = wp.length(r)
-                elif kind == TRIANGLE_QUERY:
-                    p = surface[other]
-                    stored = p
-                    if not (ia == p or ib == p or ic == p or (self_contact == 0 and own == body[p])):
-                        rt, wt = vertex_triangle_rel(q[p], xa, xb, xc)
-                        d = wp.length(rt)
-                else:
-                    ek = edges[2 * other]
-                    em = edges[2 * other + 1]
-                    shared = ia == ek or ia == em or ib == ek or ib == em
-                    if not (shared or (self_contact == 0 and own == body[ek])):
-                        xk = q[ek]
-                        xm = q[em]
-                        re, st = edge_edge_rel(xa, xb, xk, xm)
-                        d = wp.length(re)
+                d, stored = query_pair(kind, item, other, surface, tri, edges, body, q, self_contact)
                 if d < 0.0:
                     continue
                 if mode != HALF:
@@ -371,16 +304,13 @@ def query_pairs(
                 if mirror == 1:
                     if kind == VERTEX_QUERY:
                         if d < query_radius:
-                            stage_pair(other, ia, d, capacity, mirror_list_io, mirror_distance_io,
+                            stage_pair(other, surface[item], d, capacity, mirror_list_io, mirror_distance_io,
                                        mirror_count_io)
-                    elif kind == EDGE_QUERY:
-                        # the other edge's side, as its own query computes it: not needed when d is that far
-                        if not (reject == 1 and d >= far):
-                            r2, st2 = edge_edge_rel(xk, xm, xa, xb)
-                            d2 = wp.length(r2)
-                            if d2 < query_radius:
-                                stage_pair(other, item, d2, capacity, mirror_list_io, mirror_distance_io,
-                                           mirror_count_io)
+                    else:
+                        d2, stored2 = query_pair(kind, other, item, surface, tri, edges, body, q, self_contact)
+                        if d2 >= 0.0 and d2 < query_radius:
+                            stage_pair(other, item, d2, capacity, mirror_list_io, mirror_distance_io,
+                                       mirror_count_io)
     if mode == HALF:
         return
     if total > capacity:

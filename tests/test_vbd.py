@@ -545,22 +545,18 @@ def test_a_changed_friction_reaches_the_descent():
 
 def whole_queries(contact, q):
     """The three queries of ``contact`` run whole (``kernels.vbd_contact.WHOLE``: each item its own traversal,
-    nothing staged) and without the rejection (every candidate's exact distance) into new arrays: [(list,
-    distances, count, smallest distance) per kind], overflow."""
+    nothing staged) into new arrays: [(list, distances, count, smallest distance) per kind], overflow."""
     from warpsim.kernels import vbd_contact as K
     C, (tri_bvh, point_bvh, edge_bvh, body_bvh) = contact.capacity, contact._bvhs
     overflow, out = wp.zeros(6, dtype=int, device=DEVICE), []
-    boxes = [(contact._tri_lower, contact._tri_upper), (contact._points, contact._points),
-             (contact._edge_lower, contact._edge_upper)]
-    kinds = ((K.VERTEX_QUERY, contact.vertex_count, tri_bvh, contact._roots[0], boxes[0]),
-             (K.TRIANGLE_QUERY, contact.triangle_count, point_bvh, contact._roots[1], boxes[1]),
-             (K.EDGE_QUERY, contact.edge_count, edge_bvh, contact._roots[2], boxes[2]))
-    for kind, count, bvh, roots, box in kinds:
+    for kind, count, bvh, roots in ((K.VERTEX_QUERY, contact.vertex_count, tri_bvh, contact._roots[0]),
+                                    (K.TRIANGLE_QUERY, contact.triangle_count, point_bvh, contact._roots[1]),
+                                    (K.EDGE_QUERY, contact.edge_count, edge_bvh, contact._roots[2])):
         lists = [wp.zeros(count * C, dtype=int, device=DEVICE), wp.zeros(count * C, dtype=float, device=DEVICE),
                  wp.zeros(count, dtype=int, device=DEVICE), wp.zeros(count, dtype=float, device=DEVICE)]
         wp.launch(K.query_pairs, count, inputs=[
             wp.ones(1, dtype=int, device=DEVICE), int(kind), int(K.WHOLE), body_bvh.id, contact._roots[3],
-            contact._groups[3], bvh.id, roots, *box, contact._body_lower, contact._body_upper, 0,
+            contact._groups[3], bvh.id, roots,
             contact._surface, contact._tri, contact._edges, contact._body, q, contact.query_radius,
             int(contact.self_contact), C, *lists, overflow, 0, *lists[:3]], device=DEVICE)
         out.append([a.numpy() for a in lists])
@@ -571,10 +567,9 @@ def whole_queries(contact, q):
 def test_the_staged_lists_are_the_whole_queries_bit_for_bit(capacity):
     """The search stages the triangles' lists from the vertex query and meets each edge pair once (from the
     edge of the lower body, or the lower edge within a body with self contact), then sorts; lists past their
-    capacity are queried whole; candidates whose boxes are apart by the radius and a margin are skipped before
-    their distances. Two tori with self contact, dropped onto each other: at every frame each list, its
-    distances and smallest distance, and the overflow counters are those of the three queries run whole with
-    every candidate's distance, bit for bit (capacity 3: many lists past it, queried whole)."""
+    capacity are queried whole. Two tori with self contact, dropped onto each other: at every frame each list,
+    its distances and smallest distance, and the overflow counters are those of the three queries run whole,
+    bit for bit (capacity 3: many lists past it, queried whole)."""
     sim, contact, _ = two_tori(gap=0.004, capacity=capacity)
     listed = over = 0
     for _ in range(12):

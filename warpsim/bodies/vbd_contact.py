@@ -67,11 +67,6 @@ class VBDContact:
     CHUNK = 8
     """Surface vertices per thread of the body-bounds pass."""
 
-    reject_far = True
-    """Skip a BVH candidate before its exact distance when the gap between its box and the query's proves it
-    at the query radius or beyond (``kernels.vbd_contact.query_pairs``: the same lists, distances and bounds,
-    bit for bit); False computes every candidate's distance (a benchmark's comparison)."""
-
     @staticmethod
     def list_bytes(vertices: int, triangles: int, edges: int, capacity: int = 32, near_capacity: int = 128) -> int:
         """Device bytes of one copy of a surface of ``vertices``, ``triangles`` and ``edges`` (int32 and
@@ -291,23 +286,18 @@ class VBDContact:
         lists = [(self._vt, self._distances[0], self._vt_count, self._vt_min),
                  (self._tv, self._distances[1], self._tv_count, self._tv_min),
                  (self._ee, self._distances[2], self._ee_count, self._ee_min)]
-        tri_boxes, point_boxes = (self._tri_lower, self._tri_upper), (self._points, self._points)
-        edge_boxes = (self._edge_lower, self._edge_upper)  # the BVHs' exact item boxes (query_pairs)
-        V, T, E = self.vertex_count, self.triangle_count, self.edge_count
-        kinds = [(K.VERTEX_QUERY, K.WHOLE, V, tri_bvh, tri_roots, tri_boxes, lists[0], lists[1]),
-                 (K.TRIANGLE_QUERY, K.FINISH, T, point_bvh, point_roots, point_boxes, lists[1], None),
-                 (K.EDGE_QUERY, K.HALF, E, edge_bvh, edge_roots, edge_boxes, lists[2], lists[2]),
-                 (K.EDGE_QUERY, K.FINISH, E, edge_bvh, edge_roots, edge_boxes, lists[2], None)]
+        kinds = [(K.VERTEX_QUERY, K.WHOLE, self.vertex_count, tri_bvh, tri_roots, lists[0], lists[1]),
+                 (K.TRIANGLE_QUERY, K.FINISH, self.triangle_count, point_bvh, point_roots, lists[1], None),
+                 (K.EDGE_QUERY, K.HALF, self.edge_count, edge_bvh, edge_roots, lists[2], lists[2]),
+                 (K.EDGE_QUERY, K.FINISH, self.edge_count, edge_bvh, edge_roots, lists[2], None)]
         self._queries = [
             record(K.begin_search, max(self.triangle_count, self.edge_count), [
                 self._go, self._tri, self._edges, self._body, self._groups[3], self._tv_count, self._ee_count,
                 self._overflow, self._searched])] + [
             record(K.query_pairs, count, [self._go, int(kind), int(mode), body_bvh.id, world_roots, self._groups[3],
-                                          bvh.id, roots, *boxes, self._body_lower, self._body_upper,
-                                          int(self.reject_far), self._surface, self._tri,
-                                          self._edges, self._body, q, r, sc, C, *out, self._overflow,
-                                          int(mirror is not None), *(mirror or out)[:3]])
-            for kind, mode, count, bvh, roots, boxes, out, mirror in kinds] + [
+                                          bvh.id, roots, self._surface, self._tri, self._edges, self._body, q, r, sc, C,
+                                          *out, self._overflow, int(mirror is not None), *(mirror or out)[:3]])
+            for kind, mode, count, bvh, roots, out, mirror in kinds] + [
             record(K.displacement_bounds, q.shape[0], [
                 self._go, self._body, self._groups[3], q, self._slot, self._vt_min, self._tri_offsets, self._tris,
                 self._tv_min,
@@ -321,7 +311,7 @@ class VBDContact:
                 self._edge_list, self._ee, self._distances[2], self._ee_count, self.reference, self.bound,
                 self.thickness, self.near_capacity, self._near, self._near_end])]
         self._recorded_key = (q.ptr, self.thickness, self.max_displacement, self.bound_fraction, self.self_contact,
-                              self.stiffness, self.reject_far)
+                              self.stiffness)
 
     def search(self, q, deficit=None, fraction: float = 0.5) -> None:
         """Pairs within the query radius at positions ``q`` (N,) [m], and each particle's bound and
@@ -331,7 +321,7 @@ class VBDContact:
         decided on the device, world by world in a batch of worlds); else the last search's lists and bounds
         stay (they hold until the next)."""
         if self._recorded_key != (q.ptr, self.thickness, self.max_displacement, self.bound_fraction,
-                                  self.self_contact, self.stiffness, self.reject_far):
+                                  self.self_contact, self.stiffness):
             self._record(q)
         if deficit is None:
             self._go.fill_(1)
