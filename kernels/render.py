@@ -86,30 +86,31 @@ def capsule_normal(p: wp.vec3, a: wp.vec3, b: wp.vec3):
 
 @wp.func
 def closest_capsule(bvh: wp.uint64, cap_a: wp.array(dtype=wp.vec3), cap_b: wp.array(dtype=wp.vec3),
-                    cap_r: wp.array(dtype=float), o: wp.vec3, d: wp.vec3, t_max: float):
-    """(t, index) of the nearest capsule hit before t_max; index -1 if none."""
+                    cap_r: wp.array(dtype=float), base: int, o: wp.vec3, d: wp.vec3, t_max: float):
+    """(t, index) of the nearest capsule hit before t_max; index -1 if none. The BVH's items are the
+    capsules ``base``, ``base + 1``, ... of the arrays (the index returned is the arrays')."""
     best_t = t_max
     best = int(-1)
     query = wp.bvh_query_ray(bvh, o, d)
     k = int(0)
     while wp.bvh_query_next(query, k, best_t):
-        t = ray_capsule_entry(o, d, cap_a[k], cap_b[k], cap_r[k])
+        t = ray_capsule_entry(o, d, cap_a[base + k], cap_b[base + k], cap_r[base + k])
         if t > 0.0 and t < best_t:
             best_t = t
-            best = k
+            best = base + k
     return best_t, best
 
 
 @wp.func
 def occluded(mesh: wp.uint64, has_mesh: int, bvh: wp.uint64, has_caps: int, cap_a: wp.array(dtype=wp.vec3),
-             cap_b: wp.array(dtype=wp.vec3), cap_r: wp.array(dtype=float), o: wp.vec3, d: wp.vec3):
+             cap_b: wp.array(dtype=wp.vec3), cap_r: wp.array(dtype=float), cap_base: int, o: wp.vec3, d: wp.vec3):
     """1.0 when the ray from o along d hits opaque geometry, else 0.0."""
     if has_mesh != 0:
         q = wp.mesh_query_ray(mesh, o, d, 1.0e6)
         if q.result:
             return 1.0
     if has_caps != 0:
-        _t, k = closest_capsule(bvh, cap_a, cap_b, cap_r, o, d, 1.0e6)
+        _t, k = closest_capsule(bvh, cap_a, cap_b, cap_r, cap_base, o, d, 1.0e6)
         if k >= 0:
             return 1.0
     return 0.0
@@ -169,30 +170,35 @@ def lambert(color: wp.vec3, n: wp.vec3, light: Lighting, shadow: float):
     return color * (light.ambient + (1.0 - light.ambient) * diffuse)
 
 
-@wp.kernel
-def render_pixels(
+@wp.func
+def shade_pixel(
     cam: Camera,
     light: Lighting,
     width: int,
     height: int,
+    tid: int,
     mesh: wp.uint64,
     has_mesh: int,
     face_color: wp.array(dtype=wp.vec3),
     corner_normal: wp.array(dtype=wp.vec3),
+    face_base: int,
     glass: wp.uint64,
     has_glass: int,
     glass_color: wp.array(dtype=wp.vec3),
     glass_alpha: wp.array(dtype=float),
+    glass_base: int,
     bvh: wp.uint64,
     has_caps: int,
     cap_a: wp.array(dtype=wp.vec3),
     cap_b: wp.array(dtype=wp.vec3),
     cap_r: wp.array(dtype=float),
     cap_color: wp.array(dtype=wp.vec3),
+    cap_base: int,
     vol: Volume,
-    image_out: wp.array(dtype=wp.vec3),
 ):
-    tid = wp.tid()
+    """Linear RGB of pixel ``tid`` (row-major) of one picture: its mesh's faces are the entries
+    ``face_base + f`` of ``face_color`` (corners ``3 (face_base + f) + c`` of ``corner_normal``), its
+    glass faces ``glass_base + f``, its capsules ``cap_base + k`` (0, 0, 0 for a picture of its own)."""
     i = tid / width
     j = tid - i * width
     sx = (2.0 * (float(j) + 0.5) / float(width) - 1.0) * cam.tan_x
@@ -210,7 +216,7 @@ def render_pixels(
         if q.result:
             t_best = q.t
             kind = 1
-            f = q.face
+            f = face_base + q.face
             w2 = 1.0 - q.u - q.v
             n = wp.normalize(q.u * corner_normal[3 * f] + q.v * corner_normal[3 * f + 1]
                              + w2 * corner_normal[3 * f + 2])
@@ -218,12 +224,13 @@ def render_pixels(
                 n = q.normal
             color = face_color[f]
     if has_caps != 0:
-        t, k = closest_capsule(bvh, cap_a, cap_b, cap_r, o, d, t_best)
+        t, k = closest_capsule(bvh, cap_a, cap_b, cap_r, cap_base, o, d, t_best)
         if k >= 0:
             t_best = t
             kind = 2
             n = capsule_normal(o + t * d, cap_a[k], cap_b[k])
             color = cap_color[k]
+
     if light.ground != 0 and d[1] < -1.0e-9 and o[1] > light.ground_y:
         t = (light.ground_y - o[1]) / d[1]
         if t < t_best:
@@ -244,7 +251,7 @@ def render_pixels(
         p = o + t_best * d
         scale = wp.max(1.0, wp.length(p))
         start = p + n * (HIT_EPS * scale)
-        shadow = occluded(mesh, has_mesh, bvh, has_caps, cap_a, cap_b, cap_r, start, light.light)
+        shadow = occluded(mesh, has_mesh, bvh, has_caps, cap_a, cap_b, cap_r, cap_base, start, light.light)
         shaded = lambert(color, n, light, shadow)
         if kind == 3:
             fog = 1.0 - wp.exp(-t_best / light.fade)
@@ -288,9 +295,76 @@ def render_pixels(
             gn = q.normal
             if wp.dot(gn, d) > 0.0:
                 gn = -gn
-            a = glass_alpha[f]
-            glass_acc += glass_t * a * lambert(glass_color[f], gn, light, 0.0)
+            a = glass_alpha[glass_base + f]
+            glass_acc += glass_t * a * lambert(glass_color[glass_base + f], gn, light, 0.0)
             glass_t *= 1.0 - a
             t_from = t_from + q.t + HIT_EPS * wp.max(1.0, t_from + q.t)
 
-    image_out[tid] = glass_acc + glass_t * (acc + transmit * shaded)
+    return glass_acc + glass_t * (acc + transmit * shaded)
+
+
+@wp.kernel
+def render_pixels(
+    cam: Camera,
+    light: Lighting,
+    width: int,
+    height: int,
+    mesh: wp.uint64,
+    has_mesh: int,
+    face_color: wp.array(dtype=wp.vec3),
+    corner_normal: wp.array(dtype=wp.vec3),
+    glass: wp.uint64,
+    has_glass: int,
+    glass_color: wp.array(dtype=wp.vec3),
+    glass_alpha: wp.array(dtype=float),
+    bvh: wp.uint64,
+    has_caps: int,
+    cap_a: wp.array(dtype=wp.vec3),
+    cap_b: wp.array(dtype=wp.vec3),
+    cap_r: wp.array(dtype=float),
+    cap_color: wp.array(dtype=wp.vec3),
+    vol: Volume,
+    image_out: wp.array(dtype=wp.vec3),
+):
+    """One picture, a thread a pixel: ``image_out`` (height * width,) linear RGB."""
+    tid = wp.tid()
+    image_out[tid] = shade_pixel(cam, light, width, height, tid, mesh, has_mesh, face_color, corner_normal, 0, glass,
+                                 has_glass, glass_color, glass_alpha, 0, bvh, has_caps, cap_a, cap_b, cap_r, cap_color,
+                                 0, vol)
+
+
+@wp.kernel
+def render_pictures(
+    cam: Camera,
+    lights: wp.array(dtype=Lighting),
+    width: int,
+    height: int,
+    meshes: wp.array(dtype=wp.uint64),
+    face_base: wp.array(dtype=int),
+    face_color: wp.array(dtype=wp.vec3),
+    corner_normal: wp.array(dtype=wp.vec3),
+    glasses: wp.array(dtype=wp.uint64),
+    glass_base: wp.array(dtype=int),
+    glass_color: wp.array(dtype=wp.vec3),
+    glass_alpha: wp.array(dtype=float),
+    bvhs: wp.array(dtype=wp.uint64),
+    cap_base: wp.array(dtype=int),
+    cap_a: wp.array(dtype=wp.vec3),
+    cap_b: wp.array(dtype=wp.vec3),
+    cap_r: wp.array(dtype=float),
+    cap_color: wp.array(dtype=wp.vec3),
+    vol: Volume,
+    image_out: wp.array(dtype=wp.vec3),
+):
+    """Pictures of one camera, launched over (pictures, height * width): picture ``w`` draws its
+    own mesh, glass and capsules (id 0: none; its entries from ``face_base[w]``, ``glass_base[w]``,
+    ``cap_base[w]`` of the joined arrays) lit by ``lights[w]`` into ``image_out[w * height * width ..]``;
+    no volume (``vol.active`` 0)."""
+    w, tid = wp.tid()
+    mesh = meshes[w]
+    glass = glasses[w]
+    bvh = bvhs[w]
+    image_out[w * width * height + tid] = shade_pixel(
+        cam, lights[w], width, height, tid, mesh, wp.where(mesh != wp.uint64(0), 1, 0), face_color, corner_normal,
+        face_base[w], glass, wp.where(glass != wp.uint64(0), 1, 0), glass_color, glass_alpha, glass_base[w], bvh,
+        wp.where(bvh != wp.uint64(0), 1, 0), cap_a, cap_b, cap_r, cap_color, cap_base[w], vol)

@@ -42,12 +42,25 @@ def test_extras_match_pyproject():
         assert f"\n{extra} = [" in text, f"extra {extra!r} is not in pyproject.toml"
 
 
-@pytest.mark.parametrize("suffix, blocked", [(".png", "PIL"), (".gif", "PIL"), (".mp4", "imageio_ffmpeg")])
+@pytest.mark.parametrize("suffix, blocked", [(".gif", "PIL"), (".mp4", "imageio_ffmpeg")])
 def test_render_without_its_extra(monkeypatch, tmp_path, suffix, blocked):
     block(monkeypatch, blocked)
     code, _, err = run_cli(["render", str(tmp_path / "missing.usda"), "--out", str(tmp_path / f"x{suffix}")])
     assert_one_line(code, err, "render")  # the extra is named before the (missing) cache is even looked at
     assert ("pillow" if blocked == "PIL" else "imageio-ffmpeg") in err
+
+
+def test_png_needs_no_extra(monkeypatch, tmp_path):
+    """A .png is written by warpsim.render.png (zlib only): Pillow blocked, the picture is written."""
+    cache, png = tmp_path / "b.usda", tmp_path / "b.png"
+    assert run_cli(["run", "bounce", "--frames", "2", "--out", str(cache), "--no-progress"])[0] == 0
+    block(monkeypatch, "PIL")
+    code, _, err = run_cli(["render", str(cache), "--out", str(png), "--size", "32x24"])
+    assert code == 0, err
+    monkeypatch.undo()
+    from PIL import Image
+
+    assert Image.open(png).size == (32, 24)
 
 
 def test_run_preview_without_render_extra_stops_before_simulating(monkeypatch, tmp_path):

@@ -315,3 +315,58 @@ def test_smoke_cache_carries_its_density(tmp_path):
     assert vol["density"].sum() == pytest.approx(rho[rho > scene.params["threshold"]].sum(), rel=1e-5)
     centre = np.asarray(vol["origin"]) + 0.5 * dx  # the rebuilt grid's first cell is the solver's cell lo
     np.testing.assert_allclose(centre, scene.grid.positions("center")[tuple(lo)], atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (96, 128), (7, 13)])
+def test_png_encoder_round_trips_through_a_png_reader(shape):
+    """warpsim.render.png writes a PNG that Pillow (an independent reader) decodes to the same
+    pixels and size, CRCs checked; anything but (H, W, 3) uint8 is refused by name."""
+    import io
+
+    from PIL import Image
+
+    from warpsim.render.png import encode_png
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
+    rgb[: shape[0] // 2] = (200, 210, 230)  # a flat sky above noise, as a picture has
+    data = encode_png(rgb)
+    with Image.open(io.BytesIO(data)) as img:
+        img.load()
+        assert img.mode == "RGB" and img.size == (shape[1], shape[0])
+        assert np.array_equal(np.asarray(img), rgb)
+    for bad in (rgb.astype(np.float32), rgb[..., :2], rgb[0], np.zeros((0, 4, 3), np.uint8)):
+        with pytest.raises(ValueError, match="uint8 array"):
+            encode_png(bad)
+
+
+def test_render_many_draws_each_picture_as_render_does():
+    """Renderer.render_many (one launch over several pictures, a sweep's thumbnails) gives each
+    picture the bits Renderer.render gives it alone: pictures with different counts of opaque
+    faces, glass faces and capsules (each picture's entries offset in the joined arrays), with and
+    without a ground, an empty one; again in another order on the same renderer (its per-picture
+    meshes and BVHs refitted to other geometry)."""
+    from warpsim.render.geometry import cube_mesh
+
+    def picture(k):
+        g = GeometryBuilder()
+        pts, counts, idx = cube_mesh(0.3 + 0.1 * k)
+        if k % 3 != 1:
+            g.add_mesh(pts + [0.2 * k, 0.15, 0.0], counts, idx, (0.9, 0.2 + 0.1 * k, 0.1))
+        if k % 2 == 0:
+            g.add_mesh(2.0 * pts + [0.0, 0.3, -0.6], counts, idx, (0.3, 0.5, 0.9), opacity=0.3)
+        centres = np.array([[0.1 * i - 0.3, 0.5, 0.2] for i in range(k + 1)])
+        g.add_capsules(centres, centres + [0.05, 0.1 * k, 0.0], 0.04, (0.2, 0.8, 0.3))
+        return g.build()
+
+    cam = Camera((0.4, 1.2, 2.5), (0.0, 0.3, 0.0), fov=45.0)
+    items = [(picture(k), [None, 0.0, False][k % 3]) for k in range(5)] + [(GeometryBuilder().build(), None)]
+    alone = [Renderer(64, 48, device="cpu").render(g, cam, ground_y=ground) for g, ground in items]
+    many = Renderer(64, 48, device="cpu")
+    for order in (list(range(len(items))), list(range(len(items)))[::-1]):
+        pictures = many.render_many([items[k] for k in order], cam)
+        for k, pic in zip(order, pictures):
+            assert pic.dtype == np.uint8 and pic.shape == (48, 64, 3)
+            assert np.array_equal(pic, alone[k]), k
+    assert len({a.tobytes() for a in alone}) == len(alone)  # (the pictures differ: offsets matter)
+    assert many.render_many([], cam) == []

@@ -45,10 +45,10 @@ def missing_modules(modules) -> list:
 
 
 def render_modules(path) -> tuple:
-    """Modules the preview renderer needs to write ``path``: Pillow for .png and .gif, imageio with
-    its ffmpeg plugin for .mp4."""
+    """Modules the preview renderer needs to write ``path``: none for .png (``warpsim.render.png``),
+    Pillow for .gif, imageio with its ffmpeg plugin for .mp4."""
     ext = os.path.splitext(str(path))[1].lower()
-    return ("imageio", "imageio_ffmpeg") if ext == ".mp4" else ("PIL",)
+    return {".mp4": ("imageio", "imageio_ffmpeg"), ".png": ()}.get(ext, ("PIL",))
 
 
 def require_extra(extra: str, what: str, modules=None) -> None:

@@ -2,9 +2,10 @@
 
 For a sweep of many worlds, worker processes (:mod:`warpsim.process_pool`) draw slices of the
 worlds side by side: each reads its worlds' geometry from the batch layer (opened once per
-worker), renders them on the sweep's device (its own renderer: one CUDA context a worker on a
-GPU) and encodes the PNGs. Few worlds are drawn here (a worker starts in about a second). The
-pictures are the same either way: the same geometry, camera and renderer.
+worker), renders them on the sweep's device in one launch a slice (its own renderer: one CUDA
+context a worker on a GPU) and encodes the PNGs (:mod:`warpsim.render.png`). Few worlds are
+drawn here (a worker starts in about a second). The pictures are the same either way: the same
+geometry, camera and renderer.
 
 A sweep starts those workers early (:func:`start_workers`, once its frames are stepped): they
 import the renderer, start Warp and build their renderer while the sweep completes its layer,
@@ -51,13 +52,14 @@ def world_geometry(layer, names, frame="last"):
 
 
 def save_pngs(items) -> int:
-    """Write each ``(path, image (H, W, 3) uint8)`` as a PNG (a temporary, then renamed: never
-    through a planted link); returns how many."""
-    from PIL import Image
+    """Write each ``(path, image (H, W, 3) uint8)`` as a PNG (:func:`warpsim.render.png.encode_png`;
+    a temporary, then renamed: never through a planted link); returns how many."""
+    from ..render.png import encode_png
 
     for path, image in items:
+        data = encode_png(image)
         with open_temporary(path + ".tmp.png", "wb") as f:
-            Image.fromarray(image).save(f, format="PNG")
+            f.write(data)
         os.replace(path + ".tmp.png", path)
     return len(items)
 
@@ -176,10 +178,12 @@ def _renderer(size, device):
 
 
 def _render(folder, geometries, camera, renderer, progress):
+    """``[(path, picture)]`` of a slice's worlds, drawn in one launch (:meth:`Renderer.render_many`)."""
+    geometries = list(geometries)
+    pictures = renderer.render_many([(geom, ground) for _, geom, ground in geometries], camera)
     items = []
-    for name, geom, ground in geometries:
-        items.append((os.path.join(folder, name + ".png"), renderer.render(geom, camera, ground_y=ground)))
+    for (name, _, _), picture in zip(geometries, pictures):
+        items.append((os.path.join(folder, name + ".png"), picture))
         if progress is not None:
             progress()
     return items
-

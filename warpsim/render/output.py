@@ -48,9 +48,10 @@ class _Png:
     def add(self, rgb):
         if self.count:
             raise ValueError(f"{self.path}: a .png holds one frame; write a .gif or .mp4 for an animation")
-        from PIL import Image
+        from .png import encode_png
 
-        write_replacing(self.path, lambda f: Image.fromarray(rgb).save(f, format="PNG"), what=f"--out {self.path!r}")
+        data = encode_png(rgb)
+        write_replacing(self.path, lambda f: f.write(data), what=f"--out {self.path!r}")
         self.count += 1
 
     def close(self):

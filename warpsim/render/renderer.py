@@ -86,38 +86,36 @@ class Renderer:
         self._meshes[name] = (np.array(triangles, copy=True), mesh)
         return 1, mesh.id
 
-    def render(self, geom, camera, ground_y=None, linear=False):
-        """(height, width, 3) uint8 sRGB image of ``geom`` seen by ``camera`` (float linear RGB
-        with ``linear=True``). ``ground_y``: height of the ground plane [m] (None: the bottom of
-        the geometry's bounds; ``False``: no ground; an empty frame has none)."""
-        dev = self.device
-        vec3 = wp.vec3
-        has_mesh, mesh_id = self._mesh(geom.points, geom.triangles, "opaque")  # (kept by the renderer)
-        has_glass, glass_id = self._mesh(geom.glass_points, geom.glass_triangles, "glass")
-        has_caps = len(geom.cap_r) > 0
-        bvh_id = 0
-        cap_a = self._array(geom.cap_a, vec3, "cap_a")
-        cap_b = self._array(geom.cap_b, vec3, "cap_b")
-        cap_r = self._array(geom.cap_r, float, "cap_r")
-        if has_caps:
-            r = geom.cap_r[:, None]
-            lowers = np.minimum(geom.cap_a, geom.cap_b) - r
-            uppers = np.maximum(geom.cap_a, geom.cap_b) + r
-            bvh = self._meshes.get("caps")
-            if bvh is not None and bvh.lowers.shape[0] == len(lowers):  # the same count: refitted, not rebuilt
-                bvh.lowers.assign(np.ascontiguousarray(lowers, np.float32))
-                bvh.uppers.assign(np.ascontiguousarray(uppers, np.float32))
-                bvh.refit()
-            else:
-                bvh = self._meshes["caps"] = wp.Bvh(self._array(lowers, vec3), self._array(uppers, vec3))
-            bvh_id = bvh.id
+    def _caps(self, geom, name):
+        """(0/1, id) of a ``wp.Bvh`` over ``geom``'s capsules (id 0 when there are none), refitted
+        when the last picture's BVH of ``name`` had as many."""
+        if not len(geom.cap_r):
+            return 0, 0
+        r = geom.cap_r[:, None]
+        lowers = np.minimum(geom.cap_a, geom.cap_b) - r
+        uppers = np.maximum(geom.cap_a, geom.cap_b) + r
+        bvh = self._meshes.get(name)
+        if bvh is not None and bvh.lowers.shape[0] == len(lowers):  # the same count: refitted, not rebuilt
+            bvh.lowers.assign(np.ascontiguousarray(lowers, np.float32))
+            bvh.uppers.assign(np.ascontiguousarray(uppers, np.float32))
+            bvh.refit()
+        else:
+            bvh = self._meshes[name] = wp.Bvh(self._array(lowers, wp.vec3), self._array(uppers, wp.vec3))
+        return 1, bvh.id
 
+    def _camera(self, camera):
+        vec3 = wp.vec3
         f, r_, u = camera.basis()
         tx, ty = camera.tangents(self.width, self.height)
         cam = K.Camera()
         cam.eye, cam.forward, cam.right, cam.up = vec3(*camera.eye), vec3(*f), vec3(*r_), vec3(*u)
         cam.tan_x, cam.tan_y = float(tx), float(ty)
+        return cam
 
+    def _lighting(self, geom, camera, ground_y):
+        """The :class:`Lighting` of one picture: light, sky, and the ground (at ``ground_y``, see
+        :meth:`render`) with its checker and fade sized by ``geom``'s bounds."""
+        vec3 = wp.vec3
         bounds = geom.bounds()
         lit = K.Lighting()
         lit.light = vec3(*self.light)
@@ -130,21 +128,40 @@ class Renderer:
         extent = 1.0 if bounds is None else float(np.max(bounds[1] - bounds[0]))
         lit.checker = nice_step(extent)
         lit.fade = 3.0 * extent + float(np.linalg.norm(camera.eye - camera.target))
+        return lit
 
+    def _no_volume(self):
         vol = K.Volume()
+        vol.density = self._dummy_density
+        vol.origin, vol.dx, vol.color, vol.active = wp.vec3(0.0, 0.0, 0.0), 1.0, wp.vec3(0.0, 0.0, 0.0), 0
+        vol.extinction = self.smoke_extinction
+        return vol
+
+    def render(self, geom, camera, ground_y=None, linear=False):
+        """(height, width, 3) uint8 sRGB image of ``geom`` seen by ``camera`` (float linear RGB
+        with ``linear=True``). ``ground_y``: height of the ground plane [m] (None: the bottom of
+        the geometry's bounds; ``False``: no ground; an empty frame has none)."""
+        dev = self.device
+        vec3 = wp.vec3
+        has_mesh, mesh_id = self._mesh(geom.points, geom.triangles, "opaque")  # (kept by the renderer)
+        has_glass, glass_id = self._mesh(geom.glass_points, geom.glass_triangles, "glass")
+        has_caps, bvh_id = self._caps(geom, "caps")
+        cap_a = self._array(geom.cap_a, vec3, "cap_a")
+        cap_b = self._array(geom.cap_b, vec3, "cap_b")
+        cap_r = self._array(geom.cap_r, float, "cap_r")
         if geom.volume is not None and geom.volume["density"].size:
             v = geom.volume
+            vol = K.Volume()
             vol.density = wp.array(v["density"], dtype=float, device=dev)
             vol.origin, vol.dx = vec3(*v["origin"]), float(v["dx"])
             vol.color = vec3(*v["color"])
             vol.active = 1
+            vol.extinction = self.smoke_extinction
         else:
-            vol.density = self._dummy_density
-            vol.origin, vol.dx, vol.color, vol.active = vec3(0.0, 0.0, 0.0), 1.0, vec3(0.0, 0.0, 0.0), 0
-        vol.extinction = self.smoke_extinction
+            vol = self._no_volume()
 
         wp.launch(K.render_pixels, dim=self.width * self.height, device=dev, inputs=[
-            cam, lit, self.width, self.height,
+            self._camera(camera), self._lighting(geom, camera, ground_y), self.width, self.height,
             mesh_id, int(has_mesh), self._array(geom.face_colors, vec3, "face_colors"),
             self._array(geom.corner_normals, vec3, "corner_normals"), glass_id, int(has_glass),
             self._array(geom.glass_colors, vec3, "glass_colors"), self._array(geom.glass_alpha, float, "glass_alpha"),
@@ -154,6 +171,53 @@ class Renderer:
         if linear:
             return img
         return to_srgb8(img)
+
+    def render_many(self, items, camera):
+        """[(height, width, 3) uint8 sRGB image] of each ``(geom, ground_y)`` of ``items`` seen by
+        ``camera``, as :meth:`render` draws it, in one launch for all of them (a sweep's thumbnails:
+        one picture is too few pixels to fill a GPU). Picture ``k`` keeps its own mesh, glass and
+        capsule BVH (refitted for the next call's picture ``k`` when its triangles or count are the
+        same). A geometry with a density volume is drawn by :meth:`render`."""
+        items = list(items)
+        if any(g.volume is not None and g.volume["density"].size for g, _ in items):
+            return [self.render(g, camera, ground_y=ground) for g, ground in items]
+        if not items:
+            return []
+        vec3 = wp.vec3
+        meshes = np.zeros(len(items), np.uint64)
+        glasses, bvhs = meshes.copy(), meshes.copy()
+        lights = []
+        for k, (g, ground) in enumerate(items):
+            meshes[k] = self._mesh(g.points, g.triangles, ("opaque", k))[1]
+            glasses[k] = self._mesh(g.glass_points, g.glass_triangles, ("glass", k))[1]
+            bvhs[k] = self._caps(g, ("caps", k))[1]
+            lights.append(self._lighting(g, camera, ground))
+
+        def joined(field, dtype, name):
+            parts = [getattr(g, field) for g, _ in items]
+            return self._array(np.concatenate(parts) if len(parts) > 1 else parts[0], dtype, name)
+
+        def bases(field):
+            return self._array(np.cumsum([0] + [len(getattr(g, field)) for g, _ in items[:-1]]).astype(np.int32),
+                               wp.int32, field + "_base")
+
+        pixels = self.width * self.height
+        image = self._buffers.get("pictures")
+        if image is None or image.shape[0] != len(items) * pixels:
+            image = self._buffers["pictures"] = wp.empty(len(items) * pixels, dtype=vec3, device=self.device)
+        lit = wp.array(lights, dtype=K.Lighting, device=self.device)
+        wp.launch(K.render_pictures, dim=(len(items), pixels), device=self.device, inputs=[
+            self._camera(camera), lit, self.width, self.height,
+            self._array(meshes, wp.uint64, "meshes"), bases("triangles"), joined("face_colors", vec3, "face_colors"),
+            joined("corner_normals", vec3, "corner_normals"),
+            self._array(glasses, wp.uint64, "glasses"), bases("glass_triangles"),
+            joined("glass_colors", vec3, "glass_colors"), joined("glass_alpha", float, "glass_alpha"),
+            self._array(bvhs, wp.uint64, "bvhs"), bases("cap_r"), joined("cap_a", vec3, "cap_a"),
+            joined("cap_b", vec3, "cap_b"), joined("cap_r", float, "cap_r"), joined("cap_colors", vec3, "cap_colors"),
+            self._no_volume(),
+        ], outputs=[image])
+        rgb = to_srgb8(image.numpy().reshape(len(items), self.height, self.width, 3))
+        return list(rgb)
 
 
 def to_srgb8(linear):
