@@ -113,20 +113,74 @@ def _install(timers):
     timers.wrap(OccupancyRecord, "save", "record")
 
 
-def run_command(argv):
-    """(seconds, stage seconds, stdout) of ``warpsim`` ``argv`` run in this process."""
+class StackSampler:
+    """Samples the main thread's Python stack every ``interval`` s in a thread (wall time, waits
+    included: a frame blocked in a lock or a sleep is counted where it waits) and prints, for the
+    functions of the ``warpsim`` package, the wall time they were on the stack (inclusive) and at
+    its top among warpsim's frames (self), the ``top`` largest of each."""
+
+    def __init__(self, interval=0.005):
+        import threading
+
+        self.interval, self.samples, self._stop = interval, [], threading.Event()
+        self._main = threading.main_thread().ident
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.wait(self.interval):
+            frame = sys._current_frames().get(self._main)
+            stack = []
+            while frame is not None:
+                code = frame.f_code
+                if "warpsim" in code.co_filename and "benchmarks" not in code.co_filename:
+                    rel = code.co_filename.split("warpsim", 1)[1].lstrip("/")
+                    stack.append(f"{rel}:{code.co_name}")
+                frame = frame.f_back
+            self.samples.append(stack)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+    def report(self, top=30, file=None):
+        from collections import Counter
+
+        inclusive, own = Counter(), Counter()
+        for stack in self.samples:
+            for name in set(stack):
+                inclusive[name] += 1
+            if stack:
+                own[stack[0]] += 1
+        dt = self.interval
+        print(f"stack samples: {len(self.samples)} every {1e3 * dt:.0f} ms", file=file)
+        for title, counts in (("inclusive", inclusive), ("self (innermost warpsim frame)", own)):
+            print(f"  {title}:", file=file)
+            for name, c in counts.most_common(top):
+                print(f"    {c * dt:7.2f} s  {name}", file=file)
+
+
+def run_command(argv, stacks=False):
+    """(seconds, stage seconds, stdout) of ``warpsim`` ``argv`` run in this process; ``stacks``:
+    print where the main thread's wall time went (:class:`StackSampler`)."""
     from warpsim.cli import main
 
     timers = Timers()
     _install(timers)
     out, err = io.StringIO(), io.StringIO()
+    sampler = StackSampler() if stacks else contextlib.nullcontext()
     t0 = time.perf_counter()
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with sampler, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = main(argv)
     finally:
         total = time.perf_counter() - t0
         timers.restore()
+    if stacks:
+        sampler.report()
     if code not in (0, None):
         raise SystemExit(f"warpsim {' '.join(argv)} exited {code}: {err.getvalue().strip()[-400:]}")
     return total, timers.seconds, out.getvalue()
@@ -178,6 +232,7 @@ def main(argv=None):
     p.add_argument("--store", default=None, help="all, preview or none (default: the command's choice)")
     p.add_argument("--thumbnails", action="store_true", help="draw thumbnails (default: --no-thumbnails)")
     p.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurement")
+    p.add_argument("--stacks", action="store_true", help="where the main thread's wall time went, by warpsim function")
     p.add_argument("--workers", nargs="+", default=["auto"],
                    help="chunk-writing worker processes, each value a run of every world count (auto: the "
                         "sweep's choice; N: WARPSIM_WRITE_WORKERS=N), e.g. --workers 0 auto")
@@ -213,7 +268,7 @@ def main(argv=None):
                 argv += ["--store", args.store]
             if not args.thumbnails:
                 argv += ["--no-thumbnails"]
-            total, stages, _ = run_command(argv)
+            total, stages, _ = run_command(argv, stacks=args.stacks)
             from warpsim.sweeps import sample_worlds
 
             alone = step_alone(args.scene, sample_worlds(args.scene, {}, args.vary, n, args.sample or "grid",
