@@ -71,9 +71,10 @@ def copy_specs(text, layer):
             raise ValueError(f"could not copy the spec {prim.path}")
 
 
-def author_chunk(job) -> int:
-    """Write ``job`` (:func:`chunk_job`) into its temporary crate file; returns the bytes of
-    samples authored."""
+def author_chunk(job) -> tuple:
+    """Write ``job`` (:func:`chunk_job`) into its temporary crate file; returns the file's (size
+    in bytes, CRC-32) (:func:`warpsim.usd.chunk_index.file_digest`, read here so that the writer's
+    process does not read every chunk back to index it)."""
     from pxr import Sdf
 
     from ..process_pool import attach
@@ -95,7 +96,7 @@ def author_chunk(job) -> int:
                 values.append(view)
             else:
                 values.append(data)
-        total = _author_samples(layer, job, values)
+        _author_samples(layer, job, values)
         del values
         if not layer.Save():
             raise OSError(f"could not save {tmp}")
@@ -109,7 +110,9 @@ def author_chunk(job) -> int:
             os.fsync(fd)
         finally:
             os.close(fd)
-    return total
+    from .chunk_index import file_digest
+
+    return file_digest(tmp)
 
 
 def _author_samples(layer, job, values) -> int:

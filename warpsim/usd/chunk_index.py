@@ -93,10 +93,11 @@ class ChunkStats:
         return out
 
 
-def record(path, start, end, stats, run=None):
+def record(path, start, end, stats, run=None, digest=None):
     """The index line of the chunk file at ``path`` holding frames ``start..end``, written by the
-    run named ``run`` (the writer's run id, also in the root layer; None: not recorded)."""
-    size, crc = file_digest(path)
+    run named ``run`` (the writer's run id, also in the root layer; None: not recorded);
+    ``digest``: the file's (size, CRC-32) when its writer already read them (None: read here)."""
+    size, crc = file_digest(path) if digest is None else digest
     rec = {
         "file": os.path.basename(path),
         "start": int(start),

@@ -82,7 +82,7 @@ class WorkerChunks:
 
         self._target = chunk.final_path
         try:
-            future.result()
+            chunk.digest = future.result()  # the file's (size, CRC-32), read by the worker
         except RemoteError as exc:  # the worker's error, as this process would have raised it
             code = exc.errno if exc.errno is not None else disk_full(exc)
             if code is not None or exc.kind in ("OSError", "FileNotFoundError", "PermissionError"):
@@ -102,7 +102,7 @@ class WorkerChunks:
         self._target = self._index_file
         for chunk in done:
             chunk_index.append_record(self._index_file, chunk_index.record(
-                chunk.final_path, chunk.start, chunk.end, chunk.stats, self.run_id), self.durable)
+                chunk.final_path, chunk.start, chunk.end, chunk.stats, self.run_id, chunk.digest), self.durable)
             self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
         t0 = time.monotonic()
         try:

@@ -124,6 +124,7 @@ class _Chunk:
         self.last = {}  # attribute path -> last value written (on-change attributes)
         self.stats = chunk_index.ChunkStats()  # counts and bounds for the chunk index
         self.stage = None  # warpsim.usd.chunk_stage.ChunkStage when a worker writes the chunk
+        self.digest = None  # (size, CRC-32) of the file, as that worker read it
 
 
 def declare_prim(layer, path, decl, manifest=False) -> None:
