@@ -18,7 +18,8 @@ surface (opaque triangles and round primitives cast shadows). The camera is a pi
 + (1 - 2 (i + 0.5) / height) * tan_y * up``.
 
 Conventions: colours are linear RGB in [0, 1]; the output is an array of ``vec3`` of shape
-(height * width,) in row-major order.
+(pictures * height * width,), each picture in row-major order (``render_pictures``: one launch
+draws many pictures of one camera, a sweep's thumbnails; a lone picture is one of them).
 """
 
 import warp as wp
@@ -304,36 +305,6 @@ def shade_pixel(
 
 
 @wp.kernel
-def render_pixels(
-    cam: Camera,
-    light: Lighting,
-    width: int,
-    height: int,
-    mesh: wp.uint64,
-    has_mesh: int,
-    face_color: wp.array(dtype=wp.vec3),
-    corner_normal: wp.array(dtype=wp.vec3),
-    glass: wp.uint64,
-    has_glass: int,
-    glass_color: wp.array(dtype=wp.vec3),
-    glass_alpha: wp.array(dtype=float),
-    bvh: wp.uint64,
-    has_caps: int,
-    cap_a: wp.array(dtype=wp.vec3),
-    cap_b: wp.array(dtype=wp.vec3),
-    cap_r: wp.array(dtype=float),
-    cap_color: wp.array(dtype=wp.vec3),
-    vol: Volume,
-    image_out: wp.array(dtype=wp.vec3),
-):
-    """One picture, a thread a pixel: ``image_out`` (height * width,) linear RGB."""
-    tid = wp.tid()
-    image_out[tid] = shade_pixel(cam, light, width, height, tid, mesh, has_mesh, face_color, corner_normal, 0, glass,
-                                 has_glass, glass_color, glass_alpha, 0, bvh, has_caps, cap_a, cap_b, cap_r, cap_color,
-                                 0, vol)
-
-
-@wp.kernel
 def render_pictures(
     cam: Camera,
     lights: wp.array(dtype=Lighting),
@@ -358,8 +329,8 @@ def render_pictures(
 ):
     """Pictures of one camera, launched over (pictures, height * width): picture ``w`` draws its
     own mesh, glass and capsules (id 0: none; its entries from ``face_base[w]``, ``glass_base[w]``,
-    ``cap_base[w]`` of the joined arrays) lit by ``lights[w]`` into ``image_out[w * height * width ..]``;
-    no volume (``vol.active`` 0)."""
+    ``cap_base[w]`` of the joined arrays) lit by ``lights[w]`` into ``image_out[w * height * width ..]``
+    (row-major, linear RGB); the volume ``vol`` (if ``vol.active``) is in every picture."""
     w, tid = wp.tid()
     mesh = meshes[w]
     glass = glasses[w]

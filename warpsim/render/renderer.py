@@ -50,7 +50,6 @@ class Renderer:
         self.ambient = float(ambient)
         self.background = background
         self.smoke_extinction = float(smoke_extinction)
-        self._image = wp.empty(self.width * self.height, dtype=wp.vec3, device=self.device)
         self._dummy_density = wp.zeros((1, 1, 1), dtype=float, device=self.device)
         self.last_seconds = None
         self._buffers = {}  # name -> device array reused while the shape stays (pictures of one scene)
@@ -141,48 +140,33 @@ class Renderer:
         """(height, width, 3) uint8 sRGB image of ``geom`` seen by ``camera`` (float linear RGB
         with ``linear=True``). ``ground_y``: height of the ground plane [m] (None: the bottom of
         the geometry's bounds; ``False``: no ground; an empty frame has none)."""
-        dev = self.device
-        vec3 = wp.vec3
-        has_mesh, mesh_id = self._mesh(geom.points, geom.triangles, "opaque")  # (kept by the renderer)
-        has_glass, glass_id = self._mesh(geom.glass_points, geom.glass_triangles, "glass")
-        has_caps, bvh_id = self._caps(geom, "caps")
-        cap_a = self._array(geom.cap_a, vec3, "cap_a")
-        cap_b = self._array(geom.cap_b, vec3, "cap_b")
-        cap_r = self._array(geom.cap_r, float, "cap_r")
+        vol = self._no_volume()
         if geom.volume is not None and geom.volume["density"].size:
             v = geom.volume
-            vol = K.Volume()
-            vol.density = wp.array(v["density"], dtype=float, device=dev)
-            vol.origin, vol.dx = vec3(*v["origin"]), float(v["dx"])
-            vol.color = vec3(*v["color"])
+            vol.density = wp.array(v["density"], dtype=float, device=self.device)
+            vol.origin, vol.dx = wp.vec3(*v["origin"]), float(v["dx"])
+            vol.color = wp.vec3(*v["color"])
             vol.active = 1
-            vol.extinction = self.smoke_extinction
-        else:
-            vol = self._no_volume()
-
-        wp.launch(K.render_pixels, dim=self.width * self.height, device=dev, inputs=[
-            self._camera(camera), self._lighting(geom, camera, ground_y), self.width, self.height,
-            mesh_id, int(has_mesh), self._array(geom.face_colors, vec3, "face_colors"),
-            self._array(geom.corner_normals, vec3, "corner_normals"), glass_id, int(has_glass),
-            self._array(geom.glass_colors, vec3, "glass_colors"), self._array(geom.glass_alpha, float, "glass_alpha"),
-            bvh_id, int(has_caps), cap_a, cap_b, cap_r, self._array(geom.cap_colors, vec3, "cap_colors"), vol,
-        ], outputs=[self._image])
-        img = self._image.numpy().reshape(self.height, self.width, 3).copy()  # (a view on the CPU)
-        if linear:
-            return img
-        return to_srgb8(img)
+        img = self._draw([(geom, ground_y)], camera, vol)[0].copy()  # (a view on the CPU)
+        return img if linear else to_srgb8(img)
 
     def render_many(self, items, camera):
         """[(height, width, 3) uint8 sRGB image] of each ``(geom, ground_y)`` of ``items`` seen by
-        ``camera``, as :meth:`render` draws it, in one launch for all of them (a sweep's thumbnails:
-        one picture is too few pixels to fill a GPU). Picture ``k`` keeps its own mesh, glass and
-        capsule BVH (refitted for the next call's picture ``k`` when its triangles or count are the
-        same). A geometry with a density volume is drawn by :meth:`render`."""
+        ``camera``, as :meth:`render` draws it (the same kernel: the same bits), in one launch for
+        all of them (a sweep's thumbnails: one picture is too few pixels to fill a GPU). Picture
+        ``k`` keeps its own mesh, glass and capsule BVH (refitted for the next call's picture ``k``
+        when its triangles or count are the same). A geometry with a density volume is drawn by
+        :meth:`render`."""
         items = list(items)
         if any(g.volume is not None and g.volume["density"].size for g, _ in items):
             return [self.render(g, camera, ground_y=ground) for g, ground in items]
         if not items:
             return []
+        return list(to_srgb8(self._draw(items, camera, self._no_volume())))
+
+    def _draw(self, items, camera, vol):
+        """(pictures, height, width, 3) linear RGB of ``items`` (``(geom, ground_y)``) and the volume
+        ``vol`` (one launch of ``render_pictures``; the array is a view of the device's output on the CPU)."""
         vec3 = wp.vec3
         meshes = np.zeros(len(items), np.uint64)
         glasses, bvhs = meshes.copy(), meshes.copy()
@@ -193,9 +177,9 @@ class Renderer:
             bvhs[k] = self._caps(g, ("caps", k))[1]
             lights.append(self._lighting(g, camera, ground))
 
-        def joined(field, dtype, name):
+        def joined(field, dtype):
             parts = [getattr(g, field) for g, _ in items]
-            return self._array(np.concatenate(parts) if len(parts) > 1 else parts[0], dtype, name)
+            return self._array(np.concatenate(parts) if len(parts) > 1 else parts[0], dtype, field)
 
         def bases(field):
             return self._array(np.cumsum([0] + [len(getattr(g, field)) for g, _ in items[:-1]]).astype(np.int32),
@@ -205,19 +189,15 @@ class Renderer:
         image = self._buffers.get("pictures")
         if image is None or image.shape[0] != len(items) * pixels:
             image = self._buffers["pictures"] = wp.empty(len(items) * pixels, dtype=vec3, device=self.device)
-        lit = wp.array(lights, dtype=K.Lighting, device=self.device)
         wp.launch(K.render_pictures, dim=(len(items), pixels), device=self.device, inputs=[
-            self._camera(camera), lit, self.width, self.height,
-            self._array(meshes, wp.uint64, "meshes"), bases("triangles"), joined("face_colors", vec3, "face_colors"),
-            joined("corner_normals", vec3, "corner_normals"),
-            self._array(glasses, wp.uint64, "glasses"), bases("glass_triangles"),
-            joined("glass_colors", vec3, "glass_colors"), joined("glass_alpha", float, "glass_alpha"),
-            self._array(bvhs, wp.uint64, "bvhs"), bases("cap_r"), joined("cap_a", vec3, "cap_a"),
-            joined("cap_b", vec3, "cap_b"), joined("cap_r", float, "cap_r"), joined("cap_colors", vec3, "cap_colors"),
-            self._no_volume(),
+            self._camera(camera), wp.array(lights, dtype=K.Lighting, device=self.device), self.width, self.height,
+            self._array(meshes, wp.uint64, "meshes"), bases("triangles"), joined("face_colors", vec3),
+            joined("corner_normals", vec3), self._array(glasses, wp.uint64, "glasses"), bases("glass_triangles"),
+            joined("glass_colors", vec3), joined("glass_alpha", float), self._array(bvhs, wp.uint64, "bvhs"),
+            bases("cap_r"), joined("cap_a", vec3), joined("cap_b", vec3), joined("cap_r", float),
+            joined("cap_colors", vec3), vol,
         ], outputs=[image])
-        rgb = to_srgb8(image.numpy().reshape(len(items), self.height, self.width, 3))
-        return list(rgb)
+        return image.numpy().reshape(len(items), self.height, self.width, 3)
 
 
 def to_srgb8(linear):
