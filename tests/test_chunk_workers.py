@@ -123,6 +123,18 @@ def test_workers_die_with_their_parent(tmp_path):
     assert not alive, f"workers {alive} outlived their parent"
 
 
+def test_close_does_not_wait_for_a_worker_to_tear_down():
+    """close() returns once the jobs are done and the workers told to exit (a worker whose exit
+    takes 1.5 s, as a CUDA context's teardown can, does not hold the sweep up); join() reaps them."""
+    pool = ProcessPool(1)
+    assert pool.submit("atexit:register", time.sleep, 1.5).result(timeout=60) is time.sleep
+    t0 = time.monotonic()
+    pool.close()
+    assert time.monotonic() - t0 < 1.0
+    assert pool.join(timeout=60)
+    assert time.monotonic() - t0 >= 1.4 and all(proc.returncode == 0 for proc in pool._procs)
+
+
 def _state(pid):
     try:
         with open(f"/proc/{pid}/stat") as f:

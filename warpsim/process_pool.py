@@ -131,7 +131,9 @@ class ProcessPool:
         raise RemoteError(*value)
 
     def close(self, wait=True):
-        """Finish the jobs given (``wait``) or drop those not started, then end the workers."""
+        """Finish the jobs given (``wait``) or drop those not started, then end the workers: each
+        is told to exit (its input closed) and reaped by a background thread, so the caller does not
+        wait for interpreters (and a CUDA context) to tear down; :meth:`join` waits for that."""
         if self._closed:
             return
         self._closed = True
@@ -141,14 +143,26 @@ class ProcessPool:
                 proc.stdin.close()
             except OSError:
                 pass
+        self._reaper = threading.Thread(target=self._reap, args=(10 if wait else 1,), daemon=True,
+                                        name="warpsim-pool-reaper")
+        self._reaper.start()
+
+    def _reap(self, timeout):
         for proc in self._procs:
             try:
-                proc.wait(timeout=10 if wait else 1)
+                proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
             if proc.stdout is not None:
                 proc.stdout.close()
+
+    def join(self, timeout=None) -> bool:
+        """Wait until the closed pool's workers have exited; whether they have."""
+        reaper = getattr(self, "_reaper", None)
+        if reaper is not None:
+            reaper.join(timeout)
+        return reaper is not None and not reaper.is_alive()
 
     def __enter__(self):
         return self
