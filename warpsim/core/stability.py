@@ -53,6 +53,7 @@ Assumptions of the model estimate (``particle_limits``):
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -395,6 +396,8 @@ def _spring_ends(model, count=None):
 SPRING_BLOCK = 1 << 16
 """Springs per host block of the per-spring estimates of a batch's worlds: temporaries of a few MB
 that stay in the caches (arrays of every world's springs went through memory once an operation)."""
+HOST_THREADS = 8
+"""Threads at most that work on those blocks side by side."""
 
 
 class _HostSprings:
@@ -442,11 +445,27 @@ class _HostSprings:
             return self.ends0[s]
         return self.ends0[s % self.S0] + (s // self.S0) * self.P0
 
+    def _each_block(self, fn):
+        """``fn(block)`` for every block, in threads when there are several (NumPy lets go of the
+        GIL in its loops; each block writes its own slices: the same values in any order)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        threads = min(len(self.blocks), HOST_THREADS, cores)
+        if threads < 2:
+            for block in self.blocks:
+                fn(block)
+            return
+        with ThreadPoolExecutor(threads) as pool:
+            for _ in pool.map(fn, self.blocks):  # (raises the first block's error, if any)
+                pass
+
     def steps(self, method, k32, c32, broken, inv_mass, drag):
         """Each spring's own limit [s] (per spring on its own: omega_s^2 = k (1/m_i + 1/m_j),
         zeta_s = c (1/m_i + 1/m_j) / (2 omega_s)); ``k32``, ``c32``: host arrays as stored."""
         out = np.empty(len(k32))
-        for block in self.blocks:
+
+        def block_steps(block):
             span = self._span(block)
             k, c = k32[span].astype(np.float64), c32[span].astype(np.float64)
             w_sum = self._take(inv_mass, block, 0) + self._take(inv_mass, block, 1)
@@ -454,13 +473,16 @@ class _HostSprings:
             with np.errstate(divide="ignore", invalid="ignore"):
                 zeta_s = np.where(omega_s > 0, (c * w_sum + drag * w_sum / 2) / (2.0 * omega_s), 0.0)
             out[span] = stable_steps(method, omega_s, zeta_s)
+
+        self._each_block(block_steps)
         out[broken] = np.inf
         return out
 
     def find_strongest(self, q, vh, k32, broken):
         """Note each world's spring of most energy k (strain along it)^2 in the mode ``vh`` (n, 3)
         about the positions ``q`` (n, 3) [float64] (:meth:`strongest`)."""
-        for block in self.blocks:
+
+        def block_strongest(block):
             span = self._span(block)
             dirs = self._take(q, block, 1) - self._take(q, block, 0)
             lengths = dirs[:, 0] * dirs[:, 0]  # np.linalg.norm(dirs, axis=1): the squares summed in order
@@ -472,9 +494,11 @@ class _HostSprings:
             energy = np.where(broken[span], 0.0, k32[span].astype(np.float64) * strain * strain)
             if not self.tiled:  # (one block)
                 self.energy = energy
-                continue
+                return
             w0, w1 = block  # the first of equal energies, as np.argmax over the world's springs
             self.best[w0:w1] = energy.reshape(w1 - w0, self.S0).argmax(axis=1) + np.arange(w0, w1) * self.S0
+
+        self._each_block(block_strongest)
 
     def strongest(self, w) -> int:
         """World ``w``'s spring of most energy (after :meth:`find_strongest`)."""
