@@ -60,9 +60,8 @@ def test_automatic_chunks_hold_at_most_128_mib():
 
 def test_stability_by_world_blocks_is_all_springs_at_once_bit_for_bit(monkeypatch):
     """A batch's estimate by blocks of whole worlds (``tiled``, blocks of a few worlds here, worked on in
-    threads) gives every
-    limit of the estimate over all springs at once, bit for bit: the limiting spring, its values and
-    each world's per-spring and per-particle limits."""
+    threads) gives every limit of the estimate over all springs at once, bit for bit: the limiting
+    spring, its values and each world's per-spring and per-particle limits."""
     import warpsim.core.stability as stability
 
     batch = make_batch(get_scene("teapot"), sample_worlds("teapot", {}, ["stiffness=20:60"], 7), device="cpu")
