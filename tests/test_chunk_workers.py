@@ -147,6 +147,7 @@ def test_default_workers_leaves_a_core_to_the_stepping_process():
     cores = len(os.sched_getaffinity(0))
     assert default_workers() == max(0, min(8, cores - 1))
     assert default_workers(jobs=1) <= 1
+    assert default_workers(most=16) == max(0, min(16, cores - 1))
 
 
 def test_warpsim_run_with_a_writer_process_writes_the_same_bytes(tmp_path, monkeypatch):

@@ -34,14 +34,14 @@ __all__ = ["BlockPool", "ProcessPool", "RemoteError", "SharedBlock", "default_wo
 _HEADER = struct.Struct("<Q")
 
 
-def default_workers(jobs=None, reserve=1) -> int:
+def default_workers(jobs=None, reserve=1, most=8) -> int:
     """Worker processes worth starting: the cores this process may use less ``reserve`` (the
-    stepping process's own), at most 8 and at most ``jobs`` when given; 0 on a single core."""
+    stepping process's own), at most ``most`` and at most ``jobs`` when given; 0 on a single core."""
     try:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):  # pragma: no cover - not Linux
         cores = os.cpu_count() or 1
-    n = min(8, cores - int(reserve))
+    n = min(int(most), cores - int(reserve))
     if jobs is not None:
         n = min(n, int(jobs))
     return max(0, n)

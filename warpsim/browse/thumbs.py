@@ -22,6 +22,10 @@ __all__ = ["POOL_WORLDS", "draw_thumbnails", "save_pngs", "slice_pictures", "sta
 
 POOL_WORLDS = 200
 """Sweeps with at least this many worlds read and encode their pictures in worker processes."""
+MOST_WORKERS = 16
+"""Thumbnail workers at most (one a core but the sweep's own: they draw once the sweep's chunk
+writers, at most 8, are done; each a process with Warp and usd-core loaded, and a CUDA context on
+a GPU)."""
 SLICE_WORLDS = 32
 """Worlds a worker reads (or encodes) per job: small enough that rendering starts early."""
 
@@ -80,7 +84,7 @@ def thumbnail_workers(world_count, jobs=None) -> int:
 
     if world_count < POOL_WORLDS:
         return 0
-    workers = default_workers(jobs=-(-int(world_count) // SLICE_WORLDS) if jobs is None else jobs)
+    workers = default_workers(jobs=-(-int(world_count) // SLICE_WORLDS) if jobs is None else jobs, most=MOST_WORKERS)
     return workers if workers >= 2 else 0  # one worker beside this process gains nothing measurable
 
 
