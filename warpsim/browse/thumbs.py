@@ -22,10 +22,11 @@ __all__ = ["POOL_WORLDS", "draw_thumbnails", "save_pngs", "slice_pictures", "sta
 
 POOL_WORLDS = 200
 """Sweeps with at least this many worlds read and encode their pictures in worker processes."""
-MOST_WORKERS = 16
-"""Thumbnail workers at most (one a core but the sweep's own: they draw once the sweep's chunk
-writers, at most 8, are done; each a process with Warp and usd-core loaded, and a CUDA context on
-a GPU)."""
+MOST_WORKERS = 4
+"""Thumbnail workers at most. They start while the sweep steps and writes (:func:`start_workers`)
+and take cores from its chunk writers while they warm up; measured on an H200 with 16 host cores
+(2,000 teapots x 60 frames, ``bench_sweep_command.py``): 4 / 8 / 16 workers, whole sweep 7.87 /
+9.03 / 10.02 s, the pictures about the same (2.4-2.6 s: one GPU serves every worker's context)."""
 SLICE_WORLDS = 32
 """Worlds a worker reads (or encodes) per job: small enough that rendering starts early."""
 
