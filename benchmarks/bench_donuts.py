@@ -208,6 +208,8 @@ def main():
                         "colour solve (ws.VBD lanes; 1: a thread a particle): settle with the first, then time the "
                         "sweep and the step with each on the same heap (default: the integrator's, 32 on CUDA, 1 on "
                         "the CPU)")
+    parser.add_argument("--query-block-dims", default=None, metavar="B[,B...]", help="vbd: time the contact "
+                        "search with each CUDA block size of its pair queries")
     parser.add_argument("--cpu-blocks", action="store_true", help="wp.config.enable_cpu_blocks: CPU blocks of more "
                         "than one lane run as Warp's cooperative fibers (else as one lane)")
     parser.add_argument("--contact-stiffness", type=float, default=None, help="implicit_euler: contact penalty "

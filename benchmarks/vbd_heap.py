@@ -10,6 +10,7 @@ edges passing through another torus's triangles (the NumPy oracles of ``tests/te
 fast_mass_spring`` builds and settles the same heap with that integrator in the same process and prints
 the ratio of the step times. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and the
 step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle).
+``--query-block-dims 256,128,64`` times the contact search with each CUDA block size of its pair queries.
 
     python benchmarks/bench_donuts.py --integrator vbd --device cpu --count 12 --segments 24 --sides 12 \\
         --lattice-cells 8 --dt 0.0041666667 --settle 240 --steps 20
@@ -58,6 +59,20 @@ def compare_lanes(args, sim, h, device) -> None:
             _, graph = eager_and_graph(lambda: sim.step(h), period, max(1, args.steps // period), device)
             line += f", step as a CUDA graph {graph * 1e3:9.3f} ms"
         print(line)
+
+
+def compare_query_blocks(args, contact, q, device) -> None:
+    """One contact search with each CUDA block size of ``--query-block-dims`` for the pair queries (a launch
+    setting: the lists are the same bits, checked here)."""
+    reference = None
+    for block in [int(b) for b in args.query_block_dims.split(",")]:
+        contact.query_block_dim = block
+        contact._recorded_key = None  # (records the queries again with this block size)
+        search = time_per_call(lambda: contact.search(q), args.steps, device)
+        lists = [a.numpy().tobytes() for a in (contact._vt, contact._tv, contact._ee, contact._vt_min)]
+        same = "" if reference is None else f", lists {'the same' if lists == reference else 'DIFFER'}"
+        reference = reference or lists
+        print(f"query block {block:4d}: contact search {search * 1e3:9.3f} ms{same}")
 
 
 def settle(build, args, device, integrator):
@@ -135,6 +150,8 @@ def run_vbd(args, device, build) -> None:
               f"steps, one BVH rebuild period); frames of 1/60 s per wall second {1.0 / (graph * per_frame):.2f}")
     if getattr(args, "vbd_lanes", None):
         compare_lanes(args, sim, h, device)
+    if getattr(args, "query_block_dims", None):
+        compare_query_blocks(args, contact, q, device)
     if args.profile and device.is_cuda:
         kernel_table(lambda: sim.step(h), min(args.steps, 20), device)
     x = sim.state.positions.numpy()

@@ -21,6 +21,9 @@ from ..kernels import soft_contact as SK
 from ..kernels import vbd_contact as K
 from . import meshtools
 
+QUERY_BLOCK_DIM = 256
+"""Threads a CUDA block of ``query_pairs`` (Warp's default; ``bench_donuts.py --query-block-dims``)."""
+
 
 def _csr(rows: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(offsets (n + 1,), values sorted by row then value): the fixed-order rows of a CSR."""
@@ -108,6 +111,8 @@ class VBDContact:
                                             fix="e.g. 128")
         self.rebuild_every = checks.integer(rebuild_every, "VBDContact rebuild_every", lo=1, hi=1 << 30,
                                             fix="e.g. 20")
+        self.query_block_dim = QUERY_BLOCK_DIM
+        """Threads a CUDA block of the pair queries (a launch setting: the same lists whatever it is)."""
         rows = []
         for k, plane in enumerate(planes):
             try:
@@ -277,8 +282,8 @@ class VBDContact:
         """Record the search's launches for positions ``q`` (replayed: no argument packing)."""
         d, C, r, sc = self.device, self.capacity, self.query_radius, int(self.self_contact)
 
-        def record(kernel, dim, inputs):
-            return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True)
+        def record(kernel, dim, inputs, block_dim=256):
+            return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True, block_dim=block_dim)
 
         self._record_bounds(q)
         tri_bvh, point_bvh, edge_bvh, body_bvh = self._bvhs
@@ -296,7 +301,8 @@ class VBDContact:
                 self._overflow, self._searched])] + [
             record(K.query_pairs, count, [self._go, int(kind), int(mode), body_bvh.id, world_roots, self._groups[3],
                                           bvh.id, roots, self._surface, self._tri, self._edges, self._body, q, r, sc, C,
-                                          *out, self._overflow, int(mirror is not None), *(mirror or out)[:3]])
+                                          *out, self._overflow, int(mirror is not None), *(mirror or out)[:3]],
+                   self.query_block_dim)
             for kind, mode, count, bvh, roots, out, mirror in kinds] + [
             record(K.displacement_bounds, q.shape[0], [
                 self._go, self._body, self._groups[3], q, self._slot, self._vt_min, self._tri_offsets, self._tris,
