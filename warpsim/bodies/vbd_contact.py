@@ -24,7 +24,7 @@ from . import meshtools
 QUERY_BLOCK_DIM = 64
 """Threads a CUDA block of ``query_pairs`` (``bench_donuts.py --query-block-dims``; H200, the heap of 12 /
 100 tori after settling, one run: a search took 5.38 / 19.9 ms with Warp's default 256, 4.77 / 17.3 ms with
-128, 4.91 / 16.7 ms with 64, 5.10 / 16.5 ms with 32: the BVH walks' registers fit more small blocks an SM)."""
+128, 4.91 / 16.7 ms with 64, 5.10 / 16.5 ms with 32; the same lists)."""
 
 
 def _csr(rows: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
