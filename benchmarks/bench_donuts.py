@@ -210,6 +210,8 @@ def main():
                         "the CPU)")
     parser.add_argument("--query-block-dims", default=None, metavar="B[,B...]", help="vbd: time the contact "
                         "search with each CUDA block size of its pair queries")
+    parser.add_argument("--no-oracles", action="store_true", help="vbd: skip the NumPy checks of the final heap "
+                        "(deepest vertex, edges through; minutes at 100 tori)")
     parser.add_argument("--cpu-blocks", action="store_true", help="wp.config.enable_cpu_blocks: CPU blocks of more "
                         "than one lane run as Warp's cooperative fibers (else as one lane)")
     parser.add_argument("--contact-stiffness", type=float, default=None, help="implicit_euler: contact penalty "
