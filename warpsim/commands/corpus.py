@@ -69,9 +69,9 @@ strong gale."""
 SMALL: dict[str, dict[str, Any]] = {
     "cloth": {"resolution": 12},
     "drape": {"resolution": 12},
-    "teapot": {"resolution": "3"},
+    "teapot": {"resolution": "2"},
     "donuts": {"count": 2, "segments": 10, "sides": 6, "lattice_cells": 5},
-    "wall": {"bricks": "2,2"},
+    "wall": {"bricks": "2,2", "spacing": 0.1},
     "hair": {"strands": 12, "segments": 4},
     "crowd": {"people": 10},
     "flock": {"birds": 20, "geese": 4},
