@@ -339,3 +339,25 @@ def render_pictures(
         cam, lights[w], width, height, tid, mesh, wp.where(mesh != wp.uint64(0), 1, 0), face_color, corner_normal,
         face_base[w], glass, wp.where(glass != wp.uint64(0), 1, 0), glass_color, glass_alpha, glass_base[w], bvh,
         wp.where(bvh != wp.uint64(0), 1, 0), cap_a, cap_b, cap_r, cap_color, cap_base[w], vol)
+
+
+@wp.func
+def srgb8(c: float) -> wp.uint8:
+    """The 8-bit sRGB code of a linear value (clamped to [0, 1]; IEC 61966-2-1's curve, rounded)."""
+    x = wp.clamp(c, 0.0, 1.0)
+    s = float(0.0)
+    if x <= 0.0031308:
+        s = 12.92 * x
+    else:
+        s = 1.055 * wp.pow(x, 1.0 / 2.4) - 0.055
+    return wp.uint8(int(s * 255.0 + 0.5))
+
+
+@wp.kernel
+def encode_srgb8(linear: wp.array(dtype=wp.vec3), rgb_out: wp.array(dtype=wp.uint8)):
+    """``rgb_out[3 i + k]`` (uint8) = sRGB code of channel k of ``linear[i]`` (the pictures' pixels)."""
+    i = wp.tid()
+    c = linear[i]
+    rgb_out[3 * i] = srgb8(c[0])
+    rgb_out[3 * i + 1] = srgb8(c[1])
+    rgb_out[3 * i + 2] = srgb8(c[2])

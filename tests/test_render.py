@@ -370,3 +370,27 @@ def test_render_many_draws_each_picture_as_render_does():
             assert np.array_equal(pic, alone[k]), k
     assert len({a.tobytes() for a in alone}) == len(alone)  # (the pictures differ: offsets matter)
     assert many.render_many([], cam) == []
+
+
+def test_pictures_are_encoded_on_the_device_as_the_srgb_curve():
+    """The renderer's 8-bit pictures are encoded by ``kernels.render.encode_srgb8`` on its device:
+    within one code of the NumPy sRGB curve (``to_srgb8``) over a fine ramp of linear values, below 0
+    and above 1 included (clamped), and ``render`` equals that curve applied to its linear picture."""
+    import warp as wp
+
+    from warpsim.kernels import render as K
+
+    x = np.linspace(-0.1, 1.1, 200_001).astype(np.float32)
+    linear = wp.array(np.repeat(x[:, None], 3, 1), dtype=wp.vec3, device="cpu")
+    codes = wp.empty(3 * len(x), dtype=wp.uint8, device="cpu")
+    wp.launch(K.encode_srgb8, len(x), inputs=[linear], outputs=[codes], device="cpu")
+    got = codes.numpy().reshape(-1, 3).astype(int)
+    want = to_srgb8(x).astype(int)
+    assert (got == want[:, None]).all(axis=1).mean() > 0.999 and np.abs(got - want[:, None]).max() <= 1
+    assert got[0].tolist() == [0, 0, 0] and got[-1].tolist() == [255, 255, 255]
+    g = GeometryBuilder()
+    g.add_spheres([[0.0, 0.0, 0.0]], 0.5, (0.8, 0.3, 0.1))
+    r = Renderer(48, 36, device="cpu")
+    cam = Camera((0.0, 0.5, 2.0), (0.0, 0.0, 0.0), fov=40.0)
+    srgb = r.render(g.build(), cam).astype(int)
+    assert np.abs(srgb - to_srgb8(r.render(g.build(), cam, linear=True))).max() <= 1

@@ -147,8 +147,7 @@ class Renderer:
             vol.origin, vol.dx = wp.vec3(*v["origin"]), float(v["dx"])
             vol.color = wp.vec3(*v["color"])
             vol.active = 1
-        img = self._draw([(geom, ground_y)], camera, vol)[0].copy()  # (a view on the CPU)
-        return img if linear else to_srgb8(img)
+        return self._draw([(geom, ground_y)], camera, vol, linear)[0].copy()  # (a view on the CPU)
 
     def render_many(self, items, camera):
         """[(height, width, 3) uint8 sRGB image] of each ``(geom, ground_y)`` of ``items`` seen by
@@ -162,11 +161,12 @@ class Renderer:
             return [self.render(g, camera, ground_y=ground) for g, ground in items]
         if not items:
             return []
-        return list(to_srgb8(self._draw(items, camera, self._no_volume())))
+        return list(self._draw(items, camera, self._no_volume()).copy())  # (copied: the buffer is reused)
 
-    def _draw(self, items, camera, vol):
-        """(pictures, height, width, 3) linear RGB of ``items`` (``(geom, ground_y)``) and the volume
-        ``vol`` (one launch of ``render_pictures``; the array is a view of the device's output on the CPU)."""
+    def _draw(self, items, camera, vol, linear=False):
+        """(pictures, height, width, 3) uint8 sRGB (float linear RGB with ``linear``) of ``items``
+        (``(geom, ground_y)``) and the volume ``vol``: one launch of ``render_pictures`` and, for sRGB,
+        one of ``encode_srgb8`` on the device (the array is a view of the device's output on the CPU)."""
         vec3 = wp.vec3
         meshes = np.zeros(len(items), np.uint64)
         glasses, bvhs = meshes.copy(), meshes.copy()
@@ -197,11 +197,18 @@ class Renderer:
             bases("cap_r"), joined("cap_a", vec3), joined("cap_b", vec3), joined("cap_r", float),
             joined("cap_colors", vec3), vol,
         ], outputs=[image])
-        return image.numpy().reshape(len(items), self.height, self.width, 3)
+        if linear:
+            return image.numpy().reshape(len(items), self.height, self.width, 3)
+        codes = self._buffers.get("srgb8")
+        if codes is None or codes.shape[0] != 3 * image.shape[0]:
+            codes = self._buffers["srgb8"] = wp.empty(3 * image.shape[0], dtype=wp.uint8, device=self.device)
+        wp.launch(K.encode_srgb8, dim=image.shape[0], inputs=[image], outputs=[codes], device=self.device)
+        return codes.numpy().reshape(len(items), self.height, self.width, 3)
 
 
 def to_srgb8(linear):
-    """uint8 sRGB from linear RGB in [0, 1] (clipped)."""
+    """uint8 sRGB from linear RGB in [0, 1] (clipped), in NumPy (the renderer encodes its pictures on
+    the device, ``kernels.render.encode_srgb8``: the same curve, within one code)."""
     c = np.clip(linear, 0.0, 1.0)
     s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
     return (s * 255.0 + 0.5).astype(np.uint8)
