@@ -151,11 +151,12 @@ class Renderer:
 
     def render_many(self, items, camera):
         """[(height, width, 3) uint8 sRGB image] of each ``(geom, ground_y)`` of ``items`` seen by
-        ``camera``, as :meth:`render` draws it (the same kernel: the same bits), in one launch for
-        all of them (a sweep's thumbnails: one picture is too few pixels to fill a GPU). Picture
-        ``k`` keeps its own mesh, glass and capsule BVH (refitted for the next call's picture ``k``
-        when its triangles or count are the same). A geometry with a density volume is drawn by
-        :meth:`render`."""
+        ``camera``, as :meth:`render` draws it (the same kernels), in one launch for all of them (a
+        sweep's thumbnails: one picture is too few pixels to fill a GPU). Picture ``k`` keeps its own
+        mesh, glass and capsule BVH (refitted for the next call's picture ``k`` when its triangles or
+        count are the same; a BVH built from other points may settle a ray's tie between two faces
+        otherwise: on the H200 some pictures differed from ``render``'s, on the CPU none did). A
+        geometry with a density volume is drawn by :meth:`render`."""
         items = list(items)
         if any(g.volume is not None and g.volume["density"].size for g, _ in items):
             return [self.render(g, camera, ground_y=ground) for g, ground in items]
