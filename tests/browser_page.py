@@ -63,13 +63,15 @@ def pixels(page) -> np.ndarray:
 
 
 def dismiss_notice(page, timeout=5.0):
-    """Close viser's "software WebGL" notification when it shows (it covers the view's top left)."""
+    """Close viser's "software WebGL" notification when it shows (it covers the view's top left). The
+    click is dispatched to the button (a page drawing hair on a loaded CPU paints so rarely that the
+    button never looks "stable" to a pointer click: CI timed out after 30 s waiting for that)."""
     close = page.locator(".mantine-Notification-closeButton")
     try:
         close.first.wait_for(state="visible", timeout=1e3 * timeout * PATIENCE)
     except Exception:  # noqa: BLE001  (no notice: nothing to close)
         return
-    close.first.click()
+    close.first.dispatch_event("click")
     close.first.wait_for(state="detached", timeout=1e3 * timeout * PATIENCE)
 
 
