@@ -70,7 +70,7 @@ SMALL: dict[str, dict[str, Any]] = {
     "cloth": {"resolution": 12},
     "drape": {"resolution": 12},
     "teapot": {"resolution": "2"},
-    "donuts": {"count": 2, "segments": 10, "sides": 6, "lattice_cells": 5},
+    "donuts": {"count": 2, "segments": 8, "sides": 4, "lattice_cells": 3},
     "wall": {"bricks": "2,2", "spacing": 0.1},
     "hair": {"strands": 12, "segments": 4},
     "crowd": {"people": 10},
