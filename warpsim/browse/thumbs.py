@@ -26,7 +26,7 @@ MOST_WORKERS = 4
 """Thumbnail workers at most. They start while the sweep steps and writes (:func:`start_workers`)
 and take cores from its chunk writers while they warm up; measured on an H200 with 16 host cores
 (2,000 teapots x 60 frames, ``bench_sweep_command.py``): 4 / 8 / 16 workers, whole sweep 7.87 /
-9.03 / 10.02 s, the pictures about the same (2.4-2.6 s: one GPU serves every worker's context)."""
+9.03 / 10.02 s, the pictures' stage about the same each way, 2.4-2.6 s)."""
 SLICE_WORLDS = 32
 """Worlds a worker reads (or encodes) per job: small enough that rendering starts early."""
 

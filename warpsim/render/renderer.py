@@ -69,6 +69,13 @@ class Renderer:
             buf.assign(a)
         return buf
 
+    def _output(self, name, count, dtype):
+        """The buffer ``name`` of ``count`` ``dtype`` the kernels write (kept while the count stays)."""
+        buf = self._buffers.get(name)
+        if buf is None or buf.shape[0] != count:
+            buf = self._buffers[name] = wp.empty(count, dtype=dtype, device=self.device)
+        return buf
+
     def _mesh(self, points, triangles, name):
         """(0/1, id) of a ``wp.Mesh`` of the triangles (id 0 when there are none); the last
         picture's mesh of ``name`` is refitted to the new points when its triangles are the same
@@ -187,9 +194,7 @@ class Renderer:
                                wp.int32, field + "_base")
 
         pixels = self.width * self.height
-        image = self._buffers.get("pictures")
-        if image is None or image.shape[0] != len(items) * pixels:
-            image = self._buffers["pictures"] = wp.empty(len(items) * pixels, dtype=vec3, device=self.device)
+        image = self._output("pictures", len(items) * pixels, vec3)
         wp.launch(K.render_pictures, dim=(len(items), pixels), device=self.device, inputs=[
             self._camera(camera), wp.array(lights, dtype=K.Lighting, device=self.device), self.width, self.height,
             self._array(meshes, wp.uint64, "meshes"), bases("triangles"), joined("face_colors", vec3),
@@ -200,9 +205,7 @@ class Renderer:
         ], outputs=[image])
         if linear:
             return image.numpy().reshape(len(items), self.height, self.width, 3)
-        codes = self._buffers.get("srgb8")
-        if codes is None or codes.shape[0] != 3 * image.shape[0]:
-            codes = self._buffers["srgb8"] = wp.empty(3 * image.shape[0], dtype=wp.uint8, device=self.device)
+        codes = self._output("srgb8", 3 * image.shape[0], wp.uint8)
         wp.launch(K.encode_srgb8, dim=image.shape[0], inputs=[image], outputs=[codes], device=self.device)
         return codes.numpy().reshape(len(items), self.height, self.width, 3)
 
