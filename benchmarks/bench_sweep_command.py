@@ -19,6 +19,10 @@ and thumbnails) with timers around its stages, then the same worlds stepped alon
   us/wf       (total - alone) per world and frame [us] (frames stepped, frame 0 aside)
   MB          bytes the command wrote (layers, chunks, table, record, root, thumbnails) [MB]
   MB/s        MB / total;  MB/s w: MB / (writing + closing), the rate while writing held up the loop
+  whole       with ``--whole N``: the command as a user runs it, ``python -m warpsim sweep ...`` in a fresh
+              process (start-up, imports, Warp's start, the sweep, the pool workers' exit), N runs [s];
+              the issue's "whole command" goal is this figure (``total`` + ``startup`` counts the
+              1-world sweep's own building, writing and closing twice)
 
 and, with two or more world counts, the extra cost per world and frame of the command between
 the first and last counts, (T(W2) - T(W1)) / ((W2 - W1) x frames) [us] (issue 50's CPU goal:
@@ -206,6 +210,16 @@ def step_alone(scene, world_params, frames, device, substeps=None):
     return time.perf_counter() - t0
 
 
+def whole_seconds(argv, folder):
+    """``python -m warpsim`` ``argv`` in a fresh process, its outputs removed after [s]."""
+    shutil.rmtree(folder, ignore_errors=True)
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "warpsim", *argv], check=True, capture_output=True)
+    seconds = time.perf_counter() - t0
+    shutil.rmtree(folder, ignore_errors=True)
+    return seconds
+
+
 def startup_seconds(scene, device):
     """A fresh process running a 1-world, 0-frame sweep (imports, Warp's start, one world) [s]."""
     folder = tempfile.mkdtemp(prefix="bench_sweep_start_")
@@ -232,6 +246,8 @@ def main(argv=None):
     p.add_argument("--store", default=None, help="all, preview or none (default: the command's choice)")
     p.add_argument("--thumbnails", action="store_true", help="draw thumbnails (default: --no-thumbnails)")
     p.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurement")
+    p.add_argument("--whole", type=int, default=0, metavar="N",
+                   help="also run the command N times in a fresh process each and report the wall time")
     p.add_argument("--stacks", action="store_true", help="where the main thread's wall time went, by warpsim function")
     p.add_argument("--workers", nargs="+", default=["auto"],
                    help="chunk-writing worker processes, each value a run of every world count (auto: the "
@@ -277,6 +293,10 @@ def main(argv=None):
                           for f in fs)
             rows.append((workers, n, total, stages, alone, written))
             shutil.rmtree(os.path.join(folder, f"w{n}"), ignore_errors=True)
+            wholes = [whole_seconds(argv, os.path.join(folder, f"w{n}")) for _ in range(args.whole)]
+            if wholes:
+                print(f"whole command, {n} worlds, fresh process: " + ", ".join(f"{w:.2f}" for w in wholes)
+                      + f" s (best {min(wholes):.2f} s, {min(wholes) / max(alone, 1e-9):.1f}x the stepping alone)")
         start = None if args.no_startup else startup_seconds(args.scene, args.device)
     finally:
         shutil.rmtree(folder, ignore_errors=True)

@@ -12,19 +12,35 @@ Entry classes: Plane, Box, Sphere, TriangleMesh, ParticleCollisions, SoftContact
 DragSpring, VBD, VBDContact.
 """
 
+from typing import TYPE_CHECKING
+
 from .colliders import (
     Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
 )
 from .drag import DragSpring, pick_particle
-from .shapes import torus_mesh
-from .soft_contact import SoftContact
 from .softbody import SoftBody, add_soft_body, load_mesh
 from .teapot import teapot_mesh
-from .vbd import VBD
-from .vbd_contact import VBDContact
+
+if TYPE_CHECKING:  # imported on first use at run time (_LAZY)
+    from .shapes import torus_mesh
+    from .soft_contact import SoftContact
+    from .vbd import VBD
+    from .vbd_contact import VBDContact
 
 __all__ = [
     "Collider", "Planes", "Plane", "Box", "Sphere", "Capsule", "Quad", "Rectangle", "TriangleMesh",
     "ParticleCollisions", "keyframe_motion", "DragSpring", "pick_particle", "SoftBody", "add_soft_body", "load_mesh",
     "teapot_mesh", "SoftContact", "torus_mesh", "VBD", "VBDContact",
 ]
+
+_LAZY = {"SoftContact": ".soft_contact", "VBD": ".vbd", "VBDContact": ".vbd_contact", "torus_mesh": ".shapes"}
+"""Names imported on first use (soft-soft contact and vertex block descent define many kernels that
+a scene of springs or a teapot never launches)."""
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -60,6 +60,20 @@ __all__ = ["FrameTiming", "Param", "Scene", "SimulatorScene", "get_scene", "pars
 _REGISTRY = {}
 _LOADED = False
 
+BUILT_IN = {
+    "bounce": "basic", "pendulum": "basic", "springs": "basic",
+    "cloth": "cloth", "drape": "cloth",
+    "crowd": "agents", "flock": "agents", "school": "agents", "zombies": "agents",
+    "dam_break": "fluids_sph", "pour": "fluids_sph",
+    "donuts": "fracture", "wall": "fracture",
+    "flip_splash": "grid_fluids", "liquid": "grid_fluids", "smoke": "grid_fluids",
+    "hair": "hair", "metaballs": "meshing", "teapot": "teapot",
+}
+"""The module of this package that registers each built-in scene: :func:`get_scene` imports only
+that one (``warpsim run bounce`` and ``warpsim sweep teapot`` do not define the fluids' or the
+crowds' kernels); :func:`scenes` imports them all, and the plugins. A built-in name is always the
+built-in scene. ``tests/test_public_api.py`` checks this table against the registry."""
+
 CONTAINER = {"opacity": 0.2, "purpose": "render"}
 """Display hints for boxes of walls and tanks (``writer.add_box(..., **CONTAINER)``): render-purpose
 geometry (Blender's importer and renderers load it; ``guide`` is kept for pure helpers, which they
@@ -388,6 +402,10 @@ def register_scene(name, description, params=None, *, fps=None, substeps=None):
     def wrap(cls):
         if not (isinstance(cls, type) and issubclass(cls, Scene)):
             raise TypeError(f"@register_scene({name!r}) decorates Scene subclasses, not {cls!r}")
+        home = BUILT_IN.get(name)
+        if home is not None and cls.__module__ != f"{__name__}.{home}":
+            raise ValueError(f"scene name {name!r} is taken by a built-in scene (warpsim/scenes/{home}.py): "
+                             f"register {cls.__name__} under another name")
         old = _REGISTRY.get(name)
         if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
             raise ValueError(f"scene name {name!r} is already registered by {_REGISTRY[name].__module__}")
@@ -438,7 +456,16 @@ def scenes():
 
 
 def get_scene(name):
-    """The Scene class registered as ``name``; ValueError with close matches otherwise."""
+    """The Scene class registered as ``name``; ValueError with close matches otherwise. A built-in
+    scene imports only its own module (:data:`BUILT_IN`)."""
+    module = BUILT_IN.get(name)
+    if module is not None and not _LOADED:
+        try:
+            importlib.import_module(f"{__name__}.{module}")
+        except Exception:  # noqa: BLE001  (scenes() below imports it again and reports why it failed)
+            pass
+        if _REGISTRY.get(name) is not None and _REGISTRY[name].__module__ == f"{__name__}.{module}":
+            return _REGISTRY[name]
     registry = scenes()
     if name not in registry:
         raise ValueError(f"unknown scene {name!r}.{close_matches(name, registry)} Known scenes: "

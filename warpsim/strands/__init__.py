@@ -8,11 +8,31 @@ backward Euler strand step), HairFrame and PosedSphere (``frame``: a frame's ste
 poses on the device, one CUDA graph a frame), sag_free, SagFreeReport.
 """
 
-from .builder import Strands, add_strands, head_signed_distance
-from .forces import StrandForce, StrandRoots, strand_stable_dt
-from .frame import HairFrame, HeadPoses, PosedSphere
-from .implicit import StrandImplicitEuler
-from .sag_free import SagFreeReport, sag_free
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for static tools; at run time each is imported on first use (below)
+    from .builder import Strands, add_strands, head_signed_distance
+    from .forces import StrandForce, StrandRoots, strand_stable_dt
+    from .frame import HairFrame, HeadPoses, PosedSphere
+    from .implicit import StrandImplicitEuler
+    from .sag_free import SagFreeReport, sag_free
 
 __all__ = ["HairFrame", "HeadPoses", "PosedSphere", "SagFreeReport", "StrandForce", "StrandImplicitEuler",
            "StrandRoots", "Strands", "add_strands", "head_signed_distance", "sag_free", "strand_stable_dt"]
+
+_HOMES = {
+    "Strands": ".builder", "add_strands": ".builder", "head_signed_distance": ".builder",
+    "StrandForce": ".forces", "StrandRoots": ".forces", "strand_stable_dt": ".forces",
+    "HairFrame": ".frame", "HeadPoses": ".frame", "PosedSphere": ".frame",
+    "StrandImplicitEuler": ".implicit", "SagFreeReport": ".sag_free", "sag_free": ".sag_free",
+}
+"""Where each name lives: importing ``warpsim.strands.preflight`` (a sweep's memory estimate) defines no
+strand kernel."""
+
+
+def __getattr__(name):
+    if name in _HOMES:
+        import importlib
+
+        return getattr(importlib.import_module(_HOMES[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

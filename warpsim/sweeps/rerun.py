@@ -273,7 +273,7 @@ def run_world(scene_name, world_params, world, *, out, frames, fps=None, substep
     frame the whole batch took (its manifest's ``frame_steps``), None to let the world decide."""
     from ..scenes import get_scene
     from ..usd.writer import UsdCacheWriter
-    from ..worlds.agents import is_agent_scene
+    from ..worlds.batch import is_agent_scene
     from ..worlds.batch import WorldBatch
     from .sweep import sweep_timing, timed_params
 

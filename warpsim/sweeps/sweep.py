@@ -81,7 +81,7 @@ def normalise_params(cls, params):
 def make_batch(cls, world_params, device=None, fused=False, reference_params=None):
     """A :class:`WorldBatch` (``fused``, ``reference_params``: see there), or for flock scenes an
     :class:`warpsim.worlds.agents.AgentWorldBatch` (its worlds never depend on their batch)."""
-    from ..worlds.agents import is_agent_scene
+    from ..worlds.batch import is_agent_scene
 
     if is_agent_scene(cls):
         from ..worlds.agents import AgentWorldBatch

@@ -22,16 +22,10 @@ import numpy as np
 import warp as wp
 
 from ..agents import Flock, FoodSources
-from .batch import end_frame
+from .batch import end_frame, is_agent_scene
 from .plan import StructuralError
 
 __all__ = ["AgentWorldBatch", "is_agent_scene"]
-
-
-def is_agent_scene(scene_cls) -> bool:
-    from ..scenes.agents import AgentScene
-
-    return issubclass(scene_cls, AgentScene)
 
 
 class _Model:

@@ -22,7 +22,6 @@ import numpy as np
 import warp as wp
 
 from ..bodies.colliders import Planes
-from ..cloth.solver import ClothImplicitEuler
 from ..core.integrators import ImplicitEuler
 from ..core.forces import Springs
 from ..core.model import Model, ensure_spring_adjacency
@@ -31,7 +30,7 @@ from .forces import WorldGravity, WorldPlanes
 from .plan import FLOAT_ARRAYS, VEC3_ARRAYS, StructuralError, host_values, make_plan
 from .shared import SPRING_PARAMS, SharedStepper, eligibility, world_walls
 
-__all__ = ["WorldBatch"]
+__all__ = ["WorldBatch", "is_agent_scene"]
 
 ADJACENCY_ARRAYS = ("particle_spring_offsets", "particle_springs")
 
@@ -93,7 +92,7 @@ class WorldBatch:
         if sim0 is None or not hasattr(sim0, "model"):
             raise StructuralError(f"scene {cls.name!r} is not driven by a warpsim Simulator; batched worlds tile "
                                   "a Simulator's model (supported: bounce, springs, teapot, cloth, drape, ...)")
-        if isinstance(sim0.integrator, (ImplicitEuler, ClothImplicitEuler)):
+        if isinstance(sim0.integrator, _implicit_integrators()):
             raise StructuralError(f"scene {cls.name!r} uses implicit Euler, whose conjugate-gradient solve would "
                                   "couple the worlds of a batch; use --set integrator=semi_implicit_euler")
         if getattr(sim0, "adaptive", False):
@@ -585,6 +584,25 @@ class WorldBatch:
                 self.scene.last_report = saved_report
             elif "last_report" in vars(self.scene):
                 del self.scene.last_report
+
+
+def _implicit_integrators() -> tuple:
+    """The implicit Euler classes a batch refuses: the particles' and, when its module is loaded (a cloth
+    scene's simulator has imported it), the cloth's (this module does not import the cloth solver)."""
+    import sys
+
+    cloth = sys.modules.get("warpsim.cloth.solver")
+    return (ImplicitEuler,) if cloth is None else (ImplicitEuler, cloth.ClothImplicitEuler)
+
+
+def is_agent_scene(scene_cls) -> bool:
+    """Whether ``scene_cls`` is an agent scene (:class:`warpsim.scenes.agents.AgentScene`: its module is
+    loaded wherever one exists; a sweep of springs imports no agent code), batched by
+    :class:`warpsim.worlds.agents.AgentWorldBatch`."""
+    import sys
+
+    agents = sys.modules.get("warpsim.scenes.agents")
+    return agents is not None and issubclass(scene_cls, agents.AgentScene)
 
 
 def end_frame(batch) -> None:
