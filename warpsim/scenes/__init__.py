@@ -1,7 +1,8 @@
 """Scene presets for the command line (``warpsim list`` / ``warpsim run SCENE``).
 
 Adding a scene is one decorator on a :class:`Scene` subclass in any module of this package
-(``warpsim/scenes/*.py`` is imported automatically; scenes elsewhere register when their module
+(``warpsim/scenes/*.py`` is imported by :func:`scenes`, and a built-in scene's module alone by
+:func:`get_scene`: add a new one to :data:`BUILT_IN`; scenes elsewhere register when their module
 is imported, or through the ``warpsim.scenes`` entry-point group)::
 
     import warpsim as ws
