@@ -141,3 +141,17 @@ def test_a_built_in_scene_name_cannot_be_taken():
         @register_scene("bounce", "not the ball")
         class NotTheBall(SimulatorScene):
             pass
+
+
+def test_lazy_names_stay_the_objects_after_their_modules_are_imported():
+    """A name loaded on first use is the function or class even where its sub-module (same name, or
+    imported directly first) was imported before (``hair`` once got the module ``sag_free``)."""
+    import subprocess
+    import sys
+
+    code = ("import warpsim.strands.sag_free, warpsim.bodies.vbd, warpsim.strands.builder; "
+            "from warpsim.strands import sag_free, Strands; from warpsim.bodies import VBD; "
+            "import warpsim as ws; "
+            "print(callable(sag_free), isinstance(Strands, type), isinstance(VBD, type), callable(ws.sag_free))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["True"] * 4, out

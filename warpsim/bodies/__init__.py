@@ -42,5 +42,6 @@ def __getattr__(name):
     if name in _LAZY:
         import importlib
 
-        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+        value = globals()[name] = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        return value  # (bound here, as an import in this file would bind it)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

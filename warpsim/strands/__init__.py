@@ -10,12 +10,15 @@ poses on the device, one CUDA graph a frame), sag_free, SagFreeReport.
 
 from typing import TYPE_CHECKING
 
+# imported here, not on first use: the function sag_free shares its module's name, and a package attribute
+# bound by a later ``import warpsim.strands.sag_free`` would otherwise be the module
+from .sag_free import SagFreeReport, sag_free
+
 if TYPE_CHECKING:  # the same names for static tools; at run time each is imported on first use (below)
     from .builder import Strands, add_strands, head_signed_distance
     from .forces import StrandForce, StrandRoots, strand_stable_dt
     from .frame import HairFrame, HeadPoses, PosedSphere
     from .implicit import StrandImplicitEuler
-    from .sag_free import SagFreeReport, sag_free
 
 __all__ = ["HairFrame", "HeadPoses", "PosedSphere", "SagFreeReport", "StrandForce", "StrandImplicitEuler",
            "StrandRoots", "Strands", "add_strands", "head_signed_distance", "sag_free", "strand_stable_dt"]
@@ -24,15 +27,16 @@ _HOMES = {
     "Strands": ".builder", "add_strands": ".builder", "head_signed_distance": ".builder",
     "StrandForce": ".forces", "StrandRoots": ".forces", "strand_stable_dt": ".forces",
     "HairFrame": ".frame", "HeadPoses": ".frame", "PosedSphere": ".frame",
-    "StrandImplicitEuler": ".implicit", "SagFreeReport": ".sag_free", "sag_free": ".sag_free",
+    "StrandImplicitEuler": ".implicit",
 }
-"""Where each name lives: importing ``warpsim.strands.preflight`` (a sweep's memory estimate) defines no
-strand kernel."""
+"""Where each name imported on first use lives: importing ``warpsim.strands.preflight`` (a sweep's memory
+estimate) defines none of the strands' own kernels."""
 
 
 def __getattr__(name):
     if name in _HOMES:
         import importlib
 
-        return getattr(importlib.import_module(_HOMES[name], __name__), name)
+        value = globals()[name] = getattr(importlib.import_module(_HOMES[name], __name__), name)
+        return value  # (bound here, as an import in this file would bind it)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
