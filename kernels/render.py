@@ -361,3 +361,14 @@ def encode_srgb8(linear: wp.array(dtype=wp.vec3), rgb_out: wp.array(dtype=wp.uin
     rgb_out[3 * i] = srgb8(c[0])
     rgb_out[3 * i + 1] = srgb8(c[1])
     rgb_out[3 * i + 2] = srgb8(c[2])
+
+
+@wp.kernel
+def capsule_boxes(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), r: wp.array(dtype=float),
+                  lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+    """Bounding box [m] of capsule i (ends ``a[i]``, ``b[i]``, radius ``r[i]``): the BVH items of the pictures'
+    capsules (the bits of NumPy's ``np.minimum(a, b) - r`` and ``np.maximum(a, b) + r`` in float32)."""
+    i = wp.tid()
+    pad = wp.vec3(r[i], r[i], r[i])
+    lowers[i] = wp.min(a[i], b[i]) - pad
+    uppers[i] = wp.max(a[i], b[i]) + pad

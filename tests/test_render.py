@@ -394,3 +394,42 @@ def test_pictures_are_encoded_on_the_device_as_the_srgb_curve():
     cam = Camera((0.0, 0.5, 2.0), (0.0, 0.0, 0.0), fov=40.0)
     srgb = r.render(g.build(), cam).astype(int)
     assert np.abs(srgb - to_srgb8(r.render(g.build(), cam, linear=True))).max() <= 1
+
+
+def test_capsule_boxes_are_numpys_float32_boxes():
+    """The pictures' capsule BVH boxes, made on the device, carry the bits of NumPy's float32 min/max -/+ r."""
+    import warp as wp
+
+    from warpsim.kernels import render as K
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(2, 257, 3)).astype(np.float32)
+    r = rng.uniform(0.001, 0.1, 257).astype(np.float32)
+    lo, hi = wp.empty(257, dtype=wp.vec3, device="cpu"), wp.empty(257, dtype=wp.vec3, device="cpu")
+    wp.launch(K.capsule_boxes, dim=257, inputs=[wp.array(a, dtype=wp.vec3, device="cpu"),
+                                               wp.array(b, dtype=wp.vec3, device="cpu"),
+                                               wp.array(r, dtype=float, device="cpu")], outputs=[lo, hi], device="cpu")
+    assert lo.numpy().tobytes() == (np.minimum(a, b) - r[:, None]).tobytes()
+    assert hi.numpy().tobytes() == (np.maximum(a, b) + r[:, None]).tobytes()
+
+
+def test_pictures_share_one_upload_and_refit_in_place():
+    """render_many's meshes and capsule BVHs are views of the pictures' joined buffers: a second call with as
+    many pictures of the same topology refits them in place (no new mesh, no new BVH) and draws what a fresh
+    renderer draws; a smaller last slice keeps its places (refitted too)."""
+    def geom(shift):
+        g = GeometryBuilder()
+        g.add_mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32) + shift,
+                   [3, 3, 3, 3], [0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3], (0.8, 0.3, 0.2))
+        g.add_capsules([[shift, 0, 1]], [[shift + 1, 0, 1]], 0.05, (0.2, 0.2, 0.9))
+        return g.build()
+
+    cam = Camera(eye=(0.5, 1.5, 4.0), target=(0.5, 0.3, 0.0))
+    r = Renderer(40, 30, device="cpu")
+    r.render_many([(geom(0.0), None), (geom(0.1), None), (geom(0.2), None)], cam)
+    made = {k: id(v[1] if isinstance(v, tuple) else v) for k, v in r._meshes.items()}
+    second = [(geom(0.3), None), (geom(0.4), None)]
+    pictures = r.render_many(second, cam)
+    assert {k: id(v[1] if isinstance(v, tuple) else v) for k, v in r._meshes.items()} == made  # refitted, not rebuilt
+    fresh = Renderer(40, 30, device="cpu").render_many(second, cam)
+    assert all(np.array_equal(p, q) for p, q in zip(pictures, fresh))

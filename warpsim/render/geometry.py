@@ -42,9 +42,9 @@ class FrameGeometry:
             if len(p):
                 boxes.append((p.min(0), p.max(0)))
         if len(self.cap_r):
-            r = self.cap_r[:, None]
-            boxes.append((np.minimum(self.cap_a, self.cap_b).min(0) - r.max(), np.maximum(self.cap_a, self.cap_b).max(0)
-                          + r.max()))
+            r = self.cap_r.max()  # (the same bits as the ends' elementwise min and max, reduced after)
+            boxes.append((np.minimum(self.cap_a.min(0), self.cap_b.min(0)) - r,
+                          np.maximum(self.cap_a.max(0), self.cap_b.max(0)) + r))
         if self.volume is not None:
             v = self.volume
             boxes.append((np.asarray(v["origin"]), np.asarray(v["origin"]) + v["dx"] * np.array(v["density"].shape)))

@@ -56,18 +56,23 @@ class Renderer:
         self._meshes = {}  # name -> (triangles, wp.Mesh): refitted while the triangles stay
 
     def _array(self, a, dtype, name=None):
-        """``a`` on the device: a new array, or (``name`` given) that name's buffer of the last
-        picture refilled when the shape and type are the same (no allocation, no free)."""
+        """``a`` on the device: a new array, or (``name`` given) a view of the first entries of that name's
+        buffer, refilled in one copy (the buffer only grows: the next pictures' views start where these did,
+        so meshes and BVHs over them are refitted, not rebuilt)."""
         a = np.ascontiguousarray(a)
         if name is None:
             return wp.array(a, dtype=dtype, device=self.device)
+        view = self._grown(name, a.size // wp.types.type_size(dtype), dtype)
+        if view.shape[0]:
+            view.assign(a)
+        return view
+
+    def _grown(self, name, count, dtype):
+        """A view of the first ``count`` ``dtype`` of the buffer ``name`` (allocated again only to grow)."""
         buf = self._buffers.get(name)
-        count = a.size // wp.types.type_size(dtype)
-        if buf is None or buf.dtype != dtype or buf.shape != (count,):
-            buf = self._buffers[name] = wp.array(a, dtype=dtype, device=self.device)
-        else:
-            buf.assign(a)
-        return buf
+        if buf is None or buf.dtype != dtype or buf.shape[0] < count:
+            buf = self._buffers[name] = wp.empty(max(count, 1), dtype=dtype, device=self.device)
+        return _part(buf, 0, count)
 
     def _output(self, name, count, dtype):
         """The buffer ``name`` of ``count`` ``dtype`` the kernels write (kept while the count stays)."""
@@ -77,36 +82,33 @@ class Renderer:
         return buf
 
     def _mesh(self, points, triangles, name):
-        """(0/1, id) of a ``wp.Mesh`` of the triangles (id 0 when there are none); the last
-        picture's mesh of ``name`` is refitted to the new points when its triangles are the same
-        (sweep thumbnails, frames of one cache: no BVH built per picture)."""
+        """(0/1, id) of a ``wp.Mesh`` of the triangles over ``points`` (a device array: a view of the
+        pictures' joined vertices; id 0 when there are none); the last picture's mesh of ``name`` is
+        refitted when its triangles and its points' place are the same (sweep thumbnails, frames of one
+        cache: no BVH built per picture)."""
         if not len(triangles):
             return 0, 0
         cached = self._meshes.get(name)
         if cached is not None and cached[0].shape == triangles.shape and np.array_equal(cached[0], triangles) \
-                and cached[1].points.shape[0] == len(points):
-            cached[1].points.assign(np.ascontiguousarray(points, dtype=np.float32))
+                and (cached[1].points.ptr, cached[1].points.shape) == (points.ptr, points.shape):
             cached[1].refit()
             return 1, cached[1].id
-        mesh = wp.Mesh(self._array(points, wp.vec3), self._array(triangles.reshape(-1), wp.int32))
+        mesh = wp.Mesh(points, self._array(triangles.reshape(-1), wp.int32))
         self._meshes[name] = (np.array(triangles, copy=True), mesh)
         return 1, mesh.id
 
-    def _caps(self, geom, name):
-        """(0/1, id) of a ``wp.Bvh`` over ``geom``'s capsules (id 0 when there are none), refitted
-        when the last picture's BVH of ``name`` had as many."""
-        if not len(geom.cap_r):
+    def _caps(self, lowers, uppers, name):
+        """(0/1, id) of a ``wp.Bvh`` over capsule boxes ``lowers``, ``uppers`` (device views of the pictures'
+        joined boxes, ``kernels.render.capsule_boxes``; id 0 when there are none), refitted when the last
+        picture's BVH of ``name`` was over the same place."""
+        if not lowers.shape[0]:
             return 0, 0
-        r = geom.cap_r[:, None]
-        lowers = np.minimum(geom.cap_a, geom.cap_b) - r
-        uppers = np.maximum(geom.cap_a, geom.cap_b) + r
         bvh = self._meshes.get(name)
-        if bvh is not None and bvh.lowers.shape[0] == len(lowers):  # the same count: refitted, not rebuilt
-            bvh.lowers.assign(np.ascontiguousarray(lowers, np.float32))
-            bvh.uppers.assign(np.ascontiguousarray(uppers, np.float32))
+        if bvh is not None and (bvh.lowers.ptr, bvh.lowers.shape, bvh.uppers.ptr) == (lowers.ptr, lowers.shape,
+                                                                                     uppers.ptr):
             bvh.refit()
         else:
-            bvh = self._meshes[name] = wp.Bvh(self._array(lowers, wp.vec3), self._array(uppers, wp.vec3))
+            bvh = self._meshes[name] = wp.Bvh(lowers, uppers)
         return 1, bvh.id
 
     def _camera(self, camera):
@@ -176,22 +178,34 @@ class Renderer:
         (``(geom, ground_y)``) and the volume ``vol``: one launch of ``render_pictures`` and, for sRGB,
         one of ``encode_srgb8`` on the device (the array is a view of the device's output on the CPU)."""
         vec3 = wp.vec3
-        meshes = np.zeros(len(items), np.uint64)
-        glasses, bvhs = meshes.copy(), meshes.copy()
-        lights = []
-        for k, (g, ground) in enumerate(items):
-            meshes[k] = self._mesh(g.points, g.triangles, ("opaque", k))[1]
-            glasses[k] = self._mesh(g.glass_points, g.glass_triangles, ("glass", k))[1]
-            bvhs[k] = self._caps(g, ("caps", k))[1]
-            lights.append(self._lighting(g, camera, ground))
 
         def joined(field, dtype):
             parts = [getattr(g, field) for g, _ in items]
             return self._array(np.concatenate(parts) if len(parts) > 1 else parts[0], dtype, field)
 
+        def starts(field):
+            return np.cumsum([0] + [len(getattr(g, field)) for g, _ in items[:-1]]).astype(np.int32)
+
         def bases(field):
-            return self._array(np.cumsum([0] + [len(getattr(g, field)) for g, _ in items[:-1]]).astype(np.int32),
-                               wp.int32, field + "_base")
+            return self._array(starts(field), wp.int32, field + "_base")
+
+        # every picture's vertices and capsules in one copy each; a picture's mesh and BVH are views of them
+        points, glass_points = joined("points", vec3), joined("glass_points", vec3)
+        cap_a, cap_b, cap_r = joined("cap_a", vec3), joined("cap_b", vec3), joined("cap_r", float)
+        lowers, uppers = self._grown("cap_lowers", cap_r.shape[0], vec3), self._grown("cap_uppers", cap_r.shape[0], vec3)
+        if cap_r.shape[0]:
+            wp.launch(K.capsule_boxes, dim=cap_r.shape[0], inputs=[cap_a, cap_b, cap_r], outputs=[lowers, uppers],
+                      device=self.device)
+        meshes = np.zeros(len(items), np.uint64)
+        glasses, bvhs = meshes.copy(), meshes.copy()
+        lights = []
+        point_at, glass_at, cap_at = starts("points"), starts("glass_points"), starts("cap_r")
+        for k, (g, ground) in enumerate(items):
+            p, gp, c = int(point_at[k]), int(glass_at[k]), int(cap_at[k])
+            meshes[k] = self._mesh(_part(points, p, len(g.points)), g.triangles, ("opaque", k))[1]
+            glasses[k] = self._mesh(_part(glass_points, gp, len(g.glass_points)), g.glass_triangles, ("glass", k))[1]
+            bvhs[k] = self._caps(_part(lowers, c, len(g.cap_r)), _part(uppers, c, len(g.cap_r)), ("caps", k))[1]
+            lights.append(self._lighting(g, camera, ground))
 
         pixels = self.width * self.height
         image = self._output("pictures", len(items) * pixels, vec3)
@@ -200,14 +214,20 @@ class Renderer:
             self._array(meshes, wp.uint64, "meshes"), bases("triangles"), joined("face_colors", vec3),
             joined("corner_normals", vec3), self._array(glasses, wp.uint64, "glasses"), bases("glass_triangles"),
             joined("glass_colors", vec3), joined("glass_alpha", float), self._array(bvhs, wp.uint64, "bvhs"),
-            bases("cap_r"), joined("cap_a", vec3), joined("cap_b", vec3), joined("cap_r", float),
-            joined("cap_colors", vec3), vol,
+            bases("cap_r"), cap_a, cap_b, cap_r, joined("cap_colors", vec3), vol,
         ], outputs=[image])
         if linear:
             return image.numpy().reshape(len(items), self.height, self.width, 3)
         codes = self._output("srgb8", 3 * image.shape[0], wp.uint8)
         wp.launch(K.encode_srgb8, dim=image.shape[0], inputs=[image], outputs=[codes], device=self.device)
         return codes.numpy().reshape(len(items), self.height, self.width, 3)
+
+
+def _part(buf, start, count):
+    """``buf[start:start + count]`` (a view), or an empty array when ``count`` is 0 (Warp slices no empty range)."""
+    if count == 0:
+        return wp.empty(0, dtype=buf.dtype, device=buf.device)
+    return buf[start:start + count]
 
 
 def to_srgb8(linear):
