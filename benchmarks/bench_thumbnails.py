@@ -30,11 +30,36 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 
+def kernel_table(renderer, geoms, camera, per_slice):
+    """Print the device activity of render_many over ``geoms`` in slices of ``per_slice``: total [ms] and
+    calls by kernel or copy, against the wall time of the same calls."""
+    import warp as wp
+
+    wp.synchronize_device(renderer.device)
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    t0 = time.perf_counter()
+    for i in range(0, len(geoms), per_slice):
+        renderer.render_many(geoms[i:i + per_slice], camera)
+    wp.synchronize_device(renderer.device)
+    wall = time.perf_counter() - t0
+    results = wp.timing_end()
+    totals, calls = {}, {}
+    for r in results:
+        totals[r.name] = totals.get(r.name, 0.0) + r.elapsed
+        calls[r.name] = calls.get(r.name, 0) + 1
+    busy = sum(totals.values())
+    print(f"render_many, {len(geoms)} pictures: wall {wall * 1e3:.1f} ms, device activity {busy:.1f} ms")
+    for name in sorted(totals, key=totals.get, reverse=True)[:12]:
+        print(f"  {name[:60]:60s} {calls[name]:7d} calls {totals[name]:9.2f} ms")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("root", help="a sweep root written by warpsim sweep (--store all or preview)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--skip-pool", action="store_true", help="only the one-process stages")
+    p.add_argument("--profile", action="store_true", help="also the GPU activity of render_many's slices by kernel "
+                   "and copy (wp.timing_begin/end: what of its time the device spent)")
     args = p.parse_args(argv)
 
     import numpy as np
@@ -92,6 +117,8 @@ def main(argv=None):
     for i in range(0, len(geoms), thumbs.SLICE_WORLDS):
         pictures += many.render_many(geoms[i:i + thumbs.SLICE_WORLDS], camera)
     rows["render_many"] = time.perf_counter() - t0
+    if args.profile:
+        kernel_table(many, geoms, camera, thumbs.SLICE_WORLDS)
     same = all(np.array_equal(a, b) for a, b in zip(images, pictures))
     t0 = time.perf_counter()
     size = 0
