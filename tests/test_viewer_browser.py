@@ -214,10 +214,12 @@ def test_teapot_in_the_browser(viewer, browser, tmp_path):
           what="the dt box to show the restored step")
     note.wait_for(state="detached", timeout=LONG)  # the notification goes with the error
     other = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})  # a new tab shows it too
-    other.goto(viewer.url)
+    other.bring_to_front()  # the tab a user switches to: headless Chromium 156 keeps drawing the first tab's
+    other.goto(viewer.url)  # software WebGL otherwise, and on 2 loaded cores the new tab's panel starved
     other.get_by_text("dt [ms]").wait_for(timeout=LONG)
     assert float(_box(other, "dt [ms]").input_value()) == pytest.approx(1e3 * stable_dt, abs=2e-3)
     other.close()
+    page.bring_to_front()  # back to the first tab
     page.get_by_role("button", name="Play").click()
     _wait(lambda: s.status()["error"] is None and s.frame > 10, what="serving after the failure")
 

@@ -72,7 +72,9 @@ def _rgb(color):
 
 class Drawer:
     """Keeps viser scene nodes in step with a dict of DrawItems. ``on_drag(prim, event)`` is
-    called for drags on the prims named in ``draggable``."""
+    called for drags on the prims named in ``draggable``. One draw at a time: the stepping loop and
+    a button's handler (Reset, Step) may draw at once, and a node one removes the other must not
+    hook."""
 
     def __init__(self, server, on_drag=None):
         self.server = server
@@ -85,8 +87,13 @@ class Drawer:
         """Draw one curve in ``thin`` of curve sets longer than THIN_SEGMENTS segments (and take clicks
         on those drawn: their ribbons are most of what a frame sends)."""
         self._sphere = icosphere(1)
+        self._drawing = threading.RLock()
 
     def clear(self):
+        with self._drawing:
+            self._clear()
+
+    def _clear(self):
         for node, _ in self.nodes.values():
             for h in node if isinstance(node, list) else [node]:
                 h.remove()
@@ -96,9 +103,9 @@ class Drawer:
 
     def draw(self, items, static, version, draggable=()):
         """Show ``items`` (dynamic) and, after a rebuild (new ``version``), ``static``."""
-        with self.server.atomic():
+        with self._drawing, self.server.atomic():
             if version != self.version:
-                self.clear()
+                self._clear()
                 self.version = version
                 for name, item in static.items():
                     if len(item.points) and len(item.triangles):
@@ -308,6 +315,7 @@ class Viewer(Serving):
         self._thread = None
         self._drawn_frame = None
         self._drawn_at = 0.0
+        self._redrawing = threading.Lock()  # the loop and a button's handler: one capture-and-draw at a time
         self._play_on_connect = False  # set by start() unless paused: the first tab starts the scene
         self.draw_count = 0  # frames sent to the browser
         self.draw_fps = float(draw_fps)
@@ -381,6 +389,10 @@ class Viewer(Serving):
     # ------------------------------------------------------------------ frames
     def redraw(self):
         """Send the session's current frame to the browser."""
+        with self._redrawing:  # in order: a frame captured before a Reset is never drawn after it
+            self._redraw()
+
+    def _redraw(self):
         s = self.session
         t0 = time.perf_counter()
         with s.lock:
