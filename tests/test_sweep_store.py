@@ -52,6 +52,33 @@ def test_batch_frame_data_equals_each_worlds_frame_data(tmp_path, name, fixed, k
         batch.advance(1.0 / 25.0, 2)
 
 
+@pytest.mark.parametrize("name,fixed,key,values", [SWEEPABLE[0], SWEEPABLE[2], SWEEPABLE[4]],
+                         ids=["bounce", "teapot", "hair"])
+def test_batch_writing_gives_the_per_world_writers_bytes(tmp_path, name, fixed, key, values):
+    """write_batch authors attribute by attribute over all worlds, write_worlds world by world:
+    the chunk files (two chunks of 3 frames, 3 worlds) and their index are the same bytes."""
+    import glob
+
+    cls = get_scene(name)
+    params = [{**fixed, key: v} for v in values + values[:1]]
+    batch = make_batch(cls, params, device="cpu")
+    for how in ("batch", "worlds"):
+        os.makedirs(tmp_path / how)
+    writers = {how: BatchLayerWriter(tmp_path / how / f"{name}.usdc", batch.scene, 0, batch.world_count, 25.0,
+                                     chunk_size=3) for how in ("batch", "worlds")}
+    for frame in range(5):
+        x, v = batch.world_slices()
+        writers["batch"].write_batch(frame, batch.batch_frame_data(x, v))
+        writers["worlds"].write_worlds(frame, [batch.world_frame_data(x[w], v[w], w) for w in range(batch.world_count)])
+        batch.advance(1.0 / 25.0, 2)
+    for writer in writers.values():
+        writer.close(name)
+    files = {how: sorted(glob.glob(str(tmp_path / how / f"{name}.*chunk0*.usdc"))) for how in writers}
+    assert len(files["batch"]) == len(files["worlds"]) == 2
+    for a, b in zip(files["batch"], files["worlds"]):
+        assert open(a, "rb").read() == open(b, "rb").read(), os.path.basename(a)
+
+
 def test_lone_frame_data_derives_from_the_description(tmp_path):
     """A lone run's frame_data() is the description applied to its own state (the teapot's
     surface rows of the positions; the bounce's arrays passed through as the simulator holds them)."""

@@ -297,15 +297,25 @@ class BatchLayerWriter(UsdCacheWriter):
         self._end_frame_samples(frame)
 
     def _author_batch(self, t, plan):
-        """Author one frame of every world in the open chunk's layer (in one Sdf change block)."""
+        """Author one frame of every world in the open chunk's layer (in one Sdf change block),
+        attribute by attribute; a crate file's bytes do not depend on the order samples were set
+        in (checked in tests/test_sweep_store.py), so each attribute's samples of all worlds go in
+        one ``map`` over the worlds: no Python statement a world for what changes every frame."""
+        import collections
+        import itertools
+
         from pxr import Sdf
 
         chunk = self._chunk
         layer, last, pending = chunk.layer, chunk.last, 0
         with Sdf.ChangeBlock():
-            plan = [(attr, values, self._sdf_paths(text), text, make) for attr, values, text, make in plan]
-            for w in range(self.world_count):  # world by world, attribute by attribute: write_worlds' order
-                for attr, values, paths, text, make in plan:
+            for attr, values, text, make in plan:
+                paths = self._sdf_paths(text)
+                if not attr.on_change and isinstance(values, np.ndarray):
+                    collections.deque(map(layer.SetTimeSample, paths, itertools.repeat(t), map(make, values)), maxlen=0)
+                    pending += values.nbytes
+                    continue
+                for w in range(self.world_count):
                     value = values[w]
                     if attr.on_change:
                         prev = last.get(text[w])
