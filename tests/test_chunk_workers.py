@@ -49,6 +49,32 @@ def test_batch_layer_from_workers_is_byte_identical(tmp_path, fixed_run_id):
     assert rows[0] == rows[2]
 
 
+def test_workers_save_where_the_writer_saves(tmp_path, fixed_run_id):
+    """Layers saved every few hundred bytes (crate saves append, so where a save falls shapes the
+    file): five springs worlds x 9 frames in chunks of 4, the same files from 0 and 1 workers."""
+    from warpsim.scenes import get_scene
+    from warpsim.sweeps.sweep import make_batch
+    from warpsim.sweeps.usd import BatchLayerWriter
+
+    batch = make_batch(get_scene("springs"), [{"stiffness": 50.0 + 40.0 * w} for w in range(5)], device="cpu")
+    frames = []
+    for workers in (0, 1):
+        os.makedirs(tmp_path / f"w{workers}")
+        writer = BatchLayerWriter(tmp_path / f"w{workers}" / "s.usdc", batch.scene, 0, 5, 25.0, save_bytes=600,
+                                  chunk_size=4, workers=workers)
+        if not frames:
+            for _ in range(9):
+                x, v = batch.world_slices()
+                frames.append({p: {k: np.array(a, copy=True) for k, a in d.items()}
+                               for p, d in batch.batch_frame_data(x, v).items()})
+                batch.advance(1.0 / 25.0, 2)
+        for frame, data in enumerate(frames):
+            writer.write_batch(frame, data)
+        writer.close("springs")
+    same = files_equal(tmp_path / "w0", tmp_path / "w1")
+    assert len(same) == 6 and all(same.values()), same  # 3 chunks, index, manifest, root
+
+
 def test_lone_cache_from_a_worker_is_byte_identical(tmp_path, fixed_run_id):
     """A lone run's cache with values whose length changes every frame (kept as copies, not in
     shared memory) and an attribute written only when it changes: the same bytes either way."""

@@ -116,7 +116,12 @@ def author_chunk(job) -> tuple:
 
 
 def _author_samples(layer, job, values) -> int:
-    """Author every sample of ``job`` from ``values`` (per field: (F, N, ...) or ``[f][w]``)."""
+    """Author every sample of ``job`` from ``values`` (per field: (F, N, ...) or ``[f][w]``):
+    frame by frame (the incremental saves fall where the writer's own do), each field's samples
+    of all worlds in one ``map`` (a crate file's bytes do not depend on the order within a save)."""
+    import collections
+    import itertools
+
     from pxr import Sdf
 
     from .value_types import vt_maker
@@ -131,14 +136,22 @@ def _author_samples(layer, job, values) -> int:
     save_bytes = job["save_bytes"]
     for f, t in enumerate(times):
         t = float(t)
-        for w in range(n):  # world by world, field by field: the writer's own order
-            for k in range(len(fields)):
-                value = values[k][f][w]
-                if changes[k]:
-                    prev = last[k][w]
-                    if prev is not None and np.array_equal(prev, value):
-                        continue
-                    last[k][w] = np.array(value, copy=True)
+        for k in range(len(fields)):
+            frame_values = values[k][f]
+            if not changes[k]:
+                collections.deque(map(layer.SetTimeSample, paths[k], itertools.repeat(t),
+                                      map(makers[k], frame_values)), maxlen=0)
+                size = frame_values.nbytes if isinstance(frame_values, np.ndarray) else \
+                    sum(getattr(value, "nbytes", 8) for value in frame_values)
+                pending += size
+                total += size
+                continue
+            for w in range(n):
+                value = frame_values[w]
+                prev = last[k][w]
+                if prev is not None and np.array_equal(prev, value):
+                    continue
+                last[k][w] = np.array(value, copy=True)
                 layer.SetTimeSample(paths[k][w], t, makers[k](value))
                 size = getattr(value, "nbytes", 8)
                 pending += size
