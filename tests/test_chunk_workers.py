@@ -243,3 +243,42 @@ def test_thumbnail_workers_started_during_the_sweep_draw_the_same_pictures(tmp_p
     assert drawn == [None, pools[0]] and pools[0]._closed  # the early pool drew them, and was closed after
     same = files_equal(tmp_path / "w0" / "s.thumbs", tmp_path / "w2" / "s.thumbs")
     assert len(same) == 5 and all(same.values()), same
+
+
+def test_a_batch_layer_lists_its_own_chunks_in_groups_and_a_lone_cache_each(tmp_path, monkeypatch):
+    """A sweep's batch layer (its root carries every world's clips) indexes and lists the chunks it
+    authors itself in groups, as the workers' chunks: with the next listing far off, completed chunks
+    are renamed into place but neither indexed nor in the root until flush; a lone cache lists each
+    chunk as it completes."""
+    import json
+
+    import warpsim.usd.chunk_pool as chunk_pool
+    from warpsim.scenes import get_scene
+    from warpsim.sweeps.sweep import make_batch
+    from warpsim.sweeps.usd import BatchLayerWriter
+
+    monkeypatch.setattr(chunk_pool, "ROOT_EVERY", 1e9)  # after the first listing, the next one is never due
+    batch = make_batch(get_scene("bounce"), [{"restitution": r} for r in (0.3, 0.6)], device="cpu")
+    writer = BatchLayerWriter(tmp_path / "b.usdc", batch.scene, 0, 2, 25.0, chunk_size=2)
+    for frame in range(7):
+        x, v = batch.world_slices()
+        writer.write_batch(frame, batch.batch_frame_data(x, v))
+        batch.advance(1.0 / 25.0, 2)
+    index = tmp_path / "b.chunks.jsonl"
+
+    def indexed():
+        return [json.loads(line)["start"] for line in open(index, encoding="utf-8") if line.strip()]
+
+    on_disk = sorted(f for f in os.listdir(tmp_path) if ".chunk0" in f and ".tmp-" not in f)
+    assert len(on_disk) == 3  # frames 0-1, 2-3, 4-5 complete (6 is open under its temporary name)
+    assert [c[0] for c in writer.chunks] == indexed() == [0]  # only the first listed so far
+    assert writer.flush() == 6 and [c[0] for c in writer.chunks] == indexed() == [0, 2, 4, 6]
+    writer.close("bounce")
+
+    lone = UsdCacheWriter(str(tmp_path / "lone.usda"), fps=25.0, chunk_size=2)
+    lone.add_points("p", radius=0.01)
+    for frame in range(5):
+        points = np.full((3, 3), 0.1 * frame, np.float32)
+        lone.write_frame(frame, {"p": {"points": points, "velocities": np.zeros_like(points)}})
+        assert [c[0] for c in lone.chunks] == [0, 2][:frame // 2]  # each listed as it completes
+    lone.close()
