@@ -142,6 +142,12 @@ def test_panel_ranks_negates_and_hides(root):
         assert 0 < len(inside) < 9
         assert query.matches == sorted(inside, key=lambda w: (answer.entry[w], w))  # first entry first
         buttons = [slot["button"] for slot in query._slots]
+        # paused first: the playback loop refreshes the worlds' visibility with every frame it draws
+        # (counted here, it failed the check below on a loaded machine); its last frame drawn and shown
+        viewer.playing = False
+        _wait(lambda: viewer._shown == viewer.index, what="the paused frame drawn")
+        with viewer._lock:  # (GalleryViewer.show draws and refreshes under this lock)
+            pass
         refreshed = []
         refresh = viewer._refresh
         viewer._refresh = lambda *a, **k: (refreshed.append(1), refresh(*a, **k))
