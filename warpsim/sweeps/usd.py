@@ -115,11 +115,7 @@ class BatchLayerWriter(UsdCacheWriter):
     one that carries them), and a process killed at any moment leaves a layer holding every
     completed chunk. ``resume_frame``: keep the completed chunks before that frame and go on.
     ``workers``: processes authoring the chunk files while the worlds step on
-    (:class:`warpsim.usd.writer.UsdCacheWriter`; the same bytes; 0: this process). Completed chunks
-    are indexed and listed in groups (:attr:`list_in_groups`): the root carries every world's clips
-    and is rewritten whole each time (0.4 s at 2,000 worlds, seconds at 20,000)."""
-
-    list_in_groups = True
+    (:class:`warpsim.usd.writer.UsdCacheWriter`; the same bytes; 0: this process)."""
 
     def __init__(self, path, scene, first_world, world_count, fps, save_bytes=64 << 20, *, chunk_size=24,
                  resume_frame=None, durable=True, workers=0):

@@ -19,10 +19,9 @@ from .value_types import pxr_modules as _pxr
 __all__ = ["ROOT_EVERY", "WorkerChunks"]
 
 ROOT_EVERY = 0.0
-"""Seconds at least between two rewrites of the root while worker processes write the chunks (or
-the writer lists its own in groups: ``UsdCacheWriter.list_in_groups``), besides eight times the
-last rewrite's time (a root of 2,000 worlds takes 0.4 s, one of a few worlds a millisecond: its
-chunks are listed as they complete): completed chunks are listed in groups."""
+"""Seconds at least between two rewrites of the root while worker processes write the chunks,
+besides eight times the last rewrite's time (a root of 2,000 worlds takes 0.4 s, one of a few
+worlds a millisecond: its chunks are listed as they complete): completed chunks are listed in groups."""
 
 
 class WorkerChunks:

@@ -16,12 +16,7 @@ Crash safety: a chunk is written under a temporary name (saved incrementally, so
 about one frame, not the chunk), synced and then ``os.replace``-d into place; only then is the
 small root layer rewritten (temporary name + ``os.replace``) to list it. A process killed at any
 moment (SIGKILL included) therefore leaves a root layer that opens and holds every completed
-chunk. A writer with :attr:`UsdCacheWriter.list_in_groups` (a sweep's batch layer, whose root
-carries every world's clips and takes up to seconds to write) lists completed chunks in groups,
-at most every eight root writes' time (:mod:`warpsim.usd.chunk_pool`): a kill can leave the
-chunks of that last stretch renamed but not listed (the root still opens, holding the chunks
-before them), and ``--resume`` removes and rewrites them. ``flatten=True`` turns the result into
-one self-contained ``.usdc`` at :meth:`close`.
+chunk. ``flatten=True`` turns the result into one self-contained ``.usdc`` at :meth:`close`.
 
 Conventions: the frame index is the time code; ``timeCodesPerSecond = framesPerSecond = fps``;
 ``startTimeCode``/``endTimeCode`` track the completed frames; ``upAxis = Y``; ``metersPerUnit = 1``;
@@ -47,7 +42,6 @@ import glob
 import operator
 import os
 import secrets
-import time
 
 import numpy as np
 
@@ -204,10 +198,6 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
     warpsim ``State``. Every time-varying prim needs data in every frame.
     """
 
-    list_in_groups = False
-    """Whether chunks this process authors are indexed and listed in groups (at most every eight
-    root writes' time) instead of each as it completes; the workers' chunks always are."""
-
     def __init__(self, path, fps=60.0, chunk_size=24, flatten=False, *, resume_frame=None, root_prim="World",
                  durable=True, save_bytes=64 << 20, run_id=None, workers=0):
         path = os.path.abspath(os.fspath(path))
@@ -319,7 +309,7 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
         far is then in the root layer. Returns the last completed frame (None if none)."""
         if self._chunk is not None:
             self._finish_chunk()
-        if self._inflight or self._unlisted:
+        if self._inflight:
             self._reap(wait_all=True)
         return self.chunks[-1][1] if self.chunks else None
 
@@ -534,10 +524,16 @@ class UsdCacheWriter(WorkerChunks, PrimSink):
         if not chunk.layer.Save():
             raise OSError(f"could not save {chunk.tmp_path}")
         chunk.layer = None  # release the layer (and its file mapping) before renaming
-        self._replace(chunk.tmp_path, chunk.final_path, sync_folder=False)  # (synced once for the group listed)
-        self._unlisted.append(chunk)
-        if not self.list_in_groups or time.monotonic() >= self._root_due:
-            self._list_completed()  # indexed and listed (in groups: as the workers' chunks, WorkerChunks)
+        self._replace(chunk.tmp_path, chunk.final_path)
+        self._target = self._index_file
+        chunk_index.append_record(self._index_file, chunk_index.record(chunk.final_path, chunk.start, chunk.end,
+                                                                        chunk.stats, self.run_id), self.durable)
+        self.chunks.append([chunk.start, chunk.end, os.path.basename(chunk.final_path)])
+        try:
+            self._write_root()
+        except BaseException:
+            self.chunks.pop()  # the root on disk still lists the chunks before this one
+            raise
 
     # ------------------------------------------------------------------ layers
     def _declare_specs(self, layer, manifest):
