@@ -12,10 +12,8 @@ compared byte for byte.
 from __future__ import annotations
 
 import argparse
-import collections
 import filecmp
 import glob
-import itertools
 import os
 import tempfile
 import time
@@ -58,6 +56,7 @@ def _usd_floor(writer_dynamic, frames, world_count):
     untimed) on a layer with the same attribute paths; and how many attributes that is."""
     from pxr import Sdf
 
+    from warpsim.usd.chunk_author import set_frame_samples
     from warpsim.usd.frame_arrays import world_samples
     from warpsim.usd.value_types import vt_maker
 
@@ -83,8 +82,7 @@ def _usd_floor(writer_dynamic, frames, world_count):
     with Sdf.ChangeBlock():
         for f, fields in enumerate(per_frame, start=1):
             for field_paths, make, values in fields:
-                collections.deque(map(layer.SetTimeSample, field_paths, itertools.repeat(float(f)), map(make, values)),
-                                  maxlen=0)
+                set_frame_samples(layer, field_paths, f, make, values)
     return time.process_time() - t0, len(paths)
 
 

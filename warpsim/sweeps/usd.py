@@ -298,13 +298,11 @@ class BatchLayerWriter(UsdCacheWriter):
 
     def _author_batch(self, t, plan):
         """Author one frame of every world in the open chunk's layer (in one Sdf change block),
-        attribute by attribute; a crate file's bytes do not depend on the order samples were set
-        in (checked in tests/test_sweep_store.py), so each attribute's samples of all worlds go in
-        one ``map`` over the worlds: no Python statement a world for what changes every frame."""
-        import collections
-        import itertools
-
+        attribute by attribute: what changes every frame for all worlds at once
+        (:func:`warpsim.usd.chunk_author.set_frame_samples`)."""
         from pxr import Sdf
+
+        from ..usd.chunk_author import set_frame_samples
 
         chunk = self._chunk
         layer, last, pending = chunk.layer, chunk.last, 0
@@ -312,7 +310,7 @@ class BatchLayerWriter(UsdCacheWriter):
             for attr, values, text, make in plan:
                 paths = self._sdf_paths(text)
                 if not attr.on_change and isinstance(values, np.ndarray):
-                    collections.deque(map(layer.SetTimeSample, paths, itertools.repeat(t), map(make, values)), maxlen=0)
+                    set_frame_samples(layer, paths, t, make, values)
                     pending += values.nbytes
                     continue
                 for w in range(self.world_count):

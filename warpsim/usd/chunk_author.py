@@ -12,11 +12,13 @@ Imports no Warp and no solver (a worker starts fast): NumPy, ``pxr`` and
 """
 from __future__ import annotations
 
+import collections
+import itertools
 import os
 
 import numpy as np
 
-__all__ = ["author_chunk", "chunk_job", "copy_specs", "prepare_specs", "specs_source"]
+__all__ = ["author_chunk", "chunk_job", "copy_specs", "prepare_specs", "set_frame_samples", "specs_source"]
 
 
 def chunk_job(tmp_path, specs, fields, times, blocks, save_bytes, durable) -> dict:
@@ -115,13 +117,17 @@ def author_chunk(job) -> tuple:
     return file_digest(tmp)
 
 
+def set_frame_samples(layer, paths, time, make, values) -> None:
+    """``layer.SetTimeSample(paths[w], time, make(values[w]))`` for every world ``w`` in one ``map``
+    (no Python statement a world); a crate file's bytes do not depend on the order samples were set
+    in within a save (tests/test_sweep_store.py, tests/test_chunk_workers.py)."""
+    collections.deque(map(layer.SetTimeSample, paths, itertools.repeat(float(time)), map(make, values)), maxlen=0)
+
+
 def _author_samples(layer, job, values) -> int:
     """Author every sample of ``job`` from ``values`` (per field: (F, N, ...) or ``[f][w]``):
     frame by frame (the incremental saves fall where the writer's own do), each field's samples
-    of all worlds in one ``map`` (a crate file's bytes do not depend on the order within a save)."""
-    import collections
-    import itertools
-
+    of all worlds at once (:func:`set_frame_samples`)."""
     from pxr import Sdf
 
     from .value_types import vt_maker
@@ -139,8 +145,7 @@ def _author_samples(layer, job, values) -> int:
         for k in range(len(fields)):
             frame_values = values[k][f]
             if not changes[k]:
-                collections.deque(map(layer.SetTimeSample, paths[k], itertools.repeat(t),
-                                      map(makers[k], frame_values)), maxlen=0)
+                set_frame_samples(layer, paths[k], t, makers[k], frame_values)
                 size = frame_values.nbytes if isinstance(frame_values, np.ndarray) else \
                     sum(getattr(value, "nbytes", 8) for value in frame_values)
                 pending += size

@@ -87,13 +87,9 @@ class Drawer:
         """Draw one curve in ``thin`` of curve sets longer than THIN_SEGMENTS segments (and take clicks
         on those drawn: their ribbons are most of what a frame sends)."""
         self._sphere = icosphere(1)
-        self._drawing = threading.RLock()
+        self._drawing = threading.Lock()
 
     def clear(self):
-        with self._drawing:
-            self._clear()
-
-    def _clear(self):
         for node, _ in self.nodes.values():
             for h in node if isinstance(node, list) else [node]:
                 h.remove()
@@ -105,7 +101,7 @@ class Drawer:
         """Show ``items`` (dynamic) and, after a rebuild (new ``version``), ``static``."""
         with self._drawing, self.server.atomic():
             if version != self.version:
-                self._clear()
+                self.clear()
                 self.version = version
                 for name, item in static.items():
                     if len(item.points) and len(item.triangles):
