@@ -15,6 +15,15 @@ line: frame, vertex and edge contacts (speculative ones included; ``--integrator
 contact listed), the energy balance's gain so far (checked every frame), kinetic energy [J], fastest
 particle [m/s], mean height of all particles [m], CG iterations of the last step, wall time [s], the
 mean height of each torus (up to 4), then ``depth`` [mm] and ``crossings`` on checked frames.
+
+``--profile-every N`` (CUDA) times every kernel of one frame in N (``wp.timing_begin``) and prints, at the end, the
+share of the GPU's activity in those frames spent in the contact search (the kernels of ``kernels.vbd_contact`` and
+``kernels.soft_contact``, and the BVH's refits and rebuilds; the contact energies inside VBD's colour sweeps count as
+the solve) and the frames of 1/60 s a wall second over the frames not checked or profiled; ``--print-every N``
+prints one frame's line in N (checked frames always):
+
+    python benchmarks/check_heap.py --device cuda:0 --count 100 --segments 50 --sides 40 --integrator vbd \
+        --dt 1/240 --frames 600 --check-every 100 --profile-every 25 --print-every 25
 """
 
 import argparse
@@ -27,7 +36,18 @@ import numpy as np
 import warp as wp
 from bench_donuts import add_heap_arguments
 
+from warpsim.kernels import soft_contact, vbd_contact
 from warpsim.scenes import get_scene
+
+CONTACT_KERNELS = {k.key for module in (soft_contact, vbd_contact) for k in vars(module).values()
+                   if isinstance(k, wp.Kernel)}
+"""Names of the contact search's kernels (``--profile-every``)."""
+
+
+def is_contact(name: str) -> bool:
+    """Whether a timed activity of ``wp.timing_end`` belongs to the contact search (its kernels, BVH work)."""
+    name = (name or "").split("(")[0].strip()
+    return name in CONTACT_KERNELS or "bvh" in name.lower()
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 # the tests' NumPy oracles
@@ -41,6 +61,10 @@ def main():
     parser.add_argument("--dt", default="1/240", help="step [s], e.g. 1/240 (a frame of 1/60 s is split into steps)")
     parser.add_argument("--frames", type=int, default=40, help="frames of 1/60 s")
     parser.add_argument("--check-every", type=int, default=5, help="check depth and crossings every N frames (0: never)")
+    parser.add_argument("--profile-every", type=int, default=0, help="CUDA: time the kernels of one frame in N and "
+                        "print the contact search's share of the GPU's activity at the end (0: never)")
+    parser.add_argument("--print-every", type=int, default=1, help="print one frame's line in N (checked frames "
+                        "always)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="another donuts parameter (repeatable), e.g. contact_iterations=8")
     args = parser.parse_args()
@@ -53,9 +77,22 @@ def main():
     scene = cls(params, device=wp.get_device(args.device))
     steps = round(1.0 / 60.0 / dt)
     per_torus = scene.torus.particle_count
+    device = scene.sim.model.device
+    profiled = []  # (contact ms, all ms) of each profiled frame
+    plain = [0, 0.0]  # frames neither checked nor profiled, their wall seconds
     t0 = time.perf_counter()
     for frame in range(args.frames):
+        profile = bool(args.profile_every and device.is_cuda and frame % args.profile_every == 0)
+        checked = bool(args.check_every and frame % args.check_every == args.check_every - 1)
+        if profile:
+            wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        wp.synchronize_device(device)
+        start = time.perf_counter()
         scene.advance(1.0 / 60.0, steps)
+        if profile:
+            results = wp.timing_end()
+            profiled.append((sum(r.elapsed for r in results if is_contact(r.name)),
+                             sum(r.elapsed for r in results)))
         sim, contact = scene.sim, scene.contact
         sim.check_frame(1.0 / 60.0)  # the energy balance (raises past its margin)
         x = sim.state.positions.numpy()
@@ -68,11 +105,24 @@ def main():
                 f" t {time.perf_counter() - t0:.1f}")
         if args.count <= 4:
             line += " tori " + " ".join(f"{x[o:o + per_torus, 1].mean():.3f}" for o in scene.offsets)
-        if args.check_every and frame % args.check_every == args.check_every - 1:
+        if not profile and not checked:
+            plain[0] += 1
+            plain[1] += time.perf_counter() - start  # the frame and its energy check and read-backs
+        if checked:
             crossings = edges_through_other_bodies(x, scene.bodies)
             line += (f" depth {deepest_vertex(x, scene.bodies) * 1e3:.2f}mm"
                      f" crossings {sum(n for *_, n in crossings)}")
-        print(line, flush=True)
+        if checked or frame % max(args.print_every, 1) == 0 or frame == args.frames - 1:
+            print(line, flush=True)
+    if profiled:
+        contact_ms, all_ms = (sum(column) for column in zip(*profiled))
+        print(f"contact search over {len(profiled)} profiled frames (one in {args.profile_every}): "
+              f"{contact_ms / len(profiled):.2f} of {all_ms / len(profiled):.2f} ms of GPU activity a frame, "
+              f"{contact_ms / all_ms:.1%} (per profiled frame: "
+              f"{', '.join(f'{c / a:.0%}' for c, a in profiled)})")
+    if plain[0]:
+        print(f"{plain[0]} frames neither checked nor profiled: {plain[0] / plain[1]:.2f} frames of 1/60 s a wall "
+              f"second (each with its energy check and read-backs)")
 
 
 if __name__ == "__main__":
