@@ -93,6 +93,8 @@ def main():
             results = wp.timing_end()
             profiled.append((sum(r.elapsed for r in results if is_contact(r.name)),
                              sum(r.elapsed for r in results)))
+            print(f"{frame} profiled: contact search {profiled[-1][0]:.2f} of {profiled[-1][1]:.2f} ms of GPU activity "
+                  f"({profiled[-1][0] / max(profiled[-1][1], 1e-9):.1%})", flush=True)
         sim, contact = scene.sim, scene.contact
         sim.check_frame(1.0 / 60.0)  # the energy balance (raises past its margin)
         x = sim.state.positions.numpy()
