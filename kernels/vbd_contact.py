@@ -592,6 +592,20 @@ def lane_start(begin: int, lane: int, lanes: int) -> int:
 
 
 @wp.func
+def same_colour(colour: wp.array(dtype=int), own: int, a: int, b: int, c: int) -> float:
+    """1 + how many of particles a, b, c (-1: none) have colour ``own``: the pair's Hessian block is scaled by it
+    (``contact_force_hessian``)."""
+    n = float(1.0)
+    if a >= 0 and colour[a] == own:
+        n += 1.0
+    if b >= 0 and colour[b] == own:
+        n += 1.0
+    if c >= 0 and colour[c] == own:
+        n += 1.0
+    return n
+
+
+@wp.func
 def contact_force_hessian(
     p: int, x: wp.vec3, lane: int, lanes: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
     slot: wp.array(dtype=int),
@@ -603,7 +617,7 @@ def contact_force_hessian(
     ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
     vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
     planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float, stiffness: float,
-    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3),
+    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), colour: wp.array(dtype=int),
 ):
     """Sum of the contact forces [N] and Hessian blocks [N/m] on particle p at position ``x`` (the
     other particles at ``q``; ``q0`` the step's start): its vertex-triangle pairs as the vertex
@@ -615,12 +629,16 @@ def contact_force_hessian(
     listed pair where p's kept pairs did not fit. A kept pair at distance D [m] at the search whose two sides
     have moved by less than D - ``radius`` (each side: its largest corner displacement from ``reference``,
     the positions of the search) is still farther apart than ``radius`` and adds nothing: skipped before its
-    nearest points (``still_apart``; the same slack as ``keep_near_pairs``), so the sums keep their bits."""
+    nearest points (``still_apart``; the same slack as ``keep_near_pairs``), so the sums keep their bits. Each
+    pair's Hessian block is scaled by 1 + the number of the pair's other particles of p's colour (``colour``,
+    ``same_colour``: they are solved at the same time as p, ``kernels.vbd``'s docstring); planes and spheres are
+    static."""
     f = wp.vec3()
     H = wp.mat33()
     s = slot[p]
     if s >= 0:
         dx = x - q0[p]
+        own_colour = colour[p]
         if near_end[3 * s] >= 0:
             base = s * near_capacity
             reach = radius + 1.0e-3 * radius + 1.0e-5 * wp.length(reference[p])
@@ -634,7 +652,7 @@ def contact_force_hessian(
                         continue
                 fc, Hc = vertex_triangle_pair(x, dx, t, q, q0, tri, radius, stiffness, friction, friction_eps)
                 f += fc
-                H += Hc
+                H += same_colour(colour, own_colour, tri[3 * t], tri[3 * t + 1], tri[3 * t + 2]) * Hc
             xs = wp.mat33()
             ds = wp.mat33()
             centre = wp.vec3()
@@ -659,7 +677,8 @@ def contact_force_hessian(
                 fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[a], q, q0, radius, stiffness,
                                               friction, friction_eps)
                 f += fc
-                H += Hc
+                H += same_colour(colour, own_colour, tv_list[a], tri[3 * t + (corner + 1) % 3],
+                                 tri[3 * t + (corner + 2) % 3]) * Hc
             built = int(-1)
             e = int(-1)
             lo = -1 - capacity
@@ -679,24 +698,26 @@ def contact_force_hessian(
                 fc, Hc = edge_edge_pair(xs, ds, centre, extent, corner, g, q, q0, edges, radius, stiffness,
                                         friction, friction_eps)
                 f += fc
-                H += Hc
+                H += same_colour(colour, own_colour, edges[2 * e + corner], edges[2 * g], edges[2 * g + 1]) * Hc
         else:
             done = vt_count[s]  # entries dealt so far (lane_start)
             for n in range(lane, vt_count[s], lanes):
-                fc, Hc = vertex_triangle_pair(x, dx, vt_list[s * capacity + n], q, q0, tri, radius, stiffness, friction,
-                                              friction_eps)
+                t = vt_list[s * capacity + n]
+                fc, Hc = vertex_triangle_pair(x, dx, t, q, q0, tri, radius, stiffness, friction, friction_eps)
                 f += fc
-                H += Hc
+                H += same_colour(colour, own_colour, tri[3 * t], tri[3 * t + 1], tri[3 * t + 2]) * Hc
             for a in range(tri_offsets[p], tri_offsets[p + 1]):
                 t = tris[a]
                 first = lane_start(done, lane, lanes) - done
                 if first < tv_count[t]:  # the triangle's corners only for a lane with one of its pairs
                     xs, ds, centre, extent, corner = corner_triangle(p, x, t, q, q0, tri)
                     for n in range(first, tv_count[t], lanes):
-                        fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, tv_list[t * capacity + n], q,
-                                                      q0, radius, stiffness, friction, friction_eps)
+                        v = tv_list[t * capacity + n]
+                        fc, Hc = triangle_vertex_pair(xs, ds, centre, extent, corner, v, q, q0, radius, stiffness,
+                                                      friction, friction_eps)
                         f += fc
-                        H += Hc
+                        H += same_colour(colour, own_colour, v, tri[3 * t + (corner + 1) % 3],
+                                         tri[3 * t + (corner + 2) % 3]) * Hc
                 done += tv_count[t]
             for a in range(edge_offsets[p], edge_offsets[p + 1]):
                 e = edge_list[a]
@@ -704,10 +725,11 @@ def contact_force_hessian(
                 if first < ee_count[e]:
                     xs, ds, centre, extent, end = edge_with(p, x, e, q, q0, edges)
                     for n in range(first, ee_count[e], lanes):
-                        fc, Hc = edge_edge_pair(xs, ds, centre, extent, end, ee_list[e * capacity + n], q, q0, edges,
-                                                radius, stiffness, friction, friction_eps)
+                        g = ee_list[e * capacity + n]
+                        fc, Hc = edge_edge_pair(xs, ds, centre, extent, end, g, q, q0, edges, radius, stiffness,
+                                                friction, friction_eps)
                         f += fc
-                        H += Hc
+                        H += same_colour(colour, own_colour, edges[2 * e + end], edges[2 * g], edges[2 * g + 1]) * Hc
                 done += ee_count[e]
     for k in range(lane, planes.shape[0], lanes):
         plane = planes[k]

@@ -212,7 +212,10 @@ class VBD(Integrator):
         self.model = model
         ensure_spring_adjacency(model)
         self._recorded_key: tuple | None = None
-        offsets, particles = colour_groups(self.colours(model))
+        colours = self.colours(model)
+        offsets, particles = colour_groups(colours)
+        self.particle_colour = wp.array(colours, dtype=int, device=d)
+        """Colour of each particle (N,): the contact's Hessian blocks count the pair's particles of the same colour."""
         self.colour_offsets = [int(o) for o in offsets]
         """Start of each colour in ``colour_particles`` (host list, C + 1)."""
         self.colour_particles = wp.array(particles, dtype=int, device=d)
@@ -287,7 +290,7 @@ class VBD(Integrator):
             self._sweep.append(solve(max(count, previous), [
                 self.colour_particles, start, count, before, previous, buffers[c % 2], self.q0, self.y,
                 m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs, self._reference,
-                self._bound, buffers[(c + 1) % 2]]))
+                self._bound, self.particle_colour, buffers[(c + 1) % 2]]))
         last = self.colour_count - 1
         if last >= 0:
             self._sweep.append(record(K.commit_colour, offsets[last + 1] - offsets[last], [
