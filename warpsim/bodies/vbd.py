@@ -43,10 +43,12 @@ triangle. Since d' > 0 for every pair, no vertex is ever deeper than the thickne
 
 The same positions give the contact pairs: a pair farther than r_q at a search closes by at most
 2 b_max before the next, so it stays beyond r_c and exerts nothing; every pair that can push is
-listed. A search within the step may be skipped (every particle still within ``renew_fraction`` of its
-bound from its reference, nothing of its guess cut): the bounds and lists of the last search then hold
-until the next one that runs, as the claim above needs (it asks only that every update until the next
-search be clipped to the last search's bounds). Of the listed pairs the sweeps gather only those that can
+listed. A search may be skipped, the one opening a step as those within it (every particle still within
+``renew_fraction`` of its bound from its reference, nothing of its guess cut): the bounds and lists of the last
+search then hold until the next one that runs, as the claim above needs (it asks only that every update until the
+next search be clipped to the last search's bounds, which the initial guess of the next step is too; a position
+set from outside, a reset or a world's new state, farther than that from the reference makes the next search
+run). The first step's search always runs. Of the listed pairs the sweeps gather only those that can
 still come within r_c: a pair at distance D at the search whose sides' bounds are b_a and b_b stays at least
 D - b_a - b_b apart (as above), so one with D - b_a - b_b >= r_c exerts nothing until the next search and is left out
 (``kernels.vbd_contact.keep_near_pairs``; the sums, hence the bits, are those of the whole lists). Everything is gathered per particle in fixed order (CSR rows, per-query lists written by
@@ -91,10 +93,10 @@ class VBD(Integrator):
         detect_every: iterations between contact searches within a step (a search always opens the
             step); 0: only that one. Each search lets a particle move another b_max at most.
         adaptive_guess: VBD's adaptive initial guess (off: y, the inertial target).
-        renew_fraction: a search within the step (every ``detect_every`` iterations) runs only when some
-            particle has moved more than this fraction of its bound since the last search or has some of its
-            initial guess cut (decided on the device: a heap at rest skips them); None: always. The search
-            opening a step always runs.
+        renew_fraction: a search (opening a step, or within it every ``detect_every`` iterations) runs only when
+            some particle has moved more than this fraction of its bound since the last search or has some of its
+            initial guess cut (decided on the device: a heap at rest skips them); None: always. The first step's
+            opening search always runs.
         lanes: threads that share one particle's sums in a colour solve (B; the kernel
             ``kernels.vbd.solve_colour_lanes``: each lane sums every B-th spring and contact list entry, the B
             partial forces and Hessians added by a fixed-order tile reduction, so runs repeat bit for bit);
@@ -212,6 +214,8 @@ class VBD(Integrator):
         self.model = model
         ensure_spring_adjacency(model)
         self._recorded_key: tuple | None = None
+        self._searched_once = False
+        """Whether a contact search has run (the first step's always runs: no bound holds before it)."""
         colours = self.colours(model)
         offsets, particles = colour_groups(colours)
         self.particle_colour = wp.array(colours, dtype=int, device=d)
@@ -318,8 +322,12 @@ class VBD(Integrator):
         self.f_ext.zero_()
         for force in self._other_forces:
             force.eval(q, qd, time, 0.0, self.f_ext)
-        if self.contact is not None:
-            self.contact.search(q)
+        if self.contact is not None:  # the first search always runs, then as those within the step (docstring)
+            if self.renew_fraction is None or not self._searched_once:
+                self.contact.search(q)
+                self._searched_once = True
+            else:
+                self.contact.search(q, self.deficit, self.renew_fraction)
         self._predict.launch()
         chebyshev = self.chebyshev_rho > 0.0
         if chebyshev:
