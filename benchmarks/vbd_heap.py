@@ -36,7 +36,8 @@ from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies  
 
 
 def searches_per_step(integrator) -> int:
-    """Contact searches a VBD step makes (one opens it, one every ``detect_every`` iterations after)."""
+    """Contact searches a VBD step makes at most (one opens it, one every ``detect_every`` iterations after; those
+    the device finds unneeded are skipped, ``ws.VBD``'s ``renew_fraction``)."""
     every = integrator.detect_every
     return 1 + ((integrator.iterations - 1) // every if every else 0)
 

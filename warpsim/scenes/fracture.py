@@ -452,7 +452,8 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0, extra_
                                 "4 with semi_implicit_euler)")),
     "newton_iterations": (4, "implicit_euler only: Newton iterations per step (1: linearly implicit, no host read-back)"),
     "vbd_detect_every": (5, ("vbd only: iterations between contact searches inside a step (a search opens "
-                             "every step; each lets a vertex move at most vbd_max_displacement more)")),
+                             "every step; each lets a vertex move at most vbd_max_displacement more; at rest "
+                             "they are skipped)")),
     "vbd_max_displacement": (0.0, ("vbd only: the most a vertex moves between two contact searches [m] (0: the "
                                    "thickness); the search radius is thickness + 2 x this")),
     "vbd_chebyshev_rho": (0.0, ("vbd only: spectral radius estimate of the Chebyshev acceleration in [0, 1) (0: "
