@@ -20,7 +20,10 @@ mean height of each torus (up to 4), then ``depth`` [mm] and ``crossings`` on ch
 share of the GPU's activity in those frames spent in the contact search (the kernels of ``kernels.vbd_contact`` and
 ``kernels.soft_contact``, and the BVH's refits and rebuilds; the contact energies inside VBD's colour sweeps count as
 the solve) and the frames of 1/60 s a wall second over the frames not checked or profiled; ``--print-every N``
-prints one frame's line in N (checked frames always):
+prints one frame's line in N (checked frames always). ``--oracle warp`` (the default) counts the crossings on the
+heap's device (``heap_oracles.py``: the NumPy oracle's count in seconds) and computes the depth with the NumPy
+oracle only where an edge crossed (two closed surfaces of tori that no edge of either crosses cannot hold a vertex
+of one inside the other); ``--oracle numpy`` runs the tests' oracles:
 
     python benchmarks/check_heap.py --device cuda:0 --count 100 --segments 50 --sides 40 --integrator vbd \
         --dt 1/240 --frames 600 --check-every 100 --profile-every 25 --print-every 25
@@ -35,6 +38,7 @@ from fractions import Fraction
 import numpy as np
 import warp as wp
 from bench_donuts import add_heap_arguments
+from heap_oracles import edges_through_other_bodies_count
 
 from warpsim.kernels import soft_contact, vbd_contact
 from warpsim.scenes import get_scene
@@ -65,6 +69,9 @@ def main():
                         "print the contact search's share of the GPU's activity at the end (0: never)")
     parser.add_argument("--print-every", type=int, default=1, help="print one frame's line in N (checked frames "
                         "always)")
+    parser.add_argument("--oracle", default="warp", choices=["warp", "numpy"], help="the crossing check: warp "
+                        "(heap_oracles.py on the heap's device, the NumPy oracle's count; the depth then only where "
+                        "an edge crossed) or numpy (the tests' oracles, minutes a check at 100 tori)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="another donuts parameter (repeatable), e.g. contact_iterations=8")
     args = parser.parse_args()
@@ -110,10 +117,14 @@ def main():
         if not profile and not checked:
             plain[0] += 1
             plain[1] += time.perf_counter() - start  # the frame and its energy check and read-backs
-        if checked:
+        if checked and args.oracle == "numpy":
             crossings = edges_through_other_bodies(x, scene.bodies)
             line += (f" depth {deepest_vertex(x, scene.bodies) * 1e3:.2f}mm"
                      f" crossings {sum(n for *_, n in crossings)}")
+        elif checked:
+            crossed = edges_through_other_bodies_count(x, scene.bodies, device)
+            depth = f"{deepest_vertex(x, scene.bodies) * 1e3:.2f}mm" if crossed else "- (no edge crossed)"
+            line += f" depth {depth} crossings {crossed}"
         if checked or frame % max(args.print_every, 1) == 0 or frame == args.frames - 1:
             print(line, flush=True)
     if profiled:

@@ -629,3 +629,38 @@ def test_implicit_contact_coupling_blocks_are_the_exact_jacobian():
         Kdx = np.einsum("pij,pj->pi", D, dx)
         np.add.at(Kdx, R, np.einsum("tij,tj->ti", V, dx[C]))
         assert np.abs(Kdx - df).max() <= 0.02 * np.abs(df).max(), (np.abs(Kdx - df).max(), np.abs(df).max())
+
+
+def test_the_warp_crossing_check_counts_what_the_numpy_oracle_counts():
+    """``benchmarks/heap_oracles.py`` (the heap's crossing check on a Warp device, for heaps where the NumPy
+    oracle takes minutes): three tori pushed into one another at random turns, and the scene's tori apart, give
+    the NumPy oracle's count, summed over the body pairs (edges of each body through another's triangles)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "heap_oracles.py"
+    spec = importlib.util.spec_from_file_location("heap_oracles", path)
+    oracles = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(oracles)
+    cls = get_scene("donuts")
+    scene = cls(cls.resolve_params({"count": 3, **HEAP}), device="cpu")
+    x0 = scene.sim.state.positions.numpy().astype(np.float64)
+    assert oracles.edges_through_other_bodies_count(x0, scene.bodies, "cpu") == 0
+    assert sum(n for *_, n in edges_through_other_bodies(x0, scene.bodies)) == 0
+    rng = np.random.default_rng(7)
+    totals = []
+    for _ in range(3):
+        x = x0.copy()
+        for body in scene.bodies:
+            index = np.arange(body.particle_start, body.particle_start + body.particle_count)
+            centre = x[index].mean(0)
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            angle = rng.uniform(0.0, np.pi)
+            k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+            turn = np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * k @ k
+            x[index] = (x[index] - centre) @ turn.T + rng.normal(scale=0.02, size=3)  # all about the origin
+        expected = sum(n for *_, n in edges_through_other_bodies(x, scene.bodies))
+        assert oracles.edges_through_other_bodies_count(x, scene.bodies, "cpu") == expected
+        totals.append(expected)
+    assert min(totals) > 0  # they did pass through one another
