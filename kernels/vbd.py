@@ -247,7 +247,9 @@ which sum its springs and contact entries as ``solve_colour_lanes``'s lanes do; 
 a (g, lanes) tile, are added along each row by ``wp.tile_sum(axis=1)`` (a fixed order for given g and lanes: no
 atomics) and read back from shared memory by the particle's lanes. Keys: ``GROUPS``. For a colour of many particles
 (a heap of 1,000 tori: 190,000 a colour), where a warp a particle leaves most lanes without a spring and a block of
-32 threads fills half a multiprocessor at most (32 blocks each)."""
+32 threads fills half a multiprocessor at most (32 blocks each). Measured on an H200 (benchmarks/RESULTS.md, sixth
+session): at 12 tori no grouping beat a warp a particle, at 100 tori the best (4 x 16) saved 8 % of a sweep: the
+particles' own work, not the blocks a multiprocessor, sets a sweep's time, so ``ws.VBD`` keeps a warp a particle."""
 
 
 @wp.kernel
