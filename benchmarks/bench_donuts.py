@@ -32,9 +32,8 @@ the BVH search and then switches (the list is slow while tori fall).
 ``--integrator vbd --dt 0.0041666667`` steps the heap by ``ws.VBD`` (vertex block descent, contact inside the
 descent; ``benchmarks/vbd_heap.py``: step, contact share, frames/s, deepest vertex, edges through triangles;
 ``--reference-integrator fast_mass_spring`` times that integrator on the same heap in the same run;
-``--vbd-lanes 1,32,8x4`` settles with the first layout of ``ws.VBD``'s ``lanes`` (and ``group``) and times the colour sweep
-and the step with each on the same heap: 1 a thread a particle, 32 a warp a particle, 8x4 8 particles of 4 lanes a
-block; ``--cpu-blocks`` lets the CPU run
+``--vbd-lanes 1,32`` settles with the first value of ``ws.VBD``'s ``lanes`` and times the colour sweep and the step
+with each on the same heap: 1 a thread a particle, 32 a warp a particle; ``--cpu-blocks`` lets the CPU run
 lanes as Warp's cooperative fibers, ``wp.config.enable_cpu_blocks``, else a CPU block is one lane).
 
 ``--profile`` prints the kernel table of ``--steps`` steps (``wp.timing_begin``/``end``), host read-backs
@@ -205,10 +204,10 @@ def main():
                         "iterations a step; vbd: colour sweeps a step (default: the scene's)")
     parser.add_argument("--reference-integrator", default=None, help="vbd: also build, settle and time the heap with "
                         "this integrator (e.g. fast_mass_spring) in the same run")
-    parser.add_argument("--vbd-lanes", default=None, metavar="[G]xB[,...]", help="vbd: threads a particle in "
-                        "the colour solve (ws.VBD lanes; 1: a thread a particle), GxB: G particles a block of G x B "
-                        "threads (ws.VBD group): settle with the first, then time the sweep and the step with each on "
-                        "the same heap (default: the integrator's, 32 on CUDA, 1 on the CPU)")
+    parser.add_argument("--vbd-lanes", default=None, metavar="B[,B...]", help="vbd: threads a particle in the "
+                        "colour solve (ws.VBD lanes; 1: a thread a particle): settle with the first, then time the "
+                        "sweep and the step with each on the same heap (default: the integrator's, 32 on CUDA, 1 on "
+                        "the CPU)")
     parser.add_argument("--query-block-dims", default=None, metavar="B[,B...]", help="vbd: time the contact "
                         "search with each CUDA block size of its pair queries")
     parser.add_argument("--no-oracles", action="store_true", help="vbd: skip the NumPy checks of the final heap "

@@ -8,10 +8,9 @@ last search and the most pairs one query met (per search: figures that cannot wr
 the heap tests assert on the final state: the deepest vertex of a torus inside another [mm] and the surface
 edges passing through another torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``). ``--reference-integrator
 fast_mass_spring`` builds and settles the same heap with that integrator in the same process and prints
-the ratio of the step times. ``--vbd-lanes 1,32,8x4`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and
-the step (on CUDA also as a graph) with each layout on the same heap (a thread a particle, a warp a particle, 8
-particles of 4 lanes a block: ``ws.VBD``'s ``group`` x ``lanes``), after one step from one saved state with each
-layout compared with the first's positions.
+the ratio of the step times. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and the
+step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle), after
+one step from one saved state with each value compared with the first's positions.
 ``--query-block-dims 256,128,64`` times the contact search with each CUDA block size of its pair queries.
 
     python benchmarks/bench_donuts.py --integrator vbd --device cpu --count 12 --segments 24 --sides 12 \\
@@ -43,31 +42,26 @@ def searches_per_step(integrator) -> int:
 
 
 def lanes_of(args) -> list:
-    """``--vbd-lanes`` as a list of (group, lanes): ``B`` a block of B lanes a particle (group None), ``GxB`` G
-    particles a block of G x B threads (``ws.VBD``'s ``group`` and ``lanes``)."""
-    layouts = []
-    for item in args.vbd_lanes.split(","):
-        group, _, lanes = item.rpartition("x")
-        layouts.append((int(group) if group else None, int(lanes)))
-    return layouts
+    """``--vbd-lanes`` as a list of ints (threads a particle in VBD's colour solve)."""
+    return [int(b) for b in args.vbd_lanes.split(",")]
 
 
 def compare_lanes(args, sim, h, device) -> None:
-    """One colour sweep and one step (on CUDA also as a graph of one BVH rebuild period) with each layout of
+    """One colour sweep and one step (on CUDA also as a graph of one BVH rebuild period) with each value of
     ``--vbd-lanes`` on the heap as it is (a step first records the sweep's launches); first, from one saved state
-    (positions, velocities, the previous velocities of the adaptive guess), one step with each layout, its positions
-    against the first layout's (other sums' order: rounding, and each layout's own bits when it runs twice)."""
+    (positions, velocities, the previous velocities of the adaptive guess), one step with each value, its positions
+    against the first value's (other sums' order: rounding, and each value's own bits when it runs twice)."""
     integrator = sim.integrator
     q, qd = sim.state.positions, sim.state.velocities
     saved = [wp.clone(a) for a in (q, qd, integrator.qd_prev)]
     first = None
-    for group, lanes in lanes_of(args) + lanes_of(args)[:1]:
-        integrator.group, integrator.lanes = group, lanes
+    for lanes in lanes_of(args) + lanes_of(args)[:1]:
+        integrator.lanes = lanes
         for a, b in zip((q, qd, integrator.qd_prev), saved):
             wp.copy(a, b)
         sim.step(h)
         x = q.numpy()
-        label = f"{group or 1}x{lanes}"
+        label = f"lanes {lanes}"
         if first is None:
             first = (label, x)
         else:
@@ -76,16 +70,15 @@ def compare_lanes(args, sim, h, device) -> None:
                 f"|dx| largest {d.max():.3g} m, 99.9th percentile {np.quantile(d, 0.999):.3g} m, median "
                 f"{np.median(d):.3g} m, {int((d > 1.0e-5).sum())} particles past 0.01 mm (a search within the step "
                 "run or skipped, a friction or bound clip, can turn on rounding in a moving heap)")
-            print(f"layout {label}: one step from the saved state against {first[0]}'s: {same}")
+            print(f"{label}: one step from the saved state against {first[0]}'s: {same}")
     for a, b in zip((q, qd, integrator.qd_prev), saved):
         wp.copy(a, b)
-    for group, lanes in lanes_of(args):
-        integrator.group, integrator.lanes = group, lanes
-        sim.step(h)  # records the colour solves with this layout
+    for lanes in lanes_of(args):
+        integrator.lanes = lanes
+        sim.step(h)  # records the colour solves with these lanes
         sweep = time_per_call(lambda: [launch.launch() for launch in integrator._sweep], args.steps, device)
         full = time_per_call(lambda: sim.step(h), args.steps, device)
-        line = (f"layout {group or 1:3d} x {lanes:3d}: one colour sweep {sweep * 1e3:9.3f} ms, VBD step "
-                f"{full * 1e3:9.3f} ms")
+        line = f"lanes {lanes:4d}: one colour sweep {sweep * 1e3:9.3f} ms, VBD step {full * 1e3:9.3f} ms"
         if device.is_cuda:
             every = integrator.contact.rebuild_every
             period = every // math.gcd(every, searches_per_step(integrator))
@@ -114,7 +107,7 @@ def settle(build, args, device, integrator):
     t0 = time.perf_counter()
     scene = build(args, args.count, device)
     if integrator == "vbd" and getattr(args, "vbd_lanes", None):
-        scene.sim.integrator.group, scene.sim.integrator.lanes = lanes_of(args)[0]
+        scene.sim.integrator.lanes = lanes_of(args)[0]
     wp.synchronize_device(device)
     built = time.perf_counter() - t0
     h = scene.params["dt"] / scene.inner_steps

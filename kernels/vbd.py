@@ -136,16 +136,12 @@ def vertex_force_hessian(
     return f + fc, H + Hc
 
 
-def solve_colour_kernel(tiled: bool, group: int = 1, group_lanes: int = 1):
-    """``solve_colour`` (``tiled`` False: a thread a particle), ``solve_colour_lanes`` (True: a block of lanes a
-    particle, ``wp.launch_tiled``) or, with ``group`` > 1, ``solve_colour_group_G_L``: ``group`` particles a block of
-    ``group`` x ``group_lanes`` threads, ``group_lanes`` a particle. One kernel body, the variant chosen at code
-    generation (``wp.static``), each in a module of its own (a tiled module is compiled for each block size)."""
-    grouped = group > 1
-    name = f"solve_colour_group_{group}_{group_lanes}" if grouped else (
-        "solve_colour_lanes" if tiled else "solve_colour")
+def solve_colour_kernel(tiled: bool):
+    """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
+    particle, ``wp.launch_tiled``): one kernel body, the variant chosen at code generation (``wp.static``), each in
+    a module of its own (a tiled module is compiled for each block size)."""
 
-    @wp.kernel(name=name, module="unique", enable_backward=False)
+    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False)
     def kernel(
         colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
@@ -167,14 +163,7 @@ def solve_colour_kernel(tiled: bool, group: int = 1, group_lanes: int = 1):
         k = int(0)
         lane = int(0)
         lanes = int(1)
-        member = int(0)  # the particle's place in its block (grouped)
-        if wp.static(grouped):
-            b, t = wp.tid()
-            member = t // wp.static(group_lanes)
-            k = b * wp.static(group) + member
-            lane = t - member * wp.static(group_lanes)
-            lanes = wp.static(group_lanes)
-        elif wp.static(tiled):
+        if wp.static(tiled):
             k, lane = wp.tid()
             lanes = wp.block_dim()
         else:
@@ -182,40 +171,25 @@ def solve_colour_kernel(tiled: bool, group: int = 1, group_lanes: int = 1):
         if lane == 0 and k < previous_count:
             o = colour_particles[previous_start + k]
             q_out[o] = q[o]
-        # no return before the reductions: every lane of a block reaches them (a grouped block holds particles
-        # past the colour's end; a tiled block of one particle is one particle's, so its lanes agree)
-        p = int(-1)
-        x = wp.vec3()
-        f = wp.vec3()
-        H = wp.mat33()
-        if k < count:
-            p = colour_particles[start + k]
-            x = q[p]
-            if inv_mass[p] != 0.0:
-                f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
-                                            spring_offsets, spring_list, spring_indices, rest, stiffness, damping,
-                                            broken, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
-                                            tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near,
-                                            near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
-                                            spheres, radius, contact_stiffness, friction, friction_eps, reference,
-                                            colour)
-        if wp.static(grouped):  # each particle's lanes summed in a fixed order (one row of a (group, lanes) tile)
-            fs = wp.tile_zeros(shape=wp.static(group), dtype=wp.vec3, storage="shared")
-            Hs = wp.tile_zeros(shape=wp.static(group), dtype=wp.mat33, storage="shared")
-            wp.tile_assign(fs, wp.tile_sum(wp.tile_reshape(wp.tile(f, preserve_type=True),
-                                                           shape=(wp.static(group), wp.static(group_lanes))), axis=1))
-            wp.tile_assign(Hs, wp.tile_sum(wp.tile_reshape(wp.tile(H, preserve_type=True),
-                                                           shape=(wp.static(group), wp.static(group_lanes))), axis=1))
-            f = fs[member]
-            H = Hs[member]
-        elif wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
+        if k >= count:
+            return  # the whole block: k is the block's
+        p = colour_particles[start + k]
+        x = q[p]
+        if inv_mass[p] == 0.0:
+            if lane == 0:
+                q_out[p] = x
+            return
+        f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
+                                    spring_offsets, spring_list, spring_indices, rest, stiffness, damping, broken,
+                                    slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
+                                    tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                    near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
+                                    contact_stiffness, friction, friction_eps, reference, colour)
+        if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
             f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
             H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
-        if lane == 0 and p >= 0:
-            if inv_mass[p] == 0.0:
-                q_out[p] = x
-            else:
-                q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
+        if lane == 0:
+            q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
 
     return kernel
 
@@ -236,20 +210,6 @@ given B: on CUDA a warp's shuffle-down tree (lane l += lane l + 16, then + 8, 4,
 B > 32 then the warps' sums in warp order; on the CPU (``wp.config.enable_cpu_blocks``) lane 0, 1, ..., B - 1 in
 turn. No float atomics: two runs give the same bits. Lane 0 takes the Newton step and the clip and copies the
 previous colour's particle k."""
-
-GROUPS = ((16, 2), (8, 4), (4, 8), (2, 16), (32, 2), (16, 4), (8, 8), (4, 16), (2, 32))
-"""(particles, lanes) of a grouped colour solve's block: blocks of 32 and 64 threads."""
-
-solve_colour_groups = {(g, lanes): solve_colour_kernel(True, g, lanes) for g, lanes in GROUPS}
-"""``solve_colour`` with ``g`` particles a block of g x ``lanes`` threads (``wp.launch_tiled(dim=ceil(max(count,
-previous_count) / g), block_dim=g lanes)``): particle b g + m of block b takes threads m lanes .. (m + 1) lanes - 1,
-which sum its springs and contact entries as ``solve_colour_lanes``'s lanes do; the partial f and H of the block,
-a (g, lanes) tile, are added along each row by ``wp.tile_sum(axis=1)`` (a fixed order for given g and lanes: no
-atomics) and read back from shared memory by the particle's lanes. Keys: ``GROUPS``. For a colour of many particles
-(a heap of 1,000 tori: 190,000 a colour), where a warp a particle leaves most lanes without a spring and a block of
-32 threads fills half a multiprocessor at most (32 blocks each). Measured on an H200 (benchmarks/RESULTS.md, sixth
-session): at 12 tori no grouping beat a warp a particle, at 100 tori the best (4 x 16) saved 8 % of a sweep: the
-particles' own work, not the blocks a multiprocessor, sets a sweep's time, so ``ws.VBD`` keeps a warp a particle."""
 
 
 @wp.kernel

@@ -593,16 +593,10 @@ def lane_start(begin: int, lane: int, lanes: int) -> int:
 
 @wp.func
 def same_colour(colour: wp.array(dtype=int), own: int, a: int, b: int, c: int) -> float:
-    """1 + how many of particles a, b, c (-1: none) have colour ``own``: the pair's Hessian block is scaled by it
+    """1 + how many of particles a, b, c have colour ``own``: the pair's Hessian block is scaled by it
     (``contact_force_hessian``)."""
-    n = float(1.0)
-    if a >= 0 and colour[a] == own:
-        n += 1.0
-    if b >= 0 and colour[b] == own:
-        n += 1.0
-    if c >= 0 and colour[c] == own:
-        n += 1.0
-    return n
+    return 1.0 + wp.where(colour[a] == own, 1.0, 0.0) + wp.where(colour[b] == own, 1.0, 0.0) + wp.where(
+        colour[c] == own, 1.0, 0.0)
 
 
 @wp.func

@@ -90,8 +90,8 @@ class VBD(Integrator):
         chebyshev_rho: spectral radius estimate of the Chebyshev acceleration in [0, 1) (0: off;
             VBD uses 0.9-0.95; on the donut heap 0.9 with 12 iterations gained 13 % energy at the first
             impacts, so off by default).
-        detect_every: iterations between contact searches within a step (a search always opens the
-            step); 0: only that one. Each search lets a particle move another b_max at most.
+        detect_every: iterations between contact searches within a step (a search opens the step, skipped
+            at rest as those within it: ``renew_fraction``); 0: only that one. Each search lets a particle move another b_max at most.
         adaptive_guess: VBD's adaptive initial guess (off: y, the inertial target).
         renew_fraction: a search (opening a step, or within it every ``detect_every`` iterations) runs only when
             some particle has moved more than this fraction of its bound since the last search or has some of its
@@ -108,11 +108,6 @@ class VBD(Integrator):
             block's lanes one after another as fibers, and only with ``wp.config.enable_cpu_blocks`` (else a
             block is one lane: the sums of ``lanes`` = 1), so a thread a particle is faster there. The sums'
             order differs with B (other bits, the same physics; each B repeats its own bits).
-        group: particles a block of the colour solve (G; None or 1: one, a block of ``lanes`` threads): a block of
-            G x ``lanes`` threads holds G particles (``kernels.vbd.solve_colour_groups``; (G, lanes) one of
-            ``kernels.vbd.GROUPS``), for colours of many particles (a heap of 1,000 tori), where a warp a particle
-            leaves most lanes idle and 32-thread blocks fill half a multiprocessor. Ignored with ``lanes`` 1 and, like
-            ``lanes``, on the CPU unless ``wp.config.enable_cpu_blocks`` is on (a thread a particle there).
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -126,7 +121,7 @@ class VBD(Integrator):
 
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
                  chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True,
-                 renew_fraction: float | None = 0.5, lanes: int | None = None, group: int | None = None):
+                 renew_fraction: float | None = 0.5, lanes: int | None = None):
         super().__init__()
         self.iterations = checks.integer(iterations, "VBD iterations", lo=1, hi=100_000, fix="e.g. 10")
         if contact is not None and not isinstance(contact, VBDContact):
@@ -144,10 +139,6 @@ class VBD(Integrator):
         self.lanes = None if lanes is None else checks.integer(
             lanes, "VBD lanes", lo=1, hi=1024, fix="threads a particle in a colour solve, e.g. 32 (1: a thread a "
             "particle), or None (32 on CUDA, 1 on the CPU)")
-        self.group = None if group is None else checks.integer(
-            group, "VBD group", lo=1, hi=64, fix="particles a block of the colour solve, e.g. 4, or None (one)")
-        if self.group is not None and self.group > 1 and (self.lanes or 32) > 1:
-            self._check_group(self.group, self.lanes or 32)
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
 
     def lanes_on(self, device) -> int:
@@ -155,27 +146,6 @@ class VBD(Integrator):
         if self.lanes is not None:
             return self.lanes
         return 32 if wp.get_device(device).is_cuda else 1
-
-    def layout_on(self, device) -> tuple[int, int]:
-        """(particles, threads a particle) of a block of the colour solve on ``device``: (1, 1) a thread a particle
-        (``lanes`` 1, or the CPU without ``wp.config.enable_cpu_blocks``, whose blocks are one thread), (1, B) a
-        block of B lanes a particle, (G, B) G particles a block (``group``; ValueError if (G, B) is not one of
-        ``kernels.vbd.GROUPS``)."""
-        lanes = self.lanes_on(device)
-        if lanes == 1 or (not wp.get_device(device).is_cuda and not wp.config.enable_cpu_blocks):
-            return 1, 1 if lanes == 1 else lanes
-        group = self.group or 1
-        if group > 1:
-            self._check_group(group, lanes)
-        return group, lanes
-
-    @staticmethod
-    def _check_group(group: int, lanes: int) -> None:
-        """ValueError naming the choices unless ``group`` particles of ``lanes`` threads have a colour solve."""
-        if (group, lanes) not in K.solve_colour_groups:
-            choices = ", ".join(f"{g} x {b}" for g, b in K.GROUPS)
-            raise ValueError(f"VBD group = {group} with lanes = {lanes} has no colour solve; give one of (group x "
-                             f"lanes) {choices}, or group=None")
 
     def tile_worlds(self, world_count: int, world_particle_count: int) -> None:
         """For a batch of worlds laid end to end (``warpsim.worlds.batch``, on the batch's copy of this
@@ -214,8 +184,6 @@ class VBD(Integrator):
         self.model = model
         ensure_spring_adjacency(model)
         self._recorded_key: tuple | None = None
-        self._searched_once = False
-        """Whether a contact search has run (the first step's always runs: no bound holds before it)."""
         colours = self.colours(model)
         offsets, particles = colour_groups(colours)
         self.particle_colour = wp.array(colours, dtype=int, device=d)
@@ -275,12 +243,8 @@ class VBD(Integrator):
         # one buffer and writes the other, copying colour c - 1 across (kernels.vbd's docstring), and the last
         # colour is committed to the buffer it did not write: one launch a colour and one a sweep
         buffers, offsets = (q, self.q_new), self.colour_offsets
-        group, lanes = self.layout_on(d)
-        if group > 1:  # group particles a block (kernels.vbd.solve_colour_groups)
-            def solve(dim, inputs):
-                return wp.launch_tiled(K.solve_colour_groups[(group, lanes)], dim=[(dim + group - 1) // group],
-                                       inputs=inputs, device=d, block_dim=group * lanes, record_cmd=True)
-        elif lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
+        lanes = self.lanes_on(d)
+        if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
             def solve(dim, inputs):
                 return wp.launch_tiled(K.solve_colour_lanes, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
                                        record_cmd=True)
@@ -310,7 +274,7 @@ class VBD(Integrator):
         changed ``lanes``, ``contact.friction``, ``stiffness`` or ``thickness`` is recorded again at the next step)."""
         c = self.contact
         coefficients = (c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ()
-        return (q.ptr, qd.ptr, h, self.lanes, self.group) + coefficients
+        return (q.ptr, qd.ptr, h, self.lanes) + coefficients
 
     def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)
@@ -322,10 +286,9 @@ class VBD(Integrator):
         self.f_ext.zero_()
         for force in self._other_forces:
             force.eval(q, qd, time, 0.0, self.f_ext)
-        if self.contact is not None:  # the first search always runs, then as those within the step (docstring)
-            if self.renew_fraction is None or not self._searched_once:
+        if self.contact is not None:  # the first search (no bound holds before it) always runs, then as those within
+            if self.renew_fraction is None or self.contact.searches == 0:  # the step (docstring); bind zeroes the count
                 self.contact.search(q)
-                self._searched_once = True
             else:
                 self.contact.search(q, self.deficit, self.renew_fraction)
         self._predict.launch()
