@@ -39,6 +39,7 @@ import numpy as np
 import warp as wp
 from bench_donuts import add_heap_arguments
 from heap_oracles import edges_through_other_bodies_count
+from timing import activity_name
 
 from warpsim.kernels import soft_contact, vbd_contact
 from warpsim.scenes import get_scene
@@ -48,10 +49,10 @@ CONTACT_KERNELS = {k.key for module in (soft_contact, vbd_contact) for k in vars
 """Names of the contact search's kernels (``--profile-every``)."""
 
 
-def is_contact(name: str) -> bool:
-    """Whether a timed activity of ``wp.timing_end`` belongs to the contact search (its kernels, BVH work)."""
-    name = (name or "").split("(")[0].strip()
-    return name in CONTACT_KERNELS or "bvh" in name.lower()
+def is_contact(result) -> bool:
+    """Whether a timed activity of ``wp.timing_end`` belongs to the contact search: its kernels, and Warp's built-in
+    kernels (in these steps only the BVHs' refits and builds: ``bvh_refit_kernel``, ``build_hierarchy``, ...)."""
+    return activity_name(result) in CONTACT_KERNELS or (result.name or "").startswith("builtin kernel")
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 # the tests' NumPy oracles
@@ -98,7 +99,7 @@ def main():
         scene.advance(1.0 / 60.0, steps)
         if profile:
             results = wp.timing_end()
-            profiled.append((sum(r.elapsed for r in results if is_contact(r.name)),
+            profiled.append((sum(r.elapsed for r in results if is_contact(r)),
                              sum(r.elapsed for r in results)))
             print(f"{frame} profiled: contact search {profiled[-1][0]:.2f} of {profiled[-1][1]:.2f} ms of GPU activity "
                   f"({profiled[-1][0] / max(profiled[-1][1], 1e-9):.1%})", flush=True)

@@ -1,5 +1,6 @@
 """Shared timer for the benchmark scripts (run as ``python benchmarks/NAME.py``)."""
 
+import re
 import time
 
 import warp as wp
@@ -43,3 +44,11 @@ def eager_and_graph(step, period, calls, device, rounds=3):
         eager.append(time_per_call(steps, calls, device) / period)
         graph.append(time_per_call(lambda: wp.capture_launch(capture.graph), calls, device) / period)
     return min(eager), min(graph)
+
+
+def activity_name(result) -> str:
+    """The kernel's Python name of one ``wp.timing_end`` result (``"forward kernel query_pairs_c0c45f87"`` ->
+    ``"query_pairs"``; built-ins and copies as Warp names them, e.g. ``"builtin kernel bvh_refit_kernel"``)."""
+    name = (result.name or "?").split("(")[0].strip()
+    kernel = re.fullmatch(r"(?:forward|backward) kernel (\w+?)(?:_[0-9a-f]{8})?", name)
+    return kernel.group(1) if kernel else name

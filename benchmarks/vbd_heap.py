@@ -141,6 +141,25 @@ def kernel_table(step, steps, device, top=16) -> None:
         print(f"  {name[:52]:52s} {calls[name] / steps:8.2f} calls {ms:9.4f} ms {ms / gpu:7.1%}")
 
 
+def heap_state(scene, renew_fraction) -> str:
+    """What keeps the searches running on a heap (one read-back): the fastest particles [m/s] and the tori that
+    hold those past 0.1 m/s, the bounds of the surface vertices [mm] and the smallest vertex-triangle distance met
+    at the last search [mm]; a search within a step runs when any particle has moved ``renew_fraction`` of its
+    bound."""
+    sim, contact = scene.sim, scene.vbd_contact
+    speed = np.linalg.norm(sim.state.velocities.numpy(), axis=1)
+    fast = np.flatnonzero(speed > 0.1)
+    tori = len(np.unique(fast // contact.body_size)) if contact.body_size else "-"
+    surface = contact._surface.numpy()
+    bound = contact.bound.numpy()[surface] * 1e3
+    gap = contact._vt_min.numpy() * 1e3
+    return (f"heap state: fastest particle {speed.max():.3g} m/s, 99.9th percentile {np.percentile(speed, 99.9):.3g}, "
+            f"{len(fast)} particles past 0.1 m/s in {tori} tori; surface bounds min / 1st percentile / median "
+            f"{bound.min():.3g} / {np.percentile(bound, 1):.3g} / {np.median(bound):.3g} mm (a search runs past "
+            f"{renew_fraction} of one); vertex-triangle distance min / 1st percentile {gap.min():.3g} / "
+            f"{np.percentile(gap, 1):.3g} mm (thickness {contact.thickness * 1e3:.3g})")
+
+
 def run_vbd(args, device, build) -> None:
     scene, h, _ = settle(build, args, device, "vbd")
     sim, integrator, contact = scene.sim, scene.sim.integrator, scene.vbd_contact
@@ -169,6 +188,7 @@ def run_vbd(args, device, build) -> None:
     print(f"one colour sweep      {sweep * 1e3:9.3f} ms x {integrator.iterations} a step (gathering over {kept} list "
           f"entries that can push, {whole} vertices past near_capacity {contact.near_capacity} over their whole lists)")
     print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
+    print(heap_state(scene, integrator.renew_fraction))
     if device.is_cuda:
         period = contact.rebuild_every // math.gcd(contact.rebuild_every, searches_per_step(integrator))
         eager, graph = eager_and_graph(lambda: sim.step(h), period, max(1, args.steps // period), device)
