@@ -8,12 +8,14 @@ the worst with the experiment's release delay (T + martin_moyce.RELEASE_DELAY), 
 fits best and its worst deviation; the surge's speed dZ/dT over 1.4 <= T <= 3 against the table's
 (a start delay leaves it unchanged); steps, pressure iterations per step, particles, seconds. With
 ``--causes``, one switch at a time against each particle method's default at a / spacing = 20
-(wall friction, boundary treatment, viscosity, solve tolerance, step size, kernel, slab depth,
-front measure). Prints Markdown tables (benchmarks/RESULTS.md).
+(wall friction, boundary treatment, no-slip walls (all or the floor only), viscosity, solve
+tolerance, step size, kernel, slab depth, front measure). Prints Markdown tables (benchmarks/RESULTS.md).
 
     python benchmarks/dam_break_convergence.py                        # 10, 20, 40 per method (~7 min, 2 cores)
     python benchmarks/dam_break_convergence.py --causes --res 20 --methods pbf dfsph
     python benchmarks/dam_break_convergence.py --gate-speeds 0.5 1 2 4 --res 20   # a gate lifted off the column
+    python benchmarks/dam_break_convergence.py --causes --res 20 --methods dfsph --only "floor only"
+    python benchmarks/dam_break_convergence.py --methods pbf dfsph --front depth   # film < 0.1 a uncounted
 """
 
 import argparse
@@ -38,6 +40,8 @@ CAUSES = {
     "dfsph": [("default (boundary particles, free slip)", {}), ("signed-distance walls", {"boundary": "volume"}),
               ("wall friction 5 /s", {"wall_friction": 5.0}), ("no-slip boundary particles (nu_b 0.01)",
                                                                 {"boundary_viscosity": 0.01}),
+              *[(f"no-slip floor only (nu_b {nu:g})", {"boundary_viscosity": nu, "no_slip": "floor"})
+                for nu in (1e-5, 1e-4, 1e-3, 1e-2)],
               ("SPH viscosity nu 0.001", {"kinematic_viscosity": 0.001}),
               ("SPH viscosity nu 0.01", {"kinematic_viscosity": 0.01}), ("XSPH 0", {"viscosity": 0.0}),
               ("converged solve (0.01 %)", {"density_tolerance": 0.0001}), ("cfl 0.1", {"cfl": 0.1}),
@@ -78,14 +82,20 @@ def main():
     ap.add_argument("--gate-speeds", type=float, nargs="*", default=[],
                     help="DFSPH at the first --res released by a gate lifted at these speeds [m/s] instead")
     ap.add_argument("--device", default="cpu", help="particle methods' device (FLIP runs on the CPU)")
+    ap.add_argument("--front", default="floor", choices=["floor", "depth"],
+                    help="particle methods' front: the water on the floor (martin_moyce.floor_front) or the "
+                         "water at least martin_moyce.FILM_DEPTH a deep (depth_front: a thinner film is not)")
     args = ap.parse_args()
     set_warp_verbosity()
+    key = {"floor": "Z", "depth": "Z_depth"}[args.front]
+    tag = "" if args.front == "floor" else f", front {MM.FILM_DEPTH:g} a deep"
     wp.init()
     print(HEADER.format(d=MM.RELEASE_DELAY))
     if args.gate_speeds:
         for speed in args.gate_speeds:
             r = MM.run_dam_break("dfsph", res=args.res[0], gate_speed=speed, device=args.device)
-            print(particle_row(f"DFSPH a/{args.res[0]}: gate lifted at {speed:g} m/s", r), flush=True)
+            label = f"DFSPH a/{args.res[0]}: gate lifted at {speed:g} m/s{tag}"
+            print(particle_row(label, r, key), flush=True)
         return 0
     if args.causes:
         res = args.res[0]
@@ -96,8 +106,8 @@ def main():
                 settings = dict(settings)
                 layers = settings.pop("layers", 3)
                 r = MM.run_dam_break(method, res=res, layers=layers, device=args.device, **settings)
-                print(particle_row(f"{method.upper()} a/{res}: {label}", r), flush=True)
-                if not settings and layers == 3:
+                print(particle_row(f"{method.upper()} a/{res}: {label}{tag}", r, key), flush=True)
+                if not settings and layers == 3 and not tag:
                     print(particle_row(f"{method.upper()} a/{res}: front = furthest particle + s/2", r, "Z_tip"),
                           flush=True)
         return 0
@@ -112,7 +122,7 @@ def main():
                 print(row(f"FLIP a/dx = {res} (furthest particle)", r["T"], r["Z"], extra), flush=True)
             else:
                 r = MM.run_dam_break(method, res=res, device=args.device)
-                print(particle_row(f"{method.upper()} a/spacing = {res}", r), flush=True)
+                print(particle_row(f"{method.upper()} a/spacing = {res}{tag}", r, key), flush=True)
     return 0
 
 

@@ -39,12 +39,15 @@ T_END = 3.1  # the last frame reaches this T: every tabulated point of the windo
 class Example:
     """The column [0, a] x [0, 2a] x [0, depth] in the box [0, 5a] x [0, 2.5a] x [0, depth]."""
 
-    def __init__(self, a=0.2, spacing=0.02, depth=0.06, iterations=40, surface=True, method="pbf", device=None):
+    def __init__(self, a=0.2, spacing=0.02, depth=0.06, iterations=40, surface=True, method="pbf",
+                 device=None, floor_viscosity=0.0):
         self.a = a
         self.layers = max(1, int(round(depth / spacing)))
+        # DFSPH: a no-slip floor (boundary viscosity on the floor's particles only), other walls free slip
+        floor = {"boundary_viscosity": floor_viscosity, "no_slip": "floor"} if floor_viscosity > 0.0 else {}
         self.fluid = ParticleFluid(fluid_block((0, 0, 0), (a, 2 * a, depth), spacing), spacing=spacing,
                                    domain=((0, 0, 0), (5 * a, 2.5 * a, depth)), iterations=iterations,
-                                   viscosity=0.01, method=method, device=device)
+                                   viscosity=0.01, method=method, device=device, **floor)
         self.surface = FluidSurface(self.fluid, cell=0.5 * spacing) if surface else None
 
     def step(self, frame_dt):
@@ -80,6 +83,9 @@ def main(argv=None):
     parser.add_argument("--method", default="pbf", choices=METHODS,
                         help="pbf: position-based fluids; dfsph: divergence-free SPH with boundary particles")
     parser.add_argument("--iterations", type=int, default=40, help="most pressure iterations per step (each solve)")
+    parser.add_argument("--floor-viscosity", type=float, default=0.0,
+                        help="DFSPH: nu_b [m^2/s] of a no-slip floor (side and slab walls stay free slip; "
+                             "0: free slip)")
     parser.add_argument("--no-surface", action="store_true", help="skip the marching-cubes surface")
     parser.add_argument("--device", default=None)
     parser.add_argument("--out", default="usd_out/dam_break.usda", help="USD cache ('' for none)")
@@ -95,6 +101,8 @@ def main(argv=None):
         raise ValueError(f"--spacing {args.spacing:g} m is too coarse for --depth {args.depth:g} m and --a {args.a:g} m: "
                          f"the box needs at least 2 particle spacings on every axis; use --spacing "
                          f"{min(args.depth, 2.5 * args.a) / 2.0:g} or less, or a deeper --depth")
+    if not args.floor_viscosity >= 0.0:
+        raise ValueError(f"--floor-viscosity {args.floor_viscosity:g} must be >= 0 [m^2/s]")
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames {args.frames} must be >= 1")
     if args.figure:  # matplotlib is the optional "plot" extra: say so before simulating
@@ -105,7 +113,7 @@ def main(argv=None):
         except MissingExtraError as exc:
             parser.error(f"{exc} (or --figure '' for no figure)")
     example = Example(args.a, args.spacing, args.depth, args.iterations, not args.no_surface, args.method,
-                      args.device)
+                      args.device, args.floor_viscosity)
     scale = MM.time_scale(args.a, 2.0 * args.a)
     frames = args.frames or math.ceil(T_END / scale * args.fps - 1e-9)
     f = example.fluid

@@ -30,6 +30,8 @@ class DfsphParams:
     boundary_count: int  # boundary particles at the front of x_all
     kinematic_viscosity: float  # nu of the SPH (Monaghan) viscosity between fluid particles [m^2/s]
     boundary_viscosity: float  # nu of the same term against boundary particles at rest [m^2/s] (no-slip walls)
+    no_slip_start: int  # boundary_viscosity acts against boundary particles no_slip_start <= j < no_slip_end
+    no_slip_end: int  # only (0, boundary_count: every wall; 0, floor count: the floor, its particles first)
     viscosity_eps: float  # 0.01 h^2 [m^2], keeps the viscosity term finite at r -> 0
     dimension_factor: float  # 2 (d + 2) = 10 in 3D
     lattice_count: float  # neighbours of a particle inside a full lattice (for the signed-distance walls)
@@ -113,8 +115,8 @@ def apply_nonpressure(
     """v* = v + dt (g + a_visc) + XSPH, then the wall friction v* *= exp(-k phi dt).
     a_visc = 2 (d + 2) sum_j nu (2 m / (rho_i + rho_j)) (v_ij . x_ij) / (|x_ij|^2 + 0.01 h^2) grad W_ij
     (Monaghan's SPH viscosity with symmetric weights, so momentum is conserved; against boundary
-    particles at rest with nu_boundary: a no-slip wall); XSPH c sum_j 2 m W_ij / (rho_i + rho_j)
-    (v_j - v_i)."""
+    particles at rest with nu_boundary: a no-slip wall, against those with no_slip_start <= j <
+    no_slip_end only, the others free slip); XSPH c sum_j 2 m W_ij / (rho_i + rho_j) (v_j - v_i)."""
     i = wp.tid()
     nbc = dp.boundary_count
     xi = x_all[nbc + i]
@@ -137,7 +139,7 @@ def apply_nonpressure(
             dv -= (2.0 * wf[0] / (rhoi + rhoj)) * vij
             s = dp.kinematic_viscosity * 2.0 * p.rest_density / (rhoi + rhoj) * wp.dot(vij, rij) / (r2 + dp.viscosity_eps)
             acc += (dp.dimension_factor * s * wf[1]) * rij
-        else:
+        elif j >= dp.no_slip_start and j < dp.no_slip_end:
             s = dp.boundary_viscosity * wp.dot(vi - boundary_velocity(dp, j), rij) / (r2 + dp.viscosity_eps)
             acc += (dp.dimension_factor * s * wf[1]) * rij
     vnew = vi + p.viscosity * dv + dt * (p.gravity + acc)

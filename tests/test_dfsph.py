@@ -5,7 +5,7 @@ Physics checked: boundary particles continuing the fluid's lattice give the rest
 walls; a hydrostatic column (pressure rho g depth, density error small); the dam-break front
 against the published table over T = 0 .. 3.1 (the whole span, at a CPU-sized resolution); momentum
 of a free-falling block (internal forces pairwise antisymmetric); bit-identical repeat runs; bad
-method names refused.
+method names refused; no-slip boundary viscosity on the floor only (the side and slab walls free slip).
 """
 
 import numpy as np
@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from warpsim.particle_fluids import martin_moyce as MM
-from warpsim.particle_fluids.dfsph import boundary_lattice
+from warpsim.particle_fluids.dfsph import boundary_lattice, floor_mask
 from warpsim.particle_fluids.pbf import ParticleFluid, fluid_block
 
 G = 9.81
@@ -93,6 +93,7 @@ def test_dam_break_front_within_5_percent_of_martin_moyce_with_the_release_delay
     3.6 %), the goal of issue 54 with the release delay (raw, it is not met: benchmarks/RESULTS.md)."""
     T, Z = dam_break["T"], dam_break["Z"]
     assert T[-1] >= 3.0 and len(T) == 63  # the whole span: T = 0 .. 3.1
+    assert np.all(dam_break["Z_depth"] <= Z + 1e-12)  # the water 0.1 a deep never leads the film on the floor
     tt, raw = MM.deviation(T, Z)
     print("raw Z_sim / Z_exp - 1 at T =", tt, ":", np.round(raw, 3))
     early = (tt > 1.0) & (tt < 1.9)
@@ -157,6 +158,24 @@ def test_floor_front_is_the_water_on_the_floor_not_spray():
     slab = np.array([[0.05 + s * k, 0.05, z] for k in range(4) for z in (0.0, 0.1, 0.2)] + [[0.45, 0.05, 0.0]])
     assert MM.floor_front(slab, s, layers=3) == pytest.approx(0.4)  # one of three layers: spray
     assert MM.tip_front(slab, s) == pytest.approx(0.5)
+
+
+def test_depth_front_does_not_count_a_film_thinner_than_its_depth():
+    """depth_front: the water at least ``depth`` deep (count * s / layers per bin), joined to the
+    wall; a film one particle thick ahead of a column three particles high is the floor front, not
+    the depth front at two spacings; a one-bin hole is bridged; and the dam break reports it."""
+    s = 0.1
+    deep = [[0.05 + s * k, 0.05 + s * j, 0.0] for k in range(4) for j in range(3)]  # 3 high: bins 0..3
+    film = [[0.05 + s * k, 0.05, 0.0] for k in range(4, 8)]  # 1 high: bins 4..7
+    x = np.array(deep + film)
+    assert MM.floor_front(x, s) == pytest.approx(0.8)
+    assert MM.depth_front(x, s, 2 * s) == pytest.approx(0.4)
+    assert MM.depth_front(x, s, s) == pytest.approx(0.8)
+    assert MM.depth_front(np.array(deep + film) + [0.3, 0, 0], s, 2 * s, origin=0.3) == pytest.approx(0.7)
+    holed = np.array([p for p in deep if not 0.1 < p[0] < 0.2] + film)  # bin 1 dry
+    assert MM.depth_front(holed, s, 2 * s) == pytest.approx(0.4)
+    slab = np.concatenate([x + [0, 0, z] for z in (0.0, 0.1, 0.2)])  # 3 layers deep: the same depths
+    assert MM.depth_front(slab, s, 2 * s, layers=3) == pytest.approx(0.4)
 
 
 def test_dam_break_keeps_its_density(dam_break):
@@ -247,3 +266,69 @@ def test_martin_moyce_tables_follow_the_aspect_ratio():
     # both series run toward Ritter's inviscid front Z = 1 + 2T from below
     for t, z in (MM.table(1, 2), MM.table(1, 1)):
         assert np.all(z < 1.0 + 2.0 * t) and np.all(np.diff(z) > 0) and np.all(np.diff(t) > 0)
+
+
+def sliding_layer(no_slip, boundary_viscosity, frames=6):
+    """A layer 4 particles high and 3 deep (a slab between front and back walls) 0.8 m long, sliding
+    along +x at 1 m/s over the floor, after ``frames`` / 60 s: the mean vx of the particles that
+    started in its middle (0.3 m, where the ends' collapse has not arrived) in the bottom layer and
+    in the top layer; the top layer's centres 3.5 spacings above the floor, beyond the reach of the
+    floor's boundary particles (kernel support 2 spacings, the first boundary layer half a spacing
+    below the floor)."""
+    s = 0.02
+    x = fluid_block((0, 0, 0), (0.8, 4 * s, 3 * s), s)
+    v = np.tile([1.0, 0.0, 0.0], (len(x), 1))
+    f = ParticleFluid(x, v, spacing=s, domain=((0, 0, 0), (1.2, 0.3, 3 * s)), method="dfsph", no_slip=no_slip,
+                      boundary_viscosity=boundary_viscosity, device=CPU)
+    for _ in range(frames):
+        f.advance(1.0 / 60.0)
+    middle = (x[:, 0] > 0.25) & (x[:, 0] < 0.55)  # indices stay with their particles (no sorting)
+    bottom, top = middle & (x[:, 1] < s), middle & (x[:, 1] > 3 * s)
+    v = f.velocities.numpy()
+    return v[bottom, 0].mean(), v[top, 0].mean(), f
+
+
+def test_no_slip_on_the_floor_only_slows_the_fluid_at_the_floor_not_at_the_slab_walls():
+    """boundary_viscosity nu_b = 0.01 m^2/s with no_slip="floor": the boundary particles behind the
+    floor hold the bottom layer of a sliding layer back, while the slab's front and back walls, which
+    every particle touches (3 particles deep), stay free slip, so the top layer (out of the floor's
+    reach) keeps its speed; with no_slip="all" the same viscosity on every wall slows the top layer as
+    much as the bottom one (a Hele-Shaw cell: the -37 % of benchmarks/RESULTS.md); nu_b = 0: free slip
+    everywhere. Measured after 0.1 s, bottom / top: free slip 0.996 / 1.000 m/s, floor 0.035 / 1.001,
+    all 0.002 / 0.407."""
+    free_bottom, free_top, f = sliding_layer("all", 0.0)
+    floor_bottom, floor_top, g = sliding_layer("floor", 0.01)
+    all_bottom, all_top, _ = sliding_layer("all", 0.01)
+    print(f"bottom / top vx: free {free_bottom:.3f} / {free_top:.3f}, floor {floor_bottom:.3f} / "
+          f"{floor_top:.3f}, all {all_bottom:.3f} / {all_top:.3f}")
+    assert free_bottom > 0.98 and free_top > 0.98
+    assert floor_bottom < 0.3  # the floor holds the layer on it back
+    assert floor_top > 0.98  # ... the free-slip slab walls do not hold the top layer back
+    assert all_bottom < 0.3 and all_top < 0.6
+    # the floor's boundary particles come first and are the only no-slip ones
+    b = g._dfsph
+    floor = floor_mask(b.boundary_points, *g.domain, g.gravity)
+    count = int(floor.sum())
+    assert b.no_slip_count == count and np.all(floor[:count]) and not np.any(floor[count:])
+    assert f._dfsph.no_slip_count == f._dfsph.boundary_count
+
+
+def test_floor_mask_follows_gravity_and_bad_no_slip_is_refused():
+    """The floor is the wall gravity points at (edges and corners included): -y for (0, -g, 0), +x
+    for (g, 0, 0); no_slip needs DFSPH's boundary particles and a known value."""
+    pts = boundary_lattice((0, 0, 0), (0.4, 0.3, 0.2), 0.1, 2)
+    down = floor_mask(pts, (0, 0, 0), (0.4, 0.3, 0.2), (0.0, -G, 0.0))
+    assert down.sum() == 2 * (4 + 4) * (2 + 4) and np.all(pts[down, 1] < 0) and np.all(pts[~down, 1] > 0)
+    east = floor_mask(pts, (0, 0, 0), (0.4, 0.3, 0.2), (G, 0.0, 0.0))
+    assert east.sum() == 2 * (3 + 4) * (2 + 4) and np.all(pts[east, 0] > 0.4)
+    with pytest.raises(ValueError, match="gravity is zero"):
+        floor_mask(pts, (0, 0, 0), (0.4, 0.3, 0.2), (0.0, 0.0, 0.0))
+    x = fluid_block((0, 0, 0), (0.1, 0.1, 0.1), 0.05)
+    box = ((0, 0, 0), (0.2, 0.2, 0.2))
+    with pytest.raises(ValueError, match="no_slip='wall'.*'all', 'floor'"):
+        ParticleFluid(x, spacing=0.05, domain=box, method="dfsph", no_slip="wall", device=CPU)
+    with pytest.raises(ValueError, match="no_slip='floor'.*needs method='dfsph'"):
+        ParticleFluid(x, spacing=0.05, domain=box, no_slip="floor", device=CPU)
+    with pytest.raises(ValueError, match="no_slip='floor' needs boundary='particles'"):
+        ParticleFluid(x, spacing=0.05, domain=box, method="dfsph", boundary="volume", no_slip="floor",
+                      device=CPU)

@@ -35,6 +35,20 @@ from ..kernels import dfsph as D
 from ..kernels import sph as K
 
 BOUNDARIES = ("particles", "volume")
+NO_SLIP = ("all", "floor")
+"""Which walls ``boundary_viscosity`` makes no-slip: every boundary particle, or the floor's only."""
+
+
+def floor_mask(points, lower, upper, gravity) -> np.ndarray:
+    """Boolean mask of the boundary particles (M, 3) [m] behind the floor: the box's wall that
+    ``gravity`` (3,) [m/s^2] points at (along its largest component), its edges and corners
+    included (every particle beyond that wall's plane). ValueError for zero gravity."""
+    g = np.asarray(gravity, np.float64).reshape(3)
+    k = int(np.argmax(np.abs(g)))
+    if g[k] == 0.0:
+        raise ValueError("no_slip='floor' needs gravity to say where the floor is; gravity is zero")
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    return pts[:, k] < float(lower[k]) if g[k] < 0.0 else pts[:, k] > float(upper[k])
 
 
 def boundary_lattice(lower, upper, spacing: float, layers: int) -> np.ndarray:
@@ -67,6 +81,9 @@ class DfsphSolver:
         domain: (lower, upper) or None; spacing, support: [m] and support in spacings.
         boundary: "particles" (the domain walls as boundary particles) or "volume" (signed distance).
         kinematic_viscosity, boundary_viscosity: [m^2/s] of the SPH viscosity (fluid, walls).
+        no_slip: "all" (boundary_viscosity against every boundary particle) or "floor" (against the
+            floor's only, :func:`floor_mask`, whose particles then come first; the side walls and a
+            slab's front and back walls stay free slip). Needs boundary particles.
         density_tolerance, divergence_tolerance: mean relative errors the two solves stop at.
         iterations: most iterations of each solve; total_counter: the fluid's int buffer of all iterations.
         grid_dims: hash grid cells per axis; max_neighbors: list capacity; device: Warp device.
@@ -78,9 +95,11 @@ class DfsphSolver:
     def __init__(self, *, positions, velocities, density_out, pressure_out, params, boundaries, domain, spacing,
                  support, boundary, kinematic_viscosity, boundary_viscosity, density_tolerance,
                  divergence_tolerance, iterations, total_counter, grid_dims, max_neighbors, device,
-                 moving_boundary=None):
+                 moving_boundary=None, no_slip="all"):
         if boundary not in BOUNDARIES:
             raise ValueError(f"boundary={boundary!r} is unknown; use one of {list(BOUNDARIES)}")
+        if no_slip not in NO_SLIP:
+            raise ValueError(f"no_slip={no_slip!r} is unknown; use one of {list(NO_SLIP)}")
         if boundary == "particles" and domain is None:
             boundary = "volume"  # no box to sample: the colliders act through their signed distance
         d = self.device = wp.get_device(device)
@@ -93,6 +112,16 @@ class DfsphSolver:
         self._total = total_counter
         layers = int(np.ceil(support)) if boundary == "particles" else 0
         pts = boundary_lattice(domain[0], domain[1], spacing, layers) if layers else np.zeros((0, 3))
+        no_slip_end = len(pts)
+        if no_slip == "floor":
+            if not layers:
+                raise ValueError("no_slip='floor' needs boundary='particles' and a domain box (the floor's "
+                                 "particles)")
+            floor = floor_mask(pts, domain[0], domain[1], [params.gravity[k] for k in range(3)])
+            pts = np.concatenate([pts[floor], pts[~floor]])  # the floor's first: no slip on 0 .. floor count
+            no_slip_end = int(np.count_nonzero(floor))
+        self.no_slip = no_slip
+        """Which walls boundary_viscosity makes no-slip ("all" or "floor")."""
         moving_start = len(pts)
         self._moving = None
         if moving_boundary is not None:
@@ -117,6 +146,8 @@ class DfsphSolver:
         dp.boundary_count = nbc
         dp.kinematic_viscosity = float(kinematic_viscosity)
         dp.boundary_viscosity = float(boundary_viscosity)
+        dp.no_slip_start = 0
+        dp.no_slip_end = nbc if no_slip == "all" else no_slip_end  # "all": a gate's particles too
         h = support * spacing
         dp.viscosity_eps = 0.01 * h * h
         dp.dimension_factor = 10.0
@@ -160,6 +191,11 @@ class DfsphSolver:
     @property
     def boundary_count(self) -> int:
         return self._dp.boundary_count
+
+    @property
+    def no_slip_count(self) -> int:
+        """Boundary particles that boundary_viscosity acts against (the first ones)."""
+        return self._dp.no_slip_end - self._dp.no_slip_start
 
     def _density_boundaries(self, b, skip_domain: bool):
         """The signed-distance boundaries that add to the density: all of the fluid's, without the

@@ -89,6 +89,12 @@ def floor_front(x, spacing: float, floor: float = 0.0, origin: float = 0.0, band
     if bins.size == 0:
         return origin
     wet = np.bincount(bins) >= max(1, layers // 2 + 1)
+    return _joined_front(near, bins, wet, spacing, origin, edge)
+
+
+def _joined_front(near, bins, wet, spacing: float, origin: float, edge: float | None) -> float:
+    """origin + the furthest of ``near`` (x - origin [m], in bins ``bins``) among the wet bins
+    joined to the wall (one dry bin between wet ones is a hole, two end the water) + edge."""
     dry = ~wet
     gap = np.flatnonzero(dry[:-1] & dry[1:]) if wet.size > 1 else np.flatnonzero(dry)
     last = gap[0] if gap.size else wet.size  # bins 0 .. last-1 hold the film joined to the wall
@@ -97,6 +103,30 @@ def floor_front(x, spacing: float, floor: float = 0.0, origin: float = 0.0, band
     if last == 0:
         return origin
     return origin + float(near[bins < last].max()) + (0.5 * spacing if edge is None else edge)
+
+
+FILM_DEPTH = 0.1
+"""Water depth, over the column width a, that :func:`depth_front` takes for the front in
+``run_dam_break`` (``Z_depth``): 2 spacings at a / spacing = 20, 5.7 mm in the experiment."""
+
+
+def depth_front(x, spacing: float, depth: float, layers: int = 1, origin: float = 0.0,
+                edge: float | None = None) -> float:
+    """Leading edge [m] of the water at least ``depth`` [m] deep, a front that a film thinner than
+    that does not move, the same in metres at every resolution (:func:`floor_front` counts a film
+    within two spacings of the floor, thinner as the spacing shrinks): the particles binned along +x
+    in bins one spacing wide, a bin's depth count * spacing / layers (each particle a spacing^3 of
+    water in a slab ``layers`` particles deep), wet at >= depth; the front is the furthest particle
+    of the wet bins joined to ``origin`` (one dry bin a hole, two the end, as :func:`floor_front`)
+    plus ``edge`` (default half a spacing). x: (N, 3) [m]."""
+    near = np.asarray(x, np.float64)[:, 0] - origin
+    bins = np.floor(near / spacing).astype(np.int64)
+    keep = bins >= 0
+    near, bins = near[keep], bins[keep]
+    if bins.size == 0:
+        return origin
+    wet = np.bincount(bins) * (spacing / layers) >= depth * (1.0 - 1e-9)
+    return _joined_front(near, bins, wet, spacing, origin, edge)
 
 
 def tip_front(x, spacing: float) -> float:
@@ -165,14 +195,16 @@ def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: floa
     """Martin and Moyce's n^2 = 2 dam break with a ParticleFluid: the column a x 2a (``layers``
     particles thick, a / spacing = ``res``) in the -x corner of the box 5a x 2.5a, released at
     rest at T = 0 and advanced in frames of dT = 1 / frames_per_T (CFL sub-steps) to ``t_end``.
-    Returns T, the floor front Z (:func:`floor_front`) and the tip front Z_tip (:func:`tip_front`)
-    per frame (over a), the mean compression per frame, steps, pressure iterations per step,
-    particles, wall-clock seconds and the fluid. ``gate_speed`` > 0 [m/s] (DFSPH): the column is
-    released by lifting a gate (:func:`gate`) at that speed instead of all at once. ``inset``: the
+    Returns T, the floor front Z (:func:`floor_front`), the tip front Z_tip (:func:`tip_front`) and
+    the front of the water FILM_DEPTH a deep Z_depth (:func:`depth_front`) per frame (over a), the
+    mean compression per frame, steps, pressure iterations per step, particles, wall-clock seconds
+    and the fluid. ``gate_speed`` > 0 [m/s] (DFSPH): the column is released by lifting a gate
+    (:func:`gate`) at that speed instead of all at once. ``inset``: the
     block as SPlisHSPlasH's ``createFluidBlocks`` samples it, its first particle one spacing inside
     the column's faces and round(L / spacing) - 1 particles along x and y (a column one layer
     narrower and lower, a spacing off the wall); by default the lattice fills a x 2a exactly, its
-    particles half a spacing inside the faces. ``settings`` go to ParticleFluid."""
+    particles half a spacing inside the faces. ``settings`` go to ParticleFluid (e.g. DFSPH's
+    ``boundary_viscosity`` with ``no_slip="floor"``: a no-slip floor, free-slip side and slab walls)."""
     import time
 
     from .pbf import ParticleFluid, fluid_block
@@ -192,7 +224,7 @@ def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: floa
     f = ParticleFluid(block, spacing=s,
                       domain=((0, 0, 0), (5 * a, 2.5 * a, depth)), method=method, device=device, **settings)
     scale = time_scale(a, 2 * a)
-    T, Z, tip, compression = [0.0], [1.0], [1.0], [0.0]
+    T, Z, tip, deep, compression = [0.0], [1.0], [1.0], [1.0], [0.0]
     start = time.perf_counter()
     for _ in range(int(round(t_end * frames_per_T))):
         f.advance(1.0 / frames_per_T / scale)
@@ -200,7 +232,9 @@ def run_dam_break(method: str = "dfsph", res: int = 10, layers: int = 3, a: floa
         T.append(f.time * scale)
         Z.append(floor_front(x, s, layers=layers) / a)
         tip.append(tip_front(x, s) / a)
+        deep.append(depth_front(x, s, FILM_DEPTH * a, layers=layers) / a)
         compression.append(f.density_error()[0])
-    return {"T": np.array(T), "Z": np.array(Z), "Z_tip": np.array(tip), "compression": np.array(compression),
+    return {"T": np.array(T), "Z": np.array(Z), "Z_tip": np.array(tip), "Z_depth": np.array(deep),
+            "compression": np.array(compression),
             "steps": f.step_count, "iterations": f.total_iterations / max(f.step_count, 1),
             "particles": f.active_count, "seconds": time.perf_counter() - start, "fluid": f, "res": res}

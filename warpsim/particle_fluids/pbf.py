@@ -147,6 +147,9 @@ class ParticleFluid(FluidRecords, SolverBase):
         kinematic_viscosity: DFSPH: nu [m^2/s] of the SPH (Monaghan) viscosity between fluid particles.
         boundary_viscosity: DFSPH: nu [m^2/s] of the same term against the boundary particles at
             rest (a no-slip wall; boundary="particles").
+        no_slip: DFSPH: the walls ``boundary_viscosity`` acts on: "all" (every boundary particle) or
+            "floor" (the domain wall gravity points at, edges included; the side walls and a slab's
+            front and back walls stay free slip).
         divergence_tolerance: DFSPH: the divergence solve stops when the mean relative density
             change per step is below this (SPlisHSPlasH's 0.1 %).
         moving_boundary: DFSPH with boundary particles: (points (M, 3) [m] at t = 0, velocity (3,)
@@ -171,7 +174,7 @@ class ParticleFluid(FluidRecords, SolverBase):
                  wall_friction=None, emitters=(), sinks=(), cfl=None, max_dt=1.0 / 200.0, max_neighbors=64,
                  max_speed=100.0, sort_every=0, method="pbf", boundary="particles", kinematic_viscosity=0.0,
                  boundary_viscosity=0.0, divergence_tolerance=0.001, moving_boundary=None, mass_fraction=1.0,
-                 device=None):
+                 no_slip="all", device=None):
         self.method = check_method(method)
         """Pressure solver: "pbf" (position-based fluids) or "dfsph" (divergence-free SPH)."""
         if boundary not in BOUNDARIES:
@@ -211,9 +214,13 @@ class ParticleFluid(FluidRecords, SolverBase):
                 density_tolerance=self.density_tolerance,
                 divergence_tolerance=positive_value("divergence_tolerance", divergence_tolerance),
                 iterations=self.iterations, total_counter=self._total_iterations,
-                grid_dims=self.grid_dims, max_neighbors=max_neighbors, device=d, moving_boundary=moving_boundary)
+                grid_dims=self.grid_dims, max_neighbors=max_neighbors, device=d,
+                moving_boundary=moving_boundary, no_slip=no_slip)
         elif moving_boundary is not None:
             raise ValueError("moving_boundary (boundary particles moving at a constant velocity) needs method='dfsph'")
+        elif no_slip != "all":
+            raise ValueError(f"no_slip={no_slip!r} (boundary viscosity on some walls only) needs "
+                             "method='dfsph'")
 
     # ------------------------------------------------------------------------------ construction steps
     def _check_options(self, spacing, rest_density, kernel, support, iterations, density_tolerance, peak_tolerance,
