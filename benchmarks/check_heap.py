@@ -88,6 +88,8 @@ def main():
     device = scene.sim.model.device
     profiled = []  # (contact ms, all ms) of each profiled frame
     plain = [0, 0.0]  # frames neither checked nor profiled, their wall seconds
+    vbd = getattr(scene, "vbd_contact", None) if args.integrator == "vbd" else None
+    searches = vbd.searches_run if vbd is not None else 0
     t0 = time.perf_counter()
     for frame in range(args.frames):
         profile = bool(args.profile_every and device.is_cuda and frame % args.profile_every == 0)
@@ -113,6 +115,9 @@ def main():
                 f" ke {scene.kinetic_energy():.3g} vmax {np.abs(sim.state.velocities.numpy()).max():.3g}"
                 f" ymean {x[:, 1].mean():.3f} cg {getattr(sim.integrator, 'last_cg_iterations', 0)}"
                 f" t {time.perf_counter() - t0:.1f}")
+        if vbd is not None:  # the contact searches that ran (those at rest are skipped)
+            line += f" searches/step {(vbd.searches_run - searches) / steps:.2f}"
+            searches = vbd.searches_run
         if args.count <= 4:
             line += " tori " + " ".join(f"{x[o:o + per_torus, 1].mean():.3f}" for o in scene.offsets)
         if not profile and not checked:
