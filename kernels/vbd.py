@@ -85,13 +85,51 @@ def predict(
     deficit_out[i] = guess - clipped
 
 
+@wp.struct
+class SpringEntry:
+    """One entry of a particle's CSR spring row, as the sweeps of one step read it (``pack_springs``)."""
+
+    other: int  # the spring's other particle; -1: the spring is broken
+    rest: float  # rest length [m]
+    stiffness: float  # [N/m]
+    damping: float  # [N s/m]
+    other_start: wp.vec3  # the other particle's position at the step's start [m]
+
+
+@wp.kernel
+def pack_springs(
+    entry_particle: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
+    rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
+    broken: wp.array(dtype=int), q0: wp.array(dtype=wp.vec3), entries_out: wp.array(dtype=SpringEntry),
+):
+    """Entry a of the CSR spring rows (particle ``entry_particle[a]``, spring ``spring_list[a]``) packed with what
+    the step's sweeps read of it: its other particle, the spring's rest length, stiffness and damping, and the
+    other particle's step-start position ``q0`` [m]. A thread an entry (written in order: coalesced), at the
+    step's start (after ``predict``), so the model's springs as they are now, broken ones included; each sweep
+    then reads one contiguous record an entry instead of six arrays indexed by spring (the same values in the
+    same order: the same bits)."""
+    a = wp.tid()
+    p = entry_particle[a]
+    s = spring_list[a]
+    o = spring_indices[2 * s]
+    if o == p:
+        o = spring_indices[2 * s + 1]
+    e = SpringEntry()
+    e.other = o
+    if broken[s] != 0:
+        e.other = -1
+    e.rest = rest[s]
+    e.stiffness = stiffness[s]
+    e.damping = damping[s]
+    e.other_start = q0[o]
+    entries_out[a] = e
+
+
 @wp.func
 def vertex_force_hessian(
     p: int, x: wp.vec3, lane: int, lanes: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
     y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_h: float,
-    spring_offsets: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
-    rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
-    broken: wp.array(dtype=int),
+    spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
     slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
     vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
     tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
@@ -103,7 +141,8 @@ def vertex_force_hessian(
     friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), colour: wp.array(dtype=int),
 ):
     """Lane ``lane``'s share (of ``lanes``) of f_i [N] and H_i [N/m] of particle p at ``x`` [m] (module docstring):
-    the inertia (lane 0), then the springs at positions lane, lane + lanes, ... of p's CSR row, in that order,
+    the inertia (lane 0), then the springs at positions lane, lane + lanes, ... of p's CSR row (``springs``, packed
+    by ``pack_springs``), in that order,
     then its share of the contacts (``contact_force_hessian``). Lane 0 of 1 is the whole sum, in the order of
     the CSR row and the contact lists."""
     f = wp.vec3()
@@ -114,21 +153,19 @@ def vertex_force_hessian(
         H = inertia * wp.identity(3, dtype=float)
     dxp = x - q0[p]
     for a in range(spring_offsets[p] + lane, spring_offsets[p + 1], lanes):
-        s = spring_list[a]
-        if broken[s] != 0:
-            continue
-        o = spring_indices[2 * s]
-        if o == p:
-            o = spring_indices[2 * s + 1]
-        u = x - q[o]
+        e = springs[a]
+        if e.other < 0:
+            continue  # broken
+        qo = q[e.other]
+        u = x - qo
         length = wp.length(u)
         if length < 1.0e-12:
             continue
         n = u / length
         nn = wp.outer(n, n)
-        c = damping[s] * inv_h
-        f -= stiffness[s] * (length - rest[s]) * n + c * (nn * (dxp - (q[o] - q0[o])))
-        H += stiffness[s] * (nn + wp.max(0.0, 1.0 - rest[s] / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
+        c = e.damping * inv_h
+        f -= e.stiffness * (length - e.rest) * n + c * (nn * (dxp - (qo - e.other_start)))
+        H += e.stiffness * (nn + wp.max(0.0, 1.0 - e.rest / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
     fc, Hc = contact_force_hessian(p, x, lane, lanes, q, q0, slot, tri, edges, capacity, vt_list, vt_count,
                                    tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count,
                                    near, near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
@@ -146,9 +183,7 @@ def solve_colour_kernel(tiled: bool):
         colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
         y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
-        spring_offsets: wp.array(dtype=int), spring_list: wp.array(dtype=int), spring_indices: wp.array(dtype=int),
-        rest: wp.array(dtype=float), stiffness: wp.array(dtype=float), damping: wp.array(dtype=float),
-        broken: wp.array(dtype=int),
+        spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
         slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
         vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
         tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
@@ -180,8 +215,7 @@ def solve_colour_kernel(tiled: bool):
                 q_out[p] = x
             return
         f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
-                                    spring_offsets, spring_list, spring_indices, rest, stiffness, damping, broken,
-                                    slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
+                                    spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
                                     tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
                                     near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
                                     contact_stiffness, friction, friction_eps, reference, colour)

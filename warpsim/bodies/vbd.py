@@ -199,6 +199,11 @@ class VBD(Integrator):
         self.deficit = wp.zeros(n, dtype=wp.vec3, device=d)
         """What the bound cut from each particle's initial guess and no search has given back yet [m]."""
         self.qd_prev = wp.array(model.particle_qd.numpy(), dtype=wp.vec3, device=d)
+        offsets = model.particle_spring_offsets.numpy()
+        self._entry_particle = wp.array(np.repeat(np.arange(n, dtype=np.int32), np.diff(offsets)), dtype=int, device=d)
+        """Particle of each entry of the CSR spring rows (E = 2 springs,)."""
+        self._springs = wp.empty(len(self._entry_particle), dtype=K.SpringEntry, device=d)
+        """The entries packed for the step's sweeps (``kernels.vbd.pack_springs``), (E,)."""
         chebyshev = self.chebyshev_rho > 0.0
         self._older = wp.zeros(n if chebyshev else 0, dtype=wp.vec3, device=d)
         self._old = wp.zeros(n if chebyshev else 0, dtype=wp.vec3, device=d)
@@ -231,13 +236,15 @@ class VBD(Integrator):
         def record(kernel, dim, inputs):
             return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True)
 
-        springs = [m.particle_spring_offsets, m.particle_springs, m.spring_indices, m.spring_rest_length,
-                   m.spring_stiffness, m.spring_damping, self._broken]
+        springs = [m.particle_spring_offsets, self._springs]
         if self.contact is not None:  # its thickness, stiffness and friction as they are now
             self._contact_inputs = self.contact.solve_inputs()
         self._predict = record(K.predict, n, [qd, self.qd_prev, self.f_ext, m.particle_inv_mass, h,
                                                int(self.adaptive_guess), self._reference, self._bound, q, self.q0,
                                                self.y, self.deficit, self.q_new])
+        self._pack = record(K.pack_springs, len(self._entry_particle), [
+            self._entry_particle, m.particle_springs, m.spring_indices, m.spring_rest_length, m.spring_stiffness,
+            m.spring_damping, self._broken, self.q0, self._springs])
         self._restore = record(K.restore_guess, n, [self._reference, self._bound, self.deficit, q, self.q_new])
         # a sweep starts with q_new = q (predict, restore_guess and the Chebyshev step keep it so); colour c reads
         # one buffer and writes the other, copying colour c - 1 across (kernels.vbd's docstring), and the last
@@ -292,6 +299,7 @@ class VBD(Integrator):
             else:
                 self.contact.search(q, self.deficit, self.renew_fraction)
         self._predict.launch()
+        self._pack.launch()  # the springs as the model holds them now, with q0, in the sweeps' order
         chebyshev = self.chebyshev_rho > 0.0
         if chebyshev:
             wp.copy(self._older, q)
