@@ -40,6 +40,7 @@ import warp as wp
 from bench_donuts import add_heap_arguments
 from heap_oracles import edges_through_other_bodies_count
 from timing import activity_name
+from vbd_heap import heap_state
 
 from warpsim.kernels import soft_contact, vbd_contact
 from warpsim.scenes import get_scene
@@ -73,6 +74,8 @@ def main():
     parser.add_argument("--oracle", default="warp", choices=["warp", "numpy"], help="the crossing check: warp "
                         "(heap_oracles.py on the heap's device, the NumPy oracle's count; the depth then only where "
                         "an edge crossed) or numpy (the tests' oracles, minutes a check at 100 tori)")
+    parser.add_argument("--state", action="store_true", help="vbd: on each printed frame also the heap's state "
+                        "(vbd_heap.heap_state: fastest particles and the tori holding them, bounds, smallest gaps)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="another donuts parameter (repeatable), e.g. contact_iterations=8")
     args = parser.parse_args()
@@ -133,6 +136,8 @@ def main():
             line += f" depth {depth} crossings {crossed}"
         if checked or frame % max(args.print_every, 1) == 0 or frame == args.frames - 1:
             print(line, flush=True)
+            if args.state and vbd is not None:
+                print(f"{frame} {heap_state(scene, sim.integrator.renew_fraction)}", flush=True)
     if profiled:
         contact_ms, all_ms = (sum(column) for column in zip(*profiled))
         print(f"contact search over {len(profiled)} profiled frames (one in {args.profile_every}): "
