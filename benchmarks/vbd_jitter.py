@@ -1,0 +1,88 @@
+"""What keeps a VBD heap moving at rest: settle the donut heap, then step the saved state by each variant.
+
+Builds the donuts scene (``--count`` tori of the benchmark's resolution, ``integrator=vbd``), takes ``--settle``
+steps of ``--dt`` printing every 40 the fastest particle [m/s], its 99.9th percentile, the particles past 0.1 m/s
+and the contact searches run a step; then prints where the fast particles are (surface or interior, bounds, what
+the bound cut of their guess) and, for each ``--variant`` (a JSON object of scene parameters), builds the scene
+again with them, sets the saved positions and velocities and takes ``--steps`` steps, printing the same figures
+over each 40 (benchmarks/RESULTS.md, "the heap's jitter"):
+
+    python benchmarks/vbd_jitter.py --count 4 --settle 600 --steps 120 --variant '{}' \\
+        --variant '{"friction": 0.0}' --variant '{"contact_stiffness": 8000}' \\
+        --variant '{"contact_stiffness": 8000, "solver_iterations": 24}'
+"""
+
+import argparse
+import json
+import time
+
+import numpy as np
+import warp as wp
+
+from warpsim.scenes import get_scene
+
+WINDOW = 40
+"""Steps over which each line's figures are taken."""
+
+
+def build(args, **overrides):
+    cls = get_scene("donuts")
+    return cls(cls.resolve_params({"count": args.count, "segments": args.segments, "sides": args.sides,
+                                   "lattice_cells": args.lattice_cells, "dt": args.dt, "integrator": "vbd",
+                                   **overrides}), device=args.device)
+
+
+def window(scene, h) -> str:
+    """Step ``WINDOW`` steps; the fastest particle, its 99.9th percentile, particles past 0.1 m/s, searches a step."""
+    contact = scene.vbd_contact
+    before = contact.searches_run
+    for _ in range(WINDOW):
+        scene.sim.step(h)
+    v = np.linalg.norm(scene.sim.state.velocities.numpy(), axis=1)
+    return (f"{v.max():.3f} m/s, 99.9th percentile {np.percentile(v, 99.9):.3f}, {int((v > 0.1).sum())} past 0.1 m/s, "
+            f"{(contact.searches_run - before) / WINDOW:.2f} searches a step")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--count", type=int, default=4, help="number of tori")
+    parser.add_argument("--segments", type=int, default=50, help="torus segments around its axis")
+    parser.add_argument("--sides", type=int, default=40, help="torus segments around its tube")
+    parser.add_argument("--lattice-cells", type=int, default=10, help="interior lattice cells across a torus")
+    parser.add_argument("--dt", type=float, default=1.0 / 240.0, help="step [s]")
+    parser.add_argument("--settle", type=int, default=600, help="steps before the variants (a multiple of 40)")
+    parser.add_argument("--steps", type=int, default=120, help="steps of each variant (a multiple of 40)")
+    parser.add_argument("--variant", action="append", default=[], help="scene parameters as JSON, e.g. "
+                        "'{\"friction\": 0.0}' (repeatable; none: the scene's own, '{}')")
+    args = parser.parse_args()
+    variants = [json.loads(v) for v in args.variant] or [{}]
+    scene = build(args)
+    h = scene.params["dt"] / scene.inner_steps
+    t0 = time.perf_counter()
+    for k in range(args.settle // WINDOW):
+        print(f"settle, steps {k * WINDOW}-{(k + 1) * WINDOW}: {window(scene, h)} ({time.perf_counter() - t0:.0f} s)",
+              flush=True)
+    q, qd = scene.sim.state.positions.numpy().copy(), scene.sim.state.velocities.numpy().copy()
+    contact = scene.vbd_contact
+    fast = np.flatnonzero(np.linalg.norm(qd, axis=1) > 0.1)
+    surface = np.isin(fast, contact._surface.numpy())
+    bodies = np.unique(fast // contact.body_size) if len(fast) else []
+    deficit = np.linalg.norm(scene.sim.integrator.deficit.numpy()[fast], axis=1) * 1e3
+    bounds = contact.bound.numpy()[fast] * 1e3
+    print(f"after settling: {len(fast)} particles past 0.1 m/s ({int(surface.sum())} on the surface) in tori "
+          f"{list(map(int, bodies))}; their bounds {bounds.min() if len(fast) else 0:.2f}-"
+          f"{bounds.max() if len(fast) else 0:.2f} mm, their guess cut by at most "
+          f"{deficit.max() if len(fast) else 0:.3f} mm", flush=True)
+    for overrides in variants:
+        run = build(args, **overrides)
+        run.sim.state.positions.assign(q)
+        run.sim.state.velocities.assign(qd)
+        lines = [window(run, h) for _ in range(args.steps // WINDOW)]
+        print(f"variant {json.dumps(overrides)}:", *(f"\n  steps {k * WINDOW}-{(k + 1) * WINDOW}: {line}"
+                                                  for k, line in enumerate(lines)), flush=True)
+    wp.synchronize()
+
+
+if __name__ == "__main__":
+    main()
