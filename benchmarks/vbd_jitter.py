@@ -20,6 +20,8 @@ import time
 import numpy as np
 import warp as wp
 
+import warpsim as ws
+
 from warpsim.scenes import get_scene
 
 WINDOW = 40
@@ -27,10 +29,16 @@ WINDOW = 40
 
 
 def build(args, **overrides):
+    """The scene with ``overrides``: scene parameters, and ``ws.VBD`` attributes prefixed by "_" (e.g.
+    ``"_adaptive_guess": false``), set before the first step."""
     cls = get_scene("donuts")
-    return cls(cls.resolve_params({"count": args.count, "segments": args.segments, "sides": args.sides,
-                                   "lattice_cells": args.lattice_cells, "dt": args.dt, "integrator": "vbd",
-                                   **overrides}), device=args.device)
+    integrator = {key[1:]: overrides.pop(key) for key in list(overrides) if key.startswith("_")}
+    scene = cls(cls.resolve_params({"count": args.count, "segments": args.segments, "sides": args.sides,
+                                    "lattice_cells": args.lattice_cells, "dt": args.dt, "integrator": "vbd",
+                                    **overrides}), device=args.device)
+    for key, value in integrator.items():
+        setattr(scene.sim.integrator, key, value)
+    return scene
 
 
 def window(scene, h) -> str:
@@ -61,9 +69,16 @@ def main():
     parser.add_argument("--settle", type=int, default=600, help="steps before the variants (a multiple of 40)")
     parser.add_argument("--steps", type=int, default=120, help="steps of each variant (a multiple of 40)")
     parser.add_argument("--variant", action="append", default=[], help="scene parameters as JSON, e.g. "
-                        "'{\"friction\": 0.0}' (repeatable; none: the scene's own, '{}')")
+                        "'{\"friction\": 0.0}', and ws.VBD's attributes prefixed by _, e.g. "
+                        "'{\"_adaptive_guess\": false}' (repeatable; none: the scene's own, '{}')")
     args = parser.parse_args()
     variants = [json.loads(v) for v in args.variant] or [{}]
+    vbd = ws.VBD()
+    for overrides in variants:  # before any time is spent
+        for key in overrides:
+            if key.startswith("_") and not hasattr(vbd, key[1:]):
+                parser.error(f"--variant: ws.VBD has no attribute {key[1:]!r}; give a scene parameter, or _ and one "
+                             "of VBD's (e.g. _adaptive_guess)")
     scene = build(args)
     h = scene.params["dt"] / scene.inner_steps
     t0 = time.perf_counter()
@@ -82,7 +97,7 @@ def main():
           f"{bounds.max() if len(fast) else 0:.2f} mm, their guess cut by at most "
           f"{deficit.max() if len(fast) else 0:.3f} mm", flush=True)
     for overrides in variants:
-        run = build(args, **overrides)
+        run = build(args, **dict(overrides))
         run.sim.state.positions.assign(q)
         run.sim.state.velocities.assign(qd)
         lines = [window(run, h) for _ in range(args.steps // WINDOW)]
