@@ -62,6 +62,31 @@ def test_one_newton_step_on_one_spring_is_the_backward_euler_step(damping):
     assert (sim.state.positions.numpy()[0] == 0.0).all()  # pinned
 
 
+def test_the_sweeps_read_the_springs_as_the_model_holds_them_at_each_step():
+    """The sweeps read each step's packed copy of the springs (``kernels.vbd.pack_springs``): a stiffness changed
+    between steps gives the next step backward Euler's step with the new stiffness, and a spring broken between
+    steps exerts nothing (the particle moves on at its velocity), each checked against the analytic step."""
+    m, L, h = 0.2, 0.1, 1.0 / 30.0
+    model = spring_pair(40.0)
+    sim = ws.Simulator(model, integrator=ws.VBD(iterations=1), forces=[])
+
+    def step_and_check(k):
+        x0, v0 = (float(a[1][0]) for a in (sim.state.positions.numpy(), sim.state.velocities.numpy()))
+        y = x0 + h * v0
+        expected = (m / h**2 * y + k * L) / (m / h**2 + k)
+        sim.step(h)
+        assert sim.state.positions.numpy()[1][0] == pytest.approx(expected, rel=1e-6), k
+        return x0
+
+    step_and_check(40.0)
+    model.spring_stiffness.assign(np.array([90.0], np.float32))
+    step_and_check(90.0)
+    entries = sim.integrator._springs.numpy()
+    assert [int(e[0]) for e in entries] == [1, 0] and all(float(e[2]) == 90.0 for e in entries)
+    model.spring_broken.assign(np.array([1], np.int32))
+    step_and_check(0.0)  # broken: the inertial step y
+    assert all(int(e[0]) == -1 for e in sim.integrator._springs.numpy())
+
 def small_torus(position=(0.0, 0.3, 0.0), builder=None, segments=10, sides=6):
     b = builder or ws.ModelBuilder()
     points, faces = ws.torus_mesh(0.1, 0.04, segments, sides)
