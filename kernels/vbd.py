@@ -215,8 +215,8 @@ def solve_colour_kernel(tiled: bool):
                 q_out[p] = x
             return
         f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
-                                    spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
-                                    tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                    spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count,
+                                    tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
                                     near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
                                     contact_stiffness, friction, friction_eps, reference, colour)
         if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane

@@ -200,7 +200,8 @@ class VBD(Integrator):
         """What the bound cut from each particle's initial guess and no search has given back yet [m]."""
         self.qd_prev = wp.array(model.particle_qd.numpy(), dtype=wp.vec3, device=d)
         offsets = model.particle_spring_offsets.numpy()
-        self._entry_particle = wp.array(np.repeat(np.arange(n, dtype=np.int32), np.diff(offsets)), dtype=int, device=d)
+        self._entry_particle = wp.array(np.repeat(np.arange(n, dtype=np.int32), np.diff(offsets)), dtype=int,
+                                        device=d)
         """Particle of each entry of the CSR spring rows (E = 2 springs,)."""
         self._springs = wp.empty(len(self._entry_particle), dtype=K.SpringEntry, device=d)
         """The entries packed for the step's sweeps (``kernels.vbd.pack_springs``), (E,)."""
