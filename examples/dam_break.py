@@ -54,16 +54,15 @@ class Example:
         """One frame; returns the number of CFL sub-steps it took."""
         return self.fluid.advance(frame_dt)
 
-    def front(self):
-        """Surge front z/a: the far edge of the water on the floor (:func:`martin_moyce.floor_front`)."""
+    def fronts(self):
+        """Surge fronts z/a from one read of the positions: the far edge of the water on the floor
+        (:func:`martin_moyce.floor_front`) and of the water at least ``martin_moyce.FILM_DEPTH`` a deep
+        (:func:`martin_moyce.depth_front`: a film on the floor thinner than that, whose thickness shrinks with
+        the spacing, does not move it)."""
         x = self.fluid.positions.numpy()
-        return MM.floor_front(x, self.fluid.spacing, layers=self.layers) / self.a
-
-    def deep_front(self):
-        """Front z/a of the water at least ``martin_moyce.FILM_DEPTH`` a deep (:func:`martin_moyce.depth_front`:
-        a film on the floor thinner than that, whose thickness shrinks with the spacing, does not move it)."""
-        x = self.fluid.positions.numpy()
-        return MM.depth_front(x, self.fluid.spacing, MM.FILM_DEPTH * self.a, layers=self.layers) / self.a
+        s = self.fluid.spacing
+        return (MM.floor_front(x, s, layers=self.layers) / self.a,
+                MM.depth_front(x, s, MM.FILM_DEPTH * self.a, layers=self.layers) / self.a)
 
     def frame_data(self):
         f = self.fluid
@@ -125,7 +124,8 @@ def main(argv=None):
     f = example.fluid
     print(f"{f.active_count} particles, method {args.method}; Martin & Moyce (1952) n^2 = 2")
     print(f"{'frame':>5} {'T':>6} {'z/a':>6} {'M&M z/a':>8} {'substeps':>8} {'compression':>11}")
-    times, fronts, deep = [0.0], [example.front()], [example.deep_front()]
+    floor, deep_now = example.fronts()
+    times, fronts, deep = [0.0], [floor], [deep_now]
     work, seconds = 0, 0.0
     with (UsdCacheWriter(args.out, fps=args.fps) if args.out else contextlib.nullcontext()) as writer:
         if writer is not None:
@@ -142,8 +142,9 @@ def main(argv=None):
             T = f.time * scale
             measured = np.interp(T, MM.N2_2_T, MM.N2_2_Z, left=np.nan, right=np.nan)
             times.append(T)
-            fronts.append(example.front())
-            deep.append(example.deep_front())
+            floor, deep_now = example.fronts()
+            fronts.append(floor)
+            deep.append(deep_now)
             print(f"{frame:5d} {T:6.2f} {fronts[-1]:6.2f} {measured:8.2f} {substeps:8d} {f.density_error()[0]:11.2e}")
     if writer is not None:
         print(f"wrote {writer.output_path}")

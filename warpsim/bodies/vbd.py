@@ -91,7 +91,8 @@ class VBD(Integrator):
             VBD uses 0.9-0.95; on the donut heap 0.9 with 12 iterations gained 13 % energy at the first
             impacts, so off by default).
         detect_every: iterations between contact searches within a step (a search opens the step, skipped
-            at rest as those within it: ``renew_fraction``); 0: only that one. Each search lets a particle move another b_max at most.
+            at rest as those within it: ``renew_fraction``); 0: only that one. Each search lets a particle move
+            another b_max at most.
         adaptive_guess: VBD's adaptive initial guess (off: y, the inertial target).
         renew_fraction: a search (opening a step, or within it every ``detect_every`` iterations) runs only when
             some particle has moved more than this fraction of its bound since the last search or has some of its
@@ -199,9 +200,8 @@ class VBD(Integrator):
         self.deficit = wp.zeros(n, dtype=wp.vec3, device=d)
         """What the bound cut from each particle's initial guess and no search has given back yet [m]."""
         self.qd_prev = wp.array(model.particle_qd.numpy(), dtype=wp.vec3, device=d)
-        offsets = model.particle_spring_offsets.numpy()
-        self._entry_particle = wp.array(np.repeat(np.arange(n, dtype=np.int32), np.diff(offsets)), dtype=int,
-                                        device=d)
+        row_lengths = np.diff(model.particle_spring_offsets.numpy())
+        self._entry_particle = wp.array(np.repeat(np.arange(n, dtype=np.int32), row_lengths), dtype=int, device=d)
         """Particle of each entry of the CSR spring rows (E = 2 springs,)."""
         self._springs = wp.empty(len(self._entry_particle), dtype=K.SpringEntry, device=d)
         """The entries packed for the step's sweeps (``kernels.vbd.pack_springs``), (E,)."""
