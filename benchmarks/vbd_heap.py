@@ -152,12 +152,16 @@ def heap_state(scene, renew_fraction) -> str:
     tori = len(np.unique(fast // contact.body_size)) if contact.body_size else "-"
     surface = contact._surface.numpy()
     bound = contact.bound.numpy()[surface] * 1e3
-    gap = contact._vt_min.numpy() * 1e3
+    cap = contact.cap.numpy()[surface] * 1e3
+    gap = contact._vt_min.numpy()
+    gap = gap[gap < 1.0e29] * 1e3  # vertices with a listed pair (1e30: none)
+    gaps = f"{gap.min():.3g} / {np.percentile(gap, 1):.3g}" if len(gap) else "- / -"
     return (f"heap state: fastest particle {speed.max():.3g} m/s, 99.9th percentile {np.percentile(speed, 99.9):.3g}, "
             f"{len(fast)} particles past 0.1 m/s in {tori} tori; surface bounds min / 1st percentile / median "
             f"{bound.min():.3g} / {np.percentile(bound, 1):.3g} / {np.median(bound):.3g} mm (a search runs past "
-            f"{renew_fraction} of one); vertex-triangle distance min / 1st percentile {gap.min():.3g} / "
-            f"{np.percentile(gap, 1):.3g} mm (thickness {contact.thickness * 1e3:.3g})")
+            f"{renew_fraction} of one); caps median / 99th percentile / max {np.median(cap):.3g} / "
+            f"{np.percentile(cap, 99):.3g} / {cap.max():.3g} mm; vertex-triangle distance min / 1st percentile "
+            f"{gaps} mm (thickness {contact.thickness * 1e3:.3g})")
 
 
 def run_vbd(args, device, build) -> None:
@@ -167,7 +171,8 @@ def run_vbd(args, device, build) -> None:
     print(f"device {device}; {args.count} tori x {args.segments * args.sides} surface vertices; {model.particle_count} "
           f"particles, {model.spring_count} springs, {integrator.colour_count} colours, {contact.triangle_count} "
           f"triangles, {contact.edge_count} edges; {integrator.iterations} sweeps and {searches_per_step(integrator)} "
-          f"contact searches a step (query radius {contact.query_radius * 1e3:.3g} mm)")
+          f"contact searches a step (a pair's radius r_c + its caps: {contact.thickness * 1e3:.3g} + caps of "
+          f"{contact.min_displacement * 1e3:.3g}-{contact.max_displacement * 1e3:.3g} mm a side)")
     before = contact.searches_run
     full = time_per_call(lambda: sim.step(h), args.steps, device)
     ran = (contact.searches_run - before) / (args.steps + 1)  # searches run a timed step (warm-up call included)

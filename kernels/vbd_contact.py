@@ -8,7 +8,7 @@ writing its own fixed-capacity list, sorted ascending (no atomics on the lists, 
 the BVH's traversal order, so the lists and everything computed from them are the same bits on every
 run, and a world of a sweep gets the bits of its scene run alone):
 
-* every surface vertex against the triangles within ``query_radius`` (``vt_list``; the vertex's
+* every surface vertex against the triangles within the pair's radius (``vt_list``; the vertex's
   side of a vertex-triangle pair);
 * every triangle against the surface vertices within the radius (``tv_list``; the triangle's side
   of the same pairs);
@@ -22,7 +22,7 @@ the capacity is run whole (``WHOLE``, ``HALF``, ``FINISH``): the lists, distance
 of three whole queries, bit for bit, with one triangle query and half the edge traversal less.
 
 Pairs sharing a particle are skipped; so are pairs of the same body unless self contact is on.
-Each query also keeps the smallest distance it met (``*_min``, [m]); ``displacement_bounds`` turns
+Each query also keeps the smallest distance of its pairs (``*_min``, [m]); ``displacement_bounds`` turns
 them into each particle's step bound (the proof is in ``warpsim.bodies.vbd``). A query with more
 pairs within the radius than a list's ``capacity`` keeps the nearest (``keep_nearest``), is counted in
 ``overflow`` (queries past capacity at this search and the most pairs one query met: integer atomics on
@@ -112,13 +112,6 @@ def edge_edge_rel(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3):
     return (p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)), st
 
 
-@wp.kernel
-def gather_points(particles: wp.array(dtype=int), q: wp.array(dtype=wp.vec3), points_out: wp.array(dtype=wp.vec3)):
-    """Positions [m] of the surface vertices (the vertex BVH's degenerate boxes), shape (V,)."""
-    s = wp.tid()
-    points_out[s] = q[particles[s]]
-
-
 @wp.func
 def vertex_triangle_distance(p: int, x: wp.vec3, t: int, tri: wp.array(dtype=int), body: wp.array(dtype=int),
                              q: wp.array(dtype=wp.vec3), self_contact: int) -> float:
@@ -176,6 +169,93 @@ EDGE_QUERY = wp.constant(2)
 WHOLE = wp.constant(0)  # query mode: every pair of the item, its own list (keep_nearest)
 HALF = wp.constant(1)  # every pair once, from the item of the lower body (or index), staged into both lists
 FINISH = wp.constant(2)  # the staged list when it holds every pair (sorted), else the WHOLE query
+
+
+@wp.func
+def corner_cap(kind: int, item: int, surface: wp.array(dtype=int), tri: wp.array(dtype=int),
+               edges: wp.array(dtype=int), cap: wp.array(dtype=float)) -> float:
+    """The largest cap [m] (``displacement_caps``) over the particles of primitive ``item``: a surface vertex, a
+    triangle or an edge by ``kind``. Every point of the primitive moves at most that far between two searches."""
+    if kind == VERTEX_QUERY:
+        return cap[surface[item]]
+    if kind == EDGE_QUERY:
+        return wp.max(cap[edges[2 * item]], cap[edges[2 * item + 1]])
+    return wp.max(wp.max(cap[tri[3 * item]], cap[tri[3 * item + 1]]), cap[tri[3 * item + 2]])
+
+
+@wp.func
+def pair_radius(thickness: float, cap_a: float, cap_b: float) -> float:
+    """Query radius [m] of a pair whose sides' caps are ``cap_a`` and ``cap_b``: r_c + C_a + C_b, summed in
+    the same order from either side (so both sides' queries list the same pairs, bit for bit)."""
+    return thickness + wp.max(cap_a, cap_b) + wp.min(cap_a, cap_b)
+
+
+@wp.kernel
+def displacement_caps(go: wp.array(dtype=int), body: wp.array(dtype=int), body_world: wp.array(dtype=int),
+                      qd: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
+                      deficit: wp.array(dtype=wp.vec3), h: float, safety: float, lowest: float, highest: float,
+                      cap_out: wp.array(dtype=float)):
+    """Particle p's cap C_p [m] for the search about to run, the most it may move before the next:
+    ``safety`` x the length of its inertial step (|v| h + |f / m| h^2, velocity [m/s] and the forces
+    other than the springs [N] at the step's start, step h [s]) plus what the bound cut from its initial
+    guess (``deficit`` [m]), within [``lowest``, ``highest``]. Nothing when ``go[w]`` is 0 for p's world w
+    (its lists, built with the caps it has, stay)."""
+    p = wp.tid()
+    if go[body_world[body[p]]] == 0:
+        return
+    step = wp.length(qd[p]) * h + wp.length(f_ext[p]) * inv_mass[p] * h * h
+    cap_out[p] = wp.clamp(safety * step + wp.length(deficit[p]), lowest, highest)
+
+
+@wp.kernel
+def capped_boxes(surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int),
+                 q: wp.array(dtype=wp.vec3), cap: wp.array(dtype=float),
+                 tri_lower_out: wp.array(dtype=wp.vec3), tri_upper_out: wp.array(dtype=wp.vec3),
+                 point_lower_out: wp.array(dtype=wp.vec3), point_upper_out: wp.array(dtype=wp.vec3),
+                 edge_lower_out: wp.array(dtype=wp.vec3), edge_upper_out: wp.array(dtype=wp.vec3)):
+    """The boxes [m] of the three BVHs at positions ``q``, each primitive's grown by its cap (``corner_cap``):
+    triangle k for k < T, surface vertex k for k < V, edge k for k < E (launched over max(T, V, E))."""
+    k = wp.tid()
+    if k < tri_lower_out.shape[0]:
+        a = q[tri[3 * k]]
+        b = q[tri[3 * k + 1]]
+        c = q[tri[3 * k + 2]]
+        grow = wp.vec3(corner_cap(TRIANGLE_QUERY, k, surface, tri, edges, cap))
+        tri_lower_out[k] = wp.min(wp.min(a, b), c) - grow
+        tri_upper_out[k] = wp.max(wp.max(a, b), c) + grow
+    if k < point_lower_out.shape[0]:
+        x = q[surface[k]]
+        grow = wp.vec3(cap[surface[k]])
+        point_lower_out[k] = x - grow
+        point_upper_out[k] = x + grow
+    if k < edge_lower_out.shape[0]:
+        a = q[edges[2 * k]]
+        b = q[edges[2 * k + 1]]
+        grow = wp.vec3(corner_cap(EDGE_QUERY, k, surface, tri, edges, cap))
+        edge_lower_out[k] = wp.min(a, b) - grow
+        edge_upper_out[k] = wp.max(a, b) + grow
+
+
+@wp.kernel
+def body_caps(surface: wp.array(dtype=int), body: wp.array(dtype=int), cap: wp.array(dtype=float),
+              body_cap_io: wp.array(dtype=float)):
+    """The largest cap [m] of each body's surface vertices (``body_cap_io`` zero before; a float atomic max:
+    exact, order independent)."""
+    s = wp.tid()
+    p = surface[s]
+    wp.atomic_max(body_cap_io, body[p], cap[p])
+
+
+@wp.kernel
+def grow_bodies(body_cap_io: wp.array(dtype=float), lowers_io: wp.array(dtype=wp.vec3),
+                uppers_io: wp.array(dtype=wp.vec3)):
+    """Grow body b's box [m] by its largest cap (``body_caps``), so that it holds every primitive's grown box
+    (a primitive's cap is one of its body's), and zero that cap for the next search."""
+    b = wp.tid()
+    grow = wp.vec3(body_cap_io[b])
+    lowers_io[b] = lowers_io[b] - grow
+    uppers_io[b] = uppers_io[b] + grow
+    body_cap_io[b] = 0.0
 
 
 @wp.func
@@ -239,16 +319,18 @@ def query_pairs(
     body_world: wp.array(dtype=int),
     bvh: wp.uint64, roots: wp.array(dtype=int),
     surface: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), body: wp.array(dtype=int),
-    q: wp.array(dtype=wp.vec3), query_radius: float, self_contact: int, capacity: int,
+    q: wp.array(dtype=wp.vec3), thickness: float, cap: wp.array(dtype=float), self_contact: int, capacity: int,
     list_out: wp.array(dtype=int), distance_out: wp.array(dtype=float), count_out: wp.array(dtype=int),
     min_out: wp.array(dtype=float), overflow_io: wp.array(dtype=int), mirror: int,
     mirror_list_io: wp.array(dtype=int), mirror_distance_io: wp.array(dtype=float),
     mirror_count_io: wp.array(dtype=int),
 ):
-    """Pairs within ``query_radius`` [m] of query ``item`` (``kind``: surface vertices against the
-    triangle BVH, triangles against the vertex BVH, edges against the edge BVH), listed in
-    ``list_out[item capacity ..]`` (the ``capacity`` nearest, ``keep_nearest``) in ascending order, their
-    count, and the smallest distance met (at most ``query_radius``). A query with more pairs than ``capacity``
+    """Pairs of query ``item`` within their radius r_c + C_a + C_b [m] (``pair_radius``: ``thickness`` and the
+    two sides' caps, ``corner_cap``; the query's box grown by r_c + C_a, the BVH's boxes by their own caps,
+    ``capped_boxes``) (``kind``: surface vertices against the triangle BVH, triangles against the vertex BVH,
+    edges against the edge BVH), listed in ``list_out[item capacity ..]`` (the ``capacity`` nearest,
+    ``keep_nearest``) in ascending order, their count, and the smallest distance of those pairs (1e30 when there
+    are none). A query with more pairs than ``capacity``
     adds 1 to ``overflow_io[kind]`` and raises ``overflow_io[3 + kind]`` to its number of pairs (both zeroed
     before the search: they count queries of one search, never pairs over many, so they cannot wrap). Two
     levels: the bodies of the query's world whose bounds meet the box
@@ -262,12 +344,15 @@ def query_pairs(
     the smallest distance, of the ``WHOLE`` query, bit for bit) and queries the rest whole. Nothing when
     ``go[w]`` is 0 for the item's world w (its search skipped: ``search_needed``)."""
     item = wp.tid()
-    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, query_radius)
+    own_cap = corner_cap(kind, item, surface, tri, edges, cap)
+    lower, upper, own = query_box(kind, item, surface, tri, edges, body, q, thickness + own_cap)
     if go[body_world[own]] == 0:
         return
+    other_kind = wp.where(kind == VERTEX_QUERY, TRIANGLE_QUERY, wp.where(kind == TRIANGLE_QUERY, VERTEX_QUERY,
+                                                                           EDGE_QUERY))
     n = int(0)
     total = int(0)
-    dmin = query_radius
+    dmin = float(1.0e30)
     search = int(1)
     if mode == FINISH and count_out[item] <= capacity:
         n = count_out[item]
@@ -292,23 +377,23 @@ def query_pairs(
                 d, stored = query_pair(kind, item, other, surface, tri, edges, body, q, self_contact)
                 if d < 0.0:
                     continue
-                if mode != HALF:
-                    dmin = wp.min(dmin, d)
-                if d < query_radius:
+                radius = pair_radius(thickness, own_cap, corner_cap(other_kind, other, surface, tri, edges, cap))
+                if d < radius:
                     if mode == HALF:
                         stage_pair(item, stored, d, capacity, list_out, distance_out, count_out)
                     else:
+                        dmin = wp.min(dmin, d)
                         n = wp.min(keep_nearest(item * capacity, n, capacity, d, stored, list_out, distance_out),
                                    capacity)
                         total += 1
                 if mirror == 1:
                     if kind == VERTEX_QUERY:
-                        if d < query_radius:
+                        if d < radius:
                             stage_pair(other, surface[item], d, capacity, mirror_list_io, mirror_distance_io,
                                        mirror_count_io)
                     else:
                         d2, stored2 = query_pair(kind, other, item, surface, tri, edges, body, q, self_contact)
-                        if d2 >= 0.0 and d2 < query_radius:
+                        if d2 >= 0.0 and d2 < radius:
                             stage_pair(other, item, d2, capacity, mirror_list_io, mirror_distance_io,
                                        mirror_count_io)
     if mode == HALF:
@@ -389,18 +474,19 @@ def displacement_bounds(
     slot: wp.array(dtype=int), vertex_min: wp.array(dtype=float),
     tri_offsets: wp.array(dtype=int), tris: wp.array(dtype=int), tri_min: wp.array(dtype=float),
     edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), edge_min: wp.array(dtype=float),
-    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), fraction: float, max_displacement: float,
+    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), fraction: float, cap: wp.array(dtype=float),
     reference_out: wp.array(dtype=wp.vec3), bound_out: wp.array(dtype=float),
 ):
     """Particle p's step bound [m]: ``fraction`` x the smallest distance from p's primitives (the
-    vertex, its triangles, its edges) to any non-incident primitive met by the queries, or to a
-    plane or a sphere (static), at most ``max_displacement``; and its reference position (now). Nothing
+    vertex, its triangles, its edges) to any non-incident primitive the queries listed, or to a
+    plane or a sphere (static), at most its cap (``cap`` [m], ``displacement_caps``); and its reference position
+    (now). Nothing
     when ``go[w]`` is 0 for p's world w."""
     p = wp.tid()
     if go[body_world[body[p]]] == 0:
         return
     x = q[p]
-    dmin = max_displacement / fraction
+    dmin = cap[p] / fraction
     s = slot[p]
     if s >= 0:
         dmin = wp.min(dmin, vertex_min[s])

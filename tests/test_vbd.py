@@ -347,9 +347,13 @@ def test_stability_report_and_scene_options():
     assert "unconditionally stable, accuracy set by iterations" in limit.reason
     cls = get_scene("donuts")
     for key, value, message in (("vbd_detect_every", -1, "vbd_detect_every=-1"),
-                                ("vbd_max_displacement", -0.1, "vbd_max_displacement=-0.1")):
+                                ("vbd_max_displacement", -0.1, "vbd_max_displacement=-0.1"),
+                                ("vbd_min_displacement", -0.1, "vbd_min_displacement=-0.1"),
+                                ("vbd_min_displacement", 0.01, "at most vbd_max_displacement")):
         with pytest.raises(ValueError, match=message):
             cls(cls.resolve_params({"count": 2, **SMALL, "integrator": "vbd", key: value}), device=DEVICE)
+    with pytest.raises(ValueError, match="min_displacement = 0.01 m exceeds max_displacement"):
+        ws.VBDContact([[0, 1, 2]], thickness=0.006, min_displacement=0.01)
 
 
 def test_bad_input_names_the_item_and_a_fix():
@@ -397,9 +401,11 @@ def test_worlds_of_a_sweep_each_collide_their_own_tori_and_equal_their_runs_alon
     searches = []
     for w, p in enumerate(params):
         alone = cls(p, device=DEVICE)
+        touched = 0
         for _ in range(25):
             alone.advance(1.0 / 60.0, 4)
-        assert alone.vbd_contact.pair_counts()[0] > 0  # the tori touch
+            touched = max(touched, alone.vbd_contact.pair_counts()[0])
+        assert touched > 0  # the tori met
         assert np.array_equal(x[w], alone.sim.state.positions.numpy()), w
         searches.append(alone.vbd_contact.searches_run)
     assert np.abs(x[0] - x[1]).max() > 1e-3
@@ -610,7 +616,7 @@ def whole_queries(contact, q):
         wp.launch(K.query_pairs, count, inputs=[
             wp.ones(1, dtype=int, device=DEVICE), int(kind), int(K.WHOLE), body_bvh.id, contact._roots[3],
             contact._groups[3], bvh.id, roots,
-            contact._surface, contact._tri, contact._edges, contact._body, q, contact.query_radius,
+            contact._surface, contact._tri, contact._edges, contact._body, q, contact.thickness, contact.cap,
             int(contact.self_contact), C, *lists, overflow, 0, *lists[:3]], device=DEVICE)
         out.append([a.numpy() for a in lists])
     return out, overflow.numpy()
@@ -678,7 +684,8 @@ def test_searches_within_a_step_run_when_a_particle_nears_its_bound():
     """A search (opening a step or within it) runs only when some particle has moved more than
     ``renew_fraction`` of its bound since the last search or has some of its initial guess cut (decided on the
     device, no read-back; the first step's opening search always runs): a torus dropped with its lowest point
-    6 cm above the floor skips them while it starts to fall (one search in the first frame's four steps) and
+    6 cm above the floor skips them while it starts to fall (at most two searches in the first frame's four
+    steps: its caps start at ``min_displacement``) and
     once it rests (none at all), and runs them around the impact (guesses cut by the bound near the floor);
     ``renew_fraction=None`` runs every one (two a step); no vertex goes below the floor, the runs repeat bit for
     bit and the skipping run rests where the searching one does."""
@@ -700,7 +707,7 @@ def test_searches_within_a_step_run_when_a_particle_nears_its_bound():
         runs.append(sim.state.positions.numpy())
     assert counts[None] == [2.0] * 40  # 10 sweeps, a search every 5: the step's and one within it
     skipped = counts[0.5]
-    assert skipped[0] == 0.25 and max(skipped) >= 1.0 and skipped[-5:] == [0.0] * 5, skipped
+    assert skipped[0] <= 0.5 and max(skipped) >= 1.0 and skipped[-5:] == [0.0] * 5, skipped
     assert np.array_equal(runs[0], runs[2])
     assert np.abs(runs[0] - runs[1]).max() < 1.0e-4  # [m]: the same rest
 

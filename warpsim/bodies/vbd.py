@@ -17,10 +17,12 @@ No primitive passes through another (the step bound). At a search (the step's st
     D_i = min( d(i, T) over triangles T not containing i,
                d(T', j) over triangles T' containing i and vertices j not in T',
                d(e, e') over edges e containing i and edges e' sharing no particle with e,
-               d(i, plane or sphere) over the static shapes,   r_q )
+               d(i, plane or sphere) over the static shapes )
 
-(distances at x^d, pairs within the query radius r_q = r_c + 2 b_max; farther ones count as r_q),
-and b_i = min(gamma D_i, b_max) with gamma < 1/2. Until the next search every position update is
+over the pairs listed at x^d: those closer than their radius r_c + C_a + C_b, where C_p in [b_min, b_max] is
+particle p's cap, set at the search from its motion (``VBDContact``; b_max for all when the caps are fixed) and a
+primitive's C is the largest of its particles'. Then b_i = min(gamma D_i, C_i) with gamma < 1/2. Until the next
+search every position update is
 clipped to ``|x_i - x_i^d| <= b_i`` (the initial guess, each Newton step, each Chebyshev extrapolation,
 and after each search within the step the part of the initial guess the bound cut, ``restore_guess``).
 
@@ -29,11 +31,12 @@ along the straight path of any update in between, so no edge passes through a tr
 Proof. Vertex i and triangle T (i not in T), distance d = d(i, T) > 0 at x^d. Every point of T is
 a convex combination sum w_k x_k of its corners, so it moves by at most ``max_k |dx_k| <= max_k b_k``;
 the distance function is 1-Lipschitz in each argument, so at any later positions
-``d' >= d - |dx_i| - max_k b_k``. If d <= r_q: D_i <= d (first term) and D_k <= d for each corner k of
-T (second term, j = i), so ``|dx_i| <= gamma d`` and ``b_k <= gamma d``: d' >= (1 - 2 gamma) d > 0. If
-d > r_q: b <= b_max for all, d' >= r_q - 2 b_max = r_c > 0. Edges e, e' sharing no particle: each
-closest point is a convex combination of its edge's ends, each end k of e has D_k <= d(e, e') (third
-term), likewise for e', so d' >= (1 - 2 gamma) d > 0 (or > r_c past r_q). A plane or sphere is static:
+``d' >= d - |dx_i| - max_k b_k``. If the pair is listed: D_i <= d (first term) and D_k <= d for each corner k
+of T (second term, j = i), so ``|dx_i| <= gamma d`` and ``b_k <= gamma d``: d' >= (1 - 2 gamma) d > 0. If not,
+d >= r_c + C_i + C_T, and b_i <= C_i, b_k <= C_k <= C_T: d' >= d - C_i - C_T >= r_c > 0. Edges e, e' sharing no
+particle: each closest point is a convex combination of its edge's ends, each end k of e has D_k <= d(e, e')
+(third term), likewise for e', so d' >= (1 - 2 gamma) d > 0 when listed, d' >= r_c when not. A plane or sphere
+is static:
 d' >= (1 - gamma) d. Every intermediate position of an update lies on the segment between two points
 of the ball ``|x - x^d| <= b`` (the ball is convex), so the bounds hold along the path too. A pair of
 closed surfaces that starts apart can interpenetrate only through a vertex crossing a triangle or an
@@ -41,9 +44,9 @@ edge crossing an edge, and neither pair's distance reaches 0; hence no edge pass
 triangle. Since d' > 0 for every pair, no vertex is ever deeper than the thickness r_c either.
 (Pairs within one body count only with ``self_contact``; pairs sharing a particle never.)
 
-The same positions give the contact pairs: a pair farther than r_q at a search closes by at most
-2 b_max before the next, so it stays beyond r_c and exerts nothing; every pair that can push is
-listed. A search may be skipped, the one opening a step as those within it (every particle still within
+The same positions give the contact pairs: a pair not listed at a search closes by at most C_a + C_b before
+the next, so it stays beyond r_c and exerts nothing; every pair that can push is listed. (The caps change only
+at a search that runs, so they are those the lists were built with.) A search may be skipped, the one opening a step as those within it (every particle still within
 ``renew_fraction`` of its bound from its reference, nothing of its guess cut): the bounds and lists of the last
 search then hold until the next one that runs, as the claim above needs (it asks only that every update until the
 next search be clipped to the last search's bounds, which the initial guess of the next step is too; a position
@@ -92,7 +95,7 @@ class VBD(Integrator):
             impacts, so off by default).
         detect_every: iterations between contact searches within a step (a search opens the step, skipped
             at rest as those within it: ``renew_fraction``); 0: only that one. Each search lets a particle move
-            another b_max at most.
+            another C_p (its cap, at most b_max) at most.
         adaptive_guess: VBD's adaptive initial guess (off: y, the inertial target).
         renew_fraction: a search (opening a step, or within it every ``detect_every`` iterations) runs only when
             some particle has moved more than this fraction of its bound since the last search or has some of its
@@ -141,6 +144,11 @@ class VBD(Integrator):
             lanes, "VBD lanes", lo=1, hi=1024, fix="threads a particle in a colour solve, e.g. 32 (1: a thread a "
             "particle), or None (32 on CUDA, 1 on the CPU)")
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
+
+    @property
+    def searches_per_step(self) -> int:
+        """Contact searches a step at most: the one opening it and one every ``detect_every`` iterations."""
+        return 1 + ((self.iterations - 1) // self.detect_every if self.detect_every else 0)
 
     def lanes_on(self, device) -> int:
         """Threads a particle in a colour solve on ``device`` (``lanes``; None: 32 on CUDA, 1 on the CPU)."""
@@ -240,6 +248,7 @@ class VBD(Integrator):
         springs = [m.particle_spring_offsets, self._springs]
         if self.contact is not None:  # its thickness, stiffness and friction as they are now
             self._contact_inputs = self.contact.solve_inputs()
+            self.contact.set_motion(qd, self.f_ext, m.particle_inv_mass, self.deficit, h)
         self._predict = record(K.predict, n, [qd, self.qd_prev, self.f_ext, m.particle_inv_mass, h,
                                                int(self.adaptive_guess), self._reference, self._bound, q, self.q0,
                                                self.y, self.deficit, self.q_new])

@@ -60,6 +60,12 @@ class VBDContact:
         bound_fraction: gamma in (0, 1/2): each search lets a particle move gamma x its distance to the
             nearest non-incident primitive (``warpsim.bodies.vbd`` proves no pair then closes).
         max_displacement: b_max [m], the most a particle moves between searches (default: the thickness).
+        min_displacement: b_min [m] (default: a quarter of the thickness): stepped by ``ws.VBD``, each
+            particle's cap C_p, the most it may move before the next search, is set at each search from its own
+            motion (``kernels.vbd_contact.displacement_caps``: ``cap_safety`` = 4 times the length of its inertial
+            step, plus what the bound cut from its guess) within [b_min, b_max], and a pair is searched
+            within r_c + C_a + C_b: a heap at rest searches a small radius, a falling body a large one. Equal to
+            b_max (or a search without ``ws.VBD``'s motion): every cap is b_max, the radius r_c + 2 b_max.
         capacity: pairs kept per query list, the nearest (more are counted in :attr:`overflow`).
         near_capacity: list entries kept per surface vertex after a search for the colour sweeps, those that can
             still push on it (``kernels.vbd_contact.keep_near_pairs``); a vertex with more gathers over the whole
@@ -89,7 +95,7 @@ class VBDContact:
     def __init__(self, faces, *, body_size: int | None = None, particle_body=None, thickness: float = 0.006,
                  stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
                  self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,
-                 capacity: int = 32, near_capacity: int = 128, planes=(), spheres=(), rebuild_every: int = 20):
+                 min_displacement: float | None = None, capacity: int = 32, near_capacity: int = 128, planes=(), spheres=(), rebuild_every: int = 20):
         faces = checks.index_array(faces, "VBDContact faces")  # a float index is refused, never truncated
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"VBDContact faces must have shape (F, 3) with F >= 1, got {faces.shape}; give the "
@@ -108,6 +114,20 @@ class VBDContact:
                                               fix="a fraction below 1/2, e.g. 0.4")
         self.max_displacement = self.thickness if max_displacement is None else checks.positive(
             max_displacement, "VBDContact max_displacement", unit="m", fix="e.g. the thickness")
+        if min_displacement is None:
+            self.min_displacement = min(0.25 * self.thickness, self.max_displacement)
+        else:
+            self.min_displacement = checks.positive(min_displacement, "VBDContact min_displacement", unit="m",
+                                                    fix="e.g. a quarter of the thickness")
+            if self.min_displacement > self.max_displacement:
+                raise ValueError(f"VBDContact min_displacement = {self.min_displacement:g} m exceeds max_displacement "
+                                 f"= {self.max_displacement:g} m; give at most that")
+        self.cap_safety = 4.0
+        """A cap is this many times the length of the particle's inertial step (|v| h + |f / m| h^2): a search
+        within the step (renewing at half the bound) is then skipped for a particle moving as predicted, and one
+        that speeds up has room to double its speed before it is clipped."""
+        self._motion: tuple | None = None
+        self._recorded_key: tuple | None = None
         self.capacity = checks.integer(capacity, "VBDContact capacity", lo=1, hi=4096, fix="e.g. 32")
         self.near_capacity = checks.integer(near_capacity, "VBDContact near_capacity", lo=1, hi=1 << 16,
                                             fix="e.g. 128")
@@ -155,14 +175,25 @@ class VBDContact:
 
     @property
     def query_radius(self) -> float:
-        """r_q = r_c + 2 b_max [m]: a pair farther apart at a search can close by at most 2 b_max before
-        the next, so it stays beyond r_c (no force missed) and apart (no crossing)."""
+        """r_c + 2 b_max [m], the largest radius a pair is searched within (that of two particles at the largest
+        cap, and of every pair when the caps are not set from motion): a pair farther apart at a search can
+        close by at most its two caps before the next, so it stays beyond r_c (no force missed) and apart (no
+        crossing)."""
         return self.thickness + 2.0 * self.max_displacement
+
+    def set_motion(self, qd, f_ext, inv_mass, deficit, h: float) -> None:
+        """Let each search set the caps from the particles' motion (``ws.VBD``, at its recording): velocities
+        ``qd`` (N,) [m/s] and forces other than the springs ``f_ext`` (N,) [N] at the step's start, inverse
+        masses (N,) [1/kg], what the bound cut from each initial guess ``deficit`` (N,) [m] and step ``h`` [s].
+        Arrays are read at each search (no copy)."""
+        self._motion = (qd, f_ext, inv_mass, deficit, float(h))
+        self._recorded_key = None
 
     def bind(self, model) -> None:
         """Build the surface, CSR rows, BVHs and lists for ``model`` (host work once; allocates)."""
         n, d = model.particle_count, model.device
         self.device = d
+        self._motion = None  # until ws.VBD records its step for this model (set_motion)
         if self.body_size is not None:
             P = self.body_size
             if n % P:
@@ -228,6 +259,8 @@ class VBDContact:
         """Positions [m] at the last search, shape (N,)."""
         self.bound = wp.zeros(n, dtype=float, device=d)
         """Each particle's displacement bound [m] from ``reference`` until the next search, shape (N,)."""
+        self.cap = wp.full(n, self.max_displacement, dtype=float, device=d)
+        """Each particle's cap [m] at the last search: its bound is at most this (``set_motion``), shape (N,)."""
         # two levels (``kernels.soft_contact``): a BVH over the bodies' bounds (from chunks of at most
         # CHUNK surface vertices of one body), then BVHs grouped by body
         B = int(body.max()) + 1
@@ -250,15 +283,18 @@ class VBDContact:
         q = model.particle_q
         self._tri_lower = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
         self._tri_upper = wp.zeros(self.triangle_count, dtype=wp.vec3, device=d)
-        self._points = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
+        self._point_lower = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
+        self._point_upper = wp.zeros(self.vertex_count, dtype=wp.vec3, device=d)
+        self._body_cap = wp.zeros(B, dtype=float, device=d)
         self._edge_lower = wp.zeros(self.edge_count, dtype=wp.vec3, device=d)
         self._edge_upper = wp.zeros(self.edge_count, dtype=wp.vec3, device=d)
-        self._recorded_key: tuple | None = None
+        self._recorded_key = None
         self._record_bounds(q)
         for launch in self._bounds:
             launch.launch()
         self._constructor = "lbvh" if d.is_cuda else "sah"
-        boxes = [(self._tri_lower, self._tri_upper), (self._points, self._points), (self._edge_lower, self._edge_upper),
+        boxes = [(self._tri_lower, self._tri_upper), (self._point_lower, self._point_upper),
+                 (self._edge_lower, self._edge_upper),
                  (self._body_lower, self._body_upper)]
         self._bvhs = [wp.Bvh(lo, hi, constructor=self._constructor, groups=g) for (lo, hi), g in zip(boxes, self._groups)]
         self._find_roots = [wp.launch(SK.group_roots, len(root), inputs=[bvh.id, root], device=d, record_cmd=True)
@@ -273,16 +309,18 @@ class VBDContact:
             return wp.launch(kernel, dim, inputs=inputs, device=self.device, record_cmd=True)
 
         self._bounds = [
-            record(SK.triangle_bounds, self.triangle_count, [self._tri, q, self._tri_lower, self._tri_upper]),
-            record(K.gather_points, self.vertex_count, [self._surface, q, self._points]),
-            record(SK.edge_bounds, self.edge_count, [self._edges, q, q, self._edge_lower, self._edge_upper]),
+            record(K.capped_boxes, max(self.triangle_count, self.vertex_count, self.edge_count), [
+                self._surface, self._tri, self._edges, q, self.cap, self._tri_lower, self._tri_upper,
+                self._point_lower, self._point_upper, self._edge_lower, self._edge_upper]),
             record(SK.reset_bounds, self.body_count, [self._body_lower, self._body_upper]),
             record(SK.body_bounds, self._chunk_body.shape[0], [self._chunk_start, self._chunk_body, self._surface, q, q,
-                                                               self._body_lower, self._body_upper])]
+                                                               self._body_lower, self._body_upper]),
+            record(K.body_caps, self.vertex_count, [self._surface, self._body, self.cap, self._body_cap]),
+            record(K.grow_bodies, self.body_count, [self._body_cap, self._body_lower, self._body_upper])]
 
     def _record(self, q) -> None:
         """Record the search's launches for positions ``q`` (replayed: no argument packing)."""
-        d, C, r, sc = self.device, self.capacity, self.query_radius, int(self.self_contact)
+        d, C, sc = self.device, self.capacity, int(self.self_contact)
 
         def record(kernel, dim, inputs, block_dim=256):
             return wp.launch(kernel, dim, inputs=inputs, device=d, record_cmd=True, block_dim=block_dim)
@@ -302,7 +340,8 @@ class VBDContact:
                 self._go, self._tri, self._edges, self._body, self._groups[3], self._tv_count, self._ee_count,
                 self._overflow, self._searched])] + [
             record(K.query_pairs, count, [self._go, int(kind), int(mode), body_bvh.id, world_roots, self._groups[3],
-                                          bvh.id, roots, self._surface, self._tri, self._edges, self._body, q, r, sc, C,
+                                          bvh.id, roots, self._surface, self._tri, self._edges, self._body, q,
+                                          self.thickness, self.cap, sc, C,
                                           *out, self._overflow, int(mirror is not None), *(mirror or out)[:3]],
                    self.query_block_dim)
             for kind, mode, count, bvh, roots, out, mirror in kinds] + [
@@ -310,7 +349,7 @@ class VBDContact:
                 self._go, self._body, self._groups[3], q, self._slot, self._vt_min, self._tri_offsets, self._tris,
                 self._tv_min,
                 self._edge_offsets, self._edge_list, self._ee_min, self._planes, self._spheres,
-                self.bound_fraction, self.max_displacement,
+                self.bound_fraction, self.cap,
                 self.reference, self.bound]),
             record(K.keep_near_pairs, self.vertex_count, [
                 self._go, self._body, self._groups[3], self._surface, self._tri, self._edges, C, self._vt,
@@ -318,8 +357,20 @@ class VBDContact:
                 self._tri_offsets, self._tris, self._tv, self._distances[1], self._tv_count, self._edge_offsets,
                 self._edge_list, self._ee, self._distances[2], self._ee_count, self.reference, self.bound,
                 self.thickness, self.near_capacity, self._near, self._near_end])]
-        self._recorded_key = (q.ptr, self.thickness, self.max_displacement, self.bound_fraction, self.self_contact,
-                              self.stiffness)
+        self._caps = None
+        if self._motion is not None:
+            qd, f_ext, inv_mass, deficit, h = self._motion
+            self._caps = record(K.displacement_caps, q.shape[0], [
+                self._go, self._body, self._groups[3], qd, f_ext, inv_mass, deficit, h, self.cap_safety,
+                self.min_displacement, self.max_displacement, self.cap])
+        else:
+            self.cap.fill_(self.max_displacement)
+        self._recorded_key = self._key(q)
+
+    def _key(self, q) -> tuple:
+        """What the recorded search depends on (a changed setting is recorded again at the next search)."""
+        return (q.ptr, self.thickness, self.max_displacement, self.min_displacement, self.cap_safety,
+                self.bound_fraction, self.self_contact, self.stiffness)
 
     def search(self, q, deficit=None, fraction: float = 0.5) -> None:
         """Pairs within the query radius at positions ``q`` (N,) [m], and each particle's bound and
@@ -328,8 +379,7 @@ class VBDContact:
         bound since the last search or has some of its guess cut (``kernels.vbd_contact.search_needed``,
         decided on the device, world by world in a batch of worlds); else the last search's lists and bounds
         stay (they hold until the next)."""
-        if self._recorded_key != (q.ptr, self.thickness, self.max_displacement, self.bound_fraction,
-                                  self.self_contact, self.stiffness):
+        if self._recorded_key != self._key(q):
             self._record(q)
         if deficit is None:
             self._go.fill_(1)
@@ -337,6 +387,8 @@ class VBDContact:
             self._go.zero_()
             wp.launch(K.search_needed, q.shape[0], inputs=[q, self.reference, self.bound, deficit, float(fraction),
                                                            self._body, self._groups[3], self._go], device=self.device)
+        if self._caps is not None:  # the caps of the worlds that search, from their particles' motion
+            self._caps.launch()
         for launch in self._bounds:
             launch.launch()
         rebuild = self.searches % self.rebuild_every == 0

@@ -455,7 +455,10 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0, extra_
                              "every step; each lets a vertex move at most vbd_max_displacement more; at rest "
                              "they are skipped)")),
     "vbd_max_displacement": (0.0, ("vbd only: the most a vertex moves between two contact searches [m] (0: the "
-                                   "thickness); the search radius is thickness + 2 x this")),
+                                   "thickness); a pair's search radius is the thickness + its two sides' caps")),
+    "vbd_min_displacement": (0.0, ("vbd only: the smallest cap [m] (0: a quarter of the thickness): each vertex's "
+                                   "cap, the most it moves before the next search, is 4 x its step's length at "
+                                   "its speed within [this, vbd_max_displacement]; equal to it: fixed caps")),
     "vbd_chebyshev_rho": (0.0, ("vbd only: spectral radius estimate of the Chebyshev acceleration in [0, 1) (0: "
                                 "off; 0.9 with 12 iterations gained 13 % energy at the heap's first impacts)")),
     "solver_chebyshev": (True, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "
@@ -577,16 +580,22 @@ class DonutsScene(SimulatorScene):
         for key in ("vbd_detect_every",):
             if p[key] < 0:
                 raise ValueError(f"{key}={p[key]}: give an integer >= 0 (0: one contact search a step)")
-        if not (math.isfinite(p["vbd_max_displacement"]) and p["vbd_max_displacement"] >= 0.0):
-            raise ValueError(f"vbd_max_displacement={p['vbd_max_displacement']}: give a distance >= 0 [m] (0: the "
-                             "thickness)")
+        quarter = "a quarter of the thickness"
+        for key, zero in (("vbd_max_displacement", "the thickness"), ("vbd_min_displacement", quarter)):
+            if not (math.isfinite(p[key]) and p[key] >= 0.0):
+                raise ValueError(f"{key}={p[key]}: give a distance >= 0 [m] (0: {zero})")
+        largest = p["vbd_max_displacement"] or p["thickness"]
+        if p["vbd_min_displacement"] > largest:
+            raise ValueError(f"vbd_min_displacement={p['vbd_min_displacement']}: it must be at most "
+                             f"vbd_max_displacement ({largest:g} m); give e.g. {0.25 * largest:g}")
         planes = [((0.0, 1.0, 0.0), 0.0), ((1.0, 0.0, 0.0), -box), ((-1.0, 0.0, 0.0), -box),
                   ((0.0, 0.0, 1.0), -box), ((0.0, 0.0, -1.0), -box)]
         P = template.particle_count
         self.vbd_contact = ws.VBDContact(
             template.faces - template.particle_start, body_size=P, thickness=p["thickness"],
             stiffness=p["contact_stiffness"], friction=p["friction"], self_contact=p["self_contact"],
-            max_displacement=p["vbd_max_displacement"] or None, planes=planes)
+            max_displacement=p["vbd_max_displacement"] or None,
+            min_displacement=p["vbd_min_displacement"] or None, planes=planes)
         integrator = ws.VBD(int(p["solver_iterations"]), contact=self.vbd_contact, body_size=P,
                             chebyshev_rho=p["vbd_chebyshev_rho"],
                             detect_every=int(p["vbd_detect_every"]))
