@@ -6,6 +6,7 @@ every frame) in a two-torus drop with self contact and a small heap; the donuts 
 holds over its 600 frames under three roundings; the stability report and the energy balance know VBD;
 bad input is refused with the item, the value and a fix."""
 import io
+import re
 
 import numpy as np
 import pytest
@@ -356,6 +357,34 @@ def test_stability_report_and_scene_options():
         ws.VBDContact([[0, 1, 2]], thickness=0.006, min_displacement=0.01)
 
 
+def test_donuts_by_vbd_say_before_the_first_step_when_the_bound_would_slow_the_fall():
+    """A vertex moves at most (searches a step) x b_max a step: at one step of 1/60 s a frame that is 3 x 6 mm =
+    1.08 m/s, below the 2.9 m/s the upper of two tori reaches falling to the floor. The scene says so before the
+    first step, naming the steps a frame and the b_max that let it fall; stepped anyway its fall is held to the
+    bound's speed (no energy gained); with the b_max it names, or the steps, there is no line and it falls as at 4
+    steps a frame."""
+    cls = get_scene("donuts")
+    peaks = {}
+    for substeps, extra in ((1, {}), (4, {}), (1, None)):
+        if extra is None:  # the b_max the first line names
+            extra = {"vbd_max_displacement": float(re.search(r"vbd_max_displacement=([0-9.e-]+)", lines[1]).group(1))}
+        scene = cls(cls.resolve_params({"count": 2, **SMALL, "integrator": "vbd", **extra}), device=DEVICE)
+        line = scene.stability_warning(1.0 / 60.0, substeps)
+        if substeps == 1 and not extra:
+            assert "1.08 m/s" in line and "--substeps 3" in line, line
+            lines = {1: line}
+        else:
+            assert line is None, line
+        P = scene.vbd_contact.body_size
+        peak = 0.0
+        for _ in range(30):
+            scene.advance(1.0 / 60.0, substeps)
+            peak = max(peak, -float(scene.sim.state.velocities.numpy().reshape(-1, P, 3)[1, :, 1].mean()))
+        peaks[(substeps, bool(extra))] = peak
+    assert peaks[(1, False)] < 1.1 and peaks[(4, False)] > 2.0  # [m/s]: the bound held the fall
+    assert peaks[(1, True)] > 0.85 * peaks[(4, False)]
+
+
 def test_bad_input_names_the_item_and_a_fix():
     with pytest.raises(ValueError, match="VBD iterations"):
         ws.VBD(iterations=0)
@@ -507,6 +536,53 @@ def test_the_search_lists_every_pair_within_the_radius_and_bounds_by_the_nearest
     for s, p in enumerate(surface):
         assert bound[p] <= contact.bound_fraction * nearest[s] + 1e-7  # its own vertex-triangle pairs
     assert bound.max() == pytest.approx(contact.max_displacement)
+
+
+def test_caps_follow_each_particles_motion_and_the_lists_hold_every_pair_within_its_radius():
+    """Caps from motion (``VBDContact.set_motion``, as ``ws.VBD`` sets them at a step): two tori 4 mm apart, the
+    upper moving down at 0.5 m/s, the lower at rest, a step of 1/240 s. Each particle's cap is 4 x its inertial step
+    (|v| h + g h^2) within [b_min, b_max] (the lower torus at b_min, the upper between); each vertex's list holds
+    exactly the other torus's triangles within r_c + C_v + C_T (NumPy distances, pairs within 1e-5 m of their radius
+    left out), its bound is at most its cap, and the resting torus's vertices list fewer pairs than with every cap at
+    b_max."""
+    counts = []
+    for moving in (True, False):
+        sim, contact, faces = two_tori(self_contact=False, gap=0.004, max_displacement=0.012)
+        sim.integrator.prepare(sim.system)
+        n, h, g = sim.model.particle_count, 1.0 / 240.0, 9.81
+        body = contact._body.numpy()
+        qd = np.zeros((n, 3), dtype=np.float32)
+        qd[body == 1, 1] = -0.5
+        inv_mass = sim.model.particle_inv_mass.numpy()
+        f_ext = np.zeros((n, 3), dtype=np.float32)
+        f_ext[:, 1] = -g / inv_mass
+        arrays = [wp.array(a, dtype=wp.vec3, device=DEVICE) for a in (qd, f_ext, np.zeros((n, 3), np.float32))]
+        if moving:
+            contact.set_motion(arrays[0], arrays[1], sim.model.particle_inv_mass, arrays[2], h)
+        q = sim.state.positions
+        contact.search(q)
+        cap = contact.cap.numpy().astype(np.float64)
+        if moving:
+            want = np.clip(4.0 * (np.linalg.norm(qd, axis=1) * h + g * h * h), contact.min_displacement, 0.012)
+            assert np.allclose(cap, want, rtol=1e-5, atol=1e-9)
+            assert cap[body == 0].max() == pytest.approx(contact.min_displacement)
+            assert 0.008 < cap[body == 1].min() < 0.012  # 4 x (0.5 h + g h^2) = 9.0 mm
+        else:
+            assert (cap == np.float32(0.012)).all()
+        x = q.numpy().astype(np.float64)
+        surface = contact._surface.numpy()
+        vt, count = contact._vt.numpy().reshape(len(surface), -1), contact._vt_count.numpy()
+        distances = np.stack([point_triangle_distances(x[surface], *x[f]) for f in faces], 1)  # (V, F)
+        other = body[surface][:, None] != body[faces[:, 0]][None, :]
+        radius = contact.thickness + cap[surface][:, None] + cap[faces].max(1)[None, :]
+        for s_ in range(len(surface)):
+            want_pairs = set(np.flatnonzero(other[s_] & (distances[s_] < radius[s_] - 1e-5)))
+            maybe = set(np.flatnonzero(other[s_] & (np.abs(distances[s_] - radius[s_]) <= 1e-5)))
+            got = set(vt[s_, :count[s_]].tolist())
+            assert want_pairs <= got <= want_pairs | maybe, s_
+        assert (contact.bound.numpy() <= contact.cap.numpy()).all()
+        counts.append(int(count[body[surface] == 0].sum()))
+    assert 0 < counts[0] < counts[1]  # the resting torus searches a smaller radius
 
 
 def test_list_overflow_is_counted_per_search_and_says_the_capacity_needed():

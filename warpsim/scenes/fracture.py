@@ -626,6 +626,28 @@ class DonutsScene(SimulatorScene):
     def device_capturing(self) -> bool:
         return bool(wp.get_device(self.sim.model.device).is_capturing)
 
+    def stability_warning(self, frame_dt, substeps):
+        """The base's line; else, with ``integrator=vbd``, one when the contact's step bound would slow the fall:
+        a vertex moves at most (searches a step) x b_max a step (``ws.VBD``), slower than the highest torus reaches
+        falling freely until its lowest point meets the floor (sqrt(2 g height), height: the largest of the tori's
+        lowest points). Names the steps a frame and the b_max that let it fall freely."""
+        line = super().stability_warning(frame_dt, substeps)
+        contact = getattr(self, "vbd_contact", None)
+        if line is not None or contact is None:
+            return line
+        steps = self.frame_steps(frame_dt, substeps)
+        h, searches, b_max = frame_dt / steps, self.sim.integrator.searches_per_step, contact.max_displacement
+        most = searches * b_max / h  # [m/s]
+        height = float(self.sim.model.particle_q.numpy()[:, 1].reshape(-1, contact.body_size).min(1).max())
+        fall = math.sqrt(2.0 * self.params["gravity"] * max(height, 0.0))
+        if fall <= most:
+            return None
+        return (f"donuts: with integrator=vbd a vertex moves at most {searches} contact searches x "
+                f"{b_max * 1e3:.3g} mm a step ({most:.3g} m/s at steps of {h:.3g} s), slower than the {fall:.3g} m/s "
+                f"of a fall from {height:.3g} m: the step bound would slow the fall (no energy is gained, it is "
+                f"lost); take --substeps {math.ceil(fall * frame_dt / (searches * b_max))} or set "
+                f"vbd_max_displacement={math.ceil(fall * h / searches * 1.0e4) / 1.0e4:g}")
+
     def kinetic_energy(self, velocities=None) -> float:
         """Kinetic energy of every particle [J] (``velocities`` (P, 3); None: the state's, read back)."""
         v = (self.sim.state.velocities.numpy() if velocities is None else velocities).astype(np.float64)
