@@ -46,7 +46,8 @@ triangle. Since d' > 0 for every pair, no vertex is ever deeper than the thickne
 
 The same positions give the contact pairs: a pair not listed at a search closes by at most C_a + C_b before
 the next, so it stays beyond r_c and exerts nothing; every pair that can push is listed. (The caps change only
-at a search that runs, so they are those the lists were built with.) A search may be skipped, the one opening a step as those within it (every particle still within
+at a search that runs, so they are those the lists were built with.) A search may be skipped, the one opening a
+step as those within it (every particle still within
 ``renew_fraction`` of its bound from its reference, nothing of its guess cut): the bounds and lists of the last
 search then hold until the next one that runs, as the claim above needs (it asks only that every update until the
 next search be clipped to the last search's bounds, which the initial guess of the next step is too; a position

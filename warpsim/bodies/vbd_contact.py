@@ -95,7 +95,8 @@ class VBDContact:
     def __init__(self, faces, *, body_size: int | None = None, particle_body=None, thickness: float = 0.006,
                  stiffness: float = 2000.0, friction: float = 0.5, friction_eps: float | None = None,
                  self_contact: bool = False, bound_fraction: float = 0.4, max_displacement: float | None = None,
-                 min_displacement: float | None = None, capacity: int = 32, near_capacity: int = 128, planes=(), spheres=(), rebuild_every: int = 20):
+                 min_displacement: float | None = None, capacity: int = 32, near_capacity: int = 128, planes=(),
+                 spheres=(), rebuild_every: int = 20):
         faces = checks.index_array(faces, "VBDContact faces")  # a float index is refused, never truncated
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"VBDContact faces must have shape (F, 3) with F >= 1, got {faces.shape}; give the "
@@ -373,7 +374,8 @@ class VBDContact:
                 self.bound_fraction, self.self_contact, self.stiffness)
 
     def search(self, q, deficit=None, fraction: float = 0.5) -> None:
-        """Pairs within the query radius at positions ``q`` (N,) [m], and each particle's bound and
+        """Pairs within their radius (the thickness and the two sides' caps, set first: ``set_motion``) at positions
+        ``q`` (N,) [m], and each particle's bound and
         reference (no allocation, no read-back). With ``deficit`` (N,) [m] (what the bound cut from each
         particle's initial guess, ``ws.VBD``), only when some particle has moved more than ``fraction`` of its
         bound since the last search or has some of its guess cut (``kernels.vbd_contact.search_needed``,
