@@ -204,10 +204,15 @@ def main():
                         "iterations a step; vbd: colour sweeps a step (default: the scene's)")
     parser.add_argument("--reference-integrator", default=None, help="vbd: also build, settle and time the heap with "
                         "this integrator (e.g. fast_mass_spring) in the same run")
+    parser.add_argument("--reference-dt", type=float, default=None, help="vbd: the reference integrator's scene step "
+                        "[s] (default --dt): each integrator at its own step, compared per simulated second")
     parser.add_argument("--vbd-lanes", default=None, metavar="B[,B...]", help="vbd: threads a particle in the "
                         "colour solve (ws.VBD lanes; 1: a thread a particle): settle with the first, then time the "
                         "sweep and the step with each on the same heap (default: the integrator's, 32 on CUDA, 1 on "
                         "the CPU)")
+    parser.add_argument("--vbd-max-registers", default=None, metavar="R[,R...]", help="vbd: time the colour sweep "
+                        "and the step with each ws.VBD max_registers (none: the compiler's choice; 64) on the same "
+                        "heap, after one step from one saved state with each (the same bits expected)")
     parser.add_argument("--query-block-dims", default=None, metavar="B[,B...]", help="vbd: time the contact "
                         "search with each CUDA block size of its pair queries")
     parser.add_argument("--no-oracles", action="store_true", help="vbd: skip the NumPy checks of the final heap "

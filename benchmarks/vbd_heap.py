@@ -7,10 +7,12 @@ colour sweep, frames of 1/60 s per wall second, the pairs listed, the queries pa
 last search and the most pairs one query met (per search: figures that cannot wrap), then the two properties
 the heap tests assert on the final state: the deepest vertex of a torus inside another [mm] and the surface
 edges passing through another torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``). ``--reference-integrator
-fast_mass_spring`` builds and settles the same heap with that integrator in the same process and prints
-the ratio of the step times. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and the
+fast_mass_spring`` builds and settles the same heap with that integrator in the same process (at ``--reference-dt``,
+default ``--dt``: each at its own step) and prints the ratio of the time per simulated second. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and the
 step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle), after
-one step from one saved state with each value compared with the first's positions.
+one step from one saved state with each value compared with the first's positions. ``--vbd-max-registers none,64``
+does the same with ``ws.VBD``'s ``max_registers`` (the colour solve's registers a thread on CUDA: the same sums, so
+the one step from the saved state must give the same bits).
 ``--query-block-dims 256,128,64`` times the contact search with each CUDA block size of its pair queries.
 
     python benchmarks/bench_donuts.py --integrator vbd --device cpu --count 12 --segments 24 --sides 12 \\
@@ -46,22 +48,28 @@ def lanes_of(args) -> list:
     return [int(b) for b in args.vbd_lanes.split(",")]
 
 
-def compare_lanes(args, sim, h, device) -> None:
-    """One colour sweep and one step (on CUDA also as a graph of one BVH rebuild period) with each value of
-    ``--vbd-lanes`` on the heap as it is (a step first records the sweep's launches); first, from one saved state
-    (positions, velocities, the previous velocities of the adaptive guess), one step with each value, its positions
-    against the first value's (other sums' order: rounding, and each value's own bits when it runs twice)."""
+def registers_of(args) -> list:
+    """``--vbd-max-registers`` as a list of ``ws.VBD`` ``max_registers`` values (``none``: the compiler's choice)."""
+    return [None if r.strip().lower() == "none" else int(r) for r in args.vbd_max_registers.split(",")]
+
+
+def compare_setting(args, sim, h, device, attribute: str, values: list) -> None:
+    """One colour sweep and one step (on CUDA also as a graph of one BVH rebuild period) with each of ``values`` of
+    the integrator's ``attribute`` (``lanes``, ``max_registers``) on the heap as it is (a step first records the
+    sweep's launches); first, from one saved state (positions, velocities, the previous velocities of the adaptive
+    guess), one step with each value, its positions against the first value's (other sums' order: rounding; the
+    same sums in the same order: the same bits; and each value's own bits when it runs twice)."""
     integrator = sim.integrator
     q, qd = sim.state.positions, sim.state.velocities
     saved = [wp.clone(a) for a in (q, qd, integrator.qd_prev)]
     first = None
-    for lanes in lanes_of(args) + lanes_of(args)[:1]:
-        integrator.lanes = lanes
+    for value in values + values[:1]:
+        setattr(integrator, attribute, value)
         for a, b in zip((q, qd, integrator.qd_prev), saved):
             wp.copy(a, b)
         sim.step(h)
         x = q.numpy()
-        label = f"lanes {lanes}"
+        label = f"{attribute} {value}"
         if first is None:
             first = (label, x)
         else:
@@ -73,12 +81,12 @@ def compare_lanes(args, sim, h, device) -> None:
             print(f"{label}: one step from the saved state against {first[0]}'s: {same}")
     for a, b in zip((q, qd, integrator.qd_prev), saved):
         wp.copy(a, b)
-    for lanes in lanes_of(args):
-        integrator.lanes = lanes
-        sim.step(h)  # records the colour solves with these lanes
+    for value in values:
+        setattr(integrator, attribute, value)
+        sim.step(h)  # records the colour solves with this value
         sweep = time_per_call(lambda: [launch.launch() for launch in integrator._sweep], args.steps, device)
         full = time_per_call(lambda: sim.step(h), args.steps, device)
-        line = f"lanes {lanes:4d}: one colour sweep {sweep * 1e3:9.3f} ms, VBD step {full * 1e3:9.3f} ms"
+        line = f"{attribute} {value!s:>4}: one colour sweep {sweep * 1e3:9.3f} ms, VBD step {full * 1e3:9.3f} ms"
         if device.is_cuda:
             every = integrator.contact.rebuild_every
             period = every // math.gcd(every, searches_per_step(integrator))
@@ -200,7 +208,9 @@ def run_vbd(args, device, build) -> None:
         print(f"step as a CUDA graph  {graph * 1e3:9.3f} ms   eager / graph {eager / graph:.2f}x (a graph of {period} "
               f"steps, one BVH rebuild period); frames of 1/60 s per wall second {1.0 / (graph * per_frame):.2f}")
     if getattr(args, "vbd_lanes", None):
-        compare_lanes(args, sim, h, device)
+        compare_setting(args, sim, h, device, "lanes", lanes_of(args))
+    if getattr(args, "vbd_max_registers", None):
+        compare_setting(args, sim, h, device, "max_registers", registers_of(args))
     if getattr(args, "query_block_dims", None):
         compare_query_blocks(args, contact, q, device)
     if args.profile and device.is_cuda:
@@ -215,7 +225,11 @@ def run_vbd(args, device, build) -> None:
               f"{scene.params['thickness'] * 1e3:.3g} mm); edges through another torus's triangles: {crossings} "
               f"(oracles, {time.perf_counter() - t0:.1f} s)")
     if args.reference_integrator:
+        own = (args.dt, args.settle)  # the reference settles as long in simulated time, at its own step
+        args.dt = getattr(args, "reference_dt", None) or args.dt
+        args.settle = round(own[1] * own[0] / args.dt)
         other, h2, _ = settle(build, args, device, args.reference_integrator)
+        args.dt, args.settle = own
         reference = time_per_call(lambda: other.sim.step(h2), args.steps, device)
         again = time_per_call(lambda: sim.step(h), args.steps, device)
         print(f"{args.reference_integrator} step {reference * 1e3:9.3f} ms at {h2:.4g} s; VBD step {again * 1e3:.3f} ms "

@@ -173,12 +173,15 @@ def vertex_force_hessian(
     return f + fc, H + Hc
 
 
-def solve_colour_kernel(tiled: bool):
+def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
     """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
     particle, ``wp.launch_tiled``): one kernel body, the variant chosen at code generation (``wp.static``), each in
-    a module of its own (a tiled module is compiled for each block size)."""
+    a module of its own (a tiled module is compiled for each block size); ``max_registers``: CUDA's registers a
+    thread at most (None: the compiler's choice)."""
+    options = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
 
-    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False)
+    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False,
+               **options)
     def kernel(
         colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
@@ -244,6 +247,16 @@ given B: on CUDA a warp's shuffle-down tree (lane l += lane l + 16, then + 8, 4,
 B > 32 then the warps' sums in warp order; on the CPU (``wp.config.enable_cpu_blocks``) lane 0, 1, ..., B - 1 in
 turn. No float atomics: two runs give the same bits. Lane 0 takes the Newton step and the clip and copies the
 previous colour's particle k."""
+
+COMPACT_REGISTERS = 64
+"""Registers a thread of ``solve_colour_lanes_compact`` at most (on CUDA): the compiler gives the colour solve 161 of
+them (sm_90), so 12 warps a multiprocessor at most; at 64, 32 warps, the rest spilled to local memory (416 bytes a
+thread, in L1): one colour sweep of 1,000 tori 9.67 -> 6.02 ms on an H200 (benchmarks/RESULTS.md)."""
+
+solve_colour_lanes_compact = solve_colour_kernel(True, COMPACT_REGISTERS)
+solve_colour_lanes_compact.__doc__ = """``solve_colour_lanes`` compiled for at most ``COMPACT_REGISTERS`` registers a
+thread on CUDA (the same code: the same sums in the same order; more blocks resident on a multiprocessor, some values
+spilled to local memory). The CPU ignores the limit."""
 
 
 @wp.kernel

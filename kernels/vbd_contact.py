@@ -192,18 +192,26 @@ def pair_radius(thickness: float, cap_a: float, cap_b: float) -> float:
 
 @wp.kernel
 def displacement_caps(go: wp.array(dtype=int), body: wp.array(dtype=int), body_world: wp.array(dtype=int),
-                      qd: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float),
-                      deficit: wp.array(dtype=wp.vec3), h: float, safety: float, lowest: float, highest: float,
-                      cap_out: wp.array(dtype=float)):
+                      qd: wp.array(dtype=wp.vec3), qd_prev: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
+                      inv_mass: wp.array(dtype=float), deficit: wp.array(dtype=wp.vec3), h: float, adaptive: int,
+                      safety: float, lowest: float, highest: float, cap_out: wp.array(dtype=float)):
     """Particle p's cap C_p [m] for the search about to run, the most it may move before the next:
-    ``safety`` x the length of its inertial step (|v| h + |f / m| h^2, velocity [m/s] and the forces
-    other than the springs [N] at the step's start, step h [s]) plus what the bound cut from its initial
-    guess (``deficit`` [m]), within [``lowest``, ``highest``]. Nothing when ``go[w]`` is 0 for p's world w
-    (its lists, built with the caps it has, stay)."""
+    ``safety`` x the length of its initial guess's step (|v| h + s |f / m| h^2, velocity [m/s] and the forces
+    other than the springs [N] at the step's start, step h [s], s the share of the external acceleration the
+    particle took in its last step, as ``kernels.vbd.predict`` guesses it: 0 at rest on a support, 1 falling;
+    ``adaptive`` 0: s = 1) plus what the bound cut from its initial guess (``deficit`` [m]), within [``lowest``,
+    ``highest``]. Nothing when ``go[w]`` is 0 for p's world w (its lists, built with the caps it has, stay)."""
     p = wp.tid()
     if go[body_world[body[p]]] == 0:
         return
-    step = wp.length(qd[p]) * h + wp.length(f_ext[p]) * inv_mass[p] * h * h
+    a = f_ext[p] * inv_mass[p]
+    s = float(1.0)
+    a2 = wp.dot(a, a)
+    if adaptive != 0:
+        s = 0.0
+        if a2 > 0.0:
+            s = wp.clamp(wp.dot((qd[p] - qd_prev[p]) / h, a) / a2, 0.0, 1.0)
+    step = wp.length(qd[p]) * h + s * wp.sqrt(a2) * h * h
     cap_out[p] = wp.clamp(safety * step + wp.length(deficit[p]), lowest, highest)
 
 

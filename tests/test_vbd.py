@@ -17,6 +17,7 @@ import warpsim as ws
 from warpsim.bodies import meshtools
 from warpsim.core.colouring import colour_groups, greedy_colouring, tile_colouring
 from warpsim.core.energy import MARGIN
+from warpsim.kernels import vbd as vbd_kernels
 from warpsim.scenes import get_scene
 
 DEVICE = "cpu"
@@ -232,15 +233,19 @@ def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(m
     partial sums added by a fixed-order tile reduction (``kernels.vbd.solve_colour_lanes``, the CUDA default; on
     the CPU its lanes run as Warp's fibers, ``wp.config.enable_cpu_blocks``). Two tori dropped on each other with
     self contact: within rounding of a thread a particle (4 lanes over the kept entries; 3 over the whole lists,
-    ``near_capacity`` 1), two runs the same bits, and a step allocates nothing."""
+    ``near_capacity`` 1), two runs the same bits (the second with the colour solve compiled for the compiler's choice
+    of registers, ``max_registers=None``: the same sums), and a step allocates nothing."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     runs = []
-    for lanes, near_capacity in ((1, 128), (4, 128), (4, 128), (3, 1)):
+    for lanes, near_capacity, registers in ((1, 128, 64), (4, 128, 64), (4, 128, None), (3, 1, 64)):
         sim, _, _ = two_tori(gap=0.004, near_capacity=near_capacity)
-        sim.integrator.lanes = lanes
+        sim.integrator.lanes, sim.integrator.max_registers = lanes, registers
         for _ in range(12):
             sim.frame(1.0 / 60.0, 4)
         assert sim.integrator._sweep[0].block_dim == lanes
+        if lanes > 1:
+            compact = sim.integrator._sweep[0].kernel is vbd_kernels.solve_colour_lanes_compact
+            assert compact == (registers is not None)
         runs.append((sim.state.positions.numpy(), sim.state.velocities.numpy()))
     (x1, v1), (x4, v4), (x4b, v4b), (x3, v3) = runs
     assert np.array_equal(x4, x4b) and np.array_equal(v4, v4b)
@@ -396,6 +401,8 @@ def test_bad_input_names_the_item_and_a_fix():
         ws.VBDContact([[0, 1, 2]], planes=[((0.0, 0.0, 0.0), 0.0)])
     with pytest.raises(ValueError, match="VBD contact is"):
         ws.VBD(contact=object())
+    with pytest.raises(ValueError, match=r"VBD max_registers is 48; give 64 \(the compact colour solve\) or None"):
+        ws.VBD(max_registers=48)
     model = spring_pair()
     with pytest.raises(ValueError, match="VBD body_size = 3 does not divide the model's 2 particles"):
         ws.Simulator(model, integrator=ws.VBD(body_size=3), forces=[])
@@ -540,35 +547,40 @@ def test_the_search_lists_every_pair_within_the_radius_and_bounds_by_the_nearest
 
 def test_caps_follow_each_particles_motion_and_the_lists_hold_every_pair_within_its_radius():
     """Caps from motion (``VBDContact.set_motion``, as ``ws.VBD`` sets them at a step): two tori 4 mm apart, the
-    upper moving down at 0.5 m/s, the lower at rest, a step of 1/240 s. Each particle's cap is 4 x its inertial step
-    (|v| h + g h^2) within [b_min, b_max] (the lower torus at b_min, the upper between); each vertex's list holds
+    upper falling freely at 0.1 m/s, the lower resting on a support (its velocity that of the step before: VBD's
+    adaptive guess takes none of g), a step of 1/60 s. Each particle's cap is 4 x its guess's step (|v| h + s g h^2,
+    s = 1 falling, 0 resting) within [b_min, b_max]: the upper torus's 17.6 mm, the lower at b_min although g h^2 alone
+    is 2.7 mm (4 x 2.7 would be 10.9 mm, the cap of every resting vertex before s); each vertex's list holds
     exactly the other torus's triangles within r_c + C_v + C_T (NumPy distances, pairs within 1e-5 m of their radius
     left out), its bound is at most its cap, and the resting torus's vertices list fewer pairs than with every cap at
     b_max."""
     counts = []
     for moving in (True, False):
-        sim, contact, faces = two_tori(self_contact=False, gap=0.004, max_displacement=0.012)
+        sim, contact, faces = two_tori(self_contact=False, gap=0.004, max_displacement=0.024)
         sim.integrator.prepare(sim.system)
-        n, h, g = sim.model.particle_count, 1.0 / 240.0, 9.81
+        n, h, g = sim.model.particle_count, 1.0 / 60.0, 9.81
         body = contact._body.numpy()
         qd = np.zeros((n, 3), dtype=np.float32)
-        qd[body == 1, 1] = -0.5
+        qd[body == 1, 1] = -0.1
+        qd_prev = qd.copy()
+        qd_prev[body == 1, 1] += g * h  # the upper torus took all of g in its last step, the lower none
         inv_mass = sim.model.particle_inv_mass.numpy()
         f_ext = np.zeros((n, 3), dtype=np.float32)
         f_ext[:, 1] = -g / inv_mass
-        arrays = [wp.array(a, dtype=wp.vec3, device=DEVICE) for a in (qd, f_ext, np.zeros((n, 3), np.float32))]
+        arrays = [wp.array(a, dtype=wp.vec3, device=DEVICE) for a in (qd, qd_prev, f_ext, np.zeros((n, 3), np.float32))]
         if moving:
-            contact.set_motion(arrays[0], arrays[1], sim.model.particle_inv_mass, arrays[2], h)
+            contact.set_motion(arrays[0], arrays[1], arrays[2], sim.model.particle_inv_mass, arrays[3], h)
         q = sim.state.positions
         contact.search(q)
         cap = contact.cap.numpy().astype(np.float64)
         if moving:
-            want = np.clip(4.0 * (np.linalg.norm(qd, axis=1) * h + g * h * h), contact.min_displacement, 0.012)
+            s = (body == 1).astype(np.float64)  # the share of g each took in its last step
+            want = np.clip(4.0 * (np.linalg.norm(qd, axis=1) * h + s * g * h * h), contact.min_displacement, 0.024)
             assert np.allclose(cap, want, rtol=1e-5, atol=1e-9)
             assert cap[body == 0].max() == pytest.approx(contact.min_displacement)
-            assert 0.008 < cap[body == 1].min() < 0.012  # 4 x (0.5 h + g h^2) = 9.0 mm
+            assert 0.017 < cap[body == 1].min() < 0.018  # 4 x (0.1 h + g h^2) = 17.6 mm
         else:
-            assert (cap == np.float32(0.012)).all()
+            assert (cap == np.float32(0.024)).all()
         x = q.numpy().astype(np.float64)
         surface = contact._surface.numpy()
         vt, count = contact._vt.numpy().reshape(len(surface), -1), contact._vt_count.numpy()

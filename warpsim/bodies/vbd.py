@@ -113,6 +113,9 @@ class VBD(Integrator):
             block's lanes one after another as fibers, and only with ``wp.config.enable_cpu_blocks`` (else a
             block is one lane: the sums of ``lanes`` = 1), so a thread a particle is faster there. The sums'
             order differs with B (other bits, the same physics; each B repeats its own bits).
+        max_registers: with ``lanes`` > 1 on CUDA, the registers a thread of the colour solve at most: 64
+            (``kernels.vbd.solve_colour_lanes_compact``: more warps resident, the rest spilled to local memory; the
+            default) or None (the compiler's choice, 161 on sm_90). The same sums in the same order either way.
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -126,7 +129,8 @@ class VBD(Integrator):
 
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
                  chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True,
-                 renew_fraction: float | None = 0.5, lanes: int | None = None):
+                 renew_fraction: float | None = 0.5, lanes: int | None = None,
+                 max_registers: int | None = K.COMPACT_REGISTERS):
         super().__init__()
         self.iterations = checks.integer(iterations, "VBD iterations", lo=1, hi=100_000, fix="e.g. 10")
         if contact is not None and not isinstance(contact, VBDContact):
@@ -144,6 +148,10 @@ class VBD(Integrator):
         self.lanes = None if lanes is None else checks.integer(
             lanes, "VBD lanes", lo=1, hi=1024, fix="threads a particle in a colour solve, e.g. 32 (1: a thread a "
             "particle), or None (32 on CUDA, 1 on the CPU)")
+        if max_registers not in (None, K.COMPACT_REGISTERS):
+            raise ValueError(f"VBD max_registers is {max_registers!r}; give {K.COMPACT_REGISTERS} (the compact colour "
+                             "solve) or None (the compiler's choice)")
+        self.max_registers = max_registers
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
 
     @property
@@ -249,7 +257,8 @@ class VBD(Integrator):
         springs = [m.particle_spring_offsets, self._springs]
         if self.contact is not None:  # its thickness, stiffness and friction as they are now
             self._contact_inputs = self.contact.solve_inputs()
-            self.contact.set_motion(qd, self.f_ext, m.particle_inv_mass, self.deficit, h)
+            self.contact.set_motion(qd, self.qd_prev, self.f_ext, m.particle_inv_mass, self.deficit, h,
+                                    self.adaptive_guess)
         self._predict = record(K.predict, n, [qd, self.qd_prev, self.f_ext, m.particle_inv_mass, h,
                                                int(self.adaptive_guess), self._reference, self._bound, q, self.q0,
                                                self.y, self.deficit, self.q_new])
@@ -263,8 +272,10 @@ class VBD(Integrator):
         buffers, offsets = (q, self.q_new), self.colour_offsets
         lanes = self.lanes_on(d)
         if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
+            kernel = K.solve_colour_lanes if self.max_registers is None else K.solve_colour_lanes_compact
+
             def solve(dim, inputs):
-                return wp.launch_tiled(K.solve_colour_lanes, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
+                return wp.launch_tiled(kernel, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
                                        record_cmd=True)
         else:
             def solve(dim, inputs):
@@ -288,11 +299,12 @@ class VBD(Integrator):
         self._recorded_key = self._key(q, qd, h)
 
     def _key(self, q, qd, h: float) -> tuple:
-        """What the recorded launches depend on: the arrays, the step, ``lanes`` and the contact's coefficients (a
-        changed ``lanes``, ``contact.friction``, ``stiffness`` or ``thickness`` is recorded again at the next step)."""
+        """What the recorded launches depend on: the arrays, the step, ``lanes``, ``max_registers`` and the contact's
+        coefficients (a changed ``lanes``, ``max_registers``, ``contact.friction``, ``stiffness`` or ``thickness`` is
+        recorded again at the next step)."""
         c = self.contact
         coefficients = (c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ()
-        return (q.ptr, qd.ptr, h, self.lanes) + coefficients
+        return (q.ptr, qd.ptr, h, self.lanes, self.max_registers) + coefficients
 
     def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)

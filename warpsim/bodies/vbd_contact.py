@@ -62,8 +62,8 @@ class VBDContact:
         max_displacement: b_max [m], the most a particle moves between searches (default: the thickness).
         min_displacement: b_min [m] (default: a quarter of the thickness): stepped by ``ws.VBD``, each
             particle's cap C_p, the most it may move before the next search, is set at each search from its own
-            motion (``kernels.vbd_contact.displacement_caps``: ``cap_safety`` = 4 times the length of its inertial
-            step, plus what the bound cut from its guess) within [b_min, b_max], and a pair is searched
+            motion (``kernels.vbd_contact.displacement_caps``: ``cap_safety`` = 4 times the length of its initial
+            guess's step, plus what the bound cut from it) within [b_min, b_max], and a pair is searched
             within r_c + C_a + C_b: a heap at rest searches a small radius, a falling body a large one. Equal to
             b_max (or a search without ``ws.VBD``'s motion): every cap is b_max, the radius r_c + 2 b_max.
         capacity: pairs kept per query list, the nearest (more are counted in :attr:`overflow`).
@@ -124,7 +124,9 @@ class VBDContact:
                 raise ValueError(f"VBDContact min_displacement = {self.min_displacement:g} m exceeds max_displacement "
                                  f"= {self.max_displacement:g} m; give at most that")
         self.cap_safety = 4.0
-        """A cap is this many times the length of the particle's inertial step (|v| h + |f / m| h^2): a search
+        """A cap is this many times the length of the particle's guessed step (|v| h + s |f / m| h^2, s the share of
+        the external acceleration it took in its last step with VBD's adaptive guess: 0 resting on a support, so a
+        resting heap's caps do not grow with g h^2 at larger steps; ``kernels.vbd_contact.displacement_caps``): a search
         within the step (renewing at half the bound) is then skipped for a particle moving as predicted, and one
         that speeds up has room to double its speed before it is clipped."""
         self._motion: tuple | None = None
@@ -182,12 +184,14 @@ class VBDContact:
         crossing)."""
         return self.thickness + 2.0 * self.max_displacement
 
-    def set_motion(self, qd, f_ext, inv_mass, deficit, h: float) -> None:
+    def set_motion(self, qd, qd_prev, f_ext, inv_mass, deficit, h: float, adaptive: bool = True) -> None:
         """Let each search set the caps from the particles' motion (``ws.VBD``, at its recording): velocities
-        ``qd`` (N,) [m/s] and forces other than the springs ``f_ext`` (N,) [N] at the step's start, inverse
-        masses (N,) [1/kg], what the bound cut from each initial guess ``deficit`` (N,) [m] and step ``h`` [s].
-        Arrays are read at each search (no copy)."""
-        self._motion = (qd, f_ext, inv_mass, deficit, float(h))
+        ``qd`` (N,) [m/s] at the step's start and ``qd_prev`` (N,) at the one before, forces other than the
+        springs ``f_ext`` (N,) [N], inverse masses (N,) [1/kg], what the bound cut from each initial guess
+        ``deficit`` (N,) [m], step ``h`` [s], and whether the guess takes only the share of the external
+        acceleration the particle took in its last step (``adaptive``, VBD's adaptive guess: a particle resting on
+        a support then gets no g h^2 in its cap). Arrays are read at each search (no copy)."""
+        self._motion = (qd, qd_prev, f_ext, inv_mass, deficit, float(h), int(bool(adaptive)))
         self._recorded_key = None
 
     def bind(self, model) -> None:
@@ -360,9 +364,10 @@ class VBDContact:
                 self.thickness, self.near_capacity, self._near, self._near_end])]
         self._caps = None
         if self._motion is not None:
-            qd, f_ext, inv_mass, deficit, h = self._motion
+            qd, qd_prev, f_ext, inv_mass, deficit, h, adaptive = self._motion
             self._caps = record(K.displacement_caps, q.shape[0], [
-                self._go, self._body, self._groups[3], qd, f_ext, inv_mass, deficit, h, self.cap_safety,
+                self._go, self._body, self._groups[3], qd, qd_prev, f_ext, inv_mass, deficit, h, adaptive,
+                self.cap_safety,
                 self.min_displacement, self.max_displacement, self.cap])
         else:
             self.cap.fill_(self.max_displacement)
