@@ -49,8 +49,10 @@ def lanes_of(args) -> list:
 
 
 def registers_of(args) -> list:
-    """``--vbd-max-registers`` as a list of ``ws.VBD`` ``max_registers`` values (``none``: the compiler's choice)."""
-    return [None if r.strip().lower() == "none" else int(r) for r in args.vbd_max_registers.split(",")]
+    """``--vbd-max-registers`` as a list of ``ws.VBD`` ``max_registers`` values (``none``: the compiler's choice,
+    ``auto``: by the colours' size)."""
+    words = [r.strip().lower() for r in args.vbd_max_registers.split(",")]
+    return [None if r == "none" else r if r == "auto" else int(r) for r in words]
 
 
 def compare_setting(args, sim, h, device, attribute: str, values: list) -> None:
