@@ -6,11 +6,12 @@ searches the timed steps ran, those within a step skipped at rest not counted: i
 colour sweep, frames of 1/60 s per wall second, the pairs listed, the queries past the lists' capacity at the
 last search and the most pairs one query met (per search: figures that cannot wrap), then the two properties
 the heap tests assert on the final state: the deepest vertex of a torus inside another [mm] and the surface
-edges passing through another torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``). ``--reference-integrator
-fast_mass_spring`` builds and settles the same heap with that integrator in the same process (at ``--reference-dt``,
-default ``--dt``: each at its own step) and prints the ratio of the time per simulated second. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and the
-step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle), after
-one step from one saved state with each value compared with the first's positions. ``--vbd-max-registers none,64``
+edges passing through another torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``).
+``--reference-integrator fast_mass_spring`` builds and settles the same heap with that integrator in the same process
+(at ``--reference-dt``, default ``--dt``: each at its own step, settled as long in simulated time) and prints the ratio
+of the time per simulated second. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and
+the step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle),
+after one step from one saved state with each value compared with the first's positions. ``--vbd-max-registers none,64``
 does the same with ``ws.VBD``'s ``max_registers`` (the colour solve's registers a thread on CUDA: the same sums, so
 the one step from the saved state must give the same bits).
 ``--query-block-dims 256,128,64`` times the contact search with each CUDA block size of its pair queries.

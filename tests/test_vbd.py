@@ -424,7 +424,8 @@ def test_bad_input_names_the_item_and_a_fix():
         ws.VBDContact([[0, 1, 2]], planes=[((0.0, 0.0, 0.0), 0.0)])
     with pytest.raises(ValueError, match="VBD contact is"):
         ws.VBD(contact=object())
-    with pytest.raises(ValueError, match=r"VBD max_registers is 48; give 64 \(the compact colour solve\), None \(the compiler's choice\) or 'auto'"):
+    with pytest.raises(ValueError, match=r"VBD max_registers is 48; give 64 \(the compact colour solve\), None "
+                                         r"\(the compiler's choice\) or 'auto'"):
         ws.VBD(max_registers=48)
     model = spring_pair()
     with pytest.raises(ValueError, match="VBD body_size = 3 does not divide the model's 2 particles"):
