@@ -45,7 +45,7 @@ import argparse
 import time
 
 import warp as wp
-from timing import eager_and_graph, time_per_call
+from timing import activity_name, eager_and_graph, time_per_call
 
 from warpsim.scenes import get_scene
 
@@ -151,7 +151,7 @@ def profile(scene, h, steps, device, top=14):
     wall = (time.perf_counter() - t0) / steps
     totals, calls = {}, {}
     for r in results:
-        name = (r.name or "?").split("(")[0].strip()
+        name = activity_name(r)  # the kernel's Python name, without the module hash
         totals[name] = totals.get(name, 0.0) + r.elapsed / steps
         calls[name] = calls.get(name, 0) + 1
     gpu = sum(totals.values())

@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 import warp as wp
+from timing import activity_name
 
 from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
 from warpsim.particle_fluids.pbf import ParticleFluid
@@ -204,7 +205,7 @@ def profile_kernels(run, device, top=8):
     results = wp.timing_end()
     totals = {}
     for r in results:
-        name = r.name.split("(")[0] if r.name else "?"
+        name = activity_name(r)  # the kernel's Python name, without the module hash
         totals[name] = totals.get(name, 0.0) + r.elapsed
     whole = sum(totals.values())
     for name, ms in sorted(totals.items(), key=lambda kv: -kv[1])[:top]:

@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 import warp as wp
-from timing import eager_and_graph, time_per_call
+from timing import activity_name, eager_and_graph, time_per_call
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 from test_soft_contact_scale import deepest_vertex, edges_through_other_bodies  # noqa: E402 (the tests' oracles)
@@ -143,7 +143,7 @@ def kernel_table(step, steps, device, top=16) -> None:
     results = wp.timing_end()
     totals, calls = {}, {}
     for r in results:
-        name = (r.name or "?").split("(")[0].strip()
+        name = activity_name(r)  # the kernel's Python name, without the module hash
         totals[name] = totals.get(name, 0.0) + r.elapsed / steps
         calls[name] = calls.get(name, 0) + 1
     gpu = sum(totals.values()) or 1.0
