@@ -14,6 +14,7 @@ DragSpring, VBD, VBDContact.
 
 from typing import TYPE_CHECKING
 
+from .._lazy import lazy_attributes
 from .colliders import (
     Box, Capsule, Collider, ParticleCollisions, Plane, Planes, Quad, Rectangle, Sphere, TriangleMesh, keyframe_motion,
 )
@@ -38,10 +39,4 @@ _LAZY = {"SoftContact": ".soft_contact", "VBD": ".vbd", "VBDContact": ".vbd_cont
 a scene of springs or a teapot never launches)."""
 
 
-def __getattr__(name):
-    if name in _LAZY:
-        import importlib
-
-        value = globals()[name] = getattr(importlib.import_module(_LAZY[name], __name__), name)
-        return value  # (bound here, as an import in this file would bind it)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY, globals())

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 # imported here, not on first use: the function sag_free shares its module's name, and a package attribute
 # bound by a later ``import warpsim.strands.sag_free`` would otherwise be the module
+from .._lazy import lazy_attributes
 from .sag_free import SagFreeReport, sag_free
 
 if TYPE_CHECKING:  # the same names for static tools; at run time each is imported on first use (below)
@@ -33,10 +34,4 @@ _HOMES = {
 estimate) defines none of the strands' own kernels."""
 
 
-def __getattr__(name):
-    if name in _HOMES:
-        import importlib
-
-        value = globals()[name] = getattr(importlib.import_module(_HOMES[name], __name__), name)
-        return value  # (bound here, as an import in this file would bind it)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _HOMES, globals())
