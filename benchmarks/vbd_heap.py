@@ -161,10 +161,10 @@ def heap_state(scene, renew_fraction) -> str:
     speed = np.linalg.norm(sim.state.velocities.numpy(), axis=1)
     fast = np.flatnonzero(speed > 0.1)
     tori = len(np.unique(fast // contact.body_size)) if contact.body_size else "-"
-    surface = contact._surface.numpy()
+    surface = contact.surface_particles
     bound = contact.bound.numpy()[surface] * 1e3
     cap = contact.cap.numpy()[surface] * 1e3
-    gap = contact._vt_min.numpy()
+    gap = contact.nearest_triangles
     gap = gap[gap < 1.0e29] * 1e3  # vertices with a listed pair (1e30: none)
     gaps = f"{gap.min():.3g} / {np.percentile(gap, 1):.3g}" if len(gap) else "- / -"
     return (f"heap state: fastest particle {speed.max():.3g} m/s, 99.9th percentile {np.percentile(speed, 99.9):.3g}, "

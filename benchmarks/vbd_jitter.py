@@ -88,7 +88,7 @@ def main():
     q, qd = scene.sim.state.positions.numpy().copy(), scene.sim.state.velocities.numpy().copy()
     contact = scene.vbd_contact
     fast = np.flatnonzero(np.linalg.norm(qd, axis=1) > 0.1)
-    surface = np.isin(fast, contact._surface.numpy())
+    surface = np.isin(fast, contact.surface_particles)
     bodies = np.unique(fast // contact.body_size) if len(fast) else []
     deficit = np.linalg.norm(scene.sim.integrator.deficit.numpy()[fast], axis=1) * 1e3
     bounds = contact.bound.numpy()[fast] * 1e3

@@ -435,6 +435,17 @@ class VBDContact:
         kept them all."""
         return tuple(int(x) for x in self._overflow.numpy()[3:])
 
+    @property
+    def surface_particles(self) -> np.ndarray:
+        """The particles that are surface vertices (contact queries), in query order, shape (V,) (reads back)."""
+        return self._surface.numpy()
+
+    @property
+    def nearest_triangles(self) -> np.ndarray:
+        """Each surface vertex's distance [m] to its nearest listed triangle at the last search, 1e30 where it
+        listed none, shape (V,) in ``surface_particles`` order (reads back)."""
+        return self._vt_min.numpy()
+
     def near_stats(self) -> tuple:
         """(list entries the sweeps gather over, vertices past ``near_capacity`` that gather over the whole
         lists) at the last search (reads back)."""
