@@ -266,7 +266,7 @@ def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(m
 def test_the_compact_colour_solve_is_chosen_by_the_colours_size(monkeypatch):
     """``max_registers="auto"`` (the default): the colour solve compiled for 64 registers a thread on CUDA when the
     largest colour holds more particles than 32 warps x the device's multiprocessors (more warps resident pay for
-    the spills there; on an H200 a 12-torus heap's colours of 2,300 particles ran 16 % slower with it), never on the
+    the spills there; on an H200 a 12-torus heap's colours of 2,300 particles ran 16-18 % slower with it), never on the
     CPU; 64 and None choose it or not whatever the size."""
     sim, _, _ = two_tori()
     integrator = sim.integrator

@@ -118,7 +118,7 @@ class VBD(Integrator):
             (the compiler's choice, 161 on sm_90) or "auto" (the default: 64 when the largest colour holds more
             particles than 32 warps x the device's multiprocessors, the warps resident at 64 registers; measured on
             an H200, 132 multiprocessors: 64 made a sweep of 100 tori, 19,000 particles a colour, 26 % faster and
-            one of 12 tori, 2,300 a colour, 16 % slower). The same sums in the same order either way: the same bits.
+            one of 12 tori, 2,300 a colour, 16-18 % slower). The same sums in the same order either way: the same bits.
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
