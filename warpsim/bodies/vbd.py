@@ -55,9 +55,10 @@ set from outside, a reset or a world's new state, farther than that from the ref
 run). The first step's search always runs. Of the listed pairs the sweeps gather only those that can
 still come within r_c: a pair at distance D at the search whose sides' bounds are b_a and b_b stays at least
 D - b_a - b_b apart (as above), so one with D - b_a - b_b >= r_c exerts nothing until the next search and is left out
-(``kernels.vbd_contact.keep_near_pairs``; the sums, hence the bits, are those of the whole lists). Everything is gathered per particle in fixed order (CSR rows, per-query lists written by
-their own thread; with ``lanes`` > 1 the lanes' partial sums added by a fixed-order tile reduction): two runs give
-the same bits; a step allocates nothing and reads nothing back.
+(``kernels.vbd_contact.keep_near_pairs``; the sums, hence the bits, are those of the whole lists). Everything is
+gathered per particle in fixed order (CSR rows, per-query lists written by their own thread; with ``lanes`` > 1 the
+lanes' partial sums added by a fixed-order tile reduction): two runs give the same bits; a step allocates nothing
+and reads nothing back.
 """
 
 from __future__ import annotations
