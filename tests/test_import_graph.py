@@ -20,7 +20,7 @@ PACKAGE = pathlib.Path(warpsim.__file__).parent
 
 
 FLOORS = (
-    ("_version", "verbosity", "meshing", "process_pool"),  # 0: no warpsim imports
+    ("_version", "_lazy", "verbosity", "meshing", "process_pool"),  # 0: no warpsim imports
     ("core",),  # 1: model, builder, forces, integrators, simulator, the solver protocol, shared helpers
     ("bodies", "cloth", "agents", "grid_fluids", "particle_fluids", "usd"),  # 2: domains on core
     ("strands", "diff"),  # 3: domains on domains (hair on the colliders; rollouts of every solver)
