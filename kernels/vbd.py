@@ -34,7 +34,7 @@ around its reference position (``clip_to_bound``), the bound of ``vbd_contact.di
 
 import warp as wp
 
-from .vbd_contact import contact_force_hessian
+from .vbd_contact import contact_force_hessian, guessed_share
 
 wp.set_module_options({"enable_backward": False})
 
@@ -72,12 +72,7 @@ def predict(
     a = f_ext[i] * inv_mass[i]
     v = qd[i]
     y_out[i] = x + h * v + h * h * a
-    s = float(1.0)
-    a2 = wp.dot(a, a)
-    if adaptive != 0:
-        s = 0.0
-        if a2 > 0.0:
-            s = wp.clamp(wp.dot((v - qd_prev[i]) / h, a) / a2, 0.0, 1.0)
+    s = guessed_share(v, qd_prev[i], a, h, adaptive)
     guess = x + h * v + h * h * s * a
     clipped = clip_to_bound(guess, reference[i], bound[i])
     q_io[i] = clipped

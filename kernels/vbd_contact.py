@@ -190,6 +190,19 @@ def pair_radius(thickness: float, cap_a: float, cap_b: float) -> float:
     return thickness + wp.max(cap_a, cap_b) + wp.min(cap_a, cap_b)
 
 
+@wp.func
+def guessed_share(v: wp.vec3, v_prev: wp.vec3, a: wp.vec3, h: float, adaptive: int) -> float:
+    """The share s in [0, 1] of the external acceleration ``a`` [m/s^2] VBD's adaptive initial guess takes: the part
+    of it the particle took in its last step, (v - v_prev) / h . a / |a|^2 clamped (0 resting on a support, 1
+    falling; 0 when a = 0); 1 when ``adaptive`` is 0 (``kernels.vbd.predict``, ``displacement_caps``)."""
+    if adaptive == 0:
+        return 1.0
+    a2 = wp.dot(a, a)
+    if a2 > 0.0:
+        return wp.clamp(wp.dot((v - v_prev) / h, a) / a2, 0.0, 1.0)
+    return 0.0
+
+
 @wp.kernel
 def displacement_caps(go: wp.array(dtype=int), body: wp.array(dtype=int), body_world: wp.array(dtype=int),
                       qd: wp.array(dtype=wp.vec3), qd_prev: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
@@ -205,13 +218,8 @@ def displacement_caps(go: wp.array(dtype=int), body: wp.array(dtype=int), body_w
     if go[body_world[body[p]]] == 0:
         return
     a = f_ext[p] * inv_mass[p]
-    s = float(1.0)
-    a2 = wp.dot(a, a)
-    if adaptive != 0:
-        s = 0.0
-        if a2 > 0.0:
-            s = wp.clamp(wp.dot((qd[p] - qd_prev[p]) / h, a) / a2, 0.0, 1.0)
-    step = wp.length(qd[p]) * h + s * wp.sqrt(a2) * h * h
+    s = guessed_share(qd[p], qd_prev[p], a, h, adaptive)
+    step = wp.length(qd[p]) * h + s * wp.length(a) * h * h
     cap_out[p] = wp.clamp(safety * step + wp.length(deficit[p]), lowest, highest)
 
 
