@@ -569,6 +569,42 @@ def test_the_search_lists_every_pair_within_the_radius_and_bounds_by_the_nearest
     assert bound.max() == pytest.approx(contact.max_displacement)
 
 
+def test_active_pairs_count_each_particles_pairs_within_the_thickness_by_its_part_in_them():
+    """Two tori 3 mm apart (thickness 6 mm, no self contact): ``VBDContact.active_pairs`` gives each particle the
+    other torus's triangles within the thickness of it, the other torus's vertices within it of each triangle it is
+    a corner of, and the other torus's edges within it of each edge it ends (NumPy distances; particles with a
+    distance within 1e-5 m of the thickness left out); interior particles and far vertices have none."""
+    sim, contact, faces = two_tori(self_contact=False, gap=0.003)
+    sim.integrator.prepare(sim.system)
+    contact.search(sim.state.positions)
+    got = contact.active_pairs()
+    x = sim.state.positions.numpy().astype(np.float64)
+    body, surface, r = contact._body.numpy(), contact._surface.numpy(), contact.thickness
+    assert got.shape == (len(x), 3) and not got[np.setdiff1d(np.arange(len(x)), surface)].any()
+    distances = np.stack([point_triangle_distances(x[surface], *x[f]) for f in faces], 1)  # (V, F)
+    other = body[surface][:, None] != body[faces[:, 0]][None, :]
+    within, edge_ = other & (distances < r), np.abs(distances - r) < 1.0e-5
+    want = np.zeros_like(got)
+    unsure = np.zeros(len(x), dtype=bool)
+    want[surface, 0] = within.sum(1)
+    unsure[surface] |= (other & edge_).any(1)
+    for c in range(3):  # the triangle's side: the other torus's vertices within the thickness of it
+        np.add.at(want[:, 1], faces[:, c], within.sum(0))
+        np.logical_or.at(unsure, faces[:, c], (other & edge_).any(0))
+    edges, _, _ = meshtools.edge_topology(faces)
+    mid, half = (x[edges[:, 0]] + x[edges[:, 1]]) / 2, np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1) / 2
+    near = np.linalg.norm(mid[:, None] - mid[None, :], axis=2) <= half[:, None] + half[None, :] + r  # spheres meet
+    for e, f in zip(*np.nonzero(near & (body[edges[:, 0]][:, None] != body[edges[:, 0]][None, :]))):
+        (i, j), (k, m) = edges[e], edges[f]
+        d = segment_distance(x[i], x[j], x[k], x[m])
+        want[[i, j], 2] += int(d < r)
+        unsure[[i, j]] |= abs(d - r) < 1.0e-5
+    sure = ~unsure
+    bad = np.flatnonzero((got != want).any(1) & sure)
+    assert not len(bad), (bad, got[bad], want[bad])
+    assert (got.sum(0) > 0).all(), got.sum(0)  # the tori touch: every kind of pair met
+
+
 def test_caps_follow_each_particles_motion_and_the_lists_hold_every_pair_within_its_radius():
     """Caps from motion (``VBDContact.set_motion``, as ``ws.VBD`` sets them at a step): two tori 4 mm apart, the
     upper falling freely at 0.1 m/s, the lower resting on a support (its velocity that of the step before: VBD's

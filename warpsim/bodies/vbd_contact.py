@@ -446,6 +446,31 @@ class VBDContact:
         listed none, shape (V,) in ``surface_particles`` order (reads back)."""
         return self._vt_min.numpy()
 
+    def active_pairs(self) -> np.ndarray:
+        """Each particle's listed pairs that were within the thickness at the last search, by its part in them, shape
+        (N, 3) int: [as the vertex of a vertex-triangle pair, as a corner of the triangle of one, as an end of an edge
+        of an edge-edge pair] (each pair counted from each side it was listed from; reads back). What a particle that
+        keeps moving is pressed by (``benchmarks/vbd_jitter.py --contacts``)."""
+        C, r = self.capacity, self.thickness
+        slot = self._slot.numpy()
+        out = np.zeros((len(slot), 3), dtype=np.int64)
+
+        def within(count, distance) -> np.ndarray:  # per list: its entries nearer than the thickness
+            d = distance.numpy().reshape(-1, C)
+            kept = np.arange(C)[None, :] < np.minimum(count.numpy(), C)[:, None]
+            return ((d < r) & kept).sum(axis=1)
+
+        surface = slot >= 0
+        out[surface, 0] = within(self._vt_count, self._distances[0])[slot[surface]]
+        sides = ((self._tri, self._tv_count, self._distances[1], 3),
+                 (self._edges, self._ee_count, self._distances[2], 2))
+        for column, (items, count, distance, corners) in enumerate(sides, start=1):
+            per_item = within(count, distance)
+            ends = items.numpy().reshape(-1, corners)
+            for c in range(corners):
+                np.add.at(out[:, column], ends[:, c], per_item)
+        return out
+
     def near_stats(self) -> tuple:
         """(list entries the sweeps gather over, vertices past ``near_capacity`` that gather over the whole
         lists) at the last search (reads back)."""
