@@ -68,8 +68,8 @@ def contacts(scene, h, steps: int = 8) -> None:
     """Step ``steps`` steps and print what the particles that jitter (past 0.1 m/s, their velocity turned back in at
     least 3 of the steps) are pressed by at the last search (``VBDContact.active_pairs``), against the calm ones
     (under 0.01 m/s); then over 20 more steps, at each search point of a step (its opening and every
-    ``detect_every`` sweeps), the particles past half their bound, at their bound (clipped) and with their guess
-    cut, and the searches run."""
+    ``detect_every`` sweeps), the particles past half their bound, at their bound (within 0.1 % of it: clipped
+    there) and with their guess cut, and the searches run."""
     sim, contact, integrator = scene.sim, scene.vbd_contact, scene.sim.integrator
     velocities = []
     for _ in range(steps):

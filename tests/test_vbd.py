@@ -579,18 +579,18 @@ def test_active_pairs_count_each_particles_pairs_within_the_thickness_by_its_par
     contact.search(sim.state.positions)
     got = contact.active_pairs()
     x = sim.state.positions.numpy().astype(np.float64)
-    body, surface, r = contact._body.numpy(), contact._surface.numpy(), contact.thickness
+    body, surface, r = contact._body.numpy(), contact.surface_particles, contact.thickness
     assert got.shape == (len(x), 3) and not got[np.setdiff1d(np.arange(len(x)), surface)].any()
     distances = np.stack([point_triangle_distances(x[surface], *x[f]) for f in faces], 1)  # (V, F)
     other = body[surface][:, None] != body[faces[:, 0]][None, :]
-    within, edge_ = other & (distances < r), np.abs(distances - r) < 1.0e-5
+    within, at_thickness = other & (distances < r), np.abs(distances - r) < 1.0e-5
     want = np.zeros_like(got)
     unsure = np.zeros(len(x), dtype=bool)
     want[surface, 0] = within.sum(1)
-    unsure[surface] |= (other & edge_).any(1)
+    unsure[surface] |= (other & at_thickness).any(1)
     for c in range(3):  # the triangle's side: the other torus's vertices within the thickness of it
         np.add.at(want[:, 1], faces[:, c], within.sum(0))
-        np.logical_or.at(unsure, faces[:, c], (other & edge_).any(0))
+        np.logical_or.at(unsure, faces[:, c], (other & at_thickness).any(0))
     edges, _, _ = meshtools.edge_topology(faces)
     mid, half = (x[edges[:, 0]] + x[edges[:, 1]]) / 2, np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1) / 2
     near = np.linalg.norm(mid[:, None] - mid[None, :], axis=2) <= half[:, None] + half[None, :] + r  # spheres meet
