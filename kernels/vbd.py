@@ -23,7 +23,11 @@ pair's other particles of its colour (``vbd_contact.same_colour``): together the
 resting heap jittered at up to 0.8 m/s); a larger Hessian shortens the step but leaves the minimiser as it is.
 ``solve_colour`` gives each particle a thread; ``solve_colour_lanes`` a block of B lanes that split its springs
 and contact entries and add their partial sums by a fixed-order tile reduction (faster on a GPU, where a colour
-of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists).
+of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists). Their
+``_checked`` variants take a step only when the force at its end does not push back along it harder than the force at
+its start pushed (``accepts``), halving it up to ``backtracks`` times (``ws.VBD(line_search=)``): a whole Newton step
+of a positive semi-definite model can overshoot into a contact or across a compressed spring, and a pressed heap's
+sweeps then cycle.
 The colours alternate the two buffers, and each launch also copies the previous colour's new positions
 from the buffer it reads into the one it writes (no thread of the launch reads that one): the buffer a
 colour writes then holds every colour solved so far, and a sweep ends with one ``commit_colour`` of its
@@ -34,7 +38,7 @@ around its reference position (``clip_to_bound``), the bound of ``vbd_contact.di
 
 import warp as wp
 
-from .vbd_contact import contact_force_hessian, guessed_share
+from .vbd_contact import contact_force_hessian, guessed_share, sphere_gap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -168,15 +172,50 @@ def vertex_force_hessian(
     return f + fc, H + Hc
 
 
-def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
+@wp.func
+def accepts(f_start: wp.vec3, f_end: wp.vec3, d: wp.vec3) -> bool:
+    """Whether a particle's step ``d`` [m] is taken: the force at its end [N] does not push back along it harder
+    than the force at its start pushed along it, f_end . d >= -f_start . d. Along a step where the particle's
+    energy is quadratic that is exactly "the step does not raise the energy" (E(d) - E(0) = -(f_start + f_end) . d
+    / 2), and it asks nothing of the forces but their values, so it holds the springs' damping (a force with no
+    potential) to the same rule; where the energy is not quadratic (a contact the step enters, a spring it
+    compresses) it rejects the step whose end pushes back hard, the overshoot."""
+    return wp.dot(f_end, d) >= -wp.dot(f_start, d)
+
+
+@wp.func
+def may_touch(p: int, x: wp.vec3, slot: wp.array(dtype=int), near_end: wp.array(dtype=int),
+              planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float, bound: float) -> bool:
+    """Whether particle p at ``x`` [m] has a contact its step can touch: a listed pair the search kept as able to
+    push before the next one (``keep_near_pairs``; or its kept pairs did not fit), or a plane or sphere nearer than
+    the thickness ``radius`` + twice its ``bound`` [m] (x and the step's end both lie within the bound of its
+    reference). Without one its share of G is its inertia and springs alone."""
+    s = slot[p]
+    if s >= 0:
+        if near_end[3 * s] < 0 or near_end[3 * s + 2] > 0:
+            return True
+    reach = radius + 2.0 * bound
+    for k in range(planes.shape[0]):
+        plane = planes[k]
+        if wp.dot(wp.vec3(plane[0], plane[1], plane[2]), x) - plane[3] < reach:
+            return True
+    for k in range(spheres.shape[0]):
+        gap, normal = sphere_gap(spheres[k], x)
+        if gap < reach:
+            return True
+    return False
+
+
+def solve_colour_kernel(tiled: bool, max_registers: int | None = None, checked: bool = False):
     """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
     particle, ``wp.launch_tiled``): one kernel body, the variant chosen at code generation (``wp.static``), each in
     a module of its own (a tiled module is compiled for each block size); ``max_registers``: CUDA's registers a
-    thread at most (None: the compiler's choice)."""
+    thread at most (None: the compiler's choice); ``checked``: each Newton step checked at its end and halved up to
+    ``backtracks`` times (``accepts``; False: taken whole, ``backtracks`` ignored)."""
     options = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
+    name = ("solve_colour_lanes" if tiled else "solve_colour") + ("_checked" if checked else "")
 
-    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False,
-               **options)
+    @wp.kernel(name=name, module="unique", enable_backward=False, **options)
     def kernel(
         colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
@@ -191,7 +230,7 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
         planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
         contact_stiffness: float,
         friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
-        colour: wp.array(dtype=int), q_out: wp.array(dtype=wp.vec3),
+        colour: wp.array(dtype=int), backtracks: int, q_out: wp.array(dtype=wp.vec3),
     ):
         k = int(0)
         lane = int(0)
@@ -212,16 +251,53 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
             if lane == 0:
                 q_out[p] = x
             return
-        f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
-                                    spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count,
-                                    tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
-                                    near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
-                                    contact_stiffness, friction, friction_eps, reference, colour)
-        if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
-            f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
-            H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
+        x_new = x
+        if wp.static(checked):  # one call site: evaluation 0 at x, then the checks of the step and its halvings
+            x_try = x
+            f_start = wp.vec3()
+            step = wp.vec3()
+            scale = float(1.0)
+            attempt = int(0)
+            while attempt <= backtracks + 1:  # the same decisions in every lane (f is the block's sum)
+                f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs,
+                                            slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
+                                            tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near,
+                                            near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
+                                            spheres, radius, contact_stiffness, friction, friction_eps, reference,
+                                            colour)
+                if wp.static(tiled):
+                    f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+                    H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
+                if attempt == 0:
+                    f_start = f
+                    step = wp.inverse(H) * f
+                    x_new = clip_to_bound(x + step, reference[p], bound[p])
+                    x_try = x_new
+                    attempt = 1
+                    if not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
+                        attempt = backtracks + 3  # nothing the step can enter: taken whole
+                elif accepts(f_start, f, x_try - x):
+                    x_new = x_try
+                    attempt = backtracks + 3
+                else:
+                    scale = 0.5 * scale
+                    x_try = clip_to_bound(x + scale * step, reference[p], bound[p])
+                    attempt += 1
+            if attempt == backtracks + 2:  # no step passed: the particle stays
+                x_new = x
+        else:
+            f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
+                                        spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count,
+                                        tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list,
+                                        ee_count, near, near_end, near_capacity, vt_distance, tv_distance,
+                                        ee_distance, planes, spheres, radius, contact_stiffness, friction,
+                                        friction_eps, reference, colour)
+            if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
+                f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+                H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
+            x_new = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
         if lane == 0:
-            q_out[p] = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
+            q_out[p] = x_new
 
     return kernel
 
@@ -243,6 +319,14 @@ B > 32 then the warps' sums in warp order; on the CPU (``wp.config.enable_cpu_bl
 turn. No float atomics: two runs give the same bits. Lane 0 takes the Newton step and the clip and copies the
 previous colour's particle k."""
 
+solve_colour_checked = solve_colour_kernel(False, checked=True)
+solve_colour_checked.__doc__ = """``solve_colour`` with each Newton step checked at its end (``accepts``) and halved up
+to ``backtracks`` times until it passes; the particle stays when none does (``ws.VBD(line_search=)``)."""
+
+solve_colour_lanes_checked = solve_colour_kernel(True, checked=True)
+solve_colour_lanes_checked.__doc__ = """``solve_colour_lanes`` with the check of ``solve_colour_checked`` (the force at
+a step's end summed over the lanes as the first)."""
+
 COMPACT_REGISTERS = 64
 """Registers a thread of ``solve_colour_lanes_compact`` at most (on CUDA): the compiler gives the colour solve 161 of
 them (sm_90), so 12 warps a multiprocessor at most; at 64, 32 warps, the rest spilled to local memory (416 bytes a
@@ -252,6 +336,10 @@ solve_colour_lanes_compact = solve_colour_kernel(True, COMPACT_REGISTERS)
 solve_colour_lanes_compact.__doc__ = """``solve_colour_lanes`` compiled for at most ``COMPACT_REGISTERS`` registers a
 thread on CUDA (the same code: the same sums in the same order; more blocks resident on a multiprocessor, some values
 spilled to local memory). The CPU ignores the limit."""
+
+solve_colour_lanes_compact_checked = solve_colour_kernel(True, COMPACT_REGISTERS, checked=True)
+solve_colour_lanes_compact_checked.__doc__ = """``solve_colour_lanes_checked`` in at most ``COMPACT_REGISTERS``
+registers a thread on CUDA."""
 
 
 @wp.kernel

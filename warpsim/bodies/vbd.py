@@ -8,8 +8,16 @@ A step of h [s] minimises backward Euler's incremental potential G (inertia ``m 
 the springs, the contacts) by ``iterations`` sweeps over the particle colours, each particle a 3x3
 Newton step with the others held (``kernels.vbd``), Chebyshev-accelerated, from VBD's adaptive
 initial guess. Converged it is backward Euler (tested against ``ImplicitEuler``); stopped early it
-is still unconditionally stable (each Newton step on a block lowers a positive-definite model of G)
-and dissipates: the number of iterations sets the accuracy, not the stability.
+is still unconditionally stable and dissipates: the number of iterations sets the accuracy, not the stability.
+Each Newton step d is checked at its end (``kernels.vbd.accepts``): taken when the force there does not push back
+along it harder than the force at its start pushed along it (f_end . d >= -f_start . d: along a step where the
+particle's share of G is quadratic, exactly "d does not raise it"), else halved up to ``line_search`` times, else not
+taken. The blocks' models are positive semi-definite (a compressed spring's and a contact's negative curvature
+dropped) and a contact not yet touched has none, so a whole step can overshoot where G is not quadratic: into a
+contact, across a spring it compresses. Unchecked, the sweeps of a heap pressed by contacts 50x stiffer than its
+springs cycled instead of converging (200 sweeps, vertices still moving 2-3 mm a sweep) and the resting heap
+jittered at 0.7 m/s (benchmarks/RESULTS.md); checked, it comes to rest. The check uses forces only, so the springs'
+damping (no potential) is held to it too, and a converged step is still backward Euler's.
 
 No primitive passes through another (the step bound). At a search (the step's start, then every
 ``detect_every`` iterations) at positions x^d, let for each particle i::
@@ -120,6 +128,10 @@ class VBD(Integrator):
             particles than 32 warps x the device's multiprocessors, the warps resident at 64 registers; measured on
             an H200, 132 multiprocessors: 64 made a sweep of 100 tori, 19,000 particles a colour, 26 % faster and
             one of 12 tori, 2,300 a colour, 16-18 % slower). The same sums in the same order either way: the same bits.
+        line_search: halvings of a particle's Newton step tried when the force at the step's end pushes back
+            along it harder than the force at its start pushed (the module docstring); when none passes the particle
+            stays. 0: every step taken whole (plain VBD, the colour solve without the check). A sweep evaluates the
+            particle's forces once more, and once more a halving.
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -134,7 +146,7 @@ class VBD(Integrator):
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
                  chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True,
                  renew_fraction: float | None = 0.5, lanes: int | None = None,
-                 max_registers: int | str | None = "auto"):
+                 max_registers: int | str | None = "auto", line_search: int = 4):
         super().__init__()
         self.iterations = checks.integer(iterations, "VBD iterations", lo=1, hi=100_000, fix="e.g. 10")
         if contact is not None and not isinstance(contact, VBDContact):
@@ -156,6 +168,8 @@ class VBD(Integrator):
             raise ValueError(f"VBD max_registers is {max_registers!r}; give {K.COMPACT_REGISTERS} (the compact colour "
                              "solve), None (the compiler's choice) or 'auto'")
         self.max_registers = max_registers
+        self.line_search = checks.integer(line_search, "VBD line_search", lo=0, hi=64,
+                                          fix="halvings of a Newton step tried, e.g. 4 (0: every step taken whole)")
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
 
     @property
@@ -284,15 +298,18 @@ class VBD(Integrator):
         # colour is committed to the buffer it did not write: one launch a colour and one a sweep
         buffers, offsets = (q, self.q_new), self.colour_offsets
         lanes = self.lanes_on(d)
+        checked = self.line_search > 0
         if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
-            kernel = K.solve_colour_lanes_compact if self.compact_on(d) else K.solve_colour_lanes
+            kernel = {(True, True): K.solve_colour_lanes_compact_checked, (True, False): K.solve_colour_lanes_compact,
+                      (False, True): K.solve_colour_lanes_checked, (False, False): K.solve_colour_lanes}[
+                (self.compact_on(d), checked)]
 
             def solve(dim, inputs):
                 return wp.launch_tiled(kernel, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
                                        record_cmd=True)
         else:
             def solve(dim, inputs):
-                return record(K.solve_colour, dim, inputs)
+                return record(K.solve_colour_checked if checked else K.solve_colour, dim, inputs)
         self._sweep = []
         for c in range(self.colour_count):
             start, count = offsets[c], offsets[c + 1] - offsets[c]
@@ -300,7 +317,7 @@ class VBD(Integrator):
             self._sweep.append(solve(max(count, previous), [
                 self.colour_particles, start, count, before, previous, buffers[c % 2], self.q0, self.y,
                 m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs, self._reference,
-                self._bound, self.particle_colour, buffers[(c + 1) % 2]]))
+                self._bound, self.particle_colour, self.line_search, buffers[(c + 1) % 2]]))
         last = self.colour_count - 1
         if last >= 0:
             self._sweep.append(record(K.commit_colour, offsets[last + 1] - offsets[last], [
@@ -312,12 +329,12 @@ class VBD(Integrator):
         self._recorded_key = self._key(q, qd, h)
 
     def _key(self, q, qd, h: float) -> tuple:
-        """What the recorded launches depend on: the arrays, the step, ``lanes``, ``max_registers`` and the contact's
-        coefficients (a changed ``lanes``, ``max_registers``, ``contact.friction``, ``stiffness`` or ``thickness`` is
-        recorded again at the next step)."""
+        """What the recorded launches depend on: the arrays, the step, ``lanes``, ``max_registers``, ``line_search``
+        and the contact's coefficients (a changed ``lanes``, ``max_registers``, ``line_search``, ``contact.friction``,
+        ``stiffness`` or ``thickness`` is recorded again at the next step)."""
         c = self.contact
         coefficients = (c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ()
-        return (q.ptr, qd.ptr, h, self.lanes, self.max_registers) + coefficients
+        return (q.ptr, qd.ptr, h, self.lanes, self.max_registers, self.line_search) + coefficients
 
     def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)

@@ -459,6 +459,9 @@ def check_donut_memory(count: int, torus, device, list_capacity: int = 0, extra_
     "vbd_min_displacement": (0.0, ("vbd only: the smallest cap [m] (0: a quarter of the thickness): each vertex's "
                                    "cap, the most it moves before the next search, is 4 x its step's length at "
                                    "its speed within [this, vbd_max_displacement]; equal to it: fixed caps")),
+    "vbd_line_search": (4, ("vbd only: halvings of a vertex's Newton step tried when the force at the step's end "
+                            "pushes back harder than at its start (ws.VBD line_search; 0: every step taken whole, "
+                            "and a heap pressed by contacts much stiffer than its springs can jitter)")),
     "vbd_chebyshev_rho": (0.0, ("vbd only: spectral radius estimate of the Chebyshev acceleration in [0, 1) (0: "
                                 "off; 0.9 with 12 iterations gained 13 % energy at the heap's first impacts)")),
     "solver_chebyshev": (True, ("fast_mass_spring only: Chebyshev acceleration of the iterations (ws.FastMassSpring; "
@@ -577,9 +580,10 @@ class DonutsScene(SimulatorScene):
     def _build_vbd(self, p, model, template, box) -> None:
         """``integrator=vbd``: the tori, floor and walls in one ws.VBD (contact energies inside the descent,
         the step bound; no collider after the step), copies of one torus (one colouring, one CSR)."""
-        for key in ("vbd_detect_every",):
+        for key, zero in (("vbd_detect_every", "one contact search a step"),
+                          ("vbd_line_search", "every Newton step taken whole")):
             if p[key] < 0:
-                raise ValueError(f"{key}={p[key]}: give an integer >= 0 (0: one contact search a step)")
+                raise ValueError(f"{key}={p[key]}: give an integer >= 0 (0: {zero})")
         quarter = "a quarter of the thickness"
         for key, zero in (("vbd_max_displacement", "the thickness"), ("vbd_min_displacement", quarter)):
             if not (math.isfinite(p[key]) and p[key] >= 0.0):
@@ -598,7 +602,7 @@ class DonutsScene(SimulatorScene):
             min_displacement=p["vbd_min_displacement"] or None, planes=planes)
         integrator = ws.VBD(int(p["solver_iterations"]), contact=self.vbd_contact, body_size=P,
                             chebyshev_rho=p["vbd_chebyshev_rho"],
-                            detect_every=int(p["vbd_detect_every"]))
+                            detect_every=int(p["vbd_detect_every"]), line_search=int(p["vbd_line_search"]))
         self.sim = ws.Simulator(model, integrator=integrator, forces=[ws.Gravity((0.0, -p["gravity"], 0.0))],
                                 colliders=[], max_speed=100.0)
         self.inner_steps = 1
