@@ -23,11 +23,12 @@ pair's other particles of its colour (``vbd_contact.same_colour``): together the
 resting heap jittered at up to 0.8 m/s); a larger Hessian shortens the step but leaves the minimiser as it is.
 ``solve_colour`` gives each particle a thread; ``solve_colour_lanes`` a block of B lanes that split its springs
 and contact entries and add their partial sums by a fixed-order tile reduction (faster on a GPU, where a colour
-of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists). Their
-``_checked`` variants take a step only when the force at its end does not push back along it harder than the force at
-its start pushed (``accepts``), halving it up to ``backtracks`` times (``ws.VBD(line_search=)``): a whole Newton step
-of a positive semi-definite model can overshoot into a contact or across a compressed spring, and a pressed heap's
-sweeps then cycle.
+of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists). With
+``ws.VBD(line_search=)`` each colour's solve is followed by ``check_colour``, which keeps a particle's step only when
+the force at its end does not push back along it harder than the force at its start pushed (``accepts``), halving it
+up to ``backtracks`` times: a whole Newton step of a positive semi-definite model can overshoot into a contact or
+across a compressed spring, and a pressed heap's sweeps then cycle. A separate launch, so the solve's code (and its
+registers) stay those of the plain solve, and the check costs only where a particle can touch a contact.
 The colours alternate the two buffers, and each launch also copies the previous colour's new positions
 from the buffer it reads into the one it writes (no thread of the launch reads that one): the buffer a
 colour writes then holds every colour solved so far, and a sweep ends with one ``commit_colour`` of its
@@ -206,16 +207,15 @@ def may_touch(p: int, x: wp.vec3, slot: wp.array(dtype=int), near_end: wp.array(
     return False
 
 
-def solve_colour_kernel(tiled: bool, max_registers: int | None = None, checked: bool = False):
+def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
     """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
     particle, ``wp.launch_tiled``): one kernel body, the variant chosen at code generation (``wp.static``), each in
     a module of its own (a tiled module is compiled for each block size); ``max_registers``: CUDA's registers a
-    thread at most (None: the compiler's choice); ``checked``: each Newton step checked at its end and halved up to
-    ``backtracks`` times (``accepts``; False: taken whole, ``backtracks`` ignored)."""
+    thread at most (None: the compiler's choice)."""
     options = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
-    name = ("solve_colour_lanes" if tiled else "solve_colour") + ("_checked" if checked else "")
 
-    @wp.kernel(name=name, module="unique", enable_backward=False, **options)
+    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False,
+               **options)
     def kernel(
         colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
@@ -230,7 +230,8 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None, checked: 
         planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
         contact_stiffness: float,
         friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
-        colour: wp.array(dtype=int), backtracks: int, q_out: wp.array(dtype=wp.vec3),
+        colour: wp.array(dtype=int), force_out: wp.array(dtype=wp.vec3), step_out: wp.array(dtype=wp.vec3),
+        q_out: wp.array(dtype=wp.vec3),
     ):
         k = int(0)
         lane = int(0)
@@ -251,53 +252,20 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None, checked: 
             if lane == 0:
                 q_out[p] = x
             return
-        x_new = x
-        if wp.static(checked):  # one call site: evaluation 0 at x, then the checks of the step and its halvings
-            x_try = x
-            f_start = wp.vec3()
-            step = wp.vec3()
-            scale = float(1.0)
-            attempt = int(0)
-            while attempt <= backtracks + 1:  # the same decisions in every lane (f is the block's sum)
-                f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs,
-                                            slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
-                                            tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near,
-                                            near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
-                                            spheres, radius, contact_stiffness, friction, friction_eps, reference,
-                                            colour)
-                if wp.static(tiled):
-                    f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
-                    H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
-                if attempt == 0:
-                    f_start = f
-                    step = wp.inverse(H) * f
-                    x_new = clip_to_bound(x + step, reference[p], bound[p])
-                    x_try = x_new
-                    attempt = 1
-                    if not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
-                        attempt = backtracks + 3  # nothing the step can enter: taken whole
-                elif accepts(f_start, f, x_try - x):
-                    x_new = x_try
-                    attempt = backtracks + 3
-                else:
-                    scale = 0.5 * scale
-                    x_try = clip_to_bound(x + scale * step, reference[p], bound[p])
-                    attempt += 1
-            if attempt == backtracks + 2:  # no step passed: the particle stays
-                x_new = x
-        else:
-            f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
-                                        spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count,
-                                        tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list,
-                                        ee_count, near, near_end, near_capacity, vt_distance, tv_distance,
-                                        ee_distance, planes, spheres, radius, contact_stiffness, friction,
-                                        friction_eps, reference, colour)
-            if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
-                f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
-                H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
-            x_new = clip_to_bound(x + wp.inverse(H) * f, reference[p], bound[p])
+        f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
+                                    spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count,
+                                    tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                    near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
+                                    contact_stiffness, friction, friction_eps, reference, colour)
+        if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
+            f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+            H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
         if lane == 0:
-            q_out[p] = x_new
+            step = wp.inverse(H) * f
+            q_out[p] = clip_to_bound(x + step, reference[p], bound[p])
+            if step_out.shape[0] > 0:  # for check_colour
+                force_out[p] = f
+                step_out[p] = step
 
     return kernel
 
@@ -307,7 +275,8 @@ solve_colour.__doc__ = """One Newton step of particle ``colour_particles[start +
 docstring), clipped to its bound, into ``q_out``; forces and Hessians summed by one thread in the fixed order of
 its CSR row and contact lists (``vertex_force_hessian``, lane 0 of 1). Thread k < ``previous_count`` also copies
 particle ``colour_particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``.
-Launched over max(count, previous_count) threads."""
+With ``step_out`` not empty (``ws.VBD(line_search=)``), also the force at the start [N] into ``force_out`` and the
+step before its clip [m] into ``step_out`` (``check_colour``). Launched over max(count, previous_count) threads."""
 
 solve_colour_lanes = solve_colour_kernel(True)
 solve_colour_lanes.__doc__ = """``solve_colour`` with particle k's sums spread over the B lanes of block k
@@ -319,14 +288,6 @@ B > 32 then the warps' sums in warp order; on the CPU (``wp.config.enable_cpu_bl
 turn. No float atomics: two runs give the same bits. Lane 0 takes the Newton step and the clip and copies the
 previous colour's particle k."""
 
-solve_colour_checked = solve_colour_kernel(False, checked=True)
-solve_colour_checked.__doc__ = """``solve_colour`` with each Newton step checked at its end (``accepts``) and halved up
-to ``backtracks`` times until it passes; the particle stays when none does (``ws.VBD(line_search=)``)."""
-
-solve_colour_lanes_checked = solve_colour_kernel(True, checked=True)
-solve_colour_lanes_checked.__doc__ = """``solve_colour_lanes`` with the check of ``solve_colour_checked`` (the force at
-a step's end summed over the lanes as the first)."""
-
 COMPACT_REGISTERS = 64
 """Registers a thread of ``solve_colour_lanes_compact`` at most (on CUDA): the compiler gives the colour solve 161 of
 them (sm_90), so 12 warps a multiprocessor at most; at 64, 32 warps, the rest spilled to local memory (416 bytes a
@@ -337,9 +298,79 @@ solve_colour_lanes_compact.__doc__ = """``solve_colour_lanes`` compiled for at m
 thread on CUDA (the same code: the same sums in the same order; more blocks resident on a multiprocessor, some values
 spilled to local memory). The CPU ignores the limit."""
 
-solve_colour_lanes_compact_checked = solve_colour_kernel(True, COMPACT_REGISTERS, checked=True)
-solve_colour_lanes_compact_checked.__doc__ = """``solve_colour_lanes_checked`` in at most ``COMPACT_REGISTERS``
-registers a thread on CUDA."""
+
+def check_colour_kernel(tiled: bool):
+    """``check_colour`` (``tiled`` False: a thread a particle) or ``check_colour_lanes`` (a block of lanes a
+    particle, as ``solve_colour_lanes``), each in a module of its own."""
+
+    @wp.kernel(name="check_colour_lanes" if tiled else "check_colour", module="unique", enable_backward=False)
+    def kernel(
+        colour_particles: wp.array(dtype=int), start: int, count: int,
+        q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+        y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
+        spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
+        slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+        vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
+        tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
+        edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
+        ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
+        vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
+        planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
+        contact_stiffness: float,
+        friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
+        colour: wp.array(dtype=int), force: wp.array(dtype=wp.vec3), step: wp.array(dtype=wp.vec3),
+        backtracks: int, q_io: wp.array(dtype=wp.vec3),
+    ):
+        k = int(0)
+        lane = int(0)
+        lanes = int(1)
+        if wp.static(tiled):
+            k, lane = wp.tid()
+            lanes = wp.block_dim()
+        else:
+            k = wp.tid()
+        if k >= count:
+            return
+        p = colour_particles[start + k]
+        x = q[p]
+        if inv_mass[p] == 0.0 or not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
+            return  # nothing the step can enter: taken whole
+        x_try = q_io[p]
+        scale = float(1.0)
+        attempt = int(0)
+        while attempt <= backtracks:  # the same decisions in every lane (f is the block's sum)
+            f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs, slot,
+                                        tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
+                                        tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                        near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres,
+                                        radius, contact_stiffness, friction, friction_eps, reference, colour)
+            if wp.static(tiled):
+                f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+            if accepts(force[p], f, x_try - x):
+                attempt = backtracks + 2
+            else:
+                scale = 0.5 * scale
+                x_try = clip_to_bound(x + scale * step[p], reference[p], bound[p])
+                attempt += 1
+        if attempt == backtracks + 1:  # no step passed: the particle stays
+            x_try = x
+        if lane == 0:
+            q_io[p] = x_try
+
+    return kernel
+
+
+check_colour = check_colour_kernel(False)
+check_colour.__doc__ = """After ``solve_colour`` (with ``step_out``) of a colour: particle ``colour_particles[start +
+k]``'s step, from ``q`` [m] (the buffer the solve read) to its end in ``q_io``, is kept when the force there does not
+push back along it harder than ``force`` (the force at its start) pushed (``accepts``), else halved (``step``, the
+step before its clip, clipped again) up to ``backtracks`` times until one passes, else the particle stays at ``q``;
+the result into ``q_io``. Only particles that can touch a contact (``may_touch``): elsewhere G is the inertia and
+springs alone and the step is kept. The neighbours are read from ``q``, as the solve read them."""
+
+check_colour_lanes = check_colour_kernel(True)
+check_colour_lanes.__doc__ = """``check_colour`` with each force spread over a block of lanes as in
+``solve_colour_lanes`` (the same sums: the force at a step's end as the solve would sum it there)."""
 
 
 @wp.kernel

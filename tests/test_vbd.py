@@ -271,8 +271,7 @@ def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(m
             sim.frame(1.0 / 60.0, 4)
         assert sim.integrator._sweep[0].block_dim == lanes
         if lanes > 1:
-            compact = sim.integrator._sweep[0].kernel in (vbd_kernels.solve_colour_lanes_compact,
-                                                          vbd_kernels.solve_colour_lanes_compact_checked)
+            compact = sim.integrator._sweep[0].kernel is vbd_kernels.solve_colour_lanes_compact
             assert compact == (registers is not None)
         runs.append((sim.state.positions.numpy(), sim.state.velocities.numpy()))
     (x1, v1), (x4, v4), (x4b, v4b), (x3, v3) = runs
@@ -825,13 +824,16 @@ def test_the_staged_lists_are_the_whole_queries_bit_for_bit(capacity):
     assert (over > 0) == (capacity == 3)
 
 
-def test_each_colour_commits_the_one_before_it_with_the_same_bits():
-    """A sweep is one launch a colour (each copies the colour before it across the two position buffers)
-    and one commit: the same bits as solving each colour into the second buffer and copying it back before
-    the next colour, and both buffers hold the same positions after it."""
+@pytest.mark.parametrize("line_search", [0, 4])
+def test_each_colour_commits_the_one_before_it_with_the_same_bits(line_search):
+    """A sweep is one launch a colour (each copies the colour before it across the two position buffers; with
+    ``line_search`` each followed by its check, ``check_colour``) and one commit: the same bits as solving (and
+    checking) each colour into the second buffer and copying it back before the next colour, and both buffers
+    hold the same positions after it."""
     from warpsim.kernels import vbd as K
     sim, _, _ = two_tori(gap=0.004)
     integ, q = sim.integrator, sim.state.positions
+    integ.line_search = line_search
     for _ in range(30):
         integ.step(sim.system, q, sim.state.velocities, sim._time, 1.0 / 240.0)
     start = (q.numpy() + np.random.default_rng(5).normal(0.0, 2.0e-4, q.shape + (3,))).astype(np.float32)
@@ -843,14 +845,20 @@ def test_each_colour_commits_the_one_before_it_with_the_same_bits():
     assert np.array_equal(folded, integ.q_new.numpy()) and not np.array_equal(folded, start)
     q.assign(start)
     integ.q_new.assign(start)
-    offsets = integ.colour_offsets
+    offsets, per_colour = integ.colour_offsets, 2 if line_search else 1
+    assert len(integ._sweep) == per_colour * integ.colour_count + 1
     for c in range(integ.colour_count):
-        launch, count = integ._sweep[c], offsets[c + 1] - offsets[c]
+        launch, count = integ._sweep[per_colour * c], offsets[c + 1] - offsets[c]
         launch.set_param_by_name("previous_count", 0)
         launch.set_param_by_name("q", q)
         launch.set_param_by_name("q_out", integ.q_new)
         launch.set_dim(count)
         launch.launch()
+        if line_search:
+            check = integ._sweep[per_colour * c + 1]
+            check.set_param_by_name("q", q)
+            check.set_param_by_name("q_io", integ.q_new)
+            check.launch()
         wp.launch(K.commit_colour, count, inputs=[integ.colour_particles, offsets[c], integ.q_new, q], device=DEVICE)
     assert np.array_equal(q.numpy(), folded)
 

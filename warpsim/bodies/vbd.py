@@ -244,6 +244,11 @@ class VBD(Integrator):
         self.deficit = wp.zeros(n, dtype=wp.vec3, device=d)
         """What the bound cut from each particle's initial guess and no search has given back yet [m]."""
         self.qd_prev = wp.array(model.particle_qd.numpy(), dtype=wp.vec3, device=d)
+        self._force = wp.zeros(0, dtype=wp.vec3, device=d)
+        """Each particle's force [N] at the start of its last Newton step (``line_search``; else empty)."""
+        self._step = wp.zeros(0, dtype=wp.vec3, device=d)
+        """Each particle's last Newton step [m] before its clip (``line_search``; else empty)."""
+        self._empty = wp.zeros(0, dtype=wp.vec3, device=d)
         row_lengths = np.diff(model.particle_spring_offsets.numpy())
         self._entry_particle = wp.array(np.repeat(np.arange(n, dtype=np.int32), row_lengths), dtype=int, device=d)
         """Particle of each entry of the CSR spring rows (E = 2 springs,)."""
@@ -299,25 +304,36 @@ class VBD(Integrator):
         buffers, offsets = (q, self.q_new), self.colour_offsets
         lanes = self.lanes_on(d)
         checked = self.line_search > 0
+        if checked and self._step.shape[0] != n:  # each particle's force at its step's start and its step (re-recorded
+            self._force = wp.zeros(n, dtype=wp.vec3, device=d)  # when line_search is turned on, not in a step)
+            self._step = wp.zeros(n, dtype=wp.vec3, device=d)
+        outputs = [self._force, self._step] if checked else [self._empty, self._empty]
         if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
-            kernel = {(True, True): K.solve_colour_lanes_compact_checked, (True, False): K.solve_colour_lanes_compact,
-                      (False, True): K.solve_colour_lanes_checked, (False, False): K.solve_colour_lanes}[
-                (self.compact_on(d), checked)]
+            kernel = K.solve_colour_lanes_compact if self.compact_on(d) else K.solve_colour_lanes
 
-            def solve(dim, inputs):
+            def solve(kernel, dim, inputs):
                 return wp.launch_tiled(kernel, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
                                        record_cmd=True)
+
+            check_kernel = K.check_colour_lanes
         else:
-            def solve(dim, inputs):
-                return record(K.solve_colour_checked if checked else K.solve_colour, dim, inputs)
+            kernel, check_kernel = K.solve_colour, K.check_colour
+
+            def solve(kernel, dim, inputs):
+                return record(kernel, dim, inputs)
         self._sweep = []
         for c in range(self.colour_count):
             start, count = offsets[c], offsets[c + 1] - offsets[c]
             before, previous = (offsets[c - 1], offsets[c] - offsets[c - 1]) if c > 0 else (0, 0)
-            self._sweep.append(solve(max(count, previous), [
-                self.colour_particles, start, count, before, previous, buffers[c % 2], self.q0, self.y,
-                m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs, self._reference,
-                self._bound, self.particle_colour, self.line_search, buffers[(c + 1) % 2]]))
+            shared = [self.q0, self.y, m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs,
+                      self._reference, self._bound, self.particle_colour]
+            self._sweep.append(solve(kernel, max(count, previous), [
+                self.colour_particles, start, count, before, previous, buffers[c % 2], *shared, *outputs,
+                buffers[(c + 1) % 2]]))
+            if checked:  # the colour's steps checked at their ends (reading the buffer the solve read)
+                self._sweep.append(solve(check_kernel, count, [
+                    self.colour_particles, start, count, buffers[c % 2], *shared, self._force, self._step,
+                    self.line_search, buffers[(c + 1) % 2]]))
         last = self.colour_count - 1
         if last >= 0:
             self._sweep.append(record(K.commit_colour, offsets[last + 1] - offsets[last], [
