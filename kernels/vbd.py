@@ -207,15 +207,16 @@ def may_touch(p: int, x: wp.vec3, slot: wp.array(dtype=int), near_end: wp.array(
     return False
 
 
-def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
+def solve_colour_kernel(tiled: bool, max_registers: int | None = None, check: bool = False):
     """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
-    particle, ``wp.launch_tiled``): one kernel body, the variant chosen at code generation (``wp.static``), each in
-    a module of its own (a tiled module is compiled for each block size); ``max_registers``: CUDA's registers a
-    thread at most (None: the compiler's choice)."""
+    particle, ``wp.launch_tiled``), or with ``check`` their ``check_colour`` and ``check_colour_lanes``: one
+    signature and one kernel body, the variant chosen at code generation (``wp.static``), each in a module of its own
+    (a tiled module is compiled for each block size); ``max_registers``: CUDA's registers a thread at most (None: the
+    compiler's choice)."""
     options = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
+    name = ("check_colour" if check else "solve_colour") + ("_lanes" if tiled else "")
 
-    @wp.kernel(name="solve_colour_lanes" if tiled else "solve_colour", module="unique", enable_backward=False,
-               **options)
+    @wp.kernel(name=name, module="unique", enable_backward=False, **options)
     def kernel(
         colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
         q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
@@ -230,7 +231,7 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
         planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
         contact_stiffness: float,
         friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
-        colour: wp.array(dtype=int), force_out: wp.array(dtype=wp.vec3), step_out: wp.array(dtype=wp.vec3),
+        colour: wp.array(dtype=int), force: wp.array(dtype=wp.vec3), step: wp.array(dtype=wp.vec3), backtracks: int,
         q_out: wp.array(dtype=wp.vec3),
     ):
         k = int(0)
@@ -241,6 +242,36 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
             lanes = wp.block_dim()
         else:
             k = wp.tid()
+        if wp.static(check):  # the colour's steps, solved from q into q_out, checked at their ends
+            if k >= count:
+                return
+            p = colour_particles[start + k]
+            x = q[p]
+            if inv_mass[p] == 0.0 or not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
+                return  # nothing the step can enter: taken whole
+            x_try = q_out[p]
+            scale = float(1.0)
+            attempt = int(0)
+            while attempt <= backtracks:  # the same decisions in every lane (f is the block's sum)
+                f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs,
+                                            slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
+                                            tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near,
+                                            near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
+                                            spheres, radius, contact_stiffness, friction, friction_eps, reference,
+                                            colour)
+                if wp.static(tiled):
+                    f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+                if accepts(force[p], f, x_try - x):
+                    attempt = backtracks + 2
+                else:
+                    scale = 0.5 * scale
+                    x_try = clip_to_bound(x + scale * step[p], reference[p], bound[p])
+                    attempt += 1
+            if attempt == backtracks + 1:  # no step passed: the particle stays
+                x_try = x
+            if lane == 0:
+                q_out[p] = x_try
+            return
         if lane == 0 and k < previous_count:
             o = colour_particles[previous_start + k]
             q_out[o] = q[o]
@@ -261,11 +292,11 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None):
             f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
             H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
         if lane == 0:
-            step = wp.inverse(H) * f
-            q_out[p] = clip_to_bound(x + step, reference[p], bound[p])
-            if step_out.shape[0] > 0:  # for check_colour
-                force_out[p] = f
-                step_out[p] = step
+            dx = wp.inverse(H) * f
+            q_out[p] = clip_to_bound(x + dx, reference[p], bound[p])
+            if step.shape[0] > 0:  # for the check (check_colour)
+                force[p] = f
+                step[p] = dx
 
     return kernel
 
@@ -275,8 +306,8 @@ solve_colour.__doc__ = """One Newton step of particle ``colour_particles[start +
 docstring), clipped to its bound, into ``q_out``; forces and Hessians summed by one thread in the fixed order of
 its CSR row and contact lists (``vertex_force_hessian``, lane 0 of 1). Thread k < ``previous_count`` also copies
 particle ``colour_particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``.
-With ``step_out`` not empty (``ws.VBD(line_search=)``), also the force at the start [N] into ``force_out`` and the
-step before its clip [m] into ``step_out`` (``check_colour``). Launched over max(count, previous_count) threads."""
+With ``step`` not empty (``ws.VBD(line_search=)``), also the force at the start [N] into ``force`` and the step
+before its clip [m] into ``step`` (``check_colour``); ``backtracks`` unused. Launched over max(count, previous_count) threads."""
 
 solve_colour_lanes = solve_colour_kernel(True)
 solve_colour_lanes.__doc__ = """``solve_colour`` with particle k's sums spread over the B lanes of block k
@@ -299,76 +330,15 @@ thread on CUDA (the same code: the same sums in the same order; more blocks resi
 spilled to local memory). The CPU ignores the limit."""
 
 
-def check_colour_kernel(tiled: bool):
-    """``check_colour`` (``tiled`` False: a thread a particle) or ``check_colour_lanes`` (a block of lanes a
-    particle, as ``solve_colour_lanes``), each in a module of its own."""
-
-    @wp.kernel(name="check_colour_lanes" if tiled else "check_colour", module="unique", enable_backward=False)
-    def kernel(
-        colour_particles: wp.array(dtype=int), start: int, count: int,
-        q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
-        y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
-        spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
-        slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
-        vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
-        tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
-        edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
-        ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
-        vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
-        planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
-        contact_stiffness: float,
-        friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float),
-        colour: wp.array(dtype=int), force: wp.array(dtype=wp.vec3), step: wp.array(dtype=wp.vec3),
-        backtracks: int, q_io: wp.array(dtype=wp.vec3),
-    ):
-        k = int(0)
-        lane = int(0)
-        lanes = int(1)
-        if wp.static(tiled):
-            k, lane = wp.tid()
-            lanes = wp.block_dim()
-        else:
-            k = wp.tid()
-        if k >= count:
-            return
-        p = colour_particles[start + k]
-        x = q[p]
-        if inv_mass[p] == 0.0 or not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
-            return  # nothing the step can enter: taken whole
-        x_try = q_io[p]
-        scale = float(1.0)
-        attempt = int(0)
-        while attempt <= backtracks:  # the same decisions in every lane (f is the block's sum)
-            f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs, slot,
-                                        tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
-                                        tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
-                                        near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres,
-                                        radius, contact_stiffness, friction, friction_eps, reference, colour)
-            if wp.static(tiled):
-                f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
-            if accepts(force[p], f, x_try - x):
-                attempt = backtracks + 2
-            else:
-                scale = 0.5 * scale
-                x_try = clip_to_bound(x + scale * step[p], reference[p], bound[p])
-                attempt += 1
-        if attempt == backtracks + 1:  # no step passed: the particle stays
-            x_try = x
-        if lane == 0:
-            q_io[p] = x_try
-
-    return kernel
-
-
-check_colour = check_colour_kernel(False)
-check_colour.__doc__ = """After ``solve_colour`` (with ``step_out``) of a colour: particle ``colour_particles[start +
-k]``'s step, from ``q`` [m] (the buffer the solve read) to its end in ``q_io``, is kept when the force there does not
+check_colour = solve_colour_kernel(False, check=True)
+check_colour.__doc__ = """After ``solve_colour`` (with ``step``) of a colour: particle ``colour_particles[start + k]``'s
+step, from ``q`` [m] (the buffer the solve read) to its end in ``q_out``, is kept when the force there does not
 push back along it harder than ``force`` (the force at its start) pushed (``accepts``), else halved (``step``, the
 step before its clip, clipped again) up to ``backtracks`` times until one passes, else the particle stays at ``q``;
-the result into ``q_io``. Only particles that can touch a contact (``may_touch``): elsewhere G is the inertia and
+the result into ``q_out``. Only particles that can touch a contact (``may_touch``): elsewhere G is the inertia and
 springs alone and the step is kept. The neighbours are read from ``q``, as the solve read them."""
 
-check_colour_lanes = check_colour_kernel(True)
+check_colour_lanes = solve_colour_kernel(True, check=True)
 check_colour_lanes.__doc__ = """``check_colour`` with each force spread over a block of lanes as in
 ``solve_colour_lanes`` (the same sums: the force at a step's end as the solve would sum it there)."""
 

@@ -857,7 +857,7 @@ def test_each_colour_commits_the_one_before_it_with_the_same_bits(line_search):
         if line_search:
             check = integ._sweep[per_colour * c + 1]
             check.set_param_by_name("q", q)
-            check.set_param_by_name("q_io", integ.q_new)
+            check.set_param_by_name("q_out", integ.q_new)
             check.launch()
         wp.launch(K.commit_colour, count, inputs=[integ.colour_particles, offsets[c], integ.q_new, q], device=DEVICE)
     assert np.array_equal(q.numpy(), folded)

@@ -334,10 +334,10 @@ class VBD(Integrator):
                       self._reference, self._bound, self.particle_colour]
             self._sweep.append(solve(kernel, max(count, previous), [
                 self.colour_particles, start, count, before, previous, buffers[c % 2], *shared, *outputs,
-                buffers[(c + 1) % 2]]))
+                self.line_search, buffers[(c + 1) % 2]]))
             if checked:  # the colour's steps checked at their ends (reading the buffer the solve read)
                 self._sweep.append(solve(check_kernel, count, [
-                    self.colour_particles, start, count, buffers[c % 2], *shared, self._force, self._step,
+                    self.colour_particles, start, count, 0, 0, buffers[c % 2], *shared, self._force, self._step,
                     self.line_search, buffers[(c + 1) % 2]]))
         last = self.colour_count - 1
         if last >= 0:
