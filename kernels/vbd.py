@@ -307,7 +307,8 @@ docstring), clipped to its bound, into ``q_out``; forces and Hessians summed by 
 its CSR row and contact lists (``vertex_force_hessian``, lane 0 of 1). Thread k < ``previous_count`` also copies
 particle ``colour_particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``.
 With ``step`` not empty (``ws.VBD(line_search=)``), also the force at the start [N] into ``force`` and the step
-before its clip [m] into ``step`` (``check_colour``); ``backtracks`` unused. Launched over max(count, previous_count) threads."""
+before its clip [m] into ``step`` (``check_colour``); ``backtracks`` unused. Launched over max(count,
+previous_count) threads."""
 
 solve_colour_lanes = solve_colour_kernel(True)
 solve_colour_lanes.__doc__ = """``solve_colour`` with particle k's sums spread over the B lanes of block k
