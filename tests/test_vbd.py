@@ -453,6 +453,11 @@ def test_bad_input_names_the_item_and_a_fix():
     with pytest.raises(ValueError, match=r"VBD max_registers is 48; give 64 \(the compact colour solve\), None "
                                          r"\(the compiler's choice\) or 'auto'"):
         ws.VBD(max_registers=48)
+    with pytest.raises(ValueError, match="VBD line_search"):
+        ws.VBD(line_search=-1)
+    cls = get_scene("donuts")
+    with pytest.raises(ValueError, match=r"vbd_line_search=-1: give an integer >= 0 \(0: every Newton step taken"):
+        cls(cls.resolve_params({**SMALL, "count": 2, "integrator": "vbd", "vbd_line_search": -1}), device=DEVICE)
     model = spring_pair()
     with pytest.raises(ValueError, match="VBD body_size = 3 does not divide the model's 2 particles"):
         ws.Simulator(model, integrator=ws.VBD(body_size=3), forces=[])
