@@ -136,7 +136,8 @@ class VBD(Integrator):
         line_search: halvings of a particle's Newton step tried when the force at the step's end pushes back
             along it harder than the force at its start pushed (the module docstring); when none passes the particle
             stays. 0: every step taken whole (plain VBD, the colour solve without the check). A sweep evaluates the
-            particle's forces once more, and once more a halving.
+            forces of each particle that can touch a contact once more, and once more a halving; each colour's solve
+            is followed by a launch of ``kernels.vbd.check_colour``.
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -309,8 +310,10 @@ class VBD(Integrator):
         buffers, offsets = (q, self.q_new), self.colour_offsets
         lanes = self.lanes_on(d)
         checked = self.line_search > 0
-        if checked and self._step.shape[0] != n:  # each particle's force at its step's start and its step (re-recorded
-            self._force = wp.zeros(n, dtype=wp.vec3, device=d)  # when line_search is turned on, not in a step)
+        # each particle's force at its step's start and its step, for the check: allocated when the launches are
+        # recorded with line_search on (the first step, or the step after it is turned on), never within a step
+        if checked and self._step.shape[0] != n:
+            self._force = wp.zeros(n, dtype=wp.vec3, device=d)
             self._step = wp.zeros(n, dtype=wp.vec3, device=d)
         outputs = [self._force, self._step] if checked else [self._empty, self._empty]
         if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
