@@ -213,6 +213,10 @@ def main():
     parser.add_argument("--vbd-max-registers", default=None, metavar="R[,R...]", help="vbd: time the colour sweep "
                         "and the step with each ws.VBD max_registers (none: the compiler's choice; 64) on the same "
                         "heap, after one step from one saved state with each (the same bits expected)")
+    parser.add_argument("--vbd-split", default=None, metavar="S[,S...]", help="vbd: time the colour sweep and the "
+                        "step with each ws.VBD split (true: the particles no contact can reach solved apart, a thread "
+                        "each; false: every particle by the colour solve; auto) on the same heap, after one step from "
+                        "one saved state with each")
     parser.add_argument("--query-block-dims", default=None, metavar="B[,B...]", help="vbd: time the contact "
                         "search with each CUDA block size of its pair queries")
     parser.add_argument("--no-oracles", action="store_true", help="vbd: skip the NumPy checks of the final heap "

@@ -13,7 +13,8 @@ of the time per simulated second. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lan
 the step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle),
 after one step from one saved state with each value compared with the first's positions. ``--vbd-max-registers none,64``
 does the same with ``ws.VBD``'s ``max_registers`` (the colour solve's registers a thread on CUDA: the same sums, so
-the one step from the saved state must give the same bits).
+the one step from the saved state must give the same bits), ``--vbd-split true,false`` with its ``split`` (the
+particles no contact can reach solved apart, a thread each).
 ``--query-block-dims 256,128,64`` times the contact search with each CUDA block size of its pair queries.
 
     python benchmarks/bench_donuts.py --integrator vbd --device cpu --count 12 --segments 24 --sides 12 \\
@@ -56,13 +57,21 @@ def registers_of(args) -> list:
     return [None if r == "none" else r if r == "auto" else int(r) for r in words]
 
 
+def splits_of(args) -> list:
+    """``--vbd-split`` as a list of ``ws.VBD`` ``split`` values (true, false, auto)."""
+    words = [w.strip().lower() for w in args.vbd_split.split(",")]
+    return [w if w == "auto" else w == "true" for w in words]
+
+
 def compare_setting(args, sim, h, device, attribute: str, values: list) -> None:
     """One colour sweep and one step (on CUDA also as a graph of one BVH rebuild period) with each of ``values`` of
-    the integrator's ``attribute`` (``lanes``, ``max_registers``) on the heap as it is (a step first records the
+    the integrator's ``attribute`` (``lanes``, ``max_registers``, ``split``) on the heap as it is (a step first records the
     sweep's launches); first, from one saved state (positions, velocities, the previous velocities of the adaptive
     guess), one step with each value, its positions against the first value's (other sums' order: rounding; the
     same sums in the same order: the same bits; and each value's own bits when it runs twice)."""
     integrator = sim.integrator
+    # the setting as the heap was built, set back at the end: what follows (the reference's ratio) times that
+    own = getattr(integrator, attribute)
     q, qd = sim.state.positions, sim.state.velocities
     saved = [wp.clone(a) for a in (q, qd, integrator.qd_prev)]
     first = None
@@ -96,6 +105,7 @@ def compare_setting(args, sim, h, device, attribute: str, values: list) -> None:
             _, graph = eager_and_graph(lambda: sim.step(h), period, max(1, args.steps // period), device)
             line += f", step as a CUDA graph {graph * 1e3:9.3f} ms"
         print(line)
+    setattr(integrator, attribute, own)
 
 
 def compare_query_blocks(args, contact, q, device) -> None:
@@ -204,6 +214,12 @@ def run_vbd(args, device, build) -> None:
     print(f"one colour sweep      {sweep * 1e3:9.3f} ms x {integrator.iterations} a step (gathering over {kept} list "
           f"entries that can push, {whole} vertices past near_capacity {contact.near_capacity} over their whole lists)")
     print(f"frames of 1/60 s per wall second: {1.0 / (full * per_frame):.2f} ({per_frame} steps a frame)")
+    if integrator.split_on(device):
+        listed = int(integrator._listed_count.numpy().sum())
+        print(f"split sweeps: particles listed as able to touch a contact (the colour solve, checked) {listed} of "
+              f"{model.particle_count} ({listed / model.particle_count:.1%}; the rest solve_free, a thread each)")
+    else:
+        print("sweeps not split: every particle by the colour solve (ws.VBD split)")
     print(heap_state(scene, integrator.renew_fraction))
     if device.is_cuda:
         period = contact.rebuild_every // math.gcd(contact.rebuild_every, searches_per_step(integrator))
@@ -214,6 +230,8 @@ def run_vbd(args, device, build) -> None:
         compare_setting(args, sim, h, device, "lanes", lanes_of(args))
     if getattr(args, "vbd_max_registers", None):
         compare_setting(args, sim, h, device, "max_registers", registers_of(args))
+    if getattr(args, "vbd_split", None):
+        compare_setting(args, sim, h, device, "split", splits_of(args))
     if getattr(args, "query_block_dims", None):
         compare_query_blocks(args, contact, q, device)
     if args.profile and device.is_cuda:

@@ -23,7 +23,10 @@ pair's other particles of its colour (``vbd_contact.same_colour``): together the
 resting heap jittered at up to 0.8 m/s); a larger Hessian shortens the step but leaves the minimiser as it is.
 ``solve_colour`` gives each particle a thread; ``solve_colour_lanes`` a block of B lanes that split its springs
 and contact entries and add their partial sums by a fixed-order tile reduction (faster on a GPU, where a colour
-of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists). With
+of a few thousand particles as threads leaves most of it idle behind the particles with the longest lists). Split
+sweeps (``ws.VBD(split=)``) give the colour solve only the particles that can touch a contact before the next search
+(``list_contact_particles``, after each search) and solve the rest by ``solve_free``, a thread each over the inertia
+and springs (``inertia_spring_force_hessian``): where no contact reaches, G is those alone. With
 ``ws.VBD(line_search=)`` each colour's solve is followed by ``check_colour``, which keeps a particle's step only when
 the force at its end does not push back along it harder than the force at its start pushed (``accepts``), halving it
 up to ``backtracks`` times: a whole Newton step of a positive semi-definite model can overshoot into a contact or
@@ -126,25 +129,14 @@ def pack_springs(
 
 
 @wp.func
-def vertex_force_hessian(
+def inertia_spring_force_hessian(
     p: int, x: wp.vec3, lane: int, lanes: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
     y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_h: float,
     spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
-    slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
-    vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
-    tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
-    edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
-    ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
-    vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
-    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
-    contact_stiffness: float,
-    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), colour: wp.array(dtype=int),
 ):
-    """Lane ``lane``'s share (of ``lanes``) of f_i [N] and H_i [N/m] of particle p at ``x`` [m] (module docstring):
-    the inertia (lane 0), then the springs at positions lane, lane + lanes, ... of p's CSR row (``springs``, packed
-    by ``pack_springs``), in that order,
-    then its share of the contacts (``contact_force_hessian``). Lane 0 of 1 is the whole sum, in the order of
-    the CSR row and the contact lists."""
+    """Lane ``lane``'s share (of ``lanes``) of the inertia's and springs' part of f_i [N] and H_i [N/m] of particle p
+    at ``x`` [m] (module docstring): the inertia (lane 0), then the springs at positions lane, lane + lanes, ... of p's
+    CSR row (``springs``, packed by ``pack_springs``), in that order. Lane 0 of 1 is the whole sum."""
     f = wp.vec3()
     H = wp.mat33()
     if lane == 0:
@@ -166,6 +158,28 @@ def vertex_force_hessian(
         c = e.damping * inv_h
         f -= e.stiffness * (length - e.rest) * n + c * (nn * (dxp - (qo - e.other_start)))
         H += e.stiffness * (nn + wp.max(0.0, 1.0 - e.rest / length) * (wp.identity(3, dtype=float) - nn)) + c * nn
+    return f, H
+
+
+@wp.func
+def vertex_force_hessian(
+    p: int, x: wp.vec3, lane: int, lanes: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+    y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_h: float,
+    spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
+    slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
+    vt_list: wp.array(dtype=int), vt_count: wp.array(dtype=int), tri_offsets: wp.array(dtype=int),
+    tris: wp.array(dtype=int), tv_list: wp.array(dtype=int), tv_count: wp.array(dtype=int),
+    edge_offsets: wp.array(dtype=int), edge_list: wp.array(dtype=int), ee_list: wp.array(dtype=int),
+    ee_count: wp.array(dtype=int), near: wp.array(dtype=int), near_end: wp.array(dtype=int), near_capacity: int,
+    vt_distance: wp.array(dtype=float), tv_distance: wp.array(dtype=float), ee_distance: wp.array(dtype=float),
+    planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
+    contact_stiffness: float,
+    friction: float, friction_eps: float, reference: wp.array(dtype=wp.vec3), colour: wp.array(dtype=int),
+):
+    """Lane ``lane``'s share (of ``lanes``) of f_i [N] and H_i [N/m] of particle p at ``x`` [m] (module docstring):
+    the inertia and springs (``inertia_spring_force_hessian``), then its share of the contacts
+    (``contact_force_hessian``). Lane 0 of 1 is the whole sum, in the order of the CSR row and the contact lists."""
+    f, H = inertia_spring_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs)
     fc, Hc = contact_force_hessian(p, x, lane, lanes, q, q0, slot, tri, edges, capacity, vt_list, vt_count,
                                    tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count,
                                    near, near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
@@ -207,7 +221,80 @@ def may_touch(p: int, x: wp.vec3, slot: wp.array(dtype=int), near_end: wp.array(
     return False
 
 
-def solve_colour_kernel(tiled: bool, max_registers: int | None = None, check: bool = False):
+@wp.func
+def newton_update(p: int, x: wp.vec3, f: wp.vec3, H: wp.mat33, reference: wp.array(dtype=wp.vec3),
+                  bound: wp.array(dtype=float), force: wp.array(dtype=wp.vec3), step: wp.array(dtype=wp.vec3),
+                  q_out: wp.array(dtype=wp.vec3)):
+    """Particle p's Newton step H dx = f from ``x`` [m], clipped to its bound, into ``q_out``; with ``step`` not
+    empty also f [N] into ``force`` and dx (before its clip) [m] into ``step`` (for ``check_colour``)."""
+    dx = wp.inverse(H) * f
+    q_out[p] = clip_to_bound(x + dx, reference[p], bound[p])
+    if step.shape[0] > 0:
+        force[p] = f
+        step[p] = dx
+
+
+@wp.kernel
+def solve_free(
+    colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
+    q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
+    spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry), reference: wp.array(dtype=wp.vec3),
+    bound: wp.array(dtype=float), listed: wp.array(dtype=int), q_out: wp.array(dtype=wp.vec3),
+):
+    """One Newton step of particle ``colour_particles[start + k]`` (k < ``count``) on its inertia and springs,
+    clipped to its bound, into ``q_out``, unless ``listed[p]`` (a particle that can touch a contact before the next
+    search, ``list_contact_particles``: ``solve_colour`` over the colour's list solves it; for every other particle
+    the contacts add nothing, so this is G's whole step there). A thread a particle, its sums in the order of its CSR row (the bits of
+    ``vertex_force_hessian`` with lane 0 of 1). Thread k < ``previous_count`` also copies particle
+    ``colour_particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``. Launched over
+    max(count, previous_count) threads."""
+    k = wp.tid()
+    if k < previous_count:
+        o = colour_particles[previous_start + k]
+        q_out[o] = q[o]
+    if k >= count:
+        return
+    p = colour_particles[start + k]
+    if listed[p] != 0:
+        return
+    x = q[p]
+    if inv_mass[p] == 0.0:
+        q_out[p] = x
+        return
+    f, H = inertia_spring_force_hessian(p, x, 0, 1, q, q0, y, mass, inv_h, spring_offsets, springs)
+    dx = wp.inverse(H) * f
+    q_out[p] = clip_to_bound(x + dx, reference[p], bound[p])
+
+
+@wp.kernel
+def list_contact_particles(
+    colour: wp.array(dtype=int), colour_offsets: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
+    reference: wp.array(dtype=wp.vec3), bound: wp.array(dtype=float), slot: wp.array(dtype=int),
+    near_end: wp.array(dtype=int), planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
+    listed_out: wp.array(dtype=int), colour_list_out: wp.array(dtype=int), listed_count_io: wp.array(dtype=int),
+):
+    """After a search (run or skipped): whether particle p can touch a contact before the next one, into
+    ``listed_out`` (1 or 0), and if so p into its colour's part of ``colour_list_out`` (colour c's at
+    ``colour_offsets[c]``, ``listed_count_io[c]`` of them; zeroed before). Every position until the next search lies
+    within ``bound`` [m] of ``reference`` (the step bound), so ``may_touch`` with the reach widened by one bound, at
+    the reference, holds wherever it holds at any of them: a particle left out has no contact force until the next
+    search and ``solve_free`` solves it. The order within a colour's list follows the integer atomics (it varies run
+    to run), but nothing depends on it: a colour's particles read the buffer no thread of the launch writes and each
+    writes only its own entries, so a list in any order gives the same bits."""
+    p = wp.tid()
+    touching = int(0)
+    if inv_mass[p] != 0.0:
+        b = bound[p]
+        if may_touch(p, reference[p], slot, near_end, planes, spheres, radius + b, b):
+            touching = 1
+    listed_out[p] = touching
+    if touching != 0:
+        c = colour[p]
+        colour_list_out[colour_offsets[c] + wp.atomic_add(listed_count_io, c, 1)] = p
+
+
+def colour_kernel(tiled: bool, max_registers: int | None = None, check: bool = False):
     """``solve_colour`` (``tiled`` False: a thread a particle) or ``solve_colour_lanes`` (True: a block of lanes a
     particle, ``wp.launch_tiled``), or with ``check`` their ``check_colour`` and ``check_colour_lanes``: one
     signature and one kernel body, the variant chosen at code generation (``wp.static``), each in a module of its own
@@ -218,8 +305,8 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None, check: bo
 
     @wp.kernel(name=name, module="unique", enable_backward=False, **options)
     def kernel(
-        colour_particles: wp.array(dtype=int), start: int, count: int, previous_start: int, previous_count: int,
-        q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
+        particles: wp.array(dtype=int), start: int, count: int, listed_count: wp.array(dtype=int), colour_index: int,
+        stride: int, previous_start: int, previous_count: int, q: wp.array(dtype=wp.vec3), q0: wp.array(dtype=wp.vec3),
         y: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), inv_mass: wp.array(dtype=float), inv_h: float,
         spring_offsets: wp.array(dtype=int), springs: wp.array(dtype=SpringEntry),
         slot: wp.array(dtype=int), tri: wp.array(dtype=int), edges: wp.array(dtype=int), capacity: int,
@@ -242,79 +329,75 @@ def solve_colour_kernel(tiled: bool, max_registers: int | None = None, check: bo
             lanes = wp.block_dim()
         else:
             k = wp.tid()
-        if wp.static(check):  # the colour's steps, solved from q into q_out, checked at their ends
-            if k >= count:
-                return
-            p = colour_particles[start + k]
-            x = q[p]
-            if inv_mass[p] == 0.0 or not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
-                return  # nothing the step can enter: taken whole
-            x_try = q_out[p]
-            scale = float(1.0)
-            attempt = int(0)
-            while attempt <= backtracks:  # the same decisions in every lane (f is the block's sum)
-                f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs,
-                                            slot, tri, edges, capacity, vt_list, vt_count, tri_offsets, tris,
-                                            tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near,
-                                            near_end, near_capacity, vt_distance, tv_distance, ee_distance, planes,
-                                            spheres, radius, contact_stiffness, friction, friction_eps, reference,
-                                            colour)
-                if wp.static(tiled):
-                    f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
-                if accepts(force[p], f, x_try - x):
-                    attempt = backtracks + 2
-                else:
-                    scale = 0.5 * scale
-                    x_try = clip_to_bound(x + scale * step[p], reference[p], bound[p])
-                    attempt += 1
-            if attempt == backtracks + 1:  # no step passed: the particle stays
-                x_try = x
-            if lane == 0:
-                q_out[p] = x_try
-            return
         if lane == 0 and k < previous_count:
-            o = colour_particles[previous_start + k]
+            o = particles[previous_start + k]
             q_out[o] = q[o]
-        if k >= count:
-            return  # the whole block: k is the block's
-        p = colour_particles[start + k]
-        x = q[p]
-        if inv_mass[p] == 0.0:
-            if lane == 0:
-                q_out[p] = x
-            return
-        f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h,
-                                    spring_offsets, springs, slot, tri, edges, capacity, vt_list, vt_count,
-                                    tri_offsets, tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
-                                    near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres, radius,
-                                    contact_stiffness, friction, friction_eps, reference, colour)
-        if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
-            f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
-            H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
-        if lane == 0:
-            dx = wp.inverse(H) * f
-            q_out[p] = clip_to_bound(x + dx, reference[p], bound[p])
-            if step.shape[0] > 0:  # for the check (check_colour)
-                force[p] = f
-                step[p] = dx
+        n = count
+        if listed_count.shape[0] > 0:
+            n = listed_count[colour_index]
+        for j in range(k, n, stride):  # the colour's (listed) particles k, k + stride, ...
+            p = particles[start + j]
+            x = q[p]
+            if wp.static(check):  # the colour's steps, solved from q into q_out, checked at their ends
+                if inv_mass[p] == 0.0 or not may_touch(p, x, slot, near_end, planes, spheres, radius, bound[p]):
+                    continue  # nothing the step can enter: taken whole
+                x_try = q_out[p]
+                scale = float(1.0)
+                attempt = int(0)
+                while attempt <= backtracks:  # the same decisions in every lane (f is the block's sum)
+                    f, H = vertex_force_hessian(p, x_try, lane, lanes, q, q0, y, mass, inv_h, spring_offsets,
+                                                springs, slot, tri, edges, capacity, vt_list, vt_count, tri_offsets,
+                                                tris, tv_list, tv_count, edge_offsets, edge_list, ee_list, ee_count,
+                                                near, near_end, near_capacity, vt_distance, tv_distance, ee_distance,
+                                                planes, spheres, radius, contact_stiffness, friction, friction_eps,
+                                                reference, colour)
+                    if wp.static(tiled):
+                        f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+                    if accepts(force[p], f, x_try - x):
+                        attempt = backtracks + 2
+                    else:
+                        scale = 0.5 * scale
+                        x_try = clip_to_bound(x + scale * step[p], reference[p], bound[p])
+                        attempt += 1
+                if attempt == backtracks + 1:  # no step passed: the particle stays
+                    x_try = x
+                if lane == 0:
+                    q_out[p] = x_try
+            else:
+                if inv_mass[p] == 0.0:
+                    if lane == 0:
+                        q_out[p] = x
+                    continue
+                f, H = vertex_force_hessian(p, x, lane, lanes, q, q0, y, mass, inv_h, spring_offsets, springs, slot,
+                                            tri, edges, capacity, vt_list, vt_count, tri_offsets, tris, tv_list,
+                                            tv_count, edge_offsets, edge_list, ee_list, ee_count, near, near_end,
+                                            near_capacity, vt_distance, tv_distance, ee_distance, planes, spheres,
+                                            radius, contact_stiffness, friction, friction_eps, reference, colour)
+                if wp.static(tiled):  # the lanes' shares summed in a fixed tree (tile_sum: no atomics), to every lane
+                    f = wp.tile_sum(wp.tile(f, preserve_type=True))[0]
+                    H = wp.tile_sum(wp.tile(H, preserve_type=True))[0]
+                if lane == 0:
+                    newton_update(p, x, f, H, reference, bound, force, step, q_out)
 
     return kernel
 
 
-solve_colour = solve_colour_kernel(False)
-solve_colour.__doc__ = """One Newton step of particle ``colour_particles[start + k]`` (k < ``count``) on G (module
-docstring), clipped to its bound, into ``q_out``; forces and Hessians summed by one thread in the fixed order of
-its CSR row and contact lists (``vertex_force_hessian``, lane 0 of 1). Thread k < ``previous_count`` also copies
-particle ``colour_particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``.
-With ``step`` not empty (``ws.VBD(line_search=)``), also the force at the start [N] into ``force`` and the step
-before its clip [m] into ``step`` (``check_colour``); ``backtracks`` unused. Launched over max(count,
-previous_count) threads."""
+solve_colour = colour_kernel(False)
+solve_colour.__doc__ = """One Newton step on G (module docstring) of particle ``particles[start + j]``, clipped to
+its bound, into ``q_out``, for j < ``count`` (a colour's particles) or, with ``listed_count`` not empty, j <
+``listed_count[colour_index]`` (the colour's particles that can touch a contact, ``list_contact_particles``; the
+others are ``solve_free``'s); thread k takes j = k, k + ``stride``, ... (``stride``: the launch's threads).
+Forces and Hessians are summed by one thread in the fixed order of the CSR row and contact lists
+(``vertex_force_hessian``, lane 0 of 1). Thread k < ``previous_count`` also copies particle
+``particles[previous_start + k]`` (the previous colour's, solved into ``q``) into ``q_out``. With ``step`` not empty
+(``ws.VBD(line_search=)``), also the force at the start [N] into ``force`` and the step before its clip [m] into
+``step`` (``check_colour``); ``backtracks`` unused."""
 
-solve_colour_lanes = solve_colour_kernel(True)
-solve_colour_lanes.__doc__ = """``solve_colour`` with particle k's sums spread over the B lanes of block k
-(``wp.launch_tiled(dim=max(count, previous_count), block_dim=B)``): lane l sums, in order, the inertia (l = 0) and
-the springs of the CSR row and entries of the contact lists at positions l, l + B, l + 2B, ...
-(``vertex_force_hessian``); the B partial f and H are then added by ``wp.tile_sum``, whose order is fixed for a
+solve_colour_lanes = colour_kernel(True)
+solve_colour_lanes.__doc__ = """``solve_colour`` with each particle's sums spread over the B lanes of a block
+(``wp.launch_tiled(dim=G, block_dim=B)``, block k taking j = k, k + G, ..., ``stride`` = G): lane l sums, in order,
+the inertia (l = 0) and the springs of the CSR row and entries of the contact lists at positions l, l + B, l + 2B,
+... (``vertex_force_hessian``); the B partial f and H are then added by ``wp.tile_sum``, whose order is fixed for a
 given B: on CUDA a warp's shuffle-down tree (lane l += lane l + 16, then + 8, 4, 2, 1; at B = 32 that is all), for
 B > 32 then the warps' sums in warp order; on the CPU (``wp.config.enable_cpu_blocks``) lane 0, 1, ..., B - 1 in
 turn. No float atomics: two runs give the same bits. Lane 0 takes the Newton step and the clip and copies the
@@ -323,23 +406,24 @@ previous colour's particle k."""
 COMPACT_REGISTERS = 64
 """Registers a thread of ``solve_colour_lanes_compact`` at most (on CUDA): the compiler gives the colour solve 161 of
 them (sm_90), so 12 warps a multiprocessor at most; at 64, 32 warps, the rest spilled to local memory (416 bytes a
-thread, in L1): one colour sweep of 1,000 tori 9.67 -> 6.02 ms on an H200 (benchmarks/RESULTS.md)."""
+thread, in L1): one colour sweep of 1,000 tori 9.67 -> 6.02 ms on an H200 (benchmarks/RESULTS.md, every particle
+then solved in lanes)."""
 
-solve_colour_lanes_compact = solve_colour_kernel(True, COMPACT_REGISTERS)
+solve_colour_lanes_compact = colour_kernel(True, COMPACT_REGISTERS)
 solve_colour_lanes_compact.__doc__ = """``solve_colour_lanes`` compiled for at most ``COMPACT_REGISTERS`` registers a
 thread on CUDA (the same code: the same sums in the same order; more blocks resident on a multiprocessor, some values
 spilled to local memory). The CPU ignores the limit."""
 
 
-check_colour = solve_colour_kernel(False, check=True)
-check_colour.__doc__ = """After ``solve_colour`` (with ``step``) of a colour: particle ``colour_particles[start + k]``'s
-step, from ``q`` [m] (the buffer the solve read) to its end in ``q_out``, is kept when the force there does not
-push back along it harder than ``force`` (the force at its start) pushed (``accepts``), else halved (``step``, the
-step before its clip, clipped again) up to ``backtracks`` times until one passes, else the particle stays at ``q``;
-the result into ``q_out``. Only particles that can touch a contact (``may_touch``): elsewhere G is the inertia and
-springs alone and the step is kept. The neighbours are read from ``q``, as the solve read them."""
+check_colour = colour_kernel(False, check=True)
+check_colour.__doc__ = """After ``solve_colour`` (with ``step``) of a colour, over the same particles: each step, from
+``q`` [m] (the buffer the solve read) to its end in ``q_out``, is kept when the force there does not push back along
+it harder than ``force`` (the force at its start) pushed (``accepts``), else halved (``step``, the step before its
+clip, clipped again) up to ``backtracks`` times until one passes, else the particle stays at ``q``; the result into
+``q_out``. Only particles that can touch a contact from where they are (``may_touch``): elsewhere G is the inertia
+and springs alone and the step is kept. The neighbours are read from ``q``, as the solve read them."""
 
-check_colour_lanes = solve_colour_kernel(True, check=True)
+check_colour_lanes = colour_kernel(True, check=True)
 check_colour_lanes.__doc__ = """``check_colour`` with each force spread over a block of lanes as in
 ``solve_colour_lanes`` (the same sums: the force at a step's end as the solve would sum it there)."""
 

@@ -19,6 +19,7 @@ from warpsim.bodies import meshtools
 from warpsim.core.colouring import colour_groups, greedy_colouring, tile_colouring
 from warpsim.core.energy import MARGIN
 from warpsim.kernels import vbd as vbd_kernels
+from warpsim.kernels.vbd import may_touch
 from warpsim.scenes import get_scene
 
 DEVICE = "cpu"
@@ -257,7 +258,7 @@ def test_a_step_allocates_nothing(monkeypatch):
 
 def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(monkeypatch):
     """``VBD(lanes=B)``: each particle's springs and contact entries dealt over the B lanes of a block, their
-    partial sums added by a fixed-order tile reduction (``kernels.vbd.solve_colour_lanes``, the CUDA default; on
+    partial sums added by a fixed-order tile reduction (``kernels.vbd.solve_listed_lanes``, the CUDA default; on
     the CPU its lanes run as Warp's fibers, ``wp.config.enable_cpu_blocks``). Two tori dropped on each other with
     self contact: within rounding of a thread a particle (4 lanes over the kept entries; 3 over the whole lists,
     ``near_capacity`` 1), two runs the same bits (the second with the colour solve compiled for the compiler's choice
@@ -269,9 +270,11 @@ def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(m
         sim.integrator.lanes, sim.integrator.max_registers = lanes, registers
         for _ in range(12):
             sim.frame(1.0 / 60.0, 4)
-        assert sim.integrator._sweep[0].block_dim == lanes
+        solves = (vbd_kernels.solve_colour, vbd_kernels.solve_colour_lanes, vbd_kernels.solve_colour_lanes_compact)
+        solve = next(launch for launch in sim.integrator._sweep if launch.kernel in solves)  # (after solve_free)
+        assert solve.block_dim == lanes
         if lanes > 1:
-            compact = sim.integrator._sweep[0].kernel is vbd_kernels.solve_colour_lanes_compact
+            compact = solve.kernel is vbd_kernels.solve_colour_lanes_compact
             assert compact == (registers is not None)
         runs.append((sim.state.positions.numpy(), sim.state.velocities.numpy()))
     (x1, v1), (x4, v4), (x4b, v4b), (x3, v3) = runs
@@ -279,7 +282,7 @@ def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(m
     assert not np.array_equal(x4, x1)  # the lanes ran: the sums' order differs
     for x, v in ((x4, v4), (x3, v3)):
         assert np.abs(x - x1).max() < 1.0e-5  # [m], tori of 0.1 m
-        assert np.abs(v - v1).max() < 1.0e-4  # [m/s]
+        assert np.abs(v - v1).max() < 5.0e-4  # [m/s]: a velocity is the step's displacement / h, 1 um is 2.4e-4
     allocator = wp.get_device(DEVICE).default_allocator
     sizes = []
     allocate = allocator.allocate
@@ -455,6 +458,8 @@ def test_bad_input_names_the_item_and_a_fix():
         ws.VBD(max_registers=48)
     with pytest.raises(ValueError, match="VBD line_search"):
         ws.VBD(line_search=-1)
+    with pytest.raises(ValueError, match="VBD split is 'yes'; give True"):
+        ws.VBD(split="yes")
     cls = get_scene("donuts")
     with pytest.raises(ValueError, match=r"vbd_line_search=-1: give an integer >= 0 \(0: every Newton step taken"):
         cls(cls.resolve_params({**SMALL, "count": 2, "integrator": "vbd", "vbd_line_search": -1}), device=DEVICE)
@@ -830,15 +835,17 @@ def test_the_staged_lists_are_the_whole_queries_bit_for_bit(capacity):
 
 
 @pytest.mark.parametrize("line_search", [0, 4])
-def test_each_colour_commits_the_one_before_it_with_the_same_bits(line_search):
-    """A sweep is one launch a colour (each copies the colour before it across the two position buffers; with
-    ``line_search`` each followed by its check, ``check_colour``) and one commit: the same bits as solving (and
-    checking) each colour into the second buffer and copying it back before the next colour, and both buffers
-    hold the same positions after it."""
+@pytest.mark.parametrize("split", [False, True])
+def test_each_colour_commits_the_one_before_it_with_the_same_bits(line_search, split):
+    """A sweep is one colour solve a colour (``solve_colour``; ``split``: ``solve_free`` over the particles no contact
+    can reach, then ``solve_colour`` over the colour's list of the others; the first launch copies the colour before
+    it across the two position buffers; with ``line_search`` then the check, ``check_colour``) and one commit: the same
+    bits as solving (and checking) each colour into the second buffer and copying it back before the next colour,
+    and both buffers hold the same positions after it."""
     from warpsim.kernels import vbd as K
     sim, _, _ = two_tori(gap=0.004)
     integ, q = sim.integrator, sim.state.positions
-    integ.line_search = line_search
+    integ.line_search, integ.split = line_search, split
     for _ in range(30):
         integ.step(sim.system, q, sim.state.velocities, sim._time, 1.0 / 240.0)
     start = (q.numpy() + np.random.default_rng(5).normal(0.0, 2.0e-4, q.shape + (3,))).astype(np.float32)
@@ -850,22 +857,62 @@ def test_each_colour_commits_the_one_before_it_with_the_same_bits(line_search):
     assert np.array_equal(folded, integ.q_new.numpy()) and not np.array_equal(folded, start)
     q.assign(start)
     integ.q_new.assign(start)
-    offsets, per_colour = integ.colour_offsets, 2 if line_search else 1
+    offsets, per_colour = integ.colour_offsets, 1 + int(split) + int(line_search > 0)
     assert len(integ._sweep) == per_colour * integ.colour_count + 1
+    if split:  # the pressed tori: some particles listed, most free
+        assert 0 < integ._listed_count.numpy().sum() < len(q) / 2
     for c in range(integ.colour_count):
-        launch, count = integ._sweep[per_colour * c], offsets[c + 1] - offsets[c]
-        launch.set_param_by_name("previous_count", 0)
-        launch.set_param_by_name("q", q)
-        launch.set_param_by_name("q_out", integ.q_new)
-        launch.set_dim(count)
-        launch.launch()
-        if line_search:
-            check = integ._sweep[per_colour * c + 1]
-            check.set_param_by_name("q", q)
-            check.set_param_by_name("q_out", integ.q_new)
-            check.launch()
+        first, count = integ._sweep[per_colour * c], offsets[c + 1] - offsets[c]
+        first.set_param_by_name("previous_count", 0)
+        first.set_dim(count)
+        for launch in integ._sweep[per_colour * c: per_colour * (c + 1)]:  # (free,) solve (and its check)
+            launch.set_param_by_name("q", q)
+            launch.set_param_by_name("q_out", integ.q_new)
+            launch.launch()
         wp.launch(K.commit_colour, count, inputs=[integ.colour_particles, offsets[c], integ.q_new, q], device=DEVICE)
     assert np.array_equal(q.numpy(), folded)
+
+
+def test_particles_no_contact_can_reach_solved_apart_give_the_same_bits(monkeypatch):
+    """``VBD(split=True)``: after each search the particles that can touch a contact before the next one are listed by
+    colour (``kernels.vbd.list_contact_particles``: a kept pair, or a plane within the thickness + 3 bounds of the
+    reference) and solved (and checked) by the colour solve; the others by ``solve_free``, a thread each over their
+    inertia and springs alone. Two tori dropped on each other and on the floor: the same bits as every particle by the
+    colour solve (so no particle left out had a contact force), only part of the particles listed, the listed set a
+    superset of those ``may_touch`` reaches at each step's end, and with 4 lanes (the listed ones' sums in lanes, the
+    free ones' a thread each) within rounding of the unsplit lanes and the same bits run to run."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    runs, listed = {}, []
+    for lanes, split in ((1, False), (1, True), (4, False), (4, True), (4, True)):
+        sim, _, _ = two_tori(gap=0.004)
+        integ = sim.integrator
+        integ.lanes, integ.split = lanes, split
+        for _ in range(12):
+            sim.frame(1.0 / 60.0, 4)
+            if split and lanes == 1:
+                flags = integ._listed.numpy()
+                listed.append(int(flags.sum()))
+                reach = wp.zeros(len(flags), dtype=int, device=DEVICE)
+                cc = integ.contact
+                wp.launch(touches_kernel, len(flags), inputs=[sim.state.positions, cc._slot, cc._near_end, cc._planes,
+                                                               cc._spheres, cc.thickness, integ._bound, reach],
+                          device=DEVICE)
+                assert not (reach.numpy().astype(bool) & ~flags.astype(bool)).any()
+        runs.setdefault((lanes, split), []).append(sim.state.positions.numpy())
+    assert np.array_equal(runs[(1, False)][0], runs[(1, True)][0])
+    assert 0 < min(listed) and max(listed) < len(flags) / 2, listed
+    assert np.array_equal(runs[(4, True)][0], runs[(4, True)][1])
+    assert np.abs(runs[(4, True)][0] - runs[(4, False)][0]).max() < 1.0e-5  # [m], tori of 0.1 m
+
+
+@wp.kernel
+def touches_kernel(q: wp.array(dtype=wp.vec3), slot: wp.array(dtype=int), near_end: wp.array(dtype=int),
+                   planes: wp.array(dtype=wp.vec4), spheres: wp.array(dtype=wp.vec4), radius: float,
+                   bound: wp.array(dtype=float), out: wp.array(dtype=int)):
+    """``kernels.vbd.may_touch`` of each particle where it is (1 or 0)."""
+    p = wp.tid()
+    if may_touch(p, q[p], slot, near_end, planes, spheres, radius, bound[p]):
+        out[p] = 1
 
 
 def test_searches_within_a_step_run_when_a_particle_nears_its_bound():

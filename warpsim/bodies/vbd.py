@@ -22,7 +22,9 @@ overshoot where G is not quadratic: into a contact, across a spring it compresse
 pressed by contacts 50x stiffer than its springs cycled instead of converging (200 sweeps, vertices still moving 2-3
 mm a sweep) and the resting heap jittered at 0.7 m/s (benchmarks/RESULTS.md); checked, it comes to rest. The check
 uses forces only, so the springs' damping (no potential) is held to it too, and a converged step is still backward
-Euler's.
+Euler's. Most particles of a large heap have no contact within reach of their bound until the next search; with
+``split`` the sweeps solve those a thread each over their springs alone (``kernels.vbd.solve_free``) and the colour
+solve, with its contact lists, lanes and check, runs over the rest only.
 
 No primitive passes through another (the step bound). At a search (the step's start, then every
 ``detect_every`` iterations) at positions x^d, let for each particle i::
@@ -88,6 +90,12 @@ from ..kernels import fast_mass_spring as FK
 from ..kernels import vbd as K
 from .vbd_contact import VBDContact
 
+LISTED_BLOCKS_PER_SM = 32
+"""Blocks a multiprocessor of a listed colour solve in lanes on CUDA (``kernels.vbd.solve_listed_lanes``): a launch of
+at most this many blocks a multiprocessor, each taking every G-th listed particle, instead of a block a particle (32
+blocks are what a multiprocessor of sm_90 holds at once)."""
+
+
 def chebyshev_weights(rho: float, iterations: int) -> list:
     """Chebyshev weights omega_k of ``iterations`` iterations for spectral radius estimate ``rho``
     (Wang 2015, as VBD): 1, 2 / (2 - rho^2), then 4 / (4 - rho^2 omega_{k-1}); all 1 when rho = 0."""
@@ -138,6 +146,16 @@ class VBD(Integrator):
             stays. 0: every step taken whole (plain VBD, the colour solve without the check). A sweep evaluates the
             forces of each particle that can touch a contact once more, and once more a halving; each colour's solve
             is followed by a launch of ``kernels.vbd.check_colour``.
+        split: whether each sweep solves apart the particles that no contact can reach before the next search: after
+            each search (run or skipped) the others are listed by colour (``kernels.vbd.list_contact_particles``: a
+            kept pair, or a plane or sphere within the thickness + 3 bounds of the search's positions) and solved
+            and checked by the colour solve (in lanes on CUDA, every G-th of the colour's list a block), the rest by
+            ``kernels.vbd.solve_free``, a thread each over its inertia and springs alone (for them the contacts add
+            nothing: the same Newton step; on the CPU, a thread a particle either way, the same bits). True, False
+            (every particle by the colour solve) or "auto" (the default: on the CPU, and on CUDA when the largest
+            colour holds more particles than 32 x the device's multiprocessors, as ``max_registers``; on an H200 a
+            split sweep of 1,000 falling tori, 2.6 % of the particles listed, took 4.07 against 9.95 ms, one of 100
+            tori at rest 4.30 against 4.63 ms, one of 12 tori 1.54 against 0.99 ms: benchmarks/RESULTS.md).
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -152,7 +170,7 @@ class VBD(Integrator):
     def __init__(self, iterations: int = 10, *, contact: VBDContact | None = None, body_size: int | None = None,
                  chebyshev_rho: float = 0.0, detect_every: int = 5, adaptive_guess: bool = True,
                  renew_fraction: float | None = 0.5, lanes: int | None = None,
-                 max_registers: int | str | None = "auto", line_search: int = 4):
+                 max_registers: int | str | None = "auto", line_search: int = 4, split: bool | str = "auto"):
         super().__init__()
         self.iterations = checks.integer(iterations, "VBD iterations", lo=1, hi=100_000, fix="e.g. 10")
         if contact is not None and not isinstance(contact, VBDContact):
@@ -176,6 +194,10 @@ class VBD(Integrator):
         self.max_registers = max_registers
         self.line_search = checks.integer(line_search, "VBD line_search", lo=0, hi=64,
                                           fix="halvings of a Newton step tried, e.g. 4 (0: every step taken whole)")
+        if split not in (True, False, "auto"):
+            raise ValueError(f"VBD split is {split!r}; give True (the particles that can touch a contact solved apart "
+                             "from the rest), False (every particle by one colour solve) or 'auto'")
+        self.split = split
         self._omegas = chebyshev_weights(self.chebyshev_rho, self.iterations)
 
     @property
@@ -191,6 +213,16 @@ class VBD(Integrator):
         d = wp.get_device(device)
         largest = max((b - a for a, b in zip(self.colour_offsets, self.colour_offsets[1:])), default=0)
         return bool(d.is_cuda and largest > 32 * d.sm_count)
+
+    def split_on(self, device) -> bool:
+        """Whether the sweeps on ``device`` solve the particles that can touch a contact apart from the rest (``split``;
+        "auto": on the CPU, and on CUDA when the prepared model's largest colour holds more particles than 32 x the
+        device's multiprocessors, as ``compact_on``)."""
+        if self.split != "auto":
+            return bool(self.split)
+        d = wp.get_device(device)
+        largest = max((b - a for a, b in zip(self.colour_offsets, self.colour_offsets[1:])), default=0)
+        return bool(not d.is_cuda or largest > 32 * d.sm_count)
 
     def lanes_on(self, device) -> int:
         """Threads a particle in a colour solve on ``device`` (``lanes``; None: 32 on CUDA, 1 on the CPU)."""
@@ -242,6 +274,14 @@ class VBD(Integrator):
         self.colour_offsets = [int(o) for o in offsets]
         """Start of each colour in ``colour_particles`` (host list, C + 1)."""
         self.colour_particles = wp.array(particles, dtype=int, device=d)
+        self._colour_starts = wp.array(self.colour_offsets, dtype=int, device=d)
+        self._listed = wp.zeros(n, dtype=int, device=d)
+        """1 where a particle can touch a contact before the next search (``kernels.vbd.list_contact_particles``)."""
+        self._colour_list = wp.zeros(n, dtype=int, device=d)
+        """Those particles, colour c's from ``colour_offsets[c]`` (N,)."""
+        self._listed_count = wp.zeros(len(self.colour_offsets) - 1, dtype=int, device=d)
+        """How many of each colour are listed (C,)."""
+        self._empty_ints = wp.zeros(0, dtype=int, device=d)
         self._other_forces = [f for f in system.forces if not isinstance(f, Springs)]
         self.f_ext = wp.zeros(n, dtype=wp.vec3, device=d)
         self.q0 = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -316,32 +356,51 @@ class VBD(Integrator):
             self._force = wp.zeros(n, dtype=wp.vec3, device=d)
             self._step = wp.zeros(n, dtype=wp.vec3, device=d)
         outputs = [self._force, self._step] if checked else [self._empty, self._empty]
+        split = self.contact is not None and self.split_on(d)
         if lanes > 1:  # a block of lanes a particle (kernels.vbd.solve_colour_lanes)
             kernel = K.solve_colour_lanes_compact if self.compact_on(d) else K.solve_colour_lanes
-
-            def solve(kernel, dim, inputs):
-                return wp.launch_tiled(kernel, dim=[dim], inputs=inputs, device=d, block_dim=lanes,
-                                       record_cmd=True)
-
             check_kernel = K.check_colour_lanes
+            device = wp.get_device(d)
+            blocks = LISTED_BLOCKS_PER_SM * device.sm_count if device.is_cuda and split else None
+
+            def solve(kernel, count, inputs):  # G blocks (split: at most LISTED_BLOCKS_PER_SM a multiprocessor)
+                grid = count if blocks is None else min(count, blocks)
+                inputs[5] = grid  # the stride: block k takes particles k, k + G, ...
+                return wp.launch_tiled(kernel, dim=[grid], inputs=inputs, device=d, block_dim=lanes, record_cmd=True)
         else:
             kernel, check_kernel = K.solve_colour, K.check_colour
 
-            def solve(kernel, dim, inputs):
-                return record(kernel, dim, inputs)
+            def solve(kernel, count, inputs):
+                inputs[5] = count
+                return record(kernel, count, inputs)
         self._sweep = []
+        listed_count = self._listed_count if split else self._empty_ints
+        particles = self._colour_list if split else self.colour_particles
         for c in range(self.colour_count):
             start, count = offsets[c], offsets[c + 1] - offsets[c]
             before, previous = (offsets[c - 1], offsets[c] - offsets[c - 1]) if c > 0 else (0, 0)
-            shared = [self.q0, self.y, m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs, *self._contact_inputs,
-                      self._reference, self._bound, self.particle_colour]
+            read, write = buffers[c % 2], buffers[(c + 1) % 2]
+            if split:  # the free particles a thread each (springs only; it copies the previous colour), then the list
+                self._sweep.append(record(K.solve_free, max(count, previous), [
+                    self.colour_particles, start, count, before, previous, read, self.q0, self.y, m.particle_mass,
+                    m.particle_inv_mass, 1.0 / h, *springs, self._reference, self._bound, self._listed, write]))
+                before, previous = 0, 0
+            shared = [read, self.q0, self.y, m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs,
+                      *self._contact_inputs, self._reference, self._bound, self.particle_colour]
             self._sweep.append(solve(kernel, max(count, previous), [
-                self.colour_particles, start, count, before, previous, buffers[c % 2], *shared, *outputs,
-                self.line_search, buffers[(c + 1) % 2]]))
+                particles, start, count, listed_count, c, 0, before, previous, *shared, *outputs, self.line_search,
+                write]))
             if checked:  # the colour's steps checked at their ends (reading the buffer the solve read)
                 self._sweep.append(solve(check_kernel, count, [
-                    self.colour_particles, start, count, 0, 0, buffers[c % 2], *shared, self._force, self._step,
-                    self.line_search, buffers[(c + 1) % 2]]))
+                    particles, start, count, listed_count, c, 0, 0, 0, *shared, self._force, self._step,
+                    self.line_search, write]))
+        self._mark = None
+        if split and self.contact is not None:
+            cc = self.contact
+            self._mark = record(K.list_contact_particles, n, [
+                self.particle_colour, self._colour_starts, m.particle_inv_mass, self._reference, self._bound,
+                cc._slot, cc._near_end, cc._planes, cc._spheres, cc.thickness, self._listed, self._colour_list,
+                self._listed_count])
         last = self.colour_count - 1
         if last >= 0:
             self._sweep.append(record(K.commit_colour, offsets[last + 1] - offsets[last], [
@@ -352,13 +411,21 @@ class VBD(Integrator):
         self._finish = record(FK.finish_step, n, [q, self.q0, 1.0 / h, qd])
         self._recorded_key = self._key(q, qd, h)
 
+    def _list_contact_particles(self) -> None:
+        """After a search (run or skipped), when the sweeps are split (``split``): the particles that can touch a
+        contact before the next one, by colour (``kernels.vbd.list_contact_particles``; the rest are solved by
+        ``solve_free``)."""
+        if self._mark is not None:
+            self._listed_count.zero_()
+            self._mark.launch()
+
     def _key(self, q, qd, h: float) -> tuple:
-        """What the recorded launches depend on: the arrays, the step, ``lanes``, ``max_registers``, ``line_search``
-        and the contact's coefficients (a changed ``lanes``, ``max_registers``, ``line_search``, ``contact.friction``,
-        ``stiffness`` or ``thickness`` is recorded again at the next step)."""
+        """What the recorded launches depend on: the arrays, the step, ``lanes``, ``max_registers``, ``line_search``,
+        ``split`` and the contact's coefficients (a changed ``lanes``, ``max_registers``, ``line_search``, ``split``,
+        ``contact.friction``, ``stiffness`` or ``thickness`` is recorded again at the next step)."""
         c = self.contact
         coefficients = (c.thickness, c.stiffness, c.friction, c.friction_eps) if c is not None else ()
-        return (q.ptr, qd.ptr, h, self.lanes, self.max_registers, self.line_search) + coefficients
+        return (q.ptr, qd.ptr, h, self.lanes, self.max_registers, self.line_search, self.split) + coefficients
 
     def step(self, system, q, qd, time, dt, f_out=None) -> None:
         self.prepare(system)
@@ -375,6 +442,7 @@ class VBD(Integrator):
                 self.contact.search(q)
             else:
                 self.contact.search(q, self.deficit, self.renew_fraction)
+            self._list_contact_particles()
         self._predict.launch()
         self._pack.launch()  # the springs as the model holds them now, with q0, in the sweeps' order
         chebyshev = self.chebyshev_rho > 0.0
@@ -387,6 +455,7 @@ class VBD(Integrator):
                     self.contact.search(q)
                 else:  # skipped where every particle is well inside its bound with nothing of its guess cut
                     self.contact.search(q, self.deficit, self.renew_fraction)
+                self._list_contact_particles()
                 self._restore.launch()  # skipped or not: a deficit of zero and positions inside the bound stay
             for launch in self._sweep:  # one Gauss-Seidel sweep: colour by colour, q and q_new alternating
                 launch.launch()
