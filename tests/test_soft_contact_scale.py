@@ -685,7 +685,7 @@ def test_the_heap_profile_counts_the_searchs_kernels_as_contact_and_the_sweeps_a
     named = {f"forward kernel {k.key}_c0c45f87": True for k in (vbd_kernels.query_pairs, vbd_kernels.keep_near_pairs,
                                                                 vbd_kernels.displacement_bounds)}
     named.update({"builtin kernel bvh_refit_kernel": True, "builtin kernel build_hierarchy": True,
-                  "forward kernel solve_listed_lanes_cbf384af": False, "forward kernel predict_2dfe631a": False,
+                  "forward kernel solve_colour_lanes_cbf384af": False, "forward kernel predict_2dfe631a": False,
                   "memcpy DtoD": False})
     got = {name: check_heap.is_contact(SimpleNamespace(name=name)) for name in named}
     assert got == named

@@ -258,7 +258,7 @@ def test_a_step_allocates_nothing(monkeypatch):
 
 def test_lanes_split_each_particles_sums_within_rounding_and_repeat_their_bits(monkeypatch):
     """``VBD(lanes=B)``: each particle's springs and contact entries dealt over the B lanes of a block, their
-    partial sums added by a fixed-order tile reduction (``kernels.vbd.solve_listed_lanes``, the CUDA default; on
+    partial sums added by a fixed-order tile reduction (``kernels.vbd.solve_colour_lanes``, the CUDA default; on
     the CPU its lanes run as Warp's fibers, ``wp.config.enable_cpu_blocks``). Two tori dropped on each other with
     self contact: within rounding of a thread a particle (4 lanes over the kept entries; 3 over the whole lists,
     ``near_capacity`` 1), two runs the same bits (the second with the colour solve compiled for the compiler's choice

@@ -91,7 +91,7 @@ from ..kernels import vbd as K
 from .vbd_contact import VBDContact
 
 LISTED_BLOCKS_PER_SM = 32
-"""Blocks a multiprocessor of a listed colour solve in lanes on CUDA (``kernels.vbd.solve_listed_lanes``): a launch of
+"""Blocks a multiprocessor of a listed colour solve in lanes on CUDA (``kernels.vbd.solve_colour_lanes``): a launch of
 at most this many blocks a multiprocessor, each taking every G-th listed particle, instead of a block a particle (32
 blocks are what a multiprocessor of sm_90 holds at once)."""
 

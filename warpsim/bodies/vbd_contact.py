@@ -409,7 +409,7 @@ class VBDContact:
             launch.launch()
 
     def solve_inputs(self) -> list:
-        """The contact arguments of ``kernels.vbd.solve_listed`` (slot .. friction_eps)."""
+        """The contact arguments of ``kernels.vbd.solve_colour`` (slot .. friction_eps)."""
         return [self._slot, self._tri, self._edges, self.capacity, self._vt, self._vt_count, self._tri_offsets,
                 self._tris, self._tv, self._tv_count, self._edge_offsets, self._edge_list, self._ee, self._ee_count,
                 self._near, self._near_end, self.near_capacity, *self._distances, self._planes, self._spheres,
