@@ -42,12 +42,13 @@ from heap_oracles import edges_through_other_bodies_count
 from timing import activity_name
 from vbd_heap import heap_state
 
-from warpsim.kernels import soft_contact, vbd_contact
+from warpsim.kernels import soft_contact, vbd, vbd_contact
 from warpsim.scenes import get_scene
 
 CONTACT_KERNELS = {k.key for module in (soft_contact, vbd_contact) for k in vars(module).values()
-                   if isinstance(k, wp.Kernel)}
-"""Names of the contact search's kernels (``--profile-every``)."""
+                   if isinstance(k, wp.Kernel)} | {vbd.list_contact_particles.key}
+"""Names of the contact search's kernels (``--profile-every``), and VBD's listing of the particles a search leaves
+within reach of a contact (split sweeps)."""
 
 
 def is_contact(result) -> bool:

@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 import warp as wp
+from timing import activity_name
 
 import warpsim as ws
 from warpsim.cli_common import DefaultsHelpFormatter, device_arg, run_script
@@ -81,6 +82,15 @@ class LaunchRecorder:
         wp.launch = self._launch
 
 
+def gpu_by_kernel(results) -> collections.Counter:
+    """Milliseconds of GPU activity per kernel name of ``wp.timing_end`` results, by the kernel's exact Python name
+    (``timing.activity_name``: the key ``wp.launch`` saw, so ``integrate`` and ``integrate_particles`` stay apart)."""
+    gpu: collections.Counter = collections.Counter()
+    for r in results:
+        gpu[activity_name(r)] += r.elapsed
+    return gpu
+
+
 def profile(run, device, steps):
     """Run ``run()`` once under the launch recorder and Warp's CUDA activity timing; returns rows
     (name, calls, gpu_ms, bytes or None) per step and the wall time per step [s]."""
@@ -95,11 +105,7 @@ def profile(run, device, steps):
     with LaunchRecorder() as rec:
         run()
     results = wp.timing_end() if timed else []
-    gpu = collections.Counter()
-    for r in results:
-        name = (r.name or "?").split("(")[0].strip()
-        key = next((k for k in rec.calls if k in name), name)
-        gpu[key] += r.elapsed
+    gpu = gpu_by_kernel(results)
     rows = []
     for key in sorted(set(rec.calls) | set(gpu), key=lambda k: -gpu.get(k, 0.0)):
         rows.append((key, rec.calls.get(key, 0) / steps, gpu.get(key, 0.0) / steps,

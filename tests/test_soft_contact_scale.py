@@ -686,6 +686,26 @@ def test_the_heap_profile_counts_the_searchs_kernels_as_contact_and_the_sweeps_a
                                                                 vbd_kernels.displacement_bounds)}
     named.update({"builtin kernel bvh_refit_kernel": True, "builtin kernel build_hierarchy": True,
                   "forward kernel solve_colour_lanes_cbf384af": False, "forward kernel predict_2dfe631a": False,
+                  "forward kernel solve_free_0a1b2c3d": False, "forward kernel list_contact_particles_0a1b2c3d": True,
                   "memcpy DtoD": False})
     got = {name: check_heap.is_contact(SimpleNamespace(name=name)) for name in named}
     assert got == named
+
+
+def test_the_roofline_table_keeps_each_kernels_time_under_its_own_name():
+    """``roofline.py``: each timed activity goes to the kernel of its exact name (it once went to the first recorded
+    kernel whose name it contained: ``integrate`` took ``integrate_particles``' time)."""
+    import sys
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import roofline
+    finally:
+        sys.path.pop(0)
+    results = [SimpleNamespace(name="forward kernel integrate_particles_0a1b2c3d", elapsed=2.0),
+               SimpleNamespace(name="forward kernel integrate_0a1b2c3d", elapsed=0.5),
+               SimpleNamespace(name="forward kernel integrate_particles_0a1b2c3d", elapsed=1.0),
+               SimpleNamespace(name="memcpy DtoD", elapsed=0.25)]
+    assert roofline.gpu_by_kernel(results) == {"integrate_particles": 3.0, "integrate": 0.5, "memcpy DtoD": 0.25}
