@@ -154,8 +154,9 @@ class VBD(Integrator):
             nothing: the same Newton step; on the CPU, a thread a particle either way, the same bits). True, False
             (every particle by the colour solve) or "auto" (the default: on the CPU, and on CUDA when the largest
             colour holds more particles than 32 x the device's multiprocessors, as ``max_registers``; on an H200 a
-            split sweep of 1,000 falling tori, 2.6 % of the particles listed, took 4.07 against 9.95 ms, one of 100
-            tori at rest 4.30 against 4.63 ms, one of 12 tori 1.54 against 0.99 ms: benchmarks/RESULTS.md).
+            split sweep of 1,000 falling tori, 2.6 % of the particles listed, took 4.07 ms against 9.95 ms for the
+            tree before split sweeps (in another call), and in one call each one of 100 tori at rest 4.30 against
+            4.63 ms unsplit, one of 12 tori 1.54 against 0.99 ms: benchmarks/RESULTS.md).
 
     Forces other than the model's springs (gravity, drags) are taken at the step's start into y.
     """
@@ -363,16 +364,19 @@ class VBD(Integrator):
             device = wp.get_device(d)
             blocks = LISTED_BLOCKS_PER_SM * device.sm_count if device.is_cuda and split else None
 
-            def solve(kernel, count, inputs):  # G blocks (split: at most LISTED_BLOCKS_PER_SM a multiprocessor)
-                grid = count if blocks is None else min(count, blocks)
-                inputs[5] = grid  # the stride: block k takes particles k, k + G, ...
+            def grid_of(count):  # blocks (split on CUDA: at most LISTED_BLOCKS_PER_SM a multiprocessor)
+                return count if blocks is None else min(count, blocks)
+
+            def solve(kernel, grid, inputs):
                 return wp.launch_tiled(kernel, dim=[grid], inputs=inputs, device=d, block_dim=lanes, record_cmd=True)
         else:
             kernel, check_kernel = K.solve_colour, K.check_colour
 
-            def solve(kernel, count, inputs):
-                inputs[5] = count
-                return record(kernel, count, inputs)
+            def grid_of(count):
+                return count
+
+            def solve(kernel, grid, inputs):
+                return record(kernel, grid, inputs)
         self._sweep = []
         listed_count = self._listed_count if split else self._empty_ints
         particles = self._colour_list if split else self.colour_particles
@@ -387,12 +391,14 @@ class VBD(Integrator):
                 before, previous = 0, 0
             shared = [read, self.q0, self.y, m.particle_mass, m.particle_inv_mass, 1.0 / h, *springs,
                       *self._contact_inputs, self._reference, self._bound, self.particle_colour]
-            self._sweep.append(solve(kernel, max(count, previous), [
-                particles, start, count, listed_count, c, 0, before, previous, *shared, *outputs, self.line_search,
+            grid = grid_of(max(count, previous))  # the stride too: block (thread) k takes particles k, k + grid, ...
+            self._sweep.append(solve(kernel, grid, [
+                particles, start, count, listed_count, c, grid, before, previous, *shared, *outputs, self.line_search,
                 write]))
             if checked:  # the colour's steps checked at their ends (reading the buffer the solve read)
-                self._sweep.append(solve(check_kernel, count, [
-                    particles, start, count, listed_count, c, 0, 0, 0, *shared, self._force, self._step,
+                grid = grid_of(count)
+                self._sweep.append(solve(check_kernel, grid, [
+                    particles, start, count, listed_count, c, grid, 0, 0, *shared, self._force, self._step,
                     self.line_search, write]))
         self._mark = None
         if split and self.contact is not None:
