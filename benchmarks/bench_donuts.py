@@ -31,7 +31,8 @@ the BVH search and then switches (the list is slow while tori fall).
 
 ``--integrator vbd --dt 0.0041666667`` steps the heap by ``ws.VBD`` (vertex block descent, contact inside the
 descent; ``benchmarks/vbd_heap.py``: step, contact share, frames/s, deepest vertex, edges through triangles;
-``--reference-integrator fast_mass_spring`` times that integrator on the same heap in the same run;
+``--reference-integrator fast_mass_spring`` times that integrator on the same heap in the same run, ``newton_vbd``
+Newton's ``SolverVBD`` (``pip install newton``; ``--newton-from-build``: both from the tori as built);
 ``--vbd-lanes 1,32`` settles with the first value of ``ws.VBD``'s ``lanes`` and times the colour sweep and the step
 with each on the same heap: 1 a thread a particle, 32 a warp a particle; ``--cpu-blocks`` lets the CPU run
 lanes as Warp's cooperative fibers, ``wp.config.enable_cpu_blocks``, else a CPU block is one lane).
@@ -203,7 +204,11 @@ def main():
     parser.add_argument("--solver-iterations", type=int, default=None, help="fast_mass_spring: local-global "
                         "iterations a step; vbd: colour sweeps a step (default: the scene's)")
     parser.add_argument("--reference-integrator", default=None, help="vbd: also build, settle and time the heap with "
-                        "this integrator (e.g. fast_mass_spring) in the same run")
+                        "this integrator (e.g. fast_mass_spring) in the same run; newton_vbd: Newton's SolverVBD built "
+                        "from VBD's heap as it is and stepped --steps steps from the same state "
+                        "(tests/newton_reference.py; pip install newton)")
+    parser.add_argument("--newton-from-build", action="store_true", help="newton_vbd: both integrators from the tori "
+                        "as built, at rest in the air (they fall and land over --steps steps), instead of VBD's heap")
     parser.add_argument("--reference-dt", type=float, default=None, help="vbd: the reference integrator's scene step "
                         "[s] (default --dt): each integrator at its own step, compared per simulated second")
     parser.add_argument("--vbd-lanes", default=None, metavar="B[,B...]", help="vbd: threads a particle in the "

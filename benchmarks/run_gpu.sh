@@ -43,6 +43,11 @@ case "${1:-core}" in
     T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --count 100 --dt 0.0041666667 --settle 2400 --steps 100
     T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --count 1000 --dt 0.0041666667 --settle 1200 --steps 40
     T=590 run python3 check_heap.py --device "$D" --count 12 --integrator vbd --dt 1/240 --frames 600 --check-every 10
+    # Newton's SolverVBD on the same heap (benchmarks/prepare_newton.sh: .gpu3/newton.tgz unpacked onto PYTHONPATH)
+    T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --dt 0.0041666667 --settle 900 --steps 100 \
+      --no-oracles --reference-integrator newton_vbd
+    T=590 run python3 bench_donuts.py --integrator vbd --device "$D" --dt 0.0041666667 --settle 0 --steps 600 \
+      --reference-integrator newton_vbd --newton-from-build
     ;;
   occupancy)  # issue 29: record cost, bytes and query time at 10,000 teapots x 120 frames
     T=590 run python3 bench_occupancy.py --device "$D" --worlds 10000 --frames 120 --sweep-frames ${SWEEP_FRAMES:-4} --repeat 1

@@ -9,7 +9,10 @@ the heap tests assert on the final state: the deepest vertex of a torus inside a
 edges passing through another torus's triangles (the NumPy oracles of ``tests/test_soft_contact_scale.py``).
 ``--reference-integrator fast_mass_spring`` builds and settles the same heap with that integrator in the same process
 (at ``--reference-dt``, default ``--dt``: each at its own step, settled as long in simulated time) and prints the ratio
-of the time per simulated second. ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and
+of the time per simulated second; ``--reference-integrator newton_vbd`` builds Newton's ``SolverVBD`` on the same heap
+(``tests/newton_reference.py``), steps both ``--steps`` steps from VBD's state (``--newton-from-build``: from the
+tori as built) and prints the time ratio and both heaps' state (lowest vertex, mean height, kinetic energy, the
+oracles). ``--vbd-lanes 1,32`` settles with ``ws.VBD(lanes=1)`` and then times the sweep and
 the step (on CUDA also as a graph) with each value on the same heap (a thread a particle against a warp a particle),
 after one step from one saved state with each value compared with the first's positions. ``--vbd-max-registers none,64``
 does the same with ``ws.VBD``'s ``max_registers`` (the colour solve's registers a thread on CUDA: the same sums, so
@@ -185,6 +188,69 @@ def heap_state(scene, renew_fraction) -> str:
             f"{gaps} mm (thickness {contact.thickness * 1e3:.3g})")
 
 
+def heap_figures(x: np.ndarray, v: np.ndarray, mass: np.ndarray, bodies, oracles: bool) -> str:
+    """A heap's state in one line: lowest vertex [mm], mean height [m], kinetic energy [J], fastest particle [m/s],
+    and with ``oracles`` the deepest vertex inside another torus [mm] and the edges through another torus's triangles
+    (the tests' NumPy oracles)."""
+    energy = 0.5 * float((mass * (v.astype(np.float64) ** 2).sum(axis=1)).sum())
+    line = (f"lowest vertex {x[:, 1].min() * 1e3:.3f} mm, mean height {x[:, 1].mean():.4f} m, kinetic energy "
+            f"{energy:.4g} J, fastest particle {np.linalg.norm(v, axis=1).max():.3g} m/s")
+    if oracles:
+        crossings = sum(n for _, _, n in edges_through_other_bodies(x, bodies))
+        line += f", deepest vertex {deepest_vertex(x, bodies) * 1e3:.3f} mm, edges through {crossings}"
+    return line
+
+
+def compare_newton(args, scene, h, device) -> None:
+    """Newton's ``SolverVBD`` on the same heap (``tests/newton_reference.py``): built from VBD's state as it is (with
+    ``--newton-from-build`` the tori as built instead, at rest in the air), then ``--steps`` steps of each from that one
+    state (VBD's saved and set back), each timed over its steps, and the two heaps' states after them."""
+    from newton_reference import NewtonHeap, newton_version
+
+    version = newton_version()
+    if version is None:
+        print("newton_vbd: Newton is not installed (pip install newton); not compared")
+        return
+    sim = scene.sim
+    q, qd, previous = sim.state.positions, sim.state.velocities, sim.integrator.qd_prev
+    saved = [wp.clone(a) for a in (q, qd, previous)]
+    start = "VBD's state"
+    if getattr(args, "newton_from_build", False):  # the tori as built, at rest in the air: both fall and land
+        wp.copy(saved[0], sim.model.particle_q)
+        saved[1].zero_()
+        saved[2].zero_()
+        start = "the tori as built"
+    t0 = time.perf_counter()
+    other = NewtonHeap(scene, device)
+    other.step(h)  # compiles Newton's kernels and builds its solver: not timed
+    other.load(saved[0], saved[1])
+    wp.synchronize_device(device)
+    built = time.perf_counter() - t0
+    steps = max(1, args.steps)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        other.step(h)
+    wp.synchronize_device(device)
+    theirs = (time.perf_counter() - t0) / steps
+    for a, b in zip((q, qd, previous), saved):
+        wp.copy(a, b)
+    if getattr(args, "newton_from_build", False):
+        sim.integrator.contact.searches = 0  # the positions were set from outside: the next search runs
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        sim.step(h)
+    wp.synchronize_device(device)
+    ours = (time.perf_counter() - t0) / steps
+    print(f"newton_vbd: Newton {version} SolverVBD on the same heap ({other.iterations} iterations, a self-contact "
+          f"detection every {other.detect_every}; built and first step {built:.1f} s); {steps} steps of {h:.4g} s from "
+          f"{start}: Newton {theirs * 1e3:.3f} ms a step, VBD {ours * 1e3:.3f} ms: Newton / VBD time "
+          f"{theirs / ours:.2f}x")
+    mass = sim.model.particle_mass.numpy()
+    oracles = not getattr(args, "no_oracles", False)
+    print(f"  after them, VBD:    {heap_figures(q.numpy(), qd.numpy(), mass, scene.bodies, oracles)}")
+    print(f"  after them, Newton: {heap_figures(other.positions(), other.velocities(), mass, scene.bodies, oracles)}")
+
+
 def run_vbd(args, device, build) -> None:
     scene, h, _ = settle(build, args, device, "vbd")
     sim, integrator, contact = scene.sim, scene.sim.integrator, scene.vbd_contact
@@ -245,7 +311,9 @@ def run_vbd(args, device, build) -> None:
         print(f"deepest vertex inside another torus {deepest_vertex(x, scene.bodies) * 1e3:.3f} mm (thickness "
               f"{scene.params['thickness'] * 1e3:.3g} mm); edges through another torus's triangles: {crossings} "
               f"(oracles, {time.perf_counter() - t0:.1f} s)")
-    if args.reference_integrator:
+    if args.reference_integrator == "newton_vbd":
+        compare_newton(args, scene, h, device)
+    elif args.reference_integrator:
         own = (args.dt, args.settle)  # the reference settles as long in simulated time, at its own step
         args.dt = getattr(args, "reference_dt", None) or args.dt
         args.settle = round(own[1] * own[0] / args.dt)

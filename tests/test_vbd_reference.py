@@ -1,0 +1,79 @@
+"""VBD against statics and against another VBD: a soft torus dropped on the floor by ``ws.VBD`` comes to rest where its
+springs, gravity and the floor's contact balance, and where Newton's ``SolverVBD`` brings the same torus
+(``tests/newton_reference.py``: the same particles, springs, colouring, planes and contact coefficients).
+
+Friction is off, so the resting shape is the one equilibrium of the springs, gravity and the floor (a torus still
+sliding on a frictionless floor is at rest in every other sense: it drifts, it does not deform); 300 steps of 1/240 s
+(1.25 s: the torus lands at about 0.3 s, and both solvers' heights stop changing by 0.75 s).
+"""
+
+import numpy as np
+import pytest
+
+from warpsim.scenes import get_scene
+
+H = 1.0 / 240.0
+STEPS = 300
+PARAMS = {"count": 1, "segments": 24, "sides": 12, "lattice_cells": 8, "dt": H, "integrator": "vbd", "friction": 0.0}
+
+
+def dropped_torus():
+    """The donuts scene with one torus of 24 x 12 surface vertices and its lattice, stepped by VBD, not yet stepped."""
+    cls = get_scene("donuts")
+    return cls(cls.resolve_params(dict(PARAMS)), device="cpu")
+
+
+def static_residual(scene, x: np.ndarray) -> np.ndarray:
+    """Each particle's net force [N] at positions ``x`` (N, 3) [m] from the springs, gravity and the planes' contact
+    k_c (r_c - d) n (the scene's coefficients; no friction, no velocity): zero at a static equilibrium. NumPy, in
+    float64, independent of the kernels."""
+    model, contact = scene.sim.model, scene.vbd_contact
+    x = x.astype(np.float64)
+    ends = model.spring_indices.numpy().reshape(-1, 2)
+    rest = model.spring_rest_length.numpy().astype(np.float64)
+    k = model.spring_stiffness.numpy().astype(np.float64)
+    d = x[ends[:, 1]] - x[ends[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    pull = (k * (length - rest) / length)[:, None] * d
+    force = np.zeros_like(x)
+    np.add.at(force, ends[:, 0], pull)
+    np.add.at(force, ends[:, 1], -pull)
+    force[:, 1] -= model.particle_mass.numpy() * scene.params["gravity"]
+    for plane in contact._planes.numpy().astype(np.float64):
+        depth = np.clip(contact.thickness - (x @ plane[:3] - plane[3]), 0.0, None)
+        force += (contact.stiffness * depth)[:, None] * plane[:3]
+    return force
+
+
+def test_a_dropped_torus_comes_to_rest_where_springs_gravity_and_floor_balance():
+    scene = dropped_torus()
+    for _ in range(STEPS):
+        scene.sim.step(H)
+    x = scene.sim.state.positions.numpy()
+    residual = np.linalg.norm(static_residual(scene, x), axis=1)
+    weight = scene.sim.model.particle_mass.numpy() * scene.params["gravity"]
+    # measured: largest 1.27 mN, 5 % of the lightest particle's weight (25.5 mN); in flight: the whole weight
+    assert residual.max() < 0.1 * weight.min(), residual.max()
+    depth = np.clip(scene.vbd_contact.thickness - x[:, 1], 0.0, None)
+    floor = (scene.vbd_contact.stiffness * depth).sum()
+    assert floor == pytest.approx(weight.sum(), rel=0.01)  # measured 9.816 N against 9.810 N
+    assert 0.0 < depth.max() < 0.5 * scene.vbd_contact.thickness  # inside the contact's quadratic range
+
+
+def test_newton_solver_vbd_brings_the_same_torus_to_the_same_rest():
+    pytest.importorskip("newton")
+    from newton_reference import NewtonHeap
+
+    scene = dropped_torus()
+    other = NewtonHeap(scene)  # built from the scene before its first step: both start from the same state
+    for _ in range(STEPS):
+        scene.sim.step(H)
+        other.step(H)
+    ours, theirs = scene.sim.state.positions.numpy(), other.positions()
+    weight = scene.sim.model.particle_mass.numpy() * scene.params["gravity"]
+    # Newton's rest balances the same forces (measured: largest residual 2.7 mN, ours 1.3 mN) ...
+    assert np.linalg.norm(static_residual(scene, theirs), axis=1).max() < 0.2 * weight.min()
+    # ... at the same height: measured mean heights 44.57 and 44.59 mm, lowest vertices 5.73 mm both; halving the
+    # contact stiffness would double the floor penetration of 0.27 mm (inversely proportional to it)
+    assert theirs[:, 1].mean() == pytest.approx(ours[:, 1].mean(), abs=1.0e-4)
+    assert theirs[:, 1].min() == pytest.approx(ours[:, 1].min(), abs=5.0e-5)
