@@ -234,16 +234,36 @@ class FastMassSpring(Integrator):
             omegas.append(2.0 / (2.0 - rho * rho) if k == 1 else 4.0 / (4.0 - rho * rho * omegas[-1]))
         return omegas
 
-    def _warn_if_unconverged(self, h: float, rho: float) -> None:
+    def _unconverged(self, h: float, rho: float) -> str | None:
+        """What the iterations leave at step ``h`` [s] with contraction ``rho``, in words, when more than
+        ``ERROR_LEFT`` of a step's error; else None."""
         left = self.error_left(rho, self.iterations)
-        if left > ERROR_LEFT:
-            needed = next((n for n in range(1, 100_000) if self.error_left(rho, n) <= ERROR_LEFT), None) \
-                if rho < 1.0 else None
-            warnings.warn(f"FastMassSpring: {self.iterations} iterations a step leave {left:.2g} of a step's error at "
-                          f"dt = {h:.4g} s (each iteration shrinks it by {rho:.3f}, linearised); under {ERROR_LEFT} "
-                          + (f"takes {needed}" if needed else "is out of reach") + ": with fewer the bodies come "
-                          "out softer than backward Euler and the energy can rise; remedies: more iterations, a "
-                          "smaller step, or implicit_euler", StabilityWarning, stacklevel=4)
+        if left <= ERROR_LEFT:
+            return None
+        needed = next((n for n in range(1, 100_000) if self.error_left(rho, n) <= ERROR_LEFT), None) \
+            if rho < 1.0 else None
+        return (f"FastMassSpring: {self.iterations} iterations a step leave {left:.2g} of a step's error at "
+                f"dt = {h:.4g} s (each iteration shrinks it by {rho:.3f}, linearised); under {ERROR_LEFT} "
+                + (f"takes {needed}" if needed else "is out of reach"))
+
+    def _warn_if_unconverged(self, h: float, rho: float) -> None:
+        self._contraction_at = (h, rho)
+        left = self._unconverged(h, rho)
+        if left is not None:
+            warnings.warn(left + ": with fewer the bodies come out softer than backward Euler and the energy "
+                          "can rise; remedies: more iterations, a smaller step, or implicit_euler", StabilityWarning,
+                          stacklevel=4)
+
+    def energy_cause(self, h: float) -> str | None:
+        """The iterations, when they leave more than ``ERROR_LEFT`` of a step's error at ``h`` [s] (the warning
+        before the first step of that size said so): a step stopped that far from backward Euler's can gain
+        energy."""
+        known = getattr(self, "_contraction_at", None)  # (h, rho) of the step size set last
+        left = None if known is None or known[0] != h else self._unconverged(h, known[1])
+        if left is None:
+            return None
+        return (f"Cause: {left}, and a step stopped that far from backward Euler's can gain energy. Remedy: more "
+                "iterations (solver_iterations), a smaller step, or implicit_euler.")
 
     def _set_step(self, h: float) -> None:
         """Invert the matrix for the step h (host, float64; only when h changes) and warn when the

@@ -66,6 +66,12 @@ class Integrator:
         receives the force at the start of the step."""
         raise NotImplementedError
 
+    def energy_cause(self, h: float) -> str | None:
+        """Why this integrator itself may add energy at steps of ``h`` [s] when the step is inside the model's
+        stability limit ("Cause: ... Remedy: ..."), for the blow-up message (``Simulator``); None when it cannot
+        (the default: the limit is the whole story)."""
+        return None
+
     def _forces(self, system, q, qd, time, offset, f_out=None):
         f = self.f if f_out is None else f_out
         system.eval_forces(q, qd, time, offset, f)

@@ -382,7 +382,8 @@ class Simulator(SolverBase):
 
     def _energy_remedy(self, speed: bool = False) -> str:
         """Why energy appeared and what to do, by cause: the step above its limit, the lecture's
-        seed collisions, or (with the step inside its limit) a force or collider; ``speed``: the
+        seed collisions, the integrator itself (``Integrator.energy_cause``: iterations stopped far from
+        converged), or (with the step inside its limit) a force or collider; ``speed``: the
         speed bound tripped (perhaps a fast but sound run)."""
         h = self._last_h
         limit = self._stability if self._stability is not None else self.stability(positions=self.model.particle_q)
@@ -398,6 +399,9 @@ class Simulator(SolverBase):
             return (f"Cause: not the step (within its stability limit of {limit.dt:.4g} s). Remedy: if such speeds "
                     f"are expected, raise max_speed (now {self.max_speed:g} m/s); else look for a force or collider "
                     f"that adds energy.")
+        own = None if h is None else self.integrator.energy_cause(h)
+        if own:
+            return own
         driving = sorted({type(f).__name__ for f in self.forces
                           if getattr(f, "energy_role", "driving") == "driving" and not _idle(f)})
         step = "" if h is None else f"the step of {h:.4g} s is within its stability limit of {limit.dt:.4g} s, so "

@@ -104,6 +104,16 @@ STABILITY_NOTES = {"vbd": "vertex block descent is unconditionally stable, accur
 how close it comes to backward Euler)."""
 
 
+def note_of(integrator) -> str | None:
+    """What the stability report says of ``integrator`` (a name or an instance) in its own words: the instance's
+    ``stability_note`` where it has one (``ws.VBD``: not unconditional with Chebyshev acceleration on), else
+    ``STABILITY_NOTES`` by name; None: its stability region says it all."""
+    own = getattr(integrator, "stability_note", None)
+    if isinstance(own, str):
+        return own
+    return STABILITY_NOTES.get(getattr(integrator, "name", integrator))
+
+
 class StabilityWarning(UserWarning):
     """A time step above the model's stability limit (see ``Simulator.stability()``)."""
 
@@ -703,7 +713,7 @@ def particle_limits(model, positions, integrator, forces=(), colliders=(), *, pa
             kind, index, stiffness, damping = "spring", s, float(k[s]), float(c[s])
             m = float(min(mass[e] for e in ends)) if ends else 0.0
         who = "none" if kind == "none" else f"{kind} {index}: k = {stiffness:.4g} N/m, m = {m:.4g} kg"
-        reason = limit_reason(method, omega, zeta, dt, who, STABILITY_NOTES.get(getattr(integrator, "name", integrator)))
+        reason = limit_reason(method, omega, zeta, dt, who, note_of(integrator))
         if k_c > 0.0 and has_moving[w] and lightest_of[w] >= 0:
             lightest = int(lightest_of[w])
             omega_c = math.sqrt(k_c / mass[lightest])
