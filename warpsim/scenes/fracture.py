@@ -630,20 +630,34 @@ class DonutsScene(SimulatorScene):
     def device_capturing(self) -> bool:
         return bool(wp.get_device(self.sim.model.device).is_capturing)
 
+    def fall_speed(self) -> tuple:
+        """(height [m], speed [m/s]): the largest of the tori's lowest points above the floor as built, and the speed
+        sqrt(2 g height) a torus reaches falling from there to the floor (the fastest any torus meets another or the
+        floor)."""
+        P = len(self.sim.model.particle_q) // len(self.offsets)
+        height = float(self.sim.model.particle_q.numpy()[:, 1].reshape(-1, P).min(1).max()) - self.lower[1]
+        return height, math.sqrt(2.0 * self.params["gravity"] * max(height, 0.0))
+
     def stability_warning(self, frame_dt, substeps):
-        """The base's line; else, with ``integrator=vbd``, one when the contact's step bound would slow the fall:
-        a vertex moves at most (searches a step) x b_max a step (``ws.VBD``), slower than the highest torus reaches
-        falling freely until its lowest point meets the floor (sqrt(2 g height), height: the largest of the tori's
-        lowest points). Names the steps a frame and the b_max that let it fall freely."""
+        """The base's line; else one when a fall is faster than the contact can follow (:meth:`fall_speed`): with
+        ``integrator=vbd`` when the step bound would slow it (a vertex moves at most (searches a step) x b_max a step,
+        ``ws.VBD``), naming the steps a frame and the b_max that let it fall freely; with ``implicit_euler`` and
+        ``fast_mass_spring`` (the SoftContact inside the solve) when a step at that speed carries a vertex farther than
+        the thickness + ``contact_reach``, the distance within which the contact lists a pair before the step (a pair
+        farther apart can close and cross unseen: the 12-torus heap of 10 x 6 tori at 1/60 s let 55 edges through by
+        frame 19 with fast mass-spring, 326 by frame 29 with implicit Euler, and a reach of 61 mm did not help),
+        naming the steps a frame that keep it within that: needed, not always enough (at 1/240 s the same heap came
+        apart again by frame 35 with fast mass-spring, but implicit Euler kept two pairs of tori through each other)."""
         line = super().stability_warning(frame_dt, substeps)
         contact = getattr(self, "vbd_contact", None)
-        if line is not None or contact is None:
+        if line is not None:
             return line
+        if contact is None:
+            return self._soft_contact_warning(frame_dt, substeps)
         steps = self.frame_steps(frame_dt, substeps)
         h, searches, b_max = frame_dt / steps, self.sim.integrator.searches_per_step, contact.max_displacement
         most = searches * b_max / h  # [m/s]
-        height = float(self.sim.model.particle_q.numpy()[:, 1].reshape(-1, contact.body_size).min(1).max())
-        fall = math.sqrt(2.0 * self.params["gravity"] * max(height, 0.0))
+        height, fall = self.fall_speed()
         if fall <= most:
             return None
         return (f"donuts: with integrator=vbd a vertex moves at most {searches} contact searches x "
@@ -651,6 +665,23 @@ class DonutsScene(SimulatorScene):
                 f"of a fall from {height:.3g} m: the step bound would slow the fall (no energy is gained, it is "
                 f"lost); take --substeps {math.ceil(fall * frame_dt / (searches * b_max))} or set "
                 f"vbd_max_displacement={math.ceil(fall * h / searches * 1.0e4) / 1.0e4:g}")
+
+    def _soft_contact_warning(self, frame_dt, substeps):
+        """The SoftContact's line of :meth:`stability_warning` (None without one, or when the fall stays within
+        the distance the contact lists pairs at)."""
+        if self.contact is None or self.params["integrator"] not in ("implicit_euler", "fast_mass_spring"):
+            return None
+        inner = self.frame_steps(frame_dt, substeps) * self.inner_steps
+        h = frame_dt / inner
+        listed = self.contact.thickness + self.contact.reach  # [m]
+        height, fall = self.fall_speed()
+        if fall * h <= listed:
+            return None
+        return (f"donuts: a torus falling from {height:.3g} m meets the heap at {fall:.3g} m/s, "
+                f"{fall * h * 1e3:.3g} mm in a step of {h:.3g} s, farther than the {listed * 1e3:.3g} mm within which the contact lists a pair "
+                f"before the step (thickness + contact_reach): tori can pass through each other unseen; take "
+                f"--substeps {math.ceil(fall * frame_dt / (listed * self.inner_steps))} at least, or integrator=vbd "
+                "(its step bound keeps every pair apart at any step)")
 
     def kinetic_energy(self, velocities=None) -> float:
         """Kinetic energy of every particle [J] (``velocities`` (P, 3); None: the state's, read back)."""
