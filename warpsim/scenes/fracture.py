@@ -678,8 +678,9 @@ class DonutsScene(SimulatorScene):
         if fall * h <= listed:
             return None
         return (f"donuts: a torus falling from {height:.3g} m meets the heap at {fall:.3g} m/s, "
-                f"{fall * h * 1e3:.3g} mm in a step of {h:.3g} s, farther than the {listed * 1e3:.3g} mm within which the contact lists a pair "
-                f"before the step (thickness + contact_reach): tori can pass through each other unseen; take "
+                f"{fall * h * 1e3:.3g} mm in a step of {h:.3g} s, farther than the {listed * 1e3:.3g} mm within which "
+                "the contact lists a pair before the step (thickness + contact_reach): tori can pass through each "
+                "other unseen; take "
                 f"--substeps {math.ceil(fall * frame_dt / (listed * self.inner_steps))} at least, or integrator=vbd "
                 "(its step bound keeps every pair apart at any step)")
 
