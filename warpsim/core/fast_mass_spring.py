@@ -263,7 +263,8 @@ class FastMassSpring(Integrator):
         if left is None:
             return None
         return (f"Cause: {left}, and a step stopped that far from backward Euler's can gain energy. Remedy: more "
-                "iterations (solver_iterations), a smaller step, or implicit_euler.")
+                "iterations (FastMassSpring iterations, a scene's solver_iterations), a smaller step, or "
+                "implicit_euler.")
 
     def _set_step(self, h: float) -> None:
         """Invert the matrix for the step h (host, float64; only when h changes) and warn when the
