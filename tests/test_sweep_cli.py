@@ -97,6 +97,20 @@ def test_sweep_grid_gallery_and_random_sampling(tmp_path):
     assert len({tuple(np.round(o, 6)) for o in offsets}) == 4
 
 
+def test_a_sweep_says_its_first_worlds_scene_line_before_the_first_frame(tmp_path):
+    """A scene's own line about its step (``Scene.scene_warning``: the donuts' fall faster than fast mass-spring's
+    contact follows at one step of 1/60 s a frame) is said by a sweep too, of world 0, the one the batch builds;
+    at the steps it names there is none."""
+    common = ["sweep", "donuts", "--set", "integrator=fast_mass_spring", "--set", "count=2", "--fps", "60",
+              "--frames", "1", "--vary", "gravity=5,9.81", "--no-progress", "--no-thumbnails"]
+    code, _, err = run(*common, "--substeps", "1", "--out", str(tmp_path / "a.usda"))
+    assert code == 0, err
+    assert "warning: world 0 (gravity=5.0; the others not checked): donuts: a torus falling from 0.425 m" in err, err
+    assert "take --substeps 2 at least" in err
+    code, _, err = run(*common, "--substeps", "2", "--out", str(tmp_path / "b.usda"))
+    assert code == 0 and "meets the heap" not in err, err
+
+
 def test_a_fast_mass_spring_sweep_of_stiffness_is_refused_and_leaves_nothing(tmp_path):
     """FastMassSpring shares one matrix among the tori of all worlds: a sweep that varies their
     stiffness exits 2 with one line naming the key and the remedy, before any frame, and leaves no

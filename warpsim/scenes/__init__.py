@@ -225,12 +225,19 @@ class Scene:
 
     def stability_warning(self, frame_dt, substeps):
         """One line when the step this scene takes (frame_dt / steps) is above its stability
-        limit, naming the limiter and the remedies; None when it is inside or unknown."""
+        limit, naming the limiter and the remedies, else the scene's own (:meth:`scene_warning`);
+        None when it is inside or unknown."""
         limit = self.stability()
-        if limit is None:
-            return None
         h = frame_dt / self.frame_steps(frame_dt, substeps)
-        return limit.warning(h) if limit.exceeded_by(h) else None
+        if limit is not None and limit.exceeded_by(h):
+            return limit.warning(h)
+        return self.scene_warning(frame_dt, substeps)
+
+    def scene_warning(self, frame_dt, substeps):
+        """A line of the scene's own about its step (frame_dt / steps) that no stability limit gives (e.g. a fall
+        faster than its contact can follow), with the remedies; None (the default) when it has none. A sweep gives
+        its first world's (``warpsim.worlds.batch.WorldBatch.stability_warning``)."""
+        return None
 
     def steps_for(self, frame_dt, substeps) -> int:
         """Steps in a frame of ``frame_dt`` [s]: ``substeps``, or with automatic timing

@@ -638,8 +638,8 @@ class DonutsScene(SimulatorScene):
         height = float(self.sim.model.particle_q.numpy()[:, 1].reshape(-1, P).min(1).max()) - self.lower[1]
         return height, math.sqrt(2.0 * self.params["gravity"] * max(height, 0.0))
 
-    def stability_warning(self, frame_dt, substeps):
-        """The base's line; else one when a fall is faster than the contact can follow (:meth:`fall_speed`): with
+    def scene_warning(self, frame_dt, substeps):
+        """One line when a fall is faster than the contact can follow (:meth:`fall_speed`): with
         ``integrator=vbd`` when the step bound would slow it (a vertex moves at most (searches a step) x b_max a step,
         ``ws.VBD``), naming the steps a frame and the b_max that let it fall freely; with ``implicit_euler`` and
         ``fast_mass_spring`` (the SoftContact inside the solve) when a step at that speed carries a vertex farther than
@@ -648,10 +648,7 @@ class DonutsScene(SimulatorScene):
         frame 19 with fast mass-spring, 326 by frame 29 with implicit Euler, and a reach of 61 mm did not help),
         naming the steps a frame that keep it within that: needed, not always enough (at 1/240 s the same heap came
         apart again by frame 35 with fast mass-spring, but implicit Euler kept two pairs of tori through each other)."""
-        line = super().stability_warning(frame_dt, substeps)
         contact = getattr(self, "vbd_contact", None)
-        if line is not None:
-            return line
         if contact is None:
             return self._soft_contact_warning(frame_dt, substeps)
         steps = self.frame_steps(frame_dt, substeps)
@@ -667,7 +664,7 @@ class DonutsScene(SimulatorScene):
                 f"vbd_max_displacement={math.ceil(fall * h / searches * 1.0e4) / 1.0e4:g}")
 
     def _soft_contact_warning(self, frame_dt, substeps):
-        """The SoftContact's line of :meth:`stability_warning` (None without one, or when the fall stays within
+        """The SoftContact's line of :meth:`scene_warning` (None without one, or when the fall stays within
         the distance the contact lists pairs at)."""
         if self.contact is None or self.params["integrator"] not in ("implicit_euler", "fast_mass_spring"):
             return None

@@ -506,12 +506,19 @@ class WorldBatch:
         return self.batch_scene.current_timing()
 
     def stability_warning(self, frame_dt, substeps):
-        """One line naming the worlds whose step is above their limit (None when none is)."""
+        """One line naming the worlds whose step is above their limit, else the first world's scene's own line
+        (``Scene.scene_warning``: e.g. the donuts' fall faster than its contact follows; said of world 0, the scene
+        the batch builds, when values vary); None when neither."""
         from ..core.stability import worlds_warning
 
         labels = [", ".join(f"{k}={p[k]}" for k in self.varied) for p in self.params]
         steps = frame_dt / self.world_steps(frame_dt, substeps)  # each world's own step [s]
-        return worlds_warning(self.world_limits(), steps, labels)
+        line = worlds_warning(self.world_limits(), steps, labels)
+        if line is None and hasattr(self.scene, "scene_warning"):
+            line = self.scene.scene_warning(frame_dt, substeps)  # built with the first world's values
+            if line is not None and labels[0]:
+                line = f"world 0 ({labels[0]}; the others not checked): {line}"
+        return line
 
     def world_slices(self, ticket=None):
         """Host copies (N, P, 3) of the positions and velocities: now, or those a
