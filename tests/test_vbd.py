@@ -412,6 +412,24 @@ def test_the_scene_heap_holds_at_steps_of_a_sixtieth_of_a_second():
     assert max(x[b.surface_indices, 1].mean() for b in scene.bodies) > 0.1
 
 
+def test_the_tutorials_vbd_command_runs_at_one_step_a_frame(tmp_path):
+    """docs/tutorials/bodies.rst: ``warpsim run donuts --frames 60 --set integrator=vbd --set
+    vbd_max_displacement=0.024 --fps 60 --substeps 1`` (3 frames here): no warning before the first step (the bound
+    lets the tori fall at full speed), one step a frame, and its USD written."""
+    from pxr import Usd
+
+    from warpsim.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    usd = tmp_path / "d.usda"
+    code = main(["run", "donuts", "--frames", "3", "--set", "integrator=vbd", "--set", "vbd_max_displacement=0.024",
+                 "--fps", "60", "--substeps", "1", "--out", str(usd)], out=out, err=err)
+    assert code == 0, err.getvalue()
+    assert "warning" not in err.getvalue(), err.getvalue()
+    stage = Usd.Stage.Open(str(usd))
+    assert stage.GetEndTimeCode() - stage.GetStartTimeCode() == 3
+
+
 def test_stability_report_and_scene_options():
     """The stability report says VBD is unconditionally stable with accuracy set by iterations; the
     scene refuses bad VBD options with a line naming them."""
