@@ -228,9 +228,10 @@ class Scene:
         limit, naming the limiter and the remedies, else the scene's own (:meth:`scene_warning`);
         None when it is inside or unknown."""
         limit = self.stability()
-        h = frame_dt / self.frame_steps(frame_dt, substeps)
-        if limit is not None and limit.exceeded_by(h):
-            return limit.warning(h)
+        if limit is not None:
+            h = frame_dt / self.frame_steps(frame_dt, substeps)
+            if limit.exceeded_by(h):
+                return limit.warning(h)
         return self.scene_warning(frame_dt, substeps)
 
     def scene_warning(self, frame_dt, substeps):
