@@ -58,6 +58,16 @@ def clip_to_bound(x: wp.vec3, reference: wp.vec3, bound: float) -> wp.vec3:
 
 
 @wp.kernel
+def assume_external_acceleration(qd: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
+                                 inv_mass: wp.array(dtype=float), h: float, qd_prev_out: wp.array(dtype=wp.vec3)):
+    """qd_prev = qd - h f_ext / m [m/s]: a step before this one that took the external acceleration whole, for the
+    adaptive guess's share s (``guessed_share``: 1 here) where that step is unknown (the first step, a state set from
+    outside): the guess is then the inertial target y, as VBD's plain guess. Pinned particles: qd_prev = qd."""
+    i = wp.tid()
+    qd_prev_out[i] = qd[i] - h * inv_mass[i] * f_ext[i]
+
+
+@wp.kernel
 def predict(
     qd: wp.array(dtype=wp.vec3), qd_prev: wp.array(dtype=wp.vec3), f_ext: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float), h: float, adaptive: int, reference: wp.array(dtype=wp.vec3),

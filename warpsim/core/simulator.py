@@ -224,13 +224,17 @@ class Simulator(SolverBase):
         """Announce an edit from outside (``warpsim.core.solver.CHANGES``): "forces" (the force
         list changed: the integrator re-allocates its buffers, once, here), "colliders" or
         "parameters" (the stability limit is taken again), "state" (the energy balance takes its
-        reference again at the next step)."""
+        reference again at the next step, and an integrator with a memory of the steps before, ws.VBD's
+        adaptive guess, forgets it: ``forget_history``)."""
         what = check_change(what, type(self).__name__)
         if what == "forces":
             self.integrator.reset()  # prepare() is idempotent per system: force a re-allocation
             self.integrator.prepare(self.system)
         if what == "state":
             self.restart_energy()
+            forget = getattr(self.integrator, "forget_history", None)  # ws.VBD: its guess's last acceleration
+            if forget is not None:
+                forget()
         else:
             self.invalidate_stability()
 
