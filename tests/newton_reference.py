@@ -43,25 +43,19 @@ def newton_version() -> str | None:
 def surface_edges(faces: np.ndarray) -> np.ndarray:
     """The edges of a closed triangle mesh ``faces`` (F, 3) with their two opposite vertices, as Newton's
     ``add_edges`` takes them: rows (o0, o1, v0, v1), triangles (o0, v0, v1) and (o1, v1, v0); an edge with one
-    triangle gets o1 = -1."""
-    a = faces.reshape(-1)
-    b = np.roll(faces, -1, axis=1).reshape(-1)
-    opposite = np.roll(faces, -2, axis=1).reshape(-1)
-    key = np.minimum(a, b) * (int(faces.max()) + 1) + np.maximum(a, b)
-    order = np.argsort(key, kind="stable")
-    key, a, b, opposite = key[order], a[order], b[order], opposite[order]
-    first = np.concatenate([[True], key[1:] != key[:-1]])
-    starts = np.flatnonzero(first)
-    rows = np.empty((len(starts), 4), dtype=np.int64)
-    rows[:, 0] = opposite[starts]
-    rows[:, 2] = a[starts]
-    rows[:, 3] = b[starts]
-    second = starts + 1
-    paired = np.zeros(len(starts), dtype=bool)
-    inside = second < len(key)
-    paired[inside] = ~first[second[inside]]
-    rows[:, 1] = -1
-    rows[paired, 1] = opposite[second[paired]]
+    triangle gets o1 = -1. The edges and their faces are ``meshtools.edge_topology``'s."""
+    from warpsim.bodies import meshtools
+
+    directed = meshtools.directed_edges(faces)  # face f's edges (a, b) at rows f, F + f, 2F + f
+    opposite = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])  # the corner facing each
+    edges, counts, edge_of = meshtools.edge_topology(faces)
+    order = np.argsort(edge_of, kind="stable")  # each edge's directed edges together, in row order
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    first = order[starts]
+    rows = np.full((len(edges), 4), -1, dtype=np.int64)
+    rows[:, 0], rows[:, 2], rows[:, 3] = opposite[first], directed[first, 0], directed[first, 1]
+    paired = counts > 1
+    rows[paired, 1] = opposite[order[starts[paired] + 1]]
     return rows
 
 

@@ -403,7 +403,8 @@ class Simulator(SolverBase):
             return (f"Cause: not the step (within its stability limit of {limit.dt:.4g} s). Remedy: if such speeds "
                     f"are expected, raise max_speed (now {self.max_speed:g} m/s); else look for a force or collider "
                     f"that adds energy.")
-        own = None if h is None else self.integrator.energy_cause(h)
+        cause = getattr(self.integrator, "energy_cause", None)  # an integrator of one's own may lack it
+        own = None if h is None or cause is None else cause(h)
         if own:
             return own
         driving = sorted({type(f).__name__ for f in self.forces
