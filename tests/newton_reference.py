@@ -75,12 +75,47 @@ def plane_frame(normal, offset: float):
     return wp.transform(wp.vec3(*(float(offset) * n)), rotation)
 
 
+def adjacency_on(device):
+    """Newton's ``build_vertex_adjacency_with_warp`` (the CSR adjacency of vertices to edges, triangles and springs
+    that ``ModelBuilder.finalize`` builds) with its count and fill kernels launched on ``device`` instead of the CPU:
+    for a Warp without its CPU compiler (the GPU machine's), where Newton's own launches on "cpu" fail. The same
+    kernels, one thread each as Newton launches them, so the same adjacency; returned as NumPy (values, offsets)."""
+
+    def build(topology, particle_count, *, count_kernel, fill_kernel, values_per_entry):
+        topology = topology.to(device)
+        counts = wp.zeros(particle_count, dtype=wp.int32, device=device)
+        wp.launch(count_kernel, dim=1, inputs=[topology, counts], device=device)
+        offsets_np = np.zeros(particle_count + 1, dtype=np.int32)
+        offsets_np[1:] = np.cumsum(values_per_entry * counts.numpy())
+        offsets = wp.array(offsets_np, dtype=wp.int32, device=device)
+        filled = wp.zeros(particle_count, dtype=wp.int32, device=device)
+        values = wp.empty(int(offsets_np[-1]), dtype=wp.int32, device=device)
+        wp.launch(fill_kernel, dim=1, inputs=[topology, offsets, filled, values], device=device)
+        return values.numpy().copy(), offsets_np
+
+    return build
+
+
+def use_device_for_adjacency(device) -> None:
+    """Where Warp has no CPU compiler (``wp.is_cpu_available()`` False), point Newton's adjacency builder at
+    ``device`` (``adjacency_on``); elsewhere leave Newton as it is."""
+    if wp.is_cpu_available():
+        return
+    from newton._src.solvers.vbd import solver_vbd
+    from newton._src.utils import mesh
+
+    build = adjacency_on(device)
+    mesh.build_vertex_adjacency_with_warp = build
+    solver_vbd.build_vertex_adjacency_with_warp = build
+
+
 class NewtonHeap:
     """The heap of a ``donuts`` scene (``integrator=vbd``) as a Newton model stepped by Newton's ``SolverVBD``
     (module docstring). ``load`` copies a warpsim state in, ``step(h)`` takes one step, ``positions`` /
     ``velocities`` read it back [m], [m/s] as (N, 3) arrays."""
 
-    def __init__(self, scene, device=None, iterations: int | None = None, detect_every: int | None = None):
+    def __init__(self, scene, device=None, iterations: int | None = None, detect_every: int | None = None,
+                 gap: float | None = None):
         import newton
         from newton.solvers import SolverVBD
 
@@ -90,6 +125,7 @@ class NewtonHeap:
         integrator = sim.integrator
         model = sim.model
         self.device = wp.get_device(device or model.device)
+        use_device_for_adjacency(self.device)
         gravity = float(scene.params["gravity"])
         builder = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=(0.0, -gravity, 0.0))
         thickness = float(contact.thickness)
@@ -135,7 +171,8 @@ class NewtonHeap:
         self.state_0 = self.model.state()
         self.state_1 = self.model.state()
         self.control = self.model.control()
-        self.pipeline = newton.CollisionPipeline(self.model, broad_phase="nxn", soft_contact_gap=0.5 * thickness)
+        self.gap = 0.5 * thickness if gap is None else float(gap)  # Newton's detection reach past r_c [m]
+        self.pipeline = newton.CollisionPipeline(self.model, broad_phase="nxn", soft_contact_gap=self.gap)
         self.contacts = self.pipeline.contacts()
         self.thickness = thickness
         self.exclusion = 3.0 * thickness
@@ -151,7 +188,7 @@ class NewtonHeap:
             self.solver = self._solver_cls(
                 self.model, iterations=self.iterations, friction_epsilon=self.friction_eps / h,
                 particle_enable_self_contact=True, particle_self_contact_margin=self.thickness,
-                particle_self_contact_gap=0.5 * self.thickness,
+                particle_self_contact_gap=self.gap,
                 particle_rest_shape_contact_exclusion_radius=self.exclusion, collision_frequency=frequency,
                 collision_frequency_type=when)
             self.h = h

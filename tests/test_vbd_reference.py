@@ -86,3 +86,35 @@ def test_newton_solver_vbd_brings_the_same_torus_to_the_same_rest():
     # contact stiffness would double the floor penetration of 0.27 mm (inversely proportional to it)
     assert theirs[:, 1].mean() == pytest.approx(ours[:, 1].mean(), abs=1.0e-4)
     assert theirs[:, 1].min() == pytest.approx(ours[:, 1].min(), abs=5.0e-5)
+
+
+def test_newtons_adjacency_built_on_another_device_is_newtons_own():
+    """On the GPU machine Warp has no CPU compiler, and Newton's ``ModelBuilder.finalize`` launches its vertex
+    adjacency kernels on "cpu"; ``newton_reference.adjacency_on(device)`` launches the same kernels on the heap's
+    device. Here (a CPU compiler at hand) both run: the same vertex-edge, vertex-triangle and vertex-spring CSR rows
+    for the donut torus, its surface triangles, edges and springs, as Newton's own builder."""
+    pytest.importorskip("newton")
+    from newton._src.utils import mesh
+    from newton_reference import NewtonHeap, adjacency_on
+
+    scene = dropped_torus()
+    own = NewtonHeap(scene).model.soft_mesh_adjacency
+    names = ("v_adj_edges", "v_adj_edges_offsets", "v_adj_tris", "v_adj_tris_offsets", "v_adj_springs",
+             "v_adj_springs_offsets")
+    expected = [np.array(getattr(own, name)) for name in names]
+    original = mesh.build_vertex_adjacency_with_warp
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return adjacency_on("cpu")(*args, **kwargs)
+
+    mesh.build_vertex_adjacency_with_warp = counted
+    try:
+        ours = NewtonHeap(scene).model.soft_mesh_adjacency
+    finally:
+        mesh.build_vertex_adjacency_with_warp = original
+    assert len(calls) >= 3  # edges, triangles, springs
+    for name, want in zip(names, expected):
+        got = np.array(getattr(ours, name))
+        assert len(want) > 0 and np.array_equal(got, want), name
