@@ -587,7 +587,8 @@ class DonutsScene(SimulatorScene):
             if p[key] < 0:
                 raise ValueError(f"{key}={p[key]}: give an integer >= 0 (0: {zero})")
         quarter = "a quarter of the thickness"
-        for key, zero in (("vbd_max_displacement", "the thickness"), ("vbd_min_displacement", quarter)):
+        for key, zero in (("vbd_max_displacement", "the thickness or the fall's initial guess"),
+                          ("vbd_min_displacement", quarter)):
             if not (math.isfinite(p[key]) and p[key] >= 0.0):
                 raise ValueError(f"{key}={p[key]}: give a distance >= 0 [m] (0: {zero})")
         # 0: the thickness, or the initial guess of the scene's fall at its own step dt if longer (a guess the bound
@@ -673,8 +674,12 @@ class DonutsScene(SimulatorScene):
         if guess <= b_max:
             return None
         height, fall = self.fall_speed()
-        more = steps
-        while self.guess_step(frame_dt / more) > b_max:  # the steps a frame whose guesses fit the bound
+        g = self.params["gravity"]  # the steps a frame whose guesses fit the bound: fall h + g h^2 <= b_max
+        longest = 2.0 * b_max / (fall + math.sqrt(fall * fall + 4.0 * g * b_max))
+        more = max(steps, math.ceil(frame_dt / longest))
+        for _ in range(100):  # and with the guess rounded up to 0.1 mm as it is printed (a b_max under 0.1 mm: none)
+            if self.guess_step(frame_dt / more) <= b_max:
+                break
             more += 1
         return (f"donuts: with integrator=vbd a torus falling from {height:.3g} m reaches {fall:.3g} m/s, an initial "
                 f"guess of {guess * 1e3:.3g} mm a step of {h:.3g} s, longer than the {b_max * 1e3:.3g} mm a vertex may "
