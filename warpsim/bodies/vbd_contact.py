@@ -12,6 +12,7 @@ particle's displacement bound; it allocates nothing and reads nothing back (a CU
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
 import warp as wp
@@ -25,6 +26,28 @@ QUERY_BLOCK_DIM = 64
 """Threads a CUDA block of ``query_pairs`` (``bench_donuts.py --query-block-dims``; H200, the heap of 12 /
 100 tori after settling, one run: a search took 5.38 / 19.9 ms with Warp's default 256, 4.77 / 17.3 ms with
 128, 4.91 / 16.7 ms with 64, 5.10 / 16.5 ms with 32; the same lists)."""
+
+
+def guess_length(speed: float, g: float, h: float) -> float:
+    """``ws.VBD``'s initial guess [m] for a particle falling at ``speed`` [m/s] under gravity ``g`` [m/s^2] in a step
+    of ``h`` [s]: speed h + g h^2, rounded up to 0.1 mm. A guess longer than the particle's bound (at most
+    ``max_displacement``) is cut, and the sweeps do not carry a body's translation on (its springs hold each vertex to
+    its neighbours' cut positions): the fall is slowed, energy lost (a torus at 3 m/s, 1/240 s, bound 6 mm: 16 % slow
+    after 20 steps; benchmarks/RESULTS.md)."""
+    return math.ceil((speed * h + g * h * h) * 1.0e4) / 1.0e4
+
+
+def steps_fitting_guess(speed: float, g: float, b_max: float, frame_dt: float, minimum: int = 1) -> int:
+    """The fewest steps a frame of ``frame_dt`` [s] (at least ``minimum``) whose guesses (``guess_length``) fit
+    ``b_max`` [m]: the root of speed h + g h^2 = b_max, then as many more as the rounding asks (at most 100; a
+    ``b_max`` under 0.1 mm fits none)."""
+    longest = 2.0 * b_max / (speed + math.sqrt(speed * speed + 4.0 * g * b_max))
+    steps = max(int(minimum), math.ceil(frame_dt / longest))
+    for _ in range(100):
+        if guess_length(speed, g, frame_dt / steps) <= b_max:
+            break
+        steps += 1
+    return steps
 
 
 def _csr(rows: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:

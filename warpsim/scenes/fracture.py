@@ -44,6 +44,7 @@ import warpsim as ws
 from ..bodies.shapes import torus_mesh
 from ..bodies.soft_contact import SoftContact
 from ..bodies.softbody import add_soft_body
+from ..bodies.vbd_contact import guess_length, steps_fitting_guess
 from ..core.fracture import spring_segments
 from ..core.memory import available_host_bytes, check_build_memory
 from ..core.model import Model
@@ -653,7 +654,7 @@ class DonutsScene(SimulatorScene):
         1e-4 for 10 steps, at 2 m/s it is 5 % slow after 20 steps and at 3 m/s 16 %; with b_max 30 mm at 3 m/s,
         within 1e-4 (and 14 searches in 20 steps instead of 59)."""
         _, fall = self.fall_speed(model)
-        return math.ceil((fall * h + self.params["gravity"] * h * h) * 1.0e4) / 1.0e4
+        return guess_length(fall, self.params["gravity"], h)
 
     def scene_warning(self, frame_dt, substeps):
         """One line when a fall is faster than the contact can follow (:meth:`fall_speed`): with
@@ -674,13 +675,7 @@ class DonutsScene(SimulatorScene):
         if guess <= b_max:
             return None
         height, fall = self.fall_speed()
-        g = self.params["gravity"]  # the steps a frame whose guesses fit the bound: fall h + g h^2 <= b_max
-        longest = 2.0 * b_max / (fall + math.sqrt(fall * fall + 4.0 * g * b_max))
-        more = max(steps, math.ceil(frame_dt / longest))
-        for _ in range(100):  # and with the guess rounded up to 0.1 mm as it is printed (a b_max under 0.1 mm: none)
-            if self.guess_step(frame_dt / more) <= b_max:
-                break
-            more += 1
+        more = steps_fitting_guess(fall, self.params["gravity"], b_max, frame_dt, steps)
         return (f"donuts: with integrator=vbd a torus falling from {height:.3g} m reaches {fall:.3g} m/s, an initial "
                 f"guess of {guess * 1e3:.3g} mm a step of {h:.3g} s, longer than the {b_max * 1e3:.3g} mm a vertex may "
                 "move before the next contact search (vbd_max_displacement): the bound cuts the guess and slows the "
