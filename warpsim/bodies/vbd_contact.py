@@ -50,6 +50,25 @@ def steps_fitting_guess(speed: float, g: float, b_max: float, frame_dt: float, m
     return steps
 
 
+def cut_guess_line(subject: str, height: float, fall: float, g: float, frame_dt: float, steps: int, b_max: float,
+                   bound: str, setting: str = "") -> str | None:
+    """A scene's line before the first step when a fall from ``height`` [m] at ``fall`` [m/s] (gravity ``g``)
+    takes a guess (``guess_length``) longer than ``b_max`` [m] at ``steps`` steps a frame of ``frame_dt`` [s]: the
+    bound cuts it and slows the fall. ``subject``: what falls (e.g. "donuts: ... a torus"), ``bound``: where b_max
+    comes from; the remedies are the steps a frame that fit the guess (``steps_fitting_guess``) and, with
+    ``setting`` (an option's name), that option set to the guess. None when the guess fits."""
+    h = frame_dt / steps
+    guess = guess_length(fall, g, h)
+    if guess <= b_max:
+        return None
+    more = steps_fitting_guess(fall, g, b_max, frame_dt, steps)
+    remedy = f"take --substeps {more}" + (f" or set {setting}={guess:g}" if setting else "")
+    return (f"{subject} falling from {height:.3g} m reaches {fall:.3g} m/s, an initial guess of {guess * 1e3:.3g} mm "
+            f"a step of {h:.3g} s, longer than the {b_max * 1e3:.3g} mm a vertex may move before the next contact "
+            f"search ({bound}): the bound cuts the guess and slows the fall (no energy is gained, it is lost); "
+            f"{remedy}")
+
+
 def _csr(rows: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(offsets (n + 1,), values sorted by row then value): the fixed-order rows of a CSR."""
     order = np.lexsort((values, rows))

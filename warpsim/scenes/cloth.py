@@ -7,11 +7,13 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import numpy as np
+
 from ..cloth.builder import add_cloth_grid
 from ..cloth.solver import ClothImplicitEuler, ClothSemiImplicitEuler, ClothSimulator
 from ..bodies.colliders import Plane, Sphere
 from ..bodies.vbd import VBD
-from ..bodies.vbd_contact import VBDContact, guess_length, steps_fitting_guess
+from ..bodies.vbd_contact import VBDContact, cut_guess_line
 from ..core import Gravity, ModelBuilder, Simulator, Wind, checks
 from . import SimulatorScene, register_scene
 from .live import drop_graphs, set_contact, set_springs
@@ -114,18 +116,10 @@ class ClothScene(SimulatorScene):
         contact = getattr(self, "vbd_contact", None)
         if contact is None:
             return None
-        steps = self.frame_steps(frame_dt, substeps)
-        h, b_max, g = frame_dt / steps, contact.max_displacement, 9.81
+        g = max(float(np.linalg.norm(f.g)) for f in self.sim.forces if isinstance(f, Gravity))  # [m/s^2]
         height = max(float(self.sim.model.particle_q.numpy()[:, 1].max()), 0.0)  # above the floor at y = 0 [m]
-        fall = (2.0 * g * height) ** 0.5
-        guess = guess_length(fall, g, h)
-        if guess <= b_max:
-            return None
-        more = steps_fitting_guess(fall, g, b_max, frame_dt, steps)
-        return (f"{self.name}: with integrator=vbd the sheet falling from {height:.3g} m reaches {fall:.3g} m/s, an "
-                f"initial guess of {guess * 1e3:.3g} mm a step of {h:.3g} s, longer than the {b_max * 1e3:.3g} mm a "
-                "vertex may move before the next contact search (the thickness): the bound cuts the guess and slows "
-                f"the fall (no energy is gained, it is lost); take --substeps {more}")
+        return cut_guess_line(f"{self.name}: with integrator=vbd the sheet", height, (2.0 * g * height) ** 0.5, g,
+                              frame_dt, self.frame_steps(frame_dt, substeps), contact.max_displacement, "the thickness")
 
     def springs(self, p):
         k = p["damping"]

@@ -44,7 +44,7 @@ import warpsim as ws
 from ..bodies.shapes import torus_mesh
 from ..bodies.soft_contact import SoftContact
 from ..bodies.softbody import add_soft_body
-from ..bodies.vbd_contact import guess_length, steps_fitting_guess
+from ..bodies.vbd_contact import cut_guess_line, guess_length
 from ..core.fracture import spring_segments
 from ..core.memory import available_host_bytes, check_build_memory
 from ..core.model import Model
@@ -669,17 +669,10 @@ class DonutsScene(SimulatorScene):
         contact = getattr(self, "vbd_contact", None)
         if contact is None:
             return self._soft_contact_warning(frame_dt, substeps)
-        steps = self.frame_steps(frame_dt, substeps)
-        h, b_max = frame_dt / steps, contact.max_displacement
-        guess = self.guess_step(h)
-        if guess <= b_max:
-            return None
         height, fall = self.fall_speed()
-        more = steps_fitting_guess(fall, self.params["gravity"], b_max, frame_dt, steps)
-        return (f"donuts: with integrator=vbd a torus falling from {height:.3g} m reaches {fall:.3g} m/s, an initial "
-                f"guess of {guess * 1e3:.3g} mm a step of {h:.3g} s, longer than the {b_max * 1e3:.3g} mm a vertex may "
-                "move before the next contact search (vbd_max_displacement): the bound cuts the guess and slows the "
-                f"fall (no energy is gained, it is lost); take --substeps {more} or set vbd_max_displacement={guess:g}")
+        return cut_guess_line("donuts: with integrator=vbd a torus", height, fall, self.params["gravity"], frame_dt,
+                              self.frame_steps(frame_dt, substeps), contact.max_displacement,
+                              "vbd_max_displacement", setting="vbd_max_displacement")
 
     def _soft_contact_warning(self, frame_dt, substeps):
         """The SoftContact's line of :meth:`scene_warning` (None without one, or when the fall stays within
